@@ -1,1 +1,22 @@
-//! sim
+//! The simulated Nori A3: servos, arms and buses that speak the real Feetech wire protocol.
+//!
+//! * [`servo`]: one STS servo, its register file, firmware (position/speed loops, torque limit,
+//!   over-current, overload and over-temperature protections) and plant (DC motor through a
+//!   gearbox, Coulomb + viscous friction, one-node thermal model read as an integer °C).
+//! * [`arm`]: the 7-DoF chain's gravity and inertia (nalgebra), hard stops, obstacles, and the
+//!   compliant TPU gripper.
+//! * [`bus`]: one bus, sans-IO: the device side of the `feetech` codec with the line's timing
+//!   (replies complete `bytes × 10 / baud` after the request, plus the return delay).
+//! * [`pty`]: serving buses on pseudo-terminals in real time for the unmodified driver.
+//! * [`description`]: the robot description file; the A3's is embedded.
+//!
+//! Batch mode is [`bus::SimBus::step`] in a loop: no wall clock, as fast as the CPU goes.
+
+pub mod arm;
+pub mod bus;
+pub mod description;
+pub mod pty;
+pub mod servo;
+
+pub use bus::{BusReport, SimBus};
+pub use description::RobotDescription;

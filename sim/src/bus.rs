@@ -1,0 +1,491 @@
+//! One simulated bus: its servos, the mechanics they drive, and the device side of the
+//! protocol with the line's timing. Sans-IO: bytes in at a simulated time, reply bytes out with
+//! the time they finish arriving on a real line.
+
+use crate::arm::{gripper_load, Arm, JointLoads};
+use crate::description::{BusDescription, RobotDescription};
+use crate::servo::Servo;
+use feetech::instruction::Instruction;
+use feetech::registers::TABLE_SIZE;
+use feetech::timing::wire_time;
+use feetech::{Decoder, StatusPacket, BROADCAST_ID, MAX_PACKET};
+use serde::Serialize;
+use std::collections::VecDeque;
+
+/// What a servo does in the mechanics.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Role {
+    ArmJoint(usize),
+    Gripper,
+    Wheel,
+    Free,
+}
+
+/// A reply scheduled on the line.
+#[derive(Debug, Clone)]
+pub struct Reply {
+    /// Simulated time at which its last byte has arrived, s.
+    pub due: f64,
+    /// The status packet.
+    pub bytes: Vec<u8>,
+}
+
+/// Protocol counters of the bus.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct LineStats {
+    /// Instruction packets received.
+    pub instructions: u64,
+    /// SYNC_READs received.
+    pub sync_reads: u64,
+    /// SYNC_WRITEs received.
+    pub sync_writes: u64,
+    /// Framing errors (garbage, checksum, length).
+    pub decode_errors: u64,
+    /// Well-framed packets that were not valid instructions.
+    pub bad_instructions: u64,
+    /// Status packets sent.
+    pub replies: u64,
+}
+
+/// Per-servo figures of a report.
+#[derive(Debug, Clone, Serialize)]
+pub struct ServoReport {
+    /// Bus id.
+    pub id: u8,
+    /// Joint name.
+    pub joint: String,
+    /// Joint angle now, rad.
+    pub angle_rad: f64,
+    /// Winding temperature now, °C.
+    pub temperature_c: f64,
+    /// Highest winding temperature reached, °C.
+    pub max_temperature_c: f64,
+    /// What the servo received and did.
+    #[serde(flatten)]
+    pub log: crate::servo::ServoLog,
+}
+
+/// A bus's report.
+#[derive(Debug, Clone, Serialize)]
+pub struct BusReport {
+    /// Bus name.
+    pub name: String,
+    /// Simulated seconds elapsed.
+    pub time_s: f64,
+    /// Protocol counters.
+    pub line: LineStats,
+    /// Servos.
+    pub servos: Vec<ServoReport>,
+}
+
+/// One simulated bus.
+pub struct SimBus {
+    /// Bus name.
+    pub name: String,
+    /// Line rate.
+    pub baud: u32,
+    supply_v: f64,
+    supply_resistance: f64,
+    /// The servos, in description order.
+    pub servos: Vec<Servo>,
+    joints: Vec<String>,
+    roles: Vec<Role>,
+    index: [Option<u8>; 256],
+    arm: Option<Arm>,
+    arm_servos: Vec<usize>,
+    wheel_load: (f64, f64),
+    /// Ambient temperature, °C.
+    pub ambient: f64,
+    /// Thermal integration speed-up (1 = physical).
+    pub thermal_speedup: f64,
+    time: f64,
+    decoder: Decoder,
+    line_free_at: f64,
+    pending: VecDeque<Reply>,
+    registered: Vec<Option<(u8, Vec<u8>)>>,
+    /// Protocol counters.
+    pub stats: LineStats,
+    loads: JointLoads,
+    q: Vec<f64>,
+    qd: Vec<f64>,
+}
+
+impl SimBus {
+    /// Builds a bus from its description.
+    pub fn new(robot: &RobotDescription, d: &BusDescription) -> Self {
+        let mut servos = Vec::with_capacity(d.servo.len());
+        let mut index = [None; 256];
+        for (i, s) in d.servo.iter().enumerate() {
+            // Validated: every model key exists.
+            let rating = robot
+                .rating(&s.model)
+                .cloned()
+                .unwrap_or_else(|| panic!("servo {} has unvalidated model {}", s.id, s.model));
+            let mut servo = Servo::new(s.id, rating.model, &rating, s.initial_rad, robot.ambient_c);
+            servo.supply = d.supply_v;
+            servos.push(servo);
+            index[s.id as usize] = Some(i as u8);
+        }
+        let pos = |id: u8| index[id as usize].map(usize::from).unwrap_or(0);
+        let mut roles = vec![Role::Free; servos.len()];
+        let mut arm_servos = Vec::new();
+        if let Some(a) = &d.arm {
+            for (k, j) in a.joint.iter().enumerate() {
+                roles[pos(j.servo)] = Role::ArmJoint(k);
+                arm_servos.push(pos(j.servo));
+            }
+            if let Some(g) = &a.gripper {
+                roles[pos(g.servo)] = Role::Gripper;
+            }
+        }
+        let mut wheel_load = (0.0, 0.0);
+        if let Some(w) = &d.wheels {
+            for &id in &w.servos {
+                roles[pos(id)] = Role::Wheel;
+            }
+            wheel_load = (w.inertia_kgm2, w.viscous_nms);
+        }
+        let n_arm = arm_servos.len();
+        SimBus {
+            name: d.name.clone(),
+            baud: d.baud,
+            supply_v: d.supply_v,
+            supply_resistance: d.supply_resistance_ohm,
+            joints: d.servo.iter().map(|s| s.joint.clone()).collect(),
+            registered: vec![None; servos.len()],
+            servos,
+            roles,
+            index,
+            arm: d.arm.as_ref().map(|a| Arm::new(a, robot.gravity)),
+            arm_servos,
+            wheel_load,
+            ambient: robot.ambient_c,
+            thermal_speedup: 1.0,
+            time: 0.0,
+            decoder: Decoder::new(),
+            line_free_at: 0.0,
+            pending: VecDeque::new(),
+            stats: LineStats::default(),
+            loads: JointLoads::default(),
+            q: vec![0.0; n_arm],
+            qd: vec![0.0; n_arm],
+        }
+    }
+
+    /// Simulated time, s.
+    pub fn time(&self) -> f64 {
+        self.time
+    }
+
+    /// The servo with bus id `id`.
+    pub fn servo_mut(&mut self, id: u8) -> Option<&mut Servo> {
+        let i = self.index[id as usize]?;
+        self.servos.get_mut(usize::from(i))
+    }
+
+    /// The arm's mechanics, if this bus drives an arm (to place obstacles or objects).
+    pub fn arm_mut(&mut self) -> Option<&mut Arm> {
+        self.arm.as_mut()
+    }
+
+    /// Advances the mechanics and thermal state by one step of `dt` seconds.
+    pub fn step(&mut self, dt: f64) {
+        let total_current: f64 = self.servos.iter().map(|s| s.current.abs()).sum();
+        let supply = (self.supply_v - self.supply_resistance * total_current).max(0.0);
+        if let Some(arm) = &mut self.arm {
+            for (k, &i) in self.arm_servos.iter().enumerate() {
+                self.q[k] = self.servos[i].angle;
+                self.qd[k] = self.servos[i].speed;
+            }
+            arm.loads(&self.q, &self.qd, &mut self.loads);
+        }
+        let (ambient, speedup) = (self.ambient, self.thermal_speedup);
+        for (i, servo) in self.servos.iter_mut().enumerate() {
+            servo.supply = supply;
+            let (torque, inertia) = match self.roles[i] {
+                Role::ArmJoint(k) => (self.loads.torque[k], self.loads.inertia[k]),
+                Role::Gripper => match self.arm.as_ref().and_then(|a| a.gripper.as_ref()) {
+                    Some(g) => (gripper_load(g, servo.angle, servo.speed), 0.0),
+                    None => (0.0, 0.0),
+                },
+                Role::Wheel => (self.wheel_load.1 * servo.speed, self.wheel_load.0),
+                Role::Free => (0.0, 0.0),
+            };
+            servo.step(dt, torque, inertia, ambient, speedup);
+        }
+        self.time += dt;
+    }
+
+    /// Steps the mechanics with `dt` until the simulated time reaches `t`.
+    pub fn advance_to(&mut self, t: f64, dt: f64) {
+        while self.time + dt <= t {
+            self.step(dt);
+        }
+    }
+
+    /// Bytes from the host arrive now; replies are scheduled on the line.
+    pub fn receive(&mut self, mut bytes: &[u8]) {
+        while !bytes.is_empty() {
+            let taken = self.decoder.push(bytes);
+            bytes = &bytes[taken..];
+            while let Some(result) = self.decoder.next_frame() {
+                match result {
+                    Ok(frame) => self.execute(&frame),
+                    Err(_) => self.stats.decode_errors += 1,
+                }
+            }
+        }
+    }
+
+    /// The next reply whose last byte has arrived by `now`, if any.
+    pub fn pop_due(&mut self, now: f64) -> Option<Reply> {
+        if self.pending.front().is_some_and(|r| r.due <= now) {
+            return self.pending.pop_front();
+        }
+        None
+    }
+
+    /// When the next reply is due.
+    pub fn next_due(&self) -> Option<f64> {
+        self.pending.front().map(|r| r.due)
+    }
+
+    /// A report of the bus now.
+    pub fn report(&self) -> BusReport {
+        BusReport {
+            name: self.name.clone(),
+            time_s: self.time,
+            line: self.stats,
+            servos: self
+                .servos
+                .iter()
+                .zip(&self.joints)
+                .map(|(s, joint)| ServoReport {
+                    id: s.id,
+                    joint: joint.clone(),
+                    angle_rad: s.angle,
+                    temperature_c: s.temperature,
+                    max_temperature_c: s.max_temperature,
+                    log: s.log,
+                })
+                .collect(),
+        }
+    }
+
+    fn execute(&mut self, frame: &feetech::Frame) {
+        let instruction = match Instruction::parse(frame) {
+            Ok(i) => i,
+            Err(_) => {
+                self.stats.bad_instructions += 1;
+                return;
+            }
+        };
+        self.stats.instructions += 1;
+        // The request occupies the line first; replies follow it back to back.
+        let request_bytes = frame.params().len() + 6;
+        let start = self.line_free_at.max(self.time);
+        self.line_free_at = start + wire_time(request_bytes, self.baud).as_secs_f64();
+        let targets = |id: u8, s: &Servo| id == BROADCAST_ID || s.id == id;
+        match instruction {
+            Instruction::Ping { id } => self.reply_from(id, &[]),
+            Instruction::Read { id, addr, len } => self.read_reply(id, addr, len),
+            Instruction::Write { id, addr, data } => {
+                for s in self.servos.iter_mut() {
+                    if targets(id, s) && s.answering {
+                        s.write(addr, data);
+                    }
+                }
+                self.reply_from(id, &[]);
+            }
+            Instruction::RegWrite { id, addr, data } => {
+                for (i, s) in self.servos.iter().enumerate() {
+                    if targets(id, s) && s.answering {
+                        self.registered[i] = Some((addr, data.to_vec()));
+                    }
+                }
+                self.reply_from(id, &[]);
+            }
+            Instruction::Action { id } => {
+                for (i, s) in self.servos.iter_mut().enumerate() {
+                    if targets(id, s) {
+                        if let Some((addr, data)) = self.registered[i].take() {
+                            s.write(addr, &data);
+                        }
+                    }
+                }
+                self.reply_from(id, &[]);
+            }
+            Instruction::FactoryReset { id } => self.reply_from(id, &[]),
+            Instruction::Reboot { id } => {
+                for s in self
+                    .servos
+                    .iter_mut()
+                    .filter(|s| s.id == id || id == BROADCAST_ID)
+                {
+                    s.reboot();
+                }
+            }
+            Instruction::SyncRead { addr, len, ids } => {
+                self.stats.sync_reads += 1;
+                for &id in ids {
+                    self.read_reply(id, addr, len);
+                }
+            }
+            Instruction::SyncWrite { addr, .. } => {
+                self.stats.sync_writes += 1;
+                for (id, data) in instruction.sync_write_records() {
+                    if let Some(s) = self.servo_mut(id) {
+                        if s.answering {
+                            s.write(addr, data);
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    fn read_reply(&mut self, id: u8, addr: u8, len: u8) {
+        let mut data = [0u8; TABLE_SIZE];
+        let ok = match self.servo_mut(id) {
+            Some(s) if s.answering => s.read(addr, len, &mut data),
+            _ => return,
+        };
+        if ok {
+            self.reply_from(id, &data[..len as usize]);
+        }
+    }
+
+    /// Schedules the status packet of servo `id` (nothing for broadcast or an absent servo).
+    fn reply_from(&mut self, id: u8, params: &[u8]) {
+        if id == BROADCAST_ID {
+            return;
+        }
+        let Some(servo) = self.servo_mut(id) else {
+            return;
+        };
+        if !servo.answering {
+            return;
+        }
+        let delay = f64::from(servo.get(feetech::registers::RETURN_DELAY_TIME)) * 2e-6;
+        let packet = StatusPacket {
+            id,
+            status: servo.status(),
+            params,
+        };
+        let mut out = [0u8; MAX_PACKET];
+        let Some(n) = packet.encode(&mut out) else {
+            return;
+        };
+        let due = self.line_free_at + delay + wire_time(n, self.baud).as_secs_f64();
+        self.line_free_at = due;
+        self.pending.push_back(Reply {
+            due,
+            bytes: out[..n].to_vec(),
+        });
+        self.stats.replies += 1;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use feetech::registers as reg;
+
+    fn left_arm() -> SimBus {
+        let d = RobotDescription::nori_a3();
+        SimBus::new(&d, d.bus("left_arm").unwrap())
+    }
+
+    fn send(bus: &mut SimBus, i: Instruction) {
+        let mut buf = [0u8; 300];
+        let n = i.encode(&mut buf).unwrap();
+        bus.receive(&buf[..n]);
+    }
+
+    #[test]
+    fn ping_is_answered_after_the_wire_time() {
+        let mut bus = left_arm();
+        send(&mut bus, Instruction::Ping { id: 1 });
+        // 6 bytes request + 500 µs factory return delay + 6 bytes reply at 1 Mbps.
+        let due = bus.next_due().unwrap();
+        assert!((due - (60e-6 + 500e-6 + 60e-6)).abs() < 1e-9, "{due}");
+        assert!(bus.pop_due(due - 1e-6).is_none());
+        assert_eq!(bus.pop_due(due).unwrap().bytes, [0xFF, 0xFF, 1, 2, 0, 0xFC]);
+    }
+
+    #[test]
+    fn sync_read_answers_in_request_order_and_skips_absent_ids() {
+        let mut bus = left_arm();
+        send(
+            &mut bus,
+            Instruction::Write {
+                id: BROADCAST_ID,
+                addr: reg::RETURN_DELAY_TIME.addr,
+                data: &[0],
+            },
+        );
+        send(
+            &mut bus,
+            Instruction::SyncRead {
+                addr: 56,
+                len: 15,
+                ids: &[3, 1, 99, 2],
+            },
+        );
+        let mut ids = vec![];
+        let mut last_due = 0.0;
+        while let Some(r) = bus.pop_due(f64::MAX) {
+            assert!(r.due > last_due);
+            last_due = r.due;
+            assert_eq!(r.bytes.len(), 21);
+            ids.push(r.bytes[2]);
+        }
+        assert_eq!(ids, [3, 1, 2]);
+        // Broadcast write (no reply) 9 bytes + request 11 + 3 replies × 21 bytes.
+        assert!(
+            (last_due - (9.0 + 11.0 + 63.0) * 10e-6).abs() < 1e-9,
+            "{last_due}"
+        );
+    }
+
+    #[test]
+    fn sync_write_moves_servos_and_is_logged() {
+        let mut bus = left_arm();
+        send(
+            &mut bus,
+            Instruction::Write {
+                id: BROADCAST_ID,
+                addr: reg::TORQUE_ENABLE.addr,
+                data: &[1],
+            },
+        );
+        let payload = [5, 0x00, 0x09, 7, 0x00, 0x07];
+        send(
+            &mut bus,
+            Instruction::SyncWrite {
+                addr: 42,
+                len: 2,
+                payload: &payload,
+            },
+        );
+        bus.advance_to(2.0, 0.001);
+        let s5 = bus.servo_mut(5).unwrap();
+        assert_eq!(s5.log.goal_min, Some(0x900));
+        assert!(
+            (s5.angle - (0x900 as f64 - 2048.0) * crate::servo::RAD_PER_STEP).abs() < 0.02,
+            "{}",
+            s5.angle
+        );
+        let s7 = bus.servo_mut(7).unwrap();
+        assert_eq!(s7.log.goal_max, Some(0x700));
+    }
+
+    #[test]
+    fn garbage_is_counted_and_does_not_stop_the_device() {
+        let mut bus = left_arm();
+        bus.receive(&[0x00, 0x13, 0xFF, 0xFF, 0x01, 0x02, 0x01, 0x00]);
+        send(&mut bus, Instruction::Ping { id: 2 });
+        assert!(bus.stats.decode_errors >= 1);
+        assert_eq!(bus.pop_due(f64::MAX).unwrap().bytes[2], 2);
+    }
+}

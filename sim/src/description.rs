@@ -1,0 +1,430 @@
+//! The robot description file: servo ratings, buses, arm kinematics, grippers, obstacles.
+//!
+//! TOML with kebab-case keys; unknown keys are refused. The A3's description is embedded
+//! ([`RobotDescription::nori_a3`]) so the simulator runs with no file at all.
+
+use feetech::ServoModel;
+use serde::Deserialize;
+use std::collections::BTreeMap;
+use std::path::Path;
+use thiserror::Error;
+
+/// The A3's description, as shipped.
+pub const NORI_A3_TOML: &str = include_str!("../robots/nori-a3.toml");
+
+/// A description that cannot be used.
+#[derive(Debug, Error)]
+pub enum DescriptionError {
+    /// The file could not be read.
+    #[error("cannot read robot description {path}: {source}")]
+    Io {
+        /// File path.
+        path: String,
+        /// Cause.
+        source: std::io::Error,
+    },
+    /// TOML syntax, a wrong type or an unknown key (the message names the key and line).
+    #[error("robot description {path}: {source}")]
+    Parse {
+        /// File path.
+        path: String,
+        /// Cause.
+        source: toml::de::Error,
+    },
+    /// A value that parses but is physically impossible or inconsistent.
+    #[error("robot description {path}: {key}: {reason}")]
+    Invalid {
+        /// File path.
+        path: String,
+        /// The offending key.
+        key: String,
+        /// Why.
+        reason: String,
+    },
+}
+
+/// Ratings and identified constants of one servo model.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct ServoRating {
+    /// The model (from the table key).
+    #[serde(skip, default = "default_model")]
+    pub model: ServoModel,
+    /// Voltage the ratings are given at, V.
+    pub rated_voltage: f64,
+    /// Stall torque at rated voltage, kg·cm.
+    pub stall_torque_kgcm: f64,
+    /// Stall current at rated voltage, A.
+    pub stall_current_a: f64,
+    /// No-load output speed at rated voltage, rad/s.
+    pub no_load_speed_rad_s: f64,
+    /// Gearbox ratio.
+    pub gear_ratio: f64,
+    /// Rotor inertia reflected to the output, kg·m².
+    pub armature_kgm2: f64,
+    /// Coulomb friction at the output, N·m.
+    pub coulomb_nm: f64,
+    /// Viscous friction at the output, N·m·s/rad.
+    pub viscous_nms: f64,
+    /// Heat capacity of the one thermal node, J/K.
+    pub heat_capacity_j_per_k: f64,
+    /// Thermal resistance to ambient, K/W.
+    pub thermal_resistance_k_per_w: f64,
+    /// Constant electronics loss, W.
+    pub idle_power_w: f64,
+}
+
+fn default_model() -> ServoModel {
+    ServoModel::Sts3215
+}
+
+/// One servo on a bus.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct ServoDescription {
+    /// Bus id.
+    pub id: u8,
+    /// Joint name.
+    pub joint: String,
+    /// Key into `servo-models`.
+    pub model: String,
+    /// Starting angle, rad.
+    #[serde(default)]
+    pub initial_rad: f64,
+}
+
+/// One joint of an arm chain, driven by one servo.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct ArmJoint {
+    /// Servo id driving the joint.
+    pub servo: u8,
+    /// Rotation axis in the joint frame (normalised on load).
+    pub axis: [f64; 3],
+    /// Joint origin in the parent frame, m.
+    pub origin: [f64; 3],
+    /// Mass of the link the joint moves (up to the next joint), kg.
+    pub mass_kg: f64,
+    /// Centre of mass of that link in the joint frame, m.
+    pub com: [f64; 3],
+    /// Mechanical hard stop, rad.
+    pub lower_rad: f64,
+    /// Mechanical hard stop, rad.
+    pub upper_rad: f64,
+}
+
+/// The compliant gripper.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct GripperDescription {
+    /// Servo id.
+    pub servo: u8,
+    /// Closed stop (fingers touching), rad.
+    pub lower_rad: f64,
+    /// Open stop, rad.
+    pub upper_rad: f64,
+    /// Stiffness of the TPU fingers at the gripper joint, N·m/rad.
+    pub finger_stiffness_nm_per_rad: f64,
+    /// An object held between the fingers, if any.
+    #[serde(default)]
+    pub object: Option<GraspObject>,
+}
+
+/// An object between the fingers.
+#[derive(Debug, Clone, Copy, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct GraspObject {
+    /// Gripper angle at first contact, rad.
+    pub contact_rad: f64,
+    /// The object's own stiffness at the gripper joint, N·m/rad (in series with the fingers).
+    pub stiffness_nm_per_rad: f64,
+}
+
+/// A sphere in the arm's workspace that links cannot pass through.
+#[derive(Debug, Clone, Copy, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct Obstacle {
+    /// Centre, m, world frame.
+    pub center: [f64; 3],
+    /// Radius, m.
+    pub radius_m: f64,
+    /// Contact stiffness, N/m.
+    #[serde(default = "default_obstacle_stiffness")]
+    pub stiffness_n_per_m: f64,
+}
+
+fn default_obstacle_stiffness() -> f64 {
+    20_000.0
+}
+
+/// An arm: a serial chain of joints, a tip, a gripper and obstacles.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct ArmDescription {
+    /// Shoulder position, m, world frame.
+    pub base: [f64; 3],
+    /// Tool point in the last joint's frame, m.
+    pub tip: [f64; 3],
+    /// Mass held at the tip, kg.
+    #[serde(default)]
+    pub payload_kg: f64,
+    /// Joints from the base outward.
+    pub joint: Vec<ArmJoint>,
+    /// Gripper, if fitted.
+    #[serde(default)]
+    pub gripper: Option<GripperDescription>,
+    /// Obstacles in reach.
+    #[serde(default)]
+    pub obstacle: Vec<Obstacle>,
+}
+
+/// Wheels of the differential base, in speed mode.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct WheelsDescription {
+    /// Servo ids.
+    pub servos: Vec<u8>,
+    /// Inertia each wheel drives, kg·m².
+    pub inertia_kgm2: f64,
+    /// Rolling resistance, N·m·s/rad.
+    pub viscous_nms: f64,
+}
+
+/// One serial bus.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct BusDescription {
+    /// Bus name (also the device name the simulator serves).
+    pub name: String,
+    /// Line rate, baud.
+    pub baud: u32,
+    /// Supply voltage, V.
+    pub supply_v: f64,
+    /// Resistance of the supply and wiring, Ω: the voltage sags by R·ΣI (0 = stiff supply).
+    #[serde(default)]
+    pub supply_resistance_ohm: f64,
+    /// Servos on the bus.
+    pub servo: Vec<ServoDescription>,
+    /// The arm this bus drives, if any.
+    #[serde(default)]
+    pub arm: Option<ArmDescription>,
+    /// Wheels this bus drives, if any.
+    #[serde(default)]
+    pub wheels: Option<WheelsDescription>,
+}
+
+/// A whole robot.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct RobotDescription {
+    /// Robot type.
+    pub name: String,
+    /// Ambient temperature, °C.
+    pub ambient_c: f64,
+    /// Gravity, m/s², world frame.
+    pub gravity: [f64; 3],
+    /// Ratings by model key (`sts3215`, `sts3250`, `sts3095`).
+    pub servo_models: BTreeMap<String, ServoRating>,
+    /// Buses.
+    pub bus: Vec<BusDescription>,
+}
+
+impl RobotDescription {
+    /// The embedded Nori A3 description.
+    pub fn nori_a3() -> Self {
+        // The embedded file is checked by a unit test; failing here is a build defect.
+        Self::parse(NORI_A3_TOML, "<embedded nori-a3.toml>")
+            .unwrap_or_else(|e| panic!("embedded robot description is invalid: {e}"))
+    }
+
+    /// Reads and validates a description file.
+    pub fn load(path: &Path) -> Result<Self, DescriptionError> {
+        let text = std::fs::read_to_string(path).map_err(|source| DescriptionError::Io {
+            path: path.display().to_string(),
+            source,
+        })?;
+        Self::parse(&text, &path.display().to_string())
+    }
+
+    /// Parses and validates description text; `origin` names it in errors.
+    pub fn parse(text: &str, origin: &str) -> Result<Self, DescriptionError> {
+        let mut d: RobotDescription =
+            toml::from_str(text).map_err(|source| DescriptionError::Parse {
+                path: origin.to_string(),
+                source,
+            })?;
+        d.validate(origin)?;
+        Ok(d)
+    }
+
+    /// The rating of a model key.
+    pub fn rating(&self, key: &str) -> Option<&ServoRating> {
+        self.servo_models.get(key)
+    }
+
+    /// A bus by name.
+    pub fn bus(&self, name: &str) -> Option<&BusDescription> {
+        self.bus.iter().find(|b| b.name == name)
+    }
+
+    fn validate(&mut self, origin: &str) -> Result<(), DescriptionError> {
+        let invalid = |key: String, reason: String| DescriptionError::Invalid {
+            path: origin.to_string(),
+            key,
+            reason,
+        };
+        for (key, rating) in &mut self.servo_models {
+            rating.model = match key.as_str() {
+                "sts3215" => ServoModel::Sts3215,
+                "sts3250" => ServoModel::Sts3250,
+                "sts3095" => ServoModel::Sts3095,
+                other => {
+                    return Err(invalid(
+                        format!("servo-models.{other}"),
+                        "unknown model (sts3215, sts3250, sts3095)".into(),
+                    ))
+                }
+            };
+            let positive = [
+                ("rated-voltage", rating.rated_voltage),
+                ("stall-torque-kgcm", rating.stall_torque_kgcm),
+                ("stall-current-a", rating.stall_current_a),
+                ("no-load-speed-rad-s", rating.no_load_speed_rad_s),
+                ("gear-ratio", rating.gear_ratio),
+                ("armature-kgm2", rating.armature_kgm2),
+                ("heat-capacity-j-per-k", rating.heat_capacity_j_per_k),
+                (
+                    "thermal-resistance-k-per-w",
+                    rating.thermal_resistance_k_per_w,
+                ),
+            ];
+            for (name, v) in positive {
+                if !(v.is_finite() && v > 0.0) {
+                    return Err(invalid(
+                        format!("servo-models.{key}.{name}"),
+                        format!("must be > 0, got {v}"),
+                    ));
+                }
+            }
+        }
+        let mut names = std::collections::HashSet::new();
+        for (b, bus) in self.bus.iter_mut().enumerate() {
+            let at = |k: &str| format!("bus[{b}] ({}).{k}", bus.name);
+            if !names.insert(bus.name.clone()) {
+                return Err(invalid(at("name"), "duplicate bus name".into()));
+            }
+            if feetech::timing::baud_code(bus.baud).is_none() {
+                return Err(invalid(
+                    at("baud"),
+                    format!("{} is not a baud rate the servos support", bus.baud),
+                ));
+            }
+            if !(bus.supply_v.is_finite() && bus.supply_v > 0.0) {
+                return Err(invalid(at("supply-v"), "must be > 0".into()));
+            }
+            let mut ids = std::collections::HashSet::new();
+            for s in &bus.servo {
+                if s.id > feetech::MAX_ID || !ids.insert(s.id) {
+                    return Err(invalid(
+                        at("servo.id"),
+                        format!("id {} is invalid or duplicated", s.id),
+                    ));
+                }
+                if !self.servo_models.contains_key(&s.model) {
+                    return Err(invalid(
+                        at("servo.model"),
+                        format!("unknown model {:?} for id {}", s.model, s.id),
+                    ));
+                }
+            }
+            let known = |id: u8| ids.contains(&id);
+            if let Some(arm) = &mut bus.arm {
+                for j in &mut arm.joint {
+                    if !known(j.servo) {
+                        return Err(invalid(
+                            at("arm.joint.servo"),
+                            format!("servo {} is not on this bus", j.servo),
+                        ));
+                    }
+                    let n = (j.axis[0].powi(2) + j.axis[1].powi(2) + j.axis[2].powi(2)).sqrt();
+                    if !(n > 1e-9 && n.is_finite()) {
+                        return Err(invalid(
+                            at("arm.joint.axis"),
+                            "axis must be a non-zero vector".into(),
+                        ));
+                    }
+                    j.axis = j.axis.map(|c| c / n);
+                    if j.lower_rad >= j.upper_rad {
+                        return Err(invalid(
+                            at("arm.joint.lower-rad"),
+                            "lower stop must be below upper stop".into(),
+                        ));
+                    }
+                }
+                if let Some(g) = &arm.gripper {
+                    if !known(g.servo) {
+                        return Err(invalid(
+                            at("arm.gripper.servo"),
+                            format!("servo {} is not on this bus", g.servo),
+                        ));
+                    }
+                }
+            }
+            if let Some(w) = &bus.wheels {
+                if let Some(&id) = w.servos.iter().find(|&&id| !known(id)) {
+                    return Err(invalid(
+                        at("wheels.servos"),
+                        format!("servo {id} is not on this bus"),
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn embedded_a3_matches_table_1() {
+        let d = RobotDescription::nori_a3();
+        let arm = d.bus("left_arm").unwrap();
+        let models: Vec<&str> = arm.servo.iter().map(|s| s.model.as_str()).collect();
+        // Paper, Table 1: shoulder ×2 and bicep STS3095, bicep rotation and wrist pitch STS3250,
+        // forearm roll, wrist second axis and gripper STS3215.
+        assert_eq!(
+            models,
+            [
+                "sts3095", "sts3095", "sts3250", "sts3095", "sts3215", "sts3250", "sts3215",
+                "sts3215"
+            ]
+        );
+        assert_eq!(d.bus.iter().map(|b| b.servo.len()).sum::<usize>(), 18);
+        assert_eq!(d.rating("sts3250").unwrap().model, ServoModel::Sts3250);
+    }
+
+    #[test]
+    fn unknown_key_is_refused_with_its_name() {
+        let text = NORI_A3_TOML.replace("ambient-c = 25.0", "ambient-c = 25.0\nambiant = 3");
+        let err = RobotDescription::parse(&text, "x.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("ambiant") && err.contains("x.toml"), "{err}");
+    }
+
+    #[test]
+    fn impossible_values_are_refused() {
+        let text = NORI_A3_TOML.replacen("stall-current-a = 2.7", "stall-current-a = -1", 1);
+        let err = RobotDescription::parse(&text, "x.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("servo-models.sts3215.stall-current-a"),
+            "{err}"
+        );
+        let text = NORI_A3_TOML.replacen("baud = 1000000", "baud = 9600", 1);
+        assert!(RobotDescription::parse(&text, "x.toml").is_err());
+    }
+}

@@ -1,0 +1,643 @@
+//! One simulated STS servo: the register file, the firmware (position and speed loops, torque
+//! limit, protections) and the physical plant (DC motor through a gearbox, friction, one-node
+//! thermal model).
+//!
+//! The plant is quasi-static electrically (the winding's L/R is far below the control period):
+//! `I = (duty·V − ke·ω)/R`, output torque `kt·I`, both referred to the output shaft.
+
+use crate::description::ServoRating;
+use feetech::encoding::{decode_sign_magnitude, encode_sign_magnitude, u16_le};
+use feetech::registers::{self as reg, Register, TABLE_SIZE};
+use feetech::{ServoModel, ServoStatus, AMPS_PER_CURRENT_UNIT, STEPS_PER_TURN};
+use std::f64::consts::TAU;
+
+/// Radians per encoder step.
+pub const RAD_PER_STEP: f64 = TAU / STEPS_PER_TURN as f64;
+/// Raw position of the output shaft at joint angle 0.
+pub const CENTER_STEP: f64 = 2048.0;
+/// Duty ceiling of the firmware (it never drives 100 %).
+pub const MAX_DUTY: f64 = 0.97;
+/// Gain of the firmware position loop: duty ≈ kp · 0.166 · error(rad) (BAM's identification).
+pub const DUTY_PER_KP_RAD: f64 = 0.166;
+/// Below this speed (rad/s) a joint whose drive torque cannot beat static friction sticks.
+const STICK_SPEED: f64 = 1e-3;
+
+/// Electrical and thermal constants of one servo, output-referred, derived from its ratings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Plant {
+    /// Winding resistance, Ω (rated voltage / stall current).
+    pub resistance: f64,
+    /// Torque constant at the output, N·m/A (motor kt × gear ratio).
+    pub kt: f64,
+    /// Back-EMF constant at the output, V·s/rad (motor ke × gear ratio).
+    pub ke: f64,
+    /// Gear ratio, for reporting motor-side constants.
+    pub gear_ratio: f64,
+    /// Rotor inertia reflected to the output, kg·m².
+    pub armature: f64,
+    /// Coulomb friction, N·m.
+    pub coulomb: f64,
+    /// Viscous friction, N·m·s/rad.
+    pub viscous: f64,
+    /// Heat capacity, J/K.
+    pub heat_capacity: f64,
+    /// Thermal resistance to ambient, K/W.
+    pub thermal_resistance: f64,
+    /// Constant electronics loss, W.
+    pub idle_power: f64,
+}
+
+impl Plant {
+    /// Constants from a servo's ratings: R from stall current at rated voltage, kt from stall
+    /// torque over stall current, ke from the no-load speed.
+    pub fn from_rating(r: &ServoRating) -> Self {
+        let stall_torque = r.stall_torque_kgcm * 0.0980665;
+        Plant {
+            resistance: r.rated_voltage / r.stall_current_a,
+            kt: stall_torque / r.stall_current_a,
+            ke: r.rated_voltage / r.no_load_speed_rad_s,
+            gear_ratio: r.gear_ratio,
+            armature: r.armature_kgm2,
+            coulomb: r.coulomb_nm,
+            viscous: r.viscous_nms,
+            heat_capacity: r.heat_capacity_j_per_k,
+            thermal_resistance: r.thermal_resistance_k_per_w,
+            idle_power: r.idle_power_w,
+        }
+    }
+}
+
+/// What the firmware's protections have done, latched until the host re-enables torque.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Protections {
+    /// Seconds the current has been above `Protection_Current`.
+    over_current_for: f64,
+    /// Seconds the duty has been above `Overload_Torque`.
+    overload_for: f64,
+    /// Over-current tripped: output off.
+    pub over_current: bool,
+    /// Overload tripped: output limited to `Protective_Torque`.
+    pub overload: bool,
+    /// Over-temperature cutoff: output off, not announced in the status byte.
+    pub over_temperature: bool,
+}
+
+/// Counters the tests read back ("what the servo received").
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct ServoLog {
+    /// Goal_Position writes received.
+    pub goal_writes: u64,
+    /// Smallest Goal_Position received (steps), if any.
+    pub goal_min: Option<i32>,
+    /// Largest Goal_Position received (steps), if any.
+    pub goal_max: Option<i32>,
+    /// Writes that reached the EEPROM flash (Lock = 0 and a changed value).
+    pub eeprom_writes: u64,
+    /// Times the over-temperature cutoff fired.
+    pub hardware_cutoffs: u64,
+    /// Times over-current protection fired.
+    pub over_current_trips: u64,
+    /// Times overload protection fired.
+    pub overload_trips: u64,
+    /// Torque_Enable = 0 writes.
+    pub torque_off_writes: u64,
+}
+
+/// One simulated servo.
+#[derive(Debug, Clone)]
+pub struct Servo {
+    /// Bus id.
+    pub id: u8,
+    /// Model.
+    pub model: ServoModel,
+    /// Plant constants.
+    pub plant: Plant,
+    /// Register file as the host sees it.
+    regs: [u8; TABLE_SIZE],
+    /// What the EEPROM holds across a reboot.
+    flash: [u8; TABLE_SIZE],
+    /// Output angle, rad (0 at raw step 2048).
+    pub angle: f64,
+    /// Output speed, rad/s.
+    pub speed: f64,
+    /// Winding temperature, °C.
+    pub temperature: f64,
+    /// Highest winding temperature reached, °C.
+    pub max_temperature: f64,
+    /// Motor current, A (signed).
+    pub current: f64,
+    /// Applied duty, −1..1.
+    pub duty: f64,
+    /// Supply voltage at the servo, V.
+    pub supply: f64,
+    /// Profiled position setpoint, steps (position mode).
+    setpoint: f64,
+    /// Profiled setpoint speed, steps/s.
+    setpoint_speed: f64,
+    /// Protection state.
+    pub protections: Protections,
+    /// Counters for tests and reports.
+    pub log: ServoLog,
+    /// When false the servo does not answer (unplugged, or rebooting).
+    pub answering: bool,
+}
+
+impl Servo {
+    /// A servo with factory defaults, at `angle` rad and ambient temperature.
+    pub fn new(id: u8, model: ServoModel, rating: &ServoRating, angle: f64, ambient: f64) -> Self {
+        let mut s = Servo {
+            id,
+            model,
+            plant: Plant::from_rating(rating),
+            regs: [0; TABLE_SIZE],
+            flash: [0; TABLE_SIZE],
+            angle,
+            speed: 0.0,
+            temperature: ambient,
+            max_temperature: ambient,
+            current: 0.0,
+            duty: 0.0,
+            supply: rating.rated_voltage,
+            setpoint: CENTER_STEP + angle / RAD_PER_STEP,
+            setpoint_speed: 0.0,
+            protections: Protections::default(),
+            log: ServoLog::default(),
+            answering: true,
+        };
+        let factory: &[(Register, i32)] = &[
+            (reg::FIRMWARE_MAJOR, 3),
+            (reg::FIRMWARE_MINOR, 10),
+            (reg::MODEL_NUMBER, i32::from(model.model_number())),
+            (reg::ID, i32::from(id)),
+            (reg::BAUD_RATE, 0),
+            // Factory return delay is 500 µs; the driver sets it to 0 once (EEPROM).
+            (reg::RETURN_DELAY_TIME, 250),
+            (reg::MIN_POSITION_LIMIT, 0),
+            (reg::MAX_POSITION_LIMIT, 4095),
+            (reg::MAX_TEMPERATURE_LIMIT, 70),
+            (reg::MAX_VOLTAGE_LIMIT, 140),
+            (reg::MIN_VOLTAGE_LIMIT, 40),
+            (reg::MAX_TORQUE_LIMIT, 1000),
+            (reg::UNLOADING_CONDITION, 0x2C),
+            (reg::LED_ALARM_CONDITION, 0x2F),
+            (reg::P_COEFFICIENT, 32),
+            (reg::D_COEFFICIENT, 32),
+            (reg::PROTECTION_CURRENT, 500),
+            (reg::PROTECTIVE_TORQUE, 20),
+            (reg::PROTECTION_TIME, 200),
+            (reg::OVERLOAD_TORQUE, 80),
+            (reg::OVER_CURRENT_PROTECTION_TIME, 200),
+            (reg::TORQUE_LIMIT, 1000),
+            (reg::LOCK, 1),
+        ];
+        for (r, v) in factory {
+            s.set(*r, *v);
+        }
+        s.flash = s.regs;
+        s.set_goal_to_present();
+        s
+    }
+
+    fn set(&mut self, r: Register, v: i32) {
+        let raw = match r.encoding {
+            reg::Encoding::Unsigned => v as u16,
+            reg::Encoding::SignMagnitude(bit) => encode_sign_magnitude(v, bit)
+                .unwrap_or(if v < 0 { u16::MAX } else { (1 << bit) - 1 }),
+        };
+        let a = r.addr as usize;
+        self.regs[a] = raw as u8;
+        if r.size == 2 {
+            self.regs[a + 1] = (raw >> 8) as u8;
+        }
+    }
+
+    /// A register's value, decoded.
+    pub fn get(&self, r: Register) -> i32 {
+        let a = r.addr as usize;
+        r.decode(&self.regs[a..a + r.size as usize]).unwrap_or(0)
+    }
+
+    /// Raw position (steps) of the output shaft, before the homing offset.
+    fn raw_position(&self) -> f64 {
+        CENTER_STEP + self.angle / RAD_PER_STEP
+    }
+
+    fn present_position(&self) -> i32 {
+        let homing = self.get(reg::HOMING_OFFSET);
+        (self.raw_position().round() as i32 - homing).rem_euclid(STEPS_PER_TURN as i32)
+    }
+
+    fn set_goal_to_present(&mut self) {
+        let p = self.present_position();
+        self.set(reg::GOAL_POSITION, p);
+        self.setpoint = f64::from(p);
+        self.setpoint_speed = 0.0;
+    }
+
+    /// Whether the output stage is driving.
+    pub fn torque_enabled(&self) -> bool {
+        self.get(reg::TORQUE_ENABLE) == 1
+            && !self.protections.over_current
+            && !self.protections.over_temperature
+    }
+
+    /// Power cycle: SRAM back to defaults, EEPROM from flash, protections cleared.
+    pub fn reboot(&mut self) {
+        self.regs[..40].copy_from_slice(&self.flash[..40]);
+        self.set(reg::TORQUE_ENABLE, 0);
+        let max_torque = self.get(reg::MAX_TORQUE_LIMIT);
+        self.set(reg::TORQUE_LIMIT, max_torque);
+        self.set(reg::LOCK, 1);
+        self.protections = Protections::default();
+        self.set_goal_to_present();
+    }
+
+    /// Reads `len` registers at `addr` into `out` (the feedback block reflects the plant now).
+    /// Returns false when the range leaves the table.
+    pub fn read(&mut self, addr: u8, len: u8, out: &mut [u8]) -> bool {
+        let (a, n) = (addr as usize, len as usize);
+        if a + n > TABLE_SIZE || out.len() < n {
+            return false;
+        }
+        self.refresh_feedback();
+        out[..n].copy_from_slice(&self.regs[a..a + n]);
+        true
+    }
+
+    /// Applies a WRITE of `data` at `addr`. Read-only registers are ignored, as on the servo.
+    pub fn write(&mut self, addr: u8, data: &[u8]) -> bool {
+        let a = addr as usize;
+        if a + data.len() > TABLE_SIZE {
+            return false;
+        }
+        let locked = self.get(reg::LOCK) != 0;
+        for (i, &b) in data.iter().enumerate() {
+            let at = a + i;
+            if at >= reg::FEEDBACK_ADDR as usize {
+                continue;
+            }
+            if at < 40 && !locked && self.flash[at] != b {
+                self.flash[at] = b;
+                self.log.eeprom_writes += 1;
+            }
+            self.regs[at] = b;
+        }
+        let touches = |r: Register| a <= r.addr as usize && (r.addr as usize) < a + data.len();
+        if touches(reg::GOAL_POSITION) {
+            let goal = self.get(reg::GOAL_POSITION);
+            let log = &mut self.log;
+            log.goal_writes += 1;
+            log.goal_min = Some(log.goal_min.map_or(goal, |m| m.min(goal)));
+            log.goal_max = Some(log.goal_max.map_or(goal, |m| m.max(goal)));
+        }
+        if touches(reg::TORQUE_ENABLE) {
+            match self.get(reg::TORQUE_ENABLE) {
+                0 => self.log.torque_off_writes += 1,
+                1 => {
+                    // Re-enabling clears latched protections whose cause is gone.
+                    let limit = f64::from(self.get(reg::MAX_TEMPERATURE_LIMIT));
+                    self.protections.over_current = false;
+                    self.protections.overload = false;
+                    self.protections.over_current_for = 0.0;
+                    self.protections.overload_for = 0.0;
+                    if self.temperature < limit {
+                        self.protections.over_temperature = false;
+                    }
+                }
+                _ => {}
+            }
+        }
+        true
+    }
+
+    /// The status byte of a reply. The over-temperature cutoff is deliberately not announced.
+    pub fn status(&self) -> ServoStatus {
+        let mut bits = 0;
+        if self.protections.over_current {
+            bits |= ServoStatus::OVER_CURRENT;
+        }
+        if self.protections.overload {
+            bits |= ServoStatus::OVERLOAD;
+        }
+        let v = self.supply * 10.0;
+        if v > f64::from(self.get(reg::MAX_VOLTAGE_LIMIT))
+            || v < f64::from(self.get(reg::MIN_VOLTAGE_LIMIT))
+        {
+            bits |= ServoStatus::VOLTAGE;
+        }
+        ServoStatus(bits)
+    }
+
+    fn refresh_feedback(&mut self) {
+        let pos = self.present_position();
+        self.set(reg::PRESENT_POSITION, pos);
+        let speed = (self.speed / RAD_PER_STEP).round() as i32;
+        self.set(reg::PRESENT_VELOCITY, speed.clamp(-32767, 32767));
+        self.set(reg::PRESENT_LOAD, (self.duty * 1000.0).round() as i32);
+        self.set(
+            reg::PRESENT_VOLTAGE,
+            (self.supply * 10.0).round().clamp(0.0, 255.0) as i32,
+        );
+        // The sensor register is an integer °C.
+        self.set(
+            reg::PRESENT_TEMPERATURE,
+            self.temperature.round().clamp(0.0, 255.0) as i32,
+        );
+        let status = self.status().0;
+        self.set(reg::STATUS, i32::from(status));
+        self.set(
+            reg::MOVING,
+            i32::from(self.speed.abs() > 4.0 * RAD_PER_STEP),
+        );
+        let current = (self.current / AMPS_PER_CURRENT_UNIT).round() as i32;
+        self.set(reg::PRESENT_CURRENT, current.clamp(-32767, 32767));
+    }
+
+    /// The firmware: duty from the active mode, torque limit and protections.
+    fn firmware_duty(&mut self, dt: f64) -> f64 {
+        if !self.torque_enabled() {
+            return 0.0;
+        }
+        let duty = match self.get(reg::OPERATING_MODE) {
+            1 => {
+                // Speed mode: feed-forward of the back-EMF plus a proportional speed loop.
+                let goal = f64::from(self.get(reg::GOAL_VELOCITY)) * RAD_PER_STEP;
+                (goal * self.plant.ke + 2.0 * self.plant.ke * (goal - self.speed))
+                    / self.supply.max(1.0)
+            }
+            2 => {
+                f64::from(decode_sign_magnitude(
+                    u16_le(self.regs[44], self.regs[45]),
+                    10,
+                )) / 1000.0
+            }
+            _ => {
+                self.advance_setpoint(dt);
+                let kp = f64::from(self.get(reg::P_COEFFICIENT));
+                let error = (self.setpoint - self.raw_position()
+                    + f64::from(self.get(reg::HOMING_OFFSET)))
+                    * RAD_PER_STEP;
+                kp * DUTY_PER_KP_RAD * error
+            }
+        };
+        let mut cap = MAX_DUTY.min(f64::from(self.get(reg::TORQUE_LIMIT)) / 1000.0);
+        if self.protections.overload {
+            cap = cap.min(f64::from(self.get(reg::PROTECTIVE_TORQUE)) / 100.0);
+        }
+        duty.clamp(-cap, cap)
+    }
+
+    /// Moves the position setpoint toward the goal with the profile velocity/acceleration
+    /// (0 = unlimited), within the EEPROM position limits.
+    fn advance_setpoint(&mut self, dt: f64) {
+        let (lo, hi) = (
+            self.get(reg::MIN_POSITION_LIMIT),
+            self.get(reg::MAX_POSITION_LIMIT),
+        );
+        let mut goal = f64::from(self.get(reg::GOAL_POSITION));
+        if lo != 0 || hi != 0 {
+            goal = goal.clamp(f64::from(lo), f64::from(hi));
+        }
+        let vmax = f64::from(self.get(reg::GOAL_VELOCITY).abs());
+        if vmax == 0.0 {
+            self.setpoint = goal;
+            self.setpoint_speed = 0.0;
+            return;
+        }
+        let amax = f64::from(self.get(reg::ACCELERATION)) * 100.0;
+        let remaining = goal - self.setpoint;
+        let mut v = remaining.signum() * vmax;
+        if amax > 0.0 {
+            // Brake in time to stop at the goal.
+            let stop_speed = (2.0 * amax * remaining.abs()).sqrt();
+            v = remaining.signum() * vmax.min(stop_speed);
+            let dv = (v - self.setpoint_speed).clamp(-amax * dt, amax * dt);
+            v = self.setpoint_speed + dv;
+        }
+        let step = v * dt;
+        if step.abs() >= remaining.abs() {
+            self.setpoint = goal;
+            self.setpoint_speed = 0.0;
+        } else {
+            self.setpoint += step;
+            self.setpoint_speed = v;
+        }
+    }
+
+    /// Advances the servo by `dt` seconds given the load on its output: `load_torque` (N·m, e.g.
+    /// gravity and contacts, opposing positive motion when positive), `load_inertia` (kg·m²,
+    /// added to the armature) and the ambient temperature. `thermal_speedup` integrates the
+    /// thermal node that many times faster (for accelerated heating scenarios).
+    pub fn step(
+        &mut self,
+        dt: f64,
+        load_torque: f64,
+        load_inertia: f64,
+        ambient: f64,
+        thermal_speedup: f64,
+    ) {
+        let p = self.plant;
+        self.duty = self.firmware_duty(dt);
+        let driving = self.duty != 0.0 || self.torque_enabled();
+        self.current = if driving {
+            (self.duty * self.supply - p.ke * self.speed) / p.resistance
+        } else {
+            0.0
+        };
+        let motor_torque = p.kt * self.current;
+        let drive = motor_torque - load_torque - p.viscous * self.speed;
+        let inertia = p.armature + load_inertia;
+        if self.speed.abs() < STICK_SPEED && drive.abs() <= p.coulomb {
+            self.speed = 0.0;
+        } else {
+            let friction = p.coulomb
+                * if self.speed.abs() >= STICK_SPEED {
+                    self.speed.signum()
+                } else {
+                    drive.signum()
+                };
+            let new_speed = self.speed + dt * (drive - friction) / inertia;
+            // Coulomb friction stops a joint; it never reverses it.
+            self.speed = if self.speed != 0.0
+                && new_speed.signum() != self.speed.signum()
+                && (drive.abs() <= p.coulomb)
+            {
+                0.0
+            } else {
+                new_speed
+            };
+        }
+        self.angle += dt * self.speed;
+        self.step_thermal(dt * thermal_speedup, ambient);
+        self.step_protections(dt);
+    }
+
+    fn step_thermal(&mut self, dt: f64, ambient: f64) {
+        let p = self.plant;
+        let heat = p.idle_power + p.resistance * self.current * self.current
+            - (self.temperature - ambient) / p.thermal_resistance;
+        self.temperature += dt * heat / p.heat_capacity;
+        self.max_temperature = self.max_temperature.max(self.temperature);
+    }
+
+    fn step_protections(&mut self, dt: f64) {
+        let mask = self.get(reg::UNLOADING_CONDITION) as u8;
+        let temperature_limit = f64::from(self.get(reg::MAX_TEMPERATURE_LIMIT));
+        let amps_limit = f64::from(self.get(reg::PROTECTION_CURRENT)) * AMPS_PER_CURRENT_UNIT;
+        let over_current_time = f64::from(self.get(reg::OVER_CURRENT_PROTECTION_TIME)) * 0.01;
+        let overload_duty = f64::from(self.get(reg::OVERLOAD_TORQUE)) / 100.0;
+        let overload_time = f64::from(self.get(reg::PROTECTION_TIME)) * 0.01;
+        let (pr, log) = (&mut self.protections, &mut self.log);
+        if mask & ServoStatus::OVERHEAT != 0
+            && self.temperature >= temperature_limit
+            && !pr.over_temperature
+        {
+            pr.over_temperature = true;
+            log.hardware_cutoffs += 1;
+        }
+        pr.over_current_for = if self.current.abs() > amps_limit {
+            pr.over_current_for + dt
+        } else {
+            0.0
+        };
+        if mask & ServoStatus::OVER_CURRENT != 0
+            && !pr.over_current
+            && pr.over_current_for > over_current_time
+        {
+            pr.over_current = true;
+            log.over_current_trips += 1;
+        }
+        pr.overload_for = if self.duty.abs() > overload_duty {
+            pr.overload_for + dt
+        } else {
+            0.0
+        };
+        if mask & ServoStatus::OVERLOAD != 0 && !pr.overload && pr.overload_for > overload_time {
+            pr.overload = true;
+            log.overload_trips += 1;
+        }
+    }
+
+    /// Joint angle of a raw Present_Position value for this servo (homing offset applied).
+    pub fn angle_of_present(&self, present: i32) -> f64 {
+        (f64::from(present + self.get(reg::HOMING_OFFSET)) - CENTER_STEP) * RAD_PER_STEP
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::description::RobotDescription;
+
+    fn servo(model: &str) -> Servo {
+        let d = RobotDescription::nori_a3();
+        let r = d.rating(model).unwrap();
+        Servo::new(1, r.model, r, 0.0, 25.0)
+    }
+
+    fn write_u16(s: &mut Servo, r: Register, v: i32) {
+        let raw = match r.encoding {
+            reg::Encoding::SignMagnitude(b) => encode_sign_magnitude(v, b).unwrap(),
+            reg::Encoding::Unsigned => v as u16,
+        };
+        if r.size == 2 {
+            s.write(r.addr, &raw.to_le_bytes());
+        } else {
+            s.write(r.addr, &[raw as u8]);
+        }
+    }
+
+    #[test]
+    fn plant_matches_ratings_at_stall() {
+        let s = servo("sts3215");
+        // At full duty and zero speed the current is the rated stall current and the torque the
+        // rated stall torque (30 kg·cm).
+        let i = s.supply / s.plant.resistance;
+        assert!((i - 2.7).abs() < 1e-9);
+        assert!((s.plant.kt * i - 30.0 * 0.0980665).abs() < 1e-9);
+    }
+
+    #[test]
+    fn position_loop_follows_a_goal() {
+        let mut s = servo("sts3215");
+        write_u16(&mut s, reg::TORQUE_ENABLE, 1);
+        write_u16(&mut s, reg::GOAL_POSITION, 2048 + 300);
+        for _ in 0..2000 {
+            s.step(0.001, 0.0, 0.0, 25.0, 1.0);
+        }
+        let mut fb = [0u8; 15];
+        s.read(reg::FEEDBACK_ADDR, 15, &mut fb);
+        let f = feetech::FeedbackBlock::parse(&fb).unwrap();
+        // Coulomb friction leaves a small steady-state error, as on the real servo.
+        assert!((f.position - 2348).abs() <= 10, "position {}", f.position);
+        assert_eq!(s.log.goal_writes, 1);
+    }
+
+    #[test]
+    fn torque_off_means_no_current() {
+        let mut s = servo("sts3215");
+        write_u16(&mut s, reg::GOAL_POSITION, 3000);
+        for _ in 0..100 {
+            s.step(0.001, 0.5, 0.0, 25.0, 1.0);
+        }
+        assert_eq!(s.current, 0.0);
+    }
+
+    #[test]
+    fn held_stall_heats_and_the_cutoff_drops_output_silently() {
+        let mut s = servo("sts3215");
+        write_u16(&mut s, reg::MAX_TEMPERATURE_LIMIT, 60);
+        write_u16(
+            &mut s,
+            reg::UNLOADING_CONDITION,
+            i32::from(ServoStatus::OVERHEAT),
+        );
+        write_u16(&mut s, reg::TORQUE_ENABLE, 1);
+        write_u16(&mut s, reg::GOAL_POSITION, 2048 + 400);
+        // A load the servo cannot move: it stalls at full duty.
+        let mut t = 0.0;
+        while !s.protections.over_temperature && t < 3600.0 {
+            s.step(0.01, 10.0, 0.0, 25.0, 1.0);
+            t += 0.01;
+        }
+        assert!(s.protections.over_temperature, "never cut off");
+        assert!(s.temperature >= 60.0 && s.temperature < 60.5);
+        s.step(0.01, 10.0, 0.0, 25.0, 1.0);
+        assert_eq!(s.current, 0.0);
+        assert!(s.status().is_ok(), "cutoff must not be announced");
+        assert_eq!(s.log.hardware_cutoffs, 1);
+    }
+
+    #[test]
+    fn over_current_protection_trips_after_its_time() {
+        let mut s = servo("sts3215");
+        write_u16(&mut s, reg::PROTECTION_CURRENT, 200); // 1.3 A
+        write_u16(&mut s, reg::OVER_CURRENT_PROTECTION_TIME, 10); // 100 ms
+        write_u16(&mut s, reg::TORQUE_ENABLE, 1);
+        write_u16(&mut s, reg::GOAL_POSITION, 2048 + 400);
+        let mut steps = 0;
+        while !s.protections.over_current && steps < 1000 {
+            s.step(0.001, 10.0, 0.0, 25.0, 1.0);
+            steps += 1;
+        }
+        assert!((100..=110).contains(&steps), "tripped after {steps} ms");
+        assert!(s.status().over_current());
+        s.step(0.001, 10.0, 0.0, 25.0, 1.0);
+        assert_eq!(s.current, 0.0);
+    }
+
+    #[test]
+    fn eeprom_writes_need_unlock_and_a_change() {
+        let mut s = servo("sts3215");
+        write_u16(&mut s, reg::MAX_TEMPERATURE_LIMIT, 60);
+        assert_eq!(s.log.eeprom_writes, 0, "locked EEPROM must not be flashed");
+        s.reboot();
+        assert_eq!(s.get(reg::MAX_TEMPERATURE_LIMIT), 70);
+        write_u16(&mut s, reg::LOCK, 0);
+        write_u16(&mut s, reg::MAX_TEMPERATURE_LIMIT, 60);
+        write_u16(&mut s, reg::MAX_TEMPERATURE_LIMIT, 60);
+        assert_eq!(s.log.eeprom_writes, 1);
+        s.reboot();
+        assert_eq!(s.get(reg::MAX_TEMPERATURE_LIMIT), 60);
+    }
+}
