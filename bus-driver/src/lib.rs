@@ -1,1 +1,29 @@
-//! bus-driver
+//! The bus driver: the hard-real-time loop on the servo buses.
+//!
+//! * [`transport`]: the narrow byte-link trait with deadlines, and the serial implementation
+//!   (1 Mbps, FTDI latency-timer check).
+//! * [`bus`]: transactions on one bus (SYNC_READ of the feedback block, SYNC_WRITE of goals,
+//!   unicast setup reads/writes), replies matched by id, error counts by kind.
+//! * [`calibration`]: per-joint ranges; the clamp that keeps every goal inside them and refuses
+//!   NaN/inf.
+//! * [`backstops`]: the EEPROM settings (firmware over-current, torque and 60 °C temperature
+//!   limits) written once with read-compare-write.
+//! * [`config`]: the typed configuration, defaults embedded from `deploy/config/`.
+//! * [`driver`]: setup, the cycle, goal gating, the fixed-rate loop; torque off on every stop.
+//!
+//! Safety behaviour: goals are clamped to the calibrated range at the bus layer; a goal frame
+//! with a non-finite value, the wrong shape or a stale timestamp is refused whole; a servo that
+//! does not answer is marked missing in that cycle's sample (never its previous value); torque is
+//! turned off when the loop ends, when the driver is dropped (errors, unwinding panics), and on
+//! SIGINT/SIGTERM in the binary.
+
+pub mod backstops;
+pub mod bus;
+pub mod calibration;
+pub mod config;
+pub mod driver;
+pub mod transport;
+
+pub use config::LoadedConfig;
+pub use driver::{run, Driver, GoalSource, Hold, RunSummary, StateSink};
+pub use transport::{SerialTransport, Transport};

@@ -1,0 +1,341 @@
+//! Transactions on one bus: the per-cycle SYNC_READ / SYNC_WRITE pair, and the unicast reads and
+//! writes of setup. Replies are matched by id; a servo that does not answer in time is missing
+//! for that transaction, never given an older value.
+
+use crate::transport::{Transport, TransportError};
+use feetech::instruction::Instruction;
+use feetech::registers::{self as reg, FeedbackBlock, Register, FEEDBACK_ADDR, FEEDBACK_LEN};
+use feetech::timing::{status_bytes, sync_read_request_bytes, wire_time};
+use feetech::{DecodeError, Decoder, ServoStatus, StatusPacket, BROADCAST_ID, MAX_PACKET};
+use std::time::{Duration, Instant};
+use thiserror::Error;
+
+/// Why a unicast transaction failed.
+#[derive(Debug, Error)]
+pub enum BusError {
+    /// The transport failed.
+    #[error(transparent)]
+    Transport(#[from] TransportError),
+    /// No valid reply from the servo before the deadline.
+    #[error("servo {id} did not answer within {waited_us} µs")]
+    NoReply {
+        /// Servo id.
+        id: u8,
+        /// How long we waited.
+        waited_us: u64,
+    },
+    /// The reply carried the wrong amount of data.
+    #[error("servo {id} answered {got} bytes, expected {expected}")]
+    ShortReply {
+        /// Servo id.
+        id: u8,
+        /// Bytes expected.
+        expected: usize,
+        /// Bytes received.
+        got: usize,
+    },
+    /// The value does not fit the register.
+    #[error("value {value} does not fit register {register}")]
+    Encode {
+        /// Register name.
+        register: &'static str,
+        /// Value.
+        value: i32,
+    },
+}
+
+/// Error counts by kind, for telemetry.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct BusCounters {
+    /// Feedback transactions.
+    pub cycles: u64,
+    /// Servo replies received and used.
+    pub replies: u64,
+    /// Servos that did not answer a feedback read in time.
+    pub missing: u64,
+    /// Packets with a bad checksum.
+    pub checksum_errors: u64,
+    /// Bytes skipped as garbage.
+    pub garbage_bytes: u64,
+    /// Headers with an impossible id or length, or truncated packets.
+    pub framing_errors: u64,
+    /// Replies from an id we did not ask, or with the wrong size.
+    pub unexpected_replies: u64,
+    /// Replies whose status byte had an error bit set.
+    pub status_errors: u64,
+    /// Transport failures.
+    pub transport_errors: u64,
+}
+
+impl BusCounters {
+    fn count(&mut self, e: DecodeError) {
+        match e {
+            DecodeError::Garbage { bytes } => self.garbage_bytes += bytes as u64,
+            DecodeError::Checksum { .. } => self.checksum_errors += 1,
+            DecodeError::InvalidId { .. }
+            | DecodeError::InvalidLength { .. }
+            | DecodeError::Truncated { .. } => self.framing_errors += 1,
+        }
+    }
+}
+
+/// One bus and its scratch buffers (nothing allocates per cycle).
+pub struct Bus<T: Transport> {
+    transport: T,
+    decoder: Decoder,
+    tx: [u8; MAX_PACKET],
+    // At most what the decoder can always take after draining (it keeps < one packet).
+    rx: [u8; 256],
+    margin: Duration,
+    feedback_sent: Option<Instant>,
+    /// Error counts.
+    pub counters: BusCounters,
+}
+
+impl<T: Transport> Bus<T> {
+    /// A bus over `transport`; replies later than their wire time plus `margin` are missing.
+    pub fn new(transport: T, margin: Duration) -> Self {
+        Bus {
+            transport,
+            decoder: Decoder::new(),
+            tx: [0; MAX_PACKET],
+            rx: [0; 256],
+            margin,
+            feedback_sent: None,
+            counters: BusCounters::default(),
+        }
+    }
+
+    fn send(&mut self, instruction: Instruction) -> Result<(), BusError> {
+        let n = instruction
+            .encode(&mut self.tx)
+            .map_err(|_| BusError::Encode {
+                register: "instruction",
+                value: 0,
+            })?;
+        self.transport
+            .send(&self.tx[..n])
+            .inspect_err(|_| self.counters.transport_errors += 1)?;
+        Ok(())
+    }
+
+    fn start(&mut self) -> Result<(), BusError> {
+        self.transport
+            .discard_input()
+            .inspect_err(|_| self.counters.transport_errors += 1)?;
+        self.decoder.clear();
+        Ok(())
+    }
+
+    /// Starts a feedback read (registers 56–70) of `ids`. Collect with [`Bus::collect_feedback`];
+    /// in between, other buses can be started so their wire time overlaps.
+    pub fn request_feedback(&mut self, ids: &[u8]) -> Result<(), BusError> {
+        self.start()?;
+        self.send(Instruction::SyncRead {
+            addr: FEEDBACK_ADDR,
+            len: FEEDBACK_LEN,
+            ids,
+        })?;
+        self.feedback_sent = Some(Instant::now());
+        Ok(())
+    }
+
+    /// Collects the replies to [`Bus::request_feedback`]: `out[i]` gets servo `ids[i]`'s block or
+    /// `None` if it did not answer in time. Returns how many answered.
+    pub fn collect_feedback(
+        &mut self,
+        ids: &[u8],
+        out: &mut [Option<(FeedbackBlock, ServoStatus)>],
+    ) -> Result<usize, BusError> {
+        out.iter_mut().for_each(|o| *o = None);
+        let Some(sent) = self.feedback_sent.take() else {
+            return Ok(0);
+        };
+        self.counters.cycles += 1;
+        let bytes =
+            sync_read_request_bytes(ids.len()) + ids.len() * status_bytes(FEEDBACK_LEN as usize);
+        let deadline = sent + wire_time(bytes, self.transport.baud()) + self.margin;
+        let mut answered = 0;
+        let mut at_end = false;
+        loop {
+            let decoded = if at_end {
+                self.decoder.finish()
+            } else {
+                self.decoder.next_frame()
+            };
+            match decoded {
+                Some(Ok(frame)) => {
+                    let Ok(status) = StatusPacket::parse(&frame) else {
+                        self.counters.unexpected_replies += 1;
+                        continue;
+                    };
+                    let slot = ids.iter().position(|&id| id == status.id);
+                    match (slot, FeedbackBlock::parse(status.params)) {
+                        (Some(i), Some(block))
+                            if status.params.len() == FEEDBACK_LEN as usize && out[i].is_none() =>
+                        {
+                            out[i] = Some((block, status.status));
+                            answered += 1;
+                            self.counters.replies += 1;
+                            if !status.status.is_ok() {
+                                self.counters.status_errors += 1;
+                            }
+                        }
+                        _ => self.counters.unexpected_replies += 1,
+                    }
+                    continue;
+                }
+                Some(Err(e)) => {
+                    self.counters.count(e);
+                    continue;
+                }
+                None if answered == ids.len() || at_end => break,
+                None => {}
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                // Give up on a header that never completed and look behind it.
+                at_end = true;
+                continue;
+            }
+            let n = self
+                .transport
+                .receive(&mut self.rx, deadline - now)
+                .inspect_err(|_| self.counters.transport_errors += 1)?;
+            let mut rest = &self.rx[..n];
+            while !rest.is_empty() {
+                let taken = self.decoder.push(rest);
+                rest = &rest[taken..];
+                if taken == 0 {
+                    // Buffer full of undecodable bytes: drop them, count as garbage.
+                    self.counters.garbage_bytes += self.decoder.buffered() as u64;
+                    self.decoder.clear();
+                }
+            }
+        }
+        self.counters.missing += (ids.len() - answered) as u64;
+        Ok(answered)
+    }
+
+    /// SYNC_WRITE of `len` bytes per servo at `addr`; `payload` is `[id d…] × N`. No reply.
+    pub fn sync_write(&mut self, addr: u8, len: u8, payload: &[u8]) -> Result<(), BusError> {
+        self.send(Instruction::SyncWrite { addr, len, payload })
+    }
+
+    /// Broadcast `Torque_Enable = 0`: one packet that every servo on the bus obeys.
+    pub fn torque_off_all(&mut self) -> Result<(), BusError> {
+        self.send(Instruction::Write {
+            id: BROADCAST_ID,
+            addr: reg::TORQUE_ENABLE.addr,
+            data: &[0],
+        })
+    }
+
+    /// Waits for one status packet from `id`.
+    fn reply(
+        &mut self,
+        id: u8,
+        expected_params: usize,
+    ) -> Result<(ServoStatus, [u8; 4]), BusError> {
+        let bytes = status_bytes(expected_params) + 16;
+        let budget = wire_time(bytes, self.transport.baud()) + self.margin;
+        let deadline = Instant::now() + budget;
+        loop {
+            while let Some(decoded) = self.decoder.next_frame() {
+                match decoded {
+                    Ok(frame) => match StatusPacket::parse(&frame) {
+                        Ok(s) if s.id == id => {
+                            if s.params.len() != expected_params {
+                                return Err(BusError::ShortReply {
+                                    id,
+                                    expected: expected_params,
+                                    got: s.params.len(),
+                                });
+                            }
+                            let mut data = [0u8; 4];
+                            data[..expected_params.min(4)]
+                                .copy_from_slice(&s.params[..expected_params.min(4)]);
+                            return Ok((s.status, data));
+                        }
+                        _ => self.counters.unexpected_replies += 1,
+                    },
+                    Err(e) => self.counters.count(e),
+                }
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                return Err(BusError::NoReply {
+                    id,
+                    waited_us: budget.as_micros() as u64,
+                });
+            }
+            let n = self
+                .transport
+                .receive(&mut self.rx, deadline - now)
+                .inspect_err(|_| self.counters.transport_errors += 1)?;
+            self.decoder.push(&self.rx[..n]);
+        }
+    }
+
+    /// PING: the servo's status bits, or why it did not answer.
+    pub fn ping(&mut self, id: u8) -> Result<ServoStatus, BusError> {
+        self.start()?;
+        self.send(Instruction::Ping { id })?;
+        Ok(self.reply(id, 0)?.0)
+    }
+
+    /// Reads one register.
+    pub fn read(&mut self, id: u8, register: Register) -> Result<i32, BusError> {
+        self.start()?;
+        self.send(Instruction::Read {
+            id,
+            addr: register.addr,
+            len: register.size,
+        })?;
+        let (_, data) = self.reply(id, register.size as usize)?;
+        register.decode(&data).ok_or(BusError::ShortReply {
+            id,
+            expected: register.size as usize,
+            got: 0,
+        })
+    }
+
+    /// Writes one register and waits for the acknowledgement.
+    pub fn write(
+        &mut self,
+        id: u8,
+        register: Register,
+        value: i32,
+    ) -> Result<ServoStatus, BusError> {
+        let raw = encode(register, value)?;
+        let bytes = raw.to_le_bytes();
+        self.start()?;
+        self.send(Instruction::Write {
+            id,
+            addr: register.addr,
+            data: &bytes[..register.size as usize],
+        })?;
+        Ok(self.reply(id, 0)?.0)
+    }
+}
+
+/// Encodes `value` for `register` (sign-magnitude where the register is signed).
+pub fn encode(register: Register, value: i32) -> Result<u16, BusError> {
+    let err = BusError::Encode {
+        register: register.name,
+        value,
+    };
+    match register.encoding {
+        reg::Encoding::SignMagnitude(bit) => {
+            feetech::encoding::encode_sign_magnitude(value, bit).map_err(|_| err)
+        }
+        reg::Encoding::Unsigned => {
+            let max = if register.size == 1 { 0xFF } else { 0xFFFF };
+            if (0..=max).contains(&value) {
+                Ok(value as u16)
+            } else {
+                Err(err)
+            }
+        }
+    }
+}

@@ -1,0 +1,464 @@
+//! The driver's configuration and calibration files: typed, kebab-case keys, unknown keys and
+//! impossible values refused with the file and key named.
+//!
+//! The defaults for the A3 are embedded (`deploy/config/bus-driver.toml` and
+//! `deploy/config/calibration.toml`), so the driver runs on the simulated robot with no file.
+
+use crate::calibration::JointCalibration;
+use serde::Deserialize;
+use std::collections::{BTreeMap, HashSet};
+use std::path::{Path, PathBuf};
+use telemetry::MAX_JOINTS;
+use thiserror::Error;
+
+/// The embedded default driver configuration.
+pub const DEFAULT_CONFIG_TOML: &str = include_str!("../../deploy/config/bus-driver.toml");
+/// The embedded default calibration (the simulated A3).
+pub const DEFAULT_CALIBRATION_TOML: &str = include_str!("../../deploy/config/calibration.toml");
+
+/// The firmware over-temperature cutoff may not be set above this (°C): damage begins here.
+pub const HARDWARE_TEMPERATURE_CEILING_C: u8 = 60;
+
+/// A configuration that cannot be used.
+#[derive(Debug, Error)]
+pub enum ConfigError {
+    /// The file could not be read.
+    #[error("cannot read {path}: {source}")]
+    Io {
+        /// File.
+        path: String,
+        /// Cause.
+        source: std::io::Error,
+    },
+    /// Syntax, a wrong type or an unknown key; the message names the key and position.
+    #[error("{path}: {source}")]
+    Parse {
+        /// File.
+        path: String,
+        /// Cause.
+        source: toml::de::Error,
+    },
+    /// A value that parses but cannot be right.
+    #[error("{path}: {key}: {reason}")]
+    Invalid {
+        /// File.
+        path: String,
+        /// Offending key.
+        key: String,
+        /// Why.
+        reason: String,
+    },
+}
+
+/// How a bus's servos are driven.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Mode {
+    /// Position goals (arms, grippers).
+    Position,
+    /// Speed goals (wheels).
+    Speed,
+}
+
+/// One servo on a bus.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct ServoConfig {
+    /// Bus id.
+    pub id: u8,
+    /// Joint name (the key of its calibration).
+    pub joint: String,
+    /// Model key (`sts3215`, `sts3250`, `sts3095`); checked against `Model_Number` at start.
+    pub model: String,
+}
+
+/// One bus.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct BusConfig {
+    /// Bus name.
+    pub name: String,
+    /// Serial device (a stable udev name on the robot).
+    pub device: PathBuf,
+    /// Line rate, baud.
+    #[serde(default = "default_baud")]
+    pub baud: u32,
+    /// Position or speed mode.
+    pub mode: Mode,
+    /// Servos, in joint order.
+    pub servo: Vec<ServoConfig>,
+}
+
+fn default_baud() -> u32 {
+    1_000_000
+}
+
+/// Firmware backstops for one servo model, written once to EEPROM.
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct Backstops {
+    /// `Protection_Current`, A.
+    pub protection_current_a: f64,
+    /// `Over_Current_Protection_Time`, ms (10 ms resolution).
+    pub over_current_protection_time_ms: u32,
+    /// `Max_Torque_Limit`, % of full output (also the torque limit the driver sets).
+    pub max_torque_limit_percent: f64,
+    /// `Max_Temperature_Limit`, °C: the hardware thermal tier.
+    pub max_temperature_c: u8,
+}
+
+/// The driver's configuration.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct DriverConfig {
+    /// Control loop rate, Hz.
+    #[serde(default = "default_rate")]
+    pub rate_hz: f64,
+    /// Slack added to a transaction's wire time before a missing reply is declared, µs.
+    #[serde(default = "default_margin")]
+    pub reply_timeout_margin_us: u64,
+    /// Goals older than this are discarded, ms.
+    #[serde(default = "default_goal_age")]
+    pub goal_max_age_ms: u64,
+    /// Largest wheel speed sent, rad/s.
+    #[serde(default = "default_wheel_speed")]
+    pub max_wheel_speed_rad_s: f64,
+    /// Calibration file, relative to this file; the embedded A3 calibration when absent.
+    #[serde(default)]
+    pub calibration_file: Option<PathBuf>,
+    /// Backstops by model key.
+    pub backstops: BTreeMap<String, Backstops>,
+    /// Buses.
+    pub bus: Vec<BusConfig>,
+}
+
+fn default_rate() -> f64 {
+    200.0
+}
+fn default_margin() -> u64 {
+    2000
+}
+fn default_goal_age() -> u64 {
+    100
+}
+fn default_wheel_speed() -> f64 {
+    6.0
+}
+
+/// The calibration file: one table per joint.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct CalibrationFile {
+    /// By joint name.
+    pub joint: BTreeMap<String, JointCalibration>,
+}
+
+/// A loaded, validated configuration with its calibration.
+#[derive(Debug, Clone)]
+pub struct LoadedConfig {
+    /// The configuration.
+    pub config: DriverConfig,
+    /// Calibration by joint name.
+    pub calibration: CalibrationFile,
+}
+
+impl DriverConfig {
+    /// Parses configuration text; `origin` names it in errors.
+    pub fn parse(text: &str, origin: &str) -> Result<Self, ConfigError> {
+        toml::from_str(text).map_err(|source| ConfigError::Parse {
+            path: origin.into(),
+            source,
+        })
+    }
+
+    /// Joints in the order of the state frame.
+    pub fn joints(&self) -> impl Iterator<Item = (&BusConfig, &ServoConfig)> {
+        self.bus
+            .iter()
+            .flat_map(|b| b.servo.iter().map(move |s| (b, s)))
+    }
+
+    /// Control period.
+    pub fn period(&self) -> std::time::Duration {
+        std::time::Duration::from_secs_f64(1.0 / self.rate_hz)
+    }
+
+    fn validate(
+        &self,
+        origin: &str,
+        calibration: &CalibrationFile,
+        cal_origin: &str,
+    ) -> Result<(), ConfigError> {
+        let invalid = |path: &str, key: String, reason: String| ConfigError::Invalid {
+            path: path.into(),
+            key,
+            reason,
+        };
+        if !(self.rate_hz.is_finite() && (1.0..=1000.0).contains(&self.rate_hz)) {
+            return Err(invalid(
+                origin,
+                "rate-hz".into(),
+                format!("{} is outside 1..=1000", self.rate_hz),
+            ));
+        }
+        if !(self.max_wheel_speed_rad_s.is_finite() && self.max_wheel_speed_rad_s > 0.0) {
+            return Err(invalid(
+                origin,
+                "max-wheel-speed-rad-s".into(),
+                "must be > 0".into(),
+            ));
+        }
+        for (model, b) in &self.backstops {
+            let key = |k: &str| format!("backstops.{model}.{k}");
+            if !matches!(model.as_str(), "sts3215" | "sts3250" | "sts3095") {
+                return Err(invalid(
+                    origin,
+                    format!("backstops.{model}"),
+                    "unknown model (sts3215, sts3250, sts3095)".into(),
+                ));
+            }
+            if b.max_temperature_c > HARDWARE_TEMPERATURE_CEILING_C || b.max_temperature_c < 30 {
+                return Err(invalid(
+                    origin,
+                    key("max-temperature-c"),
+                    format!("{} °C is outside 30..={HARDWARE_TEMPERATURE_CEILING_C} °C (damage begins at 60 °C)", b.max_temperature_c),
+                ));
+            }
+            let units = b.protection_current_a / feetech::AMPS_PER_CURRENT_UNIT;
+            if !(1.0..=65535.0).contains(&units) {
+                return Err(invalid(
+                    origin,
+                    key("protection-current-a"),
+                    format!("{} A is not settable", b.protection_current_a),
+                ));
+            }
+            if b.over_current_protection_time_ms > 2550 || b.over_current_protection_time_ms < 10 {
+                return Err(invalid(
+                    origin,
+                    key("over-current-protection-time-ms"),
+                    "must be 10..=2550 ms".into(),
+                ));
+            }
+            if !(b.max_torque_limit_percent > 0.0 && b.max_torque_limit_percent <= 100.0) {
+                return Err(invalid(
+                    origin,
+                    key("max-torque-limit-percent"),
+                    "must be in (0, 100]".into(),
+                ));
+            }
+        }
+        let mut joints = HashSet::new();
+        let mut buses = HashSet::new();
+        for (i, bus) in self.bus.iter().enumerate() {
+            if !buses.insert(&bus.name) {
+                return Err(invalid(
+                    origin,
+                    format!("bus[{i}].name"),
+                    format!("duplicate bus {:?}", bus.name),
+                ));
+            }
+            if feetech::timing::baud_code(bus.baud).is_none() {
+                return Err(invalid(
+                    origin,
+                    format!("bus[{i}].baud"),
+                    format!("{} is not a servo baud rate", bus.baud),
+                ));
+            }
+            let mut ids = HashSet::new();
+            for s in &bus.servo {
+                let at = format!("bus[{i}] ({}).servo id {}", bus.name, s.id);
+                if s.id > feetech::MAX_ID || !ids.insert(s.id) {
+                    return Err(invalid(origin, at, "invalid or duplicate id".into()));
+                }
+                if !joints.insert(s.joint.as_str()) {
+                    return Err(invalid(
+                        origin,
+                        at,
+                        format!("joint {:?} appears twice", s.joint),
+                    ));
+                }
+                if !self.backstops.contains_key(&s.model) {
+                    return Err(invalid(
+                        origin,
+                        at,
+                        format!("no backstops for model {:?}", s.model),
+                    ));
+                }
+                if bus.mode == Mode::Position {
+                    let cal = calibration.joint.get(&s.joint).ok_or_else(|| {
+                        invalid(
+                            cal_origin,
+                            format!("joint.{}", s.joint),
+                            "missing: every position joint needs a calibration".into(),
+                        )
+                    })?;
+                    cal.validate(&s.joint)
+                        .map_err(|e| invalid(cal_origin, format!("joint.{}", s.joint), e.reason))?;
+                }
+            }
+        }
+        if joints.len() > MAX_JOINTS {
+            return Err(invalid(
+                origin,
+                "bus".into(),
+                format!("{} joints exceed the frame's {MAX_JOINTS}", joints.len()),
+            ));
+        }
+        if let Some(extra) = calibration
+            .joint
+            .keys()
+            .find(|j| !joints.contains(j.as_str()))
+        {
+            return Err(invalid(
+                cal_origin,
+                format!("joint.{extra}"),
+                "no such joint in the driver configuration".into(),
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl LoadedConfig {
+    /// The embedded defaults.
+    pub fn embedded() -> Result<Self, ConfigError> {
+        Self::from_texts(DEFAULT_CONFIG_TOML, "<embedded bus-driver.toml>", None)
+    }
+
+    /// Loads a configuration file and the calibration it names.
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let text = read(path)?;
+        Self::from_texts(&text, &path.display().to_string(), path.parent())
+    }
+
+    fn from_texts(text: &str, origin: &str, dir: Option<&Path>) -> Result<Self, ConfigError> {
+        let config = DriverConfig::parse(text, origin)?;
+        let (cal_text, cal_origin) = match (&config.calibration_file, dir) {
+            (Some(file), Some(dir)) => {
+                let path = dir.join(file);
+                (read(&path)?, path.display().to_string())
+            }
+            (Some(file), None) => (read(file)?, file.display().to_string()),
+            (None, _) => (
+                DEFAULT_CALIBRATION_TOML.to_string(),
+                "<embedded calibration.toml>".into(),
+            ),
+        };
+        let calibration: CalibrationFile =
+            toml::from_str(&cal_text).map_err(|source| ConfigError::Parse {
+                path: cal_origin.clone(),
+                source,
+            })?;
+        config.validate(origin, &calibration, &cal_origin)?;
+        Ok(LoadedConfig {
+            config,
+            calibration,
+        })
+    }
+
+    /// Points every bus at `dir/<bus name>` (the simulator's device links).
+    pub fn with_device_dir(mut self, dir: &Path) -> Self {
+        for bus in &mut self.config.bus {
+            bus.device = dir.join(&bus.name);
+        }
+        self
+    }
+}
+
+fn read(path: &Path) -> Result<String, ConfigError> {
+    std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
+        path: path.display().to_string(),
+        source,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn with(config: &str, calibration: &str) -> Result<LoadedConfig, ConfigError> {
+        let dir = std::env::temp_dir().join(format!(
+            "nori-config-test-{}-{}",
+            std::process::id(),
+            config.len() ^ calibration.len()
+        ));
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join("calibration.toml"), calibration).unwrap();
+        let text = format!("calibration-file = \"calibration.toml\"\n{config}");
+        std::fs::write(dir.join("bus-driver.toml"), text).unwrap();
+        let r = LoadedConfig::load(&dir.join("bus-driver.toml"));
+        let _ = std::fs::remove_dir_all(&dir);
+        r
+    }
+
+    #[test]
+    fn embedded_defaults_are_valid() {
+        let c = LoadedConfig::embedded().unwrap();
+        assert_eq!(c.config.rate_hz, 200.0);
+        assert_eq!(c.config.joints().count(), 18);
+        assert!(c
+            .config
+            .backstops
+            .values()
+            .all(|b| b.max_temperature_c == 60));
+    }
+
+    #[test]
+    fn unknown_key_names_key_and_file() {
+        let err = with(
+            &DEFAULT_CONFIG_TOML.replace("rate-hz = 200", "rate-hz = 200\nrate_hz = 100"),
+            DEFAULT_CALIBRATION_TOML,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            err.contains("rate_hz") && err.contains("bus-driver.toml"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn wrong_type_is_refused() {
+        let err = with(
+            &DEFAULT_CONFIG_TOML.replace("rate-hz = 200", "rate-hz = \"fast\""),
+            DEFAULT_CALIBRATION_TOML,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("rate-hz"), "{err}");
+    }
+
+    #[test]
+    fn a_firmware_cutoff_above_60_is_refused() {
+        let err = with(
+            &DEFAULT_CONFIG_TOML.replacen("max-temperature-c = 60", "max-temperature-c = 70", 1),
+            DEFAULT_CALIBRATION_TOML,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            err.contains("max-temperature-c") && err.contains("70"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn a_range_outside_the_travel_names_the_joint_and_the_calibration_file() {
+        let cal = DEFAULT_CALIBRATION_TOML.replacen("range-max = 3906", "range-max = 5000", 1);
+        let err = with(DEFAULT_CONFIG_TOML, &cal).unwrap_err().to_string();
+        assert!(
+            err.contains("calibration.toml")
+                && err.contains("joint.left_shoulder_pitch")
+                && err.contains("5000"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn a_missing_calibration_is_refused() {
+        let cal =
+            DEFAULT_CALIBRATION_TOML.replacen("[joint.left_elbow]", "[joint.left_elbow_typo]", 1);
+        let err = with(DEFAULT_CONFIG_TOML, &cal).unwrap_err().to_string();
+        assert!(err.contains("left_elbow"), "{err}");
+    }
+}

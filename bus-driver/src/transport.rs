@@ -1,0 +1,194 @@
+//! The one narrow transport trait the bus needs, and its serial-port implementation.
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+use thiserror::Error;
+
+/// A failure of the byte transport itself (never a servo's status bits).
+#[derive(Debug, Error)]
+pub enum TransportError {
+    /// The device could not be opened.
+    #[error("cannot open {device} at {baud} baud: {source}")]
+    Open {
+        /// Device path.
+        device: PathBuf,
+        /// Line rate asked for.
+        baud: u32,
+        /// Cause.
+        source: serialport::Error,
+    },
+    /// Reading or writing failed; the device may be gone.
+    #[error("i/o on {device}: {source}")]
+    Io {
+        /// Device path.
+        device: PathBuf,
+        /// Cause.
+        source: std::io::Error,
+    },
+}
+
+/// A half-duplex byte link to one servo bus.
+pub trait Transport {
+    /// Line rate, baud (for wire-time deadlines).
+    fn baud(&self) -> u32;
+    /// Writes all of `bytes`.
+    fn send(&mut self, bytes: &[u8]) -> Result<(), TransportError>;
+    /// Reads what has arrived, waiting at most `timeout`; `Ok(0)` when nothing came in time.
+    fn receive(&mut self, buf: &mut [u8], timeout: Duration) -> Result<usize, TransportError>;
+    /// Drops bytes received and not yet read (late replies of an earlier transaction).
+    fn discard_input(&mut self) -> Result<(), TransportError>;
+}
+
+/// A servo bus on a serial device (USB adapter, UART, or the simulator's pseudo-terminal).
+pub struct SerialTransport {
+    port: serialport::TTYPort,
+    device: PathBuf,
+    baud: u32,
+}
+
+impl SerialTransport {
+    /// Opens `device` at `baud`, 8N1, and reports the USB latency timer.
+    pub fn open(device: &Path, baud: u32) -> Result<Self, TransportError> {
+        let port = serialport::new(device.to_string_lossy(), baud)
+            .timeout(Duration::from_millis(1))
+            .open_native()
+            .map_err(|source| TransportError::Open {
+                device: device.into(),
+                baud,
+                source,
+            })?;
+        match latency_timer(device) {
+            LatencyTimer::Ms(1) => {
+                tracing::info!(device = %device.display(), "USB latency timer is 1 ms")
+            }
+            LatencyTimer::Ms(ms) => tracing::warn!(
+                device = %device.display(),
+                latency_timer_ms = ms,
+                "USB latency timer is {ms} ms, not 1 ms: every reply waits up to that long. \
+                 Set it with the udev rule in deploy/udev or write 1 to the latency_timer file"
+            ),
+            LatencyTimer::Unreadable(why) => {
+                tracing::warn!(device = %device.display(), "cannot check the USB latency timer: {why}")
+            }
+            LatencyTimer::NotUsbSerial => {
+                tracing::info!(device = %device.display(), "not a USB serial adapter; no latency timer to check")
+            }
+        }
+        Ok(SerialTransport {
+            port,
+            device: device.into(),
+            baud,
+        })
+    }
+
+    fn io(&self, source: std::io::Error) -> TransportError {
+        TransportError::Io {
+            device: self.device.clone(),
+            source,
+        }
+    }
+}
+
+impl Transport for SerialTransport {
+    fn baud(&self) -> u32 {
+        self.baud
+    }
+
+    fn send(&mut self, bytes: &[u8]) -> Result<(), TransportError> {
+        use std::io::Write;
+        self.port.write_all(bytes).map_err(|e| self.io(e))
+    }
+
+    fn receive(&mut self, buf: &mut [u8], timeout: Duration) -> Result<usize, TransportError> {
+        use serialport::SerialPort;
+        use std::io::Read;
+        if timeout.is_zero() {
+            return Ok(0);
+        }
+        self.port
+            .set_timeout(timeout)
+            .map_err(|e| self.io(std::io::Error::other(e)))?;
+        match self.port.read(buf) {
+            Ok(n) => Ok(n),
+            Err(e) if e.kind() == std::io::ErrorKind::TimedOut => Ok(0),
+            Err(e) => Err(self.io(e)),
+        }
+    }
+
+    fn discard_input(&mut self) -> Result<(), TransportError> {
+        use serialport::SerialPort;
+        self.port
+            .clear(serialport::ClearBuffer::Input)
+            .map_err(|e| self.io(std::io::Error::other(e)))
+    }
+}
+
+/// What the USB serial adapter's latency timer is.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum LatencyTimer {
+    /// The timer, ms (FTDI's default is 16; the bus wants 1).
+    Ms(u32),
+    /// The device is not a USB serial adapter (UART, pseudo-terminal).
+    NotUsbSerial,
+    /// The sysfs file exists but could not be read or parsed.
+    Unreadable(String),
+}
+
+/// Parses the content of a `latency_timer` sysfs file.
+pub fn parse_latency_timer(text: &str) -> LatencyTimer {
+    match text.trim().parse::<u32>() {
+        Ok(ms) => LatencyTimer::Ms(ms),
+        Err(_) => LatencyTimer::Unreadable(format!("unexpected content {:?}", text.trim())),
+    }
+}
+
+/// The sysfs file of a tty's latency timer (`/dev/ttyUSB0` or a udev link to it).
+pub fn latency_timer_path(device: &Path) -> Option<PathBuf> {
+    let real = std::fs::canonicalize(device).ok()?;
+    let name = real.file_name()?.to_str()?;
+    Some(
+        Path::new("/sys/bus/usb-serial/devices")
+            .join(name)
+            .join("latency_timer"),
+    )
+}
+
+/// Reads the latency timer of `device`.
+pub fn latency_timer(device: &Path) -> LatencyTimer {
+    match latency_timer_path(device) {
+        Some(path) if path.exists() => match std::fs::read_to_string(&path) {
+            Ok(text) => parse_latency_timer(&text),
+            Err(e) => LatencyTimer::Unreadable(format!("{}: {e}", path.display())),
+        },
+        _ => LatencyTimer::NotUsbSerial,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn latency_timer_parsing() {
+        assert_eq!(parse_latency_timer("16\n"), LatencyTimer::Ms(16));
+        assert_eq!(parse_latency_timer("1"), LatencyTimer::Ms(1));
+        assert!(matches!(
+            parse_latency_timer("x"),
+            LatencyTimer::Unreadable(_)
+        ));
+    }
+
+    #[test]
+    fn a_pseudo_terminal_has_no_latency_timer() {
+        use serialport::SerialPort;
+        let (_master, slave) = serialport::TTYPort::pair().unwrap();
+        let name = slave.name().unwrap();
+        assert_eq!(latency_timer(Path::new(&name)), LatencyTimer::NotUsbSerial);
+        assert_eq!(
+            latency_timer_path(Path::new(&name)).unwrap(),
+            Path::new("/sys/bus/usb-serial/devices")
+                .join(Path::new(&name).file_name().unwrap())
+                .join("latency_timer")
+        );
+    }
+}

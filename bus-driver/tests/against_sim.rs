@@ -1,0 +1,211 @@
+//! The real driver (serial transport, `serialport`) against the simulated A3 served on
+//! pseudo-terminals, in one process: setup, goals followed, clamping seen on the wire, bad goal
+//! frames refused, a missing servo marked missing, torque off at the end.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use bus_driver::{Driver, LoadedConfig, SerialTransport};
+use sim::pty::{serve, ServedBus};
+use sim::{RobotDescription, SimBus};
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+use telemetry::clock::monotonic_ns;
+use telemetry::GoalFrame;
+
+struct Rig {
+    served: Vec<ServedBus>,
+    config: LoadedConfig,
+    _dir: PathBuf,
+}
+
+fn rig(tag: &str) -> Rig {
+    let dir = std::env::temp_dir().join(format!("nori-driver-test-{tag}-{}", std::process::id()));
+    let robot = RobotDescription::nori_a3();
+    let served = robot
+        .bus
+        .iter()
+        .map(|b| serve(SimBus::new(&robot, b), &dir.join(&b.name), 0.001).unwrap())
+        .collect();
+    let config = LoadedConfig::embedded().unwrap().with_device_dir(&dir);
+    Rig {
+        served,
+        config,
+        _dir: dir,
+    }
+}
+
+fn driver(config: &LoadedConfig) -> Driver<SerialTransport> {
+    let transports = config
+        .config
+        .bus
+        .iter()
+        .map(|b| SerialTransport::open(Path::new(&b.device), b.baud).unwrap())
+        .collect();
+    Driver::new(config, transports)
+}
+
+fn goals(driver: &Driver<SerialTransport>, set: &[(usize, f32)]) -> GoalFrame {
+    let mut f = GoalFrame {
+        joint_count: driver.joint_names().count() as u32,
+        timestamp_ns: monotonic_ns(),
+        ..GoalFrame::default()
+    };
+    for &(j, q) in set {
+        f.mask |= 1 << j;
+        f.position_rad[j] = q;
+    }
+    f
+}
+
+fn run_cycles(d: &mut Driver<SerialTransport>, n: usize) {
+    for _ in 0..n {
+        d.cycle();
+        std::thread::sleep(Duration::from_millis(2));
+    }
+}
+
+#[test]
+fn goals_are_followed_clamped_and_gated() {
+    let rig = rig("follow");
+    let mut d = driver(&rig.config);
+    let failures = d.setup();
+    assert!(failures.is_empty(), "setup failed: {failures:?}");
+    assert!(
+        d.counters.eeprom_writes > 0,
+        "first boot writes the backstops"
+    );
+    assert!(d.ready().all(|r| r));
+
+    // Joint 4 (left forearm roll) to 0.8 rad, joint 12 (right forearm roll) far outside its
+    // range, joint 0 (left shoulder pitch) to -0.5 rad.
+    d.apply_goals(
+        &goals(&d, &[(4, 0.8), (12, 100.0), (0, -0.5)]),
+        monotonic_ns(),
+    )
+    .unwrap();
+    run_cycles(&mut d, 600);
+    let s = *d.state();
+    assert_eq!(s.joint_count, 18);
+    assert!(
+        s.joints().iter().all(|j| j.is_valid()),
+        "all 18 servos answer"
+    );
+    assert!(
+        (s.joints[4].position_rad - 0.8).abs() < 0.03,
+        "forearm roll at {}",
+        s.joints[4].position_rad
+    );
+    assert!(
+        (s.joints[0].position_rad + 0.5).abs() < 0.05,
+        "shoulder at {}",
+        s.joints[0].position_rad
+    );
+    let cal = rig.config.calibration.joint["right_forearm_roll"];
+    assert!(
+        (f64::from(s.joints[12].goal_rad) - cal.range_rad().1).abs() < 0.01,
+        "goal clamped to the range"
+    );
+    assert_eq!(d.counters.goals_clamped, 1);
+
+    // A NaN anywhere refuses the whole frame: joint 4 keeps its goal.
+    let bad = goals(&d, &[(4, 0.0), (5, f32::NAN)]);
+    assert!(d.apply_goals(&bad, monotonic_ns()).is_err());
+    // A stale frame is refused.
+    let mut stale = goals(&d, &[(4, 0.0)]);
+    stale.timestamp_ns -= 1_000_000_000;
+    assert!(d.apply_goals(&stale, monotonic_ns()).is_err());
+    // A frame for another robot's joint count is refused.
+    let mut wrong = goals(&d, &[(4, 0.0)]);
+    wrong.joint_count = 7;
+    assert!(d.apply_goals(&wrong, monotonic_ns()).is_err());
+    run_cycles(&mut d, 50);
+    assert!((d.state().joints[4].goal_rad - 0.8).abs() < 1e-3);
+    assert_eq!(
+        (
+            d.counters.goals_not_finite,
+            d.counters.goals_stale,
+            d.counters.goals_malformed
+        ),
+        (1, 1, 1)
+    );
+
+    // A servo that stops answering is missing in the next sample, and the others are not.
+    rig.served[0]
+        .bus
+        .lock()
+        .unwrap()
+        .servo_mut(3)
+        .unwrap()
+        .answering = false;
+    run_cycles(&mut d, 3);
+    let s = *d.state();
+    assert!(
+        !s.joints[2].is_valid(),
+        "unanswered servo must be marked missing"
+    );
+    assert_eq!(s.joints[2].position_rad, 0.0, "and carry no stale value");
+    assert!(s.joints[1].is_valid() && s.joints[3].is_valid());
+    rig.served[0]
+        .bus
+        .lock()
+        .unwrap()
+        .servo_mut(3)
+        .unwrap()
+        .answering = true;
+
+    drop(d);
+    // What reached the wire: goals only inside the calibrated ranges, torque off at the end.
+    for (served, bus) in rig.served.iter().zip(&rig.config.config.bus) {
+        let report = served.report().unwrap();
+        for (servo, cfg) in report.servos.iter().zip(&bus.servo) {
+            assert!(
+                servo.log.torque_off_writes > 0,
+                "{} left energised",
+                cfg.joint
+            );
+            if let Some(cal) = rig.config.calibration.joint.get(&cfg.joint) {
+                if let (Some(lo), Some(hi)) = (servo.log.goal_min, servo.log.goal_max) {
+                    assert!(
+                        lo >= cal.range_min && hi <= cal.range_max,
+                        "{}: goals {lo}..{hi} outside {cal:?}",
+                        cfg.joint
+                    );
+                }
+            }
+        }
+    }
+
+    // A second boot finds the backstops in place and writes no EEPROM.
+    let before: u64 = rig
+        .served
+        .iter()
+        .map(|s| {
+            s.report()
+                .unwrap()
+                .servos
+                .iter()
+                .map(|v| v.log.eeprom_writes)
+                .sum::<u64>()
+        })
+        .sum();
+    let mut again = driver(&rig.config);
+    assert!(again.setup().is_empty());
+    assert_eq!(again.counters.eeprom_writes, 0);
+    drop(again);
+    let after: u64 = rig
+        .served
+        .iter()
+        .map(|s| {
+            s.report()
+                .unwrap()
+                .servos
+                .iter()
+                .map(|v| v.log.eeprom_writes)
+                .sum::<u64>()
+        })
+        .sum();
+    assert_eq!(before, after, "EEPROM rewritten at the second boot");
+    for s in rig.served {
+        s.stop();
+    }
+}
