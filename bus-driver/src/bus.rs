@@ -244,14 +244,8 @@ impl<T: Transport> Bus<T> {
             while let Some(decoded) = self.decoder.next_frame() {
                 match decoded {
                     Ok(frame) => match StatusPacket::parse(&frame) {
-                        Ok(s) if s.id == id => {
-                            if s.params.len() != expected_params {
-                                return Err(BusError::ShortReply {
-                                    id,
-                                    expected: expected_params,
-                                    got: s.params.len(),
-                                });
-                            }
+                        // A reply of another size is a late answer to an earlier transaction.
+                        Ok(s) if s.id == id && s.params.len() == expected_params => {
                             let mut data = [0u8; 4];
                             data[..expected_params.min(4)]
                                 .copy_from_slice(&s.params[..expected_params.min(4)]);

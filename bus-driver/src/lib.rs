@@ -22,6 +22,7 @@ pub mod bus;
 pub mod calibration;
 pub mod config;
 pub mod driver;
+pub mod rt;
 pub mod transport;
 
 pub use config::LoadedConfig;

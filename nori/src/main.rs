@@ -1,1 +1,52 @@
-fn main() {}
+//! `nori`: the operator CLI of the Nori A3 stack.
+//!
+//! `nori up` runs the stack on the simulated robot; `nori sim serve` serves the simulated buses;
+//! `nori state` / `nori goal` look at and move the robot; `nori bench` measures.
+
+mod bench;
+mod plane_tools;
+mod sim_serve;
+mod up;
+
+use anyhow::Result;
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(version, about = "Operator CLI of the Nori A3 control stack")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run the whole stack on the simulated robot (no hardware) until Ctrl-C.
+    Up(up::UpArgs),
+    /// The simulated robot.
+    #[command(subcommand)]
+    Sim(SimCommand),
+    /// Print the newest joint state from the state plane.
+    State(plane_tools::StateArgs),
+    /// Send joint goals to the driver (JOINT=RAD ...).
+    Goal(plane_tools::GoalArgs),
+    /// Benchmarks (figures next to their baseline).
+    #[command(subcommand)]
+    Bench(bench::Bench),
+}
+
+#[derive(Subcommand)]
+enum SimCommand {
+    /// Serve the simulated buses on pseudo-terminals in real time.
+    Serve(sim_serve::ServeArgs),
+}
+
+fn main() -> Result<()> {
+    let cli = Cli::parse();
+    match &cli.command {
+        Command::Up(a) => up::run(a),
+        Command::Sim(SimCommand::Serve(a)) => sim_serve::run(a),
+        Command::State(a) => plane_tools::state(a),
+        Command::Goal(a) => plane_tools::goal(a),
+        Command::Bench(b) => bench::run(b),
+    }
+}

@@ -8,7 +8,7 @@
 //! next to gravity and friction, and this keeps a step cheap enough for ≥ 1000× real time.
 
 use crate::description::{ArmDescription, GraspObject, GripperDescription, Obstacle};
-use nalgebra::{Rotation3, Unit, Vector3};
+use nalgebra::{Matrix3, Unit, Vector3};
 
 /// Stiffness of a mechanical hard stop, N·m/rad.
 const STOP_STIFFNESS: f64 = 200.0;
@@ -20,6 +20,11 @@ const CONTACT_DAMPING: f64 = 50.0;
 #[derive(Debug, Clone)]
 struct Joint {
     axis: Unit<Vector3<f64>>,
+    /// Cross-product matrix of the axis and its outer product, for Rodrigues' formula.
+    axis_cross: Matrix3<f64>,
+    axis_outer: Matrix3<f64>,
+    /// `Some((k, sign))` when the axis is ±e_k: the rotation then mixes only two columns.
+    coordinate_axis: Option<(usize, f64)>,
     origin: Vector3<f64>,
     mass: f64,
     com: Vector3<f64>,
@@ -44,7 +49,11 @@ pub struct Arm {
     positions: Vec<Vector3<f64>>,
     axes: Vec<Vector3<f64>>,
     coms: Vec<Vector3<f64>>,
+    inertia_age: usize,
 }
+
+/// Steps between refreshes of the configuration-dependent inertia.
+pub const INERTIA_REFRESH_STEPS: usize = 10;
 
 /// Loads the arm puts on its joint servos.
 #[derive(Debug, Clone, Default)]
@@ -61,13 +70,22 @@ impl Arm {
         let joints: Vec<Joint> = d
             .joint
             .iter()
-            .map(|j| Joint {
-                axis: Unit::new_normalize(Vector3::from(j.axis)),
-                origin: Vector3::from(j.origin),
-                mass: j.mass_kg,
-                com: Vector3::from(j.com),
-                lower: j.lower_rad,
-                upper: j.upper_rad,
+            .map(|j| {
+                let axis = Unit::new_normalize(Vector3::from(j.axis));
+                let coordinate_axis = (0..3)
+                    .find(|&k| (axis[k].abs() - 1.0).abs() < 1e-12)
+                    .map(|k| (k, axis[k].signum()));
+                Joint {
+                    coordinate_axis,
+                    axis_cross: axis.cross_matrix(),
+                    axis_outer: axis.into_inner() * axis.transpose(),
+                    axis,
+                    origin: Vector3::from(j.origin),
+                    mass: j.mass_kg,
+                    com: Vector3::from(j.com),
+                    lower: j.lower_rad,
+                    upper: j.upper_rad,
+                }
             })
             .collect();
         let n = joints.len();
@@ -82,6 +100,7 @@ impl Arm {
             positions: vec![Vector3::zeros(); n + 1],
             axes: vec![Vector3::zeros(); n],
             coms: vec![Vector3::zeros(); n],
+            inertia_age: 0,
         }
     }
 
@@ -92,18 +111,33 @@ impl Arm {
 
     /// Forward kinematics: fills joint positions/axes/coms; returns the tip position.
     fn forward(&mut self, q: &[f64]) -> Vector3<f64> {
-        let mut rot = Rotation3::identity();
+        let mut rot = Matrix3::identity();
         let mut p = self.base;
-        for (i, j) in self.joints.iter().enumerate() {
+        let frames = self
+            .positions
+            .iter_mut()
+            .zip(self.axes.iter_mut())
+            .zip(self.coms.iter_mut());
+        for ((j, &qi), ((position, axis), com)) in self.joints.iter().zip(q).zip(frames) {
             p += rot * j.origin;
-            let axis = rot * j.axis.into_inner();
-            rot *= Rotation3::from_axis_angle(&j.axis, q[i]);
-            self.positions[i] = p;
-            self.axes[i] = axis;
-            self.coms[i] = p + rot * j.com;
+            *axis = rot * j.axis.into_inner();
+            match j.coordinate_axis {
+                Some((k, sign)) => rotate_about_coordinate_axis(&mut rot, k, sign * qi),
+                None => {
+                    // Rodrigues: R = cos·I + sin·[k]× + (1 − cos)·k·kᵀ.
+                    let (sin, cos) = qi.sin_cos();
+                    rot *= Matrix3::from_diagonal_element(cos)
+                        + j.axis_cross * sin
+                        + j.axis_outer * (1.0 - cos);
+                }
+            }
+            *position = p;
+            *com = p + rot * j.com;
         }
         let tip = p + rot * self.tip;
-        self.positions[self.joints.len()] = tip;
+        if let Some(last) = self.positions.last_mut() {
+            *last = tip;
+        }
         tip
     }
 
@@ -114,34 +148,53 @@ impl Arm {
     }
 
     /// Computes the loads on each chain joint at configuration `q`, speeds `qd`.
+    ///
+    /// Gravity torque about joint `i` follows from suffix sums of the distal mass moments
+    /// (Σm, Σm·c), so a step is O(n). The inertia of the distal masses changes only with the
+    /// configuration, slowly next to a 1 ms step, and is refreshed every
+    /// [`INERTIA_REFRESH_STEPS`] calls.
     pub fn loads(&mut self, q: &[f64], qd: &[f64], out: &mut JointLoads) {
         let n = self.joints.len();
         out.torque.resize(n, 0.0);
         out.inertia.resize(n, 0.0);
         let tip = self.forward(q);
-        for i in 0..n {
-            let (p, z) = (self.positions[i], self.axes[i]);
-            let mut tau = 0.0;
-            let mut inertia = 0.0;
-            let mut add_mass = |m: f64, at: Vector3<f64>| {
-                let r = at - p;
-                // Torque of gravity about the axis, and the point mass's inertia about it.
-                tau += z.dot(&r.cross(&(self.gravity * m)));
-                let radial = r - z * z.dot(&r);
-                inertia += m * radial.norm_squared();
-            };
-            for k in i..n {
-                add_mass(self.joints[k].mass, self.coms[k]);
-            }
-            if self.payload > 0.0 {
-                add_mass(self.payload, tip);
-            }
-            let j = &self.joints[i];
-            tau += stop_torque(q[i], qd[i], j.lower, j.upper);
-            out.torque[i] = -tau;
-            out.inertia[i] = inertia;
+        if self.inertia_age == 0 {
+            self.refresh_inertia(tip, out);
         }
-        self.add_contacts(qd, out);
+        self.inertia_age = (self.inertia_age + 1) % INERTIA_REFRESH_STEPS;
+        let (mut mass, mut first) = (self.payload, tip * self.payload);
+        for i in (0..n).rev() {
+            mass += self.joints[i].mass;
+            first += self.coms[i] * self.joints[i].mass;
+            // Σ m·(c − p) about the joint origin, crossed with gravity, along the axis.
+            let moment = first - self.positions[i] * mass;
+            let gravity = self.axes[i].dot(&moment.cross(&self.gravity));
+            let j = &self.joints[i];
+            out.torque[i] = -(gravity + stop_torque(q[i], qd[i], j.lower, j.upper));
+        }
+        if !self.obstacles.is_empty() {
+            self.add_contacts(qd, out);
+        }
+    }
+
+    /// Inertia of the distal point masses about each axis: Σ m·|r⊥|² from the suffix sums of
+    /// Σm, Σm·c and Σm·c·cᵀ (r = c − p).
+    fn refresh_inertia(&self, tip: Vector3<f64>, out: &mut JointLoads) {
+        let (mut mass, mut first, mut second) = (
+            self.payload,
+            tip * self.payload,
+            tip * tip.transpose() * self.payload,
+        );
+        for i in (0..self.joints.len()).rev() {
+            let (m, c) = (self.joints[i].mass, self.coms[i]);
+            mass += m;
+            first += c * m;
+            second += c * c.transpose() * m;
+            let (p, z) = (self.positions[i], self.axes[i]);
+            let spread =
+                second - p * first.transpose() - first * p.transpose() + p * p.transpose() * mass;
+            out.inertia[i] = spread.trace() - z.dot(&(spread * z));
+        }
     }
 
     /// Obstacle contacts at every joint origin and the tip: a penalty force along the sphere's
@@ -173,6 +226,16 @@ impl Arm {
             }
         }
     }
+}
+
+/// `rot ← rot · R_k(angle)` for the coordinate axis `k`: only the two columns orthogonal to the
+/// axis change.
+fn rotate_about_coordinate_axis(rot: &mut Matrix3<f64>, k: usize, angle: f64) {
+    let (sin, cos) = angle.sin_cos();
+    let (a, b) = ((k + 1) % 3, (k + 2) % 3);
+    let (col_a, col_b) = (rot.column(a).into_owned(), rot.column(b).into_owned());
+    rot.set_column(a, &(col_a * cos + col_b * sin));
+    rot.set_column(b, &(col_b * cos - col_a * sin));
 }
 
 /// The torque a hard stop applies (positive pushes toward positive angles).
@@ -258,6 +321,20 @@ mod tests {
         let before = loads.torque[0];
         arm.loads(&q, &[0.0; 7], &mut loads);
         assert!((loads.torque[0] - before - 1.5 * 9.81 * 0.55).abs() < 1e-6);
+    }
+
+    #[test]
+    fn coordinate_axis_fast_path_matches_rodrigues() {
+        for k in 0..3 {
+            for angle in [-2.0, -0.3, 0.0, 0.7, 3.0] {
+                let mut fast = Matrix3::new(0.36, 0.48, -0.8, -0.8, 0.6, 0.0, 0.48, 0.64, 0.6);
+                let general = fast
+                    * nalgebra::Rotation3::from_axis_angle(&Vector3::ith_axis(k), angle)
+                        .into_inner();
+                rotate_about_coordinate_axis(&mut fast, k, angle);
+                assert!((fast - general).norm() < 1e-12, "axis {k} angle {angle}");
+            }
+        }
     }
 
     #[test]

@@ -21,13 +21,16 @@ enum Role {
     Free,
 }
 
-/// A reply scheduled on the line.
+/// The replies to one instruction, delivered together when the last byte has arrived, as a USB
+/// adapter delivers a burst (each packet still costs its full wire time).
 #[derive(Debug, Clone)]
 pub struct Reply {
     /// Simulated time at which its last byte has arrived, s.
     pub due: f64,
-    /// The status packet.
+    /// The status packets, back to back.
     pub bytes: Vec<u8>,
+    /// The instruction they answer (a counter).
+    instruction: u64,
 }
 
 /// Protocol counters of the bus.
@@ -45,6 +48,10 @@ pub struct LineStats {
     pub bad_instructions: u64,
     /// Status packets sent.
     pub replies: u64,
+    /// Reply bursts written later than due by more than 200 µs (host or scheduler latency).
+    pub late_bursts: u64,
+    /// Worst lateness of a reply burst, µs.
+    pub max_lateness_us: f64,
 }
 
 /// Per-servo figures of a report.
@@ -99,6 +106,7 @@ pub struct SimBus {
     /// Thermal integration speed-up (1 = physical).
     pub thermal_speedup: f64,
     time: f64,
+    arrival: f64,
     decoder: Decoder,
     line_free_at: f64,
     pending: VecDeque<Reply>,
@@ -162,6 +170,7 @@ impl SimBus {
             ambient: robot.ambient_c,
             thermal_speedup: 1.0,
             time: 0.0,
+            arrival: 0.0,
             decoder: Decoder::new(),
             line_free_at: 0.0,
             pending: VecDeque::new(),
@@ -223,8 +232,10 @@ impl SimBus {
         }
     }
 
-    /// Bytes from the host arrive now; replies are scheduled on the line.
-    pub fn receive(&mut self, mut bytes: &[u8]) {
+    /// Bytes from the host arrive at simulated time `now` (≥ the mechanics' time, which lags
+    /// by up to one step); replies are scheduled on the line from there.
+    pub fn receive(&mut self, now: f64, mut bytes: &[u8]) {
+        self.arrival = now.max(self.time);
         while !bytes.is_empty() {
             let taken = self.decoder.push(bytes);
             bytes = &bytes[taken..];
@@ -240,7 +251,13 @@ impl SimBus {
     /// The next reply whose last byte has arrived by `now`, if any.
     pub fn pop_due(&mut self, now: f64) -> Option<Reply> {
         if self.pending.front().is_some_and(|r| r.due <= now) {
-            return self.pending.pop_front();
+            let reply = self.pending.pop_front()?;
+            let late_us = (now - reply.due) * 1e6;
+            self.stats.max_lateness_us = self.stats.max_lateness_us.max(late_us);
+            if late_us > 200.0 {
+                self.stats.late_bursts += 1;
+            }
+            return Some(reply);
         }
         None
     }
@@ -281,21 +298,24 @@ impl SimBus {
             }
         };
         self.stats.instructions += 1;
+        let instruction_number = self.stats.instructions;
         // The request occupies the line first; replies follow it back to back.
         let request_bytes = frame.params().len() + 6;
-        let start = self.line_free_at.max(self.time);
+        let start = self.line_free_at.max(self.arrival);
         self.line_free_at = start + wire_time(request_bytes, self.baud).as_secs_f64();
         let targets = |id: u8, s: &Servo| id == BROADCAST_ID || s.id == id;
         match instruction {
-            Instruction::Ping { id } => self.reply_from(id, &[]),
-            Instruction::Read { id, addr, len } => self.read_reply(id, addr, len),
+            Instruction::Ping { id } => self.reply_from(id, &[], instruction_number),
+            Instruction::Read { id, addr, len } => {
+                self.read_reply(id, addr, len, instruction_number)
+            }
             Instruction::Write { id, addr, data } => {
                 for s in self.servos.iter_mut() {
                     if targets(id, s) && s.answering {
                         s.write(addr, data);
                     }
                 }
-                self.reply_from(id, &[]);
+                self.reply_from(id, &[], instruction_number);
             }
             Instruction::RegWrite { id, addr, data } => {
                 for (i, s) in self.servos.iter().enumerate() {
@@ -303,7 +323,7 @@ impl SimBus {
                         self.registered[i] = Some((addr, data.to_vec()));
                     }
                 }
-                self.reply_from(id, &[]);
+                self.reply_from(id, &[], instruction_number);
             }
             Instruction::Action { id } => {
                 for (i, s) in self.servos.iter_mut().enumerate() {
@@ -313,9 +333,9 @@ impl SimBus {
                         }
                     }
                 }
-                self.reply_from(id, &[]);
+                self.reply_from(id, &[], instruction_number);
             }
-            Instruction::FactoryReset { id } => self.reply_from(id, &[]),
+            Instruction::FactoryReset { id } => self.reply_from(id, &[], instruction_number),
             Instruction::Reboot { id } => {
                 for s in self
                     .servos
@@ -328,7 +348,7 @@ impl SimBus {
             Instruction::SyncRead { addr, len, ids } => {
                 self.stats.sync_reads += 1;
                 for &id in ids {
-                    self.read_reply(id, addr, len);
+                    self.read_reply(id, addr, len, instruction_number);
                 }
             }
             Instruction::SyncWrite { addr, .. } => {
@@ -344,19 +364,19 @@ impl SimBus {
         }
     }
 
-    fn read_reply(&mut self, id: u8, addr: u8, len: u8) {
+    fn read_reply(&mut self, id: u8, addr: u8, len: u8, instruction: u64) {
         let mut data = [0u8; TABLE_SIZE];
         let ok = match self.servo_mut(id) {
             Some(s) if s.answering => s.read(addr, len, &mut data),
             _ => return,
         };
         if ok {
-            self.reply_from(id, &data[..len as usize]);
+            self.reply_from(id, &data[..len as usize], instruction);
         }
     }
 
     /// Schedules the status packet of servo `id` (nothing for broadcast or an absent servo).
-    fn reply_from(&mut self, id: u8, params: &[u8]) {
+    fn reply_from(&mut self, id: u8, params: &[u8], instruction: u64) {
         if id == BROADCAST_ID {
             return;
         }
@@ -378,11 +398,21 @@ impl SimBus {
         };
         let due = self.line_free_at + delay + wire_time(n, self.baud).as_secs_f64();
         self.line_free_at = due;
+        self.stats.replies += 1;
+        if let Some(last) = self
+            .pending
+            .back_mut()
+            .filter(|r| r.instruction == instruction)
+        {
+            last.bytes.extend_from_slice(&out[..n]);
+            last.due = due;
+            return;
+        }
         self.pending.push_back(Reply {
             due,
             bytes: out[..n].to_vec(),
+            instruction,
         });
-        self.stats.replies += 1;
     }
 }
 
@@ -399,7 +429,7 @@ mod tests {
     fn send(bus: &mut SimBus, i: Instruction) {
         let mut buf = [0u8; 300];
         let n = i.encode(&mut buf).unwrap();
-        bus.receive(&buf[..n]);
+        bus.receive(bus.time(), &buf[..n]);
     }
 
     #[test]
@@ -432,15 +462,13 @@ mod tests {
                 ids: &[3, 1, 99, 2],
             },
         );
-        let mut ids = vec![];
-        let mut last_due = 0.0;
-        while let Some(r) = bus.pop_due(f64::MAX) {
-            assert!(r.due > last_due);
-            last_due = r.due;
-            assert_eq!(r.bytes.len(), 21);
-            ids.push(r.bytes[2]);
-        }
+        // One burst: three 21-byte status packets back to back.
+        let burst = bus.pop_due(f64::MAX).unwrap();
+        assert!(bus.pop_due(f64::MAX).is_none());
+        assert_eq!(burst.bytes.len(), 3 * 21);
+        let ids: Vec<u8> = burst.bytes.chunks(21).map(|p| p[2]).collect();
         assert_eq!(ids, [3, 1, 2]);
+        let last_due = burst.due;
         // Broadcast write (no reply) 9 bytes + request 11 + 3 replies × 21 bytes.
         assert!(
             (last_due - (9.0 + 11.0 + 63.0) * 10e-6).abs() < 1e-9,
@@ -483,7 +511,7 @@ mod tests {
     #[test]
     fn garbage_is_counted_and_does_not_stop_the_device() {
         let mut bus = left_arm();
-        bus.receive(&[0x00, 0x13, 0xFF, 0xFF, 0x01, 0x02, 0x01, 0x00]);
+        bus.receive(0.0, &[0x00, 0x13, 0xFF, 0xFF, 0x01, 0x02, 0x01, 0x00]);
         send(&mut bus, Instruction::Ping { id: 2 });
         assert!(bus.stats.decode_errors >= 1);
         assert_eq!(bus.pop_due(f64::MAX).unwrap().bytes[2], 2);

@@ -1,14 +1,20 @@
-//! Serving simulated buses on pseudo-terminals, in real time, so that the unmodified bus driver
-//! opens them with `serialport` exactly as it would open `/dev/ttyUSB0`.
+//! Serving the simulated buses on pseudo-terminals, in real time, so that the unmodified bus
+//! driver opens them with `serialport` exactly as it would open `/dev/ttyUSB0`.
 //!
-//! One thread per bus: it keeps the pty master, steps the mechanics to the wall clock, feeds
-//! received bytes to the device side and writes each reply when its last byte would have arrived
-//! on a real line. The slave side is closed after creation, as a USB adapter's tty is when no
-//! driver has it open: a driver that dies releases it and a restarted one can open it again.
+//! One thread serves the whole robot: it keeps every pty master, steps each bus's mechanics to
+//! the wall clock, feeds received bytes to the device side and writes each reply burst when its
+//! last byte would have arrived on a real line. One thread (not one per bus) leaves the other
+//! core to the driver on a two-core machine. The slave side is closed after creation, as a USB
+//! adapter's tty is when no driver has it open: a driver that dies releases it and a restarted
+//! one opens it again. Masters are non-blocking: with no driver attached, replies are lost, as
+//! on a line nobody listens to.
 
 use crate::bus::{BusReport, SimBus};
-use serialport::{SerialPort, TTYPort};
-use std::io::{ErrorKind, Read, Write};
+use nix::fcntl::{fcntl, FcntlArg, OFlag};
+use nix::poll::{ppoll, PollFd, PollFlags};
+use nix::sys::termios::{cfmakeraw, tcgetattr, tcsetattr, SetArg};
+use nix::sys::time::TimeSpec;
+use std::os::fd::{AsFd, OwnedFd};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -16,19 +22,21 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 use thiserror::Error;
 
-/// Sleep precision we do not trust: the last stretch before a reply is due is spun.
-const SPIN: Duration = Duration::from_micros(150);
+/// How long a hung-up pty (no driver attached) is left out of the poll set.
+const HANGUP_BACKOFF: f64 = 0.005;
 
-/// Why a bus could not be served.
+/// Why the robot could not be served.
 #[derive(Debug, Error)]
 pub enum ServeError {
-    /// Creating the pseudo-terminal failed.
-    #[error("cannot create a pseudo-terminal for bus {bus}: {source}")]
+    /// Creating or configuring a pseudo-terminal failed.
+    #[error("pseudo-terminal for bus {bus}: {what}: {source}")]
     Pty {
         /// Bus name.
         bus: String,
+        /// The step that failed.
+        what: &'static str,
         /// Cause.
-        source: serialport::Error,
+        source: nix::Error,
     },
     /// Creating the device link failed.
     #[error("cannot create device link {path}: {source}")]
@@ -40,109 +48,166 @@ pub enum ServeError {
     },
 }
 
-/// A bus being served; dropping it does not stop it: call [`ServedBus::stop`].
-pub struct ServedBus {
-    /// Path of the device link the driver opens.
-    pub device: PathBuf,
-    /// The bus, shared with its thread (lock it briefly to place obstacles or read a report).
-    pub bus: Arc<Mutex<SimBus>>,
+/// The simulated robot being served; call [`ServedRobot::stop`] to end it.
+pub struct ServedRobot {
+    /// Device link of each bus, in order.
+    pub devices: Vec<PathBuf>,
+    buses: Arc<Mutex<Vec<SimBus>>>,
     stop: Arc<AtomicBool>,
     thread: Option<JoinHandle<()>>,
 }
 
-impl ServedBus {
-    /// A report of the bus now.
-    pub fn report(&self) -> Option<BusReport> {
-        self.bus.lock().ok().map(|b| b.report())
+impl ServedRobot {
+    /// Runs `f` on the bus named `name` (to place obstacles, unplug a servo, read state).
+    pub fn with_bus<R>(&self, name: &str, f: impl FnOnce(&mut SimBus) -> R) -> Option<R> {
+        let mut buses = self.buses.lock().ok()?;
+        buses.iter_mut().find(|b| b.name == name).map(f)
     }
 
-    /// Stops the thread, removes the device link and returns the final report.
-    pub fn stop(mut self) -> Option<BusReport> {
+    /// Reports of every bus now.
+    pub fn reports(&self) -> Vec<BusReport> {
+        self.buses
+            .lock()
+            .map(|b| b.iter().map(SimBus::report).collect())
+            .unwrap_or_default()
+    }
+
+    /// Stops serving, removes the device links and returns the final reports.
+    pub fn stop(mut self) -> Vec<BusReport> {
         self.stop.store(true, Ordering::SeqCst);
         if let Some(t) = self.thread.take() {
             let _ = t.join();
         }
-        let _ = std::fs::remove_file(&self.device);
-        self.report()
+        for d in &self.devices {
+            let _ = std::fs::remove_file(d);
+        }
+        self.reports()
     }
 }
 
-/// Serves `bus` on a new pseudo-terminal linked at `device`, stepping mechanics every `dt` s.
-pub fn serve(bus: SimBus, device: &Path, dt: f64) -> Result<ServedBus, ServeError> {
-    let name = bus.name.clone();
-    let (master, slave) = TTYPort::pair().map_err(|source| ServeError::Pty {
-        bus: name.clone(),
-        source,
-    })?;
-    let slave_path = slave.name().unwrap_or_default();
-    drop(slave);
-    let _ = std::fs::remove_file(device);
-    if let Some(dir) = device.parent() {
-        std::fs::create_dir_all(dir).map_err(|source| ServeError::Link {
-            path: device.into(),
-            source,
-        })?;
+impl Drop for ServedRobot {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::SeqCst);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
     }
-    std::os::unix::fs::symlink(&slave_path, device).map_err(|source| ServeError::Link {
+}
+
+fn open_pty(bus: &str, device: &Path) -> Result<OwnedFd, ServeError> {
+    let fail = |what| {
+        move |source| ServeError::Pty {
+            bus: bus.into(),
+            what,
+            source,
+        }
+    };
+    let pty = nix::pty::openpty(None, None).map_err(fail("openpty"))?;
+    // Raw mode: binary frames must pass untouched (no echo, no CR/LF mapping).
+    let mut termios = tcgetattr(&pty.slave).map_err(fail("tcgetattr"))?;
+    cfmakeraw(&mut termios);
+    tcsetattr(&pty.slave, SetArg::TCSANOW, &termios).map_err(fail("tcsetattr"))?;
+    let name = nix::unistd::ttyname(&pty.slave).map_err(fail("ttyname"))?;
+    fcntl(&pty.master, FcntlArg::F_SETFL(OFlag::O_NONBLOCK))
+        .map_err(fail("non-blocking master"))?;
+    drop(pty.slave);
+    let link = |source| ServeError::Link {
         path: device.into(),
         source,
-    })?;
-    let bus = Arc::new(Mutex::new(bus));
+    };
+    if let Some(dir) = device.parent() {
+        std::fs::create_dir_all(dir).map_err(link)?;
+    }
+    let _ = std::fs::remove_file(device);
+    std::os::unix::fs::symlink(&name, device).map_err(link)?;
+    Ok(pty.master)
+}
+
+/// Serves each `(bus, device link)` on a new pseudo-terminal, stepping mechanics every `dt` s.
+pub fn serve(buses: Vec<(SimBus, PathBuf)>, dt: f64) -> Result<ServedRobot, ServeError> {
+    let mut masters = Vec::with_capacity(buses.len());
+    let mut devices = Vec::with_capacity(buses.len());
+    for (bus, device) in &buses {
+        masters.push(open_pty(&bus.name, device)?);
+        devices.push(device.clone());
+    }
+    let buses = Arc::new(Mutex::new(
+        buses.into_iter().map(|(b, _)| b).collect::<Vec<_>>(),
+    ));
     let stop = Arc::new(AtomicBool::new(false));
     let thread = {
-        let (bus, stop) = (bus.clone(), stop.clone());
+        let (buses, stop) = (buses.clone(), stop.clone());
         std::thread::Builder::new()
-            .name(format!("sim-{name}"))
-            .spawn(move || run(master, &bus, &stop, dt))
+            .name("sim-buses".into())
+            .spawn(move || run(&masters, &buses, &stop, dt))
             .ok()
     };
-    Ok(ServedBus {
-        device: device.into(),
-        bus,
+    Ok(ServedRobot {
+        devices,
+        buses,
         stop,
         thread,
     })
 }
 
-fn run(mut master: TTYPort, bus: &Mutex<SimBus>, stop: &AtomicBool, dt: f64) {
+fn run(masters: &[OwnedFd], buses: &Mutex<Vec<SimBus>>, stop: &AtomicBool, dt: f64) {
+    // Wake-ups on time (the default 50 µs timer slack would distort the line timing).
+    if nix::sys::prctl::set_timerslack(1).is_err() {
+        tracing::warn!("cannot reduce timer slack: reply timing may be up to 50 µs late");
+    }
     let start = Instant::now();
     let mut buf = [0u8; 512];
+    let mut hung_up_until = vec![0.0f64; masters.len()];
     while !stop.load(Ordering::Relaxed) {
         let now = start.elapsed().as_secs_f64();
-        let next_due = {
-            let Ok(mut b) = bus.lock() else { return };
-            b.advance_to(now, dt);
-            while let Some(reply) = b.pop_due(now) {
-                // A driver that is not there loses the reply, as on a real line.
-                let _ = master.write_all(&reply.bytes);
-            }
-            b.next_due()
-        };
-        let until = next_due.map_or(dt, |due| (due - now).min(dt)).max(0.0);
-        let wait = Duration::from_secs_f64(until);
-        if wait <= SPIN && next_due.is_some() {
-            std::hint::spin_loop();
-            continue;
-        }
-        let _ = master.set_timeout(wait.saturating_sub(if next_due.is_some() {
-            SPIN
-        } else {
-            Duration::ZERO
-        }));
-        match master.read(&mut buf) {
-            Ok(n) if n > 0 => {
-                let now = start.elapsed().as_secs_f64();
-                if let Ok(mut b) = bus.lock() {
-                    b.advance_to(now, dt);
-                    b.receive(&buf[..n]);
+        let mut next_due = now + dt;
+        {
+            let Ok(mut buses) = buses.lock() else { return };
+            for (bus, master) in buses.iter_mut().zip(masters) {
+                bus.advance_to(now, dt);
+                while let Some(reply) = bus.pop_due(now) {
+                    // Nobody listening (or a full buffer): the reply is lost, as on a real line.
+                    let _ = nix::unistd::write(master, &reply.bytes);
+                }
+                if let Some(due) = bus.next_due() {
+                    next_due = next_due.min(due);
                 }
             }
-            Ok(_) => {}
-            Err(e) if e.kind() == ErrorKind::TimedOut => {}
-            // No driver has the slave open (hang-up): nothing to read, keep simulating.
-            Err(_) => std::thread::sleep(
-                Duration::from_millis(2).min(wait.max(Duration::from_micros(200))),
-            ),
+        }
+        let wait = Duration::from_secs_f64((next_due - now).max(0.0));
+        let polled: Vec<usize> = (0..masters.len())
+            .filter(|&i| hung_up_until[i] <= now)
+            .collect();
+        let mut fds: Vec<PollFd> = polled
+            .iter()
+            .map(|&i| PollFd::new(masters[i].as_fd(), PollFlags::POLLIN))
+            .collect();
+        if ppoll(&mut fds, Some(TimeSpec::from_duration(wait)), None).is_err() {
+            continue;
+        }
+        let events: Vec<(usize, PollFlags)> = polled
+            .iter()
+            .zip(&fds)
+            .filter_map(|(&i, fd)| fd.revents().filter(|r| !r.is_empty()).map(|r| (i, r)))
+            .collect();
+        drop(fds);
+        for (i, revents) in events {
+            let now = start.elapsed().as_secs_f64();
+            if revents.contains(PollFlags::POLLIN) {
+                match nix::unistd::read(&masters[i], &mut buf) {
+                    Ok(n) if n > 0 => {
+                        if let Ok(mut buses) = buses.lock() {
+                            let bus = &mut buses[i];
+                            bus.advance_to(now, dt);
+                            bus.receive(now, &buf[..n]);
+                        }
+                    }
+                    // EIO: the driver closed the slave.
+                    _ => hung_up_until[i] = now + HANGUP_BACKOFF,
+                }
+            } else {
+                hung_up_until[i] = now + HANGUP_BACKOFF;
+            }
         }
     }
 }

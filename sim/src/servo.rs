@@ -103,6 +103,29 @@ pub struct ServoLog {
     pub torque_off_writes: u64,
 }
 
+/// The registers the firmware consults every step, decoded once per write (not per step).
+#[derive(Debug, Clone, Copy, Default)]
+struct Firmware {
+    torque_enable: i32,
+    mode: i32,
+    kp: f64,
+    homing: f64,
+    goal: f64,
+    limits: Option<(f64, f64)>,
+    profile_speed: f64,
+    profile_accel: f64,
+    pwm_goal: f64,
+    speed_goal: f64,
+    torque_cap: f64,
+    protective_duty: f64,
+    unloading: u8,
+    temperature_limit: f64,
+    current_limit: f64,
+    over_current_time: f64,
+    overload_duty: f64,
+    overload_time: f64,
+}
+
 /// One simulated servo.
 #[derive(Debug, Clone)]
 pub struct Servo {
@@ -140,6 +163,7 @@ pub struct Servo {
     pub log: ServoLog,
     /// When false the servo does not answer (unplugged, or rebooting).
     pub answering: bool,
+    fw: Firmware,
 }
 
 impl Servo {
@@ -163,6 +187,7 @@ impl Servo {
             protections: Protections::default(),
             log: ServoLog::default(),
             answering: true,
+            fw: Firmware::default(),
         };
         let factory: &[(Register, i32)] = &[
             (reg::FIRMWARE_MAJOR, 3),
@@ -195,7 +220,38 @@ impl Servo {
         }
         s.flash = s.regs;
         s.set_goal_to_present();
+        s.refresh_firmware();
         s
+    }
+
+    fn refresh_firmware(&mut self) {
+        let (lo, hi) = (
+            self.get(reg::MIN_POSITION_LIMIT),
+            self.get(reg::MAX_POSITION_LIMIT),
+        );
+        self.fw = Firmware {
+            torque_enable: self.get(reg::TORQUE_ENABLE),
+            mode: self.get(reg::OPERATING_MODE),
+            kp: f64::from(self.get(reg::P_COEFFICIENT)),
+            homing: f64::from(self.get(reg::HOMING_OFFSET)),
+            goal: f64::from(self.get(reg::GOAL_POSITION)),
+            limits: (lo != 0 || hi != 0).then_some((f64::from(lo), f64::from(hi))),
+            profile_speed: f64::from(self.get(reg::GOAL_VELOCITY).abs()),
+            profile_accel: f64::from(self.get(reg::ACCELERATION)) * 100.0,
+            pwm_goal: f64::from(decode_sign_magnitude(
+                u16_le(self.regs[44], self.regs[45]),
+                10,
+            )) / 1000.0,
+            speed_goal: f64::from(self.get(reg::GOAL_VELOCITY)) * RAD_PER_STEP,
+            torque_cap: MAX_DUTY.min(f64::from(self.get(reg::TORQUE_LIMIT)) / 1000.0),
+            protective_duty: f64::from(self.get(reg::PROTECTIVE_TORQUE)) / 100.0,
+            unloading: self.get(reg::UNLOADING_CONDITION) as u8,
+            temperature_limit: f64::from(self.get(reg::MAX_TEMPERATURE_LIMIT)),
+            current_limit: f64::from(self.get(reg::PROTECTION_CURRENT)) * AMPS_PER_CURRENT_UNIT,
+            over_current_time: f64::from(self.get(reg::OVER_CURRENT_PROTECTION_TIME)) * 0.01,
+            overload_duty: f64::from(self.get(reg::OVERLOAD_TORQUE)) / 100.0,
+            overload_time: f64::from(self.get(reg::PROTECTION_TIME)) * 0.01,
+        };
     }
 
     fn set(&mut self, r: Register, v: i32) {
@@ -232,11 +288,12 @@ impl Servo {
         self.set(reg::GOAL_POSITION, p);
         self.setpoint = f64::from(p);
         self.setpoint_speed = 0.0;
+        self.fw.goal = f64::from(p);
     }
 
     /// Whether the output stage is driving.
     pub fn torque_enabled(&self) -> bool {
-        self.get(reg::TORQUE_ENABLE) == 1
+        self.fw.torque_enable == 1
             && !self.protections.over_current
             && !self.protections.over_temperature
     }
@@ -249,6 +306,7 @@ impl Servo {
         self.set(reg::TORQUE_LIMIT, max_torque);
         self.set(reg::LOCK, 1);
         self.protections = Protections::default();
+        self.refresh_firmware();
         self.set_goal_to_present();
     }
 
@@ -282,6 +340,7 @@ impl Servo {
             }
             self.regs[at] = b;
         }
+        self.refresh_firmware();
         let touches = |r: Register| a <= r.addr as usize && (r.addr as usize) < a + data.len();
         if touches(reg::GOAL_POSITION) {
             let goal = self.get(reg::GOAL_POSITION);
@@ -358,31 +417,23 @@ impl Servo {
         if !self.torque_enabled() {
             return 0.0;
         }
-        let duty = match self.get(reg::OPERATING_MODE) {
+        let duty = match self.fw.mode {
             1 => {
                 // Speed mode: feed-forward of the back-EMF plus a proportional speed loop.
-                let goal = f64::from(self.get(reg::GOAL_VELOCITY)) * RAD_PER_STEP;
+                let goal = self.fw.speed_goal;
                 (goal * self.plant.ke + 2.0 * self.plant.ke * (goal - self.speed))
                     / self.supply.max(1.0)
             }
-            2 => {
-                f64::from(decode_sign_magnitude(
-                    u16_le(self.regs[44], self.regs[45]),
-                    10,
-                )) / 1000.0
-            }
+            2 => self.fw.pwm_goal,
             _ => {
                 self.advance_setpoint(dt);
-                let kp = f64::from(self.get(reg::P_COEFFICIENT));
-                let error = (self.setpoint - self.raw_position()
-                    + f64::from(self.get(reg::HOMING_OFFSET)))
-                    * RAD_PER_STEP;
-                kp * DUTY_PER_KP_RAD * error
+                let error = (self.setpoint - self.raw_position() + self.fw.homing) * RAD_PER_STEP;
+                self.fw.kp * DUTY_PER_KP_RAD * error
             }
         };
-        let mut cap = MAX_DUTY.min(f64::from(self.get(reg::TORQUE_LIMIT)) / 1000.0);
+        let mut cap = self.fw.torque_cap;
         if self.protections.overload {
-            cap = cap.min(f64::from(self.get(reg::PROTECTIVE_TORQUE)) / 100.0);
+            cap = cap.min(self.fw.protective_duty);
         }
         duty.clamp(-cap, cap)
     }
@@ -390,21 +441,17 @@ impl Servo {
     /// Moves the position setpoint toward the goal with the profile velocity/acceleration
     /// (0 = unlimited), within the EEPROM position limits.
     fn advance_setpoint(&mut self, dt: f64) {
-        let (lo, hi) = (
-            self.get(reg::MIN_POSITION_LIMIT),
-            self.get(reg::MAX_POSITION_LIMIT),
-        );
-        let mut goal = f64::from(self.get(reg::GOAL_POSITION));
-        if lo != 0 || hi != 0 {
-            goal = goal.clamp(f64::from(lo), f64::from(hi));
+        let mut goal = self.fw.goal;
+        if let Some((lo, hi)) = self.fw.limits {
+            goal = goal.clamp(lo, hi);
         }
-        let vmax = f64::from(self.get(reg::GOAL_VELOCITY).abs());
+        let vmax = self.fw.profile_speed;
         if vmax == 0.0 {
             self.setpoint = goal;
             self.setpoint_speed = 0.0;
             return;
         }
-        let amax = f64::from(self.get(reg::ACCELERATION)) * 100.0;
+        let amax = self.fw.profile_accel;
         let remaining = goal - self.setpoint;
         let mut v = remaining.signum() * vmax;
         if amax > 0.0 {
@@ -481,38 +528,36 @@ impl Servo {
     }
 
     fn step_protections(&mut self, dt: f64) {
-        let mask = self.get(reg::UNLOADING_CONDITION) as u8;
-        let temperature_limit = f64::from(self.get(reg::MAX_TEMPERATURE_LIMIT));
-        let amps_limit = f64::from(self.get(reg::PROTECTION_CURRENT)) * AMPS_PER_CURRENT_UNIT;
-        let over_current_time = f64::from(self.get(reg::OVER_CURRENT_PROTECTION_TIME)) * 0.01;
-        let overload_duty = f64::from(self.get(reg::OVERLOAD_TORQUE)) / 100.0;
-        let overload_time = f64::from(self.get(reg::PROTECTION_TIME)) * 0.01;
+        let fw = self.fw;
         let (pr, log) = (&mut self.protections, &mut self.log);
-        if mask & ServoStatus::OVERHEAT != 0
-            && self.temperature >= temperature_limit
+        if fw.unloading & ServoStatus::OVERHEAT != 0
+            && self.temperature >= fw.temperature_limit
             && !pr.over_temperature
         {
             pr.over_temperature = true;
             log.hardware_cutoffs += 1;
         }
-        pr.over_current_for = if self.current.abs() > amps_limit {
+        pr.over_current_for = if self.current.abs() > fw.current_limit {
             pr.over_current_for + dt
         } else {
             0.0
         };
-        if mask & ServoStatus::OVER_CURRENT != 0
+        if fw.unloading & ServoStatus::OVER_CURRENT != 0
             && !pr.over_current
-            && pr.over_current_for > over_current_time
+            && pr.over_current_for > fw.over_current_time
         {
             pr.over_current = true;
             log.over_current_trips += 1;
         }
-        pr.overload_for = if self.duty.abs() > overload_duty {
+        pr.overload_for = if self.duty.abs() > fw.overload_duty {
             pr.overload_for + dt
         } else {
             0.0
         };
-        if mask & ServoStatus::OVERLOAD != 0 && !pr.overload && pr.overload_for > overload_time {
+        if fw.unloading & ServoStatus::OVERLOAD != 0
+            && !pr.overload
+            && pr.overload_for > fw.overload_time
+        {
             pr.overload = true;
             log.overload_trips += 1;
         }

@@ -7,6 +7,7 @@ use iceoryx2::prelude::ZeroCopySend;
 
 /// Joints a frame can carry (the A3 has 18 bus joints: 2 × (7 + gripper) + 2 wheels).
 pub const MAX_JOINTS: usize = 24;
+const _: () = assert!(MAX_JOINTS <= 32, "the goal mask is a u32");
 
 /// One joint in one cycle, in calibrated physical units.
 #[repr(C)]
@@ -124,6 +125,5 @@ mod tests {
         assert_eq!(std::mem::size_of::<JointSample>(), 32);
         assert_eq!(std::mem::size_of::<JointState>(), 32 + 32 * MAX_JOINTS);
         assert_eq!(std::mem::size_of::<GoalFrame>(), 24 + 4 * MAX_JOINTS);
-        assert!(MAX_JOINTS <= 32, "the goal mask is a u32");
     }
 }

@@ -1,0 +1,160 @@
+//! `nori state` and `nori goal`: look at and move the robot through the state plane.
+
+use anyhow::{bail, Context, Result};
+use bus_driver::LoadedConfig;
+use clap::Args;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+use telemetry::plane::{self, Plane};
+use telemetry::GoalFrame;
+
+/// Options shared by the plane tools.
+#[derive(Args, Debug)]
+pub struct PlaneArgs {
+    /// State-plane domain.
+    #[arg(long, default_value = plane::DEFAULT_DOMAIN)]
+    pub domain: String,
+    /// Driver configuration (for joint names); the embedded default when absent.
+    #[arg(long)]
+    pub driver_config: Option<PathBuf>,
+}
+
+/// Options of `nori state`.
+#[derive(Args, Debug)]
+pub struct StateArgs {
+    #[command(flatten)]
+    plane: PlaneArgs,
+    /// Wait this long for a frame, s.
+    #[arg(long, default_value_t = 2.0)]
+    timeout: f64,
+    /// Print the frame as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+/// Options of `nori goal`.
+#[derive(Args, Debug)]
+pub struct GoalArgs {
+    #[command(flatten)]
+    plane: PlaneArgs,
+    /// Goals as JOINT=RAD (rad/s for wheels), e.g. left_elbow=-1.0.
+    #[arg(required = true)]
+    goals: Vec<String>,
+}
+
+fn joint_names(args: &PlaneArgs) -> Result<Vec<String>> {
+    let config = match &args.driver_config {
+        Some(p) => LoadedConfig::load(p)?,
+        None => LoadedConfig::embedded()?,
+    };
+    Ok(config
+        .config
+        .joints()
+        .map(|(_, s)| s.joint.clone())
+        .collect())
+}
+
+/// Prints the newest joint state.
+pub fn state(args: &StateArgs) -> Result<()> {
+    let names = joint_names(&args.plane)?;
+    let node = Plane::open(
+        &args.plane.domain,
+        &format!("nori-state-{}", std::process::id()),
+    )?;
+    let sub = node.joint_state_subscriber()?;
+    let until = Instant::now() + Duration::from_secs_f64(args.timeout);
+    let frame = loop {
+        if let Some(f) = plane::newest(&sub) {
+            break f;
+        }
+        if Instant::now() > until {
+            bail!(
+                "no joint state on domain {:?} within {} s: is the bus-driver running?",
+                args.plane.domain,
+                args.timeout
+            );
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    if args.json {
+        let joints: Vec<_> = frame
+            .joints()
+            .iter()
+            .enumerate()
+            .map(|(i, j)| {
+                serde_json::json!({
+                    "joint": names.get(i), "valid": j.is_valid(), "position_rad": j.position_rad, "goal_rad": j.goal_rad,
+                    "velocity_rad_s": j.velocity_rad_s, "current_a": j.current_a, "temperature_c": j.temperature_c,
+                    "voltage_v": j.voltage_v, "load": j.load, "status": j.status, "torque_enabled": j.torque_enabled == 1,
+                })
+            })
+            .collect();
+        println!(
+            "{}",
+            serde_json::json!({"seq": frame.seq, "deadline_misses": frame.deadline_misses, "joints": joints})
+        );
+        return Ok(());
+    }
+    println!(
+        "cycle {}  deadline misses {}",
+        frame.seq, frame.deadline_misses
+    );
+    println!(
+        "{:<22} {:>9} {:>9} {:>8} {:>6} {:>6}  status",
+        "joint", "pos rad", "goal rad", "curr A", "°C", "V"
+    );
+    for (i, j) in frame.joints().iter().enumerate() {
+        let name = names.get(i).map_or("?", |s| s.as_str());
+        if !j.is_valid() {
+            println!("{name:<22} {:>9}", "missing");
+            continue;
+        }
+        println!(
+            "{name:<22} {:>9.3} {:>9.3} {:>8.3} {:>6.0} {:>6.1}  {}",
+            j.position_rad,
+            j.goal_rad,
+            j.current_a,
+            j.temperature_c,
+            j.voltage_v,
+            feetech::ServoStatus(j.status)
+        );
+    }
+    Ok(())
+}
+
+/// Publishes one goal frame.
+pub fn goal(args: &GoalArgs) -> Result<()> {
+    let names = joint_names(&args.plane)?;
+    let mut frame = GoalFrame {
+        joint_count: names.len() as u32,
+        ..GoalFrame::default()
+    };
+    for g in &args.goals {
+        let (joint, value) = g
+            .split_once('=')
+            .with_context(|| format!("{g:?}: expected JOINT=RAD"))?;
+        let i = names
+            .iter()
+            .position(|n| n == joint)
+            .with_context(|| format!("no joint {joint:?} (have: {})", names.join(", ")))?;
+        let v: f32 = value
+            .parse()
+            .with_context(|| format!("{g:?}: {value:?} is not a number"))?;
+        frame.mask |= 1 << i;
+        frame.position_rad[i] = v;
+    }
+    let node = Plane::open(
+        &args.plane.domain,
+        &format!("nori-goal-{}", std::process::id()),
+    )?;
+    let publisher = node.goal_publisher()?;
+    // Give the driver's subscriber a moment to connect to a fresh publisher.
+    std::thread::sleep(Duration::from_millis(100));
+    frame.timestamp_ns = telemetry::clock::monotonic_ns();
+    frame.seq = 1;
+    plane::publish(&publisher, &frame)?;
+    // Keep the publisher alive until the driver's next cycles have taken the frame.
+    std::thread::sleep(Duration::from_millis(50));
+    eprintln!("nori goal: sent {} goal(s)", args.goals.len());
+    Ok(())
+}
