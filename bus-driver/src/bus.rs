@@ -193,15 +193,18 @@ impl<T: Transport> Bus<T> {
                 None => {}
             }
             let now = Instant::now();
-            if now >= deadline {
-                // Give up on a header that never completed and look behind it.
+            // Past the deadline, take only what has already arrived (a bus collected after
+            // another may find its replies waiting), then give up on a header that never
+            // completed and look behind it.
+            let timeout = deadline.saturating_duration_since(now);
+            let n = self
+                .transport
+                .receive(&mut self.rx, timeout)
+                .inspect_err(|_| self.counters.transport_errors += 1)?;
+            if n == 0 && timeout.is_zero() {
                 at_end = true;
                 continue;
             }
-            let n = self
-                .transport
-                .receive(&mut self.rx, deadline - now)
-                .inspect_err(|_| self.counters.transport_errors += 1)?;
             let mut rest = &self.rx[..n];
             while !rest.is_empty() {
                 let taken = self.decoder.push(rest);
@@ -256,17 +259,17 @@ impl<T: Transport> Bus<T> {
                     Err(e) => self.counters.count(e),
                 }
             }
-            let now = Instant::now();
-            if now >= deadline {
+            let timeout = deadline.saturating_duration_since(Instant::now());
+            let n = self
+                .transport
+                .receive(&mut self.rx, timeout)
+                .inspect_err(|_| self.counters.transport_errors += 1)?;
+            if n == 0 && timeout.is_zero() {
                 return Err(BusError::NoReply {
                     id,
                     waited_us: budget.as_micros() as u64,
                 });
             }
-            let n = self
-                .transport
-                .receive(&mut self.rx, deadline - now)
-                .inspect_err(|_| self.counters.transport_errors += 1)?;
             self.decoder.push(&self.rx[..n]);
         }
     }

@@ -96,6 +96,9 @@ pub struct DriverCounters {
     pub setup_failures: u64,
 }
 
+/// Passes of [`Driver::setup`] over servos that failed.
+pub const SETUP_PASSES: usize = 3;
+
 struct Joint {
     name: String,
     id: u8,
@@ -218,13 +221,25 @@ impl<T: Transport> Driver<T> {
         &self.state
     }
 
-    /// Brings every servo up; returns the failures (those joints stay off and are retried).
+    /// Brings every servo up, in up to [`SETUP_PASSES`] passes over those that failed (a bus
+    /// that just powered up may miss the first requests); returns the last failures. Those
+    /// joints stay off and are retried every second by the loop.
     pub fn setup(&mut self) -> Vec<(String, SetupError)> {
+        let mut pending: Vec<usize> = (0..self.joints.len()).collect();
         let mut failures = Vec::new();
-        for j in 0..self.joints.len() {
-            if let Err(e) = self.setup_joint(j) {
-                self.counters.setup_failures += 1;
-                failures.push((self.joints[j].name.clone(), e));
+        for _ in 0..SETUP_PASSES {
+            failures.clear();
+            let mut still = Vec::new();
+            for &j in &pending {
+                if let Err(e) = self.setup_joint(j) {
+                    self.counters.setup_failures += 1;
+                    failures.push((self.joints[j].name.clone(), e));
+                    still.push(j);
+                }
+            }
+            pending = still;
+            if pending.is_empty() {
+                break;
             }
         }
         failures

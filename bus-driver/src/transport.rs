@@ -33,7 +33,8 @@ pub trait Transport {
     fn baud(&self) -> u32;
     /// Writes all of `bytes`.
     fn send(&mut self, bytes: &[u8]) -> Result<(), TransportError>;
-    /// Reads what has arrived, waiting at most `timeout`; `Ok(0)` when nothing came in time.
+    /// Reads what has arrived, waiting at most `timeout` (zero: only what is already there);
+    /// `Ok(0)` when nothing came in time.
     fn receive(&mut self, buf: &mut [u8], timeout: Duration) -> Result<usize, TransportError>;
     /// Drops bytes received and not yet read (late replies of an earlier transaction).
     fn discard_input(&mut self) -> Result<(), TransportError>;
@@ -102,9 +103,6 @@ impl Transport for SerialTransport {
     fn receive(&mut self, buf: &mut [u8], timeout: Duration) -> Result<usize, TransportError> {
         use serialport::SerialPort;
         use std::io::Read;
-        if timeout.is_zero() {
-            return Ok(0);
-        }
         self.port
             .set_timeout(timeout)
             .map_err(|e| self.io(std::io::Error::other(e)))?;

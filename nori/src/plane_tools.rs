@@ -3,6 +3,7 @@
 use anyhow::{bail, Context, Result};
 use bus_driver::LoadedConfig;
 use clap::Args;
+use std::io::Write;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 use telemetry::plane::{self, Plane};
@@ -89,27 +90,43 @@ pub fn state(args: &StateArgs) -> Result<()> {
                 })
             })
             .collect();
-        println!(
-            "{}",
-            serde_json::json!({"seq": frame.seq, "deadline_misses": frame.deadline_misses, "joints": joints})
-        );
-        return Ok(());
+        let json = serde_json::json!({"seq": frame.seq, "deadline_misses": frame.deadline_misses, "joints": joints});
+        return quiet_pipe(writeln!(std::io::stdout(), "{json}"));
     }
-    println!(
+    quiet_pipe(print_table(&mut std::io::stdout().lock(), &frame, &names))
+}
+
+/// A closed pipe (`nori state | head`) ends the output quietly.
+fn quiet_pipe(r: std::io::Result<()>) -> Result<()> {
+    match r {
+        Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => Ok(()),
+        other => Ok(other?),
+    }
+}
+
+fn print_table(
+    out: &mut impl Write,
+    frame: &telemetry::JointState,
+    names: &[String],
+) -> std::io::Result<()> {
+    writeln!(
+        out,
         "cycle {}  deadline misses {}",
         frame.seq, frame.deadline_misses
-    );
-    println!(
+    )?;
+    writeln!(
+        out,
         "{:<22} {:>9} {:>9} {:>8} {:>6} {:>6}  status",
         "joint", "pos rad", "goal rad", "curr A", "°C", "V"
-    );
+    )?;
     for (i, j) in frame.joints().iter().enumerate() {
         let name = names.get(i).map_or("?", |s| s.as_str());
         if !j.is_valid() {
-            println!("{name:<22} {:>9}", "missing");
+            writeln!(out, "{name:<22} {:>9}", "missing")?;
             continue;
         }
-        println!(
+        writeln!(
+            out,
             "{name:<22} {:>9.3} {:>9.3} {:>8.3} {:>6.0} {:>6.1}  {}",
             j.position_rad,
             j.goal_rad,
@@ -117,7 +134,7 @@ pub fn state(args: &StateArgs) -> Result<()> {
             j.temperature_c,
             j.voltage_v,
             feetech::ServoStatus(j.status)
-        );
+        )?;
     }
     Ok(())
 }
