@@ -501,7 +501,7 @@ fn sample(joint: &Joint, fb: Option<&(FeedbackBlock, ServoStatus)>) -> JointSamp
         status: status.0 | f.status.0,
         valid: 1,
         torque_enabled: u8::from(joint.ready),
-        reserved: 0,
+        flags: 0,
     }
 }
 

@@ -148,9 +148,9 @@ fn main() -> Result<()> {
     }
     let plane = Plane::open(&args.domain, "bus-driver")?;
     plane.cleanup_dead();
-    let mut goals = IpcGoals(plane.goal_subscriber()?);
+    let mut goals = IpcGoals(plane.subscriber(&plane::GOALS)?);
     let mut sink = IpcState {
-        publisher: plane.joint_state_publisher()?,
+        publisher: plane.publisher(&plane::JOINT_STATE)?,
         every: Duration::from_secs_f64(args.status_every.max(0.0)),
         last_status: Instant::now(),
         last_seq: 0,
@@ -177,8 +177,8 @@ fn main() -> Result<()> {
         rate_hz = config.config.rate_hz,
         domain = %args.domain,
         "driving; state on {}, goals from {}",
-        plane::JOINT_STATE,
-        plane::GOALS
+        plane::JOINT_STATE.name,
+        plane::GOALS.name
     );
     let max_cycles = args
         .run_for

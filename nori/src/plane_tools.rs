@@ -62,7 +62,7 @@ pub fn state(args: &StateArgs) -> Result<()> {
         &args.plane.domain,
         &format!("nori-state-{}", std::process::id()),
     )?;
-    let sub = node.joint_state_subscriber()?;
+    let sub = node.subscriber(&plane::JOINT_STATE)?;
     let until = Instant::now() + Duration::from_secs_f64(args.timeout);
     let frame = loop {
         if let Some(f) = plane::newest(&sub) {
@@ -164,7 +164,7 @@ pub fn goal(args: &GoalArgs) -> Result<()> {
         &args.plane.domain,
         &format!("nori-goal-{}", std::process::id()),
     )?;
-    let publisher = node.goal_publisher()?;
+    let publisher = node.publisher(&plane::GOALS)?;
     // Give the driver's subscriber a moment to connect to a fresh publisher.
     std::thread::sleep(Duration::from_millis(100));
     frame.timestamp_ns = telemetry::clock::monotonic_ns();

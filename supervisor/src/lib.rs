@@ -1,1 +1,21 @@
-//! supervisor
+//! The supervisor: an isolated process that reads the driver's joint state and protects the
+//! servos (paper, "Making Commodity Actuators Viable").
+//!
+//! * [`stall`]: k = 15 window stall detection; gripper → gentle grip torque, other joints → one
+//!   retry at full torque, then reduced torque until a new target.
+//! * [`thermal`]: the software tier of the two-tier thermal interlock: warnings from the
+//!   temperature trajectory, the whole bus disabled at 59 °C, latched until cooled and commanded.
+//! * [`grip`]: sensorless grip force from the same current read.
+//! * [`logic`]: all of it as one pure state machine over joint-state frames; the frames'
+//!   timestamps are its clock, so tests drive it with a mock clock.
+//!
+//! It depends only on `telemetry`: it must outlive a crashed driver.
+
+pub mod config;
+pub mod grip;
+pub mod logic;
+pub mod stall;
+pub mod thermal;
+
+pub use config::SupervisorConfig;
+pub use logic::Supervisor;

@@ -33,9 +33,15 @@ pub struct JointSample {
     pub valid: u8,
     /// 1 when the driver has torque enabled on this joint.
     pub torque_enabled: u8,
-    /// Reserved, zero.
-    pub reserved: u8,
+    /// [`JOINT_FLAG_OUTPUT_LOST`] and friends.
+    pub flags: u8,
 }
+
+/// The joint's output vanished while torque was on and no status bit explains it: the driver's
+/// inference of the servo's unannounced over-temperature cutoff (the hardware thermal tier).
+pub const JOINT_FLAG_OUTPUT_LOST: u8 = 1;
+/// The joint's bus is disabled by the supervisor.
+pub const JOINT_FLAG_BUS_DISABLED: u8 = 2;
 
 impl JointSample {
     /// Whether this cycle's read of the joint succeeded.
@@ -63,8 +69,13 @@ pub struct JointState {
     pub joints: [JointSample; MAX_JOINTS],
 }
 
-/// The driver has applied its safe state.
+/// The driver has applied its safe state (supervisor heartbeat lost, or stopping).
 pub const STATE_FLAG_SAFE_STATE: u32 = 1;
+
+/// Buses a frame can describe.
+pub const MAX_BUSES: usize = 4;
+/// Bytes of a joint name in [`JointLayout`] (UTF-8, zero-padded).
+pub const NAME_LEN: usize = 24;
 
 impl Default for JointState {
     fn default() -> Self {
@@ -115,6 +126,284 @@ impl Default for GoalFrame {
     }
 }
 
+/// What a joint is, for the supervisor's choice of reaction.
+#[repr(u8)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum JointRole {
+    /// An arm joint in position mode.
+    #[default]
+    Joint = 0,
+    /// A gripper (reduced grip torque on stall, grip-force estimate).
+    Gripper = 1,
+    /// A wheel in speed mode.
+    Wheel = 2,
+}
+
+/// One joint of the layout.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
+pub struct JointInfo {
+    /// Name, UTF-8, zero-padded.
+    pub name: [u8; NAME_LEN],
+    /// Index of its bus in the driver's configuration.
+    pub bus: u8,
+    /// [`JointRole`] as a byte.
+    pub role: u8,
+    /// Servo id on the bus.
+    pub id: u8,
+    /// Reserved, zero.
+    pub reserved: u8,
+    /// `Model_Number` (777 STS3215, 2825 STS3250, 2569 STS3095).
+    pub model: u16,
+    /// Firmware over-temperature cutoff written to this servo, °C.
+    pub max_temperature_c: u8,
+    /// Reserved, zero.
+    pub reserved2: u8,
+    /// Calibrated range, rad (low, high).
+    pub range_rad: [f32; 2],
+}
+
+impl JointInfo {
+    /// The name as text.
+    pub fn name(&self) -> &str {
+        let end = self.name.iter().position(|&b| b == 0).unwrap_or(NAME_LEN);
+        std::str::from_utf8(&self.name[..end]).unwrap_or("?")
+    }
+
+    /// Sets the name, truncated to [`NAME_LEN`] bytes at a character boundary.
+    pub fn set_name(&mut self, name: &str) {
+        self.name = [0; NAME_LEN];
+        let mut end = name.len().min(NAME_LEN);
+        while !name.is_char_boundary(end) {
+            end -= 1;
+        }
+        self.name[..end].copy_from_slice(&name.as_bytes()[..end]);
+    }
+
+    /// The role.
+    pub fn role(&self) -> JointRole {
+        match self.role {
+            1 => JointRole::Gripper,
+            2 => JointRole::Wheel,
+            _ => JointRole::Joint,
+        }
+    }
+}
+
+/// The driver's joints and buses, published once (history 1) so that other processes share the
+/// driver configuration without reading it.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[type_name("nori::JointLayout/1")]
+pub struct JointLayout {
+    /// Joints in use.
+    pub joint_count: u32,
+    /// Buses in use.
+    pub bus_count: u32,
+    /// Per joint, in frame order.
+    pub joints: [JointInfo; MAX_JOINTS],
+}
+
+impl Default for JointLayout {
+    fn default() -> Self {
+        JointLayout {
+            joint_count: 0,
+            bus_count: 0,
+            joints: [JointInfo::default(); MAX_JOINTS],
+        }
+    }
+}
+
+impl JointLayout {
+    /// The joints in use.
+    pub fn joints(&self) -> &[JointInfo] {
+        &self.joints[..(self.joint_count as usize).min(MAX_JOINTS)]
+    }
+}
+
+/// What the supervisor wants the driver to do; the newest frame wins (state, not events).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[type_name("nori::Directives/1")]
+pub struct Directives {
+    /// Supervisor's sequence number.
+    pub seq: u64,
+    /// CLOCK_MONOTONIC, ns.
+    pub timestamp_ns: u64,
+    /// Joints the supervisor believes the driver has (must match).
+    pub joint_count: u32,
+    /// Bit `b` set: bus `b` is enabled. A cleared bit disables the whole bus (torque off).
+    pub bus_enabled: u32,
+    /// Per joint torque limit, 0.1 % of full output; 0 means the configured maximum.
+    pub torque_limit_permille: [u16; MAX_JOINTS],
+}
+
+impl Default for Directives {
+    fn default() -> Self {
+        Directives {
+            seq: 0,
+            timestamp_ns: 0,
+            joint_count: 0,
+            bus_enabled: u32::MAX,
+            torque_limit_permille: [0; MAX_JOINTS],
+        }
+    }
+}
+
+/// Who sends a heartbeat.
+#[repr(u8)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Peer {
+    /// The bus driver.
+    Driver = 1,
+    /// The supervisor.
+    Supervisor = 2,
+}
+
+/// "I am alive", sent by the driver and the supervisor every cycle.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
+#[type_name("nori::Heartbeat/1")]
+pub struct Heartbeat {
+    /// Sender's sequence number (restarts with the process).
+    pub seq: u64,
+    /// CLOCK_MONOTONIC, ns.
+    pub timestamp_ns: u64,
+    /// Sender's process id (a change means a restart).
+    pub pid: u32,
+    /// [`Peer`] as a byte.
+    pub peer: u8,
+    /// Reserved, zero.
+    pub reserved: [u8; 3],
+}
+
+/// Kinds of [`SupervisorEvent`].
+#[repr(u8)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum EventKind {
+    /// A joint stalled (current high, position static over the window).
+    Stall = 1,
+    /// A stalled joint gets its one retry at full torque.
+    StallRetry = 2,
+    /// A joint's torque was reduced (gripper grip, or a joint that stalled again).
+    TorqueReduced = 3,
+    /// A reduced joint got a new target and its torque back.
+    TorqueRestored = 4,
+    /// Thermal warning level changed (`level` 0..3, `value` predicted seconds to the trip).
+    ThermalWarning = 5,
+    /// Software thermal trip: the whole bus is disabled, latched (`value` °C).
+    ThermalTrip = 6,
+    /// A tripped bus was re-enabled after cooling and an explicit command.
+    BusReenabled = 7,
+    /// The driver inferred a servo's unannounced firmware cutoff (`value` °C).
+    OutputLost = 8,
+    /// The supervisor lost the driver (no joint state within the bound).
+    DriverLost = 9,
+    /// The driver is back (`value`: its new pid).
+    DriverBack = 10,
+    /// A re-enable command was refused (`value` hottest °C on the bus).
+    ReenableRefused = 11,
+}
+
+/// Something the supervisor (or the driver) decided or observed.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
+#[type_name("nori::SupervisorEvent/1")]
+pub struct SupervisorEvent {
+    /// Sender's sequence number.
+    pub seq: u64,
+    /// CLOCK_MONOTONIC, ns.
+    pub timestamp_ns: u64,
+    /// [`EventKind`] as a byte.
+    pub kind: u8,
+    /// Joint index (or 0xFF when the event is about a bus).
+    pub joint: u8,
+    /// Bus index (or 0xFF).
+    pub bus: u8,
+    /// Warning level or similar small number.
+    pub level: u8,
+    /// A value whose meaning depends on the kind (°C, A, s).
+    pub value: f32,
+}
+
+impl SupervisorEvent {
+    /// The kind, if known.
+    pub fn kind(&self) -> Option<EventKind> {
+        use EventKind::*;
+        [
+            Stall,
+            StallRetry,
+            TorqueReduced,
+            TorqueRestored,
+            ThermalWarning,
+            ThermalTrip,
+            BusReenabled,
+            OutputLost,
+            DriverLost,
+            DriverBack,
+            ReenableRefused,
+        ]
+        .into_iter()
+        .find(|k| *k as u8 == self.kind)
+    }
+}
+
+/// Grippers a grip frame carries.
+pub const MAX_GRIPPERS: usize = 4;
+
+/// One gripper's force estimate, beside the raw current it comes from.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
+pub struct GripSample {
+    /// Joint index of the gripper.
+    pub joint: u8,
+    /// 1 when the current was read this cycle.
+    pub valid: u8,
+    /// Reserved, zero.
+    pub reserved: [u8; 2],
+    /// Raw motor current, A.
+    pub current_a: f32,
+    /// Normalised grip force f̂ = clip((|I| − I_idle)/(I_max − I_idle), 0, 1).
+    pub force: f32,
+}
+
+/// Grip force of every gripper, one per joint-state frame.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
+#[type_name("nori::GripFrame/1")]
+pub struct GripFrame {
+    /// `seq` of the joint-state frame it was computed from.
+    pub state_seq: u64,
+    /// That frame's timestamp, ns.
+    pub timestamp_ns: u64,
+    /// Grippers in use.
+    pub gripper_count: u32,
+    /// Reserved, zero.
+    pub reserved: u32,
+    /// Per gripper.
+    pub grippers: [GripSample; MAX_GRIPPERS],
+}
+
+/// An operator's command to the supervisor.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
+#[type_name("nori::SupervisorCommand/1")]
+pub struct SupervisorCommand {
+    /// Sender's sequence number.
+    pub seq: u64,
+    /// CLOCK_MONOTONIC, ns.
+    pub timestamp_ns: u64,
+    /// 1: re-enable the bus in `bus` (refused unless it has cooled).
+    pub kind: u8,
+    /// Bus index.
+    pub bus: u8,
+    /// Reserved, zero.
+    pub reserved: [u8; 6],
+}
+
+/// [`SupervisorCommand::kind`]: re-enable a tripped bus.
+pub const COMMAND_REENABLE_BUS: u8 = 1;
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -125,5 +414,18 @@ mod tests {
         assert_eq!(std::mem::size_of::<JointSample>(), 32);
         assert_eq!(std::mem::size_of::<JointState>(), 32 + 32 * MAX_JOINTS);
         assert_eq!(std::mem::size_of::<GoalFrame>(), 24 + 4 * MAX_JOINTS);
+        assert_eq!(std::mem::size_of::<Directives>(), 24 + 2 * MAX_JOINTS);
+        assert_eq!(std::mem::size_of::<JointInfo>(), 40);
+        assert_eq!(std::mem::size_of::<SupervisorEvent>(), 24);
+        assert_eq!(std::mem::size_of::<Heartbeat>(), 24);
+    }
+
+    #[test]
+    fn names_round_trip_and_truncate() {
+        let mut j = JointInfo::default();
+        j.set_name("left_gripper");
+        assert_eq!(j.name(), "left_gripper");
+        j.set_name("a_very_long_joint_name_that_does_not_fit");
+        assert_eq!(j.name().len(), NAME_LEN);
     }
 }

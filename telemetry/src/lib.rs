@@ -9,5 +9,6 @@ pub mod clock;
 pub mod frames;
 #[cfg(feature = "ipc")]
 pub mod plane;
+pub mod watchdog;
 
 pub use frames::{GoalFrame, JointSample, JointState, MAX_JOINTS};

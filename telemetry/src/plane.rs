@@ -1,23 +1,19 @@
-//! The state plane: the iceoryx2 services of one robot, opened with their QoS in this one place
-//! (the first process to create a service fixes its QoS; every other must ask for no more).
-//!
-//! | service              | payload        | publishers            | subscribers               |
-//! |----------------------|----------------|-----------------------|---------------------------|
-//! | `nori/joint-state`   | [`JointState`] | bus-driver            | supervisor, fleet-agent, tools |
-//! | `nori/goals`         | [`GoalFrame`]  | fleet-agent, tools    | bus-driver                |
+//! The state plane: the iceoryx2 services of one robot, each defined once as a [`Topic`] with its
+//! payload type and QoS (the first process to create a service fixes its QoS; every other must
+//! ask for no more, so they are never spelled twice).
 //!
 //! A *domain* (the iceoryx2 prefix) separates robots or test runs on one machine.
 
-use crate::frames::{GoalFrame, JointState};
+use crate::frames::{
+    Directives, GoalFrame, GripFrame, Heartbeat, JointLayout, JointState, SupervisorCommand,
+    SupervisorEvent,
+};
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
+use std::marker::PhantomData;
 use thiserror::Error;
 
-/// Joint state, one frame per driver cycle.
-pub const JOINT_STATE: &str = "nori/joint-state";
-/// Goals into the driver.
-pub const GOALS: &str = "nori/goals";
 /// The default domain.
 pub const DEFAULT_DOMAIN: &str = "nori";
 
@@ -25,6 +21,67 @@ pub const DEFAULT_DOMAIN: &str = "nori";
 pub type Pub<T> = Publisher<ipc::Service, T, ()>;
 /// A subscriber of `T` on the plane.
 pub type Sub<T> = Subscriber<ipc::Service, T, ()>;
+
+/// Queue sizes and port limits of a service.
+#[derive(Debug, Clone, Copy)]
+pub struct Qos {
+    /// Samples a late subscriber receives at once.
+    pub history: usize,
+    /// Samples a subscriber holds before the oldest is overwritten.
+    pub buffer: usize,
+    /// Publishers allowed.
+    pub publishers: usize,
+    /// Subscribers allowed.
+    pub subscribers: usize,
+}
+
+/// A service: its name, payload and QoS.
+pub struct Topic<T> {
+    /// Service name.
+    pub name: &'static str,
+    /// QoS.
+    pub qos: Qos,
+    payload: PhantomData<fn() -> T>,
+}
+
+const fn topic<T>(
+    name: &'static str,
+    history: usize,
+    buffer: usize,
+    publishers: usize,
+    subscribers: usize,
+) -> Topic<T> {
+    Topic {
+        name,
+        qos: Qos {
+            history,
+            buffer,
+            publishers,
+            subscribers,
+        },
+        payload: PhantomData,
+    }
+}
+
+/// Driver → all: one frame per control cycle. A late subscriber gets the newest at once; the
+/// supervisor needs every frame of its stall window, so the buffer spans a few cycles.
+pub const JOINT_STATE: Topic<JointState> = topic("nori/joint-state", 1, 16, 2, 8);
+/// Goals into the driver. Not replayed: a restarted driver starts from present positions.
+pub const GOALS: Topic<GoalFrame> = topic("nori/goals", 0, 4, 4, 4);
+/// Driver → all: the joint layout, published at start (history 1).
+pub const LAYOUT: Topic<JointLayout> = topic("nori/layout", 1, 2, 2, 8);
+/// Supervisor → driver: torque limits and bus enables; newest wins.
+pub const DIRECTIVES: Topic<Directives> = topic("nori/directives", 1, 4, 2, 4);
+/// Supervisor and driver → all: what was decided or observed. Buffered: events must not be lost.
+pub const EVENTS: Topic<SupervisorEvent> = topic("nori/events", 16, 256, 4, 8);
+/// Driver's heartbeat.
+pub const DRIVER_HEARTBEAT: Topic<Heartbeat> = topic("nori/heartbeat/driver", 1, 4, 2, 4);
+/// Supervisor's heartbeat.
+pub const SUPERVISOR_HEARTBEAT: Topic<Heartbeat> = topic("nori/heartbeat/supervisor", 1, 4, 2, 4);
+/// Supervisor → all: grip force beside raw current, per joint-state frame.
+pub const GRIP: Topic<GripFrame> = topic("nori/grip", 1, 16, 2, 8);
+/// Operator → supervisor: explicit commands (re-enable a tripped bus).
+pub const COMMANDS: Topic<SupervisorCommand> = topic("nori/supervisor-commands", 0, 8, 4, 2);
 
 /// An iceoryx2 failure, with what was being done.
 #[derive(Debug, Error)]
@@ -43,28 +100,6 @@ fn err<E: std::fmt::Debug>(what: impl Into<String>) -> impl FnOnce(E) -> PlaneEr
         detail: format!("{e:?}"),
     }
 }
-
-struct Qos {
-    history: usize,
-    buffer: usize,
-    publishers: usize,
-    subscribers: usize,
-}
-
-const STATE_QOS: Qos = Qos {
-    // A late subscriber gets the newest frame at once.
-    history: 1,
-    buffer: 4,
-    publishers: 2,
-    subscribers: 8,
-};
-const GOAL_QOS: Qos = Qos {
-    // Goals are not replayed to a late (restarted) driver: it starts from present positions.
-    history: 0,
-    buffer: 4,
-    publishers: 4,
-    subscribers: 4,
-};
 
 /// One process's node on the plane.
 pub struct Plane {
@@ -95,8 +130,7 @@ impl Plane {
 
     fn service<T>(
         &self,
-        name: &str,
-        qos: &Qos,
+        topic: &Topic<T>,
     ) -> Result<
         iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, T, ()>,
         PlaneError,
@@ -104,48 +138,42 @@ impl Plane {
     where
         T: std::fmt::Debug + ZeroCopySend + 'static,
     {
+        let q = topic.qos;
         self.node
-            .service_builder(&ServiceName::new(name).map_err(err(format!("service name {name}")))?)
+            .service_builder(
+                &ServiceName::new(topic.name)
+                    .map_err(err(format!("service name {}", topic.name)))?,
+            )
             .publish_subscribe::<T>()
-            .history_size(qos.history)
-            .subscriber_max_buffer_size(qos.buffer)
-            .max_publishers(qos.publishers)
-            .max_subscribers(qos.subscribers)
+            .history_size(q.history)
+            .subscriber_max_buffer_size(q.buffer)
+            .max_publishers(q.publishers)
+            .max_subscribers(q.subscribers)
             .enable_safe_overflow(true)
             .open_or_create()
-            .map_err(err(format!("open service {name}")))
+            .map_err(err(format!("open service {}", topic.name)))
     }
 
-    /// Publisher of joint state (the driver).
-    pub fn joint_state_publisher(&self) -> Result<Pub<JointState>, PlaneError> {
-        self.service::<JointState>(JOINT_STATE, &STATE_QOS)?
+    /// A publisher on `topic`.
+    pub fn publisher<T>(&self, topic: &Topic<T>) -> Result<Pub<T>, PlaneError>
+    where
+        T: std::fmt::Debug + ZeroCopySend + 'static,
+    {
+        self.service(topic)?
             .publisher_builder()
             .create()
-            .map_err(err("joint-state publisher"))
+            .map_err(err(format!("publisher on {}", topic.name)))
     }
 
-    /// Subscriber of joint state.
-    pub fn joint_state_subscriber(&self) -> Result<Sub<JointState>, PlaneError> {
-        self.service::<JointState>(JOINT_STATE, &STATE_QOS)?
+    /// A subscriber on `topic`.
+    pub fn subscriber<T>(&self, topic: &Topic<T>) -> Result<Sub<T>, PlaneError>
+    where
+        T: std::fmt::Debug + ZeroCopySend + 'static,
+    {
+        self.service(topic)?
             .subscriber_builder()
             .create()
-            .map_err(err("joint-state subscriber"))
-    }
-
-    /// Publisher of goals.
-    pub fn goal_publisher(&self) -> Result<Pub<GoalFrame>, PlaneError> {
-        self.service::<GoalFrame>(GOALS, &GOAL_QOS)?
-            .publisher_builder()
-            .create()
-            .map_err(err("goal publisher"))
-    }
-
-    /// Subscriber of goals (the driver).
-    pub fn goal_subscriber(&self) -> Result<Sub<GoalFrame>, PlaneError> {
-        self.service::<GoalFrame>(GOALS, &GOAL_QOS)?
-            .subscriber_builder()
-            .create()
-            .map_err(err("goal subscriber"))
+            .map_err(err(format!("subscriber on {}", topic.name)))
     }
 }
 
@@ -162,10 +190,18 @@ pub fn newest<T: std::fmt::Debug + ZeroCopySend + Copy + 'static>(
     subscriber: &Sub<T>,
 ) -> Option<T> {
     let mut last = None;
-    while let Ok(Some(sample)) = subscriber.receive() {
-        last = Some(*sample.payload());
+    while let Some(v) = next(subscriber) {
+        last = Some(v);
     }
     last
+}
+
+/// The oldest sample waiting on `subscriber`, in order; `None` if nothing is waiting.
+pub fn next<T: std::fmt::Debug + ZeroCopySend + Copy + 'static>(subscriber: &Sub<T>) -> Option<T> {
+    match subscriber.receive() {
+        Ok(Some(sample)) => Some(*sample.payload()),
+        _ => None,
+    }
 }
 
 #[cfg(test)]
@@ -177,8 +213,8 @@ mod tests {
         let domain = format!("nori_test_{}", std::process::id());
         let a = Plane::open(&domain, "a").unwrap();
         let b = Plane::open(&domain, "b").unwrap();
-        let publisher = a.joint_state_publisher().unwrap();
-        let subscriber = b.joint_state_subscriber().unwrap();
+        let publisher = a.publisher(&JOINT_STATE).unwrap();
+        let subscriber = b.subscriber(&JOINT_STATE).unwrap();
         for seq in 1..=3 {
             let s = JointState {
                 seq,
@@ -187,11 +223,12 @@ mod tests {
             };
             publish(&publisher, &s).unwrap();
         }
+        assert_eq!(next(&subscriber).map(|s| s.seq), Some(1), "in order");
         assert_eq!(newest(&subscriber).map(|s| s.seq), Some(3), "newest wins");
         assert!(newest(&subscriber).is_none());
 
-        let goals = b.goal_publisher().unwrap();
-        let driver_side = a.goal_subscriber().unwrap();
+        let goals = b.publisher(&GOALS).unwrap();
+        let driver_side = a.subscriber(&GOALS).unwrap();
         let mut g = GoalFrame {
             seq: 9,
             mask: 1,
@@ -202,6 +239,6 @@ mod tests {
         assert_eq!(newest(&driver_side), Some(g));
         // Other domains see nothing.
         let other = Plane::open(&format!("{domain}x"), "c").unwrap();
-        assert!(newest(&other.joint_state_subscriber().unwrap()).is_none());
+        assert!(newest(&other.subscriber(&JOINT_STATE).unwrap()).is_none());
     }
 }

@@ -66,8 +66,8 @@ fn sixteen_servos_follow_goals_and_nothing_outside_a_range_reaches_the_wire() {
         &dir.join("driver.log"),
     );
     let plane = Plane::open(&domain, "test").unwrap();
-    let state = plane.joint_state_subscriber().unwrap();
-    let goals = plane.goal_publisher().unwrap();
+    let state = plane.subscriber(&telemetry::plane::JOINT_STATE).unwrap();
+    let goals = plane.publisher(&telemetry::plane::GOALS).unwrap();
     let ready = |s: &JointState| {
         s.joint_count == 16
             && s.joints()

@@ -1,0 +1,522 @@
+//! The supervisor as one pure state machine: joint-state frames in (with their timestamps as the
+//! clock), directives, events and grip force out. The process around it only moves frames.
+
+use crate::config::{GripCalibration, SupervisorConfig};
+use crate::grip::grip_force;
+use crate::stall::{StallAction, StallDetector};
+use crate::thermal::{BusThermal, ThermalEvent};
+use telemetry::frames::{
+    Directives, EventKind, GripFrame, GripSample, JointLayout, JointRole, JointState,
+    SupervisorCommand, SupervisorEvent, COMMAND_REENABLE_BUS, JOINT_FLAG_OUTPUT_LOST, MAX_BUSES,
+    MAX_GRIPPERS,
+};
+use thiserror::Error;
+
+/// A layout the supervisor cannot supervise.
+#[derive(Debug, Clone, PartialEq, Eq, Error)]
+pub enum LayoutError {
+    /// More buses than a directives frame can address.
+    #[error("{0} buses exceed the {MAX_BUSES} a directives frame addresses")]
+    TooManyBuses(u32),
+    /// More grippers than a grip frame carries.
+    #[error("{0} grippers exceed the {MAX_GRIPPERS} a grip frame carries")]
+    TooManyGrippers(usize),
+    /// A gripper without grip-force calibration.
+    #[error("gripper {0:?} has no [grip.{0}] calibration in the supervisor configuration")]
+    NoGripCalibration(String),
+}
+
+/// No joint / no bus, in an event.
+pub const NONE: u8 = 0xFF;
+
+/// The supervisor's state.
+pub struct Supervisor {
+    config: SupervisorConfig,
+    layout: JointLayout,
+    stall: Vec<Option<StallDetector>>,
+    buses: Vec<BusThermal>,
+    grippers: Vec<(usize, GripCalibration)>,
+    directives: Directives,
+    events: Vec<SupervisorEvent>,
+    grip: GripFrame,
+    event_seq: u64,
+    output_lost: Vec<bool>,
+}
+
+impl Supervisor {
+    /// A supervisor for the driver's `layout`.
+    pub fn new(layout: &JointLayout, config: SupervisorConfig) -> Result<Self, LayoutError> {
+        if layout.bus_count as usize > MAX_BUSES {
+            return Err(LayoutError::TooManyBuses(layout.bus_count));
+        }
+        let joints = layout.joints();
+        let stall = joints
+            .iter()
+            .map(|j| match j.role() {
+                JointRole::Wheel => None,
+                role => Some(StallDetector::new(
+                    role == JointRole::Gripper,
+                    config.stall_current(j.model),
+                    &config.stall,
+                )),
+            })
+            .collect();
+        let buses = (0..layout.bus_count as usize)
+            .map(|b| {
+                BusThermal::new(
+                    (0..joints.len())
+                        .filter(|&j| joints[j].bus as usize == b)
+                        .collect(),
+                )
+            })
+            .collect();
+        let mut grippers = Vec::new();
+        for (i, j) in joints
+            .iter()
+            .enumerate()
+            .filter(|(_, j)| j.role() == JointRole::Gripper)
+        {
+            let cal = config
+                .grip
+                .get(j.name())
+                .copied()
+                .ok_or_else(|| LayoutError::NoGripCalibration(j.name().into()))?;
+            grippers.push((i, cal));
+        }
+        if grippers.len() > MAX_GRIPPERS {
+            return Err(LayoutError::TooManyGrippers(grippers.len()));
+        }
+        let directives = Directives {
+            joint_count: layout.joint_count,
+            ..Directives::default()
+        };
+        Ok(Supervisor {
+            config,
+            layout: *layout,
+            stall,
+            buses,
+            grip: GripFrame {
+                gripper_count: grippers.len() as u32,
+                ..GripFrame::default()
+            },
+            grippers,
+            directives,
+            events: Vec::with_capacity(64),
+            event_seq: 0,
+            output_lost: vec![false; joints.len()],
+        })
+    }
+
+    /// The layout supervised.
+    pub fn layout(&self) -> &JointLayout {
+        &self.layout
+    }
+
+    /// Records an event.
+    pub fn event(
+        &mut self,
+        now_ns: u64,
+        kind: EventKind,
+        joint: u8,
+        bus: u8,
+        level: u8,
+        value: f32,
+    ) {
+        self.event_seq += 1;
+        self.events.push(SupervisorEvent {
+            seq: self.event_seq,
+            timestamp_ns: now_ns,
+            kind: kind as u8,
+            joint,
+            bus,
+            level,
+            value,
+        });
+    }
+
+    /// Events since the last drain, in order.
+    pub fn drain_events(&mut self) -> std::vec::Drain<'_, SupervisorEvent> {
+        self.events.drain(..)
+    }
+
+    /// The directives now, stamped with `now_ns` and a fresh sequence number.
+    pub fn directives(&mut self, now_ns: u64) -> Directives {
+        self.directives.seq += 1;
+        self.directives.timestamp_ns = now_ns;
+        self.directives
+    }
+
+    /// The grip force of the last frame.
+    pub fn grip(&self) -> &GripFrame {
+        &self.grip
+    }
+
+    /// Whether bus `b` is tripped.
+    pub fn bus_tripped(&self, b: usize) -> bool {
+        self.buses.get(b).is_some_and(|t| t.tripped)
+    }
+
+    /// Feeds one joint-state frame. A frame for another layout is ignored (returns false).
+    pub fn on_state(&mut self, state: &JointState) -> bool {
+        if state.joint_count != self.layout.joint_count {
+            return false;
+        }
+        let now = state.timestamp_ns;
+        let joints = state.joints();
+        // Stall detection and reaction.
+        for (j, sample) in joints.iter().enumerate() {
+            let Some(detector) = self.stall[j].as_mut() else {
+                continue;
+            };
+            let reading = sample.is_valid().then_some((
+                sample.position_rad,
+                sample.current_a,
+                sample.goal_rad,
+            ));
+            let action = detector.update(reading, &self.config.stall);
+            let limit = detector.torque_limit_permille(&self.config.stall);
+            self.directives.torque_limit_permille[j] = limit;
+            let (bus, current) = (self.layout.joints[j].bus, sample.current_a);
+            match action {
+                StallAction::None => {}
+                StallAction::Retry => {
+                    self.event(now, EventKind::Stall, j as u8, bus, 0, current);
+                    self.event(now, EventKind::StallRetry, j as u8, bus, 0, current);
+                }
+                StallAction::Reduce => {
+                    if self.layout.joints[j].role() == JointRole::Gripper {
+                        self.event(now, EventKind::Stall, j as u8, bus, 0, current);
+                    }
+                    self.event(
+                        now,
+                        EventKind::TorqueReduced,
+                        j as u8,
+                        bus,
+                        0,
+                        f32::from(limit) / 10.0,
+                    );
+                }
+                StallAction::Restore => {
+                    self.event(now, EventKind::TorqueRestored, j as u8, bus, 0, current)
+                }
+            }
+        }
+        // The hardware tier fired somewhere the software tier did not: the driver saw a motor's
+        // output vanish. Disable that bus too.
+        for (j, sample) in joints.iter().enumerate() {
+            let lost = sample.flags & JOINT_FLAG_OUTPUT_LOST != 0;
+            if lost && !self.output_lost[j] {
+                let bus = self.layout.joints[j].bus;
+                self.event(
+                    now,
+                    EventKind::OutputLost,
+                    j as u8,
+                    bus,
+                    0,
+                    sample.temperature_c,
+                );
+                if self
+                    .buses
+                    .get_mut(bus as usize)
+                    .is_some_and(BusThermal::force_trip)
+                {
+                    self.event(
+                        now,
+                        EventKind::ThermalTrip,
+                        j as u8,
+                        bus,
+                        0,
+                        sample.temperature_c,
+                    );
+                }
+            }
+            self.output_lost[j] = lost;
+        }
+        // Thermal tier, bus by bus.
+        let t = now as f64 * 1e-9;
+        for b in 0..self.buses.len() {
+            let event = self.buses[b].update(
+                t,
+                |j| {
+                    joints
+                        .get(j)
+                        .filter(|s| s.is_valid())
+                        .map(|s| s.temperature_c)
+                },
+                &self.config.thermal,
+            );
+            match event {
+                Some(ThermalEvent::Trip {
+                    joint,
+                    temperature_c,
+                }) => self.event(
+                    now,
+                    EventKind::ThermalTrip,
+                    joint as u8,
+                    b as u8,
+                    3,
+                    temperature_c,
+                ),
+                Some(ThermalEvent::Warning {
+                    level,
+                    joint,
+                    time_to_trip_s,
+                }) => self.event(
+                    now,
+                    EventKind::ThermalWarning,
+                    joint as u8,
+                    b as u8,
+                    level,
+                    time_to_trip_s,
+                ),
+                None => {}
+            }
+        }
+        self.directives.bus_enabled = (0..32u32)
+            .filter(|&b| !self.bus_tripped(b as usize))
+            .fold(0, |mask, b| mask | (1 << b));
+        // Grip force from the same current read.
+        self.grip.state_seq = state.seq;
+        self.grip.timestamp_ns = now;
+        for (k, &(j, cal)) in self.grippers.iter().enumerate() {
+            let s = &joints[j];
+            self.grip.grippers[k] = GripSample {
+                joint: j as u8,
+                valid: s.valid,
+                reserved: [0; 2],
+                current_a: s.current_a,
+                force: if s.is_valid() {
+                    grip_force(s.current_a, &cal)
+                } else {
+                    0.0
+                },
+            };
+        }
+        true
+    }
+
+    /// An operator's command. Re-enabling a bus is granted only after it has cooled.
+    pub fn command(&mut self, cmd: &SupervisorCommand, now_ns: u64) {
+        if cmd.kind != COMMAND_REENABLE_BUS {
+            return;
+        }
+        let b = cmd.bus as usize;
+        let Some(bus) = self.buses.get_mut(b) else {
+            return;
+        };
+        if !bus.tripped {
+            return;
+        }
+        match bus.reenable(&self.config.thermal) {
+            Ok(()) => {
+                self.directives.bus_enabled |= 1 << b;
+                self.event(now_ns, EventKind::BusReenabled, NONE, cmd.bus, 0, 0.0);
+            }
+            Err(hottest) => self.event(
+                now_ns,
+                EventKind::ReenableRefused,
+                NONE,
+                cmd.bus,
+                0,
+                hottest,
+            ),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use telemetry::frames::{JointInfo, JointSample};
+
+    const MS: u64 = 1_000_000;
+
+    /// Two buses: bus 0 an arm joint (STS3250) and a gripper, bus 1 one joint.
+    fn layout() -> JointLayout {
+        let mut l = JointLayout {
+            joint_count: 3,
+            bus_count: 2,
+            ..JointLayout::default()
+        };
+        let mut j = |i: usize, name: &str, bus: u8, role: JointRole, model: u16| {
+            let mut info = JointInfo {
+                bus,
+                role: role as u8,
+                model,
+                max_temperature_c: 60,
+                ..JointInfo::default()
+            };
+            info.set_name(name);
+            l.joints[i] = info;
+        };
+        j(0, "left_wrist_pitch", 0, JointRole::Joint, 2825);
+        j(1, "left_gripper", 0, JointRole::Gripper, 777);
+        j(2, "right_elbow", 1, JointRole::Joint, 2569);
+        l
+    }
+
+    fn state(seq: u64, t_ns: u64, f: impl Fn(usize, &mut JointSample)) -> JointState {
+        let mut s = JointState {
+            seq,
+            timestamp_ns: t_ns,
+            joint_count: 3,
+            ..JointState::default()
+        };
+        for (i, j) in s.joints[..3].iter_mut().enumerate() {
+            *j = JointSample {
+                valid: 1,
+                torque_enabled: 1,
+                temperature_c: 30.0,
+                ..JointSample::default()
+            };
+            f(i, j);
+        }
+        s
+    }
+
+    fn kinds(sup: &mut Supervisor) -> Vec<EventKind> {
+        sup.drain_events().filter_map(|e| e.kind()).collect()
+    }
+
+    #[test]
+    fn an_overheating_motor_disables_its_whole_bus_before_the_firmware_cutoff() {
+        let mut sup = Supervisor::new(&layout(), SupervisorConfig::embedded().unwrap()).unwrap();
+        let mut temperature = 40.0f32;
+        let mut tripped_at = None;
+        for k in 0..200_000u64 {
+            // Joint 0 heats 1 °C per 10 s of a mock clock at 200 Hz.
+            let t = k * 5 * MS;
+            temperature = (40.0 + (k as f32 * 0.005) / 10.0).floor();
+            let s = state(k, t, |i, j| {
+                if i == 0 {
+                    j.temperature_c = temperature
+                }
+            });
+            sup.on_state(&s);
+            let d = sup.directives(t);
+            if d.bus_enabled & 1 == 0 {
+                tripped_at = Some(temperature);
+                assert_eq!(d.bus_enabled & 2, 2, "only the hot motor's bus is disabled");
+                break;
+            }
+        }
+        assert_eq!(tripped_at, Some(59.0), "software trip at 59 °C");
+        assert!(temperature < 60.0, "before the 60 °C firmware cutoff");
+        let events = kinds(&mut sup);
+        assert_eq!(events.last(), Some(&EventKind::ThermalTrip));
+        assert!(events.contains(&EventKind::ThermalWarning));
+        // Latched: cooling alone does not re-enable, an explicit command does (after cooling).
+        let cmd = SupervisorCommand {
+            kind: COMMAND_REENABLE_BUS,
+            bus: 0,
+            ..SupervisorCommand::default()
+        };
+        sup.command(&cmd, 0);
+        assert_eq!(kinds(&mut sup), [EventKind::ReenableRefused]);
+        for k in 0..100 {
+            sup.on_state(&state(k, (1000 + k) * 5 * MS, |_, j| {
+                j.temperature_c = 45.0
+            }));
+            assert_eq!(sup.directives(0).bus_enabled & 1, 0, "still latched");
+        }
+        kinds(&mut sup);
+        sup.command(&cmd, 0);
+        assert_eq!(kinds(&mut sup), [EventKind::BusReenabled]);
+        assert_eq!(sup.directives(0).bus_enabled & 3, 3);
+    }
+
+    #[test]
+    fn a_stalled_joint_is_retried_then_reduced_and_a_gripper_holds_gently() {
+        let mut sup = Supervisor::new(&layout(), SupervisorConfig::embedded().unwrap()).unwrap();
+        // Joint 0 pushes into an obstacle; the gripper squeezes an object.
+        let pushing = |i: usize, j: &mut JointSample| {
+            if i < 2 {
+                j.position_rad = 0.3;
+                j.goal_rad = 0.8;
+                j.current_a = 2.0;
+            }
+        };
+        for k in 0..15 {
+            sup.on_state(&state(k, k * 5 * MS, pushing));
+        }
+        let d = sup.directives(0);
+        assert_eq!(
+            d.torque_limit_permille[0], 0,
+            "first stall: retry at full torque"
+        );
+        assert_eq!(
+            d.torque_limit_permille[1], 250,
+            "gripper: reduced grip torque"
+        );
+        assert_eq!(
+            kinds(&mut sup),
+            [
+                EventKind::Stall,
+                EventKind::StallRetry,
+                EventKind::Stall,
+                EventKind::TorqueReduced
+            ]
+        );
+        for k in 15..30 {
+            sup.on_state(&state(k, k * 5 * MS, pushing));
+        }
+        assert_eq!(
+            sup.directives(0).torque_limit_permille[0],
+            300,
+            "stalled again: reduced"
+        );
+        assert_eq!(kinds(&mut sup), [EventKind::TorqueReduced]);
+        // A new target restores the torque.
+        sup.on_state(&state(31, 31 * 5 * MS, |i, j| {
+            pushing(i, j);
+            j.goal_rad = -0.5;
+        }));
+        assert_eq!(sup.directives(0).torque_limit_permille[0], 0);
+        assert!(kinds(&mut sup).contains(&EventKind::TorqueRestored));
+    }
+
+    #[test]
+    fn grip_force_rises_with_current_beside_the_raw_reading() {
+        let mut sup = Supervisor::new(&layout(), SupervisorConfig::embedded().unwrap()).unwrap();
+        let mut last = -1.0;
+        for k in 0..50 {
+            let current = k as f32 * 0.02;
+            sup.on_state(&state(k, k * 5 * MS, |i, j| {
+                if i == 1 {
+                    j.current_a = current
+                }
+            }));
+            let g = sup.grip().grippers[0];
+            assert_eq!((g.joint, g.current_a), (1, current));
+            assert!(g.force >= last && (0.0..=1.0).contains(&g.force));
+            last = g.force;
+        }
+        assert_eq!(last, 1.0);
+    }
+
+    #[test]
+    fn an_inferred_firmware_cutoff_disables_the_bus() {
+        let mut sup = Supervisor::new(&layout(), SupervisorConfig::embedded().unwrap()).unwrap();
+        sup.on_state(&state(1, 0, |i, j| {
+            if i == 2 {
+                j.flags = JOINT_FLAG_OUTPUT_LOST;
+                j.temperature_c = 58.0
+            }
+        }));
+        assert_eq!(sup.directives(0).bus_enabled & 3, 1, "bus 1 disabled");
+        assert_eq!(
+            kinds(&mut sup)[..2],
+            [EventKind::OutputLost, EventKind::ThermalTrip]
+        );
+    }
+
+    #[test]
+    fn a_gripper_without_calibration_is_refused() {
+        let mut config = SupervisorConfig::embedded().unwrap();
+        config.grip.clear();
+        assert!(matches!(
+            Supervisor::new(&layout(), config),
+            Err(LayoutError::NoGripCalibration(_))
+        ));
+    }
+}
