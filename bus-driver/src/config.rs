@@ -70,6 +70,31 @@ pub struct ServoConfig {
     pub joint: String,
     /// Model key (`sts3215`, `sts3250`, `sts3095`); checked against `Model_Number` at start.
     pub model: String,
+    /// What the joint is: `joint` (default) or `gripper` (the supervisor holds a stalled gripper
+    /// gently and estimates its grip force). Speed-mode servos are wheels.
+    #[serde(default)]
+    pub role: Role,
+}
+
+/// A position-mode servo's role.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Role {
+    /// An arm joint.
+    #[default]
+    Joint,
+    /// A gripper.
+    Gripper,
+}
+
+/// What the driver does when the supervisor's heartbeat is missing.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SafeState {
+    /// Torque off on every bus (the arms go limp).
+    TorqueOff,
+    /// Hold the present position with a low torque limit; goals are refused.
+    Hold,
 }
 
 /// One bus.
@@ -123,6 +148,16 @@ pub struct DriverConfig {
     /// Largest wheel speed sent, rad/s.
     #[serde(default = "default_wheel_speed")]
     pub max_wheel_speed_rad_s: f64,
+    /// The supervisor is missing after this long without its heartbeat, ms; the driver then
+    /// applies its safe state. 0 runs without a supervisor (development only: it warns).
+    #[serde(default = "default_supervisor_timeout")]
+    pub supervisor_timeout_ms: u64,
+    /// The safe state.
+    #[serde(default = "default_safe_state")]
+    pub safe_state: SafeState,
+    /// Torque limit of the `hold` safe state, % of full output.
+    #[serde(default = "default_hold_percent")]
+    pub safe_hold_torque_percent: f64,
     /// Calibration file, relative to this file; the embedded A3 calibration when absent.
     #[serde(default)]
     pub calibration_file: Option<PathBuf>,
@@ -143,6 +178,15 @@ fn default_goal_age() -> u64 {
 }
 fn default_wheel_speed() -> f64 {
     6.0
+}
+fn default_supervisor_timeout() -> u64 {
+    50
+}
+fn default_safe_state() -> SafeState {
+    SafeState::Hold
+}
+fn default_hold_percent() -> f64 {
+    20.0
 }
 
 /// The calibration file: one table per joint.
@@ -199,6 +243,24 @@ impl DriverConfig {
                 origin,
                 "rate-hz".into(),
                 format!("{} is outside 1..=1000", self.rate_hz),
+            ));
+        }
+        if !(self.safe_hold_torque_percent > 0.0 && self.safe_hold_torque_percent <= 100.0) {
+            return Err(invalid(
+                origin,
+                "safe-hold-torque-percent".into(),
+                format!("{} is outside (0, 100]", self.safe_hold_torque_percent),
+            ));
+        }
+        if self.bus.len() > telemetry::frames::MAX_BUSES {
+            return Err(invalid(
+                origin,
+                "bus".into(),
+                format!(
+                    "{} buses exceed {}",
+                    self.bus.len(),
+                    telemetry::frames::MAX_BUSES
+                ),
             ));
         }
         if !(self.max_wheel_speed_rad_s.is_finite() && self.max_wheel_speed_rad_s > 0.0) {
@@ -275,6 +337,13 @@ impl DriverConfig {
                         origin,
                         at,
                         format!("joint {:?} appears twice", s.joint),
+                    ));
+                }
+                if bus.mode == Mode::Speed && s.role == Role::Gripper {
+                    return Err(invalid(
+                        origin,
+                        at,
+                        "a speed-mode servo cannot be a gripper".into(),
                     ));
                 }
                 if !self.backstops.contains_key(&s.model) {

@@ -1,19 +1,23 @@
-//! The driver: servo setup, the control cycle, goal gating and the fixed-rate loop.
+//! The driver: servo setup, the control cycle, goal gating, the supervisor's directives and the
+//! safe state.
 //!
-//! Per cycle and bus: one SYNC_READ of the feedback block and one SYNC_WRITE of goals. All buses'
-//! reads are started before any is collected, so their wire time overlaps. Time is passed in
-//! (`now_ns`), so the cycle logic is tested without sleeping.
+//! Per cycle and bus: one SYNC_READ of the feedback block and one SYNC_WRITE of goals (plus a
+//! SYNC_WRITE of torque limits in the rare cycles where one changes). All buses' reads are
+//! started before any is collected, so their wire time overlaps. Nothing here reads a clock for
+//! its decisions: time comes in with the goal frames, so the logic is tested without sleeping.
 
 use crate::backstops;
 use crate::bus::{Bus, BusCounters, BusError};
 use crate::calibration::{wheel_speed_steps, GoalError, JointCalibration, STEPS_PER_RAD};
-use crate::config::{Backstops, LoadedConfig, Mode};
+use crate::config::{Backstops, LoadedConfig, Mode, Role, SafeState};
+use crate::cutoff::CutoffWatch;
 use crate::transport::Transport;
 use feetech::registers::{self as reg, FeedbackBlock};
 use feetech::{ServoModel, ServoStatus, AMPS_PER_CURRENT_UNIT};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::{Duration, Instant};
-use telemetry::frames::STATE_FLAG_SAFE_STATE;
+use telemetry::frames::{
+    Directives, JointInfo, JointLayout, JointRole, JOINT_FLAG_BUS_DISABLED, JOINT_FLAG_OUTPUT_LOST,
+    STATE_FLAG_SAFE_STATE,
+};
 use telemetry::{GoalFrame, JointSample, JointState, MAX_JOINTS};
 use thiserror::Error;
 
@@ -50,9 +54,25 @@ pub enum GoalRejection {
         /// How far ahead.
         ahead_ms: u64,
     },
+    /// Produced before the driver left its safe state: it was meant for another situation.
+    #[error("goal frame older than the end of the safe state")]
+    BeforeRecovery,
+    /// The driver is in its safe state (no supervisor): goals are refused.
+    #[error("the driver is in its safe state (supervisor missing)")]
+    SafeState,
     /// A NaN or infinite goal.
     #[error(transparent)]
     NotFinite(#[from] GoalError),
+}
+
+/// A directives frame the driver refused.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Error)]
+#[error("directives for {got} joints, the driver has {expected}")]
+pub struct DirectiveMismatch {
+    /// Driver's joints.
+    pub expected: u32,
+    /// Frame's joints.
+    pub got: u32,
 }
 
 /// Why a servo could not be brought up.
@@ -82,33 +102,50 @@ pub struct DriverCounters {
     pub deadline_misses: u64,
     /// Goal frames applied.
     pub goals_accepted: u64,
-    /// Goal frames refused as stale (or from the future).
+    /// Goal frames refused as stale (or from the future, or from before a recovery).
     pub goals_stale: u64,
     /// Goal frames refused for NaN/inf.
     pub goals_not_finite: u64,
     /// Goal frames refused for their shape.
     pub goals_malformed: u64,
+    /// Goal frames refused in the safe state.
+    pub goals_in_safe_state: u64,
     /// Single goals clamped into the calibrated range.
     pub goals_clamped: u64,
     /// EEPROM registers written at setup (read-compare-write).
     pub eeprom_writes: u64,
     /// Failed servo setups.
     pub setup_failures: u64,
+    /// Times the safe state was entered.
+    pub safe_state_entries: u64,
+    /// Buses disabled by the supervisor.
+    pub bus_disables: u64,
+    /// Unannounced firmware cutoffs inferred.
+    pub outputs_lost: u64,
 }
-
-/// Passes of [`Driver::setup`] over servos that failed.
-pub const SETUP_PASSES: usize = 3;
 
 struct Joint {
     name: String,
     id: u8,
     model: ServoModel,
+    role: JointRole,
     backstops: Backstops,
     calibration: Option<JointCalibration>,
     /// Set up, torque on, goals flowing.
     ready: bool,
     /// Goal in register units (steps, or steps/s in speed mode).
     goal: i32,
+    /// Torque limit the supervisor asks for, 0.1 % (0: the configured maximum).
+    torque_wanted: u16,
+    /// Torque limit last written to the servo, 0.1 %.
+    torque_written: u16,
+    cutoff: CutoffWatch,
+}
+
+impl Joint {
+    fn max_torque(&self) -> u16 {
+        backstops::max_torque_permille(&self.backstops) as u16
+    }
 }
 
 struct BusState<T: Transport> {
@@ -119,6 +156,8 @@ struct BusState<T: Transport> {
     first_joint: usize,
     feedback: Vec<Option<(FeedbackBlock, ServoStatus)>>,
     payload: Vec<u8>,
+    /// The supervisor has not disabled it.
+    enabled: bool,
     /// The transport failed this cycle (feedback not requested).
     failed: bool,
 }
@@ -128,8 +167,14 @@ pub struct Driver<T: Transport> {
     buses: Vec<BusState<T>>,
     joints: Vec<Joint>,
     state: JointState,
-    goal_max_age: Duration,
+    goal_max_age_ns: u64,
     max_wheel_speed: f64,
+    safe_kind: SafeState,
+    hold_permille: u16,
+    /// In the safe state (supervisor missing or never seen).
+    safe: bool,
+    /// When the safe state was last left: older goals are refused.
+    recovered_at_ns: u64,
     setup_retry_cycles: u64,
     next_retry: usize,
     /// Counters.
@@ -146,9 +191,10 @@ fn model_of(key: &str) -> ServoModel {
 
 impl<T: Transport> Driver<T> {
     /// A driver for a validated configuration, with one transport per configured bus, in order.
+    /// It starts in its safe state when a supervisor is required (until one is heard from).
     pub fn new(config: &LoadedConfig, transports: Vec<T>) -> Self {
         let c = &config.config;
-        let margin = Duration::from_micros(c.reply_timeout_margin_us);
+        let margin = std::time::Duration::from_micros(c.reply_timeout_margin_us);
         let mut joints = Vec::new();
         let mut buses = Vec::new();
         for (bus_config, transport) in c.bus.iter().zip(transports) {
@@ -158,6 +204,11 @@ impl<T: Transport> Driver<T> {
                     name: s.joint.clone(),
                     id: s.id,
                     model: model_of(&s.model),
+                    role: match (bus_config.mode, s.role) {
+                        (Mode::Speed, _) => JointRole::Wheel,
+                        (_, Role::Gripper) => JointRole::Gripper,
+                        _ => JointRole::Joint,
+                    },
                     // Validated: every model has backstops.
                     backstops: c.backstops.get(&s.model).copied().unwrap_or(Backstops {
                         protection_current_a: 1.0,
@@ -171,6 +222,9 @@ impl<T: Transport> Driver<T> {
                     },
                     ready: false,
                     goal: 0,
+                    torque_wanted: 0,
+                    torque_written: 0,
+                    cutoff: CutoffWatch::default(),
                 });
             }
             let n = bus_config.servo.len();
@@ -182,6 +236,7 @@ impl<T: Transport> Driver<T> {
                 first_joint,
                 feedback: vec![None; n],
                 payload: Vec::with_capacity(n * 3),
+                enabled: true,
                 failed: false,
             });
         }
@@ -193,8 +248,12 @@ impl<T: Transport> Driver<T> {
             buses,
             joints,
             state,
-            goal_max_age: Duration::from_millis(c.goal_max_age_ms),
+            goal_max_age_ns: c.goal_max_age_ms * 1_000_000,
             max_wheel_speed: c.max_wheel_speed_rad_s,
+            safe_kind: c.safe_state,
+            hold_permille: (c.safe_hold_torque_percent * 10.0).round() as u16,
+            safe: c.supervisor_timeout_ms > 0,
+            recovered_at_ns: 0,
             setup_retry_cycles: c.rate_hz.round().max(1.0) as u64,
             next_retry: 0,
             counters: DriverCounters::default(),
@@ -221,11 +280,48 @@ impl<T: Transport> Driver<T> {
         &self.state
     }
 
+    /// Whether the safe state is applied.
+    pub fn in_safe_state(&self) -> bool {
+        self.safe
+    }
+
+    /// The joints and buses, for other processes.
+    pub fn layout(&self) -> JointLayout {
+        let mut layout = JointLayout {
+            joint_count: self.joints.len() as u32,
+            bus_count: self.buses.len() as u32,
+            ..JointLayout::default()
+        };
+        for (b, bus) in self.buses.iter().enumerate() {
+            for k in 0..bus.ids.len() {
+                let j = &self.joints[bus.first_joint + k];
+                let mut info = JointInfo {
+                    bus: b as u8,
+                    role: j.role as u8,
+                    id: j.id,
+                    model: j.model.model_number(),
+                    max_temperature_c: j.backstops.max_temperature_c,
+                    range_rad: j.calibration.map_or([0.0; 2], |c| {
+                        let (lo, hi) = c.range_rad();
+                        [lo as f32, hi as f32]
+                    }),
+                    ..JointInfo::default()
+                };
+                info.set_name(&j.name);
+                layout.joints[bus.first_joint + k] = info;
+            }
+        }
+        layout
+    }
+
     /// Brings every servo up, in up to [`SETUP_PASSES`] passes over those that failed (a bus
     /// that just powered up may miss the first requests); returns the last failures. Those
-    /// joints stay off and are retried every second by the loop.
+    /// joints stay off and are retried every second by the loop. In the torque-off safe state
+    /// nothing is brought up: that happens when the safe state is left.
     pub fn setup(&mut self) -> Vec<(String, SetupError)> {
-        let mut pending: Vec<usize> = (0..self.joints.len()).collect();
+        let mut pending: Vec<usize> = (0..self.joints.len())
+            .filter(|&j| self.may_drive(j))
+            .collect();
         let mut failures = Vec::new();
         for _ in 0..SETUP_PASSES {
             failures.clear();
@@ -252,6 +348,11 @@ impl<T: Transport> Driver<T> {
             .unwrap_or(0)
     }
 
+    /// Whether joint `j` may have torque: its bus is enabled and no torque-off safe state holds.
+    fn may_drive(&self, j: usize) -> bool {
+        self.buses[self.bus_of(j)].enabled && !(self.safe && self.safe_kind == SafeState::TorqueOff)
+    }
+
     /// One servo: model check, EEPROM backstops (read-compare-write), torque limit, first goal at
     /// the present position (clamped into range), torque on.
     fn setup_joint(&mut self, j: usize) -> Result<(), SetupError> {
@@ -260,6 +361,7 @@ impl<T: Transport> Driver<T> {
             let joint = &self.joints[j];
             (joint.id, joint.model, joint.backstops, joint.calibration)
         };
+        let torque = self.effective_torque(j);
         let mode = self.buses[b].mode;
         let bus = &mut self.buses[b].bus;
         bus.ping(id)?;
@@ -273,10 +375,10 @@ impl<T: Transport> Driver<T> {
         }
         bus.write(id, reg::TORQUE_ENABLE, 0)?;
         let desired = backstops::desired(&backstops, mode, calibration.as_ref());
-        let current: Vec<Option<i32>> = desired
-            .iter()
-            .map(|s| bus.read(id, s.register).ok())
-            .collect();
+        let mut current = Vec::with_capacity(desired.len());
+        for s in &desired {
+            current.push(Some(bus.read(id, s.register)?));
+        }
         let writes = backstops::plan(&desired, &current);
         if !writes.is_empty() {
             bus.write(id, reg::LOCK, 0)?;
@@ -288,11 +390,7 @@ impl<T: Transport> Driver<T> {
             tracing::info!(joint = %self.joints[j].name, id, writes = writes.len(), "EEPROM backstops written");
         }
         let bus = &mut self.buses[b].bus;
-        bus.write(
-            id,
-            reg::TORQUE_LIMIT,
-            backstops::max_torque_permille(&backstops),
-        )?;
+        bus.write(id, reg::TORQUE_LIMIT, i32::from(torque))?;
         let goal = match (mode, calibration) {
             (Mode::Position, Some(cal)) => {
                 let present = bus.read(id, reg::PRESENT_POSITION)?;
@@ -308,21 +406,41 @@ impl<T: Transport> Driver<T> {
         bus.write(id, reg::TORQUE_ENABLE, 1)?;
         let joint = &mut self.joints[j];
         joint.goal = goal;
+        joint.torque_written = torque;
+        joint.cutoff.reset();
         joint.ready = true;
         Ok(())
+    }
+
+    /// The torque limit joint `j` gets now: the configured maximum, lowered by the supervisor's
+    /// directive and by the hold safe state.
+    fn effective_torque(&self, j: usize) -> u16 {
+        let joint = &self.joints[j];
+        let mut t = joint.max_torque();
+        if joint.torque_wanted > 0 {
+            t = t.min(joint.torque_wanted);
+        }
+        if self.safe && self.safe_kind == SafeState::Hold {
+            t = t.min(self.hold_permille);
+        }
+        t
     }
 
     /// Applies a goal frame: all of it or, with the reason, none of it. Goals are clamped into
     /// each joint's calibrated range (or the wheel speed limit) here, at the bus layer.
     pub fn apply_goals(&mut self, frame: &GoalFrame, now_ns: u64) -> Result<(), GoalRejection> {
         let result = self.check_goals(frame, now_ns);
+        let c = &mut self.counters;
         match result {
-            Ok(()) => self.counters.goals_accepted += 1,
-            Err(GoalRejection::Stale { .. } | GoalRejection::FromTheFuture { .. }) => {
-                self.counters.goals_stale += 1
-            }
-            Err(GoalRejection::NotFinite(_)) => self.counters.goals_not_finite += 1,
-            Err(_) => self.counters.goals_malformed += 1,
+            Ok(()) => c.goals_accepted += 1,
+            Err(
+                GoalRejection::Stale { .. }
+                | GoalRejection::FromTheFuture { .. }
+                | GoalRejection::BeforeRecovery,
+            ) => c.goals_stale += 1,
+            Err(GoalRejection::SafeState) => c.goals_in_safe_state += 1,
+            Err(GoalRejection::NotFinite(_)) => c.goals_not_finite += 1,
+            Err(_) => c.goals_malformed += 1,
         }
         result
     }
@@ -346,12 +464,18 @@ impl<T: Transport> Driver<T> {
                 ahead_ms: (frame.timestamp_ns - now_ns) / 1_000_000,
             });
         }
-        let age = telemetry::clock::age(frame.timestamp_ns, now_ns);
-        if age > self.goal_max_age {
+        let age = now_ns.saturating_sub(frame.timestamp_ns);
+        if age > self.goal_max_age_ns {
             return Err(GoalRejection::Stale {
-                age_ms: age.as_millis() as u64,
-                limit_ms: self.goal_max_age.as_millis() as u64,
+                age_ms: age / 1_000_000,
+                limit_ms: self.goal_max_age_ns / 1_000_000,
             });
+        }
+        if self.safe {
+            return Err(GoalRejection::SafeState);
+        }
+        if frame.timestamp_ns < self.recovered_at_ns {
+            return Err(GoalRejection::BeforeRecovery);
         }
         // Convert all before applying any: a frame is applied whole or not at all.
         let mut goals = [0i32; MAX_JOINTS];
@@ -364,10 +488,8 @@ impl<T: Transport> Driver<T> {
             goals[i] = match joint.calibration {
                 Some(cal) => {
                     let steps = cal.goal_steps(i, q)?;
-                    if q.is_finite()
-                        && (f64::from(q) < cal.range_rad().0 - 1e-3
-                            || f64::from(q) > cal.range_rad().1 + 1e-3)
-                    {
+                    let (lo, hi) = cal.range_rad();
+                    if f64::from(q) < lo - 1e-3 || f64::from(q) > hi + 1e-3 {
                         clamped += 1;
                     }
                     steps
@@ -384,7 +506,116 @@ impl<T: Transport> Driver<T> {
         Ok(())
     }
 
-    /// One control cycle: read every bus, fill the state frame, write every bus's goals.
+    /// Applies the supervisor's directives: per-joint torque limits (written in the next cycle)
+    /// and bus enables (a disabled bus gets torque off at once; a re-enabled one is set up again,
+    /// starting at its present positions).
+    pub fn apply_directives(&mut self, d: &Directives) -> Result<(), DirectiveMismatch> {
+        if d.joint_count != self.joints.len() as u32 {
+            return Err(DirectiveMismatch {
+                expected: self.joints.len() as u32,
+                got: d.joint_count,
+            });
+        }
+        for (j, joint) in self.joints.iter_mut().enumerate() {
+            joint.torque_wanted = d.torque_limit_permille[j];
+        }
+        for b in 0..self.buses.len() {
+            let want = d.bus_enabled & (1 << b) != 0;
+            match (self.buses[b].enabled, want) {
+                (true, false) => {
+                    self.disable_bus(b);
+                    tracing::warn!(bus = %self.buses[b].name, "bus disabled by the supervisor: torque off");
+                }
+                (false, true) => {
+                    self.buses[b].enabled = true;
+                    tracing::info!(bus = %self.buses[b].name, "bus re-enabled by the supervisor");
+                    self.setup_bus(b);
+                }
+                _ => {}
+            }
+        }
+        Ok(())
+    }
+
+    fn disable_bus(&mut self, b: usize) {
+        let bus = &mut self.buses[b];
+        bus.enabled = false;
+        // Twice: one corrupted packet must not leave a bus energised.
+        let _ = bus.bus.torque_off_all();
+        let _ = bus.bus.torque_off_all();
+        let range = bus.first_joint..bus.first_joint + bus.ids.len();
+        for joint in &mut self.joints[range] {
+            joint.ready = false;
+        }
+        self.counters.bus_disables += 1;
+    }
+
+    fn setup_bus(&mut self, b: usize) {
+        let first = self.buses[b].first_joint;
+        for j in first..first + self.buses[b].ids.len() {
+            if self.may_drive(j) && self.setup_joint(j).is_err() {
+                self.counters.setup_failures += 1;
+            }
+        }
+    }
+
+    /// Applies the configured safe state: `hold` freezes every goal at the present position with
+    /// a low torque limit; `torque-off` turns every bus off. Goals are refused until
+    /// [`Driver::leave_safe_state`].
+    pub fn enter_safe_state(&mut self) {
+        if self.safe {
+            return;
+        }
+        self.safe = true;
+        self.counters.safe_state_entries += 1;
+        self.state.flags |= STATE_FLAG_SAFE_STATE;
+        match self.safe_kind {
+            SafeState::TorqueOff => {
+                for b in &mut self.buses {
+                    let _ = b.bus.torque_off_all();
+                    let _ = b.bus.torque_off_all();
+                }
+                for j in &mut self.joints {
+                    j.ready = false;
+                }
+            }
+            SafeState::Hold => {
+                // Hold where the joints are (their last reading), not where they were sent.
+                for (j, joint) in self.joints.iter_mut().enumerate() {
+                    let s = &self.state.joints[j];
+                    if let (Some(cal), true) = (joint.calibration, s.is_valid()) {
+                        if let Ok(steps) = cal.goal_steps(j, s.position_rad) {
+                            joint.goal = steps;
+                        }
+                    } else if joint.calibration.is_none() {
+                        joint.goal = 0;
+                    }
+                }
+            }
+        }
+    }
+
+    /// Leaves the safe state: torque limits return to the directives, a torque-off state brings
+    /// the servos up again at their present positions, and goals produced before `now_ns` are
+    /// refused (they were meant for another situation).
+    pub fn leave_safe_state(&mut self, now_ns: u64) {
+        if !self.safe {
+            return;
+        }
+        self.safe = false;
+        self.recovered_at_ns = now_ns;
+        self.state.flags &= !STATE_FLAG_SAFE_STATE;
+        if self.safe_kind == SafeState::TorqueOff {
+            for b in 0..self.buses.len() {
+                if self.buses[b].enabled {
+                    self.setup_bus(b);
+                }
+            }
+        }
+    }
+
+    /// One control cycle: read every bus, fill the state frame, write every bus's goals (and any
+    /// torque limit that changed).
     pub fn cycle(&mut self) -> &JointState {
         for b in &mut self.buses {
             b.failed = b.bus.request_feedback(&b.ids).is_err();
@@ -396,36 +627,90 @@ impl<T: Transport> Driver<T> {
             }
             for (k, fb) in b.feedback.iter().enumerate() {
                 let j = b.first_joint + k;
-                self.state.joints[j] = sample(&self.joints[j], fb.as_ref());
+                let joint = &mut self.joints[j];
+                let mut s = sample(joint, fb.as_ref());
+                if joint.ready && joint.calibration.is_some() && s.is_valid() {
+                    if joint.cutoff.update(
+                        s.goal_rad - s.position_rad,
+                        s.load,
+                        s.current_a,
+                        s.status,
+                    ) {
+                        self.counters.outputs_lost += 1;
+                    }
+                } else {
+                    joint.cutoff.reset();
+                }
+                if joint.cutoff.lost {
+                    s.flags |= JOINT_FLAG_OUTPUT_LOST;
+                }
+                if !b.enabled {
+                    s.flags |= JOINT_FLAG_BUS_DISABLED;
+                }
+                self.state.joints[j] = s;
             }
         }
         self.state.timestamp_ns = telemetry::clock::monotonic_ns();
-        for b in &mut self.buses {
-            b.payload.clear();
-            for (k, &id) in b.ids.iter().enumerate() {
-                let joint = &self.joints[b.first_joint + k];
-                if !joint.ready {
-                    continue;
-                }
-                // Goal_Position and Goal_Velocity are both sign-magnitude at bit 15.
-                if let Ok(raw) = feetech::encoding::encode_sign_magnitude(joint.goal, 15) {
-                    b.payload.push(id);
-                    b.payload.extend_from_slice(&raw.to_le_bytes());
-                }
-            }
-            if !b.payload.is_empty() {
-                let addr = match b.mode {
-                    Mode::Position => reg::GOAL_POSITION.addr,
-                    Mode::Speed => reg::GOAL_VELOCITY.addr,
-                };
-                let _ = b.bus.sync_write(addr, 2, &b.payload);
-            }
+        for bi in 0..self.buses.len() {
+            self.write_goals(bi);
+            self.write_torque_limits(bi);
         }
         self.retry_setup();
         self.counters.cycles += 1;
         self.state.seq = self.counters.cycles;
         self.state.deadline_misses = self.counters.deadline_misses;
         &self.state
+    }
+
+    fn write_goals(&mut self, bi: usize) {
+        let b = &mut self.buses[bi];
+        b.payload.clear();
+        for (k, &id) in b.ids.iter().enumerate() {
+            let joint = &self.joints[b.first_joint + k];
+            // Goal_Position and Goal_Velocity are both sign-magnitude at bit 15.
+            if let (true, Ok(raw)) = (
+                joint.ready,
+                feetech::encoding::encode_sign_magnitude(joint.goal, 15),
+            ) {
+                b.payload.push(id);
+                b.payload.extend_from_slice(&raw.to_le_bytes());
+            }
+        }
+        if !b.payload.is_empty() {
+            let addr = match b.mode {
+                Mode::Position => reg::GOAL_POSITION.addr,
+                Mode::Speed => reg::GOAL_VELOCITY.addr,
+            };
+            let _ = b.bus.sync_write(addr, 2, &b.payload);
+        }
+    }
+
+    /// A SYNC_WRITE of Torque_Limit for the joints whose effective limit changed (rare: a
+    /// directive or the safe state changed it).
+    fn write_torque_limits(&mut self, bi: usize) {
+        let first = self.buses[bi].first_joint;
+        let n = self.buses[bi].ids.len();
+        let wanted: [u16; MAX_JOINTS] = std::array::from_fn(|j| {
+            if j < self.joints.len() {
+                self.effective_torque(j)
+            } else {
+                0
+            }
+        });
+        let b = &mut self.buses[bi];
+        b.payload.clear();
+        for k in 0..n {
+            let joint = &mut self.joints[first + k];
+            if joint.ready && joint.torque_written != wanted[first + k] {
+                b.payload.push(joint.id);
+                b.payload
+                    .extend_from_slice(&wanted[first + k].to_le_bytes());
+                joint.torque_written = wanted[first + k];
+            }
+        }
+        if !b.payload.is_empty() {
+            let _ = b.bus.sync_write(reg::TORQUE_LIMIT.addr, 2, &b.payload);
+        }
     }
 
     /// Every `rate` cycles, tries to bring up one joint that is not ready (it was missing or
@@ -437,7 +722,7 @@ impl<T: Transport> Driver<T> {
         let n = self.joints.len();
         for k in 0..n {
             let j = (self.next_retry + k) % n;
-            if !self.joints[j].ready {
+            if !self.joints[j].ready && self.may_drive(j) {
                 self.next_retry = j + 1;
                 match self.setup_joint(j) {
                     Ok(()) => tracing::info!(joint = %self.joints[j].name, "servo came up"),
@@ -462,6 +747,9 @@ impl<T: Transport> Driver<T> {
         self.state.flags |= STATE_FLAG_SAFE_STATE;
     }
 }
+
+/// Passes of [`Driver::setup`] over servos that failed.
+pub const SETUP_PASSES: usize = 3;
 
 impl<T: Transport> Drop for Driver<T> {
     /// Every stop path, including errors and panics that unwind, leaves torque off.
@@ -502,88 +790,5 @@ fn sample(joint: &Joint, fb: Option<&(FeedbackBlock, ServoStatus)>) -> JointSamp
         valid: 1,
         torque_enabled: u8::from(joint.ready),
         flags: 0,
-    }
-}
-
-/// Where the loop gets goals from (the goal service, or a test script).
-pub trait GoalSource {
-    /// The newest goal frame that arrived since the last call, if any.
-    fn latest(&mut self) -> Option<GoalFrame>;
-}
-
-/// Where the loop publishes each cycle's state.
-pub trait StateSink {
-    /// Publishes one state frame.
-    fn publish(&mut self, state: &JointState);
-}
-
-/// No goals: every joint holds where it came up.
-pub struct Hold;
-
-impl GoalSource for Hold {
-    fn latest(&mut self) -> Option<GoalFrame> {
-        None
-    }
-}
-
-impl StateSink for () {
-    fn publish(&mut self, _: &JointState) {}
-}
-
-/// What a run did.
-#[derive(Debug, Clone, Copy, serde::Serialize)]
-pub struct RunSummary {
-    /// Driver counters at the end.
-    pub counters: DriverCounters,
-    /// Wall time, s.
-    pub elapsed_s: f64,
-    /// Cycles per second achieved.
-    pub rate_hz: f64,
-}
-
-/// Runs the fixed-rate loop until `shutdown` is set (or `max_cycles`), then turns torque off.
-/// A rejected goal frame is logged when the reason changes (not per cycle) and counted.
-pub fn run<T: Transport>(
-    driver: &mut Driver<T>,
-    period: Duration,
-    goals: &mut dyn GoalSource,
-    sink: &mut dyn StateSink,
-    shutdown: &AtomicBool,
-    max_cycles: Option<u64>,
-) -> RunSummary {
-    let start = Instant::now();
-    let mut next = start + period;
-    let mut last_rejection: Option<std::mem::Discriminant<GoalRejection>> = None;
-    while !shutdown.load(Ordering::Relaxed) && max_cycles.is_none_or(|m| driver.counters.cycles < m)
-    {
-        if let Some(frame) = goals.latest() {
-            match driver.apply_goals(&frame, telemetry::clock::monotonic_ns()) {
-                Ok(()) => last_rejection = None,
-                Err(e) => {
-                    let kind = std::mem::discriminant(&e);
-                    if last_rejection != Some(kind) {
-                        tracing::warn!(seq = frame.seq, "goal frame rejected: {e}");
-                        last_rejection = Some(kind);
-                    }
-                }
-            }
-        }
-        let state = driver.cycle();
-        sink.publish(state);
-        let now = Instant::now();
-        if now > next {
-            driver.counters.deadline_misses += 1;
-            next = now + period;
-        } else {
-            std::thread::sleep(next - now);
-            next += period;
-        }
-    }
-    driver.torque_off();
-    let elapsed = start.elapsed().as_secs_f64();
-    RunSummary {
-        counters: driver.counters,
-        elapsed_s: elapsed,
-        rate_hz: driver.counters.cycles as f64 / elapsed.max(1e-9),
     }
 }

@@ -9,7 +9,10 @@
 //! * [`backstops`]: the EEPROM settings (firmware over-current, torque and 60 °C temperature
 //!   limits) written once with read-compare-write.
 //! * [`config`]: the typed configuration, defaults embedded from `deploy/config/`.
-//! * [`driver`]: setup, the cycle, goal gating, the fixed-rate loop; torque off on every stop.
+//! * [`driver`]: setup, the cycle, goal gating, the supervisor's directives, the safe state;
+//!   torque off on every stop.
+//! * [`cutoff`]: inferring a servo's unannounced firmware over-temperature cutoff.
+//! * [`runloop`]: the fixed-rate loop, the supervisor's heartbeat watched.
 //!
 //! Safety behaviour: goals are clamped to the calibrated range at the bus layer; a goal frame
 //! with a non-finite value, the wrong shape or a stale timestamp is refused whole; a servo that
@@ -21,10 +24,13 @@ pub mod backstops;
 pub mod bus;
 pub mod calibration;
 pub mod config;
+pub mod cutoff;
 pub mod driver;
 pub mod rt;
+pub mod runloop;
 pub mod transport;
 
 pub use config::LoadedConfig;
-pub use driver::{run, Driver, GoalSource, Hold, RunSummary, StateSink};
+pub use driver::Driver;
+pub use runloop::{run, LoopIo, RunSummary, Standalone};
 pub use transport::{SerialTransport, Transport};

@@ -5,13 +5,13 @@
 //! and SIGTERM end the loop with torque off.
 
 use anyhow::{Context, Result};
-use bus_driver::driver::{GoalSource, StateSink};
-use bus_driver::{run, Driver, LoadedConfig, SerialTransport};
+use bus_driver::{run, Driver, LoadedConfig, LoopIo, SerialTransport};
 use clap::Parser;
 use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
+use telemetry::frames::{Directives, Heartbeat, JointLayout, Peer};
 use telemetry::plane::{self, Plane, Pub, Sub};
 use telemetry::{GoalFrame, JointState};
 
@@ -27,6 +27,9 @@ struct Args {
     /// Open every bus at DIR/<bus name> (where `nori sim serve` links its pseudo-terminals).
     #[arg(long, value_name = "DIR")]
     device_dir: Option<PathBuf>,
+    /// Drive only these buses of the configuration (repeatable); all when absent.
+    #[arg(long = "bus")]
+    buses: Vec<String>,
     /// State-plane domain (iceoryx2 prefix); processes of one robot share it.
     #[arg(long, default_value = plane::DEFAULT_DOMAIN)]
     domain: String,
@@ -47,27 +50,47 @@ struct Args {
     print_default_calibration: bool,
 }
 
-struct IpcGoals(Sub<GoalFrame>);
-
-impl GoalSource for IpcGoals {
-    fn latest(&mut self) -> Option<GoalFrame> {
-        plane::newest(&self.0)
-    }
-}
-
-/// Publishes each frame and, every `every`, logs one status line from it.
-struct IpcState {
-    publisher: Pub<JointState>,
+/// The driver's side of the state plane.
+struct Ipc {
+    goals: Sub<GoalFrame>,
+    directives: Sub<Directives>,
+    supervisor: Sub<Heartbeat>,
+    state: Pub<JointState>,
+    heartbeat: Pub<Heartbeat>,
+    layout_out: Pub<JointLayout>,
+    layout: JointLayout,
+    beat: Heartbeat,
     every: Duration,
     last_status: Instant,
     last_seq: u64,
     publish_errors: u64,
 }
 
-impl StateSink for IpcState {
+impl LoopIo for Ipc {
+    fn goals(&mut self) -> Option<GoalFrame> {
+        plane::newest(&self.goals)
+    }
+
+    fn directives(&mut self) -> Option<Directives> {
+        plane::newest(&self.directives)
+    }
+
+    fn supervisor_heartbeat(&mut self) -> Option<u32> {
+        plane::newest(&self.supervisor).map(|h| h.pid)
+    }
+
+    /// Publishes the frame and the heartbeat; the layout once a second (history 1 serves late
+    /// subscribers, this serves a plane that was cleaned up); a status line every `every`.
     fn publish(&mut self, state: &JointState) {
-        if plane::publish(&self.publisher, state).is_err() {
+        self.beat.seq = state.seq;
+        self.beat.timestamp_ns = state.timestamp_ns;
+        let ok = plane::publish(&self.state, state).is_ok()
+            & plane::publish(&self.heartbeat, &self.beat).is_ok();
+        if !ok {
             self.publish_errors += 1;
+        }
+        if state.seq % 200 == 1 {
+            let _ = plane::publish(&self.layout_out, &self.layout);
         }
         if self.every.is_zero() || self.last_status.elapsed() < self.every {
             return;
@@ -81,13 +104,14 @@ impl StateSink for IpcState {
             .map(|j| j.temperature_c)
             .fold(f32::NAN, f32::max);
         tracing::info!(
-            "cycle {} | {:.1} Hz | deadline misses {} | joints {} ({} missing) | hottest {:.0} °C",
+            "cycle {} | {:.1} Hz | deadline misses {} | joints {} ({} missing) | hottest {:.0} °C{}",
             state.seq,
             (state.seq - self.last_seq) as f64 / secs,
             state.deadline_misses,
             joints.len(),
             missing,
-            hottest
+            hottest,
+            if state.flags & telemetry::frames::STATE_FLAG_SAFE_STATE != 0 { " | SAFE STATE" } else { "" }
         );
         self.last_seq = state.seq;
         self.last_status = Instant::now();
@@ -141,26 +165,63 @@ fn main() -> Result<()> {
     if let Some(dir) = &args.device_dir {
         config = config.with_device_dir(dir);
     }
+    if !args.buses.is_empty() {
+        if let Some(unknown) = args
+            .buses
+            .iter()
+            .find(|n| !config.config.bus.iter().any(|b| &b.name == *n))
+        {
+            anyhow::bail!("--bus {unknown}: no such bus in the configuration");
+        }
+        config.config.bus.retain(|b| args.buses.contains(&b.name));
+    }
     let shutdown = Arc::new(AtomicBool::new(false));
     for signal in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
         signal_hook::flag::register(signal, shutdown.clone())
             .context("installing signal handlers")?;
     }
-    let plane = Plane::open(&args.domain, "bus-driver")?;
-    plane.cleanup_dead();
-    let mut goals = IpcGoals(plane.subscriber(&plane::GOALS)?);
-    let mut sink = IpcState {
-        publisher: plane.publisher(&plane::JOINT_STATE)?,
-        every: Duration::from_secs_f64(args.status_every.max(0.0)),
-        last_status: Instant::now(),
-        last_seq: 0,
-        publish_errors: 0,
-    };
+    let node = Plane::open(&args.domain, "bus-driver")?;
+    node.cleanup_dead();
     let transports = open_transports(
         &config,
         Duration::from_secs_f64(args.wait_for_devices.max(0.0)),
     )?;
     let mut driver = Driver::new(&config, transports);
+    let mut io = Ipc {
+        goals: node.subscriber(&plane::GOALS)?,
+        directives: node.subscriber(&plane::DIRECTIVES)?,
+        supervisor: node.subscriber(&plane::SUPERVISOR_HEARTBEAT)?,
+        state: node.publisher(&plane::JOINT_STATE)?,
+        heartbeat: node.publisher(&plane::DRIVER_HEARTBEAT)?,
+        layout_out: node.publisher(&plane::LAYOUT)?,
+        layout: driver.layout(),
+        beat: Heartbeat {
+            pid: std::process::id(),
+            peer: Peer::Driver as u8,
+            ..Heartbeat::default()
+        },
+        every: Duration::from_secs_f64(args.status_every.max(0.0)),
+        last_status: Instant::now(),
+        last_seq: 0,
+        publish_errors: 0,
+    };
+    plane::publish(&io.layout_out, &io.layout)?;
+    let supervisor_timeout = match config.config.supervisor_timeout_ms {
+        0 => {
+            tracing::warn!(
+                "supervisor-timeout-ms = 0: driving WITHOUT a supervisor (no stall or thermal protection beyond the firmware); development only"
+            );
+            None
+        }
+        ms => {
+            tracing::info!(
+                "safe state ({:?}) until the supervisor is heard from on {}",
+                config.config.safe_state,
+                plane::SUPERVISOR_HEARTBEAT.name
+            );
+            Some(Duration::from_millis(ms))
+        }
+    };
     bus_driver::rt::prepare_control_thread();
     let failures = driver.setup();
     for (joint, error) in &failures {
@@ -186,8 +247,8 @@ fn main() -> Result<()> {
     let summary = run(
         &mut driver,
         config.config.period(),
-        &mut goals,
-        &mut sink,
+        supervisor_timeout,
+        &mut io,
         &shutdown,
         max_cycles,
     );
@@ -198,7 +259,7 @@ fn main() -> Result<()> {
         cycles = summary.counters.cycles,
         rate_hz = format!("{:.1}", summary.rate_hz),
         deadline_misses = summary.counters.deadline_misses,
-        publish_errors = sink.publish_errors,
+        publish_errors = io.publish_errors,
         "stopped; torque off"
     );
     println!("{}", serde_json::to_string(&summary)?);

@@ -31,6 +31,8 @@ fn rig(tag: &str) -> Rig {
     // This machine is a shared VM whose threads sometimes wake milliseconds late; a wide reply
     // margin keeps the functional checks from depending on its scheduling.
     config.config.reply_timeout_margin_us = 25_000;
+    // The driver alone: the supervisor's part is tested with both processes in tests/.
+    config.config.supervisor_timeout_ms = 0;
     Rig {
         served,
         config,

@@ -5,7 +5,9 @@
 
 mod bench;
 mod plane_tools;
+mod scenario;
 mod sim_serve;
+mod stack;
 mod up;
 
 use anyhow::Result;
@@ -38,6 +40,8 @@ enum Command {
 enum SimCommand {
     /// Serve the simulated buses on pseudo-terminals in real time.
     Serve(sim_serve::ServeArgs),
+    /// Run the whole stack into a protection scenario and print the outcome.
+    Scenario(scenario::ScenarioArgs),
 }
 
 fn main() -> Result<()> {
@@ -45,6 +49,7 @@ fn main() -> Result<()> {
     match &cli.command {
         Command::Up(a) => up::run(a),
         Command::Sim(SimCommand::Serve(a)) => sim_serve::run(a),
+        Command::Sim(SimCommand::Scenario(a)) => scenario::run(a),
         Command::State(a) => plane_tools::state(a),
         Command::Goal(a) => plane_tools::goal(a),
         Command::Bench(b) => bench::run(b),

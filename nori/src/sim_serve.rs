@@ -26,6 +26,9 @@ pub struct ServeArgs {
     /// Serve only these buses (repeatable); all when absent.
     #[arg(long = "bus")]
     pub buses: Vec<String>,
+    /// Set up a protection scenario on the left arm (payload, obstacle or grasped object).
+    #[arg(long, value_enum)]
+    pub scenario: Option<sim::scenario::Scenario>,
     /// Integrate temperatures this many times faster than real time (accelerated heating).
     #[arg(long, default_value_t = 1.0)]
     pub thermal_speedup: f64,
@@ -60,10 +63,17 @@ fn write_report(path: &Path, buses: &[BusReport]) -> Result<()> {
 
 /// Runs `nori sim serve` until SIGINT/SIGTERM or `--run-for`.
 pub fn run(args: &ServeArgs) -> Result<()> {
-    let robot = match &args.description {
+    let mut robot = match &args.description {
         Some(p) => RobotDescription::load(p)?,
         None => RobotDescription::nori_a3(),
     };
+    if let Some(scenario) = args.scenario {
+        scenario.apply(&mut robot);
+        eprintln!(
+            "nori sim: scenario {scenario:?} set up on {}",
+            sim::scenario::SCENARIO_BUS
+        );
+    }
     if !(args.thermal_speedup.is_finite() && args.thermal_speedup >= 1.0) {
         anyhow::bail!(
             "--thermal-speedup must be ≥ 1, got {}",

@@ -1,16 +1,13 @@
-//! `nori up`: the whole stack on the simulated robot, for development. Starts the simulator and
-//! the driver as separate processes, restarts a process that dies (with backoff), and on Ctrl-C
+//! `nori up`: the whole stack on the simulated robot, for development. Starts the simulator, the
+//! supervisor and the driver as separate processes, restarts a process that dies (with backoff), and on Ctrl-C
 //! stops the driver first (it turns torque off while the buses are still there), then the rest.
 //! Production uses systemd (deploy/systemd) instead.
 
 use crate::sim_serve::default_device_dir;
-use anyhow::{bail, Context, Result};
+use crate::stack::{sibling, Managed};
+use anyhow::Result;
 use clap::Args;
-use nix::sys::signal::{kill, Signal};
-use nix::unistd::Pid;
-use std::os::unix::process::CommandExt;
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command};
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -32,109 +29,11 @@ pub struct UpArgs {
     pub run_for: Option<f64>,
 }
 
-/// A sibling executable (installed next to `nori`, as cargo builds them).
-pub fn sibling(name: &str) -> Result<PathBuf> {
-    let exe = std::env::current_exe().context("locating the nori executable")?;
-    let path = exe.with_file_name(name);
-    if !path.exists() {
-        bail!(
-            "{} not found next to {}: build all binaries first (cargo build --release --workspace --bins)",
-            name,
-            exe.display()
-        );
-    }
-    Ok(path)
-}
-
-struct Managed {
-    name: &'static str,
-    command: Command,
-    child: Option<Child>,
-    restarts: u32,
-    backoff: Duration,
-    restart_at: Option<Instant>,
-}
-
-impl Managed {
-    fn new(name: &'static str, program: &Path, args: &[String]) -> Self {
-        let mut command = Command::new(program);
-        command.args(args);
-        // Own process group: the terminal's Ctrl-C reaches `nori up` only, which stops the
-        // children in a safe order.
-        command.process_group(0);
-        Managed {
-            name,
-            command,
-            child: None,
-            restarts: 0,
-            backoff: Duration::from_millis(500),
-            restart_at: None,
-        }
-    }
-
-    fn start(&mut self) -> Result<()> {
-        let child = self
-            .command
-            .spawn()
-            .with_context(|| format!("starting {}", self.name))?;
-        eprintln!("nori up: started {} (pid {})", self.name, child.id());
-        self.child = Some(child);
-        Ok(())
-    }
-
-    /// Restarts a process that exited, with exponential backoff (0.5 s to 8 s).
-    fn supervise(&mut self) -> Result<()> {
-        if let Some(child) = &mut self.child {
-            if let Some(status) = child.try_wait()? {
-                eprintln!(
-                    "nori up: {} exited ({status}); restarting in {:.1} s",
-                    self.name,
-                    self.backoff.as_secs_f64()
-                );
-                self.child = None;
-                self.restart_at = Some(Instant::now() + self.backoff);
-                self.backoff = (self.backoff * 2).min(Duration::from_secs(8));
-            }
-        } else if self.restart_at.is_some_and(|t| Instant::now() >= t) {
-            self.restart_at = None;
-            self.restarts += 1;
-            self.start()?;
-        }
-        Ok(())
-    }
-
-    fn stop(&mut self, within: Duration) {
-        let Some(mut child) = self.child.take() else {
-            return;
-        };
-        let _ = kill(Pid::from_raw(child.id() as i32), Signal::SIGTERM);
-        let until = Instant::now() + within;
-        loop {
-            match child.try_wait() {
-                Ok(Some(status)) => {
-                    eprintln!("nori up: {} stopped ({status})", self.name);
-                    return;
-                }
-                Ok(None) if Instant::now() < until => std::thread::sleep(Duration::from_millis(20)),
-                _ => {
-                    eprintln!(
-                        "nori up: {} did not stop in {:.0} s; killing it",
-                        self.name,
-                        within.as_secs_f64()
-                    );
-                    let _ = child.kill();
-                    let _ = child.wait();
-                    return;
-                }
-            }
-        }
-    }
-}
-
 /// Runs the stack until Ctrl-C (or `--run-for`).
 pub fn run(args: &UpArgs) -> Result<()> {
     let nori = std::env::current_exe()?;
     let driver = sibling("bus-driver")?;
+    let supervisor = sibling("supervisor")?;
     let shutdown = Arc::new(AtomicBool::new(false));
     for signal in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
         signal_hook::flag::register(signal, shutdown.clone())?;
@@ -163,8 +62,15 @@ pub fn run(args: &UpArgs) -> Result<()> {
         driver_args.extend(["--config".into(), c.display().to_string()]);
     }
     let mut bus_driver = Managed::new("bus-driver", &driver, &driver_args);
+    let mut supervising = Managed::new(
+        "supervisor",
+        &supervisor,
+        &["--domain".into(), args.domain.clone()],
+    );
     eprintln!("nori up: the Nori A3 stack on the simulated robot (no hardware)");
     sim.start()?;
+    // The supervisor first: the driver holds its safe state until the supervisor is heard from.
+    supervising.start()?;
     bus_driver.start()?;
     eprintln!(
         "nori up: watch the joints with `nori state --domain {d}`, move one with `nori goal --domain {d} left_elbow=-1.0`; \
@@ -178,15 +84,17 @@ pub fn run(args: &UpArgs) -> Result<()> {
             .is_none_or(|t| start.elapsed().as_secs_f64() < t)
     {
         sim.supervise()?;
+        supervising.supervise()?;
         bus_driver.supervise()?;
         std::thread::sleep(Duration::from_millis(50));
     }
     eprintln!("nori up: stopping (driver first, so torque goes off while the buses are up)");
     bus_driver.stop(Duration::from_secs(5));
+    supervising.stop(Duration::from_secs(5));
     sim.stop(Duration::from_secs(5));
     eprintln!(
-        "nori up: stopped; restarts: simulator {}, bus-driver {}",
-        sim.restarts, bus_driver.restarts
+        "nori up: stopped; restarts: simulator {}, supervisor {}, bus-driver {}",
+        sim.restarts, supervising.restarts, bus_driver.restarts
     );
     Ok(())
 }

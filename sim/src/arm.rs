@@ -299,7 +299,7 @@ mod tests {
         q[0] = std::f64::consts::FRAC_PI_2; // shoulder pitch: arm horizontal
         let mut loads = JointLoads::default();
         arm.loads(&q, &[0.0; 7], &mut loads);
-        // Σ m·g·r over the links: about 1.1 N·m for this arm; the sign opposes lifting further.
+        // Σ m·g·r over the links (3.7 N·m for the A3 arm); the sign opposes lifting further.
         let expected: f64 = {
             let d = RobotDescription::nori_a3();
             let a = d.bus("left_arm").unwrap().arm.clone().unwrap();

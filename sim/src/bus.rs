@@ -79,6 +79,11 @@ pub struct BusReport {
     pub name: String,
     /// Simulated seconds elapsed.
     pub time_s: f64,
+    /// CLOCK_MONOTONIC (ns) at simulated time 0 when served in real time, else 0: simulated
+    /// times below convert to the stack's clock as `epoch + t × 1e9`.
+    pub epoch_monotonic_ns: u64,
+    /// Simulated times of the last broadcast torque-off writes received (a bus disabled), s.
+    pub torque_off_broadcasts_s: Vec<f64>,
     /// Protocol counters.
     pub line: LineStats,
     /// Servos.
@@ -113,6 +118,9 @@ pub struct SimBus {
     registered: Vec<Option<(u8, Vec<u8>)>>,
     /// Protocol counters.
     pub stats: LineStats,
+    /// See [`BusReport::epoch_monotonic_ns`].
+    pub epoch_monotonic_ns: u64,
+    torque_off_broadcasts: VecDeque<f64>,
     loads: JointLoads,
     q: Vec<f64>,
     qd: Vec<f64>,
@@ -175,6 +183,8 @@ impl SimBus {
             line_free_at: 0.0,
             pending: VecDeque::new(),
             stats: LineStats::default(),
+            epoch_monotonic_ns: 0,
+            torque_off_broadcasts: VecDeque::new(),
             loads: JointLoads::default(),
             q: vec![0.0; n_arm],
             qd: vec![0.0; n_arm],
@@ -272,6 +282,8 @@ impl SimBus {
         BusReport {
             name: self.name.clone(),
             time_s: self.time,
+            epoch_monotonic_ns: self.epoch_monotonic_ns,
+            torque_off_broadcasts_s: self.torque_off_broadcasts.iter().copied().collect(),
             line: self.stats,
             servos: self
                 .servos
@@ -310,6 +322,13 @@ impl SimBus {
                 self.read_reply(id, addr, len, instruction_number)
             }
             Instruction::Write { id, addr, data } => {
+                let torque_off = feetech::registers::TORQUE_ENABLE.addr;
+                if id == BROADCAST_ID && addr == torque_off && data.first() == Some(&0) {
+                    if self.torque_off_broadcasts.len() == 16 {
+                        self.torque_off_broadcasts.pop_front();
+                    }
+                    self.torque_off_broadcasts.push_back(self.arrival);
+                }
                 for s in self.servos.iter_mut() {
                     if targets(id, s) && s.answering {
                         s.write(addr, data);

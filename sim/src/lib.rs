@@ -16,6 +16,7 @@ pub mod arm;
 pub mod bus;
 pub mod description;
 pub mod pty;
+pub mod scenario;
 pub mod servo;
 
 pub use bus::{BusReport, SimBus};

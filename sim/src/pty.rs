@@ -150,12 +150,23 @@ pub fn serve(buses: Vec<(SimBus, PathBuf)>, dt: f64) -> Result<ServedRobot, Serv
     })
 }
 
+/// CLOCK_MONOTONIC, ns: the stack's shared time base (as `telemetry::clock`).
+fn monotonic_ns() -> u64 {
+    nix::time::clock_gettime(nix::time::ClockId::CLOCK_MONOTONIC)
+        .map(|t| t.tv_sec() as u64 * 1_000_000_000 + t.tv_nsec() as u64)
+        .unwrap_or(0)
+}
+
 fn run(masters: &[OwnedFd], buses: &Mutex<Vec<SimBus>>, stop: &AtomicBool, dt: f64) {
     // Wake-ups on time (the default 50 µs timer slack would distort the line timing).
     if nix::sys::prctl::set_timerslack(1).is_err() {
         tracing::warn!("cannot reduce timer slack: reply timing may be up to 50 µs late");
     }
     let start = Instant::now();
+    let epoch = monotonic_ns();
+    if let Ok(mut b) = buses.lock() {
+        b.iter_mut().for_each(|b| b.epoch_monotonic_ns = epoch);
+    }
     let mut buf = [0u8; 512];
     let mut hung_up_until = vec![0.0f64; masters.len()];
     while !stop.load(Ordering::Relaxed) {

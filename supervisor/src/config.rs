@@ -49,12 +49,19 @@ pub enum ConfigError {
 pub struct StallConfig {
     /// Window length, control cycles.
     pub window: usize,
-    /// Current threshold as a fraction of the model's rated stall current.
+    /// Current threshold as a fraction of the model's rated stall current (arm joints).
     pub current_fraction: f32,
+    /// The same for grippers.
+    pub gripper_current_fraction: f32,
     /// Largest position spread over the window that still counts as static, rad.
     pub static_rad: f32,
-    /// The joint must be this far from its goal (it is trying to move), rad.
+    /// An arm joint must be this far from its goal to be "trying to move", rad. Holding a load
+    /// within capacity leaves the firmware's P loop a steady-state error below this (the duty
+    /// saturates at kp·0.166·error = the torque limit, about 0.15 rad), so heavy holding is not
+    /// a stall: the thermal tier covers it.
     pub min_error_rad: f32,
+    /// The same for grippers, whose compliant squeeze settles close to the goal.
+    pub gripper_min_error_rad: f32,
     /// A goal this far from the one at reduction is a new target (torque restored), rad.
     pub new_target_rad: f32,
     /// Grip torque after a gripper stalls (hold gently), % of full output.
@@ -182,11 +189,15 @@ impl SupervisorConfig {
                 return Err(invalid(key, format!("{v} is outside (0, 100]")));
             }
         }
-        if !(s.current_fraction > 0.0
-            && s.static_rad > 0.0
-            && s.min_error_rad > 0.0
-            && s.new_target_rad > 0.0)
-        {
+        let thresholds = [
+            s.current_fraction,
+            s.gripper_current_fraction,
+            s.static_rad,
+            s.min_error_rad,
+            s.gripper_min_error_rad,
+            s.new_target_rad,
+        ];
+        if !thresholds.iter().all(|v| *v > 0.0) {
             return Err(invalid("stall", "thresholds must be > 0".into()));
         }
         for (name, g) in &c.grip {

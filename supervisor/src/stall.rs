@@ -15,8 +15,12 @@ pub const MAX_WINDOW: usize = 64;
 pub enum StallState {
     /// Full torque, watching.
     Normal,
-    /// Stalled once; full torque for one more window.
-    Retrying,
+    /// Stalled once at `position`; full torque until it stalls again (→ reduced) or makes
+    /// progress (moves `new-target-rad` away, or reaches its goal).
+    Retrying {
+        /// Where it stalled.
+        position: f32,
+    },
     /// Stalled again after the retry (or a gripper that closed on something): torque reduced
     /// until the goal moves by more than `new-target-rad` from `goal`.
     Reduced {
@@ -49,6 +53,7 @@ struct Sample {
 pub struct StallDetector {
     gripper: bool,
     current_threshold: f32,
+    min_error: f32,
     ring: [Sample; MAX_WINDOW],
     filled: usize,
     next: usize,
@@ -59,9 +64,17 @@ pub struct StallDetector {
 impl StallDetector {
     /// A detector for a joint whose servo stalls at `stall_current` A.
     pub fn new(gripper: bool, stall_current: f32, config: &StallConfig) -> Self {
+        let (fraction, min_error) = match gripper {
+            true => (
+                config.gripper_current_fraction,
+                config.gripper_min_error_rad,
+            ),
+            false => (config.current_fraction, config.min_error_rad),
+        };
         StallDetector {
             gripper,
-            current_threshold: config.current_fraction * stall_current,
+            current_threshold: fraction * stall_current,
+            min_error,
             ring: [Sample::default(); MAX_WINDOW],
             filled: 0,
             next: 0,
@@ -98,24 +111,21 @@ impl StallDetector {
         self.ring[self.next] = Sample { position, current };
         self.next = (self.next + 1) % k;
         self.filled = (self.filled + 1).min(k);
-        let trying = (goal - position).abs() >= config.min_error_rad;
-        if self.filled < k || !trying {
-            if self.filled == k && self.state == StallState::Retrying && !self.stalled(k, config) {
-                // The retry moved the joint: back to normal.
+        let trying = (goal - position).abs() >= self.min_error;
+        if let StallState::Retrying { position: stuck } = self.state {
+            // The retry made progress: it is not stuck any more (a bounce off the obstacle is
+            // not progress, so one window without a stall is not enough).
+            if !trying || (position - stuck).abs() > config.new_target_rad {
                 self.state = StallState::Normal;
             }
-            return StallAction::None;
         }
-        if !self.stalled(k, config) {
-            if self.state == StallState::Retrying {
-                self.state = StallState::Normal;
-            }
+        if self.filled < k || !trying || !self.stalled(k, config) {
             return StallAction::None;
         }
         self.clear_window();
         match (self.state, self.gripper) {
             (StallState::Normal, false) => {
-                self.state = StallState::Retrying;
+                self.state = StallState::Retrying { position };
                 StallAction::Retry
             }
             _ => {
@@ -212,8 +222,8 @@ mod tests {
         }
         let mut d = StallDetector::new(false, 4.2, &c);
         for _ in 0..100 {
-            // Holding against gravity at the goal: high current, static, but not trying to move.
-            assert_eq!(d.update(Some((1.0, 2.0, 1.01)), &c), StallAction::None);
+            // Holding a heavy load: high current, static, with the P loop's steady-state error.
+            assert_eq!(d.update(Some((1.0, 2.0, 1.1)), &c), StallAction::None);
             // Low current.
             assert_eq!(d.update(Some((1.0, 0.1, 2.0)), &c), StallAction::None);
         }
@@ -234,10 +244,27 @@ mod tests {
         let c = config();
         let mut d = StallDetector::new(false, 4.2, &c);
         push(&mut d, &c, 15, 1.0);
-        assert_eq!(d.state, StallState::Retrying);
+        assert_eq!(d.state, StallState::Retrying { position: 0.2 });
         for i in 0..15 {
             d.update(Some((0.2 + i as f32 * 0.02, 2.0, 1.0)), &c);
         }
         assert_eq!(d.state, StallState::Normal);
+    }
+
+    #[test]
+    fn a_bounce_during_the_retry_is_not_progress() {
+        let c = config();
+        let mut d = StallDetector::new(false, 4.2, &c);
+        push(&mut d, &c, 15, 1.0);
+        // Bounces off the obstacle: current dips, position wobbles by less than new-target-rad.
+        for i in 0..15 {
+            let (p, cur) = if i % 2 == 0 { (0.21, 0.5) } else { (0.19, 2.0) };
+            assert_eq!(d.update(Some((p, cur, 1.0)), &c), StallAction::None);
+        }
+        assert_eq!(
+            push(&mut d, &c, 15, 1.0),
+            [StallAction::Reduce],
+            "the second stall reduces"
+        );
     }
 }
