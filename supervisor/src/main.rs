@@ -104,6 +104,7 @@ fn main() -> Result<()> {
     let start = Instant::now();
     let (mut last_publish, mut last_status) = (Instant::now(), Instant::now());
     let mut frames = 0u64;
+    let mut last_state = None;
     while !shutdown.load(Ordering::Relaxed)
         && args
             .run_for
@@ -131,6 +132,7 @@ fn main() -> Result<()> {
             if s.on_state(&state) {
                 let _ = publish(&grip_out, s.grip());
             }
+            last_state = Some(state);
         }
         while let Some(cmd) = next(&commands) {
             s.command(&cmd, now);
@@ -161,7 +163,16 @@ fn main() -> Result<()> {
         }
         let layout = *s.layout();
         for e in s.drain_events() {
-            let line = describe(&e, &layout);
+            let mut line = describe(&e, &layout);
+            // A stall names what was seen: where the joint was, where it was sent, its current.
+            if let (Some(EventKind::Stall), Some(st)) = (e.kind(), last_state.as_ref()) {
+                if let Some(j) = st.joints().get(e.joint as usize) {
+                    line += &format!(
+                        " | frame {} position {:.3} goal {:.3} current {:.2} A load {:.2}",
+                        st.seq, j.position_rad, j.goal_rad, j.current_a, j.load
+                    );
+                }
+            }
             match e.kind() {
                 Some(EventKind::ThermalTrip | EventKind::OutputLost | EventKind::DriverLost) => {
                     tracing::warn!("{line}")

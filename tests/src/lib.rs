@@ -1,6 +1,7 @@
 //! Process-level test support: the real binaries, started, watched and cleaned up.
 //!
-//! Tests here spawn `nori` (the simulator) and `bus-driver` exactly as `nori up` or systemd do,
+//! Tests here spawn `nori` (the simulator), `supervisor` and `bus-driver` exactly as `nori up` or
+//! systemd do,
 //! talk to them over the state plane, and check what the simulated servos received. Every child
 //! is killed when its guard drops, so a failing test leaves no process behind.
 
@@ -11,39 +12,41 @@ use std::process::{Child, Command, Stdio};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
-/// The workspace's target profile directory (where cargo put this test's binary).
-fn profile_dir() -> PathBuf {
+/// The workspace's `target/release` (this test binary lives in `target/<profile>/deps`).
+fn release_dir() -> PathBuf {
     let exe = std::env::current_exe().expect("test executable path");
-    // target/<profile>/deps/<test> → target/<profile>
-    exe.parent()
-        .and_then(Path::parent)
-        .expect("target/<profile>")
-        .to_path_buf()
+    let target = exe
+        .ancestors()
+        .nth(3)
+        .expect("target/<profile>/deps/<test>");
+    target.join("release")
 }
 
-/// Path of a workspace binary, built once per test run with the same profile as the tests.
+/// Path of a workspace binary, built once per test run in the release profile: the processes
+/// run as deployed. (Unoptimised, the simulator falls behind real time in bursts on a two-core
+/// machine, so a moving joint looks static to the supervisor: a timing artefact no robot has.)
 pub fn binary(name: &str) -> PathBuf {
     static BUILT: OnceLock<()> = OnceLock::new();
     BUILT.get_or_init(|| {
         let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-        let release = profile_dir().file_name().is_some_and(|n| n == "release");
-        let mut cmd = Command::new(cargo);
-        cmd.args([
-            "build",
-            "--quiet",
-            "-p",
-            "nori",
-            "-p",
-            "bus-driver",
-            "--bins",
-        ]);
-        if release {
-            cmd.arg("--release");
-        }
-        let status = cmd.status().expect("running cargo build for the binaries");
+        let status = Command::new(cargo)
+            .args([
+                "build",
+                "--release",
+                "--quiet",
+                "-p",
+                "nori",
+                "-p",
+                "bus-driver",
+                "-p",
+                "supervisor",
+                "--bins",
+            ])
+            .status()
+            .expect("running cargo build for the binaries");
         assert!(status.success(), "building the binaries failed");
     });
-    let path = profile_dir().join(name);
+    let path = release_dir().join(name);
     assert!(path.exists(), "{} was not built", path.display());
     path
 }

@@ -50,6 +50,13 @@ fn sixteen_servos_follow_goals_and_nothing_outside_a_range_reaches_the_wire() {
         &dir.join("sim.log"),
     );
     let config = two_arm_config(&dir);
+    // The supervisor first: the driver holds its safe state until it hears from it.
+    let mut supervisor = Proc::spawn(
+        "supervisor",
+        &binary("supervisor"),
+        &["--domain", &domain, "--status-every", "0"],
+        &dir.join("supervisor.log"),
+    );
     let mut driver = Proc::spawn(
         "bus-driver",
         &binary("bus-driver"),
@@ -124,7 +131,7 @@ fn sixteen_servos_follow_goals_and_nothing_outside_a_range_reaches_the_wire() {
         "NaN frame applied: goal {}",
         s.joints[3].goal_rad
     );
-    assert!(driver.running() && sim.running());
+    assert!(driver.running() && sim.running() && supervisor.running());
 
     // SIGTERM: the driver stops cleanly with torque off.
     let (code, summary) = driver.terminate(Duration::from_secs(5));
@@ -133,6 +140,7 @@ fn sixteen_servos_follow_goals_and_nothing_outside_a_range_reaches_the_wire() {
         serde_json::from_str(summary.trim()).expect("driver summary JSON");
     assert!(summary["counters"]["goals_not_finite"].as_u64().unwrap() >= 1);
     assert!(summary["counters"]["goals_clamped"].as_u64().unwrap() >= 1);
+    supervisor.terminate(Duration::from_secs(5));
     sim.terminate(Duration::from_secs(5));
 
     // What the simulated servos received: every goal inside its joint's calibrated range, and
