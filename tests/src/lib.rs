@@ -107,6 +107,14 @@ impl Proc {
         );
     }
 
+    /// SIGKILL, at once (a crash), and reaps it.
+    pub fn kill(&mut self) {
+        if let Some(mut c) = self.child.take() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+
     /// Whether it is still running.
     pub fn running(&mut self) -> bool {
         self.child
