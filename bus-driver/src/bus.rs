@@ -234,14 +234,17 @@ impl<T: Transport> Bus<T> {
         })
     }
 
-    /// Waits for one status packet from `id`.
+    /// Waits for one status packet from `id`. Unicast transactions serve setup, which is not
+    /// time-critical: they wait at least [`UNICAST_REPLY_MARGIN`], so a busy host (or a servo
+    /// that just powered up, or replies queued ahead on the line) does not fail a servo's setup.
     fn reply(
         &mut self,
         id: u8,
         expected_params: usize,
     ) -> Result<(ServoStatus, [u8; 4]), BusError> {
         let bytes = status_bytes(expected_params) + 16;
-        let budget = wire_time(bytes, self.transport.baud()) + self.margin;
+        let budget =
+            wire_time(bytes, self.transport.baud()) + self.margin.max(UNICAST_REPLY_MARGIN);
         let deadline = Instant::now() + budget;
         loop {
             while let Some(decoded) = self.decoder.next_frame() {
@@ -274,22 +277,44 @@ impl<T: Transport> Bus<T> {
         }
     }
 
+    /// One unicast request and its reply, retried: a lost or late reply is common on these
+    /// buses under load, and every request here is idempotent. Between attempts the line is
+    /// left to drain so that a late reply cannot be taken for the next one.
+    fn transact(
+        &mut self,
+        id: u8,
+        instruction: Instruction,
+        reply_params: usize,
+    ) -> Result<(ServoStatus, [u8; 4]), BusError> {
+        let mut last = BusError::NoReply { id, waited_us: 0 };
+        for _ in 0..UNICAST_ATTEMPTS {
+            self.start()?;
+            self.send(instruction)?;
+            match self.reply(id, reply_params) {
+                Ok(r) => return Ok(r),
+                Err(e @ BusError::NoReply { .. }) => {
+                    last = e;
+                    std::thread::sleep(self.margin);
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        Err(last)
+    }
+
     /// PING: the servo's status bits, or why it did not answer.
     pub fn ping(&mut self, id: u8) -> Result<ServoStatus, BusError> {
-        self.start()?;
-        self.send(Instruction::Ping { id })?;
-        Ok(self.reply(id, 0)?.0)
+        Ok(self.transact(id, Instruction::Ping { id }, 0)?.0)
     }
 
     /// Reads one register.
     pub fn read(&mut self, id: u8, register: Register) -> Result<i32, BusError> {
-        self.start()?;
-        self.send(Instruction::Read {
+        let read = Instruction::Read {
             id,
             addr: register.addr,
             len: register.size,
-        })?;
-        let (_, data) = self.reply(id, register.size as usize)?;
+        };
+        let (_, data) = self.transact(id, read, register.size as usize)?;
         register.decode(&data).ok_or(BusError::ShortReply {
             id,
             expected: register.size as usize,
@@ -306,15 +331,19 @@ impl<T: Transport> Bus<T> {
     ) -> Result<ServoStatus, BusError> {
         let raw = encode(register, value)?;
         let bytes = raw.to_le_bytes();
-        self.start()?;
-        self.send(Instruction::Write {
+        let write = Instruction::Write {
             id,
             addr: register.addr,
             data: &bytes[..register.size as usize],
-        })?;
-        Ok(self.reply(id, 0)?.0)
+        };
+        Ok(self.transact(id, write, 0)?.0)
     }
 }
+
+/// Attempts of a unicast transaction before the servo is declared unreachable.
+pub const UNICAST_ATTEMPTS: usize = 3;
+/// Least reply margin of a unicast (setup) transaction.
+pub const UNICAST_REPLY_MARGIN: Duration = Duration::from_millis(20);
 
 /// Encodes `value` for `register` (sign-magnitude where the register is signed).
 pub fn encode(register: Register, value: i32) -> Result<u16, BusError> {

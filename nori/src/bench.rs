@@ -19,6 +19,11 @@ pub enum Bench {
     DriverRate(DriverRateArgs),
     /// Batch-mode simulation speed as a multiple of real time.
     SimSpeed(SimSpeedArgs),
+    /// Driver → supervisor latency: iceoryx2 against a Unix socket + postcard baseline.
+    StatePlane(crate::bench_plane::StatePlaneArgs),
+    /// The reader process of `state-plane` (internal).
+    #[command(hide = true)]
+    PlanePeer(crate::bench_plane::PeerArgs),
 }
 
 /// Options of `nori bench driver-rate`.
@@ -57,6 +62,8 @@ pub fn run(bench: &Bench) -> Result<()> {
     match bench {
         Bench::DriverRate(a) => driver_rate(a),
         Bench::SimSpeed(a) => sim_speed(a),
+        Bench::StatePlane(a) => crate::bench_plane::run(a),
+        Bench::PlanePeer(a) => crate::bench_plane::peer(a),
     }
 }
 

@@ -4,6 +4,7 @@
 //! `nori state` / `nori goal` look at and move the robot; `nori bench` measures.
 
 mod bench;
+mod bench_plane;
 mod plane_tools;
 mod scenario;
 mod sim_serve;

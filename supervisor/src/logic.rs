@@ -10,6 +10,7 @@ use telemetry::frames::{
     SupervisorCommand, SupervisorEvent, COMMAND_REENABLE_BUS, JOINT_FLAG_OUTPUT_LOST, MAX_BUSES,
     MAX_GRIPPERS,
 };
+use telemetry::MAX_JOINTS;
 use thiserror::Error;
 
 /// A layout the supervisor cannot supervise.
@@ -41,6 +42,8 @@ pub struct Supervisor {
     grip: GripFrame,
     event_seq: u64,
     output_lost: Vec<bool>,
+    /// Bus enables and torque limits last handed out.
+    published: (u32, [u16; MAX_JOINTS]),
 }
 
 impl Supervisor {
@@ -104,6 +107,7 @@ impl Supervisor {
             events: Vec::with_capacity(64),
             event_seq: 0,
             output_lost: vec![false; joints.len()],
+            published: (directives.bus_enabled, directives.torque_limit_permille),
         })
     }
 
@@ -143,7 +147,19 @@ impl Supervisor {
     pub fn directives(&mut self, now_ns: u64) -> Directives {
         self.directives.seq += 1;
         self.directives.timestamp_ns = now_ns;
+        self.published = (
+            self.directives.bus_enabled,
+            self.directives.torque_limit_permille,
+        );
         self.directives
+    }
+
+    /// Whether the directives differ from those last returned by [`Supervisor::directives`].
+    pub fn directives_changed(&self) -> bool {
+        (
+            self.directives.bus_enabled,
+            self.directives.torque_limit_permille,
+        ) != self.published
     }
 
     /// The grip force of the last frame.

@@ -181,9 +181,14 @@ fn main() -> Result<()> {
             }
             let _ = publish(&events_out, &e);
         }
+        // Directives go out every period as the heartbeat of the decision, and at once when they
+        // change (a trip must not wait for the next period).
+        let changed = s.directives_changed();
+        if changed || last_publish.elapsed() >= PUBLISH_EVERY {
+            let _ = publish(&directives_out, &s.directives(now));
+        }
         if last_publish.elapsed() >= PUBLISH_EVERY {
             last_publish = Instant::now();
-            let _ = publish(&directives_out, &s.directives(now));
             heartbeat.seq += 1;
             heartbeat.timestamp_ns = now;
             let _ = publish(&heartbeat_out, &heartbeat);

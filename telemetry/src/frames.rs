@@ -11,7 +11,9 @@ const _: () = assert!(MAX_JOINTS <= 32, "the goal mask is a u32");
 
 /// One joint in one cycle, in calibrated physical units.
 #[repr(C)]
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, serde::Serialize, serde::Deserialize,
+)]
 pub struct JointSample {
     /// Joint angle, rad (speed-mode joints: wheel angle modulo a turn).
     pub position_rad: f32,
@@ -52,7 +54,7 @@ impl JointSample {
 
 /// The bus driver's output, one per control cycle.
 #[repr(C)]
-#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend, serde::Serialize, serde::Deserialize)]
 #[type_name("nori::JointState/1")]
 pub struct JointState {
     /// Cycle number since the driver started (restarts at 0 with the driver).
