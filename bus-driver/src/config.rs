@@ -8,8 +8,9 @@ use crate::calibration::JointCalibration;
 use serde::Deserialize;
 use std::collections::{BTreeMap, HashSet};
 use std::path::{Path, PathBuf};
+pub use telemetry::config::ConfigError;
+use telemetry::config::{invalid, parse, read};
 use telemetry::MAX_JOINTS;
-use thiserror::Error;
 
 /// The embedded default driver configuration.
 pub const DEFAULT_CONFIG_TOML: &str = include_str!("../../deploy/config/bus-driver.toml");
@@ -18,37 +19,6 @@ pub const DEFAULT_CALIBRATION_TOML: &str = include_str!("../../deploy/config/cal
 
 /// The firmware over-temperature cutoff may not be set above this (°C): damage begins here.
 pub const HARDWARE_TEMPERATURE_CEILING_C: u8 = 60;
-
-/// A configuration that cannot be used.
-#[derive(Debug, Error)]
-pub enum ConfigError {
-    /// The file could not be read.
-    #[error("cannot read {path}: {source}")]
-    Io {
-        /// File.
-        path: String,
-        /// Cause.
-        source: std::io::Error,
-    },
-    /// Syntax, a wrong type or an unknown key; the message names the key and position.
-    #[error("{path}: {source}")]
-    Parse {
-        /// File.
-        path: String,
-        /// Cause.
-        source: toml::de::Error,
-    },
-    /// A value that parses but cannot be right.
-    #[error("{path}: {key}: {reason}")]
-    Invalid {
-        /// File.
-        path: String,
-        /// Offending key.
-        key: String,
-        /// Why.
-        reason: String,
-    },
-}
 
 /// How a bus's servos are driven.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
@@ -209,10 +179,7 @@ pub struct LoadedConfig {
 impl DriverConfig {
     /// Parses configuration text; `origin` names it in errors.
     pub fn parse(text: &str, origin: &str) -> Result<Self, ConfigError> {
-        toml::from_str(text).map_err(|source| ConfigError::Parse {
-            path: origin.into(),
-            source,
-        })
+        parse(text, origin)
     }
 
     /// Joints in the order of the state frame.
@@ -233,29 +200,24 @@ impl DriverConfig {
         calibration: &CalibrationFile,
         cal_origin: &str,
     ) -> Result<(), ConfigError> {
-        let invalid = |path: &str, key: String, reason: String| ConfigError::Invalid {
-            path: path.into(),
-            key,
-            reason,
-        };
         if !(self.rate_hz.is_finite() && (1.0..=1000.0).contains(&self.rate_hz)) {
             return Err(invalid(
                 origin,
-                "rate-hz".into(),
+                "rate-hz",
                 format!("{} is outside 1..=1000", self.rate_hz),
             ));
         }
         if !(self.safe_hold_torque_percent > 0.0 && self.safe_hold_torque_percent <= 100.0) {
             return Err(invalid(
                 origin,
-                "safe-hold-torque-percent".into(),
+                "safe-hold-torque-percent",
                 format!("{} is outside (0, 100]", self.safe_hold_torque_percent),
             ));
         }
         if self.bus.len() > telemetry::frames::MAX_BUSES {
             return Err(invalid(
                 origin,
-                "bus".into(),
+                "bus",
                 format!(
                     "{} buses exceed {}",
                     self.bus.len(),
@@ -264,11 +226,7 @@ impl DriverConfig {
             ));
         }
         if !(self.max_wheel_speed_rad_s.is_finite() && self.max_wheel_speed_rad_s > 0.0) {
-            return Err(invalid(
-                origin,
-                "max-wheel-speed-rad-s".into(),
-                "must be > 0".into(),
-            ));
+            return Err(invalid(origin, "max-wheel-speed-rad-s", "must be > 0"));
         }
         for (model, b) in &self.backstops {
             let key = |k: &str| format!("backstops.{model}.{k}");
@@ -276,7 +234,7 @@ impl DriverConfig {
                 return Err(invalid(
                     origin,
                     format!("backstops.{model}"),
-                    "unknown model (sts3215, sts3250, sts3095)".into(),
+                    "unknown model (sts3215, sts3250, sts3095)",
                 ));
             }
             if b.max_temperature_c > HARDWARE_TEMPERATURE_CEILING_C || b.max_temperature_c < 30 {
@@ -298,14 +256,14 @@ impl DriverConfig {
                 return Err(invalid(
                     origin,
                     key("over-current-protection-time-ms"),
-                    "must be 10..=2550 ms".into(),
+                    "must be 10..=2550 ms",
                 ));
             }
             if !(b.max_torque_limit_percent > 0.0 && b.max_torque_limit_percent <= 100.0) {
                 return Err(invalid(
                     origin,
                     key("max-torque-limit-percent"),
-                    "must be in (0, 100]".into(),
+                    "must be in (0, 100]",
                 ));
             }
         }
@@ -330,7 +288,7 @@ impl DriverConfig {
             for s in &bus.servo {
                 let at = format!("bus[{i}] ({}).servo id {}", bus.name, s.id);
                 if s.id > feetech::MAX_ID || !ids.insert(s.id) {
-                    return Err(invalid(origin, at, "invalid or duplicate id".into()));
+                    return Err(invalid(origin, at, "invalid or duplicate id"));
                 }
                 if !joints.insert(s.joint.as_str()) {
                     return Err(invalid(
@@ -343,7 +301,7 @@ impl DriverConfig {
                     return Err(invalid(
                         origin,
                         at,
-                        "a speed-mode servo cannot be a gripper".into(),
+                        "a speed-mode servo cannot be a gripper",
                     ));
                 }
                 if !self.backstops.contains_key(&s.model) {
@@ -358,7 +316,7 @@ impl DriverConfig {
                         invalid(
                             cal_origin,
                             format!("joint.{}", s.joint),
-                            "missing: every position joint needs a calibration".into(),
+                            "missing: every position joint needs a calibration",
                         )
                     })?;
                     cal.validate(&s.joint)
@@ -369,7 +327,7 @@ impl DriverConfig {
         if joints.len() > MAX_JOINTS {
             return Err(invalid(
                 origin,
-                "bus".into(),
+                "bus",
                 format!("{} joints exceed the frame's {MAX_JOINTS}", joints.len()),
             ));
         }
@@ -381,7 +339,7 @@ impl DriverConfig {
             return Err(invalid(
                 cal_origin,
                 format!("joint.{extra}"),
-                "no such joint in the driver configuration".into(),
+                "no such joint in the driver configuration",
             ));
         }
         Ok(())
@@ -413,11 +371,7 @@ impl LoadedConfig {
                 "<embedded calibration.toml>".into(),
             ),
         };
-        let calibration: CalibrationFile =
-            toml::from_str(&cal_text).map_err(|source| ConfigError::Parse {
-                path: cal_origin.clone(),
-                source,
-            })?;
+        let calibration: CalibrationFile = parse(&cal_text, &cal_origin)?;
         config.validate(origin, &calibration, &cal_origin)?;
         Ok(LoadedConfig {
             config,
@@ -432,13 +386,6 @@ impl LoadedConfig {
         }
         self
     }
-}
-
-fn read(path: &Path) -> Result<String, ConfigError> {
-    std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
-        path: path.display().to_string(),
-        source,
-    })
 }
 
 #[cfg(test)]

@@ -8,8 +8,6 @@ use anyhow::{Context, Result};
 use bus_driver::{run, Driver, LoadedConfig, LoopIo, SerialTransport};
 use clap::Parser;
 use std::path::PathBuf;
-use std::sync::atomic::AtomicBool;
-use std::sync::Arc;
 use std::time::{Duration, Instant};
 use telemetry::frames::{Directives, Heartbeat, JointLayout, Peer};
 use telemetry::plane::{self, Plane, Pub, Sub};
@@ -152,12 +150,7 @@ fn main() -> Result<()> {
         print!("{}", bus_driver::config::DEFAULT_CALIBRATION_TOML);
         return Ok(());
     }
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
-        )
-        .with_writer(std::io::stderr)
-        .init();
+    telemetry::process::init_logging();
     let mut config = match &args.config {
         Some(path) => LoadedConfig::load(path)?,
         None => LoadedConfig::embedded()?,
@@ -175,11 +168,7 @@ fn main() -> Result<()> {
         }
         config.config.bus.retain(|b| args.buses.contains(&b.name));
     }
-    let shutdown = Arc::new(AtomicBool::new(false));
-    for signal in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
-        signal_hook::flag::register(signal, shutdown.clone())
-            .context("installing signal handlers")?;
-    }
+    let shutdown = telemetry::process::stop_flag().context("installing signal handlers")?;
     let node = Plane::open(&args.domain, "bus-driver")?;
     node.cleanup_dead();
     let transports = open_transports(

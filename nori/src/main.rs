@@ -32,6 +32,8 @@ enum Command {
     State(plane_tools::StateArgs),
     /// Send joint goals to the driver (JOINT=RAD ...).
     Goal(plane_tools::GoalArgs),
+    /// Ask the supervisor to re-enable a bus it tripped (granted once the bus has cooled).
+    Reenable(plane_tools::ReenableArgs),
     /// Benchmarks (figures next to their baseline).
     #[command(subcommand)]
     Bench(bench::Bench),
@@ -53,6 +55,7 @@ fn main() -> Result<()> {
         Command::Sim(SimCommand::Scenario(a)) => scenario::run(a),
         Command::State(a) => plane_tools::state(a),
         Command::Goal(a) => plane_tools::goal(a),
+        Command::Reenable(a) => plane_tools::reenable(a),
         Command::Bench(b) => bench::run(b),
     }
 }

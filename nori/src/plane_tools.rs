@@ -175,3 +175,63 @@ pub fn goal(args: &GoalArgs) -> Result<()> {
     eprintln!("nori goal: sent {} goal(s)", args.goals.len());
     Ok(())
 }
+
+/// Options of `nori reenable`.
+#[derive(Args, Debug)]
+pub struct ReenableArgs {
+    #[command(flatten)]
+    plane: PlaneArgs,
+    /// The tripped bus to re-enable (its name in the driver configuration).
+    bus: String,
+}
+
+/// Asks the supervisor to re-enable a bus it tripped, and reports its answer: granted only once
+/// every motor of the bus has cooled to the configured threshold.
+pub fn reenable(args: &ReenableArgs) -> Result<()> {
+    use telemetry::frames::{EventKind, SupervisorCommand, COMMAND_REENABLE_BUS};
+    let config = match &args.plane.driver_config {
+        Some(p) => LoadedConfig::load(p)?,
+        None => LoadedConfig::embedded()?,
+    };
+    let names: Vec<&str> = config.config.bus.iter().map(|b| b.name.as_str()).collect();
+    let bus = names
+        .iter()
+        .position(|n| *n == args.bus)
+        .with_context(|| format!("no bus {:?} (have: {})", args.bus, names.join(", ")))?;
+    let node = Plane::open(
+        &args.plane.domain,
+        &format!("nori-reenable-{}", std::process::id()),
+    )?;
+    let events = node.subscriber(&plane::EVENTS)?;
+    let commands = node.publisher(&plane::COMMANDS)?;
+    std::thread::sleep(Duration::from_millis(100));
+    while plane::next(&events).is_some() {}
+    let cmd = SupervisorCommand {
+        seq: 1,
+        timestamp_ns: telemetry::clock::monotonic_ns(),
+        kind: COMMAND_REENABLE_BUS,
+        bus: bus as u8,
+        ..SupervisorCommand::default()
+    };
+    plane::publish(&commands, &cmd)?;
+    let until = Instant::now() + Duration::from_secs(2);
+    while Instant::now() < until {
+        while let Some(e) = plane::next(&events) {
+            if e.bus as usize != bus {
+                continue;
+            }
+            match e.kind() {
+                Some(EventKind::BusReenabled) => {
+                    eprintln!("nori reenable: bus {} re-enabled", args.bus);
+                    return Ok(());
+                }
+                Some(EventKind::ReenableRefused) => {
+                    bail!("refused: bus {} is still at {:.0} °C", args.bus, e.value)
+                }
+                _ => {}
+            }
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    bail!("no answer from the supervisor (is the bus tripped, and the supervisor running on domain {:?}?)", args.plane.domain)
+}

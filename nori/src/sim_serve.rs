@@ -5,8 +5,7 @@ use clap::Args;
 use sim::pty::serve;
 use sim::{BusReport, RobotDescription, SimBus};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 /// Where the simulator links its devices by default.
@@ -96,10 +95,7 @@ pub fn run(args: &ServeArgs) -> Result<()> {
             );
         }
     }
-    let shutdown = Arc::new(AtomicBool::new(false));
-    for signal in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
-        signal_hook::flag::register(signal, shutdown.clone())?;
-    }
+    let shutdown = telemetry::process::stop_flag()?;
     let mut buses = Vec::new();
     for bus in robot
         .bus

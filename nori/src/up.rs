@@ -8,8 +8,7 @@ use crate::stack::{sibling, Managed};
 use anyhow::Result;
 use clap::Args;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 /// Options of `nori up`.
@@ -34,10 +33,7 @@ pub fn run(args: &UpArgs) -> Result<()> {
     let nori = std::env::current_exe()?;
     let driver = sibling("bus-driver")?;
     let supervisor = sibling("supervisor")?;
-    let shutdown = Arc::new(AtomicBool::new(false));
-    for signal in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
-        signal_hook::flag::register(signal, shutdown.clone())?;
-    }
+    let shutdown = telemetry::process::stop_flag()?;
     let dir = args.dir.display().to_string();
     let report = args.dir.join("sim-report.json").display().to_string();
     let mut sim = Managed::new(

@@ -4,44 +4,14 @@
 use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::path::Path;
-use thiserror::Error;
+pub use telemetry::config::ConfigError;
+use telemetry::config::{parse, read};
 
 /// The embedded default (also `deploy/config/supervisor.toml`).
 pub const DEFAULT_CONFIG_TOML: &str = include_str!("../../deploy/config/supervisor.toml");
 
 /// The firmware cutoff the driver writes; the software trip must come before it.
 pub const HARDWARE_CUTOFF_C: f32 = 60.0;
-
-/// A configuration that cannot be used.
-#[derive(Debug, Error)]
-pub enum ConfigError {
-    /// The file could not be read.
-    #[error("cannot read {path}: {source}")]
-    Io {
-        /// File.
-        path: String,
-        /// Cause.
-        source: std::io::Error,
-    },
-    /// Syntax, a wrong type or an unknown key.
-    #[error("{path}: {source}")]
-    Parse {
-        /// File.
-        path: String,
-        /// Cause.
-        source: toml::de::Error,
-    },
-    /// A value that cannot be right.
-    #[error("{path}: {key}: {reason}")]
-    Invalid {
-        /// File.
-        path: String,
-        /// Key.
-        key: String,
-        /// Why.
-        reason: String,
-    },
-}
 
 /// Stall detection (paper: a k = 15 loop window; current high, position static).
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -120,24 +90,13 @@ impl SupervisorConfig {
 
     /// Loads and validates a file.
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
-            path: path.display().to_string(),
-            source,
-        })?;
-        Self::parse(&text, &path.display().to_string())
+        Self::parse(&read(path)?, &path.display().to_string())
     }
 
     /// Parses and validates text; `origin` names it in errors.
     pub fn parse(text: &str, origin: &str) -> Result<Self, ConfigError> {
-        let c: SupervisorConfig = toml::from_str(text).map_err(|source| ConfigError::Parse {
-            path: origin.into(),
-            source,
-        })?;
-        let invalid = |key: &str, reason: String| ConfigError::Invalid {
-            path: origin.into(),
-            key: key.into(),
-            reason,
-        };
+        let c: SupervisorConfig = parse(text, origin)?;
+        let invalid = |key: &str, reason: String| telemetry::config::invalid(origin, key, reason);
         let t = &c.thermal;
         if !(t.trip_c < HARDWARE_CUTOFF_C && t.trip_c > 30.0) {
             return Err(invalid(

@@ -7,8 +7,7 @@
 use anyhow::{Context, Result};
 use clap::Parser;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 use supervisor::logic::NONE;
 use supervisor::{Supervisor, SupervisorConfig};
@@ -66,21 +65,12 @@ fn main() -> Result<()> {
         print!("{}", supervisor::config::DEFAULT_CONFIG_TOML);
         return Ok(());
     }
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
-        )
-        .with_writer(std::io::stderr)
-        .init();
+    telemetry::process::init_logging();
     let config = match &args.config {
         Some(p) => SupervisorConfig::load(p)?,
         None => SupervisorConfig::embedded()?,
     };
-    let shutdown = Arc::new(AtomicBool::new(false));
-    for signal in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
-        signal_hook::flag::register(signal, shutdown.clone())
-            .context("installing signal handlers")?;
-    }
+    let shutdown = telemetry::process::stop_flag().context("installing signal handlers")?;
     let node = Plane::open(&args.domain, "supervisor")?;
     node.cleanup_dead();
     let states = node.subscriber(&plane::JOINT_STATE)?;

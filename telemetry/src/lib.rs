@@ -1,14 +1,19 @@
 //! Shared types of the Nori stack: the state-plane frames every process exchanges, the common
-//! time base, and (behind the `ipc` feature) the one place where iceoryx2 services are opened
-//! with their QoS.
+//! time base, the configuration error every process reports, and (behind the `ipc` feature) the
+//! one place where iceoryx2 services are opened with their QoS, and the start-up every process
+//! shares (logging, SIGINT/SIGTERM).
 //!
-//! The frames and clock do no I/O; the `plane` module does (shared memory), which is why it is
-//! a feature that only the processes enable.
+//! The frames, clock and config parsing do no I/O beyond reading a file the caller names; `plane`
+//! (shared memory) and `process` (signals) do, which is why they are a feature that only the
+//! processes enable.
 
 pub mod clock;
+pub mod config;
 pub mod frames;
 #[cfg(feature = "ipc")]
 pub mod plane;
+#[cfg(feature = "ipc")]
+pub mod process;
 pub mod watchdog;
 
 pub use frames::{GoalFrame, JointSample, JointState, MAX_JOINTS};
