@@ -11,6 +11,7 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 use telemetry::frames::{Directives, Heartbeat, JointLayout, Peer};
 use telemetry::plane::{self, Plane, Pub, Sub};
+use telemetry::process::ServiceManager;
 use telemetry::{GoalFrame, JointState};
 
 #[derive(Parser)]
@@ -62,6 +63,7 @@ struct Ipc {
     last_status: Instant,
     last_seq: u64,
     publish_errors: u64,
+    service: ServiceManager,
 }
 
 impl LoopIo for Ipc {
@@ -87,6 +89,7 @@ impl LoopIo for Ipc {
         if !ok {
             self.publish_errors += 1;
         }
+        self.service.keepalive(Instant::now());
         if state.seq % 200 == 1 {
             let _ = plane::publish(&self.layout_out, &self.layout);
         }
@@ -193,6 +196,7 @@ fn main() -> Result<()> {
         last_status: Instant::now(),
         last_seq: 0,
         publish_errors: 0,
+        service: ServiceManager::from_env(),
     };
     plane::publish(&io.layout_out, &io.layout)?;
     let supervisor_timeout = match config.config.supervisor_timeout_ms {
@@ -211,7 +215,8 @@ fn main() -> Result<()> {
             Some(Duration::from_millis(ms))
         }
     };
-    bus_driver::rt::prepare_control_thread();
+    let rt = bus_driver::rt::prepare_control_thread();
+    tracing::info!(?rt, "real-time preparation of the control thread");
     let failures = driver.setup();
     for (joint, error) in &failures {
         tracing::warn!(
@@ -230,6 +235,12 @@ fn main() -> Result<()> {
         plane::JOINT_STATE.name,
         plane::GOALS.name
     );
+    io.service.ready(&format!(
+        "driving {} joints on {} buses at {} Hz",
+        driver.joint_names().count(),
+        config.config.bus.len(),
+        config.config.rate_hz
+    ));
     let max_cycles = args
         .run_for
         .map(|s| (s * config.config.rate_hz).round() as u64);
@@ -241,6 +252,7 @@ fn main() -> Result<()> {
         &shutdown,
         max_cycles,
     );
+    io.service.stopping();
     for (bus, counters) in driver.bus_counters() {
         tracing::info!(bus, ?counters, "bus errors by kind");
     }

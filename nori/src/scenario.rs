@@ -80,7 +80,14 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
     let mut supervisor = Managed::new(
         "supervisor",
         &sibling("supervisor")?,
-        &[s("--domain"), domain.clone(), s("--status-every"), s("0")],
+        &[
+            s("--domain"),
+            domain.clone(),
+            s("--status-every"),
+            s("0"),
+            s("--trip-file"),
+            dir.join("trips").display().to_string(),
+        ],
     );
     let mut driver = Managed::new(
         "bus-driver",
@@ -235,6 +242,8 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
     driver.stop(Duration::from_secs(5));
     supervisor.stop(Duration::from_secs(5));
     sim.stop(Duration::from_secs(5));
+    drop((states, events, grips, layouts, goals, node));
+    Plane::remove_unused_domain(&domain)?;
     let report: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(&report_path)
             .with_context(|| format!("reading {}", report_path.display()))?,

@@ -88,6 +88,13 @@ pub fn run(args: &UpArgs) -> Result<()> {
     bus_driver.stop(Duration::from_secs(5));
     supervising.stop(Duration::from_secs(5));
     sim.stop(Duration::from_secs(5));
+    match telemetry::plane::Plane::remove_unused_domain(&args.domain) {
+        Ok(_) => {}
+        Err(e) => eprintln!(
+            "nori up: could not clear the state plane {}: {e}",
+            args.domain
+        ),
+    }
     eprintln!(
         "nori up: stopped; restarts: simulator {}, supervisor {}, bus-driver {}",
         sim.restarts, supervising.restarts, bus_driver.restarts

@@ -67,6 +67,8 @@ pub struct ServoReport {
     pub temperature_c: f64,
     /// Highest winding temperature reached, °C.
     pub max_temperature_c: f64,
+    /// Torque enabled now.
+    pub torque_enabled: bool,
     /// What the servo received and did.
     #[serde(flatten)]
     pub log: crate::servo::ServoLog,
@@ -295,6 +297,7 @@ impl SimBus {
                     angle_rad: s.angle,
                     temperature_c: s.temperature,
                     max_temperature_c: s.max_temperature,
+                    torque_enabled: s.torque_enabled(),
                     log: s.log,
                 })
                 .collect(),

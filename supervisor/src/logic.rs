@@ -172,6 +172,45 @@ impl Supervisor {
         self.buses.get(b).is_some_and(|t| t.tripped)
     }
 
+    /// Tripped buses, one bit each.
+    pub fn tripped_buses(&self) -> u32 {
+        (0..self.buses.len().min(32))
+            .filter(|&b| self.buses[b].tripped)
+            .fold(0, |mask, b| mask | (1 << b))
+    }
+
+    /// The joints of every tripped bus, by name: what must survive a restart of this process
+    /// (the latch is the operator's to release, not a crash's).
+    pub fn tripped_joints(&self) -> Vec<String> {
+        let joints = self.layout.joints();
+        self.buses
+            .iter()
+            .filter(|b| b.tripped)
+            .flat_map(|b| b.joints().iter().map(|&j| joints[j].name().to_string()))
+            .collect()
+    }
+
+    /// Latches again the trips a previous instance recorded: every bus holding one of `names`.
+    /// Returns the buses tripped; names not in the layout are ignored (a reconfigured robot).
+    pub fn restore_trips(&mut self, names: &[String], now_ns: u64) -> Vec<u8> {
+        let joints = self.layout.joints();
+        let mut restored = Vec::new();
+        for (b, bus) in self.buses.iter_mut().enumerate() {
+            let named = bus
+                .joints()
+                .iter()
+                .any(|&j| names.iter().any(|n| n == joints[j].name()));
+            if named && bus.force_trip() {
+                restored.push(b as u8);
+            }
+        }
+        for &b in &restored {
+            self.directives.bus_enabled &= !(1 << b);
+            self.event(now_ns, EventKind::ThermalTrip, NONE, b, 3, f32::NAN);
+        }
+        restored
+    }
+
     /// Feeds one joint-state frame. A frame for another layout is ignored (returns false).
     pub fn on_state(&mut self, state: &JointState) -> bool {
         if state.joint_count != self.layout.joint_count {
@@ -392,6 +431,46 @@ mod tests {
 
     fn kinds(sup: &mut Supervisor) -> Vec<EventKind> {
         sup.drain_events().filter_map(|e| e.kind()).collect()
+    }
+
+    #[test]
+    fn a_trip_survives_a_restart_until_the_operator_releases_it() {
+        let config = || SupervisorConfig::embedded().unwrap();
+        let at = |temperature: f32, k: u64| {
+            state(k, k * 5 * MS, move |i, j| {
+                if i == 0 {
+                    j.temperature_c = temperature
+                }
+            })
+        };
+        let mut first = Supervisor::new(&layout(), config()).unwrap();
+        first.on_state(&at(59.0, 1));
+        assert!(first.bus_tripped(0));
+        let record = first.tripped_joints();
+        assert_eq!(record, ["left_wrist_pitch", "left_gripper"]);
+
+        // A new instance (a crash and restart): the bus comes up latched although the motor has
+        // cooled below the trip, and stays so until an explicit command is granted.
+        let mut second = Supervisor::new(&layout(), config()).unwrap();
+        assert_eq!(second.restore_trips(&record, 0), [0]);
+        for k in 0..50 {
+            second.on_state(&at(55.0, k));
+        }
+        assert_eq!(second.directives(0).bus_enabled & 0b11, 0b10, "latched");
+        assert!(second
+            .restore_trips(&["no_such_joint".into()], 0)
+            .is_empty());
+        for k in 50..100 {
+            second.on_state(&at(45.0, k));
+        }
+        let cmd = SupervisorCommand {
+            kind: COMMAND_REENABLE_BUS,
+            bus: 0,
+            ..SupervisorCommand::default()
+        };
+        second.command(&cmd, 0);
+        assert_eq!(second.directives(0).bus_enabled & 0b11, 0b11);
+        assert!(second.tripped_joints().is_empty());
     }
 
     #[test]

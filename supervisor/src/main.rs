@@ -14,6 +14,7 @@ use supervisor::{Supervisor, SupervisorConfig};
 use telemetry::clock::monotonic_ns;
 use telemetry::frames::{EventKind, Heartbeat, JointLayout, Peer, SupervisorEvent};
 use telemetry::plane::{self, newest, next, publish, Plane};
+use telemetry::process::ServiceManager;
 use telemetry::watchdog::{Liveness, Watchdog};
 
 #[derive(Parser)]
@@ -37,6 +38,39 @@ struct Args {
     /// Print the default configuration and exit.
     #[arg(long)]
     print_default_config: bool,
+    /// Where latched thermal trips are kept across restarts (one joint name per line);
+    /// `<temp dir>/nori-<domain>-trips` when absent. Production: /var/lib/nori/trips.
+    #[arg(long)]
+    trip_file: Option<PathBuf>,
+}
+
+/// Reads the trips recorded by an earlier instance; a missing file means none.
+fn load_trips(path: &std::path::Path) -> Result<Vec<String>> {
+    match std::fs::read_to_string(path) {
+        Ok(text) => Ok(text
+            .lines()
+            .map(str::trim)
+            .filter(|l| !l.is_empty())
+            .map(String::from)
+            .collect()),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(Vec::new()),
+        Err(e) => Err(e).with_context(|| format!("reading the trip record {}", path.display())),
+    }
+}
+
+/// Records the trips atomically (write, fsync, rename): a crash leaves the old or the new record.
+fn save_trips(path: &std::path::Path, joints: &[String]) -> Result<()> {
+    use std::io::Write;
+    let tmp = path.with_extension("tmp");
+    let mut f = std::fs::File::create(&tmp)
+        .with_context(|| format!("writing the trip record {}", tmp.display()))?;
+    for j in joints {
+        writeln!(f, "{j}")?;
+    }
+    f.sync_all()?;
+    std::fs::rename(&tmp, path)
+        .with_context(|| format!("renaming the trip record to {}", path.display()))?;
+    Ok(())
 }
 
 /// Directives and heartbeat period.
@@ -70,6 +104,12 @@ fn main() -> Result<()> {
         Some(p) => SupervisorConfig::load(p)?,
         None => SupervisorConfig::embedded()?,
     };
+    let trip_file = args
+        .trip_file
+        .clone()
+        .unwrap_or_else(|| std::env::temp_dir().join(format!("nori-{}-trips", args.domain)));
+    let mut recorded_trips = load_trips(&trip_file)?;
+    let mut recorded_mask = 0u32;
     let shutdown = telemetry::process::stop_flag().context("installing signal handlers")?;
     let node = Plane::open(&args.domain, "supervisor")?;
     node.cleanup_dead();
@@ -84,6 +124,10 @@ fn main() -> Result<()> {
     tracing::info!(domain = %args.domain, "waiting for the driver's joint layout on {}", plane::LAYOUT.name);
 
     let mut sup: Option<Supervisor> = None;
+    let mut service = ServiceManager::from_env();
+    // Ready as soon as the plane is open: systemd starts the driver after this, and only the
+    // driver's layout lets the supervisor supervise.
+    service.ready("waiting for the driver's joint layout");
     let mut driver = Watchdog::new(Duration::from_millis(config.driver_timeout_ms));
     let mut driver_state = Liveness::Unknown;
     let mut heartbeat = Heartbeat {
@@ -103,7 +147,18 @@ fn main() -> Result<()> {
         let now = monotonic_ns();
         if let Some(layout) = newest(&layouts) {
             if sup.as_ref().is_none_or(|s| *s.layout() != layout) {
-                sup = Some(Supervisor::new(&layout, config.clone())?);
+                let mut fresh = Supervisor::new(&layout, config.clone())?;
+                let restored = fresh.restore_trips(&recorded_trips, now);
+                if !restored.is_empty() {
+                    tracing::warn!(
+                        buses = ?restored,
+                        file = %trip_file.display(),
+                        "thermal trips latched before a restart stay latched until `nori reenable`"
+                    );
+                }
+                recorded_mask = fresh.tripped_buses();
+                service.status(&format!("supervising {} joints", layout.joint_count));
+                sup = Some(fresh);
                 let names: Vec<&str> = layout.joints().iter().map(|j| j.name()).collect();
                 tracing::info!(
                     joints = layout.joint_count,
@@ -113,6 +168,8 @@ fn main() -> Result<()> {
                 );
             }
         }
+        // Kept alive only while the loop turns; before the layout is known that is all it does.
+        service.keepalive(Instant::now());
         let Some(s) = sup.as_mut() else {
             std::thread::sleep(POLL);
             continue;
@@ -171,6 +228,14 @@ fn main() -> Result<()> {
             }
             let _ = publish(&events_out, &e);
         }
+        // Trips outlive this process: recorded before the directives that announce them.
+        if s.tripped_buses() != recorded_mask {
+            recorded_mask = s.tripped_buses();
+            recorded_trips = s.tripped_joints();
+            if let Err(e) = save_trips(&trip_file, &recorded_trips) {
+                tracing::error!("{e:#}: a restart would forget the latched trips");
+            }
+        }
         // Directives go out every period as the heartbeat of the decision, and at once when they
         // change (a trip must not wait for the next period).
         let changed = s.directives_changed();
@@ -192,6 +257,7 @@ fn main() -> Result<()> {
         }
         std::thread::sleep(POLL);
     }
+    service.stopping();
     tracing::info!(frames, "stopped");
     Ok(())
 }

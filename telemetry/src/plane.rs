@@ -101,6 +101,13 @@ fn err<E: std::fmt::Debug>(what: impl Into<String>) -> impl FnOnce(E) -> PlaneEr
     }
 }
 
+fn domain_config(domain: &str) -> Result<Config, PlaneError> {
+    let mut config = Config::default();
+    config.global.prefix = FileName::new(format!("{domain}_").as_bytes())
+        .map_err(err(format!("domain {domain:?}")))?;
+    Ok(config)
+}
+
 /// One process's node on the plane.
 pub struct Plane {
     node: Node<ipc::Service>,
@@ -111,9 +118,7 @@ impl Plane {
     /// owns its signals.
     pub fn open(domain: &str, name: &str) -> Result<Self, PlaneError> {
         iceoryx2::prelude::set_log_level(LogLevel::Warn);
-        let mut config = Config::default();
-        config.global.prefix = FileName::new(format!("{domain}_").as_bytes())
-            .map_err(err(format!("domain {domain:?}")))?;
+        let config = domain_config(domain)?;
         let node = NodeBuilder::new()
             .name(&NodeName::new(name).map_err(err(format!("node name {name:?}")))?)
             .config(&config)
@@ -121,6 +126,42 @@ impl Plane {
             .create::<ipc::Service>()
             .map_err(err("create node"))?;
         Ok(Plane { node })
+    }
+
+    /// Clears a domain no process uses any more: the resources of dead processes, then the
+    /// node counter iceoryx2 keeps per domain (its one segment that outlives every process, by
+    /// design). Returns the files removed; none while a process of the domain is alive.
+    pub fn remove_unused_domain(domain: &str) -> Result<usize, PlaneError> {
+        Plane::open(domain, "cleanup")?.cleanup_dead();
+        let config = domain_config(domain)?;
+        let mut alive = 0;
+        Node::<ipc::Service>::list(&config, |state| {
+            if matches!(state, NodeState::Alive(_)) {
+                alive += 1;
+            }
+            CallbackProgression::Continue
+        })
+        .map_err(err("list nodes"))?;
+        if alive > 0 {
+            return Ok(0);
+        }
+        let prefix = format!("{domain}_");
+        let suffix = config.global.node.global_mgmt_suffix.to_string();
+        let mut removed = 0;
+        for entry in std::fs::read_dir("/dev/shm")
+            .map_err(err("reading /dev/shm"))?
+            .flatten()
+        {
+            let name = entry.file_name();
+            let name = name.to_string_lossy();
+            if name.starts_with(&prefix)
+                && name.ends_with(&suffix)
+                && std::fs::remove_file(entry.path()).is_ok()
+            {
+                removed += 1;
+            }
+        }
+        Ok(removed)
     }
 
     /// Removes the resources of dead processes of this domain (after a crash).

@@ -75,6 +75,14 @@ impl Proc {
         }
     }
 
+    /// A placeholder for a process not started yet.
+    pub fn none(name: &str) -> Proc {
+        Proc {
+            name: name.into(),
+            child: None,
+        }
+    }
+
     /// Process id.
     pub fn pid(&self) -> u32 {
         self.child.as_ref().map_or(0, Child::id)
@@ -153,4 +161,202 @@ pub fn wait_for<T>(within: Duration, what: &str, mut f: impl FnMut() -> Option<T
         );
         std::thread::sleep(Duration::from_millis(10));
     }
+}
+
+/// A small seeded generator (SplitMix64) for randomised process tests: the same seed gives the
+/// same kill schedule.
+pub struct Rng(u64);
+
+impl Rng {
+    /// Seeded.
+    pub fn new(seed: u64) -> Rng {
+        Rng(seed)
+    }
+
+    /// Next 64 random bits.
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in `[lo, hi)`.
+    pub fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
+        lo + (hi - lo) * (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    /// Uniform in `0..n`.
+    pub fn below(&mut self, n: u64) -> u64 {
+        self.next_u64() % n
+    }
+}
+
+/// The `q`-quantile (0..=1) of `values`, nearest rank.
+pub fn quantile(values: &[f64], q: f64) -> f64 {
+    let mut v = values.to_vec();
+    v.sort_by(f64::total_cmp);
+    let rank = ((q * v.len() as f64).ceil() as usize).clamp(1, v.len());
+    v[rank - 1]
+}
+
+/// Files of iceoryx2 under `/dev/shm` and `/tmp/iceoryx2` belonging to `domain`.
+pub fn plane_files(domain: &str) -> Vec<PathBuf> {
+    fn walk(dir: &Path, prefix: &str, out: &mut Vec<PathBuf>) {
+        let Ok(entries) = std::fs::read_dir(dir) else {
+            return;
+        };
+        for e in entries.flatten() {
+            let path = e.path();
+            if path.is_dir() {
+                walk(&path, prefix, out);
+            } else if e.file_name().to_string_lossy().starts_with(prefix) {
+                out.push(path);
+            }
+        }
+    }
+    let prefix = format!("{domain}_");
+    let mut out = Vec::new();
+    walk(Path::new("/dev/shm"), &prefix, &mut out);
+    walk(&std::env::temp_dir().join("iceoryx2"), &prefix, &mut out);
+    out.sort();
+    out
+}
+
+/// The left arm of the robot as three processes on the simulator (a pseudo-terminal), each of
+/// which a test may kill and restart as systemd would.
+pub struct ArmStack {
+    /// Scratch directory (logs, devices, report, trip record).
+    pub dir: PathBuf,
+    /// State-plane domain.
+    pub domain: String,
+    /// The simulator.
+    pub sim: Proc,
+    /// The supervisor.
+    pub supervisor: Proc,
+    /// The driver.
+    pub driver: Proc,
+    starts: u32,
+}
+
+impl ArmStack {
+    /// Starts the simulator (with `sim_args` added), the supervisor, then the driver.
+    pub fn start(tag: &str, sim_args: &[&str]) -> ArmStack {
+        let dir = scratch(tag);
+        let domain = format!("nori_{tag}_{}", std::process::id()).replace('-', "_");
+        let dev = dir.join("dev");
+        let report = dir.join("sim-report.json");
+        let mut args = vec![
+            "sim",
+            "serve",
+            "--bus",
+            "left_arm",
+            "--dir",
+            dev.to_str().unwrap(),
+            "--report",
+            report.to_str().unwrap(),
+        ];
+        args.extend_from_slice(sim_args);
+        let sim = Proc::spawn("simulator", &binary("nori"), &args, &dir.join("sim.log"));
+        let mut stack = ArmStack {
+            supervisor: Proc::none("supervisor"),
+            driver: Proc::none("bus-driver"),
+            dir,
+            domain,
+            sim,
+            starts: 0,
+        };
+        stack.restart_supervisor();
+        stack.restart_driver();
+        stack
+    }
+
+    /// (Re)starts the supervisor; a running one is killed first.
+    pub fn restart_supervisor(&mut self) {
+        self.supervisor.kill();
+        self.starts += 1;
+        let trips = self.dir.join("trips");
+        self.supervisor = Proc::spawn(
+            "supervisor",
+            &binary("supervisor"),
+            &[
+                "--domain",
+                &self.domain,
+                "--status-every",
+                "0",
+                "--trip-file",
+                trips.to_str().unwrap(),
+            ],
+            &self.dir.join(format!("supervisor-{}.log", self.starts)),
+        );
+    }
+
+    /// (Re)starts the driver; a running one is killed first.
+    pub fn restart_driver(&mut self) {
+        self.driver.kill();
+        self.starts += 1;
+        let dev = self.dir.join("dev");
+        self.driver = Proc::spawn(
+            "bus-driver",
+            &binary("bus-driver"),
+            &[
+                "--bus",
+                "left_arm",
+                "--device-dir",
+                dev.to_str().unwrap(),
+                "--domain",
+                &self.domain,
+                "--status-every",
+                "0",
+            ],
+            &self.dir.join(format!("driver-{}.log", self.starts)),
+        );
+    }
+
+    /// Stops driver (torque off), supervisor and simulator in that order, with SIGTERM, checks
+    /// that nothing of the domain is left in shared memory (the test's own ports must be
+    /// dropped before), and returns the simulator's final report.
+    pub fn stop(mut self) -> serde_json::Value {
+        if self.driver.running() {
+            self.driver.terminate(Duration::from_secs(5));
+        }
+        if self.supervisor.running() {
+            self.supervisor.terminate(Duration::from_secs(5));
+        }
+        self.sim.terminate(Duration::from_secs(5));
+        telemetry::plane::Plane::remove_unused_domain(&self.domain).unwrap();
+        let left = plane_files(&self.domain);
+        assert!(left.is_empty(), "left in shared memory: {left:?}");
+        let text = std::fs::read_to_string(self.dir.join("sim-report.json")).unwrap();
+        serde_json::from_str(&text).unwrap()
+    }
+}
+
+/// Checks a simulator report of the left arm against the embedded calibration: no goal outside
+/// a calibrated range ever reached the wire and no motor reached `max_c`. Returns the hottest
+/// temperature seen.
+pub fn check_left_arm_report(report: &serde_json::Value, max_c: f64) -> f64 {
+    let config = bus_driver::LoadedConfig::embedded().unwrap();
+    let bus = &config.config.bus[0];
+    assert_eq!(bus.name, "left_arm");
+    let servos = report["buses"][0]["servos"].as_array().unwrap();
+    assert_eq!(servos.len(), bus.servo.len());
+    let mut hottest = f64::MIN;
+    for (servo, cfg) in servos.iter().zip(&bus.servo) {
+        let cal = config.calibration.joint[&cfg.joint];
+        if let (Some(lo), Some(hi)) = (servo["goal_min"].as_i64(), servo["goal_max"].as_i64()) {
+            assert!(
+                lo >= i64::from(cal.range_min) && hi <= i64::from(cal.range_max),
+                "{}: goals {lo}..{hi} reached the wire, calibrated range {}..{}",
+                cfg.joint,
+                cal.range_min,
+                cal.range_max
+            );
+        }
+        let t = servo["max_temperature_c"].as_f64().unwrap();
+        assert!(t < max_c, "{} reached {t:.2} °C", cfg.joint);
+        hottest = hottest.max(t);
+    }
+    hottest
 }

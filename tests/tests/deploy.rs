@@ -1,0 +1,184 @@
+//! What deploy/ ships, checked against the binaries: the default configuration files are what
+//! the binaries print and load, the systemd units verify, and the processes speak the systemd
+//! notify protocol (READY=1, then WATCHDOG=1 keep-alives) as the units' `Type=notify` and
+//! `WatchdogSec=` expect.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use nori_tests::{binary, scratch, wait_for, Proc};
+use std::os::unix::net::UnixDatagram;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+fn deploy() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy")
+}
+
+fn printed(bin: &str, flag: &str) -> String {
+    let out = Command::new(binary(bin)).arg(flag).output().unwrap();
+    assert!(out.status.success(), "{bin} {flag} failed");
+    String::from_utf8(out.stdout).unwrap()
+}
+
+#[test]
+fn the_shipped_configuration_files_are_what_the_binaries_print_and_load() {
+    for (bin, flag, file) in [
+        ("bus-driver", "--print-default-config", "bus-driver.toml"),
+        (
+            "bus-driver",
+            "--print-default-calibration",
+            "calibration.toml",
+        ),
+        ("supervisor", "--print-default-config", "supervisor.toml"),
+    ] {
+        let shipped = std::fs::read_to_string(deploy().join("config").join(file)).unwrap();
+        assert_eq!(
+            printed(bin, flag),
+            shipped,
+            "deploy/config/{file} differs from `{bin} {flag}`"
+        );
+        // Commented: a reader of /etc/nori learns what each key means.
+        let comments = shipped.lines().filter(|l| l.trim_start().starts_with('#'));
+        assert!(comments.count() >= 5, "{file} is not commented");
+    }
+    // The files load as they are installed (the driver finds the calibration next to its file).
+    bus_driver::LoadedConfig::load(&deploy().join("config/bus-driver.toml")).unwrap();
+    supervisor::SupervisorConfig::load(&deploy().join("config/supervisor.toml")).unwrap();
+}
+
+#[test]
+fn the_systemd_units_verify() {
+    let units = deploy().join("systemd");
+    let Ok(out) = Command::new("systemd-analyze").arg("--version").output() else {
+        eprintln!("systemd-analyze not on this machine: unit verification skipped");
+        return;
+    };
+    assert!(out.status.success());
+    // Verified where they would be installed, with ExecStart at the binaries just built.
+    let dir = scratch("units");
+    let bin_dir = binary("bus-driver").parent().unwrap().to_path_buf();
+    for entry in std::fs::read_dir(&units).unwrap().flatten() {
+        let text = std::fs::read_to_string(entry.path()).unwrap();
+        let text = text.replace("/usr/local/bin", bin_dir.to_str().unwrap());
+        std::fs::write(dir.join(entry.file_name()), text).unwrap();
+    }
+    for unit in [
+        "nori-supervisor.service",
+        "nori-bus-driver.service",
+        "nori.target",
+    ] {
+        let out = Command::new("systemd-analyze")
+            .args(["verify", "--man=no"])
+            .arg(dir.join(unit))
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        // Other units of the machine may draw warnings; ours must draw none.
+        let ours: Vec<&str> = stderr.lines().filter(|l| l.contains("nori")).collect();
+        assert!(out.status.success() && ours.is_empty(), "{unit}: {stderr}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Datagrams received on `socket` until `within` has passed.
+fn messages(socket: &UnixDatagram, within: Duration) -> Vec<String> {
+    socket
+        .set_read_timeout(Some(Duration::from_millis(50)))
+        .unwrap();
+    let until = Instant::now() + within;
+    let mut out = Vec::new();
+    let mut buf = [0u8; 512];
+    while Instant::now() < until {
+        if let Ok(n) = socket.recv(&mut buf) {
+            out.push(String::from_utf8_lossy(&buf[..n]).into_owned());
+        }
+    }
+    out
+}
+
+#[test]
+fn the_processes_notify_readiness_and_keep_the_watchdog_fed() {
+    let dir = scratch("notify");
+    let domain = format!("nori_notify_{}", std::process::id());
+    let dev = dir.join("dev");
+    let _sim = Proc::spawn(
+        "simulator",
+        &binary("nori"),
+        &[
+            "sim",
+            "serve",
+            "--bus",
+            "left_arm",
+            "--dir",
+            dev.to_str().unwrap(),
+        ],
+        &dir.join("sim.log"),
+    );
+    let mut socks = Vec::new();
+    let mut procs = Vec::new();
+    for (name, args) in [
+        (
+            "supervisor",
+            vec!["--domain", &domain, "--status-every", "0", "--trip-file"],
+        ),
+        (
+            "bus-driver",
+            vec![
+                "--bus",
+                "left_arm",
+                "--device-dir",
+                dev.to_str().unwrap(),
+                "--domain",
+                &domain,
+                "--status-every",
+                "0",
+            ],
+        ),
+    ] {
+        let path = dir.join(format!("{name}.notify"));
+        let socket = UnixDatagram::bind(&path).unwrap();
+        let mut args: Vec<String> = args.into_iter().map(String::from).collect();
+        if name == "supervisor" {
+            args.push(dir.join("trips").display().to_string());
+        }
+        let log = std::fs::File::create(dir.join(format!("{name}.log"))).unwrap();
+        let child = Command::new(binary(name))
+            .args(&args)
+            .env("NOTIFY_SOCKET", &path)
+            .env("WATCHDOG_USEC", "200000")
+            .stderr(log)
+            .stdout(std::process::Stdio::null())
+            .spawn()
+            .unwrap();
+        procs.push(child);
+        socks.push((name, socket));
+    }
+    for (name, socket) in &socks {
+        let ready = wait_for(Duration::from_secs(20), &format!("{name} READY=1"), || {
+            messages(socket, Duration::from_millis(100))
+                .into_iter()
+                .find(|m| m.lines().any(|l| l == "READY=1"))
+        });
+        assert!(ready.contains("STATUS="), "{name}: {ready}");
+        // 200 ms watchdog: a keep-alive every 100 ms, so about ten in a second (a loaded
+        // machine may delay a few; far fewer would let systemd kill a healthy process).
+        let pings = messages(socket, Duration::from_secs(1))
+            .iter()
+            .filter(|m| m.lines().any(|l| l == "WATCHDOG=1"))
+            .count();
+        assert!(
+            (3..=15).contains(&pings),
+            "{name}: {pings} keep-alives in a second"
+        );
+    }
+    for mut p in procs {
+        nix::sys::signal::kill(
+            nix::unistd::Pid::from_raw(p.id() as i32),
+            nix::sys::signal::Signal::SIGTERM,
+        )
+        .unwrap();
+        p.wait().unwrap();
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
