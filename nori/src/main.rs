@@ -6,6 +6,7 @@
 mod bench;
 mod bench_plane;
 mod plane_tools;
+mod policy_server;
 mod scenario;
 mod sim_serve;
 mod stack;
@@ -34,6 +35,8 @@ enum Command {
     Goal(plane_tools::GoalArgs),
     /// Ask the supervisor to re-enable a bus it tripped (granted once the bus has cooled).
     Reenable(plane_tools::ReenableArgs),
+    /// The reference inference server: a scripted policy for every robot on the fleet.
+    PolicyServer(policy_server::PolicyServerArgs),
     /// Benchmarks (figures next to their baseline).
     #[command(subcommand)]
     Bench(bench::Bench),
@@ -56,6 +59,7 @@ fn main() -> Result<()> {
         Command::State(a) => plane_tools::state(a),
         Command::Goal(a) => plane_tools::goal(a),
         Command::Reenable(a) => plane_tools::reenable(a),
+        Command::PolicyServer(a) => policy_server::run(a),
         Command::Bench(b) => bench::run(b),
     }
 }

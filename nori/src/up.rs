@@ -1,5 +1,5 @@
 //! `nori up`: the whole stack on the simulated robot, for development. Starts the simulator, the
-//! supervisor and the driver as separate processes, restarts a process that dies (with backoff), and on Ctrl-C
+//! supervisor, the driver and the fleet agent as separate processes, restarts a process that dies (with backoff), and on Ctrl-C
 //! stops the driver first (it turns torque off while the buses are still there), then the rest.
 //! Production uses systemd (deploy/systemd) instead.
 
@@ -23,6 +23,10 @@ pub struct UpArgs {
     /// Driver configuration file; the embedded default when absent.
     #[arg(long)]
     pub driver_config: Option<PathBuf>,
+    /// Fleet-agent configuration file; the embedded default (robot `sim-0001`, zenoh peer
+    /// connecting to `nori policy-server` on 127.0.0.1:7447) when absent.
+    #[arg(long)]
+    pub agent_config: Option<PathBuf>,
     /// Stop by itself after this many seconds.
     #[arg(long)]
     pub run_for: Option<f64>,
@@ -33,6 +37,7 @@ pub fn run(args: &UpArgs) -> Result<()> {
     let nori = std::env::current_exe()?;
     let driver = sibling("bus-driver")?;
     let supervisor = sibling("supervisor")?;
+    let agent = sibling("fleet-agent")?;
     let shutdown = telemetry::process::stop_flag()?;
     let dir = args.dir.display().to_string();
     let report = args.dir.join("sim-report.json").display().to_string();
@@ -63,14 +68,21 @@ pub fn run(args: &UpArgs) -> Result<()> {
         &supervisor,
         &["--domain".into(), args.domain.clone()],
     );
+    let mut agent_args = vec!["--domain".into(), args.domain.clone()];
+    if let Some(c) = &args.agent_config {
+        agent_args.extend(["--config".into(), c.display().to_string()]);
+    }
+    let mut fleet_agent = Managed::new("fleet-agent", &agent, &agent_args);
     eprintln!("nori up: the Nori A3 stack on the simulated robot (no hardware)");
     sim.start()?;
     // The supervisor first: the driver holds its safe state until the supervisor is heard from.
     supervising.start()?;
     bus_driver.start()?;
+    fleet_agent.start()?;
     eprintln!(
         "nori up: watch the joints with `nori state --domain {d}`, move one with `nori goal --domain {d} left_elbow=-1.0`; \
-         the simulator's report is {report}. Ctrl-C stops everything with torque off.",
+         the simulator's report is {report}. `nori policy-server` in another terminal drives the elbows \
+         through the fleet agent. Ctrl-C stops everything with torque off.",
         d = args.domain
     );
     let start = Instant::now();
@@ -82,9 +94,12 @@ pub fn run(args: &UpArgs) -> Result<()> {
         sim.supervise()?;
         supervising.supervise()?;
         bus_driver.supervise()?;
+        fleet_agent.supervise()?;
         std::thread::sleep(Duration::from_millis(50));
     }
     eprintln!("nori up: stopping (driver first, so torque goes off while the buses are up)");
+    // The agent first: no new goals while the driver turns torque off.
+    fleet_agent.stop(Duration::from_secs(5));
     bus_driver.stop(Duration::from_secs(5));
     supervising.stop(Duration::from_secs(5));
     sim.stop(Duration::from_secs(5));
@@ -96,8 +111,8 @@ pub fn run(args: &UpArgs) -> Result<()> {
         ),
     }
     eprintln!(
-        "nori up: stopped; restarts: simulator {}, supervisor {}, bus-driver {}",
-        sim.restarts, supervising.restarts, bus_driver.restarts
+        "nori up: stopped; restarts: simulator {}, supervisor {}, bus-driver {}, fleet-agent {}",
+        sim.restarts, supervising.restarts, bus_driver.restarts, fleet_agent.restarts
     );
     Ok(())
 }

@@ -30,18 +30,9 @@ pub fn binary(name: &str) -> PathBuf {
     BUILT.get_or_init(|| {
         let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
         let status = Command::new(cargo)
-            .args([
-                "build",
-                "--release",
-                "--quiet",
-                "-p",
-                "nori",
-                "-p",
-                "bus-driver",
-                "-p",
-                "supervisor",
-                "--bins",
-            ])
+            // The README's build command exactly: the same feature set, so the two never
+            // invalidate each other's artifacts.
+            .args(["build", "--release", "--quiet", "--workspace", "--bins"])
             .status()
             .expect("running cargo build for the binaries");
         assert!(status.success(), "building the binaries failed");
@@ -237,6 +228,8 @@ pub struct ArmStack {
     pub supervisor: Proc,
     /// The driver.
     pub driver: Proc,
+    /// The fleet agent (not started by [`ArmStack::start`]).
+    pub agent: Proc,
     starts: u32,
 }
 
@@ -262,6 +255,7 @@ impl ArmStack {
         let mut stack = ArmStack {
             supervisor: Proc::none("supervisor"),
             driver: Proc::none("bus-driver"),
+            agent: Proc::none("fleet-agent"),
             dir,
             domain,
             sim,
@@ -314,10 +308,33 @@ impl ArmStack {
         );
     }
 
-    /// Stops driver (torque off), supervisor and simulator in that order, with SIGTERM, checks
+    /// (Re)starts the fleet agent as `robot_id`, connecting to zenoh `endpoint`; a running one
+    /// is killed first.
+    pub fn restart_agent(&mut self, robot_id: &str, endpoint: &str) {
+        self.agent.kill();
+        self.starts += 1;
+        self.agent = Proc::spawn(
+            "fleet-agent",
+            &binary("fleet-agent"),
+            &[
+                "--domain",
+                &self.domain,
+                "--robot-id",
+                robot_id,
+                "--connect",
+                endpoint,
+            ],
+            &self.dir.join(format!("agent-{}.log", self.starts)),
+        );
+    }
+
+    /// Stops agent, driver (torque off), supervisor and simulator in that order, with SIGTERM, checks
     /// that nothing of the domain is left in shared memory (the test's own ports must be
     /// dropped before), and returns the simulator's final report.
     pub fn stop(mut self) -> serde_json::Value {
+        if self.agent.running() {
+            self.agent.terminate(Duration::from_secs(5));
+        }
         if self.driver.running() {
             self.driver.terminate(Duration::from_secs(5));
         }
@@ -331,6 +348,12 @@ impl ArmStack {
         let text = std::fs::read_to_string(self.dir.join("sim-report.json")).unwrap();
         serde_json::from_str(&text).unwrap()
     }
+}
+
+/// A free TCP port on loopback for a zenoh endpoint (`tcp/127.0.0.1:<port>`).
+pub fn free_endpoint() -> String {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    format!("tcp/127.0.0.1:{}", listener.local_addr().unwrap().port())
 }
 
 /// Checks a simulator report of the left arm against the embedded calibration: no goal outside

@@ -31,6 +31,7 @@ fn the_shipped_configuration_files_are_what_the_binaries_print_and_load() {
             "calibration.toml",
         ),
         ("supervisor", "--print-default-config", "supervisor.toml"),
+        ("fleet-agent", "--print-default-config", "fleet-agent.toml"),
     ] {
         let shipped = std::fs::read_to_string(deploy().join("config").join(file)).unwrap();
         assert_eq!(
@@ -45,6 +46,7 @@ fn the_shipped_configuration_files_are_what_the_binaries_print_and_load() {
     // The files load as they are installed (the driver finds the calibration next to its file).
     bus_driver::LoadedConfig::load(&deploy().join("config/bus-driver.toml")).unwrap();
     supervisor::SupervisorConfig::load(&deploy().join("config/supervisor.toml")).unwrap();
+    fleet_agent::AgentConfig::load(&deploy().join("config/fleet-agent.toml")).unwrap();
 }
 
 #[test]
@@ -66,6 +68,7 @@ fn the_systemd_units_verify() {
     for unit in [
         "nori-supervisor.service",
         "nori-bus-driver.service",
+        "nori-fleet-agent.service",
         "nori.target",
     ] {
         let out = Command::new("systemd-analyze")

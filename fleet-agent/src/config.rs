@@ -1,0 +1,191 @@
+//! The agent's configuration. Kebab-case TOML; unknown keys and impossible values are refused
+//! with the file and key named.
+
+use crate::gate::GateConfig;
+use crate::keys::check_robot_id;
+use crate::schedule::MAX_PLAN_STEPS;
+use serde::Deserialize;
+use std::path::{Path, PathBuf};
+pub use telemetry::config::ConfigError;
+use telemetry::config::{invalid, parse, read};
+
+/// The embedded default (also `deploy/config/fleet-agent.toml`).
+pub const DEFAULT_CONFIG_TOML: &str = include_str!("../../deploy/config/fleet-agent.toml");
+
+/// How to reach the fleet.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct ZenohConfig {
+    /// `peer` or `client`.
+    pub mode: String,
+    /// Endpoints to connect to.
+    pub connect: Vec<String>,
+    /// Endpoints to listen on.
+    pub listen: Vec<String>,
+    /// A zenoh JSON5 file applied first (TLS, access control).
+    pub config_file: Option<PathBuf>,
+}
+
+/// What goes out, how often.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct TelemetryConfig {
+    /// State messages per second.
+    pub state_hz: f64,
+    /// Observations per second.
+    pub observation_hz: f64,
+    /// Layout re-sent every, s.
+    pub layout_every_s: f64,
+}
+
+/// How actions are gated and scheduled.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct ActionsConfig {
+    /// Stale beyond, ms.
+    pub max_age_ms: u64,
+    /// Last target held at most, ms.
+    pub horizon_ms: u64,
+    /// Steps per chunk at most.
+    pub max_steps: usize,
+    /// Last step at most this long after the observation, ms.
+    pub max_span_ms: u64,
+    /// Weight of the newer chunk where chunks overlap.
+    pub blend_new: f32,
+    /// Goals per second to the driver.
+    pub forward_hz: f64,
+}
+
+/// The agent's configuration.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct AgentConfig {
+    /// This robot's fleet name.
+    pub robot_id: String,
+    /// Fleet link.
+    pub zenoh: ZenohConfig,
+    /// Outgoing rates.
+    pub telemetry: TelemetryConfig,
+    /// Incoming actions.
+    pub actions: ActionsConfig,
+}
+
+impl AgentConfig {
+    /// The embedded default.
+    pub fn embedded() -> Result<Self, ConfigError> {
+        Self::parse(DEFAULT_CONFIG_TOML, "<embedded fleet-agent.toml>")
+    }
+
+    /// Loads and validates a file.
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        Self::parse(&read(path)?, &path.display().to_string())
+    }
+
+    /// Parses and validates text; `origin` names it in errors.
+    pub fn parse(text: &str, origin: &str) -> Result<Self, ConfigError> {
+        let c: AgentConfig = parse(text, origin)?;
+        let bad = |key: &str, reason: String| Err(invalid(origin, key, reason));
+        if let Err(e) = check_robot_id(&c.robot_id) {
+            return bad("robot-id", e.to_string());
+        }
+        if !matches!(c.zenoh.mode.as_str(), "peer" | "client") {
+            return bad(
+                "zenoh.mode",
+                format!("{:?}: use \"peer\" or \"client\"", c.zenoh.mode),
+            );
+        }
+        for (key, hz) in [
+            ("telemetry.state-hz", c.telemetry.state_hz),
+            ("telemetry.observation-hz", c.telemetry.observation_hz),
+            ("actions.forward-hz", c.actions.forward_hz),
+        ] {
+            if !(hz > 0.0 && hz <= 1000.0) {
+                return bad(key, format!("{hz} is outside (0, 1000] Hz"));
+            }
+        }
+        if c.telemetry.layout_every_s.is_nan() || c.telemetry.layout_every_s < 0.1 {
+            return bad("telemetry.layout-every-s", "must be ≥ 0.1 s".into());
+        }
+        let a = &c.actions;
+        if !(1..=10_000).contains(&a.max_age_ms) {
+            return bad(
+                "actions.max-age-ms",
+                format!("{} is outside 1..=10000", a.max_age_ms),
+            );
+        }
+        if a.horizon_ms > 1000 {
+            return bad(
+                "actions.horizon-ms",
+                format!(
+                    "{} ms: holding a target longer than 1 s after its time is not a plan",
+                    a.horizon_ms
+                ),
+            );
+        }
+        if !(1..=MAX_PLAN_STEPS).contains(&a.max_steps) {
+            return bad(
+                "actions.max-steps",
+                format!("{} is outside 1..={MAX_PLAN_STEPS}", a.max_steps),
+            );
+        }
+        if !(1..=60_000).contains(&a.max_span_ms) {
+            return bad(
+                "actions.max-span-ms",
+                format!("{} is outside 1..=60000", a.max_span_ms),
+            );
+        }
+        if !(a.blend_new > 0.0 && a.blend_new <= 1.0) {
+            return bad(
+                "actions.blend-new",
+                format!("{} is outside (0, 1]", a.blend_new),
+            );
+        }
+        Ok(c)
+    }
+
+    /// The gate's limits.
+    pub fn gate(&self) -> GateConfig {
+        GateConfig {
+            max_age_ns: self.actions.max_age_ms * 1_000_000,
+            max_steps: self.actions.max_steps,
+            max_span_ns: self.actions.max_span_ms * 1_000_000,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_embedded_default_loads() {
+        let c = AgentConfig::embedded().unwrap();
+        assert_eq!(c.zenoh.mode, "peer");
+        assert_eq!(c.gate().max_age_ns, 250_000_000);
+    }
+
+    #[test]
+    fn bad_values_name_their_key() {
+        for (from, to, key) in [
+            ("robot-id = \"sim-0001\"", "robot-id = \"a/b\"", "robot-id"),
+            ("mode = \"peer\"", "mode = \"router\"", "zenoh.mode"),
+            ("state-hz = 10.0", "state-hz = nan", "telemetry.state-hz"),
+            ("max-age-ms = 250", "max-age-ms = 0", "actions.max-age-ms"),
+            (
+                "horizon-ms = 100",
+                "horizon-ms = 5000",
+                "actions.horizon-ms",
+            ),
+            ("max-steps = 128", "max-steps = 100000", "actions.max-steps"),
+            ("blend-new = 0.7", "blend-new = 0.0", "actions.blend-new"),
+            ("blend-new = 0.7", "blend-now = 0.7", "blend-now"),
+        ] {
+            let text = DEFAULT_CONFIG_TOML.replace(from, to);
+            assert_ne!(text, DEFAULT_CONFIG_TOML);
+            let e = AgentConfig::parse(&text, "agent.toml")
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(key) && e.contains("agent.toml"), "{e}");
+        }
+    }
+}

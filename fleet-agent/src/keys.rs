@@ -1,0 +1,68 @@
+//! zenoh key expressions: everything a robot says or hears lives under `nori/<robot-id>/`.
+//!
+//! | key | direction | what |
+//! |---|---|---|
+//! | `nori/<id>/state` | robot → fleet | [`crate::schema::StateMsg`], rate-limited |
+//! | `nori/<id>/layout` | robot → fleet | [`crate::schema::LayoutMsg`], on change and every few seconds |
+//! | `nori/<id>/events` | robot → fleet | [`crate::schema::EventMsg`], every supervisor event |
+//! | `nori/<id>/observation` | robot → inference | [`crate::schema::ObservationMsg`] |
+//! | `nori/<id>/actions` | inference → robot | [`crate::schema::ActionChunk`] |
+//! | `nori/<id>/alive` | liveliness token | present while the agent runs |
+//! | `nori/<id>/status` | queryable | JSON: versions, config, health, counters |
+
+use thiserror::Error;
+
+/// The root of every key.
+pub const ROOT: &str = "nori";
+
+/// A robot id that cannot be part of a key.
+#[derive(Debug, Error, PartialEq)]
+#[error("robot id {0:?}: use 1-64 of a-z A-Z 0-9 - _ (it becomes a zenoh key chunk)")]
+pub struct BadRobotId(pub String);
+
+/// Checks a robot id: one key chunk, no wildcards or separators.
+pub fn check_robot_id(id: &str) -> Result<(), BadRobotId> {
+    let ok = !id.is_empty()
+        && id.len() <= 64
+        && id
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_');
+    if ok {
+        Ok(())
+    } else {
+        Err(BadRobotId(id.into()))
+    }
+}
+
+/// `nori/<id>/<leaf>`.
+pub fn robot_key(id: &str, leaf: &str) -> String {
+    format!("{ROOT}/{id}/{leaf}")
+}
+
+/// `nori/*/<leaf>`: the same leaf of every robot.
+pub fn all_robots(leaf: &str) -> String {
+    format!("{ROOT}/*/{leaf}")
+}
+
+/// The robot id in `nori/<id>/...`.
+pub fn robot_of(key: &str) -> Option<&str> {
+    let mut parts = key.split('/');
+    (parts.next()? == ROOT).then_some(())?;
+    parts.next().filter(|id| check_robot_id(id).is_ok())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn robot_ids_are_single_safe_chunks() {
+        assert!(check_robot_id("a3-0001").is_ok());
+        for bad in ["", "a/b", "*", "a**", "r$1", "robot one", &"x".repeat(65)] {
+            assert_eq!(check_robot_id(bad), Err(BadRobotId(bad.into())));
+        }
+        assert_eq!(robot_key("a3-0001", "state"), "nori/a3-0001/state");
+        assert_eq!(robot_of("nori/a3-0001/actions"), Some("a3-0001"));
+        assert_eq!(robot_of("other/a3-0001/actions"), None);
+    }
+}

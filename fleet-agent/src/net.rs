@@ -1,0 +1,47 @@
+//! Opening a zenoh session from the stack's configuration. zenoh is re-exported from this
+//! crate so that the rest of the workspace uses the one version pinned here.
+
+use crate::config::ZenohConfig;
+use thiserror::Error;
+
+/// A session that could not be opened.
+#[derive(Debug, Error)]
+pub enum NetError {
+    /// The JSON5 file or a key could not be applied.
+    #[error("zenoh configuration: {0}")]
+    Config(String),
+    /// zenoh refused to open (endpoint in use, bad certificate ...).
+    #[error("opening the zenoh session: {0}")]
+    Open(String),
+}
+
+/// The zenoh configuration for `z`: its JSON5 file first, then mode and endpoints, with
+/// multicast scouting off (robots find the fleet through configured endpoints, never by
+/// broadcasting on a home network).
+pub fn zenoh_config(z: &ZenohConfig) -> Result<zenoh::Config, NetError> {
+    let mut config = match &z.config_file {
+        Some(path) => zenoh::Config::from_file(path)
+            .map_err(|e| NetError::Config(format!("{}: {e}", path.display())))?,
+        None => zenoh::Config::default(),
+    };
+    let json = |v: &Vec<String>| serde_json::to_string(v).unwrap_or_else(|_| "[]".into());
+    for (key, value) in [
+        ("mode", format!("{:?}", z.mode)),
+        ("connect/endpoints", json(&z.connect)),
+        ("listen/endpoints", json(&z.listen)),
+        ("scouting/multicast/enabled", "false".into()),
+    ] {
+        config
+            .insert_json5(key, &value)
+            .map_err(|e| NetError::Config(format!("{key} = {value}: {e}")))?;
+    }
+    Ok(config)
+}
+
+/// Opens a session (blocking; zenoh runs its own runtime).
+pub fn open(z: &ZenohConfig) -> Result<zenoh::Session, NetError> {
+    use zenoh::Wait;
+    zenoh::open(zenoh_config(z)?)
+        .wait()
+        .map_err(|e| NetError::Open(e.to_string()))
+}

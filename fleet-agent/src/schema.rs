@@ -1,0 +1,223 @@
+//! What crosses zenoh, encoded with postcard. Every message starts with its schema version
+//! (a varint), so a receiver refuses a message of another version by name instead of
+//! misreading it. The layouts are documented for non-Rust peers in `docs/fleet-schema.md`.
+//!
+//! Times are the robot's CLOCK_MONOTONIC in ns: an action names the observation it was
+//! computed from by that observation's own timestamp, and its steps are offsets from it, so the
+//! robot judges age with its own clock and no clock synchronisation is needed.
+
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+/// The schema version this build speaks.
+pub const SCHEMA_VERSION: u16 = 1;
+
+/// Joint telemetry for dashboards, rate-limited (`nori/<robot>/state`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StateMsg {
+    /// [`SCHEMA_VERSION`].
+    pub version: u16,
+    /// The driver's cycle number of this sample.
+    pub seq: u64,
+    /// Robot monotonic time of the sample, ns.
+    pub timestamp_ns: u64,
+    /// Wall-clock time when the agent sent it, ms since the Unix epoch (for plots across robots).
+    pub wall_ms: u64,
+    /// The driver is in its safe state (no supervisor).
+    pub safe_state: bool,
+    /// The driver's deadline misses so far.
+    pub deadline_misses: u64,
+    /// Per joint, in the layout's order.
+    pub joints: Vec<JointMsg>,
+}
+
+/// One joint of a [`StateMsg`].
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct JointMsg {
+    /// rad (rad/s for wheels).
+    pub position: f32,
+    /// rad/s.
+    pub velocity: f32,
+    /// °C.
+    pub temperature_c: f32,
+    /// A.
+    pub current_a: f32,
+    /// Goal sent to the servo, rad.
+    pub goal: f32,
+    /// The servo answered in this cycle (otherwise the other fields are zero).
+    pub valid: bool,
+    /// Torque is on.
+    pub torque: bool,
+    /// Output lost / bus disabled flags of the state plane.
+    pub flags: u8,
+}
+
+/// The joint layout (`nori/<robot>/layout`, also in the status reply): names and calibrated
+/// ranges, in the order of every joint vector.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LayoutMsg {
+    /// [`SCHEMA_VERSION`].
+    pub version: u16,
+    /// Per joint.
+    pub joints: Vec<JointInfoMsg>,
+}
+
+/// One joint of a [`LayoutMsg`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct JointInfoMsg {
+    /// Name (`left_elbow`).
+    pub name: String,
+    /// Calibrated range, rad.
+    pub min: f32,
+    /// Calibrated range, rad.
+    pub max: f32,
+}
+
+/// A supervisor event (`nori/<robot>/events`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EventMsg {
+    /// [`SCHEMA_VERSION`].
+    pub version: u16,
+    /// The supervisor's event number.
+    pub seq: u64,
+    /// Robot monotonic time, ns.
+    pub timestamp_ns: u64,
+    /// Wall-clock time when the agent sent it, ms since the Unix epoch.
+    pub wall_ms: u64,
+    /// Kind (`ThermalTrip`, `Stall`, ...).
+    pub kind: String,
+    /// Joint name, empty when the event concerns no joint.
+    pub joint: String,
+    /// Bus index.
+    pub bus: u8,
+    /// Level (thermal warnings 1..3).
+    pub level: u8,
+    /// The figure the event is about (°C, s, A ...).
+    pub value: f32,
+}
+
+/// What a policy sees (`nori/<robot>/observation`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ObservationMsg {
+    /// [`SCHEMA_VERSION`].
+    pub version: u16,
+    /// The driver's cycle number.
+    pub seq: u64,
+    /// Robot monotonic time of the sample, ns: an action computed from this observation
+    /// carries it back as `observation_ns`.
+    pub timestamp_ns: u64,
+    /// Joint positions in the layout's order, rad (NaN for a servo missing in that cycle).
+    pub position: Vec<f32>,
+    /// Joint velocities, rad/s.
+    pub velocity: Vec<f32>,
+}
+
+/// An action chunk from a policy (`nori/<robot>/actions`): `steps` targets for every joint of
+/// the layout, the k-th to be reached at `observation_ns + step_offsets_ns[k]`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ActionChunk {
+    /// [`SCHEMA_VERSION`].
+    pub version: u16,
+    /// Rises with every chunk of one policy session.
+    pub seq: u64,
+    /// `timestamp_ns` of the observation the chunk was computed from (robot clock).
+    pub observation_ns: u64,
+    /// Per step, ns after `observation_ns`, strictly increasing.
+    pub step_offsets_ns: Vec<u64>,
+    /// Joints per step (must be the layout's joint count).
+    pub joint_count: u16,
+    /// Bit j set: joint j is commanded; the others keep their present goal.
+    pub joint_mask: u32,
+    /// Row-major, `step_offsets_ns.len() × joint_count`, rad.
+    pub targets: Vec<f32>,
+}
+
+/// A message that cannot be read.
+#[derive(Debug, Error, Clone, PartialEq)]
+pub enum DecodeError {
+    /// Not postcard of the expected layout.
+    #[error("malformed: {0}")]
+    Malformed(String),
+    /// Another schema version.
+    #[error("schema version {got}, this robot speaks {SCHEMA_VERSION}")]
+    Version {
+        /// The version the message carries.
+        got: u16,
+    },
+}
+
+/// Encodes a message.
+pub fn encode<T: Serialize>(msg: &T) -> Vec<u8> {
+    // postcard serialises these types into a Vec without failure modes of its own (no
+    // unsupported serde features); an error would be a bug in the types above.
+    postcard::to_allocvec(msg).unwrap_or_default()
+}
+
+/// Decodes a message whose first field is the schema version; trailing bytes are refused.
+pub fn decode<T: for<'de> Deserialize<'de>>(bytes: &[u8]) -> Result<T, DecodeError> {
+    let (version, _) = postcard::take_from_bytes::<u16>(bytes)
+        .map_err(|e| DecodeError::Malformed(format!("no version: {e}")))?;
+    if version != SCHEMA_VERSION {
+        return Err(DecodeError::Version { got: version });
+    }
+    let (msg, rest) =
+        postcard::take_from_bytes::<T>(bytes).map_err(|e| DecodeError::Malformed(e.to_string()))?;
+    if !rest.is_empty() {
+        return Err(DecodeError::Malformed(format!(
+            "{} bytes after the message",
+            rest.len()
+        )));
+    }
+    Ok(msg)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn chunk() -> ActionChunk {
+        ActionChunk {
+            version: SCHEMA_VERSION,
+            seq: 7,
+            observation_ns: 1_000_000_000,
+            step_offsets_ns: vec![20_000_000, 40_000_000],
+            joint_count: 2,
+            joint_mask: 0b11,
+            targets: vec![0.1, -0.2, 0.3, -0.4],
+        }
+    }
+
+    #[test]
+    fn messages_round_trip() {
+        let c = chunk();
+        assert_eq!(decode::<ActionChunk>(&encode(&c)), Ok(c));
+    }
+
+    #[test]
+    fn another_version_is_refused_by_name() {
+        let mut c = chunk();
+        c.version = 2;
+        assert_eq!(
+            decode::<ActionChunk>(&encode(&c)),
+            Err(DecodeError::Version { got: 2 })
+        );
+    }
+
+    #[test]
+    fn truncated_padded_and_garbage_bytes_are_malformed() {
+        let bytes = encode(&chunk());
+        for cut in 0..bytes.len() {
+            assert!(matches!(
+                decode::<ActionChunk>(&bytes[..cut]),
+                Err(DecodeError::Malformed(_))
+            ));
+        }
+        let mut padded = bytes.clone();
+        padded.push(0);
+        assert!(matches!(
+            decode::<ActionChunk>(&padded),
+            Err(DecodeError::Malformed(_))
+        ));
+        assert!(decode::<ActionChunk>(b"\x01{\"seq\": 1}").is_err());
+    }
+}

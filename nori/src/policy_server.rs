@@ -1,0 +1,156 @@
+//! `nori policy-server`: the reference off-board inference server. It serves every robot that
+//! publishes observations on `nori/*/observation`, answering each with an action chunk from a
+//! scripted policy (`fleet_agent::policy::WavePolicy`) at most every `--chunk-every-ms`. A Python
+//! VLA/ACT server speaks the same schema (docs/fleet-schema.md).
+
+use anyhow::{anyhow, Context, Result};
+use clap::Args;
+use fleet_agent::config::ZenohConfig;
+use fleet_agent::keys::{all_robots, robot_key, robot_of};
+use fleet_agent::policy::WavePolicy;
+use fleet_agent::schema::{decode, encode, LayoutMsg, ObservationMsg};
+use fleet_agent::zenoh::qos::{CongestionControl, Priority};
+use fleet_agent::zenoh::Wait;
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant};
+
+/// Options of `nori policy-server`.
+#[derive(Args, Debug)]
+pub struct PolicyServerArgs {
+    /// zenoh endpoints to listen on.
+    #[arg(long, default_value = "tcp/127.0.0.1:7447")]
+    pub listen: Vec<String>,
+    /// zenoh endpoints to connect to (a router, in a real fleet).
+    #[arg(long)]
+    pub connect: Vec<String>,
+    /// A zenoh JSON5 configuration applied first (TLS identity of the inference server).
+    #[arg(long)]
+    pub zenoh_config: Option<PathBuf>,
+    /// Joints the wave moves (comma-separated).
+    #[arg(long, value_delimiter = ',', default_value = "left_elbow,right_elbow")]
+    pub joints: Vec<String>,
+    /// Centre of the wave, rad.
+    #[arg(long, default_value_t = -0.8, allow_hyphen_values = true)]
+    pub centre: f32,
+    /// Amplitude, rad.
+    #[arg(long, default_value_t = 0.4)]
+    pub amplitude: f32,
+    /// Period, s.
+    #[arg(long, default_value_t = 4.0)]
+    pub period_s: f32,
+    /// Steps per chunk.
+    #[arg(long, default_value_t = 25)]
+    pub steps: usize,
+    /// Time between steps, ms.
+    #[arg(long, default_value_t = 20)]
+    pub step_ms: u64,
+    /// A robot gets a new chunk at most this often, ms.
+    #[arg(long, default_value_t = 100)]
+    pub chunk_every_ms: u64,
+    /// Stop after this many seconds and print what was served as JSON.
+    #[arg(long)]
+    pub run_for: Option<f64>,
+}
+
+#[derive(Default)]
+struct Robot {
+    layout: Option<LayoutMsg>,
+    last_chunk: Option<Instant>,
+    seq: u64,
+    observations: u64,
+}
+
+/// Serves until Ctrl-C (or `--run-for`).
+pub fn run(args: &PolicyServerArgs) -> Result<()> {
+    telemetry::process::init_logging();
+    let stop = telemetry::process::stop_flag()?;
+    let policy = WavePolicy {
+        joints: args.joints.clone(),
+        centre: args.centre,
+        amplitude: args.amplitude,
+        period_s: args.period_s,
+        steps: args.steps,
+        step_ms: args.step_ms,
+    };
+    let session = fleet_agent::net::open(&ZenohConfig {
+        mode: "peer".into(),
+        connect: args.connect.clone(),
+        listen: args.listen.clone(),
+        config_file: args.zenoh_config.clone(),
+    })
+    .context("opening the policy server's zenoh session")?;
+    let z = |e: fleet_agent::zenoh::Error| anyhow!("{e}");
+    let observations = session
+        .declare_subscriber(all_robots("observation"))
+        .wait()
+        .map_err(z)?;
+    let layouts = session
+        .declare_subscriber(all_robots("layout"))
+        .wait()
+        .map_err(z)?;
+    tracing::info!(listen = ?args.listen, joints = ?args.joints, "serving a scripted wave to every robot on {}", all_robots("observation"));
+    let mut robots: BTreeMap<String, Robot> = BTreeMap::new();
+    let every = Duration::from_millis(args.chunk_every_ms);
+    let started = Instant::now();
+    while !stop.load(Ordering::Relaxed)
+        && args
+            .run_for
+            .is_none_or(|s| started.elapsed().as_secs_f64() < s)
+    {
+        let mut idle = true;
+        while let Ok(Some(sample)) = layouts.try_recv() {
+            idle = false;
+            let Some(id) = robot_of(sample.key_expr().as_str()) else {
+                continue;
+            };
+            match decode::<LayoutMsg>(&sample.payload().to_bytes()) {
+                Ok(l) => robots.entry(id.into()).or_default().layout = Some(l),
+                Err(e) => tracing::warn!(robot = id, "unreadable layout: {e}"),
+            }
+        }
+        while let Ok(Some(sample)) = observations.try_recv() {
+            idle = false;
+            let Some(id) = robot_of(sample.key_expr().as_str()) else {
+                continue;
+            };
+            let robot = robots.entry(id.into()).or_default();
+            robot.observations += 1;
+            let (Some(layout), Ok(obs)) = (
+                &robot.layout,
+                decode::<ObservationMsg>(&sample.payload().to_bytes()),
+            ) else {
+                continue;
+            };
+            if robot.last_chunk.is_some_and(|t| t.elapsed() < every) {
+                continue;
+            }
+            if let Some(chunk) = policy.chunk(&obs, layout, robot.seq + 1) {
+                session
+                    .put(robot_key(id, "actions"), encode(&chunk))
+                    .congestion_control(CongestionControl::Drop)
+                    .priority(Priority::InteractiveHigh)
+                    .express(true)
+                    .wait()
+                    .map_err(z)?;
+                robot.seq += 1;
+                robot.last_chunk = Some(Instant::now());
+            }
+        }
+        if idle {
+            std::thread::sleep(Duration::from_millis(1));
+        }
+    }
+    let served: serde_json::Map<String, serde_json::Value> = robots
+        .iter()
+        .map(|(id, r)| {
+            (
+                id.clone(),
+                serde_json::json!({"observations": r.observations, "chunks": r.seq}),
+            )
+        })
+        .collect();
+    println!("{}", serde_json::json!({ "robots": served }));
+    Ok(())
+}

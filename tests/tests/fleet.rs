@@ -1,0 +1,325 @@
+//! The fleet link on loopback: simulated robots (simulator, supervisor, driver, fleet agent as
+//! separate processes) and the reference policy server, over zenoh.
+//!
+//! - Actions from the policy server reach the simulated servos of several robots at once, and a
+//!   robot whose policy goes away holds.
+//! - Malformed, other-version, non-finite, out-of-range, stale, future and replayed chunks are
+//!   refused with their reason (counted in the agent's status) and move nothing.
+//! - A killed agent takes its queued plan with it: nothing of it runs after the restart, and
+//!   telemetry resumes.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use fleet_agent::keys::robot_key;
+use fleet_agent::policy::WavePolicy;
+use fleet_agent::schema::{decode, encode, ActionChunk, StateMsg, SCHEMA_VERSION};
+use fleet_agent::zenoh::{self, Wait};
+use nori_tests::{binary, check_left_arm_report, free_endpoint, scratch, wait_for, ArmStack, Proc};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+use telemetry::clock::monotonic_ns;
+use telemetry::frames::{JointLayout, JointState};
+use telemetry::plane::{self, newest, next, Plane};
+
+const ELBOW: usize = 3;
+
+/// These tests run whole robots; one at a time keeps the two-core machine's timing honest.
+fn serial() -> std::sync::MutexGuard<'static, ()> {
+    static TURN: Mutex<()> = Mutex::new(());
+    TURN.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+fn session(listen: &str) -> zenoh::Session {
+    fleet_agent::net::open(&fleet_agent::config::ZenohConfig {
+        mode: "peer".into(),
+        connect: vec![],
+        listen: vec![listen.into()],
+        config_file: None,
+    })
+    .unwrap()
+}
+
+/// The agent's status, asked over zenoh.
+fn status(session: &zenoh::Session, robot: &str) -> serde_json::Value {
+    wait_for(Duration::from_secs(10), "the agent's status", || {
+        let replies = session
+            .get(robot_key(robot, "status"))
+            .timeout(Duration::from_secs(2))
+            .wait()
+            .ok()?;
+        let reply = replies.recv().ok()?;
+        let sample = reply.result().ok()?;
+        serde_json::from_slice(&sample.payload().to_bytes()).ok()
+    })
+}
+
+/// Waits until the robot's telemetry arrives over zenoh: the agent is on the fleet.
+fn wait_online(session: &zenoh::Session, robot: &str) {
+    let sub = session
+        .declare_subscriber(robot_key(robot, "state"))
+        .wait()
+        .unwrap();
+    wait_for(Duration::from_secs(20), &format!("{robot} online"), || {
+        let s = sub.try_recv().ok().flatten()?;
+        decode::<StateMsg>(&s.payload().to_bytes()).ok()
+    });
+}
+
+fn driving(s: &JointState) -> bool {
+    s.flags & telemetry::frames::STATE_FLAG_SAFE_STATE == 0
+        && s.joints().iter().all(|j| j.is_valid())
+}
+
+#[test]
+fn policy_actions_reach_the_servos_of_several_robots_and_a_robot_without_policy_holds() {
+    let _turn = serial();
+    let endpoint = free_endpoint();
+    let dir = scratch("policy");
+    let wave = WavePolicy {
+        joints: vec!["left_elbow".into()],
+        centre: -0.9,
+        amplitude: 0.35,
+        period_s: 2.0,
+        steps: 25,
+        step_ms: 20,
+    };
+    let mut server = Proc::spawn(
+        "policy-server",
+        &binary("nori"),
+        &[
+            "policy-server",
+            "--listen",
+            &endpoint,
+            "--joints",
+            "left_elbow",
+            "--centre=-0.9",
+            "--amplitude",
+            "0.35",
+            "--period-s",
+            "2",
+            "--run-for",
+            "120",
+        ],
+        &dir.join("policy-server.log"),
+    );
+    let mut robots: Vec<(String, ArmStack)> = ["a", "b"]
+        .iter()
+        .map(|tag| {
+            let mut stack = ArmStack::start(&format!("fleet-{tag}"), &[]);
+            let id = format!("test-robot-{tag}");
+            stack.restart_agent(&id, &endpoint);
+            (id, stack)
+        })
+        .collect();
+    for (id, stack) in &robots {
+        let node = Plane::open(&stack.domain, "test").unwrap();
+        let states = node.subscriber(&plane::JOINT_STATE).unwrap();
+        // The elbow's goal on the wire follows the wave (robot clock, the driver's cycle and the
+        // agent's 10 ms forwarding behind it), through two periods.
+        let mut seen = (f32::MAX, f32::MIN);
+        let mut worst = 0f32;
+        let mut samples = 0;
+        let start = Instant::now();
+        while start.elapsed() < Duration::from_secs(12) && (samples < 400 || seen.1 - seen.0 < 0.6)
+        {
+            for s in std::iter::from_fn(|| next(&states)) {
+                let j = s.joints[ELBOW];
+                if !driving(&s) || (j.goal_rad - wave.at(s.timestamp_ns)).abs() > 0.3 {
+                    continue; // before the policy took over
+                }
+                samples += 1;
+                seen = (seen.0.min(j.goal_rad), seen.1.max(j.goal_rad));
+                worst = worst.max((j.goal_rad - wave.at(s.timestamp_ns)).abs());
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        assert!(samples >= 400, "{id}: {samples} cycles under the policy");
+        assert!(
+            seen.1 - seen.0 > 0.6,
+            "{id}: the elbow's goal spanned only {seen:?}"
+        );
+        assert!(worst < 0.08, "{id}: goal {worst} rad off the wave");
+        eprintln!("{id}: {samples} cycles followed the policy's wave, worst {worst:.3} rad off, goals {seen:?}");
+    }
+    // The policy goes away: the plan in force runs out (its last chunk's steps, 0.5 s, then
+    // the 100 ms horizon), the goals stop changing, and the robot holds.
+    let (_, served) = server.terminate(Duration::from_secs(5));
+    eprintln!("policy server: {}", served.trim());
+    let served: serde_json::Value = serde_json::from_str(served.trim()).unwrap();
+    for (id, _) in &robots {
+        assert!(
+            served["robots"][id]["chunks"].as_u64().unwrap() > 20,
+            "{served}"
+        );
+    }
+    std::thread::sleep(Duration::from_millis(1000));
+    for (id, stack) in &robots {
+        let node = Plane::open(&stack.domain, "test").unwrap();
+        let states = node.subscriber(&plane::JOINT_STATE).unwrap();
+        let held = wait_for(Duration::from_secs(5), "a frame", || newest(&states));
+        std::thread::sleep(Duration::from_millis(500));
+        let later = wait_for(Duration::from_secs(5), "a frame", || newest(&states));
+        assert_eq!(
+            held.joints[ELBOW].goal_rad, later.joints[ELBOW].goal_rad,
+            "{id}: goals kept changing without a policy"
+        );
+    }
+    for (_, stack) in robots.drain(..) {
+        let report = stack.stop();
+        check_left_arm_report(&report, 60.0);
+    }
+}
+
+/// A chunk moving the elbow to `target` from the present, for the layout's joints.
+fn elbow_chunk(
+    layout: &JointLayout,
+    seq: u64,
+    observation_ns: u64,
+    target: f32,
+    steps: u64,
+) -> ActionChunk {
+    let n = layout.joint_count as usize;
+    let mut targets = vec![0.0; n * steps as usize];
+    for k in 0..steps as usize {
+        targets[k * n + ELBOW] = target;
+    }
+    ActionChunk {
+        version: SCHEMA_VERSION,
+        seq,
+        observation_ns,
+        step_offsets_ns: (1..=steps).map(|k| k * 20_000_000).collect(),
+        joint_count: n as u16,
+        joint_mask: 1 << ELBOW,
+        targets,
+    }
+}
+
+#[test]
+fn bad_actions_are_refused_with_their_reason_and_a_killed_agent_leaves_nothing_queued() {
+    let _turn = serial();
+    let endpoint = free_endpoint();
+    let fleet = session(&endpoint);
+    let id = "test-robot-gate";
+    let mut stack = ArmStack::start("fleet-gate", &[]);
+    stack.restart_agent(id, &endpoint);
+    let node = Plane::open(&stack.domain, "test").unwrap();
+    let states = node.subscriber(&plane::JOINT_STATE).unwrap();
+    let layouts = node.subscriber(&plane::LAYOUT).unwrap();
+    let layout = wait_for(Duration::from_secs(20), "the layout", || newest(&layouts));
+    wait_for(Duration::from_secs(20), "driving", || {
+        newest(&states).filter(driving)
+    });
+    wait_online(&fleet, id);
+    let [lo, hi] = layout.joints[ELBOW].range_rad;
+    let start_goal = newest(&states).unwrap().joints[ELBOW].goal_rad;
+    let actions = robot_key(id, "actions");
+    let put = |bytes: Vec<u8>| fleet.put(&actions, bytes).wait().unwrap();
+
+    // The rogue's gallery. Robot time: the same CLOCK_MONOTONIC on this machine.
+    let now = monotonic_ns();
+    put(vec![0x01, 0xff, 0xff, 0xff]);
+    let mut other_version = elbow_chunk(&layout, 1, now, -1.0, 10);
+    other_version.version = 2;
+    put(encode(&other_version));
+    put(encode(&elbow_chunk(&layout, 2, now, hi + 0.5, 10)));
+    put(encode(&elbow_chunk(&layout, 3, now, f32::NAN, 10)));
+    let mut short = elbow_chunk(&layout, 4, now, -1.0, 10);
+    short.targets.pop();
+    put(encode(&short));
+    put(encode(&elbow_chunk(
+        &layout,
+        5,
+        now - 2_000_000_000,
+        -1.0,
+        10,
+    )));
+    put(encode(&elbow_chunk(
+        &layout,
+        6,
+        now + 5_000_000_000,
+        -1.0,
+        10,
+    )));
+    std::thread::sleep(Duration::from_millis(300));
+    let after_bad = newest(&states).unwrap().joints[ELBOW];
+    assert_eq!(
+        after_bad.goal_rad, start_goal,
+        "a refused chunk moved the elbow's goal"
+    );
+
+    // A good chunk, then the same bytes again (a replay).
+    let target = (lo + hi) / 2.0;
+    let good = encode(&elbow_chunk(&layout, 7, monotonic_ns(), target, 50));
+    put(good.clone());
+    std::thread::sleep(Duration::from_millis(50));
+    put(good);
+    wait_for(
+        Duration::from_secs(10),
+        "the elbow at the good chunk's target",
+        || newest(&states).filter(|s| (s.joints[ELBOW].position_rad - target).abs() < 0.05),
+    );
+    let st = status(&fleet, id);
+    let rejected = &st["counters"]["actions_rejected"];
+    for reason in [
+        "malformed",
+        "version",
+        "out_of_range",
+        "not_finite",
+        "shape",
+        "stale",
+        "future",
+        "replayed",
+    ] {
+        assert_eq!(rejected[reason].as_u64(), Some(1), "{reason}: {st}");
+    }
+    assert_eq!(st["counters"]["actions_accepted"].as_u64(), Some(1), "{st}");
+    eprintln!("agent status after the rogue's gallery: {st}");
+
+    // A long, slow plan; the agent is killed in the middle of it.
+    let far = lo + 0.1 * (hi - lo);
+    let mut plan = elbow_chunk(&layout, 8, monotonic_ns(), far, 100);
+    for k in 0..100usize {
+        let f = (k + 1) as f32 / 100.0;
+        plan.targets[k * layout.joint_count as usize + ELBOW] = target + f * (far - target);
+    }
+    put(encode(&plan));
+    std::thread::sleep(Duration::from_millis(600));
+    stack.agent.kill();
+    let killed_at = monotonic_ns();
+    std::thread::sleep(Duration::from_millis(300));
+    let held = newest(&states).unwrap().joints[ELBOW].goal_rad;
+    assert!(
+        (held - far).abs() > 0.1 && (held - target).abs() > 0.05,
+        "the plan should have been under way: goal {held}, from {target} to {far}"
+    );
+    stack.restart_agent(id, &endpoint);
+    wait_online(&fleet, id);
+    // The plan's end time has passed now (2 s after it started); had it been kept anywhere,
+    // the goal would have moved on. It holds.
+    std::thread::sleep(Duration::from_millis(1500));
+    let mut last_goal = None;
+    for s in
+        std::iter::from_fn(|| next(&states)).filter(|s| s.timestamp_ns > killed_at + 100_000_000)
+    {
+        let g = s.joints[ELBOW].goal_rad;
+        assert_eq!(
+            g, held,
+            "after the agent died the goal moved from {held} to {g}"
+        );
+        last_goal = Some(g);
+    }
+    assert!(last_goal.is_some(), "no state frames after the restart");
+    let st = status(&fleet, id);
+    assert_eq!(
+        st["counters"]["actions_accepted"].as_u64(),
+        Some(0),
+        "a fresh agent: {st}"
+    );
+    assert!(
+        st["counters"]["state_sent"].as_u64().unwrap() > 0,
+        "telemetry resumed: {st}"
+    );
+    drop((states, layouts, node));
+    let report = stack.stop();
+    check_left_arm_report(&report, 60.0);
+}
