@@ -38,6 +38,16 @@ pub fn zenoh_config(z: &ZenohConfig) -> Result<zenoh::Config, NetError> {
     Ok(config)
 }
 
+/// Opens a session configured wholly by a zenoh JSON5 file (a router, a client identity).
+pub fn open_file(path: &std::path::Path) -> Result<zenoh::Session, NetError> {
+    use zenoh::Wait;
+    let config = zenoh::Config::from_file(path)
+        .map_err(|e| NetError::Config(format!("{}: {e}", path.display())))?;
+    zenoh::open(config)
+        .wait()
+        .map_err(|e| NetError::Open(e.to_string()))
+}
+
 /// Opens a session (blocking; zenoh runs its own runtime).
 pub fn open(z: &ZenohConfig) -> Result<zenoh::Session, NetError> {
     use zenoh::Wait;

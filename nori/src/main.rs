@@ -7,6 +7,7 @@ mod bench;
 mod bench_plane;
 mod plane_tools;
 mod policy_server;
+mod router;
 mod scenario;
 mod sim_serve;
 mod stack;
@@ -37,6 +38,8 @@ enum Command {
     Reenable(plane_tools::ReenableArgs),
     /// The reference inference server: a scripted policy for every robot on the fleet.
     PolicyServer(policy_server::PolicyServerArgs),
+    /// A zenoh router for a site or a test fleet (TLS and access control from its JSON5 file).
+    Router(router::RouterArgs),
     /// Benchmarks (figures next to their baseline).
     #[command(subcommand)]
     Bench(bench::Bench),
@@ -60,6 +63,7 @@ fn main() -> Result<()> {
         Command::Goal(a) => plane_tools::goal(a),
         Command::Reenable(a) => plane_tools::reenable(a),
         Command::PolicyServer(a) => policy_server::run(a),
+        Command::Router(a) => router::run(a),
         Command::Bench(b) => bench::run(b),
     }
 }

@@ -19,14 +19,16 @@ use std::time::{Duration, Instant};
 /// Options of `nori policy-server`.
 #[derive(Args, Debug)]
 pub struct PolicyServerArgs {
-    /// zenoh endpoints to listen on.
-    #[arg(long, default_value = "tcp/127.0.0.1:7447")]
+    /// zenoh endpoints to listen on (default: tcp/127.0.0.1:7447, where robots' agents
+    /// connect, unless it connects somewhere itself).
+    #[arg(long)]
     pub listen: Vec<String>,
     /// zenoh endpoints to connect to (a router, in a real fleet).
     #[arg(long)]
     pub connect: Vec<String>,
-    /// A zenoh JSON5 configuration applied first (TLS identity of the inference server).
-    #[arg(long)]
+    /// A zenoh JSON5 configuration applied first (TLS identity of the inference server); it is
+    /// then a client of the router its file names.
+    #[arg(long, conflicts_with_all = ["listen", "connect"])]
     pub zenoh_config: Option<PathBuf>,
     /// Joints the wave moves (comma-separated).
     #[arg(long, value_delimiter = ',', default_value = "left_elbow,right_elbow")]
@@ -74,12 +76,19 @@ pub fn run(args: &PolicyServerArgs) -> Result<()> {
         steps: args.steps,
         step_ms: args.step_ms,
     };
-    let session = fleet_agent::net::open(&ZenohConfig {
-        mode: "peer".into(),
-        connect: args.connect.clone(),
-        listen: args.listen.clone(),
-        config_file: args.zenoh_config.clone(),
-    })
+    let session = match &args.zenoh_config {
+        Some(file) => fleet_agent::net::open_file(file),
+        None => fleet_agent::net::open(&ZenohConfig {
+            mode: "peer".into(),
+            listen: if args.listen.is_empty() && args.connect.is_empty() {
+                vec!["tcp/127.0.0.1:7447".into()]
+            } else {
+                args.listen.clone()
+            },
+            connect: args.connect.clone(),
+            config_file: None,
+        }),
+    }
     .context("opening the policy server's zenoh session")?;
     let z = |e: fleet_agent::zenoh::Error| anyhow!("{e}");
     let observations = session

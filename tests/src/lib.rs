@@ -29,7 +29,29 @@ pub fn binary(name: &str) -> PathBuf {
     static BUILT: OnceLock<()> = OnceLock::new();
     BUILT.get_or_init(|| {
         let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-        let status = Command::new(cargo)
+        let mut build = Command::new(cargo);
+        // Without the variables cargo sets for this test (CARGO_PKG_NAME, CARGO_MANIFEST_DIR,
+        // ...): some build scripts (ring's) declare them with rerun-if-env-changed, and seeing
+        // this crate's values would rebuild TLS and zenoh from scratch, then again for the
+        // README's command from a shell.
+        for (key, _) in std::env::vars_os() {
+            let key = key.to_string_lossy();
+            let set_for_this_crate = ["CARGO_PKG_", "CARGO_MANIFEST_", "CARGO_BIN_"]
+                .iter()
+                .any(|p| key.starts_with(p))
+                || [
+                    "CARGO_CRATE_NAME",
+                    "CARGO_PRIMARY_PACKAGE",
+                    "CARGO_TARGET_TMPDIR",
+                    "CARGO_RUSTC_CURRENT_DIR",
+                    "OUT_DIR",
+                ]
+                .contains(&key.as_ref());
+            if set_for_this_crate {
+                build.env_remove(key.as_ref());
+            }
+        }
+        let status = build
             // The README's build command exactly: the same feature set, so the two never
             // invalidate each other's artifacts.
             .args(["build", "--release", "--quiet", "--workspace", "--bins"])
@@ -311,19 +333,19 @@ impl ArmStack {
     /// (Re)starts the fleet agent as `robot_id`, connecting to zenoh `endpoint`; a running one
     /// is killed first.
     pub fn restart_agent(&mut self, robot_id: &str, endpoint: &str) {
+        self.restart_agent_with(&["--robot-id", robot_id, "--connect", endpoint]);
+    }
+
+    /// (Re)starts the fleet agent with `args` (after `--domain`).
+    pub fn restart_agent_with(&mut self, args: &[&str]) {
         self.agent.kill();
         self.starts += 1;
+        let mut all = vec!["--domain", &self.domain];
+        all.extend_from_slice(args);
         self.agent = Proc::spawn(
             "fleet-agent",
             &binary("fleet-agent"),
-            &[
-                "--domain",
-                &self.domain,
-                "--robot-id",
-                robot_id,
-                "--connect",
-                endpoint,
-            ],
+            &all,
             &self.dir.join(format!("agent-{}.log", self.starts)),
         );
     }

@@ -1,0 +1,145 @@
+#!/usr/bin/env bash
+# A development certificate authority for the fleet link, and everything signed by it:
+#
+#   make-dev-ca.sh OUT_DIR ENDPOINT ROBOT_ID...
+#
+#   OUT_DIR/ca.pem, ca-key.pem            the CA (keep the key off the robots)
+#   OUT_DIR/router.{pem,key}              the site router (CN router, SAN localhost + 127.0.0.1)
+#   OUT_DIR/<robot-id>.{pem,key}          one per robot (CN = robot id)
+#   OUT_DIR/inference.{pem,key}           the inference servers (CN inference)
+#   OUT_DIR/dashboard.{pem,key}           fleet dashboards (CN dashboard)
+#   OUT_DIR/router.json5                  router: TLS listener on ENDPOINT, mutual TLS, access control
+#   OUT_DIR/<identity>.json5              client side for each identity: its certificate, the CA
+#
+# ENDPOINT is a zenoh TLS locator, e.g. tls/127.0.0.1:7448 or tls/site-router.local:7447.
+# Access control on the router (default deny; deny rules win over allow rules):
+#   robot R      reads and writes nori/R/** only, and may not publish actions, even its own
+#   inference    reads nori/*/observation and nori/*/layout, publishes nori/*/actions
+#   dashboard    reads nori/*/{state,events,layout,alive,status}; publishes nothing
+# For production use a real CA and keep each robot's key on its robot only.
+set -euo pipefail
+if [ $# -lt 3 ]; then
+  echo "usage: $0 OUT_DIR ENDPOINT ROBOT_ID..." >&2
+  exit 2
+fi
+out=$(mkdir -p "$1" && cd "$1" && pwd)
+endpoint=$2
+shift 2
+robots=("$@")
+for r in "${robots[@]}"; do
+  [[ $r =~ ^[A-Za-z0-9_-]{1,64}$ ]] || { echo "robot id '$r': use 1-64 of A-Z a-z 0-9 - _" >&2; exit 2; }
+done
+command -v openssl >/dev/null || { echo "openssl is needed (apt-get install openssl)" >&2; exit 1; }
+
+days=825
+openssl req -x509 -newkey rsa:2048 -nodes -days "$days" -subj "/CN=nori dev CA" \
+  -keyout "$out/ca-key.pem" -out "$out/ca.pem" 2>/dev/null
+
+# sign NAME CN [SAN]: a key and a certificate signed by the CA.
+sign() {
+  local name=$1 cn=$2 san=${3:-}
+  openssl req -newkey rsa:2048 -nodes -subj "/CN=$cn" \
+    -keyout "$out/$name.key" -out "$out/$name.csr" 2>/dev/null
+  local ext="$out/$name.ext"
+  {
+    echo "basicConstraints=CA:FALSE"
+    echo "keyUsage=digitalSignature,keyEncipherment"
+    echo "extendedKeyUsage=serverAuth,clientAuth"
+    if [ -n "$san" ]; then echo "subjectAltName=$san"; fi
+  } >"$ext"
+  openssl x509 -req -in "$out/$name.csr" -CA "$out/ca.pem" -CAkey "$out/ca-key.pem" \
+    -CAcreateserial -days "$days" -extfile "$ext" -out "$out/$name.pem" 2>/dev/null
+  rm -f "$out/$name.csr" "$ext"
+}
+
+sign router router "DNS:localhost,IP:127.0.0.1"
+for id in "${robots[@]}" inference dashboard; do
+  sign "$id" "$id" "DNS:$id"
+done
+
+# Client side of one identity.
+for id in "${robots[@]}" inference dashboard; do
+  cat >"$out/$id.json5" <<JSON
+// zenoh client configuration of identity "$id" (made by make-dev-ca.sh).
+{
+  mode: "client",
+  connect: { endpoints: ["$endpoint"] },
+  scouting: { multicast: { enabled: false } },
+  transport: {
+    link: {
+      tls: {
+        root_ca_certificate: "$out/ca.pem",
+        connect_certificate: "$out/$id.pem",
+        connect_private_key: "$out/$id.key",
+        enable_mtls: true,
+      },
+    },
+  },
+}
+JSON
+done
+
+# Router: TLS only, client certificates required, access control by certificate name.
+all='"put", "delete", "declare_subscriber", "query", "declare_queryable", "reply", "liveliness_token", "declare_liveliness_subscriber", "liveliness_query"'
+{
+  cat <<JSON
+// zenoh router of the fleet (made by make-dev-ca.sh): mutual TLS on $endpoint, access control.
+{
+  mode: "router",
+  listen: { endpoints: ["$endpoint"] },
+  scouting: { multicast: { enabled: false } },
+  transport: {
+    link: {
+      tls: {
+        root_ca_certificate: "$out/ca.pem",
+        listen_certificate: "$out/router.pem",
+        listen_private_key: "$out/router.key",
+        enable_mtls: true,
+      },
+    },
+  },
+  access_control: {
+    enabled: true,
+    default_permission: "deny",
+    rules: [
+JSON
+  for r in "${robots[@]}"; do
+    cat <<JSON
+      { id: "own-$r", permission: "allow", flows: ["ingress", "egress"], messages: [$all], key_exprs: ["nori/$r/**"] },
+JSON
+  done
+  cat <<JSON
+      { id: "robots-see-interest", permission: "allow", flows: ["egress"], messages: ["declare_subscriber", "declare_liveliness_subscriber"], key_exprs: ["nori/**"] },
+      { id: "robots-publish-no-actions", permission: "deny", flows: ["ingress"], messages: ["put", "delete"], key_exprs: ["nori/*/actions"] },
+      { id: "inference-observes", permission: "allow", flows: ["ingress"], messages: ["declare_subscriber"], key_exprs: ["nori/*/observation", "nori/*/layout"] },
+      { id: "inference-hears", permission: "allow", flows: ["egress"], messages: ["put"], key_exprs: ["nori/*/observation", "nori/*/layout"] },
+      { id: "inference-acts", permission: "allow", flows: ["ingress"], messages: ["put"], key_exprs: ["nori/*/actions"] },
+      { id: "inference-acts-interest", permission: "allow", flows: ["egress"], messages: ["declare_subscriber"], key_exprs: ["nori/*/actions"] },
+      { id: "dashboard-asks", permission: "allow", flows: ["ingress"], messages: ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"], key_exprs: ["nori/*/state", "nori/*/events", "nori/*/layout", "nori/*/alive", "nori/*/status"] },
+      { id: "dashboard-hears", permission: "allow", flows: ["egress"], messages: ["put", "reply", "liveliness_token", "declare_queryable"], key_exprs: ["nori/*/state", "nori/*/events", "nori/*/layout", "nori/*/alive", "nori/*/status"] },
+      { id: "read-only", permission: "deny", flows: ["ingress"], messages: ["put", "delete", "declare_queryable", "liveliness_token"], key_exprs: ["nori/**"] },
+    ],
+    subjects: [
+JSON
+  for r in "${robots[@]}"; do
+    echo "      { id: \"$r\", cert_common_names: [\"$r\"] },"
+  done
+  cat <<JSON
+      { id: "inference", cert_common_names: ["inference"] },
+      { id: "dashboard", cert_common_names: ["dashboard"] },
+    ],
+    policies: [
+JSON
+  for r in "${robots[@]}"; do
+    echo "      { rules: [\"own-$r\", \"robots-see-interest\", \"robots-publish-no-actions\"], subjects: [\"$r\"] },"
+  done
+  cat <<JSON
+      { rules: ["inference-observes", "inference-hears", "inference-acts", "inference-acts-interest"], subjects: ["inference"] },
+      { rules: ["dashboard-asks", "dashboard-hears", "read-only"], subjects: ["dashboard"] },
+    ],
+  },
+}
+JSON
+} >"$out/router.json5"
+chmod 600 "$out"/*.key "$out/ca-key.pem"
+echo "made a development CA, router, ${#robots[@]} robot(s), inference and dashboard identities in $out"

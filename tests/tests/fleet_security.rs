@@ -1,0 +1,216 @@
+//! The fleet link with mutual TLS and access control, as `deploy/zenoh/make-dev-ca.sh` sets it
+//! up: a router (`nori router`), a robot's agent, the policy server with the inference identity,
+//! and intruders. Only the inference identity moves the robot; another robot's valid
+//! certificate, a dashboard's, no certificate or plain TCP do not.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use fleet_agent::keys::robot_key;
+use fleet_agent::schema::{decode, encode, ActionChunk, StateMsg, SCHEMA_VERSION};
+use fleet_agent::zenoh::{self, Wait};
+use nori_tests::{binary, check_left_arm_report, scratch, wait_for, ArmStack, Proc};
+use std::path::Path;
+use std::process::Command;
+use std::time::Duration;
+use telemetry::clock::monotonic_ns;
+use telemetry::frames::JointLayout;
+use telemetry::plane::{self, newest, Plane};
+
+const ELBOW: usize = 3;
+const ROBOT: &str = "robot-a";
+
+fn client(dir: &Path, identity: &str) -> zenoh::Session {
+    fleet_agent::net::open_file(&dir.join(format!("{identity}.json5"))).unwrap()
+}
+
+fn status(dashboard: &zenoh::Session) -> serde_json::Value {
+    wait_for(Duration::from_secs(10), "the agent's status", || {
+        let replies = dashboard
+            .get(robot_key(ROBOT, "status"))
+            .timeout(Duration::from_secs(2))
+            .wait()
+            .ok()?;
+        let sample = replies.recv().ok()?.into_result().ok()?;
+        serde_json::from_slice(&sample.payload().to_bytes()).ok()
+    })
+}
+
+fn accepted(dashboard: &zenoh::Session) -> (u64, u64) {
+    let st = status(dashboard);
+    let rejected = st["counters"]["actions_rejected"]
+        .as_object()
+        .unwrap()
+        .values()
+        .map(|v| v.as_u64().unwrap())
+        .sum();
+    (
+        st["counters"]["actions_accepted"].as_u64().unwrap(),
+        rejected,
+    )
+}
+
+/// A valid, fresh chunk sending the elbow to `target`: it would move the robot if it got in.
+fn valid_chunk(layout: &JointLayout, seq: u64, target: f32) -> Vec<u8> {
+    let n = layout.joint_count as usize;
+    let mut targets = vec![0.0; n * 50];
+    for k in 0..50 {
+        targets[k * n + ELBOW] = target;
+    }
+    encode(&ActionChunk {
+        version: SCHEMA_VERSION,
+        seq,
+        observation_ns: monotonic_ns(),
+        step_offsets_ns: (1..=50).map(|k| k * 20_000_000).collect(),
+        joint_count: n as u16,
+        joint_mask: 1 << ELBOW,
+        targets,
+    })
+}
+
+#[test]
+fn only_the_inference_identity_moves_the_robot() {
+    let dir = scratch("tls-fleet");
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let endpoint = format!("tls/127.0.0.1:{port}");
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/zenoh/make-dev-ca.sh");
+    let certs = dir.join("certs");
+    let made = Command::new(&script)
+        .args([certs.to_str().unwrap(), &endpoint, ROBOT, "robot-b"])
+        .status()
+        .unwrap();
+    assert!(made.success(), "make-dev-ca.sh failed");
+    let _router = Proc::spawn(
+        "router",
+        &binary("nori"),
+        &[
+            "router",
+            "--config",
+            certs.join("router.json5").to_str().unwrap(),
+        ],
+        &dir.join("router.log"),
+    );
+    let dashboard = wait_for(Duration::from_secs(20), "the router", || {
+        fleet_agent::net::open_file(&certs.join("dashboard.json5")).ok()
+    });
+
+    let mut stack = ArmStack::start("tls", &[]);
+    let agent_toml = dir.join("agent.toml");
+    let toml = fleet_agent::config::DEFAULT_CONFIG_TOML
+        .replace(
+            "robot-id = \"sim-0001\"",
+            &format!("robot-id = \"{ROBOT}\""),
+        )
+        .replace("mode = \"peer\"", "mode = \"client\"")
+        .replace("[\"tcp/127.0.0.1:7447\"]", &format!("[\"{endpoint}\"]"))
+        .replace(
+            "# config-file = \"/etc/nori/zenoh-robot.json5\"",
+            &format!(
+                "config-file = \"{}\"",
+                certs.join(format!("{ROBOT}.json5")).display()
+            ),
+        );
+    std::fs::write(&agent_toml, toml).unwrap();
+    stack.restart_agent_with(&["--config", agent_toml.to_str().unwrap()]);
+    let node = Plane::open(&stack.domain, "test").unwrap();
+    let states = node.subscriber(&plane::JOINT_STATE).unwrap();
+    let layouts = node.subscriber(&plane::LAYOUT).unwrap();
+    let layout = wait_for(Duration::from_secs(20), "the layout", || newest(&layouts));
+
+    // The dashboard reads the robot's telemetry through the router.
+    let telemetry = dashboard.declare_subscriber("nori/*/state").wait().unwrap();
+    wait_for(
+        Duration::from_secs(20),
+        "telemetry at the dashboard",
+        || {
+            let s = telemetry.try_recv().ok().flatten()?;
+            decode::<StateMsg>(&s.payload().to_bytes()).ok()
+        },
+    );
+
+    // The inference identity's policy moves the elbow.
+    let mut server = Proc::spawn(
+        "policy-server",
+        &binary("nori"),
+        &[
+            "policy-server",
+            "--zenoh-config",
+            certs.join("inference.json5").to_str().unwrap(),
+            "--joints",
+            "left_elbow",
+            "--centre=-0.9",
+            "--amplitude",
+            "0.3",
+            "--period-s",
+            "2",
+        ],
+        &dir.join("policy-server.log"),
+    );
+    wait_for(
+        Duration::from_secs(20),
+        "the policy's chunks accepted",
+        || (accepted(&dashboard).0 >= 10).then_some(()),
+    );
+    server.terminate(Duration::from_secs(5));
+    std::thread::sleep(Duration::from_millis(1000));
+    let before = accepted(&dashboard);
+    let goal = || newest(&states).unwrap().joints[ELBOW].goal_rad;
+    let held = goal();
+    let target = if held < -0.9 { -0.4 } else { -1.4 };
+
+    // Intruders, each with a valid, fresh chunk that would move the elbow by half a radian.
+    let actions = robot_key(ROBOT, "actions");
+    for identity in ["robot-b", ROBOT, "dashboard"] {
+        let intruder = client(&certs, identity);
+        for seq in 1..=5 {
+            intruder
+                .put(&actions, valid_chunk(&layout, seq, target))
+                .wait()
+                .unwrap();
+        }
+        std::thread::sleep(Duration::from_millis(300));
+        intruder.close().wait().unwrap();
+    }
+    // No client certificate: the router refuses the handshake.
+    let no_cert = dir.join("no-cert.json5");
+    std::fs::write(
+        &no_cert,
+        format!(
+            "{{ mode: \"client\", connect: {{ endpoints: [\"{endpoint}\"] }}, scouting: {{ multicast: {{ enabled: false }} }}, \
+             transport: {{ link: {{ tls: {{ root_ca_certificate: \"{}\" }} }} }} }}",
+            certs.join("ca.pem").display()
+        ),
+    )
+    .unwrap();
+    assert!(
+        fleet_agent::net::open_file(&no_cert).is_err(),
+        "a client without a certificate joined the fleet"
+    );
+    // Plain TCP on the TLS port: no session either.
+    let plain = fleet_agent::net::open(&fleet_agent::config::ZenohConfig {
+        mode: "client".into(),
+        connect: vec![format!("tcp/127.0.0.1:{port}")],
+        listen: vec![],
+        config_file: None,
+    });
+    assert!(plain.is_err(), "plain TCP joined the TLS fleet");
+
+    std::thread::sleep(Duration::from_millis(500));
+    assert_eq!(
+        accepted(&dashboard),
+        before,
+        "an intruder's chunk reached the agent's gate"
+    );
+    assert_eq!(goal(), held, "an intruder moved the elbow");
+    eprintln!(
+        "TLS + ACL: the inference identity's chunks accepted ({}); robot-b, robot-a itself and the \
+         dashboard published 15 valid chunks, none reached the gate; no certificate and plain TCP refused",
+        before.0
+    );
+    drop((telemetry, dashboard, states, layouts, node));
+    let report = stack.stop();
+    check_left_arm_report(&report, 60.0);
+}
