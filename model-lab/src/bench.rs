@@ -24,7 +24,7 @@ pub struct Settings {
     pub seeds: u64,
     /// Seeds per size step of the detection-limit sweep (0: no sweep).
     pub sweep_seeds: u64,
-    /// Size steps of the sweep (halving each time from the range's lower end).
+    /// Most size steps of the sweep (factors of two from the range's lower end).
     pub sweep_steps: usize,
     /// Recording length, s.
     pub duration_s: f64,
@@ -39,7 +39,7 @@ impl Default for Settings {
         Settings {
             seeds: 50,
             sweep_seeds: 20,
-            sweep_steps: 4,
+            sweep_steps: 5,
             duration_s: 7200.0,
             period_s: 1.0,
             jobs: 1,
@@ -192,12 +192,11 @@ pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
                 None => confusions.push((r.named, 1)),
             }
         }
-        // Detection-limit sweep.
-        let mut sweep = Vec::new();
+        // Detection-limit sweep: from the range's lower end, halve while the effect is still
+        // found reliably; when it is not found there, double until it is.
+        let mut sweep: Vec<(f64, f64)> = Vec::new();
         if effect != Effect::None && settings.sweep_seeds > 0 {
-            let lo = size_range(effect).0;
-            for step in 0..settings.sweep_steps {
-                let size = lo / f64::from(1u32 << step);
+            let rate_at = |size: f64| {
                 let jobs: Vec<(Spec, u64)> = (0..settings.sweep_seeds)
                     .map(|s| {
                         (
@@ -210,14 +209,24 @@ pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
                     })
                     .collect();
                 let r = run_many(&jobs, settings.jobs);
-                let rate =
-                    r.iter().filter(|r| r.named == effect).count() as f64 / r.len().max(1) as f64;
+                r.iter().filter(|r| r.named == effect).count() as f64 / r.len().max(1) as f64
+            };
+            let lo = size_range(effect).0;
+            let first = rate_at(lo);
+            sweep.push((lo, first));
+            let factor = if first >= DETECTION_RATE { 0.5 } else { 2.0 };
+            let mut size = lo;
+            for _ in 1..settings.sweep_steps {
+                size *= factor;
+                let rate = rate_at(size);
                 sweep.push((size, rate));
-                if rate < DETECTION_RATE {
+                if (rate >= DETECTION_RATE) != (first >= DETECTION_RATE) {
                     break;
                 }
             }
+            sweep.sort_by(|a, b| b.0.total_cmp(&a.0));
         }
+        // The smallest size found reliably, with every larger size of the sweep also found.
         let detection_limit = sweep
             .iter()
             .take_while(|(_, r)| *r >= DETECTION_RATE)

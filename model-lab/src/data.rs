@@ -82,6 +82,8 @@ pub struct Row {
     pub current: f64,
     /// Ambient temperature, °C.
     pub ambient: f64,
+    /// Torque enabled (1) or not (0).
+    pub torque: f64,
 }
 
 /// The optional sidecar `NAME.meta.json`.
@@ -106,6 +108,7 @@ const COLUMNS: &[(&str, &[&str])] = &[
     ("temperature_c", &["temp", "temp_c"]),
     ("current_a", &[]),
     ("ambient_c", &[]),
+    ("torque_enabled", &["torque_enable"]),
 ];
 
 /// Parses one CSV text; `origin` names it in errors.
@@ -170,7 +173,7 @@ pub fn parse_csv(text: &str, origin: &str) -> Result<Vec<Row>, DataError> {
         if !t.is_finite() || !motor.is_finite() {
             continue;
         }
-        let mut v = [f64::NAN; 7];
+        let mut v = [f64::NAN; 8];
         for (slot, i) in v.iter_mut().zip(&idx) {
             if let Some(i) = *i {
                 *slot = num(i)?;
@@ -186,6 +189,7 @@ pub fn parse_csv(text: &str, origin: &str) -> Result<Vec<Row>, DataError> {
             temperature: v[4],
             current: v[5],
             ambient: v[6],
+            torque: v[7],
         });
     }
     Ok(rows)
@@ -255,6 +259,8 @@ pub struct Dataset {
     pub position: Vec<Vec<f64>>,
     /// Measured velocity, rad/s.
     pub velocity: Vec<Vec<f64>>,
+    /// Torque enabled (1) or not (0); NaN when not logged.
+    pub torque_enabled: Vec<Vec<f64>>,
     /// Daisy chains as lists of motor indices (into `motors`) in physical order.
     pub chains: Vec<Vec<usize>>,
     /// Servo model keys by motor index, when a sidecar names them.
@@ -325,7 +331,7 @@ impl Dataset {
             for (k, group) in by_t {
                 let t = k as f64 / 1000.0 + shift;
                 d.t.push(t);
-                let mut cells = vec![[f64::NAN; 6]; nm];
+                let mut cells = vec![[f64::NAN; 7]; nm];
                 for r in group {
                     if let Ok(i) = motors.binary_search(&r.motor) {
                         cells[i] = [
@@ -335,6 +341,7 @@ impl Dataset {
                             r.goal,
                             r.position,
                             r.velocity,
+                            r.torque,
                         ];
                     }
                 }
@@ -346,6 +353,7 @@ impl Dataset {
                         d.goal = vec![Vec::new(); nm];
                         d.position = vec![Vec::new(); nm];
                         d.velocity = vec![Vec::new(); nm];
+                        d.torque_enabled = vec![Vec::new(); nm];
                     }
                     d.temperature[i].push(c[0]);
                     d.current[i].push(c[1]);
@@ -353,6 +361,7 @@ impl Dataset {
                     d.goal[i].push(c[3]);
                     d.position[i].push(c[4]);
                     d.velocity[i].push(c[5]);
+                    d.torque_enabled[i].push(c[6]);
                 }
             }
             offset = d.t.last().copied().unwrap_or(0.0);

@@ -76,8 +76,13 @@ impl ElectricalData {
             (0..d.motors.len())
                 .map(|m| {
                     let (g, p, w) = (hold(&g[m]), hold(&p[m]), hold(&v[m]));
+                    // With torque disabled the bridge is open: no current, whatever the error.
+                    let on = |k: usize| d.torque_enabled[m].get(k).is_none_or(|t| *t != 0.0);
                     (0..d.t.len())
                         .map(|k| {
+                            if !on(k) {
+                                return 0.0;
+                            }
                             let duty = (est.kp * DUTY_PER_KP_RAD * (g[k] - p[k]))
                                 .clamp(-MAX_DUTY, MAX_DUTY);
                             (duty * vmean - est.ke_v_s_per_rad * w[k]) / est.resistance_ohm

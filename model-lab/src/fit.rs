@@ -49,8 +49,49 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
+/// Column `j` of the forward-difference Jacobian at `p` (residuals `r`).
+fn jacobian_column<P: Problem>(prob: &P, p: &[f64], r: &[Vec<f64>], j: usize) -> Column {
+    let nb = prob.n_blocks();
+    let mut q = p.to_vec();
+    let h = 1e-6 * p[j].abs().max(1.0);
+    q[j] += h;
+    prob.clamp(&mut q);
+    let mut h_eff = q[j] - p[j];
+    if h_eff == 0.0 {
+        // At the upper bound: step downward instead.
+        q[j] = p[j] - h;
+        prob.clamp(&mut q);
+        h_eff = q[j] - p[j];
+    }
+    if h_eff == 0.0 {
+        return Column::Local(0, vec![0.0; r[0].len()]);
+    }
+    match prob.param_block(j) {
+        Some(b) => {
+            let mut tmp = Vec::new();
+            prob.block_residuals(&q, b, &mut tmp);
+            let c = tmp
+                .iter()
+                .zip(&r[b])
+                .map(|(a, b)| (a - b) / h_eff)
+                .collect();
+            Column::Local(b, c)
+        }
+        None => {
+            let mut all = vec![Vec::new(); nb];
+            prob.residuals(&q, &mut all);
+            for (a, b) in all.iter_mut().zip(r) {
+                for (x, y) in a.iter_mut().zip(b) {
+                    *x = (*x - y) / h_eff;
+                }
+            }
+            Column::Global(all)
+        }
+    }
+}
+
 /// Minimises the sum of squared residuals from `p0`, for at most `max_iter` iterations.
-pub fn levenberg_marquardt<P: Problem>(prob: &P, p0: &[f64], max_iter: usize) -> Fitted {
+pub fn levenberg_marquardt<P: Problem + Sync>(prob: &P, p0: &[f64], max_iter: usize) -> Fitted {
     let n = prob.n_params();
     let nb = prob.n_blocks();
     let mut p = p0.to_vec();
@@ -61,48 +102,39 @@ pub fn levenberg_marquardt<P: Problem>(prob: &P, p0: &[f64], max_iter: usize) ->
     let mut lambda = 1e-3;
     let mut iterations = 0;
     let mut trial_r = vec![Vec::new(); nb];
-    let mut tmp = Vec::new();
     while iterations < max_iter {
         iterations += 1;
-        // Forward-difference Jacobian, one column per parameter.
-        let mut cols = Vec::with_capacity(n);
-        for j in 0..n {
-            let mut q = p.clone();
-            let h = 1e-6 * p[j].abs().max(1.0);
-            q[j] += h;
-            prob.clamp(&mut q);
-            let mut h_eff = q[j] - p[j];
-            if h_eff == 0.0 {
-                // At the upper bound: step downward instead.
-                q[j] = p[j] - h;
-                prob.clamp(&mut q);
-                h_eff = q[j] - p[j];
-            }
-            if h_eff == 0.0 {
-                cols.push(Column::Local(0, vec![0.0; r[0].len()]));
-                continue;
-            }
-            match prob.param_block(j) {
-                Some(b) => {
-                    prob.block_residuals(&q, b, &mut tmp);
-                    let c = tmp
-                        .iter()
-                        .zip(&r[b])
-                        .map(|(a, b)| (a - b) / h_eff)
-                        .collect();
-                    cols.push(Column::Local(b, c));
-                }
-                None => {
-                    let mut all = vec![Vec::new(); nb];
-                    prob.residuals(&q, &mut all);
-                    for (a, b) in all.iter_mut().zip(&r) {
-                        for (x, y) in a.iter_mut().zip(b) {
-                            *x = (*x - y) / h_eff;
-                        }
-                    }
-                    cols.push(Column::Global(all));
-                }
-            }
+        // Forward-difference Jacobian, one column per parameter, the columns spread over the
+        // machine's cores (each column is independent; the result does not depend on the split).
+        let threads = std::thread::available_parallelism()
+            .map_or(1, |t| t.get())
+            .min(n.max(1));
+        let chunk = n.div_ceil(threads);
+        let (p_ref, r_ref) = (&p, &r);
+        let mut cols: Vec<Column> = Vec::with_capacity(n);
+        if threads <= 1 {
+            cols.extend((0..n).map(|j| jacobian_column(prob, p_ref, r_ref, j)));
+        } else {
+            let parts: Vec<Vec<Column>> = std::thread::scope(|sc| {
+                let handles: Vec<_> = (0..threads)
+                    .map(|t| {
+                        sc.spawn(move || {
+                            (t * chunk..((t + 1) * chunk).min(n))
+                                .map(|j| jacobian_column(prob, p_ref, r_ref, j))
+                                .collect::<Vec<Column>>()
+                        })
+                    })
+                    .collect();
+                handles
+                    .into_iter()
+                    .map(|h| h.join().unwrap_or_default())
+                    .collect()
+            });
+            cols.extend(parts.into_iter().flatten());
+        }
+        if cols.len() != n {
+            // A worker panicked (it cannot, short of a bug in the model): stop here.
+            break;
         }
         let mut a = DMatrix::<f64>::zeros(n, n);
         let mut g = DVector::<f64>::zeros(n);
