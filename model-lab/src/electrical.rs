@@ -173,3 +173,52 @@ pub fn fit(e: &ElectricalData, sag: bool) -> ElectricalFit {
         sse,
     }
 }
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::expect_used)]
+    use super::*;
+    use crate::data::{parse_csv, Dataset, Meta};
+
+    #[test]
+    fn estimated_current_follows_the_error_and_is_zero_with_torque_off() {
+        let text = "t_s,motor,goal_rad,position_rad,velocity_rad_s,voltage_v,torque_enabled\n\
+                    0.00,1,0.10,0.00,0,12.0,1\n0.02,1,0.10,0.05,0,12.0,1\n\
+                    0.04,1,0.10,0.00,0,12.0,0\n0.06,1,0.00,0.00,0,12.0,1\n";
+        let rows = parse_csv(text, "x").unwrap();
+        let d = Dataset::from_runs(vec![("x".into(), rows)], Meta::default(), "x").unwrap();
+        assert_eq!(d.torque_enabled[0], [1.0, 1.0, 0.0, 1.0]);
+        let est = CurrentEstimator {
+            kp: 32.0,
+            resistance_ohm: 2.0,
+            ke_v_s_per_rad: 1.0,
+        };
+        // Fewer than 10 voltage readings: no channel.
+        assert!(ElectricalData::new(&d, 2, Some(est)).is_none());
+        let mut d10 = d.clone();
+        for col in [
+            &mut d10.voltage,
+            &mut d10.goal,
+            &mut d10.position,
+            &mut d10.velocity,
+            &mut d10.torque_enabled,
+            &mut d10.current,
+            &mut d10.temperature,
+        ] {
+            let c = col[0].clone();
+            col[0] = c.iter().cycle().take(12).copied().collect();
+        }
+        d10.t = (0..12).map(|k| 0.02 * k as f64).collect();
+        let e = ElectricalData::new(&d10, 8, Some(est)).unwrap();
+        assert_eq!(e.current_source, "estimated");
+        let i = &e.bus_current[0];
+        // duty = 32·0.166·error, I = duty·12 V / 2 Ω.
+        assert!(
+            (i[0] - 32.0 * 0.166 * 0.10 * 12.0 / 2.0).abs() < 1e-9,
+            "{i:?}"
+        );
+        assert!((i[1] - 32.0 * 0.166 * 0.05 * 12.0 / 2.0).abs() < 1e-9);
+        assert_eq!(i[2], 0.0, "torque off: no current despite the error");
+        assert_eq!(i[3], 0.0);
+    }
+}
