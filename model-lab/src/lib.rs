@@ -1,1 +1,34 @@
-//! model-lab
+//! The model lab: holds the simulation's servo model against measured data, shows where it is
+//! wrong, names the physical cause from a catalog, extends the model with it and measures the
+//! gain on data the fit never saw.
+//!
+//! * [`data`]: the telemetry CSV reader (the crate's only file access), time grid, segments,
+//!   glitch rejection.
+//! * [`thermal`]: the nominal thermal model (τ·dT/dt = T_idle + k·I² − T per motor) and its
+//!   extensions, simulated open-loop and fitted by output error.
+//! * [`electrical`]: the supply voltage channel (constant supply, or sagging with bus current).
+//! * [`catalog`]: the extensions (`sensor_lag`, `neighbor_coupling`, `copper_tempco`,
+//!   `ambient_drift`, `supply_sag`, `current_offset`) and `none`.
+//! * [`analysis`]: split, calibrate, misfit statistics, the tests that decide the cause.
+//! * [`fit`]: Levenberg–Marquardt aware of per-motor block structure.
+//! * [`stats`]: RMSE, bias, autocorrelation, Ljung–Box, χ².
+//! * [`generate`]: a truth model that hides one effect of random size in measured-like data.
+//! * [`bench`]: accuracy and detection limits over many seeds.
+//! * [`report`]: a Markdown report with SVG plots, as strings (the caller writes them).
+//!
+//! The model file the lab writes is [`sim::extension::ModelExtension`], which the simulator loads.
+
+pub mod analysis;
+pub mod bench;
+pub mod catalog;
+pub mod data;
+pub mod electrical;
+pub mod fit;
+pub mod generate;
+pub mod report;
+pub mod stats;
+pub mod thermal;
+
+pub use analysis::{analyze, Analysis, AnalysisError, Options, Outcome};
+pub use catalog::{Channel, Effect};
+pub use data::{load, DataError, Dataset};

@@ -1,10 +1,11 @@
 //! `nori`: the operator CLI of the Nori A3 stack.
 //!
 //! `nori up` runs the stack on the simulated robot; `nori sim serve` serves the simulated buses;
-//! `nori state` / `nori goal` look at and move the robot; `nori bench` measures.
+//! `nori state` / `nori goal` look at and move the robot; `nori bench` measures; `nori model` holds the simulation against measured data.
 
 mod bench;
 mod bench_plane;
+mod model;
 mod plane_tools;
 mod policy_server;
 mod router;
@@ -43,6 +44,9 @@ enum Command {
     /// Benchmarks (figures next to their baseline).
     #[command(subcommand)]
     Bench(bench::Bench),
+    /// The model lab: the simulation held against measured data.
+    #[command(subcommand)]
+    Model(model::ModelCommand),
 }
 
 #[derive(Subcommand)]
@@ -65,5 +69,6 @@ fn main() -> Result<()> {
         Command::PolicyServer(a) => policy_server::run(a),
         Command::Router(a) => router::run(a),
         Command::Bench(b) => bench::run(b),
+        Command::Model(m) => model::run(m),
     }
 }

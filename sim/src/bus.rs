@@ -112,6 +112,11 @@ pub struct SimBus {
     pub ambient: f64,
     /// Thermal integration speed-up (1 = physical).
     pub thermal_speedup: f64,
+    /// Heat conductance between chain neighbours relative to each one's conductance to
+    /// ambient (0: none; from a fitted model extension).
+    pub neighbor_coupling: f64,
+    /// Ambient drift, K/s of thermal time (from a fitted model extension).
+    pub ambient_drift_k_per_s: f64,
     time: f64,
     arrival: f64,
     decoder: Decoder,
@@ -179,6 +184,8 @@ impl SimBus {
             wheel_load,
             ambient: robot.ambient_c,
             thermal_speedup: 1.0,
+            neighbor_coupling: 0.0,
+            ambient_drift_k_per_s: 0.0,
             time: 0.0,
             arrival: 0.0,
             decoder: Decoder::new(),
@@ -190,6 +197,20 @@ impl SimBus {
             loads: JointLoads::default(),
             q: vec![0.0; n_arm],
             qd: vec![0.0; n_arm],
+        }
+    }
+
+    /// Applies a model extension fitted by the model lab to every servo of the bus.
+    pub fn apply_extension(&mut self, m: &crate::extension::ModelExtension) {
+        let ext = crate::extension::ServoExtension::from(m);
+        for s in &mut self.servos {
+            s.extension = ext;
+            s.sensor_temperature = s.temperature;
+        }
+        self.neighbor_coupling = m.neighbor_coupling_ratio.unwrap_or(0.0);
+        self.ambient_drift_k_per_s = m.ambient_drift_k_per_h.unwrap_or(0.0) / 3600.0;
+        if let Some(r) = m.supply_resistance_ohm {
+            self.supply_resistance = r;
         }
     }
 
@@ -220,6 +241,24 @@ impl SimBus {
             }
             arm.loads(&self.q, &self.qd, &mut self.loads);
         }
+        if self.neighbor_coupling != 0.0 {
+            // Servos on one chain sit next to each other in description order.
+            let n = self.servos.len();
+            for i in 0..n {
+                let t = self.servos[i].temperature;
+                let g = self.neighbor_coupling / self.servos[i].plant.thermal_resistance;
+                let near = |j: usize| self.servos[j].temperature - t;
+                let mut flow = 0.0;
+                if i > 0 {
+                    flow += near(i - 1);
+                }
+                if i + 1 < n {
+                    flow += near(i + 1);
+                }
+                self.servos[i].external_heat_w = g * flow;
+            }
+        }
+        self.ambient += self.ambient_drift_k_per_s * dt * self.thermal_speedup;
         let (ambient, speedup) = (self.ambient, self.thermal_speedup);
         for (i, servo) in self.servos.iter_mut().enumerate() {
             servo.supply = supply;

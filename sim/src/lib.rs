@@ -9,12 +9,14 @@
 //!   (replies complete `bytes × 10 / baud` after the request, plus the return delay).
 //! * [`pty`]: serving buses on pseudo-terminals in real time for the unmodified driver.
 //! * [`description`]: the robot description file; the A3's is embedded.
+//! * [`extension`]: model extensions fitted on measured data by the model lab.
 //!
 //! Batch mode is [`bus::SimBus::step`] in a loop: no wall clock, as fast as the CPU goes.
 
 pub mod arm;
 pub mod bus;
 pub mod description;
+pub mod extension;
 pub mod pty;
 pub mod scenario;
 pub mod servo;

@@ -163,6 +163,12 @@ pub struct Servo {
     pub log: ServoLog,
     /// When false the servo does not answer (unplugged, or rebooting).
     pub answering: bool,
+    /// Effects a fitted model extension adds (none by default).
+    pub extension: crate::extension::ServoExtension,
+    /// Temperature of the sensor node, °C (the winding's unless `extension` gives it a lag).
+    pub sensor_temperature: f64,
+    /// Heat flowing in from neighbouring servos, W (set by the bus before each step).
+    pub external_heat_w: f64,
     fw: Firmware,
 }
 
@@ -187,6 +193,9 @@ impl Servo {
             protections: Protections::default(),
             log: ServoLog::default(),
             answering: true,
+            extension: Default::default(),
+            sensor_temperature: ambient,
+            external_heat_w: 0.0,
             fw: Firmware::default(),
         };
         let factory: &[(Register, i32)] = &[
@@ -397,10 +406,16 @@ impl Servo {
             reg::PRESENT_VOLTAGE,
             (self.supply * 10.0).round().clamp(0.0, 255.0) as i32,
         );
-        // The sensor register is an integer °C.
+        // The sensor register is an integer °C, of the sensor node (the winding unless an
+        // extension says the sensor lags).
+        let sensed = if self.extension.sensor_time_constant_s > 0.0 {
+            self.sensor_temperature
+        } else {
+            self.temperature
+        };
         self.set(
             reg::PRESENT_TEMPERATURE,
-            self.temperature.round().clamp(0.0, 255.0) as i32,
+            sensed.round().clamp(0.0, 255.0) as i32,
         );
         let status = self.status().0;
         self.set(reg::STATUS, i32::from(status));
@@ -408,7 +423,8 @@ impl Servo {
             reg::MOVING,
             i32::from(self.speed.abs() > 4.0 * RAD_PER_STEP),
         );
-        let current = (self.current / AMPS_PER_CURRENT_UNIT).round() as i32;
+        let current = ((self.current + self.extension.current_offset_a) / AMPS_PER_CURRENT_UNIT)
+            .round() as i32;
         self.set(reg::PRESENT_CURRENT, current.clamp(-32767, 32767));
     }
 
@@ -521,10 +537,20 @@ impl Servo {
 
     fn step_thermal(&mut self, dt: f64, ambient: f64) {
         let p = self.plant;
-        let heat = p.idle_power + p.resistance * self.current * self.current
+        let ext = self.extension;
+        let resistance =
+            p.resistance * (1.0 + ext.resistance_tempco_per_k * (self.temperature - 25.0));
+        let heat = p.idle_power + resistance * self.current * self.current + self.external_heat_w
             - (self.temperature - ambient) / p.thermal_resistance;
+        let before = self.temperature;
         self.temperature += dt * heat / p.heat_capacity;
         self.max_temperature = self.max_temperature.max(self.temperature);
+        self.sensor_temperature = if ext.sensor_time_constant_s > 0.0 {
+            let e = (-dt / ext.sensor_time_constant_s).exp();
+            self.sensor_temperature * e + (1.0 - e) * 0.5 * (before + self.temperature)
+        } else {
+            self.temperature
+        };
     }
 
     fn step_protections(&mut self, dt: f64) {

@@ -1,0 +1,868 @@
+//! The analysis: split, calibrate the nominal model, measure its held-out misfit, try every
+//! extension of the catalog and name the cause the data support.
+//!
+//! An extension is *supported* when all of these hold:
+//! 1. its likelihood-ratio statistic on the fitting part, n_eff·ln(SSE₀/SSE₁), exceeds the χ²
+//!    quantile at [`ALPHA`] / (catalog size) (Bonferroni over the six tries). n_eff is the
+//!    residuals' effective sample size (AR(1) correction), so the slowly varying rounding error
+//!    of an integer register is not mistaken for thousands of independent observations;
+//! 2. its Bayesian information criterion beats the nominal model's (ΔBIC > 0) at that n_eff;
+//! 3. it predicts the held-out part, which the fit never saw, better: the reduction of squared
+//!    error, averaged over contiguous blocks (10 per motor, so the test survives the residuals'
+//!    autocorrelation), has a t statistic above [`MIN_HELDOUT_T`]. A relative-gain threshold
+//!    would not do: where the held-out error is mostly sensor noise and rounding, a real effect
+//!    removes a real but small fraction of it.
+//!
+//! Among supported extensions the cause is the one with the largest ΔBIC; with none, `none`.
+
+use crate::catalog::{Channel, Effect};
+use crate::data::{self, Cleaning, Dataset};
+use crate::electrical::{self, CurrentEstimator, ElectricalData, ElectricalFit};
+use crate::stats;
+use crate::thermal::{fit_extension, fit_nominal, ThermalData, ThermalFit, ThermalModel};
+use serde::Serialize;
+use std::collections::BTreeMap;
+use thiserror::Error;
+
+/// Family-wise false-alarm rate of the significance test.
+pub const ALPHA: f64 = 0.01;
+/// Smallest t statistic of the held-out improvement (one-sided 5 %): the extension must predict
+/// the held-out part better, and not by the luck of a few samples.
+pub const MIN_HELDOUT_T: f64 = 1.645;
+/// Blocks per motor of the held-out improvement test.
+const HELDOUT_BLOCKS: usize = 10;
+/// Lags of the Ljung–Box whiteness test.
+pub const LJUNG_BOX_LAGS: usize = 20;
+
+/// Why an analysis cannot run.
+#[derive(Debug, Error)]
+pub enum AnalysisError {
+    /// Neither channel has what it needs.
+    #[error(
+        "nothing to analyse: the thermal channel needs temperature_c and current_a, the \
+         electrical channel voltage_v and a current (measured, or goal/position to estimate it)"
+    )]
+    NoChannel,
+    /// The split leaves a part empty.
+    #[error("split fraction {0} leaves no fitting or no held-out data")]
+    BadSplit(f64),
+}
+
+/// Options of an analysis.
+#[derive(Debug, Clone)]
+pub struct Options {
+    /// Fraction of the samples (in time order) used for fitting; the rest is held out.
+    pub fit_fraction: f64,
+    /// How to estimate currents when the data carry none.
+    pub estimator: Option<CurrentEstimator>,
+    /// Extensions to try (the whole catalog by default).
+    pub candidates: Vec<Effect>,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options {
+            fit_fraction: 0.7,
+            estimator: None,
+            candidates: Effect::CATALOG.to_vec(),
+        }
+    }
+}
+
+/// A named parameter with its unit.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct Parameter {
+    /// Name.
+    pub name: String,
+    /// Value.
+    pub value: f64,
+    /// Unit.
+    pub unit: String,
+}
+
+/// Per-motor figures.
+#[derive(Debug, Clone, Serialize)]
+pub struct MotorFigures {
+    /// Motor id.
+    pub motor: i64,
+    /// Nominal model: time constant, s.
+    pub tau_s: Option<f64>,
+    /// Nominal model: copper-loss gain R·R_th, K/A².
+    pub gain_k_per_a2: Option<f64>,
+    /// Nominal model: idle equilibrium T_amb + P0·R_th, °C.
+    pub idle_c: Option<f64>,
+    /// Temperature readings used for fitting / held out.
+    pub readings: (usize, usize),
+    /// Held-out temperature RMSE of the nominal model, °C.
+    pub baseline_rmse_c: Option<f64>,
+    /// Held-out temperature RMSE of the chosen model, °C.
+    pub extended_rmse_c: Option<f64>,
+    /// Held-out mean error (prediction − reading) of the nominal model, °C.
+    pub baseline_bias_c: Option<f64>,
+    /// Held-out voltage RMSE of the nominal (constant) supply, V.
+    pub baseline_rmse_v: Option<f64>,
+    /// Held-out voltage RMSE with the chosen model, V.
+    pub extended_rmse_v: Option<f64>,
+}
+
+/// The nominal model's misfit on one channel.
+#[derive(Debug, Clone, Serialize)]
+pub struct Misfit {
+    /// Held-out RMSE.
+    pub rmse: f64,
+    /// Held-out mean error (prediction − reading).
+    pub bias: f64,
+    /// Unit of both.
+    pub unit: &'static str,
+    /// Lag-1 autocorrelation of the held-out residuals (pooled over motors).
+    pub lag1_autocorrelation: f64,
+    /// Ljung–Box statistic over [`LJUNG_BOX_LAGS`] lags, summed over motors.
+    pub ljung_box_q: f64,
+    /// Its p-value (small: the residuals are not white, the model misses structure).
+    pub ljung_box_p: f64,
+    /// Correlation of the held-out residuals with candidate regressors.
+    pub correlations: BTreeMap<String, f64>,
+}
+
+/// One extension as tried.
+#[derive(Debug, Clone, Serialize)]
+pub struct Candidate {
+    /// Catalog id.
+    pub id: Effect,
+    /// Channel.
+    pub channel: Channel,
+    /// Fitted parameter.
+    pub parameter: Option<Parameter>,
+    /// SSE of the nominal model on the fitting part.
+    pub baseline_fit_sse: f64,
+    /// SSE of the extension on the fitting part.
+    pub fit_sse: f64,
+    /// Effective sample size of the test.
+    pub n_eff: f64,
+    /// Likelihood-ratio statistic.
+    pub lr: f64,
+    /// Its p-value (χ², one degree of freedom).
+    pub p_value: f64,
+    /// BIC improvement over the nominal model (positive: better).
+    pub delta_bic: f64,
+    /// Held-out RMSE of the nominal model.
+    pub baseline_heldout_rmse: f64,
+    /// Held-out RMSE of the extension.
+    pub heldout_rmse: f64,
+    /// Relative reduction of the held-out RMSE.
+    pub gain: f64,
+    /// t statistic of the held-out reduction of squared error (block means).
+    pub heldout_t: f64,
+    /// All three tests passed.
+    pub supported: bool,
+    /// Why not, when not.
+    pub verdict: String,
+    /// Fit iterations.
+    pub iterations: usize,
+}
+
+/// Everything else worth knowing about the run.
+#[derive(Debug, Clone, Serialize)]
+pub struct Diagnostics {
+    /// Samples on the time grid.
+    pub samples: usize,
+    /// Motors in the data.
+    pub motors: usize,
+    /// Covered time, s (segments only, gaps excluded).
+    pub duration_s: f64,
+    /// Time of the first held-out sample, s.
+    pub split_t_s: f64,
+    /// Segments (restarts of the state at logging gaps and run boundaries).
+    pub segments: usize,
+    /// Channels analysed.
+    pub channels: Vec<Channel>,
+    /// Where currents came from for the electrical channel.
+    pub current_source: Option<&'static str>,
+    /// Glitch rejection.
+    pub cleaning: Cleaning,
+    /// Register resolution, °C.
+    pub temperature_quantum_c: f64,
+    /// Nominal misfit, thermal channel.
+    pub thermal: Option<Misfit>,
+    /// Nominal misfit, electrical channel.
+    pub electrical: Option<Misfit>,
+    /// Every extension tried.
+    pub candidates: Vec<Candidate>,
+    /// Significance level per test (family-wise [`ALPHA`] over the catalog).
+    pub alpha_per_test: f64,
+    /// Required t statistic of the held-out improvement.
+    pub min_heldout_t: f64,
+    /// How the input was adapted.
+    pub notes: Vec<String>,
+}
+
+/// The analysis, as `--json` prints it.
+#[derive(Debug, Clone, Serialize)]
+pub struct Analysis {
+    /// The named cause (a catalog id, or `none`).
+    pub cause: Effect,
+    /// What the cause means.
+    pub description: &'static str,
+    /// The extension's fitted parameters, named, with units.
+    pub parameters: Vec<Parameter>,
+    /// Channel the cause acts on.
+    pub channel: Channel,
+    /// Held-out temperature RMSE of the nominal model, °C (thermal channel).
+    pub baseline_rmse_c: Option<f64>,
+    /// Held-out temperature RMSE of the chosen model, °C.
+    pub extended_rmse_c: Option<f64>,
+    /// Held-out RMSE of the nominal model on the cause's channel.
+    pub baseline_rmse: f64,
+    /// Held-out RMSE of the chosen model on the cause's channel.
+    pub extended_rmse: f64,
+    /// Unit of the two figures above.
+    pub unit: &'static str,
+    /// Relative reduction of the held-out error, 1 − extended/baseline.
+    pub gain: f64,
+    /// Per-motor figures.
+    pub motors: Vec<MotorFigures>,
+    /// Diagnostics.
+    pub diagnostics: Diagnostics,
+}
+
+/// Time series for the report's plots.
+#[derive(Debug, Clone, Default)]
+pub struct Traces {
+    /// Sample times, s.
+    pub t: Vec<f64>,
+    /// First held-out sample.
+    pub split: usize,
+    /// Per motor: id, readings, nominal prediction, chosen-model prediction.
+    pub series: Vec<Trace>,
+    /// Unit of the series.
+    pub unit: &'static str,
+}
+
+/// One motor's series.
+#[derive(Debug, Clone)]
+pub struct Trace {
+    /// Motor id.
+    pub motor: i64,
+    /// Readings (NaN where missing or rejected).
+    pub measured: Vec<f64>,
+    /// Nominal model, open loop.
+    pub nominal: Vec<f64>,
+    /// Chosen model, open loop.
+    pub extended: Vec<f64>,
+}
+
+/// What [`analyze`] returns.
+#[derive(Debug, Clone)]
+pub struct Outcome {
+    /// The figures.
+    pub analysis: Analysis,
+    /// The series behind the plots.
+    pub traces: Traces,
+    /// The extended model, for the simulator.
+    pub model: sim::extension::ModelExtension,
+}
+
+/// The chosen model's fits.
+struct Chosen {
+    effect: Effect,
+    thermal: Option<(ThermalFit, Vec<Vec<f64>>)>,
+    electrical: Option<ElectricalFit>,
+}
+
+/// Prepares the thermal channel, or None when it has nothing to work with.
+fn thermal_data(d: &Dataset, split: usize) -> Option<ThermalData> {
+    let motors: Vec<usize> = (0..d.motors.len())
+        .filter(|&m| {
+            d.current[m].iter().any(|v| v.is_finite())
+                && d.temperature[m][..split]
+                    .iter()
+                    .filter(|v| v.is_finite())
+                    .count()
+                    >= 20
+        })
+        .collect();
+    if motors.is_empty() {
+        return None;
+    }
+    let segments = d.segments();
+    let fit_segments = segments.iter().filter(|(s, _)| *s < split).count();
+    let measured: Vec<Vec<f64>> = motors.iter().map(|&m| d.temperature[m].clone()).collect();
+    let valid = |m: usize, r: std::ops::Range<usize>| -> Vec<usize> {
+        r.filter(|&k| measured[m][k].is_finite()).collect()
+    };
+    let pos = |dm: usize| motors.iter().position(|&x| x == dm);
+    let data_init = (0..motors.len())
+        .map(|m| {
+            let fallback = stats::mean(&measured[m]);
+            segments
+                .iter()
+                .map(|&(s, e)| {
+                    let mut first: Vec<f64> = measured[m][s..e]
+                        .iter()
+                        .copied()
+                        .filter(|v| v.is_finite())
+                        .take(5)
+                        .collect();
+                    first.sort_by(f64::total_cmp);
+                    first.get(first.len() / 2).copied().unwrap_or(fallback)
+                })
+                .collect()
+        })
+        .collect();
+    Some(ThermalData {
+        t: d.t.clone(),
+        segments,
+        split,
+        current: motors
+            .iter()
+            .map(|&m| electrical::hold(&d.current[m]))
+            .collect(),
+        neighbours: motors
+            .iter()
+            .map(|&m| d.neighbours(m).into_iter().filter_map(pos).collect())
+            .collect(),
+        fit_idx: (0..motors.len()).map(|m| valid(m, 0..split)).collect(),
+        held_idx: (0..motors.len())
+            .map(|m| valid(m, split..d.t.len()))
+            .collect(),
+        fit_segments,
+        data_init,
+        measured,
+        motors,
+    })
+}
+
+/// Residuals (prediction − reading) at the given indices.
+fn residuals_at(pred: &[f64], meas: &[f64], idx: &[usize]) -> Vec<f64> {
+    idx.iter().map(|&k| pred[k] - meas[k]).collect()
+}
+
+/// Effective sample size of per-motor residual series, summed.
+fn n_eff_of(res: &[Vec<f64>]) -> f64 {
+    res.iter()
+        .filter(|r| !r.is_empty())
+        .map(|r| {
+            let rho = stats::autocorrelation(r, 1).get(1).copied().unwrap_or(0.0);
+            stats::effective_n(r.len(), rho)
+        })
+        .sum()
+}
+
+fn misfit(res: &[Vec<f64>], regressors: BTreeMap<String, Vec<f64>>, unit: &'static str) -> Misfit {
+    let all: Vec<f64> = res.concat();
+    let (mut q, mut df) = (0.0, 0.0);
+    let mut lag1 = 0.0;
+    let mut w = 0.0;
+    for r in res {
+        let (qm, _) = stats::ljung_box(r, LJUNG_BOX_LAGS);
+        if qm.is_finite() {
+            q += qm;
+            df += LJUNG_BOX_LAGS as f64;
+        }
+        if r.len() > 2 {
+            lag1 += stats::autocorrelation(r, 1)[1] * r.len() as f64;
+            w += r.len() as f64;
+        }
+    }
+    Misfit {
+        rmse: stats::rmse(&all),
+        bias: stats::mean(&all),
+        unit,
+        lag1_autocorrelation: if w > 0.0 { lag1 / w } else { f64::NAN },
+        ljung_box_q: q,
+        ljung_box_p: if df > 0.0 {
+            stats::chi2_sf(q, df)
+        } else {
+            f64::NAN
+        },
+        correlations: regressors
+            .into_iter()
+            .map(|(k, v)| (k, stats::correlation(&all, &v)))
+            .collect(),
+    }
+}
+
+/// Candidate regressors of the thermal residuals, pooled like the residuals (motor-major,
+/// held-out readings). Each is what one extension would add to the prediction.
+fn thermal_regressors(td: &ThermalData, nominal: &[Vec<f64>]) -> BTreeMap<String, Vec<f64>> {
+    let mut r: BTreeMap<String, Vec<f64>> = BTreeMap::new();
+    let t0 = td.t.first().copied().unwrap_or(0.0);
+    for m in 0..td.n() {
+        let bus_current: Vec<f64> = (0..td.t.len())
+            .map(|k| (0..td.n()).map(|j| td.current[j][k].abs()).sum())
+            .collect();
+        for &k in &td.held_idx[m] {
+            let i = td.current[m][k];
+            let kp = k.saturating_sub(1);
+            let dtk = (td.t[k] - td.t[kp]).max(1e-9);
+            let nb = &td.neighbours[m];
+            let nb_diff = if nb.is_empty() {
+                0.0
+            } else {
+                nb.iter().map(|&j| nominal[j][k]).sum::<f64>() / nb.len() as f64 - nominal[m][k]
+            };
+            let push = |r: &mut BTreeMap<String, Vec<f64>>, name: &str, v: f64| {
+                r.entry(name.to_string()).or_default().push(v)
+            };
+            push(&mut r, "current_squared", i * i);
+            push(&mut r, "current", i);
+            push(
+                &mut r,
+                "temperature_x_current_squared",
+                nominal[m][k] * i * i,
+            );
+            push(&mut r, "time", td.t[k] - t0);
+            push(&mut r, "neighbor_temperature_difference", nb_diff);
+            push(
+                &mut r,
+                "temperature_rate",
+                (nominal[m][k] - nominal[m][kp]) / dtk,
+            );
+            push(&mut r, "bus_current", bus_current[k]);
+        }
+    }
+    r
+}
+
+/// Runs the analysis. `progress` receives one line per step (fits take seconds on hours of data).
+pub fn analyze(
+    mut d: Dataset,
+    opts: &Options,
+    progress: &mut dyn FnMut(&str),
+) -> Result<Outcome, AnalysisError> {
+    let n = d.t.len();
+    if !(opts.fit_fraction > 0.0 && opts.fit_fraction < 1.0) {
+        return Err(AnalysisError::BadSplit(opts.fit_fraction));
+    }
+    let split = ((n as f64) * opts.fit_fraction).round() as usize;
+    if split < 2 || split >= n {
+        return Err(AnalysisError::BadSplit(opts.fit_fraction));
+    }
+    let cleaning = data::reject_glitches(&mut d);
+    let td = thermal_data(&d, split);
+    let ed = ElectricalData::new(&d, split, opts.estimator);
+    if td.is_none() && ed.is_none() {
+        return Err(AnalysisError::NoChannel);
+    }
+    let mut candidates = Vec::new();
+    let mut channels = Vec::new();
+
+    // Thermal channel.
+    let mut thermal_nominal = None;
+    let mut thermal_misfit = None;
+    let mut thermal_fits: Vec<(Effect, ThermalFit, Vec<Vec<f64>>)> = Vec::new();
+    if let Some(td) = &td {
+        channels.push(Channel::Thermal);
+        progress(&format!(
+            "thermal: fitting the nominal model on {} motors, {} readings",
+            td.n(),
+            td.fit_count()
+        ));
+        let nom = fit_nominal(td);
+        let nom_pred = ThermalModel::new(td, Effect::None).predict(&nom.p);
+        let held: Vec<Vec<f64>> = (0..td.n())
+            .map(|m| residuals_at(&nom_pred[m], &td.measured[m], &td.held_idx[m]))
+            .collect();
+        thermal_misfit = Some(misfit(&held, thermal_regressors(td, &nom_pred), "°C"));
+        for (i, &effect) in opts
+            .candidates
+            .iter()
+            .filter(|e| e.channel() == Channel::Thermal)
+            .enumerate()
+        {
+            if effect == Effect::NeighborCoupling && td.neighbours.iter().all(Vec::is_empty) {
+                continue;
+            }
+            progress(&format!("thermal: fitting {effect} ({})", i + 1));
+            let fit = fit_extension(td, &nom, effect);
+            let model = ThermalModel::new(td, effect);
+            let pred = model.predict(&fit.p);
+            let fit_res: Vec<Vec<f64>> = (0..td.n())
+                .map(|m| residuals_at(&pred[m], &td.measured[m], &td.fit_idx[m]))
+                .collect();
+            let held_ext: Vec<Vec<f64>> = (0..td.n())
+                .map(|m| residuals_at(&pred[m], &td.measured[m], &td.held_idx[m]))
+                .collect();
+            let value = model.decode(&fit.p).extension;
+            let parameter = effect.parameter().map(|(name, unit)| Parameter {
+                name: name.into(),
+                value,
+                unit: unit.into(),
+            });
+            candidates.push(judge(
+                effect,
+                parameter,
+                nom.sse,
+                fit.sse,
+                n_eff_of(&fit_res),
+                &held,
+                &held_ext,
+                fit.iterations,
+            ));
+            thermal_fits.push((effect, fit, pred));
+        }
+        thermal_nominal = Some((nom, nom_pred));
+    }
+
+    // Electrical channel.
+    let mut elec_nominal = None;
+    let mut elec_misfit = None;
+    let mut elec_sag = None;
+    if let Some(ed) = &ed {
+        channels.push(Channel::Electrical);
+        progress(&format!(
+            "electrical: {} motors, {} voltage readings, current {}",
+            ed.motors.len(),
+            ed.fit_count(),
+            ed.current_source
+        ));
+        let nom = electrical::fit(ed, false);
+        let held_idx: Vec<Vec<usize>> = ed
+            .voltage
+            .iter()
+            .map(|v| (ed.split..v.len()).filter(|&k| v[k].is_finite()).collect())
+            .collect();
+        let fit_idx: Vec<Vec<usize>> = ed
+            .voltage
+            .iter()
+            .map(|v| (0..ed.split).filter(|&k| v[k].is_finite()).collect())
+            .collect();
+        let res = |f: &ElectricalFit, idx: &[Vec<usize>]| -> Vec<Vec<f64>> {
+            (0..ed.motors.len())
+                .map(|m| residuals_at(&f.predict(ed, m), &ed.voltage[m], &idx[m]))
+                .collect()
+        };
+        let held = res(&nom, &held_idx);
+        let mut regs = BTreeMap::new();
+        regs.insert(
+            "bus_current".to_string(),
+            (0..ed.motors.len())
+                .flat_map(|m| held_idx[m].iter().map(move |&k| ed.bus_current[m][k]))
+                .collect(),
+        );
+        elec_misfit = Some(misfit(&held, regs, "V"));
+        if opts.candidates.contains(&Effect::SupplySag) {
+            progress("electrical: fitting supply_sag");
+            let sag = electrical::fit(ed, true);
+            candidates.push(judge(
+                Effect::SupplySag,
+                Some(Parameter {
+                    name: "supply_resistance".into(),
+                    value: sag.resistance_ohm,
+                    unit: "ohm".into(),
+                }),
+                nom.sse,
+                sag.sse,
+                n_eff_of(&res(&sag, &fit_idx)),
+                &held,
+                &res(&sag, &held_idx),
+                1,
+            ));
+            elec_sag = Some(sag);
+        }
+        elec_nominal = Some(nom);
+    }
+
+    // The cause: the supported extension with the largest ΔBIC.
+    let chosen = candidates
+        .iter()
+        .filter(|c| c.supported)
+        .max_by(|a, b| a.delta_bic.total_cmp(&b.delta_bic))
+        .cloned();
+    let cause = chosen.as_ref().map_or(Effect::None, |c| c.id);
+    let chosen_fit = Chosen {
+        effect: cause,
+        thermal: thermal_fits
+            .iter()
+            .find(|(e, _, _)| *e == cause)
+            .map(|(_, f, p)| (f.clone(), p.clone())),
+        electrical: (cause == Effect::SupplySag)
+            .then(|| elec_sag.clone())
+            .flatten(),
+    };
+
+    // Per-motor figures.
+    let mut motors: Vec<MotorFigures> = d
+        .motors
+        .iter()
+        .map(|&id| MotorFigures {
+            motor: id,
+            tau_s: None,
+            gain_k_per_a2: None,
+            idle_c: None,
+            readings: (0, 0),
+            baseline_rmse_c: None,
+            extended_rmse_c: None,
+            baseline_bias_c: None,
+            baseline_rmse_v: None,
+            extended_rmse_v: None,
+        })
+        .collect();
+    let mut traces = Traces {
+        t: d.t.clone(),
+        split,
+        ..Default::default()
+    };
+    let (mut base_c, mut ext_c) = (None, None);
+    if let (Some(td), Some((nom, nom_pred))) = (&td, &thermal_nominal) {
+        let params = ThermalModel::new(td, Effect::None).decode(&nom.p);
+        let ext_pred = chosen_fit.thermal.as_ref().map_or(nom_pred, |(_, p)| p);
+        let (mut all_b, mut all_e) = (Vec::new(), Vec::new());
+        for (m, &dm) in td.motors.iter().enumerate() {
+            let rb = residuals_at(&nom_pred[m], &td.measured[m], &td.held_idx[m]);
+            let re = residuals_at(&ext_pred[m], &td.measured[m], &td.held_idx[m]);
+            let f = &mut motors[dm];
+            f.tau_s = Some(params.tau_s[m]);
+            f.gain_k_per_a2 = Some(params.gain_k_per_a2[m]);
+            f.idle_c = Some(params.idle_c[m]);
+            f.readings = (td.fit_idx[m].len(), td.held_idx[m].len());
+            f.baseline_rmse_c = Some(stats::rmse(&rb));
+            f.extended_rmse_c = Some(stats::rmse(&re));
+            f.baseline_bias_c = Some(stats::mean(&rb));
+            all_b.extend(rb);
+            all_e.extend(re);
+        }
+        base_c = Some(stats::rmse(&all_b));
+        ext_c = Some(stats::rmse(&all_e));
+        if cause.channel() == Channel::Thermal || ed.is_none() {
+            traces.unit = "°C";
+            traces.series = td
+                .motors
+                .iter()
+                .enumerate()
+                .map(|(m, &dm)| Trace {
+                    motor: d.motors[dm],
+                    measured: td.measured[m].clone(),
+                    nominal: nom_pred[m].clone(),
+                    extended: ext_pred[m].clone(),
+                })
+                .collect();
+        }
+    }
+    let (mut base_v, mut ext_v) = (None, None);
+    if let (Some(ed), Some(nom)) = (&ed, &elec_nominal) {
+        let ext = chosen_fit.electrical.as_ref().unwrap_or(nom);
+        let (mut all_b, mut all_e) = (Vec::new(), Vec::new());
+        for (m, &dm) in ed.motors.iter().enumerate() {
+            let idx: Vec<usize> = (ed.split..ed.voltage[m].len())
+                .filter(|&k| ed.voltage[m][k].is_finite())
+                .collect();
+            let rb = residuals_at(&nom.predict(ed, m), &ed.voltage[m], &idx);
+            let re = residuals_at(&ext.predict(ed, m), &ed.voltage[m], &idx);
+            motors[dm].baseline_rmse_v = Some(stats::rmse(&rb));
+            motors[dm].extended_rmse_v = Some(stats::rmse(&re));
+            all_b.extend(rb);
+            all_e.extend(re);
+        }
+        base_v = Some(stats::rmse(&all_b));
+        ext_v = Some(stats::rmse(&all_e));
+        if traces.series.is_empty() {
+            traces.unit = "V";
+            traces.series = ed
+                .motors
+                .iter()
+                .enumerate()
+                .map(|(m, &dm)| Trace {
+                    motor: d.motors[dm],
+                    measured: ed.voltage[m].clone(),
+                    nominal: nom.predict(ed, m),
+                    extended: ext.predict(ed, m),
+                })
+                .collect();
+        }
+    }
+    let channel = if cause == Effect::None {
+        if td.is_some() {
+            Channel::Thermal
+        } else {
+            Channel::Electrical
+        }
+    } else {
+        cause.channel()
+    };
+    let (baseline, extended, unit) = match channel {
+        Channel::Thermal => (base_c, ext_c, "°C"),
+        Channel::Electrical => (base_v, ext_v, "V"),
+    };
+    let (baseline, extended) = (baseline.unwrap_or(f64::NAN), extended.unwrap_or(f64::NAN));
+    let parameters = chosen
+        .as_ref()
+        .and_then(|c| c.parameter.clone())
+        .into_iter()
+        .collect();
+    let segs = d.segments();
+    let model = model_file(&d, &td, &thermal_nominal, &chosen_fit, &chosen);
+    let analysis = Analysis {
+        cause,
+        description: cause.describe(),
+        parameters,
+        channel,
+        baseline_rmse_c: base_c,
+        extended_rmse_c: ext_c,
+        baseline_rmse: baseline,
+        extended_rmse: extended,
+        unit,
+        gain: if baseline > 0.0 {
+            1.0 - extended / baseline
+        } else {
+            0.0
+        },
+        motors,
+        diagnostics: Diagnostics {
+            samples: n,
+            motors: d.motors.len(),
+            duration_s: segs.iter().map(|&(s, e)| d.t[e - 1] - d.t[s]).sum(),
+            split_t_s: d.t[split],
+            segments: segs.len(),
+            channels,
+            current_source: ed.as_ref().map(|e| e.current_source),
+            cleaning,
+            temperature_quantum_c: d.temperature_quantum,
+            thermal: thermal_misfit,
+            electrical: elec_misfit,
+            candidates,
+            alpha_per_test: ALPHA / Effect::CATALOG.len() as f64,
+            min_heldout_t: MIN_HELDOUT_T,
+            notes: d.notes.clone(),
+        },
+    };
+    Ok(Outcome {
+        analysis,
+        traces,
+        model,
+    })
+}
+
+/// The three tests of the module docs.
+#[allow(clippy::too_many_arguments)]
+fn judge(
+    effect: Effect,
+    parameter: Option<Parameter>,
+    base_sse: f64,
+    sse: f64,
+    n_eff: f64,
+    base_res: &[Vec<f64>],
+    res: &[Vec<f64>],
+    iterations: usize,
+) -> Candidate {
+    let base_held = stats::rmse(&base_res.concat());
+    let held = stats::rmse(&res.concat());
+    let heldout_t = improvement_t(base_res, res);
+    let lr = if sse > 0.0 && base_sse > 0.0 {
+        (n_eff * (base_sse / sse).ln()).max(0.0)
+    } else {
+        0.0
+    };
+    let p_value = stats::chi2_sf(lr, 1.0);
+    let delta_bic = lr - n_eff.ln();
+    let gain = if base_held > 0.0 {
+        1.0 - held / base_held
+    } else {
+        0.0
+    };
+    let alpha = ALPHA / Effect::CATALOG.len() as f64;
+    let verdict = if p_value >= alpha {
+        format!("not significant (p = {p_value:.2e} ≥ {alpha:.1e})")
+    } else if delta_bic <= 0.0 {
+        format!("BIC does not improve (ΔBIC = {delta_bic:.1})")
+    } else if heldout_t.is_nan() || heldout_t < MIN_HELDOUT_T {
+        format!(
+            "held-out error not reliably reduced (gain {:.1} %, t = {heldout_t:.2} < {MIN_HELDOUT_T})",
+            100.0 * gain
+        )
+    } else {
+        "supported".to_string()
+    };
+    Candidate {
+        id: effect,
+        channel: effect.channel(),
+        parameter,
+        baseline_fit_sse: base_sse,
+        fit_sse: sse,
+        n_eff,
+        lr,
+        p_value,
+        delta_bic,
+        baseline_heldout_rmse: base_held,
+        heldout_rmse: held,
+        gain,
+        heldout_t,
+        supported: verdict == "supported",
+        verdict,
+        iterations,
+    }
+}
+
+/// t statistic of the mean reduction of squared error, over contiguous blocks of each motor's
+/// held-out residuals (0 when there are too few blocks).
+fn improvement_t(base: &[Vec<f64>], ext: &[Vec<f64>]) -> f64 {
+    let mut means = Vec::new();
+    for (b, e) in base.iter().zip(ext) {
+        let n = b.len().min(e.len());
+        if n < HELDOUT_BLOCKS {
+            continue;
+        }
+        for j in 0..HELDOUT_BLOCKS {
+            let (lo, hi) = (j * n / HELDOUT_BLOCKS, (j + 1) * n / HELDOUT_BLOCKS);
+            let d: f64 = (lo..hi).map(|k| b[k] * b[k] - e[k] * e[k]).sum();
+            means.push(d / (hi - lo).max(1) as f64);
+        }
+    }
+    let m = means.len() as f64;
+    if m < 3.0 {
+        return 0.0;
+    }
+    let mean = means.iter().sum::<f64>() / m;
+    let var = means.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (m - 1.0);
+    if var <= 0.0 {
+        return if mean > 0.0 { f64::INFINITY } else { 0.0 };
+    }
+    mean / (var / m).sqrt()
+}
+
+fn model_file(
+    d: &Dataset,
+    td: &Option<ThermalData>,
+    nominal: &Option<(ThermalFit, Vec<Vec<f64>>)>,
+    chosen: &Chosen,
+    cand: &Option<Candidate>,
+) -> sim::extension::ModelExtension {
+    use sim::extension::{FittedMotor, ModelExtension};
+    let mut m = ModelExtension::none();
+    m.cause = chosen.effect.id().to_string();
+    let value = cand
+        .as_ref()
+        .and_then(|c| c.parameter.as_ref())
+        .map(|p| p.value);
+    match (chosen.effect, value) {
+        (Effect::SensorLag, Some(v)) => m.sensor_time_constant_s = Some(v),
+        (Effect::NeighborCoupling, Some(v)) => m.neighbor_coupling_ratio = Some(v),
+        (Effect::CopperTempco, Some(v)) => m.resistance_tempco_per_k = Some(v / 100.0),
+        (Effect::AmbientDrift, Some(v)) => m.ambient_drift_k_per_h = Some(v),
+        (Effect::SupplySag, Some(v)) => m.supply_resistance_ohm = Some(v),
+        (Effect::CurrentOffset, Some(v)) => m.current_offset_a = Some(v),
+        _ => {}
+    }
+    m.heldout_gain = cand.as_ref().map(|c| c.gain);
+    if let (Some(td), Some((nom, _))) = (td, nominal) {
+        // The calibrated constants travel with the extension: with the extension, the fitted
+        // per-motor constants are the extended fit's, since they were fitted together.
+        let (effect, p) = match &chosen.thermal {
+            Some((f, _)) => (chosen.effect, &f.p),
+            None => (Effect::None, &nom.p),
+        };
+        let params = ThermalModel::new(td, effect).decode(p);
+        m.motor = td
+            .motors
+            .iter()
+            .enumerate()
+            .map(|(i, &dm)| FittedMotor {
+                id: d.motors[dm],
+                tau_s: params.tau_s[i],
+                gain_k_per_a2: params.gain_k_per_a2[i],
+                idle_c: params.idle_c[i],
+            })
+            .collect();
+    }
+    m
+}

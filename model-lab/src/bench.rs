@@ -1,0 +1,266 @@
+//! The accuracy benchmark: hidden effects over many seeds, and the detection limit per effect.
+//!
+//! For each effect (and `none`), data sets are generated on seeds `0..seeds` with a size drawn
+//! from [`crate::generate::size_range`]; the lab is scored on naming the effect and recovering
+//! its parameter. The detection limit sweeps the size downward by halving from the range's lower
+//! end: the smallest size at which the effect is still named in ≥ [`DETECTION_RATE`] of the runs
+//! (and at every larger size of the sweep).
+
+use crate::analysis::{analyze, Options};
+use crate::catalog::Effect;
+use crate::generate::{generate, size_range, Spec};
+use serde::Serialize;
+use std::time::Instant;
+
+/// Detection rate that defines the detection limit.
+pub const DETECTION_RATE: f64 = 0.9;
+/// A recovered parameter within this relative error of the truth counts as recovered.
+pub const PARAMETER_TOLERANCE: f64 = 0.25;
+
+/// Benchmark settings.
+#[derive(Debug, Clone)]
+pub struct Settings {
+    /// Seeds per effect for the accuracy figures.
+    pub seeds: u64,
+    /// Seeds per size step of the detection-limit sweep (0: no sweep).
+    pub sweep_seeds: u64,
+    /// Most size steps of the sweep (factors of two from the range's lower end).
+    pub sweep_steps: usize,
+    /// Recording length, s.
+    pub duration_s: f64,
+    /// Sample period, s.
+    pub period_s: f64,
+    /// Worker threads.
+    pub jobs: usize,
+}
+
+impl Default for Settings {
+    fn default() -> Self {
+        Settings {
+            seeds: 50,
+            sweep_seeds: 20,
+            sweep_steps: 5,
+            duration_s: 7200.0,
+            period_s: 1.0,
+            jobs: 1,
+        }
+    }
+}
+
+/// One run.
+#[derive(Debug, Clone, Serialize)]
+pub struct Run {
+    /// Seed.
+    pub seed: u64,
+    /// Hidden size.
+    pub size: f64,
+    /// Named cause.
+    pub named: Effect,
+    /// Recovered parameter (when the named cause is the hidden one).
+    pub recovered: Option<f64>,
+    /// Motors.
+    pub motors: usize,
+    /// Analysis wall time, s.
+    pub seconds: f64,
+}
+
+/// Accuracy on one effect.
+#[derive(Debug, Clone, Serialize)]
+pub struct EffectScore {
+    /// The hidden effect.
+    pub effect: Effect,
+    /// Size range drawn from.
+    pub size_range: (f64, f64),
+    /// Unit of the sizes.
+    pub unit: &'static str,
+    /// Runs.
+    pub runs: usize,
+    /// Fraction named correctly.
+    pub accuracy: f64,
+    /// Fraction with the parameter within [`PARAMETER_TOLERANCE`] (of all runs).
+    pub recovered: f64,
+    /// Median relative parameter error among correct runs.
+    pub median_parameter_error: Option<f64>,
+    /// What was named instead, when wrong.
+    pub confusions: Vec<(Effect, usize)>,
+    /// Mean analysis time, s.
+    pub mean_seconds: f64,
+    /// Detection-limit sweep: (size, detection rate).
+    pub sweep: Vec<(f64, f64)>,
+    /// Smallest size of the sweep reliably found (None: not even the largest).
+    pub detection_limit: Option<f64>,
+    /// Every run.
+    #[serde(skip)]
+    pub detail: Vec<Run>,
+}
+
+/// The benchmark's result.
+#[derive(Debug, Clone, Serialize)]
+pub struct Report {
+    /// Seeds per effect.
+    pub seeds: u64,
+    /// Recording length, s; sample period, s; motors drawn from 2..=8.
+    pub duration_s: f64,
+    /// Sample period, s.
+    pub period_s: f64,
+    /// Per effect, `none` first (its accuracy is 1 − the false-alarm rate).
+    pub effects: Vec<EffectScore>,
+    /// Total wall time, s.
+    pub seconds: f64,
+}
+
+fn run_one(spec: &Spec, seed: u64) -> Run {
+    let g = generate(spec, seed);
+    let size = g.truth.parameter.as_ref().map_or(0.0, |p| p.value);
+    let motors = g.truth.motors;
+    let t = Instant::now();
+    let out = g
+        .dataset()
+        .ok()
+        .and_then(|d| analyze(d, &Options::default(), &mut |_| {}).ok());
+    let seconds = t.elapsed().as_secs_f64();
+    match out {
+        Some(o) => Run {
+            seed,
+            size,
+            named: o.analysis.cause,
+            recovered: (o.analysis.cause == spec.effect)
+                .then(|| o.analysis.parameters.first().map(|p| p.value))
+                .flatten(),
+            motors,
+            seconds,
+        },
+        None => Run {
+            seed,
+            size,
+            named: Effect::None,
+            recovered: None,
+            motors,
+            seconds,
+        },
+    }
+}
+
+/// Runs `specs × seeds` on `jobs` threads, in a stable order.
+fn run_many(jobs: &[(Spec, u64)], threads: usize) -> Vec<Run> {
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let out = std::sync::Mutex::new(vec![None; jobs.len()]);
+    std::thread::scope(|s| {
+        for _ in 0..threads.max(1) {
+            s.spawn(|| loop {
+                let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                let Some((spec, seed)) = jobs.get(i) else {
+                    break;
+                };
+                let r = run_one(spec, *seed);
+                if let Ok(mut o) = out.lock() {
+                    o[i] = Some(r);
+                }
+            });
+        }
+    });
+    out.into_inner()
+        .unwrap_or_default()
+        .into_iter()
+        .flatten()
+        .collect()
+}
+
+/// Runs the benchmark; `progress` gets one line per effect.
+pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
+    let start = Instant::now();
+    let mut effects = Vec::new();
+    for effect in std::iter::once(Effect::None).chain(Effect::CATALOG) {
+        let spec = Spec {
+            duration_s: settings.duration_s,
+            period_s: settings.period_s,
+            ..Spec::new(effect)
+        };
+        let jobs: Vec<(Spec, u64)> = (0..settings.seeds).map(|s| (spec.clone(), s)).collect();
+        let runs = run_many(&jobs, settings.jobs);
+        let n = runs.len().max(1) as f64;
+        let correct: Vec<&Run> = runs.iter().filter(|r| r.named == effect).collect();
+        let mut errors: Vec<f64> = correct
+            .iter()
+            .filter_map(|r| r.recovered.map(|v| ((v - r.size) / r.size).abs()))
+            .collect();
+        errors.sort_by(f64::total_cmp);
+        let mut confusions: Vec<(Effect, usize)> = Vec::new();
+        for r in runs.iter().filter(|r| r.named != effect) {
+            match confusions.iter_mut().find(|(e, _)| *e == r.named) {
+                Some(c) => c.1 += 1,
+                None => confusions.push((r.named, 1)),
+            }
+        }
+        // Detection-limit sweep: from the range's lower end, halve while the effect is still
+        // found reliably; when it is not found there, double until it is.
+        let mut sweep: Vec<(f64, f64)> = Vec::new();
+        if effect != Effect::None && settings.sweep_seeds > 0 {
+            let rate_at = |size: f64| {
+                let jobs: Vec<(Spec, u64)> = (0..settings.sweep_seeds)
+                    .map(|s| {
+                        (
+                            Spec {
+                                size: Some(size),
+                                ..spec.clone()
+                            },
+                            1000 + s,
+                        )
+                    })
+                    .collect();
+                let r = run_many(&jobs, settings.jobs);
+                r.iter().filter(|r| r.named == effect).count() as f64 / r.len().max(1) as f64
+            };
+            let lo = size_range(effect).0;
+            let first = rate_at(lo);
+            sweep.push((lo, first));
+            let factor = if first >= DETECTION_RATE { 0.5 } else { 2.0 };
+            let mut size = lo;
+            for _ in 1..settings.sweep_steps {
+                size *= factor;
+                let rate = rate_at(size);
+                sweep.push((size, rate));
+                if (rate >= DETECTION_RATE) != (first >= DETECTION_RATE) {
+                    break;
+                }
+            }
+            sweep.sort_by(|a, b| b.0.total_cmp(&a.0));
+        }
+        // The smallest size found reliably, with every larger size of the sweep also found.
+        let detection_limit = sweep
+            .iter()
+            .take_while(|(_, r)| *r >= DETECTION_RATE)
+            .last()
+            .map(|(s, _)| *s);
+        let score = EffectScore {
+            effect,
+            size_range: size_range(effect),
+            unit: effect.parameter().map_or("", |p| p.1),
+            runs: runs.len(),
+            accuracy: correct.len() as f64 / n,
+            recovered: errors.iter().filter(|e| **e <= PARAMETER_TOLERANCE).count() as f64 / n,
+            median_parameter_error: errors.get(errors.len() / 2).copied(),
+            confusions,
+            mean_seconds: runs.iter().map(|r| r.seconds).sum::<f64>() / n,
+            sweep,
+            detection_limit,
+            detail: runs,
+        };
+        progress(&format!(
+            "{:18} accuracy {:5.1} %  parameter within {:.0} %: {:5.1} %  limit {:?}",
+            effect.id(),
+            100.0 * score.accuracy,
+            100.0 * PARAMETER_TOLERANCE,
+            100.0 * score.recovered,
+            score.detection_limit
+        ));
+        effects.push(score);
+    }
+    Report {
+        seeds: settings.seeds,
+        duration_s: settings.duration_s,
+        period_s: settings.period_s,
+        effects,
+        seconds: start.elapsed().as_secs_f64(),
+    }
+}

@@ -1,0 +1,328 @@
+//! The truth-model generator: measured-like data carrying one hidden effect of random size.
+//!
+//! The truth is integrated independently of the lab's fitting code (RK4 on the full ODE, four
+//! sub-steps per sample) so a test cannot pass merely because generator and fitter share a
+//! discretisation. What the data get: a random number of motors on one chain, a random duty
+//! profile per motor (rests, back-and-forth moves, holds), sensor noise, the integer °C register,
+//! occasional 0 °C / 150 °C read glitches, empty cells and dropped rows, a 0.1 V voltage register
+//! and the 6.5 mA current register.
+
+use crate::analysis::Parameter;
+use crate::catalog::Effect;
+use crate::data::{parse_csv, DataError, Dataset, Meta};
+use std::fmt::Write as _;
+
+/// A small seeded PRNG (xoshiro256**, seeded by SplitMix64): reproducible across platforms
+/// and releases, which a test's fixed seed needs.
+#[derive(Debug, Clone)]
+pub struct Rng([u64; 4]);
+
+impl Rng {
+    /// A generator from a seed.
+    pub fn new(seed: u64) -> Self {
+        let mut z = seed;
+        let mut next = || {
+            z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+            let mut x = z;
+            x = (x ^ (x >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            x = (x ^ (x >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            x ^ (x >> 31)
+        };
+        Rng([next(), next(), next(), next()])
+    }
+
+    /// Next 64 random bits.
+    pub fn next_u64(&mut self) -> u64 {
+        let s = &mut self.0;
+        let r = s[1].wrapping_mul(5).rotate_left(7).wrapping_mul(9);
+        let t = s[1] << 17;
+        s[2] ^= s[0];
+        s[3] ^= s[1];
+        s[1] ^= s[2];
+        s[0] ^= s[3];
+        s[2] ^= t;
+        s[3] = s[3].rotate_left(45);
+        r
+    }
+
+    /// Uniform in [0, 1).
+    pub fn uniform(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    /// Uniform in [a, b).
+    pub fn range(&mut self, a: f64, b: f64) -> f64 {
+        a + (b - a) * self.uniform()
+    }
+
+    /// Uniform integer in [a, b].
+    pub fn int(&mut self, a: usize, b: usize) -> usize {
+        a + (self.next_u64() % (b - a + 1) as u64) as usize
+    }
+
+    /// True with probability `p`.
+    pub fn chance(&mut self, p: f64) -> bool {
+        self.uniform() < p
+    }
+
+    /// Standard normal (Box–Muller).
+    pub fn normal(&mut self) -> f64 {
+        let u = self.uniform().max(1e-300);
+        let v = self.uniform();
+        (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+    }
+
+    /// ±1.
+    pub fn sign(&mut self) -> f64 {
+        if self.chance(0.5) {
+            1.0
+        } else {
+            -1.0
+        }
+    }
+}
+
+/// The range a hidden effect's size is drawn from (magnitude; some effects get a random sign),
+/// in the catalog's unit.
+pub fn size_range(effect: Effect) -> (f64, f64) {
+    match effect {
+        Effect::None => (0.0, 0.0),
+        Effect::SensorLag => (30.0, 240.0),
+        Effect::NeighborCoupling => (0.15, 1.0),
+        // Copper's 0.393 %/K is inside.
+        Effect::CopperTempco => (0.25, 0.8),
+        Effect::AmbientDrift => (1.0, 4.0),
+        Effect::SupplySag => (0.03, 0.3),
+        Effect::CurrentOffset => (0.05, 0.25),
+    }
+}
+
+fn signed(effect: Effect) -> bool {
+    matches!(effect, Effect::AmbientDrift | Effect::CurrentOffset)
+}
+
+/// What to generate.
+#[derive(Debug, Clone)]
+pub struct Spec {
+    /// The hidden effect.
+    pub effect: Effect,
+    /// Its size (catalog unit); drawn from [`size_range`] when None.
+    pub size: Option<f64>,
+    /// Recording length, s.
+    pub duration_s: f64,
+    /// Sample period, s.
+    pub period_s: f64,
+    /// Motor count; drawn from 2..=8 when None.
+    pub motors: Option<usize>,
+}
+
+impl Spec {
+    /// Two hours at 1 Hz, random motor count and size.
+    pub fn new(effect: Effect) -> Self {
+        Spec {
+            effect,
+            size: None,
+            duration_s: 7200.0,
+            period_s: 1.0,
+            motors: None,
+        }
+    }
+}
+
+/// The hidden truth, to score the lab against.
+#[derive(Debug, Clone)]
+pub struct Truth {
+    /// The hidden effect.
+    pub effect: Effect,
+    /// Its parameter, named like the lab names it.
+    pub parameter: Option<Parameter>,
+    /// Motors.
+    pub motors: usize,
+    /// Per motor τ, s.
+    pub tau_s: Vec<f64>,
+    /// Per motor k, K/A².
+    pub gain_k_per_a2: Vec<f64>,
+    /// Sensor noise (before rounding), °C.
+    pub sensor_noise_c: f64,
+}
+
+/// Generated data.
+#[derive(Debug, Clone)]
+pub struct Generated {
+    /// The CSV text.
+    pub csv: String,
+    /// The sidecar JSON text.
+    pub meta: String,
+    /// The truth.
+    pub truth: Truth,
+}
+
+impl Generated {
+    /// The data as the reader sees them.
+    pub fn dataset(&self) -> Result<Dataset, DataError> {
+        let rows = parse_csv(&self.csv, "generated")?;
+        let meta: Meta = serde_json::from_str(&self.meta).map_err(|source| DataError::Meta {
+            path: "generated.meta.json".into(),
+            source,
+        })?;
+        Dataset::from_runs(vec![("generated".into(), rows)], meta, "generated")
+    }
+}
+
+/// The current register's step, A.
+const CURRENT_LSB_A: f64 = 0.0065;
+
+/// Generates one data set.
+pub fn generate(spec: &Spec, seed: u64) -> Generated {
+    let mut rng = Rng::new(seed ^ 0x6D6F_6465_6C6C_6162);
+    let effect = spec.effect;
+    let n = spec.motors.unwrap_or_else(|| rng.int(2, 8));
+    let (lo, hi) = size_range(effect);
+    let mut size = spec.size.unwrap_or_else(|| rng.range(lo, hi));
+    if signed(effect) && spec.size.is_none() {
+        size *= rng.sign();
+    }
+    let tau: Vec<f64> = (0..n).map(|_| rng.range(300.0, 900.0)).collect();
+    let gain: Vec<f64> = (0..n).map(|_| rng.range(6.0, 14.0)).collect();
+    let ambient = rng.range(20.0, 30.0);
+    let idle: Vec<f64> = (0..n).map(|_| ambient + rng.range(0.5, 2.0)).collect();
+    let noise = rng.range(0.05, 0.3);
+    let v0 = rng.range(11.5, 12.5);
+    let v_off: Vec<f64> = (0..n).map(|_| rng.range(-0.1, 0.1)).collect();
+    let steps = (spec.duration_s / spec.period_s).round() as usize;
+
+    // Duty profile: phases of rest, back-and-forth moves and holds.
+    let mut current = vec![vec![0.0; steps]; n];
+    for cur in current.iter_mut() {
+        let mut k = 0;
+        while k < steps {
+            let len = (rng.range(60.0, 480.0) / spec.period_s).max(1.0) as usize;
+            let rest = rng.chance(0.3);
+            let amp = rng.range(0.3, 1.5);
+            let moving = rng.chance(0.6);
+            let mut sign = rng.sign();
+            let mut next_flip = k + (rng.range(2.0, 8.0) / spec.period_s).max(1.0) as usize;
+            for (j, c) in cur.iter_mut().enumerate().skip(k).take(len) {
+                if moving && j >= next_flip {
+                    sign = -sign;
+                    next_flip = j + (rng.range(2.0, 8.0) / spec.period_s).max(1.0) as usize;
+                }
+                *c = if rest {
+                    0.0
+                } else {
+                    sign * amp * (1.0 + 0.1 * rng.normal())
+                };
+            }
+            k += len;
+        }
+    }
+
+    // The truth ODE: winding w, sensor s per motor.
+    let warm: Vec<f64> = (0..n).map(|_| rng.range(0.0, 3.0)).collect();
+    let mut w: Vec<f64> = (0..n).map(|m| idle[m] + warm[m]).collect();
+    let mut s = w.clone();
+    let size_of = |e: Effect| if effect == e { size } else { 0.0 };
+    let (lag, kappa, alpha, drift_h) = (
+        size_of(Effect::SensorLag),
+        size_of(Effect::NeighborCoupling),
+        size_of(Effect::CopperTempco) / 100.0,
+        size_of(Effect::AmbientDrift),
+    );
+    let deriv = |t: f64, w: &[f64], s: &[f64], k: usize, dw: &mut [f64], ds: &mut [f64]| {
+        for m in 0..n {
+            let i = current[m][k];
+            let mut heat =
+                idle[m] + drift_h * t / 3600.0 + gain[m] * (1.0 + alpha * (w[m] - 25.0)) * i * i
+                    - w[m];
+            if kappa != 0.0 {
+                if m > 0 {
+                    heat += kappa * (w[m - 1] - w[m]);
+                }
+                if m + 1 < n {
+                    heat += kappa * (w[m + 1] - w[m]);
+                }
+            }
+            dw[m] = heat / tau[m];
+            ds[m] = if lag > 0.0 { (w[m] - s[m]) / lag } else { 0.0 };
+        }
+    };
+    let sub = 4;
+    let h = spec.period_s / sub as f64;
+    let mut readings = vec![vec![0.0; steps]; n];
+    let (mut k1w, mut k1s) = (vec![0.0; n], vec![0.0; n]);
+    let (mut k2w, mut k2s) = (vec![0.0; n], vec![0.0; n]);
+    let (mut k3w, mut k3s) = (vec![0.0; n], vec![0.0; n]);
+    let (mut k4w, mut k4s) = (vec![0.0; n], vec![0.0; n]);
+    let (mut tw, mut ts) = (vec![0.0; n], vec![0.0; n]);
+    for k in 0..steps {
+        for (m, r) in readings.iter_mut().enumerate() {
+            r[k] = if lag > 0.0 { s[m] } else { w[m] };
+        }
+        for j in 0..sub {
+            let t = k as f64 * spec.period_s + j as f64 * h;
+            deriv(t, &w, &s, k, &mut k1w, &mut k1s);
+            for m in 0..n {
+                tw[m] = w[m] + 0.5 * h * k1w[m];
+                ts[m] = s[m] + 0.5 * h * k1s[m];
+            }
+            deriv(t + 0.5 * h, &tw, &ts, k, &mut k2w, &mut k2s);
+            for m in 0..n {
+                tw[m] = w[m] + 0.5 * h * k2w[m];
+                ts[m] = s[m] + 0.5 * h * k2s[m];
+            }
+            deriv(t + 0.5 * h, &tw, &ts, k, &mut k3w, &mut k3s);
+            for m in 0..n {
+                tw[m] = w[m] + h * k3w[m];
+                ts[m] = s[m] + h * k3s[m];
+            }
+            deriv(t + h, &tw, &ts, k, &mut k4w, &mut k4s);
+            for m in 0..n {
+                w[m] += h / 6.0 * (k1w[m] + 2.0 * k2w[m] + 2.0 * k3w[m] + k4w[m]);
+                s[m] += h / 6.0 * (k1s[m] + 2.0 * k2s[m] + 2.0 * k3s[m] + k4s[m]);
+            }
+        }
+    }
+
+    // The registers.
+    let offset = size_of(Effect::CurrentOffset);
+    let rs = size_of(Effect::SupplySag);
+    let mut csv = String::from("t_s,motor,voltage_v,temperature_c,current_a\n");
+    for k in 0..steps {
+        let t = k as f64 * spec.period_s;
+        let bus: f64 = (0..n).map(|m| current[m][k].abs()).sum();
+        for m in 0..n {
+            if rng.chance(0.003) {
+                continue; // dropped row
+            }
+            let temp = if rng.chance(0.003) {
+                String::new()
+            } else if rng.chance(0.002) {
+                if rng.chance(0.5) { "0" } else { "150" }.to_string()
+            } else {
+                format!("{}", (readings[m][k] + noise * rng.normal()).round())
+            };
+            let i_reg = ((current[m][k] + offset + 0.01 * rng.normal()) / CURRENT_LSB_A).round()
+                * CURRENT_LSB_A;
+            let v = ((v0 + v_off[m] - rs * bus + 0.03 * rng.normal()) * 10.0).round() / 10.0;
+            let _ = writeln!(csv, "{t:.3},{},{v:.1},{temp},{i_reg:.4}", m + 1);
+        }
+    }
+    let chain: Vec<String> = (1..=n).map(|m| m.to_string()).collect();
+    let meta = format!("{{\"chains\": [[{}]]}}", chain.join(","));
+    Generated {
+        csv,
+        meta,
+        truth: Truth {
+            effect,
+            parameter: effect.parameter().map(|(name, unit)| Parameter {
+                name: name.into(),
+                value: size,
+                unit: unit.into(),
+            }),
+            motors: n,
+            tau_s: tau,
+            gain_k_per_a2: gain,
+            sensor_noise_c: noise,
+        },
+    }
+}

@@ -1,0 +1,423 @@
+//! The readable report: Markdown with SVG plots, returned as (file name, contents) pairs for the
+//! caller to write. The plots are drawn by hand (a few polylines and ticks) rather than with a
+//! plotting crate: it keeps the lab free of font and image dependencies.
+
+use crate::analysis::{Analysis, Traces, LJUNG_BOX_LAGS};
+use crate::stats;
+use std::fmt::Write as _;
+
+/// One line of a plot.
+struct Series<'a> {
+    name: &'a str,
+    color: &'a str,
+    points: Vec<(f64, f64)>,
+    /// Draw as dots (readings) instead of a line.
+    dots: bool,
+}
+
+/// Round tick positions covering [lo, hi].
+fn ticks(lo: f64, hi: f64) -> Vec<f64> {
+    let span = (hi - lo).max(1e-9);
+    let raw = span / 6.0;
+    let mag = 10f64.powf(raw.log10().floor());
+    let step = [1.0, 2.0, 5.0, 10.0]
+        .iter()
+        .map(|m| m * mag)
+        .find(|s| *s >= raw)
+        .unwrap_or(10.0 * mag);
+    let mut t = (lo / step).ceil() * step;
+    let mut out = Vec::new();
+    while t <= hi + 1e-9 * span {
+        out.push(t);
+        t += step;
+    }
+    out
+}
+
+fn fmt_tick(v: f64) -> String {
+    if v.abs() >= 100.0 || v == v.round() {
+        format!("{v:.0}")
+    } else {
+        format!("{v:.2}")
+    }
+}
+
+fn plot(title: &str, xlabel: &str, ylabel: &str, series: &[Series], vline: Option<f64>) -> String {
+    let (w, h) = (900.0, 360.0);
+    let (l, r, t, b) = (70.0, 20.0, 30.0, 50.0);
+    let pts = || {
+        series
+            .iter()
+            .flat_map(|s| s.points.iter())
+            .filter(|p| p.1.is_finite())
+    };
+    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    for &(x, y) in pts() {
+        x0 = x0.min(x);
+        x1 = x1.max(x);
+        y0 = y0.min(y);
+        y1 = y1.max(y);
+    }
+    if x0 > x1 {
+        (x0, x1, y0, y1) = (0.0, 1.0, 0.0, 1.0);
+    }
+    let pad = 0.05 * (y1 - y0).max(1e-6);
+    let (y0, y1) = (y0 - pad, y1 + pad);
+    let sx = |x: f64| l + (x - x0) / (x1 - x0).max(1e-12) * (w - l - r);
+    let sy = |y: f64| h - b - (y - y0) / (y1 - y0).max(1e-12) * (h - t - b);
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        r#"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" font-family="sans-serif" font-size="12">"#
+    );
+    let _ = writeln!(s, r#"<rect width="{w}" height="{h}" fill="white"/>"#);
+    let _ = writeln!(
+        s,
+        r#"<text x="{}" y="18" text-anchor="middle" font-size="14">{}</text>"#,
+        w / 2.0,
+        esc(title)
+    );
+    for tx in ticks(x0, x1) {
+        let x = sx(tx);
+        let _ = writeln!(
+            s,
+            r##"<line x1="{x:.1}" y1="{t}" x2="{x:.1}" y2="{}" stroke="#eee"/><text x="{x:.1}" y="{}" text-anchor="middle">{}</text>"##,
+            h - b,
+            h - b + 16.0,
+            fmt_tick(tx)
+        );
+    }
+    for ty in ticks(y0, y1) {
+        let y = sy(ty);
+        let _ = writeln!(
+            s,
+            r##"<line x1="{l}" y1="{y:.1}" x2="{}" y2="{y:.1}" stroke="#eee"/><text x="{}" y="{:.1}" text-anchor="end">{}</text>"##,
+            w - r,
+            l - 6.0,
+            y + 4.0,
+            fmt_tick(ty)
+        );
+    }
+    let _ = writeln!(
+        s,
+        r#"<rect x="{l}" y="{t}" width="{}" height="{}" fill="none" stroke="black"/>"#,
+        w - l - r,
+        h - t - b
+    );
+    let _ = writeln!(
+        s,
+        r#"<text x="{}" y="{}" text-anchor="middle">{}</text>"#,
+        (l + w - r) / 2.0,
+        h - 12.0,
+        esc(xlabel)
+    );
+    let _ = writeln!(
+        s,
+        r#"<text x="16" y="{}" text-anchor="middle" transform="rotate(-90 16 {})">{}</text>"#,
+        h / 2.0,
+        h / 2.0,
+        esc(ylabel)
+    );
+    if let Some(v) = vline {
+        let x = sx(v);
+        let _ = writeln!(
+            s,
+            r##"<line x1="{x:.1}" y1="{t}" x2="{x:.1}" y2="{}" stroke="#888" stroke-dasharray="4 4"/><text x="{:.1}" y="{}" fill="#666">held out →</text>"##,
+            h - b,
+            x + 4.0,
+            t + 14.0
+        );
+    }
+    for (i, se) in series.iter().enumerate() {
+        if se.dots {
+            for &(x, y) in se.points.iter().filter(|p| p.1.is_finite()) {
+                let _ = write!(
+                    s,
+                    r#"<circle cx="{:.1}" cy="{:.1}" r="1.2" fill="{}"/>"#,
+                    sx(x),
+                    sy(y),
+                    se.color
+                );
+            }
+            let _ = writeln!(s);
+        } else {
+            // Missing values and logging gaps break the line.
+            let mut dx: Vec<f64> = se.points.windows(2).map(|w| w[1].0 - w[0].0).collect();
+            dx.sort_by(f64::total_cmp);
+            let gap = 20.0 * dx.get(dx.len() / 2).copied().unwrap_or(f64::INFINITY);
+            let mut d = String::new();
+            let mut pen_up = true;
+            let mut last_x = f64::NEG_INFINITY;
+            for &(x, y) in &se.points {
+                if !y.is_finite() || x - last_x > gap {
+                    pen_up = true;
+                }
+                last_x = x;
+                if !y.is_finite() {
+                    continue;
+                }
+                let _ = write!(
+                    d,
+                    "{}{:.1},{:.1} ",
+                    if pen_up { "M" } else { "L" },
+                    sx(x),
+                    sy(y)
+                );
+                pen_up = false;
+            }
+            let _ = writeln!(
+                s,
+                r#"<path d="{d}" fill="none" stroke="{}" stroke-width="1.5"/>"#,
+                se.color
+            );
+        }
+        let ly = t + 14.0 + 16.0 * i as f64;
+        let _ = writeln!(
+            s,
+            r#"<rect x="{}" y="{}" width="12" height="4" fill="{}"/><text x="{}" y="{}">{}</text>"#,
+            l + 10.0,
+            ly - 4.0,
+            se.color,
+            l + 28.0,
+            ly,
+            esc(se.name)
+        );
+    }
+    s.push_str("</svg>\n");
+    s
+}
+
+fn esc(s: &str) -> String {
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+}
+
+/// Keeps at most `max` evenly spaced points.
+fn thin(points: Vec<(f64, f64)>, max: usize) -> Vec<(f64, f64)> {
+    let stride = points.len().div_ceil(max.max(1)).max(1);
+    points.into_iter().step_by(stride).collect()
+}
+
+fn f(v: Option<f64>, digits: usize) -> String {
+    match v {
+        Some(v) if v.is_finite() => format!("{v:.digits$}"),
+        _ => "–".into(),
+    }
+}
+
+/// The report's files: `report.md`, one SVG per motor and `residual-acf.svg`.
+pub fn render(a: &Analysis, tr: &Traces, source: &str) -> Vec<(String, String)> {
+    let mut files = Vec::new();
+    let mut md = String::new();
+    let d = &a.diagnostics;
+    let _ = writeln!(md, "# Model lab report: {}\n", esc(source));
+    let _ = writeln!(
+        md,
+        "**Cause: `{}`** ({}).\n\nHeld-out error on the {:?} channel: nominal {:.4} {u}, \
+         extended {:.4} {u}, gain {:.1} %.\n",
+        a.cause,
+        a.description,
+        a.channel,
+        a.baseline_rmse,
+        a.extended_rmse,
+        100.0 * a.gain,
+        u = a.unit
+    );
+    for p in &a.parameters {
+        let _ = writeln!(md, "- `{}` = {:.4} {}", p.name, p.value, p.unit);
+    }
+    let _ = writeln!(
+        md,
+        "\n{} samples of {} motors, {:.0} s in {} segment(s); held out from t = {:.0} s. \
+         Glitches rejected: {}, missing readings: {}. Temperature register step {:.4} °C.\n",
+        d.samples,
+        d.motors,
+        d.duration_s,
+        d.segments,
+        d.split_t_s,
+        d.cleaning.temperature_glitches,
+        d.cleaning.temperature_missing,
+        d.temperature_quantum_c
+    );
+    for n in &d.notes {
+        let _ = writeln!(md, "- note: {n}");
+    }
+    for (name, m) in [("thermal", &d.thermal), ("electrical", &d.electrical)] {
+        if let Some(m) = m {
+            let _ = writeln!(
+                md,
+                "\n## Nominal misfit, {name} channel\n\nHeld-out RMSE {:.4} {u}, bias {:+.4} {u}, \
+                 lag-1 autocorrelation {:.3}, Ljung–Box Q({LJUNG_BOX_LAGS}/motor) = {:.0} \
+                 (p = {:.2e}).\n\n| regressor | correlation with residual |\n|---|---|",
+                m.rmse,
+                m.bias,
+                m.lag1_autocorrelation,
+                m.ljung_box_q,
+                m.ljung_box_p,
+                u = m.unit
+            );
+            for (k, v) in &m.correlations {
+                let _ = writeln!(md, "| {k} | {v:+.3} |");
+            }
+        }
+    }
+    let _ = writeln!(
+        md,
+        "\n## Extensions tried\n\n| id | parameter | LR | p | ΔBIC | held-out RMSE | gain | t | verdict |\n|---|---|---|---|---|---|---|---|---|"
+    );
+    for c in &d.candidates {
+        let par = c
+            .parameter
+            .as_ref()
+            .map_or("–".into(), |p| format!("{:.4} {}", p.value, p.unit));
+        let _ = writeln!(
+            md,
+            "| `{}` | {par} | {:.1} | {:.1e} | {:.1} | {:.4} | {:+.1} % | {:.2} | {} |",
+            c.id,
+            c.lr,
+            c.p_value,
+            c.delta_bic,
+            c.heldout_rmse,
+            100.0 * c.gain,
+            c.heldout_t,
+            c.verdict
+        );
+    }
+    let _ = writeln!(
+        md,
+        "\n## Per motor\n\n| motor | τ (s) | k (K/A²) | idle (°C) | readings fit/held | nominal RMSE (°C) | extended RMSE (°C) | bias (°C) | nominal RMSE (V) | extended RMSE (V) |\n|---|---|---|---|---|---|---|---|---|---|"
+    );
+    for m in &a.motors {
+        let _ = writeln!(
+            md,
+            "| {} | {} | {} | {} | {}/{} | {} | {} | {} | {} | {} |",
+            m.motor,
+            f(m.tau_s, 0),
+            f(m.gain_k_per_a2, 3),
+            f(m.idle_c, 2),
+            m.readings.0,
+            m.readings.1,
+            f(m.baseline_rmse_c, 3),
+            f(m.extended_rmse_c, 3),
+            f(m.baseline_bias_c, 3),
+            f(m.baseline_rmse_v, 4),
+            f(m.extended_rmse_v, 4)
+        );
+    }
+    let _ = writeln!(md, "\n## Plots\n");
+    let split_t = tr.t.get(tr.split).copied();
+    let mut acf_series = Vec::new();
+    let palette = [
+        "#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22",
+    ];
+    for (i, s) in tr.series.iter().enumerate() {
+        let xy = |v: &[f64]| -> Vec<(f64, f64)> {
+            tr.t.iter().copied().zip(v.iter().copied()).collect()
+        };
+        let name = format!("motor-{}.svg", s.motor);
+        let svg = plot(
+            &format!("motor {}: measured vs nominal vs {}", s.motor, a.cause),
+            "t (s)",
+            tr.unit,
+            &[
+                Series {
+                    name: "measured",
+                    color: "#999",
+                    points: thin(xy(&s.measured), 3000),
+                    dots: true,
+                },
+                Series {
+                    name: "nominal",
+                    color: "#1f77b4",
+                    points: thin(xy(&s.nominal), 2000),
+                    dots: false,
+                },
+                Series {
+                    name: a.cause.id(),
+                    color: "#d62728",
+                    points: thin(xy(&s.extended), 2000),
+                    dots: false,
+                },
+            ],
+            split_t,
+        );
+        let _ = writeln!(md, "![motor {}]({name})\n", s.motor);
+        files.push((name, svg));
+        // Held-out residual autocorrelation (nominal), by lag in samples.
+        let res: Vec<f64> = (tr.split..tr.t.len())
+            .map(|k| s.nominal[k] - s.measured[k])
+            .collect();
+        let lags = 200.min(res.len().saturating_sub(2));
+        let acf = stats::autocorrelation(&res, lags);
+        let ext: Vec<f64> = (tr.split..tr.t.len())
+            .map(|k| s.extended[k] - s.measured[k])
+            .collect();
+        let acf_e = stats::autocorrelation(&ext, lags);
+        acf_series.push((
+            s.motor,
+            palette[i % palette.len()],
+            acf.into_iter()
+                .enumerate()
+                .map(|(k, v)| (k as f64, v))
+                .collect::<Vec<_>>(),
+            acf_e
+                .into_iter()
+                .enumerate()
+                .map(|(k, v)| (k as f64, v))
+                .collect::<Vec<_>>(),
+        ));
+    }
+    if let Some((_, _, nominal, extended)) = acf_series.first() {
+        // Mean over motors, nominal vs extended.
+        let len = nominal.len().min(extended.len());
+        let mean = |extended: bool| -> Vec<(f64, f64)> {
+            (0..len)
+                .map(|k| {
+                    let v: Vec<f64> = acf_series
+                        .iter()
+                        .filter_map(|s| if extended { &s.3 } else { &s.2 }.get(k).map(|p| p.1))
+                        .collect();
+                    (k as f64, stats::mean(&v))
+                })
+                .collect()
+        };
+        let svg = plot(
+            "held-out residual autocorrelation (mean over motors)",
+            "lag (samples)",
+            "autocorrelation",
+            &[
+                Series {
+                    name: "nominal",
+                    color: "#1f77b4",
+                    points: mean(false),
+                    dots: false,
+                },
+                Series {
+                    name: a.cause.id(),
+                    color: "#d62728",
+                    points: mean(true),
+                    dots: false,
+                },
+            ],
+            None,
+        );
+        let _ = writeln!(md, "![residual autocorrelation](residual-acf.svg)\n");
+        files.push(("residual-acf.svg".into(), svg));
+    }
+    files.insert(0, ("report.md".into(), md));
+    files
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ticks_are_round_and_cover_the_range() {
+        assert_eq!(ticks(0.0, 10.0), [0.0, 2.0, 4.0, 6.0, 8.0, 10.0]);
+        let t = ticks(21.3, 24.9);
+        assert!(t.first().is_some_and(|v| *v >= 21.3) && t.len() >= 3);
+        assert!(plot("a<b", "x", "y", &[], Some(1.0)).contains("a&lt;b"));
+    }
+}

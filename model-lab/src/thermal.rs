@@ -1,0 +1,447 @@
+//! The thermal channel: the nominal one-node model, its extensions, simulation and fitting.
+//!
+//! Per motor the nominal model is C·dT/dt = P0 + R·I² − (T − T_amb)/R_th. From temperature and
+//! current alone only three combinations are identifiable, so it is fitted in the reduced form
+//!
+//! ```text
+//! τ·dT/dt = T_idle + k·I² − T      τ = R_th·C,  k = R·R_th (K/A²),  T_idle = T_amb + P0·R_th
+//! ```
+//!
+//! integrated exactly over each sample interval with the current held (zero-order hold).
+//! Predictions are open-loop: from the segment's initial temperature (a fitted parameter) and the
+//! measured currents only, never from past temperature readings, so an error in the dynamics
+//! accumulates and shows. The register reads round(T); the fit compares the continuous
+//! prediction with the rounded reading (the rounding is zero-mean noise of variance q²/12).
+
+use crate::catalog::Effect;
+use crate::fit::{levenberg_marquardt, Fitted, Problem};
+use nalgebra::{DMatrix, DVector};
+
+/// Reference temperature of the winding resistance (k is the gain at this temperature), °C.
+pub const TEMPCO_REFERENCE_C: f64 = 25.0;
+
+/// Inputs and readings of the motors the thermal channel can use.
+#[derive(Debug, Clone)]
+pub struct ThermalData {
+    /// Sample times, s.
+    pub t: Vec<f64>,
+    /// Segments as `(start, end)` sample indices.
+    pub segments: Vec<(usize, usize)>,
+    /// First held-out sample.
+    pub split: usize,
+    /// Dataset motor index of each thermal motor.
+    pub motors: Vec<usize>,
+    /// Current, A, with missing samples held from the previous one.
+    pub current: Vec<Vec<f64>>,
+    /// Temperature readings, °C, NaN where missing or rejected.
+    pub measured: Vec<Vec<f64>>,
+    /// Neighbours on the chain, as thermal motor indices.
+    pub neighbours: Vec<Vec<usize>>,
+    /// Valid reading indices in the fitting part.
+    pub fit_idx: Vec<Vec<usize>>,
+    /// Valid reading indices in the held-out part.
+    pub held_idx: Vec<Vec<usize>>,
+    /// Segments that start in the fitting part (their initial temperatures are fitted).
+    pub fit_segments: usize,
+    /// Initial temperature of each motor in each segment, from the first readings (used for
+    /// segments that start in the held-out part).
+    pub data_init: Vec<Vec<f64>>,
+}
+
+/// Parameters of a thermal model, decoded.
+#[derive(Debug, Clone)]
+pub struct ThermalParams {
+    /// The extension.
+    pub effect: Effect,
+    /// The extension's parameter, in the catalog's unit (NaN for none).
+    pub extension: f64,
+    /// Per motor: time constant τ, s.
+    pub tau_s: Vec<f64>,
+    /// Per motor: copper-loss gain k = R·R_th, K/A².
+    pub gain_k_per_a2: Vec<f64>,
+    /// Per motor: idle equilibrium T_amb + P0·R_th, °C.
+    pub idle_c: Vec<f64>,
+}
+
+/// One thermal model (nominal or extended) over one data set.
+pub struct ThermalModel<'a> {
+    data: &'a ThermalData,
+    effect: Effect,
+    /// Fit up to this sample (exclusive).
+    until: usize,
+}
+
+const BOUNDS_LN_TAU: (f64, f64) = (0.0, 14.0); // 1 s .. 1.2e6 s
+
+fn ext_count(effect: Effect) -> usize {
+    usize::from(effect != Effect::None)
+}
+
+/// Admissible range of the extension parameter in its fitted form. Sensor lag is fitted as
+/// ln τ_s; the others in their catalog units.
+fn ext_bounds(effect: Effect) -> (f64, f64) {
+    match effect {
+        Effect::SensorLag => (0.0, 10.0),
+        Effect::NeighborCoupling => (-0.5, 5.0),
+        Effect::CopperTempco => (-3.0, 3.0),
+        Effect::AmbientDrift => (-50.0, 50.0),
+        Effect::CurrentOffset => (-5.0, 5.0),
+        Effect::None | Effect::SupplySag => (0.0, 0.0),
+    }
+}
+
+/// Starting values of the extension parameter (fitted form) tried before refining.
+fn ext_starts(effect: Effect) -> &'static [f64] {
+    match effect {
+        // ln 3 s .. ln 600 s.
+        Effect::SensorLag => &[1.1, 3.0, 4.1, 5.3, 6.4],
+        Effect::NeighborCoupling => &[0.0, 0.3, 1.0],
+        Effect::CopperTempco => &[0.0, 0.5, -0.5],
+        Effect::AmbientDrift => &[0.0],
+        Effect::CurrentOffset => &[0.0, 0.3, -0.3],
+        Effect::None | Effect::SupplySag => &[0.0],
+    }
+}
+
+/// ẋ = a − λx over `dt`, exactly.
+#[inline]
+fn lin_step(x: f64, a: f64, lambda: f64, dt: f64) -> f64 {
+    let z = lambda * dt;
+    if z.abs() < 1e-9 {
+        x + (a - lambda * x) * dt
+    } else {
+        let xinf = a / lambda;
+        xinf + (x - xinf) * (-z).exp()
+    }
+}
+
+impl ThermalData {
+    /// Number of thermal motors.
+    pub fn n(&self) -> usize {
+        self.motors.len()
+    }
+
+    /// Parameters per motor block: ln τ, k, T_idle and one initial temperature per fitted segment.
+    pub fn block_len(&self) -> usize {
+        3 + self.fit_segments
+    }
+
+    /// Readings in the fitting part, all motors.
+    pub fn fit_count(&self) -> usize {
+        self.fit_idx.iter().map(Vec::len).sum()
+    }
+}
+
+impl<'a> ThermalModel<'a> {
+    /// A model of `effect` over `data`, fitted on the fitting part.
+    pub fn new(data: &'a ThermalData, effect: Effect) -> Self {
+        ThermalModel {
+            data,
+            effect,
+            until: data.split,
+        }
+    }
+
+    fn block<'p>(&self, p: &'p [f64], m: usize) -> &'p [f64] {
+        let s = ext_count(self.effect) + m * self.data.block_len();
+        &p[s..s + self.data.block_len()]
+    }
+
+    /// Simulates the predicted reading of every motor for samples `0..until` into `y`.
+    pub fn simulate(&self, p: &[f64], until: usize, y: &mut [Vec<f64>]) {
+        if self.effect == Effect::NeighborCoupling {
+            self.simulate_coupled(p, until, y);
+        } else {
+            for (m, ym) in y.iter_mut().enumerate() {
+                self.simulate_motor(p, m, until, ym);
+            }
+        }
+    }
+
+    fn initial(&self, blk: &[f64], m: usize, si: usize) -> f64 {
+        if si < self.data.fit_segments {
+            blk[3 + si]
+        } else {
+            self.data.data_init[m][si]
+        }
+    }
+
+    /// One motor, for separable models.
+    fn simulate_motor(&self, p: &[f64], m: usize, until: usize, y: &mut Vec<f64>) {
+        let d = self.data;
+        y.clear();
+        y.resize(until, f64::NAN);
+        let ext = if ext_count(self.effect) > 0 {
+            p[0]
+        } else {
+            0.0
+        };
+        let blk = self.block(p, m);
+        let tau = blk[0].exp();
+        let (k, tb) = (blk[1], blk[2]);
+        let lag = (self.effect == Effect::SensorLag).then(|| ext.exp());
+        let t0 = d.t.first().copied().unwrap_or(0.0);
+        let cur = &d.current[m];
+        for (si, &(s, e)) in d.segments.iter().enumerate() {
+            if s >= until {
+                break;
+            }
+            let init = self.initial(blk, m, si);
+            let (mut w, mut sens) = (init, init);
+            y[s] = sens;
+            for kk in s + 1..e.min(until) {
+                let dt = d.t[kk] - d.t[kk - 1];
+                let i = cur[kk - 1];
+                let (a, lambda) = match self.effect {
+                    Effect::CopperTempco => {
+                        let alpha = ext / 100.0;
+                        let q = k * i * i;
+                        (tb + q * (1.0 - alpha * TEMPCO_REFERENCE_C), 1.0 - alpha * q)
+                    }
+                    Effect::AmbientDrift => {
+                        let tm = 0.5 * (d.t[kk] + d.t[kk - 1]) - t0;
+                        (tb + ext * tm / 3600.0 + k * i * i, 1.0)
+                    }
+                    Effect::CurrentOffset => {
+                        let it = i - ext;
+                        (tb + k * it * it, 1.0)
+                    }
+                    _ => (tb + k * i * i, 1.0),
+                };
+                let w1 = lin_step(w, a / tau, lambda / tau, dt);
+                sens = match lag {
+                    // The sensor node follows the winding's average over the step.
+                    Some(ts) => {
+                        let e = (-dt / ts).exp();
+                        sens * e + (1.0 - e) * 0.5 * (w + w1)
+                    }
+                    None => w1,
+                };
+                w = w1;
+                y[kk] = sens;
+            }
+        }
+    }
+
+    /// All motors at once: heat flows to each neighbour in proportion to the temperature
+    /// difference (κ = G·R_th), the neighbours' temperatures held over a step.
+    fn simulate_coupled(&self, p: &[f64], until: usize, y: &mut [Vec<f64>]) {
+        let d = self.data;
+        let n = d.n();
+        let kappa = p[0];
+        for ym in y.iter_mut() {
+            ym.clear();
+            ym.resize(until, f64::NAN);
+        }
+        let mut w = vec![0.0; n];
+        let mut w1 = vec![0.0; n];
+        for (si, &(s, e)) in d.segments.iter().enumerate() {
+            if s >= until {
+                break;
+            }
+            for m in 0..n {
+                w[m] = self.initial(self.block(p, m), m, si);
+                y[m][s] = w[m];
+            }
+            for kk in s + 1..e.min(until) {
+                let dt = d.t[kk] - d.t[kk - 1];
+                for m in 0..n {
+                    let blk = self.block(p, m);
+                    let tau = blk[0].exp();
+                    let i = d.current[m][kk - 1];
+                    let nb = &d.neighbours[m];
+                    let nb_sum: f64 = nb.iter().map(|&j| w[j]).sum();
+                    let a = blk[2] + blk[1] * i * i + kappa * nb_sum;
+                    let lambda = 1.0 + kappa * nb.len() as f64;
+                    w1[m] = lin_step(w[m], a / tau, lambda / tau, dt);
+                }
+                std::mem::swap(&mut w, &mut w1);
+                for (ym, wm) in y.iter_mut().zip(&w) {
+                    ym[kk] = *wm;
+                }
+            }
+        }
+    }
+
+    /// Number of parameters.
+    pub fn n_params(&self) -> usize {
+        ext_count(self.effect) + self.data.n() * self.data.block_len()
+    }
+
+    /// Decodes a parameter vector.
+    pub fn decode(&self, p: &[f64]) -> ThermalParams {
+        let n = self.data.n();
+        let ext = match self.effect {
+            Effect::None => f64::NAN,
+            Effect::SensorLag => p[0].exp(),
+            _ => p[0],
+        };
+        ThermalParams {
+            effect: self.effect,
+            extension: ext,
+            tau_s: (0..n).map(|m| self.block(p, m)[0].exp()).collect(),
+            gain_k_per_a2: (0..n).map(|m| self.block(p, m)[1]).collect(),
+            idle_c: (0..n).map(|m| self.block(p, m)[2]).collect(),
+        }
+    }
+
+    /// Predicted readings over the whole record.
+    pub fn predict(&self, p: &[f64]) -> Vec<Vec<f64>> {
+        let mut y = vec![Vec::new(); self.data.n()];
+        self.simulate(p, self.data.t.len(), &mut y);
+        y
+    }
+}
+
+impl Problem for ThermalModel<'_> {
+    fn n_params(&self) -> usize {
+        ThermalModel::n_params(self)
+    }
+
+    fn n_blocks(&self) -> usize {
+        self.data.n()
+    }
+
+    fn param_block(&self, j: usize) -> Option<usize> {
+        let e = ext_count(self.effect);
+        if j < e || self.effect == Effect::NeighborCoupling {
+            None
+        } else {
+            Some((j - e) / self.data.block_len())
+        }
+    }
+
+    fn residuals(&self, p: &[f64], out: &mut [Vec<f64>]) {
+        let mut y = vec![Vec::new(); self.data.n()];
+        self.simulate(p, self.until, &mut y);
+        for (m, o) in out.iter_mut().enumerate() {
+            o.clear();
+            o.extend(
+                self.data.fit_idx[m]
+                    .iter()
+                    .map(|&k| y[m][k] - self.data.measured[m][k]),
+            );
+        }
+    }
+
+    fn block_residuals(&self, p: &[f64], b: usize, out: &mut Vec<f64>) {
+        let mut y = Vec::new();
+        self.simulate_motor(p, b, self.until, &mut y);
+        out.clear();
+        out.extend(
+            self.data.fit_idx[b]
+                .iter()
+                .map(|&k| y[k] - self.data.measured[b][k]),
+        );
+    }
+
+    fn clamp(&self, p: &mut [f64]) {
+        let e = ext_count(self.effect);
+        if e > 0 {
+            let (lo, hi) = ext_bounds(self.effect);
+            p[0] = p[0].clamp(lo, hi);
+        }
+        for m in 0..self.data.n() {
+            let s = e + m * self.data.block_len();
+            p[s] = p[s].clamp(BOUNDS_LN_TAU.0, BOUNDS_LN_TAU.1);
+        }
+    }
+}
+
+/// Time constants tried to start the nominal fit (the model is linear in everything else).
+const TAU_GRID_S: [f64; 12] = [
+    20.0, 45.0, 90.0, 180.0, 350.0, 600.0, 1000.0, 1600.0, 2500.0, 4000.0, 7000.0, 15000.0,
+];
+
+/// A fitted thermal model.
+#[derive(Debug, Clone)]
+pub struct ThermalFit {
+    /// The extension.
+    pub effect: Effect,
+    /// Fitted parameter vector.
+    pub p: Vec<f64>,
+    /// Sum of squared residuals on the fitting part.
+    pub sse: f64,
+    /// LM iterations used.
+    pub iterations: usize,
+}
+
+/// Fits the nominal model: for each motor and each τ of a grid, the best linear fit of k, T_idle
+/// and the initial temperatures; the best τ then starts a joint Levenberg–Marquardt refinement.
+pub fn fit_nominal(data: &ThermalData) -> ThermalFit {
+    let model = ThermalModel::new(data, Effect::None);
+    let bl = data.block_len();
+    let mut p = vec![0.0; model.n_params()];
+    for m in 0..data.n() {
+        let idx = &data.fit_idx[m];
+        let mut best = (f64::INFINITY, vec![0.0; bl]);
+        for &tau in &TAU_GRID_S {
+            // Unit responses: the prediction is linear in (k, T_idle, inits) for a fixed τ.
+            let mut cols = Vec::with_capacity(bl - 1);
+            for j in 1..bl {
+                let mut q = vec![0.0; model.n_params()];
+                q[m * bl] = tau.ln();
+                q[m * bl + j] = 1.0;
+                let mut y = Vec::new();
+                model.simulate_motor(&q, m, data.split, &mut y);
+                cols.push(y);
+            }
+            let a = DMatrix::from_fn(idx.len(), bl - 1, |r, c| cols[c][idx[r]]);
+            let b = DVector::from_iterator(idx.len(), idx.iter().map(|&k| data.measured[m][k]));
+            // Least squares through the normal equations with a small ridge (a segment without
+            // readings leaves its initial temperature undetermined).
+            let mut ata = a.transpose() * &a;
+            for i in 0..ata.nrows() {
+                ata[(i, i)] += 1e-9 * (1.0 + ata[(i, i)]);
+            }
+            let atb = a.transpose() * &b;
+            let Some(ch) = ata.cholesky() else { continue };
+            let x = ch.solve(&atb);
+            let r = &a * &x - &b;
+            let s = r.norm_squared();
+            if s < best.0 {
+                let mut blk = vec![tau.ln()];
+                blk.extend(x.iter());
+                best = (s, blk);
+            }
+        }
+        p[m * bl..(m + 1) * bl].copy_from_slice(&best.1);
+    }
+    let f = levenberg_marquardt(&model, &p, 60);
+    ThermalFit {
+        effect: Effect::None,
+        p: f.p,
+        sse: f.sse,
+        iterations: f.iterations,
+    }
+}
+
+/// Fits an extension, starting from the nominal fit and a few values of the extension's
+/// parameter (a short fit each), then refining the best start.
+pub fn fit_extension(data: &ThermalData, nominal: &ThermalFit, effect: Effect) -> ThermalFit {
+    let model = ThermalModel::new(data, effect);
+    let mut best: Option<Fitted> = None;
+    for &start in ext_starts(effect) {
+        let mut p = vec![start];
+        p.extend_from_slice(&nominal.p);
+        let f = levenberg_marquardt(&model, &p, 8);
+        if best.as_ref().is_none_or(|b| f.sse < b.sse) {
+            best = Some(f);
+        }
+    }
+    let start = best.map_or_else(
+        || {
+            let mut p = vec![0.0];
+            p.extend_from_slice(&nominal.p);
+            p
+        },
+        |b| b.p,
+    );
+    let f = levenberg_marquardt(&model, &start, 60);
+    ThermalFit {
+        effect,
+        p: f.p,
+        sse: f.sse,
+        iterations: f.iterations,
+    }
+}
