@@ -5,6 +5,7 @@
 //! This is the only crate of the workspace that depends on zenoh; others that need a session
 //! (the `nori` CLI's fleet tools, tests) use the re-export [`zenoh`].
 
+pub mod collector;
 pub mod config;
 pub mod gate;
 pub mod keys;

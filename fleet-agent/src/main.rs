@@ -125,10 +125,8 @@ fn main() -> Result<()> {
         .declare_subscriber(robot_key(&id, "actions"))
         .wait()
         .map_err(z)?;
-    let status_queries = session
-        .declare_queryable(robot_key(&id, "status"))
-        .wait()
-        .map_err(z)?;
+    let status_key = robot_key(&id, "status");
+    let status_queries = session.declare_queryable(&status_key).wait().map_err(z)?;
     let _alive = session
         .liveliness()
         .declare_token(robot_key(&id, "alive"))
@@ -237,9 +235,11 @@ fn main() -> Result<()> {
                 &layout,
                 now,
             );
-            let _ = query
-                .reply(query.key_expr().clone(), status.to_string())
-                .wait();
+            // Answered on the robot's own key: a fleet asking `nori/*/status` learns from the
+            // key which robot answered (a reply on the query's wildcard would not be valid).
+            if let Err(e) = query.reply(&status_key, status.to_string()).wait() {
+                tracing::debug!("status reply: {e}");
+            }
         }
         std::thread::sleep(POLL);
     }

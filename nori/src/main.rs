@@ -1,10 +1,11 @@
 //! `nori`: the operator CLI of the Nori A3 stack.
 //!
 //! `nori up` runs the stack on the simulated robot; `nori sim serve` serves the simulated buses;
-//! `nori state` / `nori goal` look at and move the robot; `nori bench` measures; `nori model` holds the simulation against measured data.
+//! `nori state` / `nori goal` look at and move the robot; `nori fleet` shows the fleet; `nori bench` measures; `nori model` holds the simulation against measured data.
 
 mod bench;
 mod bench_plane;
+mod fleet;
 mod model;
 mod plane_tools;
 mod policy_server;
@@ -39,6 +40,8 @@ enum Command {
     Reenable(plane_tools::ReenableArgs),
     /// The reference inference server: a scripted policy for every robot on the fleet.
     PolicyServer(policy_server::PolicyServerArgs),
+    /// The fleet side: live dashboard and Prometheus /metrics of every robot on zenoh.
+    Fleet(fleet::FleetArgs),
     /// A zenoh router for a site or a test fleet (TLS and access control from its JSON5 file).
     Router(router::RouterArgs),
     /// Benchmarks (figures next to their baseline).
@@ -68,6 +71,7 @@ fn main() -> Result<()> {
         Command::Reenable(a) => plane_tools::reenable(a),
         Command::PolicyServer(a) => policy_server::run(a),
         Command::Router(a) => router::run(a),
+        Command::Fleet(a) => fleet::run(a),
         Command::Bench(b) => bench::run(b),
         Command::Model(m) => model::run(m),
     }

@@ -105,7 +105,10 @@ fn only_the_inference_identity_moves_the_robot() {
             &format!("robot-id = \"{ROBOT}\""),
         )
         .replace("mode = \"peer\"", "mode = \"client\"")
-        .replace("[\"tcp/127.0.0.1:7447\"]", &format!("[\"{endpoint}\"]"))
+        .replace(
+            "[\"tcp/127.0.0.1:7447\", \"tcp/127.0.0.1:7448\"]",
+            &format!("[\"{endpoint}\"]"),
+        )
         .replace(
             "# config-file = \"/etc/nori/zenoh-robot.json5\"",
             &format!(

@@ -1,0 +1,202 @@
+//! `nori fleet`: the fleet side. Subscribes to every robot's telemetry, events, layout and
+//! liveliness under `nori/**`, asks each robot's status (the gate's counters) every second, and
+//! serves a live dashboard (`/`, `/api/fleet`) and Prometheus metrics (`/metrics`) over HTTP.
+//! What it knows is `fleet_agent::collector::Collector`; this file only wires zenoh and HTTP.
+
+use anyhow::{anyhow, Context, Result};
+use clap::Args;
+use fleet_agent::collector::Collector;
+use fleet_agent::config::ZenohConfig;
+use fleet_agent::keys::all_robots;
+use fleet_agent::zenoh::query::{ConsolidationMode, QueryTarget};
+use fleet_agent::zenoh::sample::{Sample, SampleKind};
+use fleet_agent::zenoh::Wait;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+const DASHBOARD: &str = include_str!("fleet.html");
+
+/// Where `nori fleet` listens when told nothing: the robots' agents connect here by default.
+pub const DEFAULT_LISTEN: &str = "tcp/127.0.0.1:7448";
+
+/// Options of `nori fleet`.
+#[derive(Args, Debug)]
+pub struct FleetArgs {
+    /// zenoh endpoints to listen on (default: tcp/127.0.0.1:7448, where robots' agents connect,
+    /// unless it connects somewhere itself).
+    #[arg(long)]
+    pub listen: Vec<String>,
+    /// zenoh endpoints to connect to (a router, in a real fleet).
+    #[arg(long)]
+    pub connect: Vec<String>,
+    /// A zenoh JSON5 configuration (the dashboard's TLS identity, made by
+    /// deploy/zenoh/make-dev-ca.sh); it is then a client of the router its file names.
+    #[arg(long, conflicts_with_all = ["listen", "connect"])]
+    pub zenoh_config: Option<PathBuf>,
+    /// HTTP address of the dashboard and /metrics.
+    #[arg(long, default_value = "127.0.0.1:9747")]
+    pub http: String,
+    /// How often each robot's status (action counters) is asked for, ms.
+    #[arg(long, default_value_t = 1000)]
+    pub status_every_ms: u64,
+    /// Seconds of temperature and current history plotted per robot.
+    #[arg(long, default_value_t = 60)]
+    pub history_s: u64,
+    /// Stop after this many seconds.
+    #[arg(long)]
+    pub run_for: Option<f64>,
+}
+
+fn wall_ms() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
+/// The collector, shared by zenoh's callbacks and the HTTP thread. A panic while it was held
+/// leaves it usable (it holds plain data), so a poisoned lock is taken over, not propagated.
+fn lock(c: &Mutex<Collector>) -> MutexGuard<'_, Collector> {
+    c.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// Runs the collector and the dashboard until Ctrl-C (or `--run-for`).
+pub fn run(args: &FleetArgs) -> Result<()> {
+    telemetry::process::init_logging();
+    let stop = telemetry::process::stop_flag()?;
+    let session = match &args.zenoh_config {
+        Some(file) => fleet_agent::net::open_file(file),
+        None => fleet_agent::net::open(&ZenohConfig {
+            mode: "peer".into(),
+            listen: if args.listen.is_empty() && args.connect.is_empty() {
+                vec![DEFAULT_LISTEN.into()]
+            } else {
+                args.listen.clone()
+            },
+            connect: args.connect.clone(),
+            config_file: None,
+        }),
+    }
+    .context("opening the fleet collector's zenoh session")?;
+    let z = |e: fleet_agent::zenoh::Error| anyhow!("{e}");
+
+    // Two samples a second for the plots.
+    let collector = Arc::new(Mutex::new(Collector::new(
+        (args.history_s * 2) as usize,
+        500,
+    )));
+    type Ingest =
+        fn(&mut Collector, &str, &[u8], u64) -> Result<(), fleet_agent::collector::IngestError>;
+    let mut subscribers = Vec::new();
+    for (leaf, ingest) in [
+        ("state", Collector::state as Ingest),
+        ("layout", Collector::layout),
+        ("events", Collector::event),
+    ] {
+        let c = collector.clone();
+        subscribers.push(
+            session
+                .declare_subscriber(all_robots(leaf))
+                .callback(move |s: Sample| {
+                    let bytes = s.payload().to_bytes();
+                    if let Err(e) = ingest(&mut lock(&c), s.key_expr().as_str(), &bytes, wall_ms())
+                    {
+                        tracing::debug!("{e}");
+                    }
+                })
+                .wait()
+                .map_err(z)?,
+        );
+    }
+    let c = collector.clone();
+    let _alive = session
+        .liveliness()
+        .declare_subscriber(all_robots("alive"))
+        .history(true)
+        .callback(move |s: Sample| {
+            let alive = s.kind() == SampleKind::Put;
+            let _ = lock(&c).alive(s.key_expr().as_str(), alive, wall_ms());
+        })
+        .wait()
+        .map_err(z)?;
+
+    let server = tiny_http::Server::http(&args.http)
+        .map_err(|e| anyhow!("serving HTTP on {}: {e}", args.http))?;
+    tracing::info!(http = %args.http, zid = %session.zid(),
+        "fleet dashboard on http://{}/ , metrics on /metrics", args.http);
+    let http = {
+        let (c, stop) = (collector.clone(), stop.clone());
+        std::thread::Builder::new()
+            .name("http".into())
+            .spawn(move || serve_http(&server, &c, &stop))
+            .context("starting the HTTP thread")?
+    };
+
+    let started = Instant::now();
+    let mut next_status = Instant::now();
+    while !stop.load(Ordering::Relaxed)
+        && args
+            .run_for
+            .is_none_or(|s| started.elapsed().as_secs_f64() < s)
+    {
+        if Instant::now() >= next_status {
+            next_status += Duration::from_millis(args.status_every_ms.max(100));
+            let c = collector.clone();
+            // Every robot answers for itself: all queryables, no consolidation.
+            let asked = session
+                .get(all_robots("status"))
+                .target(QueryTarget::All)
+                .consolidation(ConsolidationMode::None)
+                .timeout(Duration::from_millis(args.status_every_ms.max(100)))
+                .callback(move |reply| {
+                    if let Ok(s) = reply.result() {
+                        let bytes = s.payload().to_bytes();
+                        let _ = lock(&c).status(s.key_expr().as_str(), &bytes, wall_ms());
+                    }
+                })
+                .wait();
+            if let Err(e) = asked {
+                tracing::warn!("asking the robots' status: {e}");
+            }
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    stop.store(true, Ordering::Relaxed);
+    let _ = http.join();
+    Ok(())
+}
+
+fn serve_http(server: &tiny_http::Server, collector: &Mutex<Collector>, stop: &AtomicBool) {
+    while !stop.load(Ordering::Relaxed) {
+        let Ok(Some(request)) = server.recv_timeout(Duration::from_millis(100)) else {
+            continue;
+        };
+        let path = request.url().split('?').next().unwrap_or("/").to_string();
+        let (body, kind, code) = match path.as_str() {
+            "/" | "/index.html" => (DASHBOARD.to_string(), "text/html; charset=utf-8", 200),
+            "/api/fleet" => (
+                lock(collector).snapshot(wall_ms()).to_string(),
+                "application/json",
+                200,
+            ),
+            "/metrics" => (
+                lock(collector).metrics(),
+                "application/openmetrics-text; version=1.0.0; charset=utf-8",
+                200,
+            ),
+            _ => (
+                format!("no page {path}\n"),
+                "text/plain; charset=utf-8",
+                404,
+            ),
+        };
+        let mut response = tiny_http::Response::from_string(body).with_status_code(code);
+        if let Ok(header) = format!("Content-Type: {kind}").parse::<tiny_http::Header>() {
+            response = response.with_header(header);
+        }
+        if let Err(e) = request.respond(response) {
+            tracing::debug!("HTTP client went away: {e}");
+        }
+    }
+}
