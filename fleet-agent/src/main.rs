@@ -203,11 +203,15 @@ fn main() -> Result<()> {
                 counters.events_sent += 1;
             }
         }
+        let mut new_plan = false;
         while let Ok(Some(sample)) = actions.try_recv() {
             let bytes = sample.payload().to_bytes();
             let now = monotonic_ns();
             match gate.check(&bytes, now, &ranges) {
-                Ok(chunk) => scheduler.insert(&chunk, now),
+                Ok(chunk) => {
+                    scheduler.insert(&chunk, now);
+                    new_plan = true;
+                }
                 Err(r) => {
                     counters.last_rejection = r.to_string();
                     if warn_every.due(now) {
@@ -216,7 +220,9 @@ fn main() -> Result<()> {
                 }
             }
         }
-        if forward_every.due(now) {
+        // A new plan goes out at once, not at the next forwarding tick (up to 10 ms later).
+        let due = forward_every.due(now);
+        if new_plan || due {
             if let Some(target) = scheduler.target(now) {
                 goal_seq += 1;
                 let frame = outbound::goal_frame(&target, layout.joint_count, goal_seq, now);

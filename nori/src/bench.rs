@@ -21,6 +21,14 @@ pub enum Bench {
     SimSpeed(SimSpeedArgs),
     /// Driver → supervisor latency: iceoryx2 against a Unix socket + postcard baseline.
     StatePlane(crate::bench_plane::StatePlaneArgs),
+    /// A policy's action on zenoh to the goal on the simulated wire, through the fleet agent,
+    /// against a goal published straight on the state plane.
+    ActionLatency(crate::bench_fleet::ActionLatencyArgs),
+    /// Robots streaming telemetry that one fleet collector ingests with no loss.
+    FleetIngest(crate::bench_fleet::FleetIngestArgs),
+    /// The publishing robots of `fleet-ingest` (internal).
+    #[command(hide = true)]
+    FleetPublish(crate::bench_fleet::FleetPublishArgs),
     /// The reader process of `state-plane` (internal).
     #[command(hide = true)]
     PlanePeer(crate::bench_plane::PeerArgs),
@@ -64,6 +72,9 @@ pub fn run(bench: &Bench) -> Result<()> {
         Bench::SimSpeed(a) => sim_speed(a),
         Bench::StatePlane(a) => crate::bench_plane::run(a),
         Bench::PlanePeer(a) => crate::bench_plane::peer(a),
+        Bench::ActionLatency(a) => crate::bench_fleet::action_latency(a),
+        Bench::FleetIngest(a) => crate::bench_fleet::fleet_ingest(a),
+        Bench::FleetPublish(a) => crate::bench_fleet::fleet_publish(a),
     }
 }
 

@@ -4,6 +4,7 @@
 //! `nori state` / `nori goal` look at and move the robot; `nori fleet` shows the fleet; `nori bench` measures; `nori model` holds the simulation against measured data.
 
 mod bench;
+mod bench_fleet;
 mod bench_plane;
 mod fleet;
 mod model;

@@ -1,13 +1,14 @@
 //! `nori policy-server`: the reference off-board inference server. It serves every robot that
 //! publishes observations on `nori/*/observation`, answering each with an action chunk from a
-//! scripted policy (`fleet_agent::policy::WavePolicy`) at most every `--chunk-every-ms`. A Python
+//! scripted wave or a replayed trajectory (`fleet_agent::policy::ScriptedPolicy`) at most every
+//! `--chunk-every-ms`. A Python
 //! VLA/ACT server speaks the same schema (docs/fleet-schema.md).
 
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use fleet_agent::config::ZenohConfig;
 use fleet_agent::keys::{all_robots, robot_key, robot_of};
-use fleet_agent::policy::WavePolicy;
+use fleet_agent::policy::{Motion, ScriptedPolicy, Trajectory};
 use fleet_agent::schema::{decode, encode, LayoutMsg, ObservationMsg};
 use fleet_agent::zenoh::qos::{CongestionControl, Priority};
 use fleet_agent::zenoh::Wait;
@@ -42,6 +43,10 @@ pub struct PolicyServerArgs {
     /// Period, s.
     #[arg(long, default_value_t = 4.0)]
     pub period_s: f32,
+    /// Replay this trajectory instead of the wave: a CSV `t_s,<joint>,<joint>,...` (rad), looped
+    /// on each robot's clock.
+    #[arg(long, conflicts_with_all = ["joints", "centre", "amplitude", "period_s"])]
+    pub replay: Option<PathBuf>,
     /// Steps per chunk.
     #[arg(long, default_value_t = 25)]
     pub steps: usize,
@@ -68,11 +73,21 @@ struct Robot {
 pub fn run(args: &PolicyServerArgs) -> Result<()> {
     telemetry::process::init_logging();
     let stop = telemetry::process::stop_flag()?;
-    let policy = WavePolicy {
-        joints: args.joints.clone(),
-        centre: args.centre,
-        amplitude: args.amplitude,
-        period_s: args.period_s,
+    let motion = match &args.replay {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("reading {}", path.display()))?;
+            Motion::Replay(Trajectory::parse(&text).with_context(|| format!("{}", path.display()))?)
+        }
+        None => Motion::Wave {
+            joints: args.joints.clone(),
+            centre: args.centre,
+            amplitude: args.amplitude,
+            period_s: args.period_s,
+        },
+    };
+    let policy = ScriptedPolicy {
+        motion,
         steps: args.steps,
         step_ms: args.step_ms,
     };
@@ -99,7 +114,7 @@ pub fn run(args: &PolicyServerArgs) -> Result<()> {
         .declare_subscriber(all_robots("layout"))
         .wait()
         .map_err(z)?;
-    tracing::info!(listen = ?args.listen, joints = ?args.joints, "serving a scripted wave to every robot on {}", all_robots("observation"));
+    tracing::info!(listen = ?args.listen, replay = ?args.replay, joints = ?args.joints, "serving every robot on {}", all_robots("observation"));
     let mut robots: BTreeMap<String, Robot> = BTreeMap::new();
     let every = Duration::from_millis(args.chunk_every_ms);
     let started = Instant::now();

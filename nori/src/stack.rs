@@ -62,6 +62,16 @@ impl Managed {
         Ok(())
     }
 
+    /// Its name, for messages.
+    pub fn name(&self) -> &'static str {
+        self.name
+    }
+
+    /// Its process id while it runs.
+    pub fn pid(&self) -> Option<u32> {
+        self.child.as_ref().map(Child::id)
+    }
+
     /// Starts it.
     pub fn start(&mut self) -> Result<()> {
         let child = self

@@ -185,3 +185,17 @@ fn the_processes_notify_readiness_and_keep_the_watchdog_fed() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn the_fleet_router_configurations_load() {
+    for file in ["site-router.json5", "cloud-router.json5"] {
+        let path = deploy().join("zenoh").join(file);
+        let config = fleet_agent::zenoh::Config::from_file(&path)
+            .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        let acl = config.get_json("access_control").unwrap();
+        assert!(
+            acl.contains("\"default_permission\":\"deny\""),
+            "{file}: {acl}"
+        );
+    }
+}

@@ -11,7 +11,7 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use fleet_agent::keys::robot_key;
-use fleet_agent::policy::WavePolicy;
+use fleet_agent::policy::Motion;
 use fleet_agent::schema::{decode, encode, ActionChunk, StateMsg, SCHEMA_VERSION};
 use fleet_agent::zenoh::{self, Wait};
 use nori_tests::{binary, check_left_arm_report, free_endpoint, scratch, wait_for, ArmStack, Proc};
@@ -75,14 +75,13 @@ fn policy_actions_reach_the_servos_of_several_robots_and_a_robot_without_policy_
     let _turn = serial();
     let endpoint = free_endpoint();
     let dir = scratch("policy");
-    let wave = WavePolicy {
+    let wave = Motion::Wave {
         joints: vec!["left_elbow".into()],
         centre: -0.9,
         amplitude: 0.35,
         period_s: 2.0,
-        steps: 25,
-        step_ms: 20,
     };
+    let wave_at = |t_ns: u64| wave.target("left_elbow", t_ns).unwrap();
     let mut server = Proc::spawn(
         "policy-server",
         &binary("nori"),
@@ -124,12 +123,12 @@ fn policy_actions_reach_the_servos_of_several_robots_and_a_robot_without_policy_
         {
             for s in std::iter::from_fn(|| next(&states)) {
                 let j = s.joints[ELBOW];
-                if !driving(&s) || (j.goal_rad - wave.at(s.timestamp_ns)).abs() > 0.3 {
+                if !driving(&s) || (j.goal_rad - wave_at(s.timestamp_ns)).abs() > 0.3 {
                     continue; // before the policy took over
                 }
                 samples += 1;
                 seen = (seen.0.min(j.goal_rad), seen.1.max(j.goal_rad));
-                worst = worst.max((j.goal_rad - wave.at(s.timestamp_ns)).abs());
+                worst = worst.max((j.goal_rad - wave_at(s.timestamp_ns)).abs());
             }
             std::thread::sleep(Duration::from_millis(5));
         }

@@ -1,0 +1,463 @@
+//! Fleet benchmarks.
+//!
+//! - `action-latency`: a policy's action chunk published on zenoh until its goal is on the
+//!   simulated wire (the servo's Goal_Position register changes), through the real fleet agent,
+//!   supervisor and bus-driver processes; interleaved with the baseline path that skips zenoh
+//!   and the agent (a goal frame published straight on the state plane). Also reports the peak
+//!   RSS of the three on-robot processes.
+//! - `fleet-ingest`: how many robots streaming telemetry one collector (`nori fleet`'s
+//!   [`Collector`]) takes with no loss, against the offered load.
+
+use crate::stack::{sibling, Managed};
+use anyhow::{anyhow, bail, Context, Result};
+use clap::Args;
+use feetech::registers as reg;
+use fleet_agent::collector::Collector;
+use fleet_agent::config::ZenohConfig;
+use fleet_agent::keys::{all_robots, robot_key};
+use fleet_agent::schema::{
+    decode, encode, ActionChunk, JointMsg, LayoutMsg, ObservationMsg, StateMsg, SCHEMA_VERSION,
+};
+use fleet_agent::zenoh::qos::CongestionControl;
+use fleet_agent::zenoh::sample::Sample;
+use fleet_agent::zenoh::Wait;
+use sim::{RobotDescription, SimBus};
+use std::process::{Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use telemetry::clock::monotonic_ns;
+use telemetry::frames::GoalFrame;
+use telemetry::plane::{self, Plane};
+
+const BUS: &str = "left_arm";
+const JOINT: &str = "left_elbow";
+const ROBOT: &str = "bench-robot";
+
+/// Options of `nori bench action-latency`.
+#[derive(Args, Debug)]
+pub struct ActionLatencyArgs {
+    /// Trials per path (zenoh + agent, and the state-plane baseline), interleaved.
+    #[arg(long, default_value_t = 100)]
+    trials: usize,
+    /// Print one JSON object.
+    #[arg(long)]
+    json: bool,
+}
+
+/// Options of `nori bench fleet-ingest`.
+#[derive(Args, Debug)]
+pub struct FleetIngestArgs {
+    /// Fleet sizes to try, in order (comma-separated).
+    #[arg(long, value_delimiter = ',', default_values_t = [10usize, 50, 100, 200])]
+    robots: Vec<usize>,
+    /// Telemetry rate of every robot, messages per second.
+    #[arg(long, default_value_t = 50.0)]
+    hz: f64,
+    /// Seconds each fleet size streams.
+    #[arg(long, default_value_t = 5.0)]
+    seconds: f64,
+    /// Print one JSON object.
+    #[arg(long)]
+    json: bool,
+}
+
+/// Options of the publishing side of `fleet-ingest` (internal).
+#[derive(Args, Debug)]
+pub struct FleetPublishArgs {
+    /// The collector's endpoint.
+    #[arg(long)]
+    connect: String,
+    #[arg(long)]
+    robots: usize,
+    #[arg(long)]
+    hz: f64,
+    #[arg(long)]
+    seconds: f64,
+}
+
+fn free_endpoint() -> Result<String> {
+    let l = std::net::TcpListener::bind("127.0.0.1:0")?;
+    Ok(format!("tcp/127.0.0.1:{}", l.local_addr()?.port()))
+}
+
+fn peer(
+    listen: Vec<String>,
+    connect: Vec<String>,
+    mode: &str,
+) -> Result<fleet_agent::zenoh::Session> {
+    fleet_agent::net::open(&ZenohConfig {
+        mode: mode.into(),
+        listen,
+        connect,
+        config_file: None,
+    })
+    .context("opening a zenoh session")
+}
+
+fn percentile(sorted: &[f64], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return f64::NAN;
+    }
+    sorted[((sorted.len() - 1) as f64 * p).round() as usize]
+}
+
+/// Peak resident set of a process, MB (VmHWM).
+fn peak_rss_mb(pid: u32) -> Option<f64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb / 1024.0)
+}
+
+/// Runs `nori bench action-latency`.
+pub fn action_latency(args: &ActionLatencyArgs) -> Result<()> {
+    let pid = std::process::id();
+    let dir = std::env::temp_dir().join(format!("nori-bench-fleet-{pid}"));
+    std::fs::create_dir_all(&dir)?;
+    let domain = format!("nori_bench_fleet_{pid}");
+    let robot = RobotDescription::nori_a3();
+    let bus = robot.bus(BUS).context("no left_arm bus")?;
+    let served = sim::pty::serve(vec![(SimBus::new(&robot, bus), dir.join(BUS))], 0.001)?;
+    let servo = served
+        .with_bus(BUS, |b| {
+            b.report().servos.iter().position(|s| s.joint == JOINT)
+        })
+        .flatten()
+        .context("no left_elbow servo")?;
+    let goal_register = || {
+        served
+            .with_bus(BUS, |b| b.servos[servo].get(reg::GOAL_POSITION))
+            .unwrap_or(i32::MIN)
+    };
+
+    let endpoint = free_endpoint()?;
+    let session = peer(vec![endpoint.clone()], vec![], "peer")?;
+    let s = |v: &str| v.to_string();
+    let mut processes = [
+        Managed::new(
+            "supervisor",
+            &sibling("supervisor")?,
+            &[
+                s("--domain"),
+                domain.clone(),
+                s("--status-every"),
+                s("0"),
+                s("--trip-file"),
+                dir.join("trips").display().to_string(),
+            ],
+        ),
+        Managed::new(
+            "bus-driver",
+            &sibling("bus-driver")?,
+            &[
+                s("--bus"),
+                s(BUS),
+                s("--device-dir"),
+                dir.display().to_string(),
+                s("--domain"),
+                domain.clone(),
+                s("--status-every"),
+                s("0"),
+            ],
+        ),
+        Managed::new(
+            "fleet-agent",
+            &sibling("fleet-agent")?,
+            &[
+                s("--domain"),
+                domain.clone(),
+                s("--robot-id"),
+                s(ROBOT),
+                s("--connect"),
+                endpoint.clone(),
+            ],
+        ),
+    ];
+    for (m, log) in processes
+        .iter_mut()
+        .zip(["supervisor.log", "driver.log", "agent.log"])
+    {
+        m.log_to(&dir.join(log))?;
+        m.start()?;
+    }
+
+    let z = |e: fleet_agent::zenoh::Error| anyhow!("{e}");
+    let observations = session
+        .declare_subscriber(robot_key(ROBOT, "observation"))
+        .wait()
+        .map_err(z)?;
+    let layouts = session
+        .declare_subscriber(robot_key(ROBOT, "layout"))
+        .wait()
+        .map_err(z)?;
+    let actions = session
+        .declare_publisher(robot_key(ROBOT, "actions"))
+        .wait()
+        .map_err(z)?;
+    let node = Plane::open(&domain, &format!("bench-fleet-{pid}"))?;
+    let goals = node.publisher(&plane::GOALS)?;
+
+    // The robot on the fleet: layout and observations arriving, every servo set up.
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let (joints, joint) = loop {
+        if Instant::now() > deadline {
+            bail!("the robot did not come up (logs in {})", dir.display());
+        }
+        if let Ok(Some(sample)) = layouts.try_recv() {
+            let layout: LayoutMsg = decode(&sample.payload().to_bytes())?;
+            if let Some(j) = layout.joints.iter().position(|j| j.name == JOINT) {
+                break (layout.joints.len(), j);
+            }
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let mut last_observation_ns = 0;
+    let mut zenoh_ms = Vec::with_capacity(args.trials);
+    let mut plane_ms = Vec::with_capacity(args.trials);
+    let mut missed = 0usize;
+    let mut goal_seq = 0u64;
+    std::thread::sleep(Duration::from_secs(1));
+    for trial in 0..args.trials * 2 {
+        while let Ok(Some(sample)) = observations.try_recv() {
+            if let Ok(o) = decode::<ObservationMsg>(&sample.payload().to_bytes()) {
+                last_observation_ns = o.timestamp_ns;
+            }
+        }
+        // Each trial moves the goal away from where the previous one left it.
+        let target = if trial % 2 == 0 { -0.9f32 } else { -0.5 };
+        let before = goal_register();
+        let through_zenoh = trial % 2 == 0;
+        let published_ns = monotonic_ns();
+        if through_zenoh {
+            // One step 20 ms ahead, as a policy plans: the agent forwards its target at once
+            // (before the first step the plan holds the first step's target).
+            let mut targets = vec![0.0; joints];
+            targets[joint] = target;
+            let offset = published_ns.saturating_sub(last_observation_ns) + 20_000_000;
+            actions
+                .put(encode(&ActionChunk {
+                    version: SCHEMA_VERSION,
+                    seq: trial as u64 + 1,
+                    observation_ns: last_observation_ns,
+                    step_offsets_ns: vec![offset],
+                    joint_count: joints as u16,
+                    joint_mask: 1 << joint,
+                    targets,
+                }))
+                .wait()
+                .map_err(z)?;
+        } else {
+            goal_seq += 1;
+            let mut frame = GoalFrame {
+                seq: goal_seq,
+                timestamp_ns: published_ns,
+                joint_count: joints as u32,
+                mask: 1 << joint,
+                ..GoalFrame::default()
+            };
+            frame.position_rad[joint] = target;
+            plane::publish(&goals, &frame)?;
+        }
+        let wait_until = Instant::now() + Duration::from_millis(500);
+        let arrived = loop {
+            if goal_register() != before {
+                break Some((monotonic_ns() - published_ns) as f64 / 1e6);
+            }
+            if Instant::now() > wait_until {
+                break None;
+            }
+            std::thread::sleep(Duration::from_micros(100));
+        };
+        match (arrived, through_zenoh) {
+            (Some(ms), true) => zenoh_ms.push(ms),
+            (Some(ms), false) => plane_ms.push(ms),
+            (None, _) => missed += 1,
+        }
+        // Let the chunk's plan run out (step + horizon) before the next trial.
+        std::thread::sleep(Duration::from_millis(250));
+    }
+    let rss: Vec<(&str, Option<f64>)> = processes
+        .iter()
+        .map(|m| (m.name(), m.pid().and_then(peak_rss_mb)))
+        .collect();
+    for m in &mut processes {
+        m.stop(Duration::from_secs(3));
+    }
+    drop(served.stop());
+    zenoh_ms.sort_by(f64::total_cmp);
+    plane_ms.sort_by(f64::total_cmp);
+    let (z50, z99) = (percentile(&zenoh_ms, 0.5), percentile(&zenoh_ms, 0.99));
+    let (p50, p99) = (percentile(&plane_ms, 0.5), percentile(&plane_ms, 0.99));
+    let out = serde_json::json!({
+        "trials_per_path": args.trials,
+        "no_goal_within_500ms": missed,
+        "zenoh_agent_ms": {"p50": z50, "p99": z99, "max": zenoh_ms.last()},
+        "baseline_state_plane_ms": {"p50": p50, "p99": p99, "max": plane_ms.last()},
+        "ratio_p50": z50 / p50,
+        "ratio_p99": z99 / p99,
+        "peak_rss_mb": rss.iter().map(|(n, v)| (n.to_string(), serde_json::json!(v))).collect::<serde_json::Map<_, _>>(),
+    });
+    if args.json {
+        println!("{out}");
+    } else {
+        println!(
+            "action → goal on the simulated wire, {} trials a path: zenoh + fleet agent p50 {z50:.2} ms, p99 {z99:.2} ms; baseline (goal straight on the state plane) p50 {p50:.2} ms, p99 {p99:.2} ms; ratio p50 {:.2}, p99 {:.2}; {missed} trials without a goal in 500 ms",
+            args.trials, z50 / p50, z99 / p99
+        );
+        for (name, mb) in rss {
+            println!(
+                "  peak RSS {name}: {}",
+                mb.map_or("?".into(), |v| format!("{v:.1} MB"))
+            );
+        }
+    }
+    if missed > 0 {
+        bail!(
+            "{missed} trials never reached the wire (logs in {})",
+            dir.display()
+        );
+    }
+    Ok(())
+}
+
+/// An 18-joint state message (the A3's bus joints) as a robot's agent sends it.
+fn state_msg(seq: u64) -> StateMsg {
+    StateMsg {
+        version: SCHEMA_VERSION,
+        seq,
+        timestamp_ns: monotonic_ns(),
+        wall_ms: 0,
+        safe_state: false,
+        deadline_misses: 0,
+        joints: (0..18)
+            .map(|i| JointMsg {
+                position: 0.01 * i as f32,
+                velocity: 0.0,
+                temperature_c: 30.0,
+                current_a: 0.1,
+                goal: 0.0,
+                valid: true,
+                torque: true,
+                flags: 0,
+            })
+            .collect(),
+    }
+}
+
+/// CPU time this process has used, s.
+fn cpu_seconds() -> f64 {
+    nix::sys::resource::getrusage(nix::sys::resource::UsageWho::RUSAGE_SELF).map_or(0.0, |u| {
+        let t = |tv: nix::sys::time::TimeVal| tv.tv_sec() as f64 + tv.tv_usec() as f64 * 1e-6;
+        t(u.user_time()) + t(u.system_time())
+    })
+}
+
+/// Runs `nori bench fleet-ingest`.
+pub fn fleet_ingest(args: &FleetIngestArgs) -> Result<()> {
+    let nori = std::env::current_exe()?;
+    let mut rows = Vec::new();
+    for &robots in &args.robots {
+        let endpoint = free_endpoint()?;
+        let session = peer(vec![endpoint.clone()], vec![], "peer")?;
+        let collector = Arc::new(Mutex::new(Collector::new(120, 500)));
+        let c = collector.clone();
+        let _states = session
+            .declare_subscriber(all_robots("state"))
+            .callback(move |s: Sample| {
+                let bytes = s.payload().to_bytes();
+                let mut c = c.lock().unwrap_or_else(|p| p.into_inner());
+                let _ = c.state(s.key_expr().as_str(), &bytes, 0);
+            })
+            .wait()
+            .map_err(|e| anyhow!("{e}"))?;
+        let cpu_before = cpu_seconds();
+        let output = Command::new(&nori)
+            .args(["bench", "fleet-publish", "--connect", &endpoint])
+            .args([
+                "--robots",
+                &robots.to_string(),
+                "--hz",
+                &args.hz.to_string(),
+            ])
+            .args(["--seconds", &args.seconds.to_string()])
+            .stderr(Stdio::inherit())
+            .output()
+            .context("running the publishers")?;
+        anyhow::ensure!(output.status.success(), "the publishers failed");
+        let sent: Vec<u64> = serde_json::from_slice(&output.stdout)?;
+        // Whatever is still in flight arrives within a moment.
+        std::thread::sleep(Duration::from_millis(500));
+        let cpu = cpu_seconds() - cpu_before;
+        let c = collector.lock().unwrap_or_else(|p| p.into_inner());
+        let received: Vec<u64> = (0..robots)
+            .map(|r| c.states_received(&format!("r{r:04}")))
+            .collect();
+        let (sent_total, received_total) = (sent.iter().sum::<u64>(), received.iter().sum::<u64>());
+        let offered = robots as f64 * args.hz * args.seconds;
+        rows.push(serde_json::json!({
+            "robots": robots,
+            "offered": offered,
+            "sent": sent_total,
+            "received": received_total,
+            "lost": sent_total.saturating_sub(received_total),
+            "worst_robot_received_ratio": sent.iter().zip(&received)
+                .map(|(&s, &r)| if s == 0 { 1.0 } else { r as f64 / s as f64 })
+                .fold(1.0, f64::min),
+            "sent_vs_offered": sent_total as f64 / offered,
+            "collector_cpu_share_of_a_core": cpu / (args.seconds + 0.5),
+        }));
+    }
+    let out = serde_json::json!({"hz": args.hz, "seconds": args.seconds, "runs": rows});
+    if args.json {
+        println!("{out}");
+    } else {
+        println!(
+            "fleet ingest, 18-joint telemetry at {} Hz per robot, {} s per fleet size (baseline: the offered load)",
+            args.hz, args.seconds
+        );
+        for r in &rows {
+            println!(
+                "  {:>4} robots: sent {} of {} offered ({:.3}), received {} (lost {}, worst robot {:.3}), collector {:.0} % of a core",
+                r["robots"], r["sent"], r["offered"], r["sent_vs_offered"].as_f64().unwrap_or(0.0),
+                r["received"], r["lost"], r["worst_robot_received_ratio"].as_f64().unwrap_or(0.0),
+                r["collector_cpu_share_of_a_core"].as_f64().unwrap_or(0.0) * 100.0
+            );
+        }
+    }
+    Ok(())
+}
+
+/// The publishing side: `robots` client sessions, each a robot streaming telemetry as its agent
+/// does (congestion control Drop), paced together; prints the messages sent per robot (JSON).
+pub fn fleet_publish(args: &FleetPublishArgs) -> Result<()> {
+    let mut robots = Vec::with_capacity(args.robots);
+    for r in 0..args.robots {
+        let session = peer(vec![], vec![args.connect.clone()], "client")?;
+        let publisher = session
+            .declare_publisher(robot_key(&format!("r{r:04}"), "state"))
+            .congestion_control(CongestionControl::Drop)
+            .wait()
+            .map_err(|e| anyhow!("{e}"))?;
+        robots.push((session, publisher));
+    }
+    // Let every session finish joining before the clock starts.
+    std::thread::sleep(Duration::from_millis(500));
+    let period = Duration::from_secs_f64(1.0 / args.hz);
+    let ticks = (args.seconds * args.hz).round() as u64;
+    let mut sent = vec![0u64; args.robots];
+    let start = Instant::now();
+    for tick in 0..ticks {
+        let payload = encode(&state_msg(tick));
+        for ((_, publisher), n) in robots.iter().zip(&mut sent) {
+            if publisher.put(payload.clone()).wait().is_ok() {
+                *n += 1;
+            }
+        }
+        let next = start + period * (tick as u32 + 1);
+        if let Some(wait) = next.checked_duration_since(Instant::now()) {
+            std::thread::sleep(wait);
+        }
+    }
+    println!("{}", serde_json::to_string(&sent)?);
+    Ok(())
+}
