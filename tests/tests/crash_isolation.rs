@@ -7,7 +7,11 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use nori_tests::{check_left_arm_report, plane_files, quantile, wait_for, ArmStack, Rng};
+use fleet_agent::keys::robot_key;
+use fleet_agent::zenoh::Wait;
+use nori_tests::{
+    check_left_arm_report, free_endpoint, plane_files, quantile, wait_for, ArmStack, Rng,
+};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -234,6 +238,8 @@ fn wild_goals(domain: String, seed: u64, stop: Arc<AtomicBool>) -> std::thread::
     })
 }
 
+const CHAOS_ROBOT: &str = "chaos-robot";
+
 #[test]
 fn a_seeded_chaos_run_keeps_every_invariant() {
     let _turn = serial();
@@ -258,51 +264,81 @@ fn a_seeded_chaos_run_keeps_every_invariant() {
     wait_for(Duration::from_secs(20), "driving", || {
         newest(&states).filter(driving)
     });
+    // The fleet agent too: "back" is its telemetry arriving on zenoh again.
+    let endpoint = free_endpoint();
+    let fleet = fleet_agent::net::open(&fleet_agent::config::ZenohConfig {
+        mode: "peer".into(),
+        connect: vec![],
+        listen: vec![endpoint.clone()],
+        config_file: None,
+    })
+    .unwrap();
+    let telemetry = fleet
+        .declare_subscriber(robot_key(CHAOS_ROBOT, "state"))
+        .wait()
+        .unwrap();
+    stack.restart_agent(CHAOS_ROBOT, &endpoint);
     let stop = Arc::new(AtomicBool::new(false));
     let policy = wild_goals(stack.domain.clone(), seed ^ 1, stop.clone());
     let mut rng = Rng::new(seed);
-    let mut restarts = [0u32; 2];
+    let mut restarts = [0u32; 3];
     let mut back_ms = Vec::new();
     let start = Instant::now();
     while start.elapsed().as_secs_f64() < seconds {
         std::thread::sleep(Duration::from_secs_f64(rng.uniform(0.2, 1.5)));
-        let victim = rng.below(2) as usize;
-        if victim == 0 {
-            stack.supervisor.kill();
-        } else {
-            stack.driver.kill();
+        let victim = rng.below(3) as usize;
+        match victim {
+            0 => stack.supervisor.kill(),
+            1 => stack.driver.kill(),
+            _ => stack.agent.kill(),
         }
         // systemd's RestartSec, randomised.
         std::thread::sleep(Duration::from_secs_f64(rng.uniform(0.0, 0.3)));
         let restarted = Instant::now();
-        let (beats, pid, what) = if victim == 0 {
-            stack.restart_supervisor();
-            (&supervisor_beats, stack.supervisor.pid(), "the supervisor")
+        let what = ["the supervisor", "the driver", "the fleet agent"][victim];
+        let label = format!("{what} back after restart {}", restarts[victim] + 1);
+        if victim == 2 {
+            while let Ok(Some(_)) = telemetry.try_recv() {}
+            stack.restart_agent(CHAOS_ROBOT, &endpoint);
+            wait_for(Duration::from_secs(20), &label, || {
+                telemetry.try_recv().ok().flatten()
+            });
         } else {
-            stack.restart_driver();
-            (&driver_beats, stack.driver.pid(), "the driver")
-        };
-        wait_for(
-            Duration::from_secs(20),
-            &format!("{what} back after restart {}", restarts[victim] + 1),
-            || std::iter::from_fn(|| next(beats)).find(|b| b.pid == pid),
-        );
+            let (beats, pid) = if victim == 0 {
+                stack.restart_supervisor();
+                (&supervisor_beats, stack.supervisor.pid())
+            } else {
+                stack.restart_driver();
+                (&driver_beats, stack.driver.pid())
+            };
+            wait_for(Duration::from_secs(20), &label, || {
+                std::iter::from_fn(|| next(beats)).find(|b| b.pid == pid)
+            });
+        }
         back_ms.push(restarted.elapsed().as_secs_f64() * 1e3);
         restarts[victim] += 1;
     }
     stop.store(true, Ordering::Relaxed);
     let sent = policy.join().unwrap();
-    drop((states, driver_beats, supervisor_beats, node));
+    drop((
+        states,
+        driver_beats,
+        supervisor_beats,
+        node,
+        telemetry,
+        fleet,
+    ));
     let report = stack.stop();
     let hottest = check_left_arm_report(&report, 60.0);
     eprintln!(
-        "chaos seed {seed:#x}, {seconds} s: {} supervisor and {} driver kills, every restart back \
-         (p50 {:.0} ms, max {:.0} ms to the first heartbeat), {sent} wild goal frames, hottest \
+        "chaos seed {seed:#x}, {seconds} s: {} supervisor, {} driver and {} fleet-agent kills, every restart back \
+         (p50 {:.0} ms, max {:.0} ms to the first heartbeat, or telemetry from the agent), {sent} wild goal frames, hottest \
          motor {hottest:.1} °C, no goal outside a calibrated range on the wire",
         restarts[0],
         restarts[1],
+        restarts[2],
         quantile(&back_ms, 0.5),
         quantile(&back_ms, 1.0)
     );
-    assert!(restarts[0] >= 1 && restarts[1] >= 1, "{restarts:?}");
+    assert!(restarts.iter().all(|&n| n >= 1), "{restarts:?}");
 }
