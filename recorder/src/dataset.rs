@@ -8,8 +8,9 @@
 //!
 //! * **While recording**, every flush interval (at most one second of frames) is written as a
 //!   small, complete parquet file `.nori-staging/episode-NNNNNN/part-NNNNNN.parquet` (temporary,
-//!   fsync, rename, fsync of the directory). A `kill -9` loses at most the frames since the last
-//!   flush.
+//!   fsync, rename, fsync of the directory), by a background thread so that a slow fsync never
+//!   delays a frame. A `kill -9` loses the frames since the last flush and the part being
+//!   written, if any (see [`EpisodeWriter`]).
 //! * **At the end of an episode** it is committed: the task table if the task is new, then the
 //!   data file (the old file's row groups copied as encoded bytes plus one new row group for the
 //!   episode, written to a temporary and renamed over the old file), then the episode table, then
@@ -42,6 +43,7 @@ use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::fs::File;
 use std::path::{Path, PathBuf};
+use std::sync::mpsc;
 
 /// `codebase_version` of the layout written.
 pub const CODEBASE_VERSION: &str = "v3.0";
@@ -645,6 +647,13 @@ impl Dataset {
         };
         let path = dir.join("episode.json");
         fsutil::replace(&path, &json_bytes(&path, &staged)?)?;
+        let (jobs, queue) = mpsc::channel();
+        let (done, written) = mpsc::channel();
+        let features = self.features.clone();
+        let writer = std::thread::Builder::new()
+            .name("staged-parts".into())
+            .spawn(move || part_writer(features, queue, done))
+            .map_err(RecordError::io(&dir, "starting the staged-part writer"))?;
         Ok(EpisodeWriter {
             dataset: self,
             dir,
@@ -654,6 +663,10 @@ impl Dataset {
             flushed: 0,
             parts: 0,
             flush_every,
+            jobs: Some(jobs),
+            written,
+            on_disk: 0,
+            writer: Some(writer),
         })
     }
 
@@ -844,7 +857,39 @@ fn remove_dir(dir: &Path) -> Result<(), RecordError> {
     Ok(())
 }
 
-/// The episode being recorded: frames in memory, flushed to staged parts as they come.
+/// A part handed to the background writer: its file and rows.
+type PartJob = (PathBuf, Vec<DataRow>);
+
+/// Writes staged parts in order, off the recording loop: an fsync on a busy disk takes tens to
+/// hundreds of milliseconds, which would otherwise delay the frame ticks. Ends at the first
+/// error (reported when the episode is flushed or finished) or when the channel closes.
+fn part_writer(
+    features: Features,
+    jobs: mpsc::Receiver<PartJob>,
+    written: mpsc::Sender<usize>,
+) -> Result<(), RecordError> {
+    let schema = pq::data_schema(&features).map_err(RecordError::parquet("staged part schema"))?;
+    for (n, (path, rows)) in jobs.into_iter().enumerate() {
+        fsutil::replace_with(&path, |out| {
+            let mut w = SerializedFileWriter::new(out, schema.clone(), pq::properties(Vec::new()))
+                .map_err(RecordError::parquet(&path))?;
+            pq::write_data_rows(&mut w, &features, &rows).map_err(RecordError::parquet(&path))?;
+            w.close().map_err(RecordError::parquet(&path))?;
+            Ok(())
+        })?;
+        // The recorder may have stopped listening; the part is on disk either way.
+        let _ = written.send(n + 1);
+    }
+    Ok(())
+}
+
+/// The episode being recorded: frames in memory, handed every flush interval to a background
+/// writer that stages them as a part file.
+///
+/// What a crash loses: the frames not yet handed over (less than one flush interval) and the
+/// part being written at that moment, if its rename has not happened (one more interval at
+/// most, usually a few milliseconds of writing). `nori record` flushes every 500 ms by default,
+/// so the loss stays within one second unless a write takes longer than half a second.
 pub struct EpisodeWriter<'a> {
     dataset: &'a mut Dataset,
     dir: PathBuf,
@@ -854,6 +899,10 @@ pub struct EpisodeWriter<'a> {
     flushed: usize,
     parts: usize,
     flush_every: usize,
+    jobs: Option<mpsc::Sender<PartJob>>,
+    written: mpsc::Receiver<usize>,
+    on_disk: usize,
+    writer: Option<std::thread::JoinHandle<Result<(), RecordError>>>,
 }
 
 impl EpisodeWriter<'_> {
@@ -867,7 +916,7 @@ impl EpisodeWriter<'_> {
         Ok(false)
     }
 
-    /// Writes the frames not yet staged as one complete part file.
+    /// Hands the frames not yet staged to the writer, as one part file.
     pub fn flush(&mut self) -> Result<(), RecordError> {
         if self.flushed == self.frames.len() {
             return Ok(());
@@ -895,18 +944,47 @@ impl EpisodeWriter<'_> {
             })
             .collect();
         let path = self.dir.join(format!("part-{:06}.parquet", self.parts));
-        let features = &self.dataset.features;
-        let schema = pq::data_schema(features).map_err(RecordError::parquet(&path))?;
-        let props = pq::properties(Vec::new());
-        fsutil::replace_with(&path, |out| {
-            let mut w = SerializedFileWriter::new(out, schema, props)
-                .map_err(RecordError::parquet(&path))?;
-            pq::write_data_rows(&mut w, features, &rows).map_err(RecordError::parquet(&path))?;
-            w.close().map_err(RecordError::parquet(&path))?;
-            Ok(())
-        })?;
+        let sent = self
+            .jobs
+            .as_ref()
+            .is_some_and(|jobs| jobs.send((path, rows)).is_ok());
+        if !sent {
+            // The writer stopped: its error says why.
+            self.wait_for_writer()?;
+            return Err(RecordError::Request(
+                "the staged-part writer stopped".into(),
+            ));
+        }
         self.parts += 1;
         self.flushed = self.frames.len();
+        Ok(())
+    }
+
+    /// Closes the queue and waits until every part handed over is on disk.
+    fn wait_for_writer(&mut self) -> Result<(), RecordError> {
+        self.jobs = None;
+        match self.writer.take().map(std::thread::JoinHandle::join) {
+            Some(Ok(result)) => result,
+            Some(Err(_)) => Err(RecordError::Request(
+                "the staged-part writer panicked".into(),
+            )),
+            None => Ok(()),
+        }
+    }
+
+    /// Waits until every part handed to the writer is on disk (renamed and synced).
+    pub fn sync(&mut self) -> Result<(), RecordError> {
+        while self.on_disk < self.parts {
+            match self.written.recv() {
+                Ok(n) => self.on_disk = n,
+                Err(_) => {
+                    self.wait_for_writer()?;
+                    return Err(RecordError::Request(
+                        "the staged-part writer stopped".into(),
+                    ));
+                }
+            }
+        }
         Ok(())
     }
 
@@ -920,25 +998,42 @@ impl EpisodeWriter<'_> {
         self.frames.is_empty()
     }
 
-    /// Frames already staged on disk.
+    /// Frames handed to the part writer.
     pub fn flushed(&self) -> usize {
         self.flushed
     }
 
     /// Commits the episode to the dataset; `None` (and nothing written) if it has no frame.
-    pub fn finish(self) -> Result<Option<EpisodeRow>, RecordError> {
+    pub fn finish(mut self) -> Result<Option<EpisodeRow>, RecordError> {
+        self.wait_for_writer()?;
         if self.frames.is_empty() {
             remove_dir(&self.dir)?;
             return Ok(None);
         }
-        let row = self.dataset.commit(&self.task, &self.frames)?;
+        let frames = std::mem::take(&mut self.frames);
+        let row = self.dataset.commit(&self.task, &frames)?;
         remove_dir(&self.dir)?;
         Ok(Some(row))
     }
 
+    /// Stops without committing, as a crash right after the last flush would: the staged parts
+    /// stay for the next [`Dataset::open`] to complete or drop.
+    pub fn abandon(mut self) -> Result<(), RecordError> {
+        self.wait_for_writer()
+    }
+
     /// Drops the episode (its staged parts too).
-    pub fn discard(self) -> Result<(), RecordError> {
+    pub fn discard(mut self) -> Result<(), RecordError> {
+        self.wait_for_writer()?;
         remove_dir(&self.dir)
+    }
+}
+
+impl Drop for EpisodeWriter<'_> {
+    fn drop(&mut self) {
+        // Every path out waits for the writer thread, so no part is written after the dataset's
+        // lock is released.
+        let _ = self.wait_for_writer();
     }
 }
 

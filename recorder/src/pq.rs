@@ -81,11 +81,18 @@ fn string() -> Option<LogicalType> {
     Some(LogicalType::String)
 }
 
-/// The frame table's schema: vector features as `list<float>`, then LeRobot's scalars.
+/// The frame table's schema: vector features as `list<float>`, then LeRobot's scalars. A
+/// feature of shape `[1]` (one gripper's force) is a plain float column: LeRobot's
+/// `get_hf_features_from_features` maps shape `(1,)` to a scalar `Value`, and its loader could
+/// not cast a list to it.
 pub fn data_schema(features: &Features) -> PqResult<TypePtr> {
     let mut fields = Vec::new();
     for v in features.vectors() {
-        fields.push(list(v.key(), Physical::FLOAT, None)?);
+        if features.width(v) == 1 {
+            fields.push(optional(v.key(), Physical::FLOAT, None)?);
+        } else {
+            fields.push(list(v.key(), Physical::FLOAT, None)?);
+        }
     }
     for (key, dtype) in SCALARS {
         let physical = if dtype == "float32" {
@@ -103,10 +110,12 @@ pub fn data_schema(features: &Features) -> PqResult<TypePtr> {
 pub fn huggingface_metadata(features: &Features) -> String {
     let mut map = serde_json::Map::new();
     for v in features.vectors() {
-        map.insert(
-            v.key().into(),
-            serde_json::json!({"feature": {"dtype": "float32", "_type": "Value"}, "length": features.width(v), "_type": "Sequence"}),
-        );
+        let spec = if features.width(v) == 1 {
+            serde_json::json!({"dtype": "float32", "_type": "Value"})
+        } else {
+            serde_json::json!({"feature": {"dtype": "float32", "_type": "Value"}, "length": features.width(v), "_type": "Sequence"})
+        };
+        map.insert(v.key().into(), spec);
     }
     for (key, dtype) in SCALARS {
         map.insert(
@@ -182,7 +191,13 @@ pub fn write_data_rows<W: std::io::Write + Send>(
         let mut col = rg.next_column()?.ok_or_else(|| {
             parquet::errors::ParquetError::General("schema has fewer columns".into())
         })?;
-        write_f32_list(col.untyped(), &values, rows.len(), width)?;
+        if width == 1 {
+            let def = vec![1i16; rows.len()];
+            col.typed::<FloatType>()
+                .write_batch(&values, Some(&def), None)?;
+        } else {
+            write_f32_list(col.untyped(), &values, rows.len(), width)?;
+        }
         col.close()?;
     }
     let def = vec![1i16; rows.len()];
@@ -286,6 +301,12 @@ fn as_i64(path: &Path, key: &str, f: &Field) -> Result<i64, RecordError> {
 }
 
 fn as_f64_list(path: &Path, key: &str, f: &Field) -> Result<Vec<f64>, RecordError> {
+    // A feature of shape [1] is a scalar column (see `data_schema`).
+    match f {
+        Field::Float(v) => return Ok(vec![f64::from(*v)]),
+        Field::Double(v) => return Ok(vec![*v]),
+        _ => {}
+    }
     let Field::ListInternal(list) = f else {
         return Err(RecordError::invalid(
             path,

@@ -196,10 +196,10 @@ fn an_episode_killed_mid_recording_is_completed_from_its_flushed_parts() {
         assert_eq!(
             w.flushed(),
             60,
-            "two full seconds on disk, 15 frames in memory"
+            "two full seconds staged, 15 frames in memory"
         );
-        // A crash: the writer and the dataset vanish without finishing.
-        std::mem::forget(w);
+        // A crash after the last flush: the writer and the dataset vanish without finishing.
+        w.abandon().unwrap();
     }
     let (ds, rec) = open(&root);
     assert_eq!(rec.recovered, vec![(1, 60)]);
@@ -224,7 +224,7 @@ fn an_unfinished_episode_can_be_dropped_and_one_without_frames_always_is() {
         for i in 0..25 {
             w.push(frame(&f, 0, i)).unwrap();
         }
-        std::mem::forget(w);
+        w.abandon().unwrap();
     }
     let (ds, rec) = Dataset::open(&root, Settings::default(), features(), true).unwrap();
     assert_eq!(rec.dropped.len(), 1);
@@ -234,7 +234,7 @@ fn an_unfinished_episode_can_be_dropped_and_one_without_frames_always_is() {
     {
         let (mut ds, _) = open(&root);
         let w = ds.begin_episode("wave", 10).unwrap();
-        std::mem::forget(w);
+        w.abandon().unwrap();
     }
     let (ds, rec) = open(&root);
     assert_eq!(rec.dropped[0].2, "no frame was flushed");
@@ -253,6 +253,7 @@ fn a_crash_between_the_data_file_and_the_episode_table_is_rolled_forward() {
         for i in 0..50 {
             w.push(frame(&f, 1, i)).unwrap();
         }
+        w.sync().unwrap();
         // What the disk held just before the commit: meta files and the staged parts.
         copy_dir(&root.join("meta"), &saved.join("meta"));
         copy_dir(&root.join(STAGING), &saved.join(STAGING));
@@ -353,6 +354,8 @@ fn data_files_roll_over_at_the_size_limit() {
     );
     assert!(root.join("data/chunk-000/file-001.parquet").exists());
     assert_eq!(ds.read_episode(1).unwrap().len(), 10);
+    drop(ds);
+    let _ = std::fs::remove_dir_all(&root);
 }
 
 #[test]

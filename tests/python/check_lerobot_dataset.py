@@ -65,6 +65,9 @@ def close(a, b, what, rtol=1e-5, atol=1e-5):
 def column_array(table, key, spec):
     col = table.column(key)
     if spec["shape"] == [1]:
+        # LeRobot maps shape (1,) to a scalar Value: a plain column, not a list.
+        want = pa.float32() if spec["dtype"] == "float32" else pa.int64()
+        check(col.type == want, f"data column {key}: type {col.type}, info.json says scalar {spec['dtype']}")
         return np.array(col.to_pylist(), dtype=np.float32 if spec["dtype"] == "float32" else np.int64)
     t = col.type
     check(pa.types.is_list(t) or pa.types.is_fixed_size_list(t), f"data column {key}: type {t} is not a list")
@@ -212,6 +215,25 @@ def main():
             weighted = sum(e[k][s] * c for e, c in zip(per_episode_stats, counts)) / counts.sum()
             close(np.array(stats[k][s], dtype=np.float64), weighted, f"stats.json {k}/{s}")
 
+    # LeRobot's own loading path when Hugging Face `datasets` is installed (optional):
+    # load_nested_dataset casts every data file to the features of info.json.
+    hf_loaded = None
+    try:
+        import datasets as hf
+    except ImportError:
+        hf = None
+    if hf is not None and not in_flight:
+        hf_features = hf.Features({
+            k: hf.Value(dtype=ft["dtype"]) if ft["shape"] == [1]
+            else hf.Sequence(length=ft["shape"][0], feature=hf.Value(dtype=ft["dtype"]))
+            for k, ft in features.items()
+        })
+        loaded = hf.concatenate_datasets([hf.Dataset.from_parquet(str(p), features=hf_features) for p in data_paths])
+        check(len(loaded) == total, f"datasets loaded {len(loaded)} frames, info says {total}")
+        first = loaded[0]
+        check(len(first["observation.state"]) == features["observation.state"]["shape"][0], "datasets: state width")
+        hf_loaded = len(loaded)
+
     state = cols["observation.state"][:total] if orphan_rows else cols["observation.state"]
     print(json.dumps({
         "episodes": info["total_episodes"],
@@ -224,6 +246,7 @@ def main():
         "missing_fraction": float(np.isnan(state).mean()) if state.size else 0.0,
         "state_span_rad": float(np.nanmax(state) - np.nanmin(state)) if state.size else 0.0,
         "tasks": list(tasks.index),
+        "hf_datasets_loaded": hf_loaded,
     }))
 
 
