@@ -314,10 +314,37 @@ fn kill_9_loses_at_most_the_last_flush_interval_and_never_the_dataset() {
         assert_eq!(s["lengths"][0], 120);
     }
 
+    // SIGTERM (Ctrl-C, systemd's stop) mid-episode: the episode is kept with what was taken,
+    // nothing stays staged, the process exits cleanly.
+    let mut rec = Proc::spawn(
+        "nori record",
+        &binary("nori"),
+        &record_args(&stack.domain, &ds, &["--episodes", "3", "--episode-s", "4"]),
+        &stack.dir.join("record-term.log"),
+    );
+    wait_for(
+        Duration::from_secs(30),
+        "a flushed part of episode 2",
+        || (staged_parts(&dataset, 2) >= 1).then_some(()),
+    );
+    let (code, stdout) = rec.terminate(Duration::from_secs(10));
+    assert_eq!(code, Some(0), "stopped cleanly");
+    let report: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+    let kept = report["episodes"][0]["frames"].as_u64().unwrap();
+    assert!(
+        (15..120).contains(&kept),
+        "a partial episode kept: {kept} frames"
+    );
+    assert_eq!(report["total_episodes"], 3);
+    assert!(!dataset.join(".nori-staging/episode-000002").exists());
+    if let Some(s) = lerobot_check(&dataset, &["--episodes", "3"]) {
+        assert_eq!(s["lengths"][2].as_u64().unwrap(), kept);
+    }
+
     // Kills at random moments, many of them during commits (episodes of half a second):
     // after each, every file reads; after the repair, the dataset is exact again.
     let mut rng = Rng::new(0x0DA7_A5E7);
-    let mut episodes = 2;
+    let mut episodes = 3;
     for round in 0..4 {
         let mut rec = Proc::spawn(
             "nori record",
