@@ -23,10 +23,13 @@
 //!   committed from its flushed parts (or dropped, if asked, or if it has no frame) and its staging
 //!   directory removed.
 //!
-//! The one window in which the files disagree is between the data file's rename and the episode
-//! table's: the data file then holds the new episode's rows after the committed ones, which no
-//! episode references and `info.json` does not count. Every file still reads, and every committed
-//! episode's rows are where the episode table says; the next start cuts the extra rows off.
+//! `info.json` is written last, so everything it counts is in place at every moment. From the
+//! data file's rename to `info.json`'s, the files disagree only about the one episode in flight:
+//! the data file already holds its rows (after the committed ones), then the episode table its
+//! row and `stats.json` its statistics, while `info.json` does not count it yet. Every file still
+//! reads, and every episode `info.json` counts is where the episode table says; the next start
+//! rolls the episode forward (its row is in the episode table) or cuts its rows off and completes
+//! it again from its staged parts (it is not).
 //!
 //! A lock (`flock` on `.nori-staging/lock`) keeps a second recorder out; the kernel releases it
 //! when the holder dies, however it dies.
@@ -685,16 +688,29 @@ impl Dataset {
                 (self.tasks.len() - 1) as i64
             }
         };
-        let limit = self.settings.data_files_size_in_mb * 1024 * 1024;
-        let too_big =
-            |rel: &str| std::fs::metadata(self.root.join(rel)).is_ok_and(|m| m.len() >= limit);
+        // LeRobot's rule: a file takes the new episode unless its size plus the episode's,
+        // estimated at the file's own bytes per unit (frames, or episode rows), reaches the limit.
+        let limit = (self.settings.data_files_size_in_mb * 1024 * 1024) as f64;
+        let too_big = |rel: &str, units_in_file: i64, new_units: i64| {
+            std::fs::metadata(self.root.join(rel)).is_ok_and(|m| {
+                let size = m.len() as f64;
+                let per_unit = size / units_in_file.max(1) as f64;
+                size + per_unit * new_units as f64 >= limit
+            })
+        };
         let episode_index = self.episodes.len() as i64;
         let from = self.episodes.last().map_or(0, |e| e.dataset_to_index);
         let (mut chunk, mut file) = self
             .episodes
             .last()
             .map_or((0, 0), |e| (e.data_chunk_index, e.data_file_index));
-        if too_big(&data_file(chunk, file)) {
+        let frames_in_file: i64 = self
+            .episodes
+            .iter()
+            .filter(|e| e.data_chunk_index == chunk && e.data_file_index == file)
+            .map(|e| e.length)
+            .sum();
+        if too_big(&data_file(chunk, file), frames_in_file, frames.len() as i64) {
             (chunk, file) = next_file(chunk, file);
         }
         let fps = self.settings.fps as f64;
@@ -721,7 +737,12 @@ impl Dataset {
             .episodes
             .last()
             .map_or((0, 0), |e| (e.meta_chunk_index, e.meta_file_index));
-        if too_big(&episodes_file(meta_chunk, meta_file)) {
+        let rows_in_file = self
+            .episodes
+            .iter()
+            .filter(|e| e.meta_chunk_index == meta_chunk && e.meta_file_index == meta_file)
+            .count() as i64;
+        if too_big(&episodes_file(meta_chunk, meta_file), rows_in_file, 1) {
             (meta_chunk, meta_file) = next_file(meta_chunk, meta_file);
         }
         let row = EpisodeRow {
