@@ -1,7 +1,8 @@
 //! `nori`: the operator CLI of the Nori A3 stack.
 //!
 //! `nori up` runs the stack on the simulated robot; `nori sim serve` serves the simulated buses;
-//! `nori state` / `nori goal` look at and move the robot; `nori fleet` shows the fleet; `nori bench` measures; `nori model` holds the simulation against measured data.
+//! `nori state` / `nori goal` look at and move the robot; `nori fleet` shows the fleet; `nori bench` measures; `nori model` holds the simulation against measured data;
+//! `nori record` records demonstrations, `nori dataset` recovers and exports them.
 
 mod bench;
 mod bench_fleet;
@@ -10,6 +11,7 @@ mod fleet;
 mod model;
 mod plane_tools;
 mod policy_server;
+mod record;
 mod router;
 mod scenario;
 mod sim_serve;
@@ -51,6 +53,11 @@ enum Command {
     /// The model lab: the simulation held against measured data.
     #[command(subcommand)]
     Model(model::ModelCommand),
+    /// Record demonstrations from the state plane into a LeRobot v3.0 dataset (crash-safe).
+    Record(record::RecordArgs),
+    /// Datasets recorded by `nori record`: recover after a crash, export for the model lab.
+    #[command(subcommand)]
+    Dataset(record::DatasetCommand),
 }
 
 #[derive(Subcommand)]
@@ -75,5 +82,7 @@ fn main() -> Result<()> {
         Command::Fleet(a) => fleet::run(a),
         Command::Bench(b) => bench::run(b),
         Command::Model(m) => model::run(m),
+        Command::Record(a) => record::record(a),
+        Command::Dataset(d) => record::dataset(d),
     }
 }

@@ -1,0 +1,1097 @@
+//! A LeRobot v3.0 dataset on disk, extended one episode at a time, crash-safe.
+//!
+//! # Crash safety
+//!
+//! LeRobot keeps its parquet writers open and writes the footers when the dataset is finalised,
+//! so a killed recorder leaves files without footers: unreadable, everything lost. Here no file
+//! of the dataset is ever open for appending:
+//!
+//! * **While recording**, every flush interval (at most one second of frames) is written as a
+//!   small, complete parquet file `.nori-staging/episode-NNNNNN/part-NNNNNN.parquet` (temporary,
+//!   fsync, rename, fsync of the directory), by a background thread so that a slow fsync never
+//!   delays a frame. A `kill -9` loses the frames since the last flush and the part being
+//!   written, if any (see [`EpisodeWriter`]).
+//! * **At the end of an episode** it is committed: the task table if the task is new, then the
+//!   data file (the old file's row groups copied as encoded bytes plus one new row group for the
+//!   episode, written to a temporary and renamed over the old file), then the episode table, then
+//!   `stats.json` and `info.json`, each replaced atomically; the staged parts are removed last.
+//!   Every file is at every moment either its old or its new complete version.
+//! * **At the next start** ([`Dataset::open`]) the commit of an interrupted episode is rolled
+//!   forward or back: temporaries are removed; row groups of a data file that no episode
+//!   references (a crash between the data file's rename and the episode table's) are cut off;
+//!   `info.json` and `stats.json` are rewritten from the episode table; an episode still staged is
+//!   committed from its flushed parts (or dropped, if asked, or if it has no frame) and its staging
+//!   directory removed.
+//!
+//! `info.json` is written last, so everything it counts is in place at every moment. From the
+//! data file's rename to `info.json`'s, the files disagree only about the one episode in flight:
+//! the data file already holds its rows (after the committed ones), then the episode table its
+//! row and `stats.json` its statistics, while `info.json` does not count it yet. Every file still
+//! reads, and every episode `info.json` counts is where the episode table says; the next start
+//! rolls the episode forward (its row is in the episode table) or cuts its rows off and completes
+//! it again from its staged parts (it is not).
+//!
+//! A lock (`flock` on `.nori-staging/lock`) keeps a second recorder out; the kernel releases it
+//! when the holder dies, however it dies.
+
+use crate::error::RecordError;
+use crate::features::{FeatureSpec, Features, Ordered, SCALARS};
+use crate::fsutil;
+use crate::pq::{self, DataRow, EpisodeRow};
+use crate::sampler::Frame;
+use crate::stats::FeatureStats;
+use nix::fcntl::{Flock, FlockArg};
+use parquet::file::writer::SerializedFileWriter;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::path::{Path, PathBuf};
+use std::sync::mpsc;
+
+/// `codebase_version` of the layout written.
+pub const CODEBASE_VERSION: &str = "v3.0";
+/// LeRobot's `DEFAULT_CHUNK_SIZE`: files per chunk directory.
+pub const CHUNKS_SIZE: i64 = 1000;
+/// LeRobot's `DEFAULT_DATA_FILE_SIZE_IN_MB`.
+pub const DATA_FILES_SIZE_IN_MB: u64 = 100;
+/// LeRobot's `DEFAULT_VIDEO_FILE_SIZE_IN_MB` (no video is recorded; kept for the field).
+pub const VIDEO_FILES_SIZE_IN_MB: u64 = 500;
+/// LeRobot's `DEFAULT_DATA_PATH`.
+pub const DATA_PATH: &str = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet";
+/// Staging directory under the root (hidden: LeRobot reads only `data/`, `meta/`, `videos/`).
+pub const STAGING: &str = ".nori-staging";
+
+/// How a dataset is recorded; fixed when it is created.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Settings {
+    /// Frames per second.
+    pub fps: u32,
+    /// `robot_type` of `info.json`.
+    pub robot_type: String,
+    /// Size at which a data (or episode) file is closed and the next one started, MB.
+    pub data_files_size_in_mb: u64,
+}
+
+impl Default for Settings {
+    fn default() -> Self {
+        Settings {
+            fps: 30,
+            robot_type: "nori_a3".into(),
+            data_files_size_in_mb: DATA_FILES_SIZE_IN_MB,
+        }
+    }
+}
+
+/// `meta/info.json`, field for field as LeRobot's `create_empty_dataset_info` writes it.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Info {
+    /// "v3.0".
+    pub codebase_version: String,
+    /// Robot type.
+    pub robot_type: Option<String>,
+    /// Episodes.
+    pub total_episodes: i64,
+    /// Frames.
+    pub total_frames: i64,
+    /// Distinct tasks.
+    pub total_tasks: i64,
+    /// Files per chunk.
+    pub chunks_size: i64,
+    /// Data file size limit, MB.
+    pub data_files_size_in_mb: u64,
+    /// Video file size limit, MB.
+    pub video_files_size_in_mb: u64,
+    /// Frames per second.
+    pub fps: u32,
+    /// `{"train": "0:N"}`.
+    pub splits: BTreeMap<String, String>,
+    /// Data file template.
+    pub data_path: String,
+    /// Video file template; `null`: no video.
+    pub video_path: Option<String>,
+    /// Features in order.
+    #[serde(deserialize_with = "ordered_features")]
+    pub features: Ordered<FeatureSpec>,
+}
+
+fn ordered_features<'de, D: serde::Deserializer<'de>>(
+    d: D,
+) -> Result<Ordered<FeatureSpec>, D::Error> {
+    // Deserialised into a sorted map: the order matters only for writing, and a dataset is
+    // compared with the recording's features key by key.
+    let map = BTreeMap::<String, FeatureSpec>::deserialize(d)?;
+    Ok(Ordered(map.into_iter().collect()))
+}
+
+/// `meta/nori.json`: what LeRobot's files do not say about the robot.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct NoriMeta {
+    /// The recorded joints, with bus, id and servo model.
+    pub features: Features,
+    /// Where `action` comes from.
+    pub action: String,
+    /// How a missing sample is stored.
+    pub missing: String,
+}
+
+/// What [`Dataset::open`] found and repaired.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Recovery {
+    /// Leftover temporaries removed.
+    pub temporaries_removed: usize,
+    /// Data rows no episode referenced, cut off.
+    pub orphan_rows_removed: i64,
+    /// Staged episodes completed from their flushed parts: (episode index, frames).
+    pub recovered: Vec<(i64, usize)>,
+    /// Staged episodes dropped: (staged index, frames, why).
+    pub dropped: Vec<(i64, usize, String)>,
+    /// Staging directories of episodes that had been committed already.
+    pub already_committed: usize,
+}
+
+impl Recovery {
+    /// Whether anything had to be repaired.
+    pub fn is_clean(&self) -> bool {
+        *self == Recovery::default()
+    }
+}
+
+/// `episode.json` of a staged episode.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct StagedEpisode {
+    episode_index: i64,
+    task: String,
+    fps: u32,
+    started_unix_ms: u64,
+}
+
+/// An open dataset (holding its lock).
+pub struct Dataset {
+    root: PathBuf,
+    settings: Settings,
+    features: Features,
+    tasks: Vec<String>,
+    episodes: Vec<EpisodeRow>,
+    _lock: Flock<File>,
+}
+
+fn data_file(chunk: i64, file: i64) -> String {
+    format!("data/chunk-{chunk:03}/file-{file:03}.parquet")
+}
+
+fn episodes_file(chunk: i64, file: i64) -> String {
+    format!("meta/episodes/chunk-{chunk:03}/file-{file:03}.parquet")
+}
+
+fn next_file(chunk: i64, file: i64) -> (i64, i64) {
+    if file == CHUNKS_SIZE - 1 {
+        (chunk + 1, 0)
+    } else {
+        (chunk, file + 1)
+    }
+}
+
+/// `chunk-NNN/file-NNN.parquet` files under `dir`, sorted, with their indices.
+fn chunk_files(dir: &Path) -> Result<Vec<(i64, i64, PathBuf)>, RecordError> {
+    let mut out = Vec::new();
+    let Ok(chunks) = std::fs::read_dir(dir) else {
+        return Ok(out);
+    };
+    for c in chunks.flatten() {
+        let name = c.file_name().to_string_lossy().into_owned();
+        let Some(chunk) = name
+            .strip_prefix("chunk-")
+            .and_then(|n| n.parse::<i64>().ok())
+        else {
+            continue;
+        };
+        let files = std::fs::read_dir(c.path()).map_err(RecordError::io(c.path(), "listing"))?;
+        for f in files.flatten() {
+            let fname = f.file_name().to_string_lossy().into_owned();
+            if let Some(file) = fname
+                .strip_prefix("file-")
+                .and_then(|n| n.strip_suffix(".parquet"))
+                .and_then(|n| n.parse::<i64>().ok())
+            {
+                out.push((chunk, file, f.path()));
+            }
+        }
+    }
+    out.sort();
+    Ok(out)
+}
+
+fn read_json<T: for<'de> Deserialize<'de>>(path: &Path) -> Result<T, RecordError> {
+    let text = std::fs::read_to_string(path).map_err(RecordError::io(path, "reading"))?;
+    serde_json::from_str(&text).map_err(|source| RecordError::Json {
+        path: path.into(),
+        source,
+    })
+}
+
+fn json_bytes<T: Serialize>(path: &Path, value: &T) -> Result<Vec<u8>, RecordError> {
+    let mut v = serde_json::to_vec_pretty(value).map_err(|source| RecordError::Json {
+        path: path.into(),
+        source,
+    })?;
+    v.push(b'\n');
+    Ok(v)
+}
+
+fn unix_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
+impl Dataset {
+    /// Opens the dataset at `root` (creating it if there is none) for recording `features`,
+    /// after repairing what a crash left (see the module documentation). With `drop_unfinished`
+    /// an episode a crash interrupted is dropped instead of completed from its flushed parts.
+    pub fn open(
+        root: &Path,
+        settings: Settings,
+        features: Features,
+        drop_unfinished: bool,
+    ) -> Result<(Dataset, Recovery), RecordError> {
+        if settings.fps == 0 || settings.fps > 1000 {
+            return Err(RecordError::Request(format!(
+                "fps {} is outside 1..=1000",
+                settings.fps
+            )));
+        }
+        if features.joints.is_empty() {
+            return Err(RecordError::Request("no joint to record".into()));
+        }
+        let staging = root.join(STAGING);
+        fsutil::create_dir(&staging)?;
+        let lock_path = staging.join("lock");
+        let lock_file = File::options()
+            .create(true)
+            .truncate(false)
+            .write(true)
+            .open(&lock_path)
+            .map_err(RecordError::io(&lock_path, "opening the lock"))?;
+        let lock = Flock::lock(lock_file, FlockArg::LockExclusiveNonblock).map_err(|_| {
+            RecordError::Busy {
+                root: root.into(),
+                lock: lock_path.clone(),
+            }
+        })?;
+        let mut ds = Dataset {
+            root: root.into(),
+            settings,
+            features,
+            tasks: Vec::new(),
+            episodes: Vec::new(),
+            _lock: lock,
+        };
+        let mut recovery = Recovery {
+            temporaries_removed: fsutil::remove_temporaries(root)?,
+            ..Recovery::default()
+        };
+        let info_path = root.join("meta/info.json");
+        if info_path.exists() {
+            ds.check_compatible(&read_json::<Info>(&info_path)?)?;
+            ds.load()?;
+            recovery.orphan_rows_removed = ds.cut_orphan_rows()?;
+        } else if root.join("data").exists() || root.join("meta/episodes").exists() {
+            return Err(RecordError::invalid(
+                root,
+                "has data but no meta/info.json: not a dataset this recorder can extend",
+            ));
+        }
+        ds.write_summaries()?;
+        ds.recover_staged(drop_unfinished, &mut recovery)?;
+        Ok((ds, recovery))
+    }
+
+    fn check_compatible(&self, info: &Info) -> Result<(), RecordError> {
+        let differ = |reason: String| RecordError::Incompatible {
+            root: self.root.clone(),
+            reason,
+        };
+        if info.codebase_version != CODEBASE_VERSION {
+            return Err(differ(format!(
+                "codebase_version {} (this recorder writes {CODEBASE_VERSION})",
+                info.codebase_version
+            )));
+        }
+        if info.fps != self.settings.fps {
+            return Err(differ(format!(
+                "recorded at {} fps, asked for {}",
+                info.fps, self.settings.fps
+            )));
+        }
+        if info.robot_type.as_deref() != Some(self.settings.robot_type.as_str()) {
+            return Err(differ(format!(
+                "robot_type {:?}, asked for {:?}",
+                info.robot_type, self.settings.robot_type
+            )));
+        }
+        let mut theirs = info.features.0.clone();
+        let mut ours = self.features.info_json().0;
+        theirs.sort_by(|a, b| a.0.cmp(&b.0));
+        ours.sort_by(|a, b| a.0.cmp(&b.0));
+        if theirs != ours {
+            let names = |f: &[(String, FeatureSpec)]| {
+                f.iter()
+                    .find(|(k, _)| k == "observation.state")
+                    .and_then(|(_, s)| s.names.clone())
+                    .unwrap_or_default()
+                    .join(",")
+            };
+            return Err(differ(format!(
+                "its features differ from this robot's (joints there: {}; here: {})",
+                names(&theirs),
+                names(&ours)
+            )));
+        }
+        self.settings_size_check(info)
+    }
+
+    fn settings_size_check(&self, info: &Info) -> Result<(), RecordError> {
+        if info.chunks_size != CHUNKS_SIZE {
+            return Err(RecordError::Incompatible {
+                root: self.root.clone(),
+                reason: format!(
+                    "chunks_size {} (this recorder uses {CHUNKS_SIZE})",
+                    info.chunks_size
+                ),
+            });
+        }
+        Ok(())
+    }
+
+    /// Loads the task and episode tables and checks that they describe one contiguous dataset.
+    fn load(&mut self) -> Result<(), RecordError> {
+        let tasks_path = self.root.join("meta/tasks.parquet");
+        if tasks_path.exists() {
+            self.tasks = pq::read_tasks(&tasks_path)?;
+        }
+        for (_, _, path) in chunk_files(&self.root.join("meta/episodes"))? {
+            self.episodes
+                .extend(pq::read_episodes(&path, &self.features)?);
+        }
+        self.episodes.sort_by_key(|e| e.episode_index);
+        let mut next_index = 0;
+        for (i, e) in self.episodes.iter().enumerate() {
+            let problem = if e.episode_index != i as i64 {
+                Some(format!(
+                    "episode {} where {i} was expected",
+                    e.episode_index
+                ))
+            } else if e.dataset_from_index != next_index
+                || e.dataset_to_index - e.dataset_from_index != e.length
+            {
+                Some(format!(
+                    "episode {} spans {}..{} with length {} (expected to start at {next_index})",
+                    e.episode_index, e.dataset_from_index, e.dataset_to_index, e.length
+                ))
+            } else if e.tasks.iter().any(|t| !self.tasks.contains(t)) {
+                Some(format!(
+                    "episode {} has a task missing from tasks.parquet",
+                    e.episode_index
+                ))
+            } else {
+                None
+            };
+            if let Some(p) = problem {
+                return Err(RecordError::invalid(self.root.join("meta/episodes"), p));
+            }
+            next_index = e.dataset_to_index;
+        }
+        Ok(())
+    }
+
+    /// Cuts off row groups of data files that no committed episode references (one per
+    /// episode, in order); returns the rows removed.
+    fn cut_orphan_rows(&mut self) -> Result<i64, RecordError> {
+        let mut removed = 0;
+        for (chunk, file, path) in chunk_files(&self.root.join("data"))? {
+            let committed: Vec<&EpisodeRow> = self
+                .episodes
+                .iter()
+                .filter(|e| e.data_chunk_index == chunk && e.data_file_index == file)
+                .collect();
+            let (groups, _) = pq::row_groups(&path)?;
+            if groups.len() < committed.len()
+                || committed.iter().zip(&groups).any(|(e, &n)| e.length != n)
+            {
+                return Err(RecordError::invalid(
+                    &path,
+                    format!(
+                        "row groups {groups:?} do not hold the {} episode(s) the episode table places here",
+                        committed.len()
+                    ),
+                ));
+            }
+            if groups.len() == committed.len() {
+                continue;
+            }
+            removed += groups[committed.len()..].iter().sum::<i64>();
+            if committed.is_empty() {
+                std::fs::remove_file(&path)
+                    .map_err(RecordError::io(&path, "removing an unreferenced data file"))?;
+                if let Some(dir) = path.parent() {
+                    fsutil::sync_dir(dir)?;
+                }
+            } else {
+                let keep = committed.len();
+                self.rewrite_data_file(&path, keep, &[])?;
+            }
+        }
+        Ok(removed)
+    }
+
+    /// Replaces a data file with its first `keep` row groups plus `rows` as a new one.
+    fn rewrite_data_file(
+        &self,
+        path: &Path,
+        keep: usize,
+        rows: &[DataRow],
+    ) -> Result<(), RecordError> {
+        let schema = pq::data_schema(&self.features).map_err(RecordError::parquet(path))?;
+        let existing = if keep > 0 {
+            let (_, theirs) = pq::row_groups(path)?;
+            if theirs != schema {
+                return Err(RecordError::invalid(
+                    path,
+                    "its schema differs from the dataset's features",
+                ));
+            }
+            Some(File::open(path).map_err(RecordError::io(path, "opening"))?)
+        } else {
+            None
+        };
+        let props = pq::properties(vec![(
+            "huggingface".into(),
+            pq::huggingface_metadata(&self.features),
+        )]);
+        fsutil::replace_with(path, |out| {
+            let mut writer = SerializedFileWriter::new(out, schema.clone(), props)
+                .map_err(RecordError::parquet(path))?;
+            if let Some(src) = &existing {
+                pq::copy_row_groups(&mut writer, src, keep).map_err(RecordError::parquet(path))?;
+            }
+            if !rows.is_empty() {
+                pq::write_data_rows(&mut writer, &self.features, rows)
+                    .map_err(RecordError::parquet(path))?;
+            }
+            writer.close().map_err(RecordError::parquet(path))?;
+            Ok(())
+        })
+    }
+
+    /// Rewrites `info.json`, `stats.json` and `nori.json` from the episode table.
+    fn write_summaries(&self) -> Result<(), RecordError> {
+        let total_frames = self.episodes.last().map_or(0, |e| e.dataset_to_index);
+        let mut splits = BTreeMap::new();
+        if !self.episodes.is_empty() {
+            splits.insert("train".to_string(), format!("0:{}", self.episodes.len()));
+        }
+        let info = Info {
+            codebase_version: CODEBASE_VERSION.into(),
+            robot_type: Some(self.settings.robot_type.clone()),
+            total_episodes: self.episodes.len() as i64,
+            total_frames,
+            total_tasks: self.tasks.len() as i64,
+            chunks_size: CHUNKS_SIZE,
+            data_files_size_in_mb: self.settings.data_files_size_in_mb,
+            video_files_size_in_mb: VIDEO_FILES_SIZE_IN_MB,
+            fps: self.settings.fps,
+            splits,
+            data_path: DATA_PATH.into(),
+            video_path: None,
+            features: self.features.info_json(),
+        };
+        let nori = NoriMeta {
+            features: self.features.clone(),
+            action: "the joint position goal the bus-driver sent in the sampled cycle, after its calibration clamp (JointState goal_rad)".into(),
+            missing: "NaN: no valid read of the joint within the last frame period".into(),
+        };
+        let path = self.root.join("meta/nori.json");
+        fsutil::replace(&path, &json_bytes(&path, &nori)?)?;
+        if !self.episodes.is_empty() {
+            let stats = Ordered(
+                self.features
+                    .keys()
+                    .into_iter()
+                    .filter_map(|key| {
+                        let parts: Vec<FeatureStats> = self
+                            .episodes
+                            .iter()
+                            .filter_map(|e| {
+                                e.stats
+                                    .iter()
+                                    .find(|(k, _)| k == key)
+                                    .map(|(_, s)| s.clone())
+                            })
+                            .collect();
+                        FeatureStats::aggregate(&parts).map(|s| (key.to_string(), s.to_json()))
+                    })
+                    .collect(),
+            );
+            let path = self.root.join("meta/stats.json");
+            fsutil::replace(&path, &json_bytes(&path, &stats)?)?;
+        }
+        // info.json last: it is what a reader opens first, and it only ever counts episodes
+        // whose rows and metadata are already in place.
+        let path = self.root.join("meta/info.json");
+        fsutil::replace(&path, &json_bytes(&path, &info)?)
+    }
+
+    fn recover_staged(
+        &mut self,
+        drop_unfinished: bool,
+        recovery: &mut Recovery,
+    ) -> Result<(), RecordError> {
+        let staging = self.root.join(STAGING);
+        let mut dirs: Vec<PathBuf> = std::fs::read_dir(&staging)
+            .map_err(RecordError::io(&staging, "listing"))?
+            .flatten()
+            .map(|e| e.path())
+            .filter(|p| {
+                p.is_dir()
+                    && p.file_name()
+                        .is_some_and(|n| n.to_string_lossy().starts_with("episode-"))
+            })
+            .collect();
+        dirs.sort();
+        for dir in dirs {
+            let meta = read_json::<StagedEpisode>(&dir.join("episode.json")).ok();
+            let Some(meta) = meta else {
+                // Killed before its episode.json was in place: no part can exist yet.
+                recovery.dropped.push((-1, 0, "no episode.json".into()));
+                remove_dir(&dir)?;
+                continue;
+            };
+            if meta.episode_index < self.episodes.len() as i64 {
+                recovery.already_committed += 1;
+                remove_dir(&dir)?;
+                continue;
+            }
+            let frames = self.read_parts(&dir)?;
+            if frames.is_empty() || drop_unfinished || meta.fps != self.settings.fps {
+                let why = if frames.is_empty() {
+                    "no frame was flushed"
+                } else if drop_unfinished {
+                    "unfinished episodes are dropped (asked)"
+                } else {
+                    "staged at another fps"
+                };
+                recovery
+                    .dropped
+                    .push((meta.episode_index, frames.len(), why.into()));
+                remove_dir(&dir)?;
+                continue;
+            }
+            let row = self.commit(&meta.task, &frames)?;
+            recovery.recovered.push((row.episode_index, frames.len()));
+            remove_dir(&dir)?;
+        }
+        Ok(())
+    }
+
+    /// The frames of a staged episode's parts, in order, up to the first gap.
+    fn read_parts(&self, dir: &Path) -> Result<Vec<Frame>, RecordError> {
+        let mut parts: Vec<PathBuf> = std::fs::read_dir(dir)
+            .map_err(RecordError::io(dir, "listing"))?
+            .flatten()
+            .map(|e| e.path())
+            .filter(|p| p.extension().is_some_and(|x| x == "parquet"))
+            .collect();
+        parts.sort();
+        let mut frames = Vec::new();
+        for part in parts {
+            let rows = pq::read_data(&part, &self.features)?;
+            // Parts are renamed into place whole and in order, so a gap means a part is
+            // missing (removed by hand): what follows it cannot be placed in time.
+            if rows
+                .first()
+                .is_some_and(|r| r.frame_index != frames.len() as i64)
+            {
+                break;
+            }
+            frames.extend(rows.into_iter().map(|r| r.frame));
+        }
+        Ok(frames)
+    }
+
+    /// Starts recording an episode of `task`: its frames are staged every `flush_every` frames.
+    pub fn begin_episode(
+        &mut self,
+        task: &str,
+        flush_every: usize,
+    ) -> Result<EpisodeWriter<'_>, RecordError> {
+        if task.trim().is_empty() {
+            return Err(RecordError::Request("the task description is empty".into()));
+        }
+        if flush_every == 0 || flush_every > self.settings.fps as usize {
+            return Err(RecordError::Request(format!(
+                "flush every {flush_every} frames: must be 1..={} (at most one second at {} fps)",
+                self.settings.fps, self.settings.fps
+            )));
+        }
+        let episode_index = self.episodes.len() as i64;
+        let dir = self
+            .root
+            .join(STAGING)
+            .join(format!("episode-{episode_index:06}"));
+        if dir.exists() {
+            remove_dir(&dir)?;
+        }
+        fsutil::create_dir(&dir)?;
+        let staged = StagedEpisode {
+            episode_index,
+            task: task.into(),
+            fps: self.settings.fps,
+            started_unix_ms: unix_ms(),
+        };
+        let path = dir.join("episode.json");
+        fsutil::replace(&path, &json_bytes(&path, &staged)?)?;
+        let (jobs, queue) = mpsc::channel();
+        let (done, written) = mpsc::channel();
+        let features = self.features.clone();
+        let writer = std::thread::Builder::new()
+            .name("staged-parts".into())
+            .spawn(move || part_writer(features, queue, done))
+            .map_err(RecordError::io(&dir, "starting the staged-part writer"))?;
+        Ok(EpisodeWriter {
+            dataset: self,
+            dir,
+            task: task.into(),
+            episode_index,
+            frames: Vec::new(),
+            flushed: 0,
+            parts: 0,
+            flush_every,
+            jobs: Some(jobs),
+            written,
+            on_disk: 0,
+            writer: Some(writer),
+        })
+    }
+
+    /// Appends an episode of `frames` of `task` to the dataset (see the module documentation for
+    /// the order of the writes).
+    fn commit(&mut self, task: &str, frames: &[Frame]) -> Result<EpisodeRow, RecordError> {
+        let task_index = match self.tasks.iter().position(|t| t == task) {
+            Some(i) => i as i64,
+            None => {
+                self.tasks.push(task.into());
+                let path = self.root.join("meta/tasks.parquet");
+                let tasks = self.tasks.clone();
+                fsutil::replace_with(&path, |f| {
+                    pq::write_tasks(f, &tasks).map_err(RecordError::parquet(&path))
+                })?;
+                (self.tasks.len() - 1) as i64
+            }
+        };
+        // LeRobot's rule: a file takes the new episode unless its size plus the episode's,
+        // estimated at the file's own bytes per unit (frames, or episode rows), reaches the limit.
+        let limit = (self.settings.data_files_size_in_mb * 1024 * 1024) as f64;
+        let too_big = |rel: &str, units_in_file: i64, new_units: i64| {
+            std::fs::metadata(self.root.join(rel)).is_ok_and(|m| {
+                let size = m.len() as f64;
+                let per_unit = size / units_in_file.max(1) as f64;
+                size + per_unit * new_units as f64 >= limit
+            })
+        };
+        let episode_index = self.episodes.len() as i64;
+        let from = self.episodes.last().map_or(0, |e| e.dataset_to_index);
+        let (mut chunk, mut file) = self
+            .episodes
+            .last()
+            .map_or((0, 0), |e| (e.data_chunk_index, e.data_file_index));
+        let frames_in_file: i64 = self
+            .episodes
+            .iter()
+            .filter(|e| e.data_chunk_index == chunk && e.data_file_index == file)
+            .map(|e| e.length)
+            .sum();
+        if too_big(&data_file(chunk, file), frames_in_file, frames.len() as i64) {
+            (chunk, file) = next_file(chunk, file);
+        }
+        let fps = self.settings.fps as f64;
+        let rows: Vec<DataRow> = frames
+            .iter()
+            .enumerate()
+            .map(|(i, f)| DataRow {
+                frame: f.clone(),
+                timestamp: (i as f64 / fps) as f32,
+                frame_index: i as i64,
+                episode_index,
+                index: from + i as i64,
+                task_index,
+            })
+            .collect();
+        let in_file = self
+            .episodes
+            .iter()
+            .filter(|e| e.data_chunk_index == chunk && e.data_file_index == file)
+            .count();
+        self.rewrite_data_file(&self.root.join(data_file(chunk, file)), in_file, &rows)?;
+
+        let (mut meta_chunk, mut meta_file) = self
+            .episodes
+            .last()
+            .map_or((0, 0), |e| (e.meta_chunk_index, e.meta_file_index));
+        let rows_in_file = self
+            .episodes
+            .iter()
+            .filter(|e| e.meta_chunk_index == meta_chunk && e.meta_file_index == meta_file)
+            .count() as i64;
+        if too_big(&episodes_file(meta_chunk, meta_file), rows_in_file, 1) {
+            (meta_chunk, meta_file) = next_file(meta_chunk, meta_file);
+        }
+        let row = EpisodeRow {
+            episode_index,
+            tasks: vec![task.into()],
+            length: frames.len() as i64,
+            data_chunk_index: chunk,
+            data_file_index: file,
+            dataset_from_index: from,
+            dataset_to_index: from + frames.len() as i64,
+            stats: episode_stats(&self.features, &rows),
+            meta_chunk_index: meta_chunk,
+            meta_file_index: meta_file,
+        };
+        let mut same_file: Vec<EpisodeRow> = self
+            .episodes
+            .iter()
+            .filter(|e| e.meta_chunk_index == meta_chunk && e.meta_file_index == meta_file)
+            .cloned()
+            .collect();
+        same_file.push(row.clone());
+        let path = self.root.join(episodes_file(meta_chunk, meta_file));
+        let features = self.features.clone();
+        fsutil::replace_with(&path, |f| {
+            pq::write_episodes(f, &features, &same_file).map_err(RecordError::parquet(&path))
+        })?;
+        self.episodes.push(row.clone());
+        self.write_summaries()?;
+        Ok(row)
+    }
+
+    /// The dataset's root.
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
+    /// Its settings.
+    pub fn settings(&self) -> &Settings {
+        &self.settings
+    }
+
+    /// Its features.
+    pub fn features(&self) -> &Features {
+        &self.features
+    }
+
+    /// Committed episodes.
+    pub fn episodes(&self) -> &[EpisodeRow] {
+        &self.episodes
+    }
+
+    /// Task texts by index.
+    pub fn tasks(&self) -> &[String] {
+        &self.tasks
+    }
+
+    /// Rows of one committed episode, read back from its data file.
+    pub fn read_episode(&self, episode_index: i64) -> Result<Vec<DataRow>, RecordError> {
+        read_episode_rows(&self.root, &self.features, &self.episodes, episode_index)
+    }
+}
+
+/// Rows of `episode_index` among `episodes`, from its data file, checked against its length.
+fn read_episode_rows(
+    root: &Path,
+    features: &Features,
+    episodes: &[EpisodeRow],
+    episode_index: i64,
+) -> Result<Vec<DataRow>, RecordError> {
+    let e = episodes
+        .iter()
+        .find(|e| e.episode_index == episode_index)
+        .ok_or_else(|| {
+            RecordError::Request(format!(
+                "no episode {episode_index} in {} (it has {})",
+                root.display(),
+                episodes.len()
+            ))
+        })?;
+    let path = root.join(data_file(e.data_chunk_index, e.data_file_index));
+    let rows: Vec<DataRow> = pq::read_data(&path, features)?
+        .into_iter()
+        .filter(|r| r.episode_index == episode_index)
+        .collect();
+    if rows.len() as i64 != e.length {
+        return Err(RecordError::invalid(
+            &path,
+            format!(
+                "episode {episode_index} has {} rows, its length is {}",
+                rows.len(),
+                e.length
+            ),
+        ));
+    }
+    Ok(rows)
+}
+
+/// Statistics of every feature of one episode, in feature order.
+fn episode_stats(features: &Features, rows: &[DataRow]) -> Vec<(String, FeatureStats)> {
+    let n = rows.len();
+    let mut out = Vec::new();
+    for v in features.vectors() {
+        let columns: Vec<Vec<f64>> = (0..features.width(v))
+            .map(|d| {
+                rows.iter()
+                    .map(|r| f64::from(r.frame.vector(v)[d]))
+                    .collect()
+            })
+            .collect();
+        out.push((v.key().to_string(), FeatureStats::of_columns(&columns, n)));
+    }
+    for (key, _) in SCALARS {
+        let column: Vec<f64> = rows
+            .iter()
+            .map(|r| match key {
+                "timestamp" => f64::from(r.timestamp),
+                "frame_index" => r.frame_index as f64,
+                "episode_index" => r.episode_index as f64,
+                "index" => r.index as f64,
+                _ => r.task_index as f64,
+            })
+            .collect();
+        out.push((key.to_string(), FeatureStats::of_columns(&[column], n)));
+    }
+    out
+}
+
+fn remove_dir(dir: &Path) -> Result<(), RecordError> {
+    std::fs::remove_dir_all(dir).map_err(RecordError::io(dir, "removing"))?;
+    if let Some(parent) = dir.parent() {
+        fsutil::sync_dir(parent)?;
+    }
+    Ok(())
+}
+
+/// A part handed to the background writer: its file and rows.
+type PartJob = (PathBuf, Vec<DataRow>);
+
+/// Writes staged parts in order, off the recording loop: an fsync on a busy disk takes tens to
+/// hundreds of milliseconds, which would otherwise delay the frame ticks. Ends at the first
+/// error (reported when the episode is flushed or finished) or when the channel closes.
+fn part_writer(
+    features: Features,
+    jobs: mpsc::Receiver<PartJob>,
+    written: mpsc::Sender<usize>,
+) -> Result<(), RecordError> {
+    let schema = pq::data_schema(&features).map_err(RecordError::parquet("staged part schema"))?;
+    for (n, (path, rows)) in jobs.into_iter().enumerate() {
+        fsutil::replace_with(&path, |out| {
+            let mut w = SerializedFileWriter::new(out, schema.clone(), pq::properties(Vec::new()))
+                .map_err(RecordError::parquet(&path))?;
+            pq::write_data_rows(&mut w, &features, &rows).map_err(RecordError::parquet(&path))?;
+            w.close().map_err(RecordError::parquet(&path))?;
+            Ok(())
+        })?;
+        // The recorder may have stopped listening; the part is on disk either way.
+        let _ = written.send(n + 1);
+    }
+    Ok(())
+}
+
+/// The episode being recorded: frames in memory, handed every flush interval to a background
+/// writer that stages them as a part file.
+///
+/// What a crash loses: the frames not yet handed over (less than one flush interval) and the
+/// part being written at that moment, if its rename has not happened (one more interval at
+/// most, usually a few milliseconds of writing). `nori record` flushes every 500 ms by default,
+/// so the loss stays within one second unless a write takes longer than half a second.
+pub struct EpisodeWriter<'a> {
+    dataset: &'a mut Dataset,
+    dir: PathBuf,
+    task: String,
+    episode_index: i64,
+    frames: Vec<Frame>,
+    flushed: usize,
+    parts: usize,
+    flush_every: usize,
+    jobs: Option<mpsc::Sender<PartJob>>,
+    written: mpsc::Receiver<usize>,
+    on_disk: usize,
+    writer: Option<std::thread::JoinHandle<Result<(), RecordError>>>,
+}
+
+impl EpisodeWriter<'_> {
+    /// Adds the next frame; flushes when a flush interval is full. Returns whether it flushed.
+    pub fn push(&mut self, frame: Frame) -> Result<bool, RecordError> {
+        self.frames.push(frame);
+        if self.frames.len() - self.flushed >= self.flush_every {
+            self.flush()?;
+            return Ok(true);
+        }
+        Ok(false)
+    }
+
+    /// Hands the frames not yet staged to the writer, as one part file.
+    pub fn flush(&mut self) -> Result<(), RecordError> {
+        if self.flushed == self.frames.len() {
+            return Ok(());
+        }
+        let fps = f64::from(self.dataset.settings.fps);
+        let from = self
+            .dataset
+            .episodes
+            .last()
+            .map_or(0, |e| e.dataset_to_index);
+        let rows: Vec<DataRow> = self.frames[self.flushed..]
+            .iter()
+            .enumerate()
+            .map(|(k, f)| {
+                let i = self.flushed + k;
+                DataRow {
+                    frame: f.clone(),
+                    timestamp: (i as f64 / fps) as f32,
+                    frame_index: i as i64,
+                    episode_index: self.episode_index,
+                    index: from + i as i64,
+                    // Provisional: the task's index is settled when the episode is committed.
+                    task_index: -1,
+                }
+            })
+            .collect();
+        let path = self.dir.join(format!("part-{:06}.parquet", self.parts));
+        let sent = self
+            .jobs
+            .as_ref()
+            .is_some_and(|jobs| jobs.send((path, rows)).is_ok());
+        if !sent {
+            // The writer stopped: its error says why.
+            self.wait_for_writer()?;
+            return Err(RecordError::Request(
+                "the staged-part writer stopped".into(),
+            ));
+        }
+        self.parts += 1;
+        self.flushed = self.frames.len();
+        Ok(())
+    }
+
+    /// Closes the queue and waits until every part handed over is on disk.
+    fn wait_for_writer(&mut self) -> Result<(), RecordError> {
+        self.jobs = None;
+        match self.writer.take().map(std::thread::JoinHandle::join) {
+            Some(Ok(result)) => result,
+            Some(Err(_)) => Err(RecordError::Request(
+                "the staged-part writer panicked".into(),
+            )),
+            None => Ok(()),
+        }
+    }
+
+    /// Waits until every part handed to the writer is on disk (renamed and synced).
+    pub fn sync(&mut self) -> Result<(), RecordError> {
+        while self.on_disk < self.parts {
+            match self.written.recv() {
+                Ok(n) => self.on_disk = n,
+                Err(_) => {
+                    self.wait_for_writer()?;
+                    return Err(RecordError::Request(
+                        "the staged-part writer stopped".into(),
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Frames so far.
+    pub fn len(&self) -> usize {
+        self.frames.len()
+    }
+
+    /// Whether no frame was taken yet.
+    pub fn is_empty(&self) -> bool {
+        self.frames.is_empty()
+    }
+
+    /// Frames handed to the part writer.
+    pub fn flushed(&self) -> usize {
+        self.flushed
+    }
+
+    /// Commits the episode to the dataset; `None` (and nothing written) if it has no frame.
+    pub fn finish(mut self) -> Result<Option<EpisodeRow>, RecordError> {
+        self.wait_for_writer()?;
+        if self.frames.is_empty() {
+            remove_dir(&self.dir)?;
+            return Ok(None);
+        }
+        let frames = std::mem::take(&mut self.frames);
+        let row = self.dataset.commit(&self.task, &frames)?;
+        remove_dir(&self.dir)?;
+        Ok(Some(row))
+    }
+
+    /// Stops without committing, as a crash right after the last flush would: the staged parts
+    /// stay for the next [`Dataset::open`] to complete or drop.
+    pub fn abandon(mut self) -> Result<(), RecordError> {
+        self.wait_for_writer()
+    }
+
+    /// Drops the episode (its staged parts too).
+    pub fn discard(mut self) -> Result<(), RecordError> {
+        self.wait_for_writer()?;
+        remove_dir(&self.dir)
+    }
+}
+
+impl Drop for EpisodeWriter<'_> {
+    fn drop(&mut self) {
+        // Every path out waits for the writer thread, so no part is written after the dataset's
+        // lock is released.
+        let _ = self.wait_for_writer();
+    }
+}
+
+/// A dataset opened for reading only (no lock, no repair): what `info.json`, `nori.json` and
+/// the episode table say. Rows a crashed commit left unreferenced are not seen.
+pub struct DatasetReader {
+    /// The root.
+    pub root: PathBuf,
+    /// `meta/info.json`.
+    pub info: Info,
+    /// The recorded joints (`meta/nori.json`).
+    pub features: Features,
+    /// Committed episodes.
+    pub episodes: Vec<EpisodeRow>,
+}
+
+impl DatasetReader {
+    /// Reads the metadata of the dataset at `root`.
+    pub fn open(root: &Path) -> Result<DatasetReader, RecordError> {
+        let info: Info = read_json(&root.join("meta/info.json"))?;
+        let nori: NoriMeta = read_json(&root.join("meta/nori.json"))?;
+        let mut episodes = Vec::new();
+        for (_, _, path) in chunk_files(&root.join("meta/episodes"))? {
+            episodes.extend(pq::read_episodes(&path, &nori.features)?);
+        }
+        episodes.sort_by_key(|e| e.episode_index);
+        episodes.truncate(usize::try_from(info.total_episodes).unwrap_or(0));
+        Ok(DatasetReader {
+            root: root.into(),
+            info,
+            features: nori.features,
+            episodes,
+        })
+    }
+
+    /// Rows of one committed episode.
+    pub fn read_episode(&self, episode_index: i64) -> Result<Vec<DataRow>, RecordError> {
+        read_episode_rows(&self.root, &self.features, &self.episodes, episode_index)
+    }
+}

@@ -1,0 +1,34 @@
+//! Demonstration recording in LeRobot's v3.0 dataset layout, crash-safe.
+//!
+//! The pure parts (sampling the state plane at a fixed rate, statistics, the LeRobot layout and
+//! its metadata, the CSV export format) are separate from the one module that touches files,
+//! [`dataset`], so the tests drive them directly. The `nori record` process only moves frames
+//! from the state plane into a [`dataset::EpisodeWriter`].
+//!
+//! Layout (LeRobot v3.0, `lerobot/datasets/utils.py`):
+//!
+//! ```text
+//! <root>/meta/info.json                                 codebase_version, fps, features, paths
+//! <root>/meta/stats.json                                min/max/mean/std/count/q01..q99 per feature
+//! <root>/meta/tasks.parquet                             task text (pandas index) -> task_index
+//! <root>/meta/episodes/chunk-000/file-000.parquet       one row per episode, with its stats
+//! <root>/data/chunk-000/file-000.parquet                frames, one row group per episode
+//! <root>/meta/nori.json                                 the joint layout (bus, id, model): not LeRobot's
+//! <root>/.nori-staging/                                 the episode being recorded, flushed parts
+//! ```
+//!
+//! Crash safety: see [`dataset`].
+
+pub mod csv;
+pub mod dataset;
+pub mod error;
+pub mod features;
+pub mod fsutil;
+pub mod pq;
+pub mod sampler;
+pub mod stats;
+
+pub use dataset::{Dataset, EpisodeWriter, Recovery};
+pub use error::RecordError;
+pub use features::{Features, JointMeta};
+pub use sampler::{Frame, Sampler};

@@ -1,0 +1,232 @@
+//! Feature statistics as LeRobot keeps them (`lerobot/datasets/compute_stats.py`): per feature
+//! and dimension min, max, mean, std (population), count (frames, shape `[1]`) and the quantiles
+//! q01, q10, q50, q90, q99.
+//!
+//! Per episode they are exact over the episode's finite values (NaN marks a missing sample, see
+//! [`crate::sampler`]); quantiles interpolate linearly between order statistics (numpy's
+//! default), which LeRobot's 5000-bin histogram approximates. Across episodes (`stats.json`)
+//! min/max are exact, mean and std combine exactly by the parallel formula, and quantiles are
+//! the count-weighted average of the episodes' quantiles: LeRobot's own `aggregate_stats`,
+//! approximate by construction (exact global quantiles would need every frame again).
+
+use serde_json::{json, Value};
+
+/// Quantile levels and their key names.
+pub const QUANTILES: [(f64, &str); 5] = [
+    (0.01, "q01"),
+    (0.10, "q10"),
+    (0.50, "q50"),
+    (0.90, "q90"),
+    (0.99, "q99"),
+];
+
+/// Statistic names, in the order they are stored.
+pub const STAT_NAMES: [&str; 10] = [
+    "min", "max", "mean", "std", "count", "q01", "q10", "q50", "q90", "q99",
+];
+
+/// Statistics of one feature (every vector has the feature's width).
+#[derive(Debug, Clone, PartialEq)]
+pub struct FeatureStats {
+    /// Minimum per dimension (NaN when a dimension has no finite value).
+    pub min: Vec<f64>,
+    /// Maximum.
+    pub max: Vec<f64>,
+    /// Mean.
+    pub mean: Vec<f64>,
+    /// Population standard deviation.
+    pub std: Vec<f64>,
+    /// Frames.
+    pub count: u64,
+    /// Quantiles in [`QUANTILES`] order, each per dimension.
+    pub quantiles: [Vec<f64>; 5],
+}
+
+fn quantile_of_sorted(x: &[f64], q: f64) -> f64 {
+    if x.is_empty() {
+        return f64::NAN;
+    }
+    let h = (x.len() - 1) as f64 * q;
+    let lo = h.floor() as usize;
+    let hi = (lo + 1).min(x.len() - 1);
+    x[lo] + (h - lo as f64) * (x[hi] - x[lo])
+}
+
+impl FeatureStats {
+    /// Statistics of `frames` values per dimension: `columns[d][frame]`.
+    pub fn of_columns(columns: &[Vec<f64>], frames: usize) -> FeatureStats {
+        let width = columns.len();
+        let mut s = FeatureStats {
+            min: Vec::with_capacity(width),
+            max: Vec::with_capacity(width),
+            mean: Vec::with_capacity(width),
+            std: Vec::with_capacity(width),
+            count: frames as u64,
+            quantiles: Default::default(),
+        };
+        for column in columns {
+            let mut x: Vec<f64> = column.iter().copied().filter(|v| v.is_finite()).collect();
+            x.sort_by(f64::total_cmp);
+            let n = x.len() as f64;
+            let mean = x.iter().sum::<f64>() / n;
+            let var = x.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
+            s.min.push(x.first().copied().unwrap_or(f64::NAN));
+            s.max.push(x.last().copied().unwrap_or(f64::NAN));
+            s.mean.push(mean);
+            s.std.push(var.sqrt());
+            for (k, (q, _)) in QUANTILES.iter().enumerate() {
+                s.quantiles[k].push(quantile_of_sorted(&x, *q));
+            }
+        }
+        s
+    }
+
+    /// One statistic by name, as stored (count as a one-element vector).
+    pub fn get(&self, name: &str) -> Option<Vec<f64>> {
+        Some(match name {
+            "min" => self.min.clone(),
+            "max" => self.max.clone(),
+            "mean" => self.mean.clone(),
+            "std" => self.std.clone(),
+            "count" => vec![self.count as f64],
+            _ => self.quantiles[QUANTILES.iter().position(|(_, n)| *n == name)?].clone(),
+        })
+    }
+
+    /// Rebuilds from stored statistics (`get` by name); `None` if one is missing or misshapen.
+    pub fn from_named(mut get: impl FnMut(&str) -> Option<Vec<f64>>) -> Option<FeatureStats> {
+        let min = get("min")?;
+        let width = min.len();
+        let count = get_count(&mut get)?;
+        let mut take = |n: &str| get(n).filter(|v| v.len() == width);
+        Some(FeatureStats {
+            max: take("max")?,
+            mean: take("mean")?,
+            std: take("std")?,
+            count,
+            quantiles: [
+                take("q01")?,
+                take("q10")?,
+                take("q50")?,
+                take("q90")?,
+                take("q99")?,
+            ],
+            min,
+        })
+    }
+
+    /// Combines the statistics of several episodes of one feature (LeRobot's
+    /// `aggregate_feature_stats`, NaN dimensions of an episode left out of min/max).
+    pub fn aggregate(parts: &[FeatureStats]) -> Option<FeatureStats> {
+        let first = parts.first()?;
+        let width = first.mean.len();
+        let total: u64 = parts.iter().map(|p| p.count).sum();
+        if total == 0 || parts.iter().any(|p| p.mean.len() != width) {
+            return None;
+        }
+        let weight = |p: &FeatureStats| p.count as f64 / total as f64;
+        let mut out = FeatureStats {
+            min: vec![f64::NAN; width],
+            max: vec![f64::NAN; width],
+            mean: vec![0.0; width],
+            std: vec![0.0; width],
+            count: total,
+            quantiles: Default::default(),
+        };
+        for d in 0..width {
+            out.min[d] = parts.iter().map(|p| p.min[d]).fold(f64::NAN, f64::min);
+            out.max[d] = parts.iter().map(|p| p.max[d]).fold(f64::NAN, f64::max);
+            let mean: f64 = parts.iter().map(|p| p.mean[d] * weight(p)).sum();
+            let var: f64 = parts
+                .iter()
+                .map(|p| (p.std[d].powi(2) + (p.mean[d] - mean).powi(2)) * weight(p))
+                .sum();
+            out.mean[d] = mean;
+            out.std[d] = var.sqrt();
+        }
+        for k in 0..QUANTILES.len() {
+            out.quantiles[k] = (0..width)
+                .map(|d| parts.iter().map(|p| p.quantiles[k][d] * weight(p)).sum())
+                .collect();
+        }
+        Some(out)
+    }
+
+    /// The object LeRobot writes per feature in `stats.json` (non-finite values as `null`).
+    pub fn to_json(&self) -> crate::features::Ordered<Value> {
+        let mut out = Vec::new();
+        for name in STAT_NAMES {
+            let v = if name == "count" {
+                json!([self.count])
+            } else {
+                json!(self.get(name).unwrap_or_default())
+            };
+            out.push((name.to_string(), v));
+        }
+        crate::features::Ordered(out)
+    }
+}
+
+fn get_count(get: &mut impl FnMut(&str) -> Option<Vec<f64>>) -> Option<u64> {
+    match get("count")?.as_slice() {
+        [c] if *c >= 0.0 => Some(*c as u64),
+        _ => None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn episode_stats_match_the_definitions_and_skip_missing_values() {
+        let s = FeatureStats::of_columns(&[vec![1.0, 2.0, 3.0, 4.0, f64::NAN], vec![5.0; 5]], 5);
+        assert_eq!(s.min, [1.0, 5.0]);
+        assert_eq!(s.max, [4.0, 5.0]);
+        assert_eq!(s.mean, [2.5, 5.0]);
+        assert!((s.std[0] - 1.25f64.sqrt()).abs() < 1e-12, "population std");
+        assert_eq!(s.std[1], 0.0);
+        assert_eq!(s.count, 5, "frames, as LeRobot counts");
+        // numpy.quantile([1,2,3,4], q) with linear interpolation: h = 3q.
+        assert!((s.quantiles[2][0] - 2.5).abs() < 1e-12);
+        assert!((s.quantiles[0][0] - 1.03).abs() < 1e-12);
+        assert!((s.quantiles[4][0] - 3.97).abs() < 1e-12);
+    }
+
+    #[test]
+    fn aggregation_is_exact_for_min_max_mean_std() {
+        let a: Vec<f64> = (0..7).map(|i| i as f64 * 0.5).collect();
+        let b: Vec<f64> = (0..13).map(|i| 10.0 - i as f64).collect();
+        let all: Vec<f64> = a.iter().chain(&b).copied().collect();
+        let sa = FeatureStats::of_columns(std::slice::from_ref(&a), a.len());
+        let sb = FeatureStats::of_columns(std::slice::from_ref(&b), b.len());
+        let whole = FeatureStats::of_columns(std::slice::from_ref(&all), all.len());
+        let agg = FeatureStats::aggregate(&[sa.clone(), sb.clone()]).unwrap();
+        assert_eq!(agg.count, 20);
+        assert_eq!(agg.min, whole.min);
+        assert_eq!(agg.max, whole.max);
+        assert!((agg.mean[0] - whole.mean[0]).abs() < 1e-12);
+        assert!((agg.std[0] - whole.std[0]).abs() < 1e-12);
+        let weighted = (sa.quantiles[2][0] * 7.0 + sb.quantiles[2][0] * 13.0) / 20.0;
+        assert!(
+            (agg.quantiles[2][0] - weighted).abs() < 1e-12,
+            "LeRobot's weighted quantiles"
+        );
+    }
+
+    #[test]
+    fn stored_stats_round_trip_and_misshapen_ones_are_refused() {
+        let s = FeatureStats::of_columns(&[vec![1.0, 2.0], vec![3.0, 5.0]], 2);
+        let back = FeatureStats::from_named(|n| s.get(n)).unwrap();
+        assert_eq!(back, s);
+        assert!(FeatureStats::from_named(|n| if n == "std" {
+            Some(vec![1.0])
+        } else {
+            s.get(n)
+        })
+        .is_none());
+        let json = serde_json::to_value(s.to_json()).unwrap();
+        assert_eq!(json["count"], json!([2]));
+        assert_eq!(json["q50"], json!([1.5, 4.0]));
+    }
+}

@@ -1,0 +1,254 @@
+#!/usr/bin/env python3
+"""Independent check of a dataset written by `nori record` against LeRobot's v3.0 layout.
+
+Reads the dataset with pyarrow/pandas/numpy only (no code of this repository), the way LeRobot
+does (`lerobot/datasets/utils.py`: `load_info`, `load_nested_dataset` over `data/*/*.parquet`,
+`load_episodes` over `meta/episodes/*/*.parquet`, `pd.read_parquet(meta/tasks.parquet)`,
+`load_stats`), and checks field names, schema, row counts, indices, timestamps and statistics.
+
+Usage: check_lerobot_dataset.py ROOT [--episodes N] [--in-flight]
+
+--in-flight accepts what a recorder killed during a commit leaves before the next start repairs
+it: `info.json` (written last) may not count the one episode being committed, whose row may
+already be in the episode table and whose frames may already be in the data file.
+Prints a JSON summary on success; exits 1 with the reason on the first failure, 3 if pyarrow,
+pandas or numpy cannot be imported.
+"""
+import json
+import math
+import sys
+from pathlib import Path
+
+try:
+    import numpy as np
+    import pandas as pd
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+except ImportError as e:  # the Rust test decides whether that is a skip or a failure
+    print(f"cannot import: {e}", file=sys.stderr)
+    sys.exit(3)
+
+INFO_KEYS = [
+    "codebase_version", "robot_type", "total_episodes", "total_frames", "total_tasks", "chunks_size",
+    "data_files_size_in_mb", "video_files_size_in_mb", "fps", "splits", "data_path", "video_path", "features",
+]
+DEFAULT_FEATURES = {
+    "timestamp": {"dtype": "float32", "shape": [1], "names": None},
+    "frame_index": {"dtype": "int64", "shape": [1], "names": None},
+    "episode_index": {"dtype": "int64", "shape": [1], "names": None},
+    "index": {"dtype": "int64", "shape": [1], "names": None},
+    "task_index": {"dtype": "int64", "shape": [1], "names": None},
+}
+DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
+STATS = ["min", "max", "mean", "std", "count", "q01", "q10", "q50", "q90", "q99"]
+QUANTILES = {"q01": 0.01, "q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
+REQUIRED = ["observation.state", "observation.current", "action"]
+
+
+def fail(msg):
+    print(f"LeRobot check failed: {msg}", file=sys.stderr)
+    sys.exit(1)
+
+
+def check(cond, msg):
+    if not cond:
+        fail(msg)
+
+
+def close(a, b, what, rtol=1e-5, atol=1e-5):
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    check(a.shape == b.shape, f"{what}: shape {a.shape} vs {b.shape}")
+    check(np.allclose(a, b, rtol=rtol, atol=atol, equal_nan=True), f"{what}: {a.tolist()} vs {b.tolist()}")
+
+
+def column_array(table, key, spec):
+    col = table.column(key)
+    if spec["shape"] == [1]:
+        # LeRobot maps shape (1,) to a scalar Value: a plain column, not a list.
+        want = pa.float32() if spec["dtype"] == "float32" else pa.int64()
+        check(col.type == want, f"data column {key}: type {col.type}, info.json says scalar {spec['dtype']}")
+        return np.array(col.to_pylist(), dtype=np.float32 if spec["dtype"] == "float32" else np.int64)
+    t = col.type
+    check(pa.types.is_list(t) or pa.types.is_fixed_size_list(t), f"data column {key}: type {t} is not a list")
+    check(t.value_type == pa.float32(), f"data column {key}: element type {t.value_type}, info.json says float32")
+    values = col.to_pylist()
+    check(all(v is not None and len(v) == spec["shape"][0] for v in values), f"data column {key}: a row is not of length {spec['shape'][0]}")
+    return np.array(values, dtype=np.float32).reshape(len(values), spec["shape"][0])
+
+
+def stats_of(x):
+    """LeRobot's per-feature stats, exact, over finite values; x is (frames, width)."""
+    x = x.astype(np.float64)
+    with np.errstate(all="ignore"):
+        import warnings
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            out = {
+                "min": np.nanmin(x, axis=0), "max": np.nanmax(x, axis=0),
+                "mean": np.nanmean(x, axis=0), "std": np.nanstd(x, axis=0),
+                "count": np.array([len(x)]),
+            }
+            for k, q in QUANTILES.items():
+                out[k] = np.nanquantile(x, q, axis=0)
+    return out
+
+
+def main():
+    args = sys.argv[1:]
+    check(args, "usage: check_lerobot_dataset.py ROOT [--episodes N] [--in-flight]")
+    root = Path(args[0])
+    expect_episodes = int(args[args.index("--episodes") + 1]) if "--episodes" in args else None
+    in_flight = "--in-flight" in args
+
+    info = json.loads((root / "meta/info.json").read_text())
+    check(list(info) == INFO_KEYS, f"info.json keys {list(info)} != LeRobot's {INFO_KEYS}")
+    check(info["codebase_version"] == "v3.0", f"codebase_version {info['codebase_version']}")
+    check(info["data_path"] == DATA_PATH, f"data_path {info['data_path']}")
+    check(info["video_path"] is None, "video_path should be null without videos")
+    check(info["chunks_size"] == 1000, "chunks_size")
+    fps = info["fps"]
+    check(isinstance(fps, int) and fps > 0, f"fps {fps}")
+    features = info["features"]
+    for k, v in DEFAULT_FEATURES.items():
+        check(features.get(k) == v, f"feature {k}: {features.get(k)} != LeRobot's default {v}")
+    for k in REQUIRED:
+        check(k in features, f"feature {k} missing")
+    for k, spec in features.items():
+        check(set(spec) == {"dtype", "shape", "names"}, f"feature {k}: keys {sorted(spec)}")
+        check("/" not in k, f"feature name {k} contains '/'")
+        if k not in DEFAULT_FEATURES:
+            check(spec["dtype"] == "float32" and len(spec["shape"]) == 1, f"feature {k}: {spec}")
+            check(isinstance(spec["names"], list) and len(spec["names"]) == spec["shape"][0], f"feature {k}: names vs shape")
+    check(features["observation.state"]["names"] == features["action"]["names"], "state and action name different joints")
+    if expect_episodes is not None:
+        check(info["total_episodes"] == expect_episodes, f"total_episodes {info['total_episodes']}, expected {expect_episodes}")
+    check(info["splits"] == ({"train": f"0:{info['total_episodes']}"} if info["total_episodes"] else {}), f"splits {info['splits']}")
+
+    # Tasks, as LeRobot loads them: the task text is the pandas index.
+    tasks = pd.read_parquet(root / "meta/tasks.parquet")
+    check(list(tasks.columns) == ["task_index"], f"tasks.parquet columns {list(tasks.columns)}")
+    check(len(tasks) == info["total_tasks"] or (in_flight and len(tasks) == info["total_tasks"] + 1),
+          f"{len(tasks)} tasks, info says {info['total_tasks']}")
+    for text in tasks.index:
+        check(isinstance(text, str) and text, f"task index entry {text!r}")
+        check(int(tasks.loc[text].task_index) == list(tasks.index).index(text), f"task_index of {text!r}")
+
+    # Episodes, as load_episodes reads them.
+    ep_paths = sorted((root / "meta/episodes").glob("*/*.parquet"))
+    check(ep_paths, "no episode file")
+    episodes = pa.concat_tables([pq.read_table(p) for p in ep_paths]).to_pylist()
+    extra_episode = len(episodes) - info["total_episodes"]
+    check(extra_episode == 0 or (in_flight and extra_episode == 1), f"{len(episodes)} episode rows, info says {info['total_episodes']}")
+    for col in ["episode_index", "tasks", "length", "data/chunk_index", "data/file_index", "dataset_from_index",
+                "dataset_to_index", "meta/episodes/chunk_index", "meta/episodes/file_index"] + \
+               [f"stats/{k}/{s}" for k in features for s in STATS]:
+        check(col in episodes[0], f"episode table has no column {col}")
+
+    # Frames, as load_nested_dataset reads them: every data/*/*.parquet, sorted, concatenated.
+    data_paths = sorted((root / "data").glob("*/*.parquet"))
+    check(data_paths, "no data file")
+    tables = [pq.read_table(p) for p in data_paths]
+    data = pa.concat_tables(tables)
+    check(set(data.column_names) == set(features), f"data columns {data.column_names} != features {list(features)}")
+    for k in ["frame_index", "episode_index", "index", "task_index"]:
+        check(data.schema.field(k).type == pa.int64(), f"{k} is {data.schema.field(k).type}")
+    check(data.schema.field("timestamp").type == pa.float32(), f"timestamp is {data.schema.field('timestamp').type}")
+    cols = {k: column_array(data, k, spec) for k, spec in features.items()}
+    total = info["total_frames"]
+    orphan_rows = data.num_rows - total
+    check(orphan_rows == 0 or (in_flight and orphan_rows > 0), f"{data.num_rows} data rows, info says total_frames {total}")
+
+    per_episode_stats = []
+    expected_from = 0
+    for i, ep in enumerate(episodes):
+        check(ep["episode_index"] == i, f"episode row {i} has index {ep['episode_index']}")
+        lo, hi, n = ep["dataset_from_index"], ep["dataset_to_index"], ep["length"]
+        check(lo == expected_from and hi - lo == n and n > 0, f"episode {i}: {lo}..{hi} length {n}")
+        expected_from = hi
+        check(all(t in tasks.index for t in ep["tasks"]), f"episode {i} tasks {ep['tasks']}")
+        path = root / DATA_PATH.format(chunk_index=ep["data/chunk_index"], file_index=ep["data/file_index"])
+        t = pq.read_table(path)
+        rows = t.filter(pa.compute.equal(t.column("episode_index"), i))
+        check(rows.num_rows == n, f"episode {i}: {rows.num_rows} rows in {path.name}, length {n}")
+        idx = rows.column("index").to_numpy()
+        check((idx == np.arange(lo, hi)).all(), f"episode {i}: index not {lo}..{hi}")
+        fi = rows.column("frame_index").to_numpy()
+        check((fi == np.arange(n)).all(), f"episode {i}: frame_index not 0..{n}")
+        ts = rows.column("timestamp").to_numpy()
+        check(np.array_equal(ts, (np.arange(n) / fps).astype(np.float32)), f"episode {i}: timestamps are not frame_index / fps")
+        ti = set(rows.column("task_index").to_pylist())
+        check(ti == {int(tasks.loc[ep["tasks"][0]].task_index)}, f"episode {i}: task_index {ti}")
+        ep_cols = {k: column_array(rows, k, spec) for k, spec in features.items()}
+        mine = {}
+        for k, spec in features.items():
+            x = ep_cols[k].reshape(n, -1)
+            want = stats_of(x)
+            stored = {s: np.array(ep[f"stats/{k}/{s}"]) for s in STATS}
+            for s in STATS:
+                close(stored[s], want[s], f"episode {i} stats/{k}/{s}")
+            mine[k] = stored
+        per_episode_stats.append(mine)
+
+    # Global stats: min/max/mean/std/count over every committed frame, quantiles the
+    # count-weighted average of the episodes' (LeRobot's aggregate_stats).
+    check(episodes[info["total_episodes"] - 1]["dataset_to_index"] == total if total else True,
+          f"info total_frames {total} is not where episode {info['total_episodes'] - 1} ends")
+    stats = json.loads((root / "meta/stats.json").read_text())
+    check(set(stats) == set(features), f"stats.json features {sorted(stats)}")
+    # stats.json is written before info.json: in flight it may already count the new episode.
+    covered = stats["index"]["count"][0]
+    check(covered == total or (in_flight and extra_episode == 1 and covered == episodes[-1]["dataset_to_index"]),
+          f"stats.json counts {covered} frames, info.json {total}")
+    n_covered = sum(1 for e in episodes if e["dataset_to_index"] <= covered)
+    per_episode_stats = per_episode_stats[:n_covered]
+    committed = pa.concat_tables([pq.read_table(p) for p in data_paths])
+    committed = committed.filter(pa.compute.less(committed.column("index"), covered))
+    for k, spec in features.items():
+        check(list(stats[k]) == STATS, f"stats.json {k}: keys {list(stats[k])}")
+        x = column_array(committed, k, spec).reshape(covered, -1)
+        want = stats_of(x)
+        for s in ["min", "max", "mean", "std", "count"]:
+            close(np.array(stats[k][s], dtype=np.float64), want[s], f"stats.json {k}/{s}")
+        counts = np.array([e[k]["count"][0] for e in per_episode_stats], dtype=np.float64)
+        for s in QUANTILES:
+            weighted = sum(e[k][s] * c for e, c in zip(per_episode_stats, counts)) / counts.sum()
+            close(np.array(stats[k][s], dtype=np.float64), weighted, f"stats.json {k}/{s}")
+
+    # LeRobot's own loading path when Hugging Face `datasets` is installed (optional):
+    # load_nested_dataset casts every data file to the features of info.json.
+    hf_loaded = None
+    try:
+        import datasets as hf
+    except ImportError:
+        hf = None
+    if hf is not None and not in_flight:
+        hf_features = hf.Features({
+            k: hf.Value(dtype=ft["dtype"]) if ft["shape"] == [1]
+            else hf.Sequence(length=ft["shape"][0], feature=hf.Value(dtype=ft["dtype"]))
+            for k, ft in features.items()
+        })
+        loaded = hf.concatenate_datasets([hf.Dataset.from_parquet(str(p), features=hf_features) for p in data_paths])
+        check(len(loaded) == total, f"datasets loaded {len(loaded)} frames, info says {total}")
+        first = loaded[0]
+        check(len(first["observation.state"]) == features["observation.state"]["shape"][0], "datasets: state width")
+        hf_loaded = len(loaded)
+
+    state = cols["observation.state"][:total] if orphan_rows else cols["observation.state"]
+    print(json.dumps({
+        "episodes": info["total_episodes"],
+        "frames": total,
+        "lengths": [e["length"] for e in episodes],
+        "joints": features["observation.state"]["names"],
+        "grippers": features.get("observation.grip_force", {}).get("names", []),
+        "data_files": [str(p.relative_to(root)) for p in data_paths],
+        "orphan_rows": int(orphan_rows),
+        "missing_fraction": float(np.isnan(state).mean()) if state.size else 0.0,
+        "state_span_rad": float(np.nanmax(state) - np.nanmin(state)) if state.size else 0.0,
+        "tasks": list(tasks.index),
+        "hf_datasets_loaded": hf_loaded,
+    }))
+
+
+if __name__ == "__main__":
+    main()
