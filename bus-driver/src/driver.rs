@@ -327,8 +327,8 @@ impl<T: Transport> Driver<T> {
                 reconnects: c.reconnects,
                 silences: c.silences,
                 servos_lost: c.servos_lost,
-                flags: u32::from(b.connected) * BUS_HEALTH_CONNECTED
-                    | u32::from(b.enabled) * BUS_HEALTH_ENABLED,
+                flags: (u32::from(b.connected) * BUS_HEALTH_CONNECTED)
+                    | (u32::from(b.enabled) * BUS_HEALTH_ENABLED),
                 reserved: 0,
             };
         }
