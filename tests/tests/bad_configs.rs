@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 
 /// Runs `program args`, which must exit within 10 s; returns (exit code, stderr).
 fn run(program: &Path, args: &[&str], err_path: &Path) -> (Option<i32>, String) {
-    let err_file = std::fs::File::create(&err_path).unwrap();
+    let err_file = std::fs::File::create(err_path).unwrap();
     let mut child = Command::new(program)
         .args(args)
         // The message as an operator sees it, without a backtrace.
