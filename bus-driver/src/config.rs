@@ -402,6 +402,24 @@ impl LoadedConfig {
         Self::from_texts(&text, &path.display().to_string(), path.parent())
     }
 
+    /// Parses and validates a configuration text and a calibration text (`origin`s name them
+    /// in errors), without reading any file: the configuration's `calibration-file` is
+    /// ignored in favour of `calibration`.
+    pub fn parse_texts(
+        text: &str,
+        origin: &str,
+        calibration: &str,
+        cal_origin: &str,
+    ) -> Result<Self, ConfigError> {
+        let config = DriverConfig::parse(text, origin)?;
+        let calibration: CalibrationFile = parse(calibration, cal_origin)?;
+        config.validate(origin, &calibration, cal_origin)?;
+        Ok(LoadedConfig {
+            config,
+            calibration,
+        })
+    }
+
     fn from_texts(text: &str, origin: &str, dir: Option<&Path>) -> Result<Self, ConfigError> {
         let config = DriverConfig::parse(text, origin)?;
         let (cal_text, cal_origin) = match (&config.calibration_file, dir) {
