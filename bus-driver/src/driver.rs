@@ -111,7 +111,7 @@ pub struct DriverCounters {
     pub goals_malformed: u64,
     /// Goal frames refused in the safe state.
     pub goals_in_safe_state: u64,
-    /// Single goals clamped into the calibrated range.
+    /// Single goals clamped into the calibrated range (or to the wheel speed limit).
     pub goals_clamped: u64,
     /// EEPROM registers written at setup (read-compare-write).
     pub eeprom_writes: u64,
@@ -553,7 +553,12 @@ impl<T: Transport> Driver<T> {
                     }
                     steps
                 }
-                None => wheel_speed_steps(i, q, self.max_wheel_speed, false)?,
+                None => {
+                    if f64::from(q).abs() > self.max_wheel_speed + 1e-3 {
+                        clamped += 1;
+                    }
+                    wheel_speed_steps(i, q, self.max_wheel_speed, false)?
+                }
             };
         }
         for (i, joint) in self.joints.iter_mut().enumerate() {

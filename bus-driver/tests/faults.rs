@@ -10,9 +10,10 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use bus_driver::config::SafeState;
+use bus_driver::driver::GoalRejection;
 use bus_driver::transport::TransportError;
 use bus_driver::{Driver, LoadedConfig, Transport};
-use feetech::registers::FeedbackBlock;
+use feetech::registers::{self as reg, FeedbackBlock};
 use sim::faults::{FaultCounts, LineFaults};
 use sim::{RobotDescription, SimBus};
 use std::collections::VecDeque;
@@ -21,6 +22,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use telemetry::clock::monotonic_ns;
 use telemetry::frames::{BusHealth, JOINT_FLAG_BUS_LOST};
+use telemetry::GoalFrame;
 
 /// One simulated bus behind an in-memory link that can be pulled out.
 struct SimLink {
@@ -364,4 +366,203 @@ fn an_unplugged_bus_is_reopened_hold() {
 #[test]
 fn an_unplugged_bus_is_reopened_torque_off() {
     bus_unplugged_and_back(SafeState::TorqueOff);
+}
+
+/// Every kind of bad goal frame is refused whole, with its own reason and counter, and nothing
+/// of it reaches a servo: the goal registers on the (simulated) servos stay as they were.
+/// Out-of-range goals are not refused but clamped at the bus layer, and counted.
+#[test]
+fn every_bad_goal_frame_is_refused_with_its_reason_and_nothing_reaches_the_wire() {
+    let mut rig = rig(None, SafeState::Hold);
+    for _ in 0..5 {
+        rig.cycle();
+    }
+    let registers = |rig: &Rig| -> Vec<i32> {
+        rig.buses
+            .iter()
+            .enumerate()
+            .flat_map(|(bi, b)| {
+                let b = b.lock().unwrap();
+                let r = if bi == 2 {
+                    reg::GOAL_VELOCITY
+                } else {
+                    reg::GOAL_POSITION
+                };
+                b.servos.iter().map(|s| s.get(r)).collect::<Vec<_>>()
+            })
+            .collect()
+    };
+    let before = registers(&rig);
+    let frame = |set: &[(usize, f32)], t: u64| {
+        let mut f = GoalFrame {
+            joint_count: 18,
+            timestamp_ns: t,
+            ..GoalFrame::default()
+        };
+        for &(j, q) in set {
+            f.mask |= 1 << j;
+            f.position_rad[j] = q;
+        }
+        f
+    };
+    let now = monotonic_ns();
+    let ms = 1_000_000;
+    let mut wrong_count = frame(&[(0, 0.3)], now);
+    wrong_count.joint_count = 17;
+    let mut beyond_mask = frame(&[(0, 0.3)], now);
+    beyond_mask.mask |= 1 << 20;
+    let cases: Vec<(GoalFrame, GoalRejection)> = vec![
+        (
+            wrong_count,
+            GoalRejection::WrongJointCount {
+                expected: 18,
+                got: 17,
+            },
+        ),
+        (
+            beyond_mask,
+            GoalRejection::MaskOutOfRange {
+                mask: 1 | 1 << 20,
+                joint_count: 18,
+            },
+        ),
+        (
+            frame(&[(0, 0.3)], now - 500 * ms),
+            GoalRejection::Stale {
+                age_ms: 500,
+                limit_ms: 100,
+            },
+        ),
+        (
+            frame(&[(0, 0.3)], now + 50 * ms),
+            GoalRejection::FromTheFuture { ahead_ms: 50 },
+        ),
+        (
+            frame(&[(0, 0.3), (4, f32::NAN)], now),
+            GoalRejection::NotFinite(bus_driver::calibration::GoalError::NotFinite {
+                joint: 4,
+                value: f32::NAN,
+            }),
+        ),
+        (
+            frame(&[(0, 0.3), (9, f32::INFINITY)], now),
+            GoalRejection::NotFinite(bus_driver::calibration::GoalError::NotFinite {
+                joint: 9,
+                value: f32::INFINITY,
+            }),
+        ),
+        (
+            frame(&[(0, 0.3), (16, f32::NEG_INFINITY)], now),
+            GoalRejection::NotFinite(bus_driver::calibration::GoalError::NotFinite {
+                joint: 16,
+                value: f32::NEG_INFINITY,
+            }),
+        ),
+    ];
+    for (f, want) in &cases {
+        let got = rig.driver.apply_goals(f, now).unwrap_err();
+        match (got, want) {
+            // NaN != NaN: compare the joint only.
+            (
+                GoalRejection::NotFinite(bus_driver::calibration::GoalError::NotFinite {
+                    joint: a,
+                    value: va,
+                }),
+                GoalRejection::NotFinite(bus_driver::calibration::GoalError::NotFinite {
+                    joint: b,
+                    value: vb,
+                }),
+            ) => assert!(a == *b && (va == *vb || va.is_nan() && vb.is_nan())),
+            (got, want) => assert_eq!(got, *want),
+        }
+        assert!(!got.to_string().is_empty());
+        for _ in 0..3 {
+            rig.cycle();
+        }
+        assert_eq!(
+            registers(&rig),
+            before,
+            "{want}: something reached the wire"
+        );
+    }
+    let c = rig.driver.counters;
+    assert_eq!(
+        (
+            c.goals_malformed,
+            c.goals_stale,
+            c.goals_not_finite,
+            c.goals_accepted
+        ),
+        (2, 2, 3, 0)
+    );
+
+    // Out of range: applied, clamped into the calibrated range (the speed limit for wheels).
+    let cal = rig.config.calibration.joint["left_shoulder_pitch"];
+    let cal5 = rig.config.calibration.joint["right_shoulder_pitch"];
+    rig.driver
+        .apply_goals(&frame(&[(0, 1e30), (8, -100.0), (17, 1e9)], now), now)
+        .unwrap();
+    rig.cycle();
+    let after = registers(&rig);
+    // At an end of the range (which end depends on the joint's inversion).
+    assert!(after[0] == cal.range_min || after[0] == cal.range_max);
+    assert!(after[8] == cal5.range_min || after[8] == cal5.range_max);
+    let max_steps = (rig.config.config.max_wheel_speed_rad_s
+        * bus_driver::calibration::STEPS_PER_RAD)
+        .round() as i32;
+    assert_eq!(
+        after[17].abs(),
+        max_steps,
+        "wheel speed clamped to the limit"
+    );
+    assert_eq!(rig.driver.counters.goals_clamped, 3);
+
+    // In the safe state goals are refused; after it, goals made before the recovery too.
+    rig.driver.enter_safe_state();
+    assert_eq!(
+        rig.driver.apply_goals(&frame(&[(0, 0.3)], now), now),
+        Err(GoalRejection::SafeState)
+    );
+    let recovered = monotonic_ns();
+    rig.driver.leave_safe_state(recovered);
+    assert_eq!(
+        rig.driver
+            .apply_goals(&frame(&[(0, 0.3)], recovered - ms), recovered),
+        Err(GoalRejection::BeforeRecovery)
+    );
+    assert!(rig
+        .driver
+        .apply_goals(&frame(&[(0, 0.3)], recovered), recovered)
+        .is_ok());
+    let c = rig.driver.counters;
+    assert_eq!((c.goals_in_safe_state, c.goals_stale), (1, 3));
+}
+
+/// Directives for another joint count are refused whole; torque limits above the configured
+/// maximum never raise it.
+#[test]
+fn directives_of_the_wrong_shape_are_refused() {
+    let mut rig = rig(None, SafeState::Hold);
+    let d = telemetry::frames::Directives {
+        joint_count: 5,
+        bus_enabled: 0,
+        ..Default::default()
+    };
+    let e = rig.driver.apply_directives(&d).unwrap_err();
+    assert_eq!((e.expected, e.got), (18, 5));
+    rig.cycle();
+    assert!(
+        rig.driver.ready().all(|r| r),
+        "a refused directive disabled nothing"
+    );
+    let mut d = telemetry::frames::Directives {
+        joint_count: 18,
+        ..Default::default()
+    };
+    d.torque_limit_permille = [1000; telemetry::MAX_JOINTS];
+    rig.driver.apply_directives(&d).unwrap();
+    rig.cycle();
+    let b = rig.buses[0].lock().unwrap();
+    let max = (rig.config.config.backstops["sts3095"].max_torque_limit_percent * 10.0) as i32;
+    assert!(b.servos[0].get(reg::TORQUE_LIMIT) <= max);
 }
