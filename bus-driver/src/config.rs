@@ -455,10 +455,12 @@ mod tests {
     use super::*;
 
     fn with(config: &str, calibration: &str) -> Result<LoadedConfig, ConfigError> {
+        // Unique per call: tests run in parallel and texts of equal length are common.
+        static NEXT: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
         let dir = std::env::temp_dir().join(format!(
             "nori-config-test-{}-{}",
             std::process::id(),
-            config.len() ^ calibration.len()
+            NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
         ));
         std::fs::create_dir_all(&dir).unwrap();
         std::fs::write(dir.join("calibration.toml"), calibration).unwrap();
