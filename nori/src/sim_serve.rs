@@ -259,9 +259,10 @@ pub fn run(args: &ServeArgs) -> Result<()> {
             } else {
                 2
             };
-            if want == *phase || (want == 2 && *phase == 0 && s.duration <= 0.0) {
+            if want == *phase {
                 continue;
             }
+            // Pending → over in one step (a fault shorter than the 20 ms tick): restore only.
             let active = want == 1;
             match s.id {
                 None => {
