@@ -65,6 +65,14 @@ pub struct BusCounters {
     pub status_errors: u64,
     /// Transport failures.
     pub transport_errors: u64,
+    /// Times the bus's device was lost (a transport failure: adapter unplugged).
+    pub disconnects: u64,
+    /// Times the device was opened again after a loss.
+    pub reconnects: u64,
+    /// Times every servo of the bus fell silent for the loss bound (safe state applied).
+    pub silences: u64,
+    /// Times one servo fell silent for the loss bound (taken off and set up again on return).
+    pub servos_lost: u64,
 }
 
 impl BusCounters {
@@ -124,6 +132,14 @@ impl<T: Transport> Bus<T> {
             .discard_input()
             .inspect_err(|_| self.counters.transport_errors += 1)?;
         self.decoder.clear();
+        Ok(())
+    }
+
+    /// Opens the transport's device again and forgets any partial input.
+    pub fn reopen(&mut self) -> Result<(), BusError> {
+        self.transport.reopen()?;
+        self.decoder.clear();
+        self.feedback_sent = None;
         Ok(())
     }
 
@@ -223,6 +239,15 @@ impl<T: Transport> Bus<T> {
     /// SYNC_WRITE of `len` bytes per servo at `addr`; `payload` is `[id d…] × N`. No reply.
     pub fn sync_write(&mut self, addr: u8, len: u8, payload: &[u8]) -> Result<(), BusError> {
         self.send(Instruction::SyncWrite { addr, len, payload })
+    }
+
+    /// Broadcast WRITE of `data` at `addr`: every servo on the bus obeys, none answers.
+    pub fn broadcast_write(&mut self, addr: u8, data: &[u8]) -> Result<(), BusError> {
+        self.send(Instruction::Write {
+            id: BROADCAST_ID,
+            addr,
+            data,
+        })
     }
 
     /// Broadcast `Torque_Enable = 0`: one packet that every servo on the bus obeys.

@@ -228,6 +228,50 @@ impl DriverConfig {
         if !(self.max_wheel_speed_rad_s.is_finite() && self.max_wheel_speed_rad_s > 0.0) {
             return Err(invalid(origin, "max-wheel-speed-rad-s", "must be > 0"));
         }
+        if !(1..=10_000).contains(&self.goal_max_age_ms) {
+            return Err(invalid(
+                origin,
+                "goal-max-age-ms",
+                format!("{} is outside 1..=10000 ms", self.goal_max_age_ms),
+            ));
+        }
+        if self.supervisor_timeout_ms > 10_000 {
+            return Err(invalid(
+                origin,
+                "supervisor-timeout-ms",
+                format!(
+                    "{} ms: a supervisor silent that long is not watching (at most 10000; 0 runs without one)",
+                    self.supervisor_timeout_ms
+                ),
+            ));
+        }
+        if self.reply_timeout_margin_us > 100_000 {
+            return Err(invalid(
+                origin,
+                "reply-timeout-margin-us",
+                format!(
+                    "{} µs: a missing servo would stall every cycle that long (at most 100000)",
+                    self.reply_timeout_margin_us
+                ),
+            ));
+        }
+        if self.bus.is_empty() {
+            return Err(invalid(origin, "bus", "no bus configured"));
+        }
+        if let Some((model, b)) = self
+            .backstops
+            .iter()
+            .find(|(_, b)| self.safe_hold_torque_percent > b.max_torque_limit_percent)
+        {
+            return Err(invalid(
+                origin,
+                "safe-hold-torque-percent",
+                format!(
+                    "{} % exceeds backstops.{model}.max-torque-limit-percent {} %: the safe state must not hold harder than driving",
+                    self.safe_hold_torque_percent, b.max_torque_limit_percent
+                ),
+            ));
+        }
         for (model, b) in &self.backstops {
             let key = |k: &str| format!("backstops.{model}.{k}");
             if !matches!(model.as_str(), "sts3215" | "sts3250" | "sts3095") {
@@ -358,6 +402,24 @@ impl LoadedConfig {
         Self::from_texts(&text, &path.display().to_string(), path.parent())
     }
 
+    /// Parses and validates a configuration text and a calibration text (`origin`s name them
+    /// in errors), without reading any file: the configuration's `calibration-file` is
+    /// ignored in favour of `calibration`.
+    pub fn parse_texts(
+        text: &str,
+        origin: &str,
+        calibration: &str,
+        cal_origin: &str,
+    ) -> Result<Self, ConfigError> {
+        let config = DriverConfig::parse(text, origin)?;
+        let calibration: CalibrationFile = parse(calibration, cal_origin)?;
+        config.validate(origin, &calibration, cal_origin)?;
+        Ok(LoadedConfig {
+            config,
+            calibration,
+        })
+    }
+
     fn from_texts(text: &str, origin: &str, dir: Option<&Path>) -> Result<Self, ConfigError> {
         let config = DriverConfig::parse(text, origin)?;
         let (cal_text, cal_origin) = match (&config.calibration_file, dir) {
@@ -393,10 +455,12 @@ mod tests {
     use super::*;
 
     fn with(config: &str, calibration: &str) -> Result<LoadedConfig, ConfigError> {
+        // Unique per call: tests run in parallel and texts of equal length are common.
+        static NEXT: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
         let dir = std::env::temp_dir().join(format!(
             "nori-config-test-{}-{}",
             std::process::id(),
-            config.len() ^ calibration.len()
+            NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
         ));
         std::fs::create_dir_all(&dir).unwrap();
         std::fs::write(dir.join("calibration.toml"), calibration).unwrap();
@@ -468,6 +532,73 @@ mod tests {
                 && err.contains("5000"),
             "{err}"
         );
+    }
+
+    #[test]
+    fn impossible_values_name_the_key_and_the_file() {
+        for (from, to, key) in [
+            (
+                "goal-max-age-ms = 100",
+                "goal-max-age-ms = 0",
+                "goal-max-age-ms",
+            ),
+            (
+                "supervisor-timeout-ms = 50",
+                "supervisor-timeout-ms = 600000",
+                "supervisor-timeout-ms",
+            ),
+            (
+                "reply-timeout-margin-us = 2000",
+                "reply-timeout-margin-us = 5000000",
+                "reply-timeout-margin-us",
+            ),
+            (
+                "safe-hold-torque-percent = 20",
+                "safe-hold-torque-percent = 100",
+                "safe-hold-torque-percent",
+            ),
+            ("rate-hz = 200", "rate-hz = nan", "rate-hz"),
+            ("rate-hz = 200", "rate-hz = 5000", "rate-hz"),
+            (
+                "max-wheel-speed-rad-s = 6.0",
+                "max-wheel-speed-rad-s = inf",
+                "max-wheel-speed-rad-s",
+            ),
+            (
+                "safe-state = \"hold\"",
+                "safe-state = \"limp\"",
+                "safe-state",
+            ),
+        ] {
+            let text = DEFAULT_CONFIG_TOML.replacen(from, to, 1);
+            assert_ne!(text, DEFAULT_CONFIG_TOML, "{from}");
+            let err = with(&text, DEFAULT_CALIBRATION_TOML)
+                .unwrap_err()
+                .to_string();
+            assert!(
+                err.contains(key) && err.contains("bus-driver.toml"),
+                "{key}: {err}"
+            );
+        }
+    }
+
+    #[test]
+    fn impossible_calibrations_name_the_joint_and_the_file() {
+        for (from, to, what) in [
+            ("range-max = 3906", "range-max = -1", "travel"),
+            ("range-min = ", "range-min = 4000 #", "below range-max"),
+            ("homing-offset = 0", "homing-offset = 3000", "2047"),
+            ("range-max = 3906", "range-max = 3906\nspeed = 1", "speed"),
+            ("range-max = 3906", "range-max = \"x\"", "range-max"),
+        ] {
+            let cal = DEFAULT_CALIBRATION_TOML.replacen(from, to, 1);
+            assert_ne!(cal, DEFAULT_CALIBRATION_TOML, "{from}");
+            let err = with(DEFAULT_CONFIG_TOML, &cal).unwrap_err().to_string();
+            assert!(
+                err.contains("calibration.toml") && err.contains(what),
+                "{what}: {err}"
+            );
+        }
     }
 
     #[test]

@@ -15,8 +15,9 @@ use crate::transport::Transport;
 use feetech::registers::{self as reg, FeedbackBlock};
 use feetech::{ServoModel, ServoStatus, AMPS_PER_CURRENT_UNIT};
 use telemetry::frames::{
-    Directives, JointInfo, JointLayout, JointRole, JOINT_FLAG_BUS_DISABLED, JOINT_FLAG_OUTPUT_LOST,
-    STATE_FLAG_SAFE_STATE,
+    BusHealth, BusHealthEntry, Directives, JointInfo, JointLayout, JointRole, BUS_HEALTH_CONNECTED,
+    BUS_HEALTH_ENABLED, JOINT_FLAG_BUS_DISABLED, JOINT_FLAG_BUS_LOST, JOINT_FLAG_OUTPUT_LOST,
+    MAX_BUSES, STATE_FLAG_SAFE_STATE,
 };
 use telemetry::{GoalFrame, JointSample, JointState, MAX_JOINTS};
 use thiserror::Error;
@@ -110,7 +111,7 @@ pub struct DriverCounters {
     pub goals_malformed: u64,
     /// Goal frames refused in the safe state.
     pub goals_in_safe_state: u64,
-    /// Single goals clamped into the calibrated range.
+    /// Single goals clamped into the calibrated range (or to the wheel speed limit).
     pub goals_clamped: u64,
     /// EEPROM registers written at setup (read-compare-write).
     pub eeprom_writes: u64,
@@ -140,6 +141,12 @@ struct Joint {
     /// Torque limit last written to the servo, 0.1 %.
     torque_written: u16,
     cutoff: CutoffWatch,
+    /// Consecutive feedback reads it did not answer.
+    misses: u32,
+    /// Failed setups in a row (spacing of the next attempt).
+    setup_fails: u32,
+    /// Cycle from which a setup may be tried again.
+    next_setup: u64,
 }
 
 impl Joint {
@@ -160,6 +167,10 @@ struct BusState<T: Transport> {
     enabled: bool,
     /// The transport failed this cycle (feedback not requested).
     failed: bool,
+    /// The device is open (false after a transport failure, until reopened).
+    connected: bool,
+    /// Consecutive cycles in which no servo of the bus answered.
+    silent_cycles: u32,
 }
 
 /// The driver over one transport per bus.
@@ -176,6 +187,12 @@ pub struct Driver<T: Transport> {
     /// When the safe state was last left: older goals are refused.
     recovered_at_ns: u64,
     setup_retry_cycles: u64,
+    /// Cycles of silence after which a servo (or a whole bus) counts as lost.
+    lost_after: u32,
+    /// Cycles between attempts to reopen a lost device.
+    reopen_every: u64,
+    /// No setup before this cycle (one slow setup at a time, spaced out).
+    next_setup_any: u64,
     next_retry: usize,
     /// Counters.
     pub counters: DriverCounters,
@@ -225,6 +242,9 @@ impl<T: Transport> Driver<T> {
                     torque_wanted: 0,
                     torque_written: 0,
                     cutoff: CutoffWatch::default(),
+                    misses: 0,
+                    setup_fails: 0,
+                    next_setup: 0,
                 });
             }
             let n = bus_config.servo.len();
@@ -238,6 +258,8 @@ impl<T: Transport> Driver<T> {
                 payload: Vec::with_capacity(n * 3),
                 enabled: true,
                 failed: false,
+                connected: true,
+                silent_cycles: 0,
             });
         }
         let state = JointState {
@@ -255,6 +277,10 @@ impl<T: Transport> Driver<T> {
             safe: c.supervisor_timeout_ms > 0,
             recovered_at_ns: 0,
             setup_retry_cycles: c.rate_hz.round().max(1.0) as u64,
+            // 200 ms of silence: 40 cycles at 200 Hz; a reopen attempt every 100 ms.
+            lost_after: (c.rate_hz / 5.0).round().max(2.0) as u32,
+            reopen_every: (c.rate_hz / 10.0).round().max(1.0) as u64,
+            next_setup_any: 0,
             next_retry: 0,
             counters: DriverCounters::default(),
         }
@@ -273,6 +299,39 @@ impl<T: Transport> Driver<T> {
     /// Error counters of each bus, by name.
     pub fn bus_counters(&self) -> impl Iterator<Item = (&str, BusCounters)> {
         self.buses.iter().map(|b| (b.name.as_str(), b.bus.counters))
+    }
+
+    /// Whether each bus's device is open now, by name.
+    pub fn bus_connected(&self) -> impl Iterator<Item = (&str, bool)> {
+        self.buses.iter().map(|b| (b.name.as_str(), b.connected))
+    }
+
+    /// Fills `out` with every bus's error counts (no allocation: callable every cycle).
+    pub fn health(&self, out: &mut BusHealth) {
+        out.seq = self.state.seq;
+        out.timestamp_ns = self.state.timestamp_ns;
+        out.bus_count = self.buses.len().min(MAX_BUSES) as u32;
+        for (b, e) in self.buses.iter().zip(out.buses.iter_mut()) {
+            let c = b.bus.counters;
+            *e = BusHealthEntry {
+                cycles: c.cycles,
+                replies: c.replies,
+                missing: c.missing,
+                checksum_errors: c.checksum_errors,
+                garbage_bytes: c.garbage_bytes,
+                framing_errors: c.framing_errors,
+                unexpected_replies: c.unexpected_replies,
+                status_errors: c.status_errors,
+                transport_errors: c.transport_errors,
+                disconnects: c.disconnects,
+                reconnects: c.reconnects,
+                silences: c.silences,
+                servos_lost: c.servos_lost,
+                flags: (u32::from(b.connected) * BUS_HEALTH_CONNECTED)
+                    | (u32::from(b.enabled) * BUS_HEALTH_ENABLED),
+                reserved: 0,
+            };
+        }
     }
 
     /// The latest state frame.
@@ -494,7 +553,12 @@ impl<T: Transport> Driver<T> {
                     }
                     steps
                 }
-                None => wheel_speed_steps(i, q, self.max_wheel_speed, false)?,
+                None => {
+                    if f64::from(q).abs() > self.max_wheel_speed + 1e-3 {
+                        clamped += 1;
+                    }
+                    wheel_speed_steps(i, q, self.max_wheel_speed, false)?
+                }
             };
         }
         for (i, joint) in self.joints.iter_mut().enumerate() {
@@ -615,20 +679,31 @@ impl<T: Transport> Driver<T> {
     }
 
     /// One control cycle: read every bus, fill the state frame, write every bus's goals (and any
-    /// torque limit that changed).
+    /// torque limit that changed). A bus whose device failed is marked lost (its joints flagged
+    /// and missing) and reopened every 100 ms; a servo, or a whole bus, silent for 200 ms is
+    /// taken off (the safe state applied to it) and set up again once it answers.
     pub fn cycle(&mut self) -> &JointState {
         for b in &mut self.buses {
-            b.failed = b.bus.request_feedback(&b.ids).is_err();
+            b.failed = !b.connected || b.bus.request_feedback(&b.ids).is_err();
         }
         for bi in 0..self.buses.len() {
             let b = &mut self.buses[bi];
+            let mut newly_lost = false;
             if b.failed || b.bus.collect_feedback(&b.ids, &mut b.feedback).is_err() {
                 b.feedback.iter_mut().for_each(|f| *f = None);
+                newly_lost = b.connected;
             }
+            let mut answered = 0;
             for (k, fb) in b.feedback.iter().enumerate() {
                 let j = b.first_joint + k;
                 let joint = &mut self.joints[j];
                 let mut s = sample(joint, fb.as_ref());
+                if fb.is_some() {
+                    answered += 1;
+                    joint.misses = 0;
+                } else {
+                    joint.misses = joint.misses.saturating_add(1);
+                }
                 if joint.ready && joint.calibration.is_some() && s.is_valid() {
                     if joint.cutoff.update(
                         s.goal_rad - s.position_rad,
@@ -647,19 +722,121 @@ impl<T: Transport> Driver<T> {
                 if !b.enabled {
                     s.flags |= JOINT_FLAG_BUS_DISABLED;
                 }
+                if !b.connected || newly_lost {
+                    s.flags |= JOINT_FLAG_BUS_LOST;
+                }
                 self.state.joints[j] = s;
+            }
+            b.silent_cycles = if answered == 0 {
+                b.silent_cycles.saturating_add(1)
+            } else {
+                0
+            };
+            if newly_lost {
+                self.lose_bus(bi);
+            } else if b.connected {
+                self.watch_silence(bi);
             }
         }
         self.state.timestamp_ns = telemetry::clock::monotonic_ns();
         for bi in 0..self.buses.len() {
-            self.write_goals(bi);
-            self.write_torque_limits(bi);
+            if self.buses[bi].connected {
+                self.write_goals(bi);
+                self.write_torque_limits(bi);
+            }
         }
+        self.reopen_lost();
         self.retry_setup();
         self.counters.cycles += 1;
         self.state.seq = self.counters.cycles;
         self.state.deadline_misses = self.counters.deadline_misses;
         &self.state
+    }
+
+    /// The bus's device failed: its joints are no longer driven (nothing can reach them) and
+    /// are set up again, from their present positions, once the device is back.
+    fn lose_bus(&mut self, bi: usize) {
+        let b = &mut self.buses[bi];
+        b.connected = false;
+        b.bus.counters.disconnects += 1;
+        let range = b.first_joint..b.first_joint + b.ids.len();
+        tracing::warn!(bus = %b.name, "bus device lost: its joints are missing; reopening every {} cycles", self.reopen_every);
+        for joint in &mut self.joints[range] {
+            joint.ready = false;
+            joint.next_setup = 0;
+            joint.setup_fails = 0;
+        }
+    }
+
+    /// Every `reopen_every` cycles, opens each lost device again. On success the configured
+    /// safe state is applied to the whole bus at once (its servos kept the last goal while it
+    /// was gone): `torque-off` switches them off, `hold` lowers their torque limit; then the
+    /// servos are set up again one at a time as they answer.
+    fn reopen_lost(&mut self) {
+        if !self.counters.cycles.is_multiple_of(self.reopen_every) {
+            return;
+        }
+        for bi in 0..self.buses.len() {
+            let b = &mut self.buses[bi];
+            if b.connected || b.bus.reopen().is_err() {
+                continue;
+            }
+            b.connected = true;
+            b.silent_cycles = 0;
+            b.bus.counters.reconnects += 1;
+            tracing::info!(bus = %b.name, "bus device back: safe state applied, servos set up again");
+            self.safe_state_on_bus(bi, None);
+        }
+    }
+
+    /// Applies the configured safe state to one servo (`Some(id)`) or a whole bus (`None`)
+    /// without waiting for an answer (a SYNC_WRITE or a broadcast: it may not answer). Sent
+    /// twice: one corrupted packet must not leave a servo energised.
+    fn safe_state_on_bus(&mut self, bi: usize, id: Option<u8>) {
+        let hold = self.hold_permille;
+        let kind = self.safe_kind;
+        let b = &mut self.buses[bi];
+        for _ in 0..2 {
+            let _ = match (kind, id) {
+                (SafeState::TorqueOff, None) => b.bus.torque_off_all(),
+                (SafeState::TorqueOff, Some(id)) => {
+                    b.bus.sync_write(reg::TORQUE_ENABLE.addr, 1, &[id, 0])
+                }
+                (SafeState::Hold, None) => b
+                    .bus
+                    .broadcast_write(reg::TORQUE_LIMIT.addr, &hold.to_le_bytes()),
+                (SafeState::Hold, Some(id)) => {
+                    let t = hold.to_le_bytes();
+                    b.bus
+                        .sync_write(reg::TORQUE_LIMIT.addr, 2, &[id, t[0], t[1]])
+                }
+            };
+        }
+    }
+
+    /// A servo silent for `lost_after` cycles is taken off (safe state, not driven, set up
+    /// again when it answers); a whole bus silent that long gets the safe state at once.
+    fn watch_silence(&mut self, bi: usize) {
+        let limit = self.lost_after;
+        let first = self.buses[bi].first_joint;
+        let n = self.buses[bi].ids.len();
+        if self.buses[bi].silent_cycles == limit {
+            self.buses[bi].bus.counters.silences += 1;
+            tracing::warn!(bus = %self.buses[bi].name, "no servo of the bus answers: safe state applied to it");
+            self.safe_state_on_bus(bi, None);
+        }
+        for k in 0..n {
+            let j = first + k;
+            if self.joints[j].ready && self.joints[j].misses >= limit {
+                self.joints[j].ready = false;
+                self.joints[j].next_setup = 0;
+                self.joints[j].setup_fails = 0;
+                self.buses[bi].bus.counters.servos_lost += 1;
+                tracing::warn!(joint = %self.joints[j].name, "servo silent: taken off, set up again when it answers");
+                let id = self.joints[j].id;
+                self.safe_state_on_bus(bi, Some(id));
+            }
+        }
     }
 
     fn write_goals(&mut self, bi: usize) {
@@ -713,23 +890,52 @@ impl<T: Transport> Driver<T> {
         }
     }
 
-    /// Every `rate` cycles, tries to bring up one joint that is not ready (it was missing or
-    /// refused at start). Costs one slow cycle, which is counted as a deadline miss if it is.
+    /// Brings up at most one joint that is not ready and answered this cycle's feedback read
+    /// (it was missing, lost, on a bus that came back, or refused at start), so a silent servo
+    /// costs nothing. Setups are spaced by 1/50 s, and a joint that failed three times in a row
+    /// is retried once a second. Each setup costs one slow cycle, counted as a deadline miss
+    /// if it is one.
     fn retry_setup(&mut self) {
-        if !self.counters.cycles.is_multiple_of(self.setup_retry_cycles) {
+        let now = self.counters.cycles;
+        if now < self.next_setup_any {
             return;
         }
         let n = self.joints.len();
         for k in 0..n {
             let j = (self.next_retry + k) % n;
-            if !self.joints[j].ready && self.may_drive(j) {
-                self.next_retry = j + 1;
-                match self.setup_joint(j) {
-                    Ok(()) => tracing::info!(joint = %self.joints[j].name, "servo came up"),
-                    Err(_) => self.counters.setup_failures += 1,
-                }
-                return;
+            let b = self.bus_of(j);
+            let joint = &self.joints[j];
+            if joint.ready
+                || now < joint.next_setup
+                || !self.buses[b].connected
+                || !self.state.joints[j].is_valid()
+                || !self.may_drive(j)
+            {
+                continue;
             }
+            self.next_retry = j + 1;
+            self.next_setup_any = now + (self.setup_retry_cycles / 50).max(1);
+            match self.setup_joint(j) {
+                Ok(()) => {
+                    self.joints[j].setup_fails = 0;
+                    tracing::info!(joint = %self.joints[j].name, "servo came up");
+                }
+                Err(e) => {
+                    self.counters.setup_failures += 1;
+                    let joint = &mut self.joints[j];
+                    joint.setup_fails += 1;
+                    let wait = if joint.setup_fails >= 3 {
+                        self.setup_retry_cycles
+                    } else {
+                        (self.setup_retry_cycles / 20).max(1)
+                    };
+                    joint.next_setup = now + wait;
+                    if joint.setup_fails == 3 {
+                        tracing::warn!(joint = %joint.name, "servo answers but setup keeps failing (retried every second): {e}");
+                    }
+                }
+            }
+            return;
         }
     }
 

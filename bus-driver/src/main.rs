@@ -9,7 +9,7 @@ use bus_driver::{run, Driver, LoadedConfig, LoopIo, SerialTransport};
 use clap::Parser;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
-use telemetry::frames::{Directives, Heartbeat, JointLayout, Peer};
+use telemetry::frames::{BusHealth, Directives, Heartbeat, JointLayout, Peer};
 use telemetry::plane::{self, Plane, Pub, Sub};
 use telemetry::process::ServiceManager;
 use telemetry::{GoalFrame, JointState};
@@ -57,6 +57,7 @@ struct Ipc {
     state: Pub<JointState>,
     heartbeat: Pub<Heartbeat>,
     layout_out: Pub<JointLayout>,
+    health: Pub<BusHealth>,
     layout: JointLayout,
     beat: Heartbeat,
     every: Duration,
@@ -77,6 +78,12 @@ impl LoopIo for Ipc {
 
     fn supervisor_heartbeat(&mut self) -> Option<u32> {
         plane::newest(&self.supervisor).map(|h| h.pid)
+    }
+
+    fn publish_health(&mut self, health: &BusHealth) {
+        if plane::publish(&self.health, health).is_err() {
+            self.publish_errors += 1;
+        }
     }
 
     /// Publishes the frame and the heartbeat; the layout once a second (history 1 serves late
@@ -186,6 +193,7 @@ fn main() -> Result<()> {
         state: node.publisher(&plane::JOINT_STATE)?,
         heartbeat: node.publisher(&plane::DRIVER_HEARTBEAT)?,
         layout_out: node.publisher(&plane::LAYOUT)?,
+        health: node.publisher(&plane::BUS_HEALTH)?,
         layout: driver.layout(),
         beat: Heartbeat {
             pid: std::process::id(),

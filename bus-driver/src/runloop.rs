@@ -7,7 +7,7 @@ use crate::transport::Transport;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
-use telemetry::frames::Directives;
+use telemetry::frames::{BusHealth, Directives};
 use telemetry::watchdog::{Liveness, Watchdog};
 use telemetry::{GoalFrame, JointState};
 
@@ -21,6 +21,8 @@ pub trait LoopIo {
     fn supervisor_heartbeat(&mut self) -> Option<u32>;
     /// Publishes one state frame (and the driver's heartbeat).
     fn publish(&mut self, state: &JointState);
+    /// Publishes the error counts of every bus (every 100 ms).
+    fn publish_health(&mut self, _health: &BusHealth) {}
 }
 
 /// No other process: no goals, no supervisor (every joint holds where it came up).
@@ -69,6 +71,8 @@ pub fn run<T: Transport>(
     let mut last_rejection: Option<std::mem::Discriminant<GoalRejection>> = None;
     let mut watchdog = supervisor_timeout.map(Watchdog::new);
     let mut supervisor = Liveness::Unknown;
+    let mut health = BusHealth::default();
+    let health_every = ((0.1 / period.as_secs_f64().max(1e-6)).round() as u64).max(1);
     while !shutdown.load(Ordering::Relaxed) && max_cycles.is_none_or(|m| driver.counters.cycles < m)
     {
         let now = monotonic_ns();
@@ -112,6 +116,10 @@ pub fn run<T: Transport>(
         }
         let state = driver.cycle();
         io.publish(state);
+        if driver.counters.cycles % health_every == 1 || health_every == 1 {
+            driver.health(&mut health);
+            io.publish_health(&health);
+        }
         let now = Instant::now();
         if now > next {
             driver.counters.deadline_misses += 1;

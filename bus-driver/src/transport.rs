@@ -38,6 +38,12 @@ pub trait Transport {
     fn receive(&mut self, buf: &mut [u8], timeout: Duration) -> Result<usize, TransportError>;
     /// Drops bytes received and not yet read (late replies of an earlier transaction).
     fn discard_input(&mut self) -> Result<(), TransportError>;
+    /// Opens the same device again after a failure (an adapter unplugged and plugged back in
+    /// comes back at the same udev path). The default, for links that cannot vanish, does
+    /// nothing.
+    fn reopen(&mut self) -> Result<(), TransportError> {
+        Ok(())
+    }
 }
 
 /// A servo bus on a serial device (USB adapter, UART, or the simulator's pseudo-terminal).
@@ -50,14 +56,7 @@ pub struct SerialTransport {
 impl SerialTransport {
     /// Opens `device` at `baud`, 8N1, and reports the USB latency timer.
     pub fn open(device: &Path, baud: u32) -> Result<Self, TransportError> {
-        let port = serialport::new(device.to_string_lossy(), baud)
-            .timeout(Duration::from_millis(1))
-            .open_native()
-            .map_err(|source| TransportError::Open {
-                device: device.into(),
-                baud,
-                source,
-            })?;
+        let port = open_port(device, baud)?;
         match latency_timer(device) {
             LatencyTimer::Ms(1) => {
                 tracing::info!(device = %device.display(), "USB latency timer is 1 ms")
@@ -82,6 +81,11 @@ impl SerialTransport {
         })
     }
 
+    /// The device path.
+    pub fn device(&self) -> &Path {
+        &self.device
+    }
+
     fn io(&self, source: std::io::Error) -> TransportError {
         TransportError::Io {
             device: self.device.clone(),
@@ -90,7 +94,25 @@ impl SerialTransport {
     }
 }
 
+fn open_port(device: &Path, baud: u32) -> Result<serialport::TTYPort, TransportError> {
+    serialport::new(device.to_string_lossy(), baud)
+        .timeout(Duration::from_millis(1))
+        .open_native()
+        .map_err(|source| TransportError::Open {
+            device: device.into(),
+            baud,
+            source,
+        })
+}
+
 impl Transport for SerialTransport {
+    /// Opens the device path again (the old descriptor is closed once the new one is open;
+    /// a path that does not exist yet fails fast).
+    fn reopen(&mut self) -> Result<(), TransportError> {
+        self.port = open_port(&self.device, self.baud)?;
+        Ok(())
+    }
+
     fn baud(&self) -> u32 {
         self.baud
     }

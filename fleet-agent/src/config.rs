@@ -94,6 +94,28 @@ impl AgentConfig {
                 format!("{:?}: use \"peer\" or \"client\"", c.zenoh.mode),
             );
         }
+        for (key, list) in [
+            ("zenoh.connect", &c.zenoh.connect),
+            ("zenoh.listen", &c.zenoh.listen),
+        ] {
+            for e in list {
+                let ok = e.split_once('/').is_some_and(|(proto, addr)| {
+                    matches!(proto, "tcp" | "tls") && !addr.is_empty()
+                });
+                if !ok {
+                    return bad(
+                        key,
+                        format!("{e:?}: an endpoint is tcp/<host>:<port> or tls/<host>:<port>"),
+                    );
+                }
+            }
+        }
+        if c.zenoh.mode == "client" && c.zenoh.connect.is_empty() {
+            return bad(
+                "zenoh.connect",
+                "a client needs at least one router to connect to".into(),
+            );
+        }
         for (key, hz) in [
             ("telemetry.state-hz", c.telemetry.state_hz),
             ("telemetry.observation-hz", c.telemetry.observation_hz),
@@ -105,6 +127,9 @@ impl AgentConfig {
         }
         if c.telemetry.layout_every_s.is_nan() || c.telemetry.layout_every_s < 0.1 {
             return bad("telemetry.layout-every-s", "must be ≥ 0.1 s".into());
+        }
+        if !c.telemetry.layout_every_s.is_finite() {
+            return bad("telemetry.layout-every-s", "must be finite".into());
         }
         let a = &c.actions;
         if !(1..=10_000).contains(&a.max_age_ms) {
@@ -179,6 +204,14 @@ mod tests {
             ("max-steps = 128", "max-steps = 100000", "actions.max-steps"),
             ("blend-new = 0.7", "blend-new = 0.0", "actions.blend-new"),
             ("blend-new = 0.7", "blend-now = 0.7", "blend-now"),
+            ("max-steps = 128", "max-steps = -1", "max-steps"),
+            ("max-span-ms = ", "max-span-ms = 0 #", "actions.max-span-ms"),
+            ("forward-hz = ", "forward-hz = inf #", "actions.forward-hz"),
+            (
+                "layout-every-s = ",
+                "layout-every-s = 0.0 #",
+                "telemetry.layout-every-s",
+            ),
         ] {
             let text = DEFAULT_CONFIG_TOML.replace(from, to);
             assert_ne!(text, DEFAULT_CONFIG_TOML);

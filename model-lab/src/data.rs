@@ -59,7 +59,19 @@ pub enum DataError {
         /// The file or directory.
         path: String,
     },
+    /// More distinct motor ids than any robot has: the grid (motors × samples) would grow with
+    /// the square of the input.
+    #[error("{path}: {count} distinct motor ids (at most {MAX_MOTORS})")]
+    TooManyMotors {
+        /// The file or directory.
+        path: String,
+        /// Distinct ids found.
+        count: usize,
+    },
 }
+
+/// Most distinct motor ids a data set may have (a Feetech bus addresses 253).
+pub const MAX_MOTORS: usize = 256;
 
 /// One CSV row (one motor at one time). Missing cells are NaN.
 #[derive(Debug, Clone, Copy)]
@@ -294,6 +306,12 @@ impl Dataset {
         if motors.is_empty() {
             return Err(DataError::Empty {
                 path: origin.into(),
+            });
+        }
+        if motors.len() > MAX_MOTORS {
+            return Err(DataError::TooManyMotors {
+                path: origin.into(),
+                count: motors.len(),
             });
         }
         let nm = motors.len();

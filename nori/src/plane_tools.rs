@@ -139,14 +139,15 @@ fn print_table(
     Ok(())
 }
 
-/// Publishes one goal frame.
-pub fn goal(args: &GoalArgs) -> Result<()> {
-    let names = joint_names(&args.plane)?;
+/// The goal frame for `goals` (`JOINT=RAD` each) over the driver's joints `names`: refused,
+/// with the reason, for an unknown joint, a joint named twice, or a value that is not a finite
+/// number (the driver would refuse the whole frame; better said here, before it is sent).
+pub fn parse_goals(names: &[String], goals: &[String]) -> Result<GoalFrame> {
     let mut frame = GoalFrame {
         joint_count: names.len() as u32,
         ..GoalFrame::default()
     };
-    for g in &args.goals {
+    for g in goals {
         let (joint, value) = g
             .split_once('=')
             .with_context(|| format!("{g:?}: expected JOINT=RAD"))?;
@@ -157,9 +158,22 @@ pub fn goal(args: &GoalArgs) -> Result<()> {
         let v: f32 = value
             .parse()
             .with_context(|| format!("{g:?}: {value:?} is not a number"))?;
+        if !v.is_finite() {
+            bail!("{g:?}: {value:?} is not a finite number");
+        }
+        if frame.mask & (1 << i) != 0 {
+            bail!("{g:?}: joint {joint:?} is given twice");
+        }
         frame.mask |= 1 << i;
         frame.position_rad[i] = v;
     }
+    Ok(frame)
+}
+
+/// Publishes one goal frame.
+pub fn goal(args: &GoalArgs) -> Result<()> {
+    let names = joint_names(&args.plane)?;
+    let mut frame = parse_goals(&names, &args.goals)?;
     let node = Plane::open(
         &args.plane.domain,
         &format!("nori-goal-{}", std::process::id()),
@@ -234,4 +248,30 @@ pub fn reenable(args: &ReenableArgs) -> Result<()> {
         std::thread::sleep(Duration::from_millis(10));
     }
     bail!("no answer from the supervisor (is the bus tripped, and the supervisor running on domain {:?}?)", args.plane.domain)
+}
+
+#[cfg(test)]
+mod goal_tests {
+    use super::*;
+
+    #[test]
+    fn bad_goals_are_refused_before_anything_is_sent() {
+        let names: Vec<String> = ["a", "b"].iter().map(|s| s.to_string()).collect();
+        let goals = |g: &[&str]| g.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+        let f = parse_goals(&names, &goals(&["b=-1.5"])).unwrap();
+        assert_eq!((f.mask, f.position_rad[1], f.joint_count), (0b10, -1.5, 2));
+        for (bad, why) in [
+            ("a=nan", "not a finite number"),
+            ("a=inf", "not a finite number"),
+            ("a=-inf", "not a finite number"),
+            ("a=x", "not a number"),
+            ("c=1", "no joint \"c\""),
+            ("a", "expected JOINT=RAD"),
+        ] {
+            let e = format!("{:#}", parse_goals(&names, &goals(&[bad])).unwrap_err());
+            assert!(e.contains(why), "{bad}: {e}");
+        }
+        let e = parse_goals(&names, &goals(&["a=1", "a=2"])).unwrap_err();
+        assert!(e.to_string().contains("twice"), "{e}");
+    }
 }

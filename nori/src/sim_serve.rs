@@ -40,6 +40,77 @@ pub struct ServeArgs {
     /// Stop after this many seconds.
     #[arg(long)]
     pub run_for: Option<f64>,
+    /// Line fault: probability per status packet of one flipped bit.
+    #[arg(long, default_value_t = 0.0)]
+    pub bit_flip_rate: f64,
+    /// Line fault: probability per status packet that it is not sent.
+    #[arg(long, default_value_t = 0.0)]
+    pub drop_rate: f64,
+    /// Line fault: probability per status packet that only a prefix is sent.
+    #[arg(long, default_value_t = 0.0)]
+    pub truncate_rate: f64,
+    /// Seed of the line faults (each bus adds its index).
+    #[arg(long, default_value_t = 1)]
+    pub fault_seed: u64,
+    /// Unplug a bus for a while, as a USB adapter pulled out and put back: BUS@AT+FOR (seconds
+    /// since start), e.g. `right_arm@10+3`; the device link comes back at the same path.
+    /// Repeatable.
+    #[arg(long, value_name = "BUS@AT+FOR")]
+    pub unplug: Vec<String>,
+    /// Make one servo stop answering for a while: BUS:ID@AT+FOR, e.g. `left_arm:3@5+2`.
+    /// Repeatable.
+    #[arg(long, value_name = "BUS:ID@AT+FOR")]
+    pub silence: Vec<String>,
+}
+
+/// A scheduled fault of `nori sim serve`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Scheduled {
+    /// Bus name.
+    pub bus: String,
+    /// Servo id (silence) or none (unplug).
+    pub id: Option<u8>,
+    /// Start, s since the simulator started.
+    pub at: f64,
+    /// Duration, s.
+    pub duration: f64,
+}
+
+/// Parses `BUS@AT+FOR` (`with_id` false) or `BUS:ID@AT+FOR` (`with_id` true).
+pub fn parse_scheduled(text: &str, with_id: bool) -> Result<Scheduled> {
+    let form = if with_id {
+        "BUS:ID@AT+FOR"
+    } else {
+        "BUS@AT+FOR"
+    };
+    let bad = || {
+        anyhow::anyhow!(
+            "{text:?}: expected {form} (seconds), e.g. right_arm{}@10+3",
+            if with_id { ":3" } else { "" }
+        )
+    };
+    let (target, when) = text.split_once('@').ok_or_else(bad)?;
+    let (at, duration) = when.split_once('+').ok_or_else(bad)?;
+    let at: f64 = at.trim().parse().map_err(|_| bad())?;
+    let duration: f64 = duration.trim().parse().map_err(|_| bad())?;
+    if !(at.is_finite() && at >= 0.0 && duration.is_finite() && duration > 0.0) {
+        return Err(bad());
+    }
+    let (bus, id) = if with_id {
+        let (bus, id) = target.split_once(':').ok_or_else(bad)?;
+        (bus, Some(id.trim().parse::<u8>().map_err(|_| bad())?))
+    } else {
+        (target, None)
+    };
+    if bus.is_empty() {
+        return Err(bad());
+    }
+    Ok(Scheduled {
+        bus: bus.to_string(),
+        id,
+        at,
+        duration,
+    })
 }
 
 /// The simulator's report: one entry per bus.
@@ -95,15 +166,51 @@ pub fn run(args: &ServeArgs) -> Result<()> {
             );
         }
     }
+    let faults = sim::faults::LineFaults {
+        seed: args.fault_seed,
+        bit_flip_rate: args.bit_flip_rate,
+        drop_rate: args.drop_rate,
+        truncate_rate: args.truncate_rate,
+    };
+    faults
+        .validate()
+        .map_err(|e| anyhow::anyhow!("line faults: {e}"))?;
+    let mut schedule = Vec::new();
+    for text in &args.unplug {
+        schedule.push(parse_scheduled(text, false).context("--unplug")?);
+    }
+    for text in &args.silence {
+        schedule.push(parse_scheduled(text, true).context("--silence")?);
+    }
+    for s in &schedule {
+        let served_bus = args.buses.is_empty() || args.buses.contains(&s.bus);
+        let bus = robot.bus(&s.bus).filter(|_| served_bus);
+        let Some(bus) = bus else {
+            anyhow::bail!("scheduled fault on bus {:?}, which is not served", s.bus);
+        };
+        if let Some(id) = s.id {
+            if !bus.servo.iter().any(|v| v.id == id) {
+                anyhow::bail!(
+                    "scheduled fault on servo {id}, which bus {} does not have",
+                    s.bus
+                );
+            }
+        }
+    }
     let shutdown = telemetry::process::stop_flag()?;
     let mut buses = Vec::new();
-    for bus in robot
+    for (i, bus) in robot
         .bus
         .iter()
         .filter(|b| args.buses.is_empty() || args.buses.contains(&b.name))
+        .enumerate()
     {
         let mut sim_bus = SimBus::new(&robot, bus);
         sim_bus.thermal_speedup = args.thermal_speedup;
+        sim_bus.set_line_faults(Some(sim::faults::LineFaults {
+            seed: faults.seed.wrapping_add(i as u64),
+            ..faults
+        }));
         buses.push((sim_bus, args.dir.join(&bus.name)));
     }
     let served = serve(buses, args.dt)?;
@@ -127,14 +234,60 @@ pub fn run(args: &ServeArgs) -> Result<()> {
         "nori sim: robot {} running in real time (thermal ×{}); Ctrl-C stops it",
         robot.name, args.thermal_speedup
     );
+    if faults.any() {
+        eprintln!(
+            "nori sim: line faults per status packet: bit flip {}, drop {}, truncate {} (seed {})",
+            faults.bit_flip_rate, faults.drop_rate, faults.truncate_rate, faults.seed
+        );
+    }
     let start = Instant::now();
     let mut last_report = Instant::now();
+    // Per scheduled fault: 0 pending, 1 active, 2 over.
+    let mut phase = vec![0u8; schedule.len()];
     while !shutdown.load(Ordering::Relaxed)
         && args
             .run_for
             .is_none_or(|t| start.elapsed().as_secs_f64() < t)
     {
         std::thread::sleep(Duration::from_millis(20));
+        let t = start.elapsed().as_secs_f64();
+        for (s, phase) in schedule.iter().zip(phase.iter_mut()) {
+            let want = if t < s.at {
+                0
+            } else if t < s.at + s.duration {
+                1
+            } else {
+                2
+            };
+            if want == *phase {
+                continue;
+            }
+            // Pending → over in one step (a fault shorter than the 20 ms tick): restore only.
+            let active = want == 1;
+            match s.id {
+                None => {
+                    if active {
+                        served.unplug(&s.bus);
+                    } else {
+                        served.replug(&s.bus);
+                    }
+                }
+                Some(id) => {
+                    served.with_bus(&s.bus, |b| {
+                        if let Some(servo) = b.servo_mut(id) {
+                            servo.answering = !active;
+                        }
+                    });
+                }
+            }
+            eprintln!(
+                "nori sim: t = {t:.2} s: {} {}{}",
+                if active { "fault on" } else { "fault over" },
+                s.bus,
+                s.id.map(|i| format!(" servo {i}")).unwrap_or_default()
+            );
+            *phase = want;
+        }
         if let Some(path) = &args.report {
             if last_report.elapsed() >= Duration::from_secs(1) {
                 write_report(path, &served.reports())?;
@@ -153,4 +306,39 @@ pub fn run(args: &ServeArgs) -> Result<()> {
         .fold(f64::NAN, f64::max);
     eprintln!("nori sim: stopped; hottest servo reached {hottest:.1} °C");
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn scheduled_faults_parse_or_say_why() {
+        assert_eq!(
+            parse_scheduled("right_arm@10+3", false).unwrap(),
+            Scheduled {
+                bus: "right_arm".into(),
+                id: None,
+                at: 10.0,
+                duration: 3.0
+            }
+        );
+        assert_eq!(
+            parse_scheduled("left_arm:3@5.5+0.5", true).unwrap().id,
+            Some(3)
+        );
+        for bad in [
+            "right_arm",
+            "right_arm@x+1",
+            "@1+1",
+            "a@1+0",
+            "a@-1+2",
+            "a@1+nan",
+        ] {
+            let e = parse_scheduled(bad, false).unwrap_err().to_string();
+            assert!(e.contains("BUS@AT+FOR"), "{bad}: {e}");
+        }
+        assert!(parse_scheduled("left_arm:300@1+1", true).is_err());
+        assert!(parse_scheduled("left_arm@1+1", true).is_err());
+    }
 }

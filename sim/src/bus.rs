@@ -6,7 +6,7 @@ use crate::arm::{gripper_load, Arm, JointLoads};
 use crate::description::{BusDescription, RobotDescription};
 use crate::servo::Servo;
 use feetech::instruction::Instruction;
-use feetech::registers::TABLE_SIZE;
+use feetech::registers::{FEEDBACK_ADDR, FEEDBACK_LEN, TABLE_SIZE};
 use feetech::timing::wire_time;
 use feetech::{Decoder, StatusPacket, BROADCAST_ID, MAX_PACKET};
 use serde::Serialize;
@@ -52,6 +52,8 @@ pub struct LineStats {
     pub late_bursts: u64,
     /// Worst lateness of a reply burst, µs.
     pub max_lateness_us: f64,
+    /// Faults injected into status packets (see [`crate::faults`]).
+    pub faults: crate::faults::FaultCounts,
 }
 
 /// Per-servo figures of a report.
@@ -131,6 +133,8 @@ pub struct SimBus {
     loads: JointLoads,
     q: Vec<f64>,
     qd: Vec<f64>,
+    faults: Option<crate::faults::FaultInjector>,
+    truth: Vec<Option<[u8; FEEDBACK_LEN as usize]>>,
 }
 
 impl SimBus {
@@ -197,6 +201,8 @@ impl SimBus {
             loads: JointLoads::default(),
             q: vec![0.0; n_arm],
             qd: vec![0.0; n_arm],
+            faults: None,
+            truth: vec![None; d.servo.len()],
         }
     }
 
@@ -212,6 +218,20 @@ impl SimBus {
         if let Some(r) = m.supply_resistance_ohm {
             self.supply_resistance = r;
         }
+    }
+
+    /// Injects line faults into every status packet from now on (`None`: a clean line).
+    pub fn set_line_faults(&mut self, faults: Option<crate::faults::LineFaults>) {
+        self.faults = faults
+            .filter(crate::faults::LineFaults::any)
+            .map(crate::faults::FaultInjector::new);
+    }
+
+    /// The feedback block (registers 56–70) servo `id` really answered to the last feedback
+    /// SYNC_READ, before any line fault; `None` if it did not answer (silent or absent).
+    pub fn feedback_truth(&self, id: u8) -> Option<&[u8]> {
+        let i = usize::from(self.index[id as usize]?);
+        self.truth.get(i)?.as_ref().map(|b| &b[..])
     }
 
     /// Simulated time, s.
@@ -408,6 +428,10 @@ impl SimBus {
             }
             Instruction::SyncRead { addr, len, ids } => {
                 self.stats.sync_reads += 1;
+                let feedback = addr == FEEDBACK_ADDR && len == FEEDBACK_LEN;
+                if feedback {
+                    self.truth.iter_mut().for_each(|t| *t = None);
+                }
                 for &id in ids {
                     self.read_reply(id, addr, len, instruction_number);
                 }
@@ -431,6 +455,13 @@ impl SimBus {
             Some(s) if s.answering => s.read(addr, len, &mut data),
             _ => return,
         };
+        if ok && addr == FEEDBACK_ADDR && len == FEEDBACK_LEN {
+            if let Some(i) = self.index[id as usize].map(usize::from) {
+                let mut block = [0u8; FEEDBACK_LEN as usize];
+                block.copy_from_slice(&data[..FEEDBACK_LEN as usize]);
+                self.truth[i] = Some(block);
+            }
+        }
         if ok {
             self.reply_from(id, &data[..len as usize], instruction);
         }
@@ -460,6 +491,19 @@ impl SimBus {
         let due = self.line_free_at + delay + wire_time(n, self.baud).as_secs_f64();
         self.line_free_at = due;
         self.stats.replies += 1;
+        let fault = match self.faults.as_mut() {
+            Some(f) => {
+                let fault = f.draw(n);
+                self.stats.faults = f.counts;
+                fault
+            }
+            None => crate::faults::Fault::None,
+        };
+        let bytes = crate::faults::apply(fault, &mut out[..n]);
+        let n = bytes.len();
+        if n == 0 {
+            return;
+        }
         if let Some(last) = self
             .pending
             .back_mut()

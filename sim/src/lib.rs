@@ -17,6 +17,7 @@ pub mod arm;
 pub mod bus;
 pub mod description;
 pub mod extension;
+pub mod faults;
 pub mod pty;
 pub mod scenario;
 pub mod servo;

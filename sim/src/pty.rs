@@ -16,7 +16,7 @@ use nix::sys::termios::{cfmakeraw, tcgetattr, tcsetattr, SetArg};
 use nix::sys::time::TimeSpec;
 use std::os::fd::{AsFd, OwnedFd};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -54,6 +54,8 @@ pub struct ServedRobot {
     pub devices: Vec<PathBuf>,
     buses: Arc<Mutex<Vec<SimBus>>>,
     stop: Arc<AtomicBool>,
+    /// Bit `i`: bus `i` is unplugged (its pseudo-terminal closed, its link removed).
+    unplugged: Arc<AtomicU32>,
     thread: Option<JoinHandle<()>>,
 }
 
@@ -62,6 +64,43 @@ impl ServedRobot {
     pub fn with_bus<R>(&self, name: &str, f: impl FnOnce(&mut SimBus) -> R) -> Option<R> {
         let mut buses = self.buses.lock().ok()?;
         buses.iter_mut().find(|b| b.name == name).map(f)
+    }
+
+    /// Unplugs bus `name`, as a USB adapter pulled out: its pseudo-terminal is closed (a driver
+    /// that has it open gets a hang-up) and its device link removed; the servos behind it keep
+    /// running on their last goals. Returns false for an unknown bus.
+    pub fn unplug(&self, name: &str) -> bool {
+        self.set_plugged(name, false)
+    }
+
+    /// Plugs bus `name` back in: a new pseudo-terminal linked at the same device path.
+    pub fn replug(&self, name: &str) -> bool {
+        self.set_plugged(name, true)
+    }
+
+    /// Whether bus `name` is plugged in and its device link exists now.
+    pub fn is_plugged(&self, name: &str) -> bool {
+        self.index(name).is_some_and(|i| {
+            self.unplugged.load(Ordering::SeqCst) & (1 << i) == 0
+                && std::fs::symlink_metadata(&self.devices[i]).is_ok()
+        })
+    }
+
+    fn index(&self, name: &str) -> Option<usize> {
+        let buses = self.buses.lock().ok()?;
+        buses.iter().position(|b| b.name == name)
+    }
+
+    fn set_plugged(&self, name: &str, plugged: bool) -> bool {
+        let Some(i) = self.index(name) else {
+            return false;
+        };
+        if plugged {
+            self.unplugged.fetch_and(!(1 << i), Ordering::SeqCst);
+        } else {
+            self.unplugged.fetch_or(1 << i, Ordering::SeqCst);
+        }
+        true
     }
 
     /// Reports of every bus now.
@@ -124,28 +163,44 @@ fn open_pty(bus: &str, device: &Path) -> Result<OwnedFd, ServeError> {
 }
 
 /// Serves each `(bus, device link)` on a new pseudo-terminal, stepping mechanics every `dt` s.
+///
+/// At most 32 buses (the unplug mask is a `u32`).
 pub fn serve(buses: Vec<(SimBus, PathBuf)>, dt: f64) -> Result<ServedRobot, ServeError> {
     let mut masters = Vec::with_capacity(buses.len());
     let mut devices = Vec::with_capacity(buses.len());
-    for (bus, device) in &buses {
-        masters.push(open_pty(&bus.name, device)?);
+    let mut names = Vec::with_capacity(buses.len());
+    for (bus, device) in buses.iter().take(32) {
+        masters.push(Some(open_pty(&bus.name, device)?));
         devices.push(device.clone());
+        names.push(bus.name.clone());
     }
     let buses = Arc::new(Mutex::new(
-        buses.into_iter().map(|(b, _)| b).collect::<Vec<_>>(),
+        buses
+            .into_iter()
+            .take(32)
+            .map(|(b, _)| b)
+            .collect::<Vec<_>>(),
     ));
     let stop = Arc::new(AtomicBool::new(false));
+    let unplugged = Arc::new(AtomicU32::new(0));
     let thread = {
-        let (buses, stop) = (buses.clone(), stop.clone());
+        let (buses, stop, unplugged) = (buses.clone(), stop.clone(), unplugged.clone());
+        let lines = Lines {
+            masters,
+            devices: devices.clone(),
+            names,
+            unplugged,
+        };
         std::thread::Builder::new()
             .name("sim-buses".into())
-            .spawn(move || run(&masters, &buses, &stop, dt))
+            .spawn(move || run(lines, &buses, &stop, dt))
             .ok()
     };
     Ok(ServedRobot {
         devices,
         buses,
         stop,
+        unplugged,
         thread,
     })
 }
@@ -157,7 +212,40 @@ fn monotonic_ns() -> u64 {
         .unwrap_or(0)
 }
 
-fn run(masters: &[OwnedFd], buses: &Mutex<Vec<SimBus>>, stop: &AtomicBool, dt: f64) {
+/// The serving thread's pseudo-terminals: `None` while a bus is unplugged.
+struct Lines {
+    masters: Vec<Option<OwnedFd>>,
+    devices: Vec<PathBuf>,
+    names: Vec<String>,
+    unplugged: Arc<AtomicU32>,
+}
+
+impl Lines {
+    /// Closes or reopens the pseudo-terminals whose plug state was changed.
+    fn follow_plugs(&mut self) {
+        let mask = self.unplugged.load(Ordering::SeqCst);
+        for i in 0..self.masters.len() {
+            let want_plugged = mask & (1 << i) == 0;
+            match (&self.masters[i], want_plugged) {
+                (Some(_), false) => {
+                    self.masters[i] = None;
+                    let _ = std::fs::remove_file(&self.devices[i]);
+                    tracing::info!(bus = %self.names[i], "unplugged");
+                }
+                (None, true) => match open_pty(&self.names[i], &self.devices[i]) {
+                    Ok(m) => {
+                        self.masters[i] = Some(m);
+                        tracing::info!(bus = %self.names[i], "plugged in again");
+                    }
+                    Err(e) => tracing::warn!("cannot plug the bus in again: {e}"),
+                },
+                _ => {}
+            }
+        }
+    }
+}
+
+fn run(mut lines: Lines, buses: &Mutex<Vec<SimBus>>, stop: &AtomicBool, dt: f64) {
     // Wake-ups on time (the default 50 µs timer slack would distort the line timing).
     if nix::sys::prctl::set_timerslack(1).is_err() {
         tracing::warn!("cannot reduce timer slack: reply timing may be up to 50 µs late");
@@ -168,8 +256,10 @@ fn run(masters: &[OwnedFd], buses: &Mutex<Vec<SimBus>>, stop: &AtomicBool, dt: f
         b.iter_mut().for_each(|b| b.epoch_monotonic_ns = epoch);
     }
     let mut buf = [0u8; 512];
-    let mut hung_up_until = vec![0.0f64; masters.len()];
+    let mut hung_up_until = vec![0.0f64; lines.masters.len()];
     while !stop.load(Ordering::Relaxed) {
+        lines.follow_plugs();
+        let masters = &lines.masters;
         let now = start.elapsed().as_secs_f64();
         let mut next_due = now + dt;
         {
@@ -177,8 +267,11 @@ fn run(masters: &[OwnedFd], buses: &Mutex<Vec<SimBus>>, stop: &AtomicBool, dt: f
             for (bus, master) in buses.iter_mut().zip(masters) {
                 bus.advance_to(now, dt);
                 while let Some(reply) = bus.pop_due(now) {
-                    // Nobody listening (or a full buffer): the reply is lost, as on a real line.
-                    let _ = nix::unistd::write(master, &reply.bytes);
+                    // Nobody listening (or a full buffer, or unplugged): the reply is lost, as
+                    // on a real line.
+                    if let Some(master) = master {
+                        let _ = nix::unistd::write(master, &reply.bytes);
+                    }
                 }
                 if let Some(due) = bus.next_due() {
                     next_due = next_due.min(due);
@@ -187,11 +280,12 @@ fn run(masters: &[OwnedFd], buses: &Mutex<Vec<SimBus>>, stop: &AtomicBool, dt: f
         }
         let wait = Duration::from_secs_f64((next_due - now).max(0.0));
         let polled: Vec<usize> = (0..masters.len())
-            .filter(|&i| hung_up_until[i] <= now)
+            .filter(|&i| hung_up_until[i] <= now && masters[i].is_some())
             .collect();
         let mut fds: Vec<PollFd> = polled
             .iter()
-            .map(|&i| PollFd::new(masters[i].as_fd(), PollFlags::POLLIN))
+            .filter_map(|&i| masters[i].as_ref())
+            .map(|m| PollFd::new(m.as_fd(), PollFlags::POLLIN))
             .collect();
         if ppoll(&mut fds, Some(TimeSpec::from_duration(wait)), None).is_err() {
             continue;
@@ -204,8 +298,9 @@ fn run(masters: &[OwnedFd], buses: &Mutex<Vec<SimBus>>, stop: &AtomicBool, dt: f
         drop(fds);
         for (i, revents) in events {
             let now = start.elapsed().as_secs_f64();
+            let Some(master) = &masters[i] else { continue };
             if revents.contains(PollFlags::POLLIN) {
-                match nix::unistd::read(&masters[i], &mut buf) {
+                match nix::unistd::read(master, &mut buf) {
                     Ok(n) if n > 0 => {
                         if let Ok(mut buses) = buses.lock() {
                             let bus = &mut buses[i];

@@ -97,6 +97,26 @@ impl SupervisorConfig {
     pub fn parse(text: &str, origin: &str) -> Result<Self, ConfigError> {
         let c: SupervisorConfig = parse(text, origin)?;
         let invalid = |key: &str, reason: String| telemetry::config::invalid(origin, key, reason);
+        if !(5..=10_000).contains(&c.driver_timeout_ms) {
+            return Err(invalid(
+                "driver-timeout-ms",
+                format!("{} is outside 5..=10000 ms", c.driver_timeout_ms),
+            ));
+        }
+        for (model, a) in &c.stall_current_a {
+            if !matches!(model.as_str(), "sts3215" | "sts3250" | "sts3095") {
+                return Err(invalid(
+                    &format!("stall-current-a.{model}"),
+                    "unknown model (sts3215, sts3250, sts3095)".into(),
+                ));
+            }
+            if !(a.is_finite() && *a > 0.0 && *a <= 50.0) {
+                return Err(invalid(
+                    &format!("stall-current-a.{model}"),
+                    format!("{a} A is outside (0, 50]"),
+                ));
+            }
+        }
         let t = &c.thermal;
         if !(t.trip_c < HARDWARE_CUTOFF_C && t.trip_c > 30.0) {
             return Err(invalid(
@@ -156,11 +176,20 @@ impl SupervisorConfig {
             s.gripper_min_error_rad,
             s.new_target_rad,
         ];
-        if !thresholds.iter().all(|v| *v > 0.0) {
-            return Err(invalid("stall", "thresholds must be > 0".into()));
+        if !thresholds.iter().all(|v| v.is_finite() && *v > 0.0) {
+            return Err(invalid("stall", "thresholds must be finite and > 0".into()));
+        }
+        if s.current_fraction > 1.0 || s.gripper_current_fraction > 1.0 {
+            return Err(invalid(
+                "stall.current-fraction",
+                "a fraction of the rated stall current above 1 can never be reached".into(),
+            ));
         }
         for (name, g) in &c.grip {
-            if !(g.idle_current_a >= 0.0 && g.max_current_a > g.idle_current_a) {
+            if !(g.idle_current_a >= 0.0
+                && g.max_current_a > g.idle_current_a
+                && g.max_current_a.is_finite())
+            {
                 return Err(invalid(
                     &format!("grip.{name}"),
                     "max-current-a must exceed idle-current-a ≥ 0".into(),
@@ -202,6 +231,35 @@ mod tests {
             err.contains("thermal.trip-c") && err.contains("s.toml"),
             "{err}"
         );
+    }
+
+    #[test]
+    fn impossible_values_name_the_key_and_the_file() {
+        for (from, to, key) in [
+            (
+                "driver-timeout-ms = 50",
+                "driver-timeout-ms = 0",
+                "driver-timeout-ms",
+            ),
+            ("sts3215 = 2.7", "sts3215 = -2.7", "stall-current-a.sts3215"),
+            ("sts3215 = 2.7", "sts9999 = 2.7", "stall-current-a.sts9999"),
+            ("window = 15", "window = 1000", "stall.window"),
+            ("static-rad = 0.01", "static-rad = inf", "stall"),
+            (
+                "current-fraction = 0.35",
+                "current-fraction = 3.5",
+                "stall.current-fraction",
+            ),
+            ("trip-c = 59", "trip-c = nan", "thermal.trip-c"),
+            ("window = 15", "window = \"15\"", "window"),
+        ] {
+            let text = DEFAULT_CONFIG_TOML.replacen(from, to, 1);
+            assert_ne!(text, DEFAULT_CONFIG_TOML, "{from}");
+            let err = SupervisorConfig::parse(&text, "s.toml")
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains(key) && err.contains("s.toml"), "{key}: {err}");
+        }
     }
 
     #[test]

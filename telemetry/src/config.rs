@@ -16,13 +16,14 @@ pub enum ConfigError {
         /// Cause.
         source: std::io::Error,
     },
-    /// Syntax, a wrong type or an unknown key; the message names the key and position.
-    #[error("{path}: {source}")]
+    /// Syntax, a wrong type or an unknown key; the message names the key and position. (Not a
+    /// `source`: the message already carries it, and error chains would print it twice.)
+    #[error("{path}: {detail}")]
     Parse {
         /// File.
         path: String,
-        /// Cause.
-        source: toml::de::Error,
+        /// The parser's message (line, column, key, what was expected).
+        detail: toml::de::Error,
     },
     /// A value that parses but cannot be right.
     #[error("{path}: {key}: {reason}")]
@@ -46,9 +47,9 @@ pub fn read(path: &Path) -> Result<String, ConfigError> {
 
 /// Parses TOML text; `origin` names it in errors.
 pub fn parse<T: DeserializeOwned>(text: &str, origin: &str) -> Result<T, ConfigError> {
-    toml::from_str(text).map_err(|source| ConfigError::Parse {
+    toml::from_str(text).map_err(|detail| ConfigError::Parse {
         path: origin.into(),
-        source,
+        detail,
     })
 }
 

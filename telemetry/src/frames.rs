@@ -44,6 +44,9 @@ pub struct JointSample {
 pub const JOINT_FLAG_OUTPUT_LOST: u8 = 1;
 /// The joint's bus is disabled by the supervisor.
 pub const JOINT_FLAG_BUS_DISABLED: u8 = 2;
+/// The joint's bus device is gone (transport failure); the driver reopens it and, when it
+/// answers, applies the safe state and sets the servos up again.
+pub const JOINT_FLAG_BUS_LOST: u8 = 4;
 
 impl JointSample {
     /// Whether this cycle's read of the joint succeeded.
@@ -406,6 +409,76 @@ pub struct SupervisorCommand {
 /// [`SupervisorCommand::kind`]: re-enable a tripped bus.
 pub const COMMAND_REENABLE_BUS: u8 = 1;
 
+/// One bus's error counts by kind, as the driver keeps them (`bus_driver::BusCounters`).
+#[repr(C)]
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend, serde::Serialize, serde::Deserialize,
+)]
+pub struct BusHealthEntry {
+    /// Feedback transactions.
+    pub cycles: u64,
+    /// Servo replies received and used.
+    pub replies: u64,
+    /// Servos that did not answer a feedback read in time.
+    pub missing: u64,
+    /// Packets with a bad checksum.
+    pub checksum_errors: u64,
+    /// Bytes skipped as garbage.
+    pub garbage_bytes: u64,
+    /// Impossible headers or truncated packets.
+    pub framing_errors: u64,
+    /// Replies from an id not asked, or of the wrong size.
+    pub unexpected_replies: u64,
+    /// Replies with an error bit in the status byte.
+    pub status_errors: u64,
+    /// Transport failures.
+    pub transport_errors: u64,
+    /// Device lost (transport failure).
+    pub disconnects: u64,
+    /// Device opened again after a loss.
+    pub reconnects: u64,
+    /// Whole bus silent for the loss bound (safe state applied to it).
+    pub silences: u64,
+    /// One servo silent for the loss bound.
+    pub servos_lost: u64,
+    /// [`BUS_HEALTH_CONNECTED`] and friends.
+    pub flags: u32,
+    /// Reserved, zero.
+    pub reserved: u32,
+}
+
+/// [`BusHealthEntry::flags`]: the bus's device is open.
+pub const BUS_HEALTH_CONNECTED: u32 = 1;
+/// [`BusHealthEntry::flags`]: the supervisor has not disabled the bus.
+pub const BUS_HEALTH_ENABLED: u32 = 2;
+
+/// The driver's error counts per bus, a few times a second: faults are counted, never logged
+/// per cycle, and this is where operators and tests see them.
+#[repr(C)]
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend, serde::Serialize, serde::Deserialize,
+)]
+#[type_name("nori::BusHealth/1")]
+pub struct BusHealth {
+    /// Driver cycle of the counts.
+    pub seq: u64,
+    /// CLOCK_MONOTONIC, ns.
+    pub timestamp_ns: u64,
+    /// Buses in use (the first `bus_count` entries).
+    pub bus_count: u32,
+    /// Reserved, zero.
+    pub reserved: u32,
+    /// Per bus, in the driver configuration's order.
+    pub buses: [BusHealthEntry; MAX_BUSES],
+}
+
+impl BusHealth {
+    /// The buses in use.
+    pub fn buses(&self) -> &[BusHealthEntry] {
+        &self.buses[..(self.bus_count as usize).min(MAX_BUSES)]
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -420,6 +493,8 @@ mod tests {
         assert_eq!(std::mem::size_of::<JointInfo>(), 40);
         assert_eq!(std::mem::size_of::<SupervisorEvent>(), 24);
         assert_eq!(std::mem::size_of::<Heartbeat>(), 24);
+        assert_eq!(std::mem::size_of::<BusHealthEntry>(), 112);
+        assert_eq!(std::mem::size_of::<BusHealth>(), 24 + 112 * MAX_BUSES);
     }
 
     #[test]

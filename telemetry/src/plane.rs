@@ -82,6 +82,8 @@ pub const SUPERVISOR_HEARTBEAT: Topic<Heartbeat> = topic("nori/heartbeat/supervi
 pub const GRIP: Topic<GripFrame> = topic("nori/grip", 1, 16, 2, 8);
 /// Operator → supervisor: explicit commands (re-enable a tripped bus).
 pub const COMMANDS: Topic<SupervisorCommand> = topic("nori/supervisor-commands", 0, 8, 4, 2);
+/// Driver → all: error counts by kind per bus, every 100 ms (history 1: the newest at once).
+pub const BUS_HEALTH: Topic<crate::frames::BusHealth> = topic("nori/bus-health", 1, 4, 2, 8);
 
 /// An iceoryx2 failure, with what was being done.
 #[derive(Debug, Error)]

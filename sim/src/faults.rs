@@ -1,0 +1,225 @@
+//! Line faults injected into the replies of a simulated bus: flipped bits, dropped and
+//! truncated status packets. Seeded, so a run is reproducible; rates are per status packet.
+//!
+//! The device side stays honest about what it meant to send: the bus records the true
+//! feedback block of every servo before any fault is applied (`SimBus::feedback_truth`), so a
+//! test can compare what the driver published as valid with what the servo really measured.
+
+use serde::{Deserialize, Serialize};
+
+/// Fault rates of one bus, each the probability per status packet (mutually exclusive: at most
+/// one fault per packet).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct LineFaults {
+    /// Seed of the fault sequence.
+    pub seed: u64,
+    /// One random bit of one random byte flipped.
+    pub bit_flip_rate: f64,
+    /// The packet never sent (the servo seems not to answer this once).
+    pub drop_rate: f64,
+    /// Only a random prefix of the packet sent.
+    pub truncate_rate: f64,
+}
+
+impl LineFaults {
+    /// Whether any fault can happen.
+    pub fn any(&self) -> bool {
+        self.bit_flip_rate > 0.0 || self.drop_rate > 0.0 || self.truncate_rate > 0.0
+    }
+
+    /// Checks that the rates are probabilities whose sum is at most 1.
+    pub fn validate(&self) -> Result<(), String> {
+        for (name, r) in [
+            ("bit-flip rate", self.bit_flip_rate),
+            ("drop rate", self.drop_rate),
+            ("truncate rate", self.truncate_rate),
+        ] {
+            if !(0.0..=1.0).contains(&r) {
+                return Err(format!("{name} must be in [0, 1], got {r}"));
+            }
+        }
+        let sum = self.bit_flip_rate + self.drop_rate + self.truncate_rate;
+        if sum > 1.0 {
+            return Err(format!("fault rates sum to {sum}, more than 1"));
+        }
+        Ok(())
+    }
+}
+
+/// What the injector did, by kind.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct FaultCounts {
+    /// Status packets that had one bit flipped.
+    pub flipped: u64,
+    /// Status packets dropped.
+    pub dropped: u64,
+    /// Status packets truncated.
+    pub truncated: u64,
+}
+
+impl FaultCounts {
+    /// All faults injected.
+    pub fn total(&self) -> u64 {
+        self.flipped + self.dropped + self.truncated
+    }
+}
+
+/// What happens to one status packet.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Fault {
+    /// Sent as is.
+    None,
+    /// Bit `bit` (0–7) of byte `byte` flipped.
+    Flip {
+        /// Byte index.
+        byte: usize,
+        /// Bit index.
+        bit: u8,
+    },
+    /// Not sent.
+    Drop,
+    /// Only the first `keep` bytes sent.
+    Truncate {
+        /// Bytes kept (at least 1, fewer than the packet).
+        keep: usize,
+    },
+}
+
+/// SplitMix64: a small, fast, seedable generator (no dependency, same sequence everywhere).
+#[derive(Debug, Clone)]
+pub struct SplitMix64(u64);
+
+impl SplitMix64 {
+    /// A generator from `seed`.
+    pub fn new(seed: u64) -> Self {
+        SplitMix64(seed)
+    }
+
+    /// The next 64 random bits.
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in [0, 1).
+    pub fn unit(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    /// Uniform in `0..n` (`n` > 0).
+    pub fn below(&mut self, n: usize) -> usize {
+        (self.next_u64() % n.max(1) as u64) as usize
+    }
+}
+
+/// Draws the faults of a bus's status packets.
+#[derive(Debug, Clone)]
+pub struct FaultInjector {
+    /// The rates.
+    pub config: LineFaults,
+    rng: SplitMix64,
+    /// What was injected so far.
+    pub counts: FaultCounts,
+}
+
+impl FaultInjector {
+    /// An injector with `config`'s rates and seed.
+    pub fn new(config: LineFaults) -> Self {
+        FaultInjector {
+            config,
+            rng: SplitMix64::new(config.seed),
+            counts: FaultCounts::default(),
+        }
+    }
+
+    /// Draws the fault of one status packet of `len` bytes and counts it.
+    pub fn draw(&mut self, len: usize) -> Fault {
+        let c = self.config;
+        let r = self.rng.unit();
+        if r < c.drop_rate {
+            self.counts.dropped += 1;
+            Fault::Drop
+        } else if r < c.drop_rate + c.truncate_rate && len > 1 {
+            self.counts.truncated += 1;
+            Fault::Truncate {
+                keep: 1 + self.rng.below(len - 1),
+            }
+        } else if r < c.drop_rate + c.truncate_rate + c.bit_flip_rate && len > 0 {
+            self.counts.flipped += 1;
+            Fault::Flip {
+                byte: self.rng.below(len),
+                bit: self.rng.below(8) as u8,
+            }
+        } else {
+            Fault::None
+        }
+    }
+}
+
+/// Applies `fault` to `packet`; returns the bytes to send.
+pub fn apply(fault: Fault, packet: &mut [u8]) -> &[u8] {
+    match fault {
+        Fault::None => packet,
+        Fault::Drop => &[],
+        Fault::Truncate { keep } => &packet[..keep.min(packet.len())],
+        Fault::Flip { byte, bit } => {
+            if let Some(b) = packet.get_mut(byte) {
+                *b ^= 1 << bit;
+            }
+            packet
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rates_are_honoured_and_seeded() {
+        let cfg = LineFaults {
+            seed: 7,
+            bit_flip_rate: 0.01,
+            drop_rate: 0.02,
+            truncate_rate: 0.03,
+        };
+        let mut a = FaultInjector::new(cfg);
+        let mut b = FaultInjector::new(cfg);
+        let n = 100_000;
+        for _ in 0..n {
+            assert_eq!(a.draw(21), b.draw(21), "same seed, same faults");
+        }
+        let c = a.counts;
+        let near = |got: u64, rate: f64| (got as f64 / n as f64 - rate).abs() < rate * 0.15;
+        assert!(near(c.flipped, 0.01), "{c:?}");
+        assert!(near(c.dropped, 0.02), "{c:?}");
+        assert!(near(c.truncated, 0.03), "{c:?}");
+        let mut other = FaultInjector::new(LineFaults { seed: 8, ..cfg });
+        let differs = (0..1000).any(|_| other.draw(21) != FaultInjector::new(cfg).draw(21));
+        assert!(differs, "another seed, other faults");
+    }
+
+    #[test]
+    fn faults_change_the_packet_as_said() {
+        let mut p = [1u8, 2, 3, 4];
+        assert_eq!(apply(Fault::Flip { byte: 2, bit: 1 }, &mut p), [1, 2, 1, 4]);
+        let mut p = [1u8, 2, 3, 4];
+        assert_eq!(apply(Fault::Truncate { keep: 3 }, &mut p), [1, 2, 3]);
+        assert!(apply(Fault::Drop, &mut p).is_empty());
+        let bad = LineFaults {
+            drop_rate: 0.7,
+            truncate_rate: 0.7,
+            ..LineFaults::default()
+        };
+        assert!(bad.validate().is_err());
+        assert!(LineFaults {
+            bit_flip_rate: -0.1,
+            ..LineFaults::default()
+        }
+        .validate()
+        .is_err());
+    }
+}
