@@ -69,9 +69,6 @@ pub struct ThermalModel<'a> {
     effect: Effect,
     /// Fit up to this sample (exclusive).
     until: usize,
-    /// Per motor, the mean reading of the fitting part, °C: with `copper_tempco` the fitted gain
-    /// is the gain at this temperature (see [`ThermalModel::new`]).
-    t_ref: Vec<f64>,
 }
 
 const BOUNDS_LN_TAU: (f64, f64) = (0.0, 14.0); // 1 s .. 1.2e6 s
@@ -137,39 +134,12 @@ impl ThermalData {
 
 impl<'a> ThermalModel<'a> {
     /// A model of `effect` over `data`, fitted on the fitting part.
-    ///
-    /// With `copper_tempco` the per-motor gain is fitted as k_m, the gain at the motor's mean
-    /// temperature T_m, and the heating is k_m·I²·(1 + α(T − 25))/(1 + α(T_m − 25)): the same
-    /// physics (one α, referred to 25 °C, shared by all motors) as k₂₅·I²·(1 + α(T − 25)), but
-    /// a change of α no longer changes every motor's mean heating (k₂₅ and α are nearly
-    /// collinear when a motor runs far from 25 °C, which left the fit to trade one for the
-    /// other). [`ThermalModel::decode`] reports k₂₅.
     pub fn new(data: &'a ThermalData, effect: Effect) -> Self {
-        let t_ref = (0..data.n())
-            .map(|m| {
-                let v: Vec<f64> = data.fit_idx[m]
-                    .iter()
-                    .map(|&k| data.measured[m][k])
-                    .collect();
-                if v.is_empty() {
-                    TEMPCO_REFERENCE_C
-                } else {
-                    crate::stats::mean(&v)
-                }
-            })
-            .collect();
         ThermalModel {
             data,
             effect,
             until: data.split,
-            t_ref,
         }
-    }
-
-    /// 1 + α(T_m − 25 °C), the factor from the gain at 25 °C to motor `m`'s fitted gain. Floored
-    /// so a strongly negative α at the bound on a hot motor cannot divide by zero or flip signs.
-    fn tempco_scale(&self, alpha: f64, m: usize) -> f64 {
-        (1.0 + alpha * (self.t_ref[m] - TEMPCO_REFERENCE_C)).max(1e-3)
     }
 
     fn block<'p>(&self, p: &'p [f64], m: usize) -> &'p [f64] {
@@ -224,10 +194,8 @@ impl<'a> ThermalModel<'a> {
                 let i = cur[kk - 1];
                 let (a, lambda) = match self.effect {
                     Effect::CopperTempco => {
-                        // Heating k₂₅·I²·(1 + α(T − 25)), linear in T: its constant part goes
-                        // into the drive, its T part into the decay rate.
                         let alpha = ext / 100.0;
-                        let q = k / self.tempco_scale(alpha, m) * i * i;
+                        let q = k * i * i;
                         (tb + q * (1.0 - alpha * TEMPCO_REFERENCE_C), 1.0 - alpha * q)
                     }
                     Effect::AmbientDrift => {
@@ -312,14 +280,7 @@ impl<'a> ThermalModel<'a> {
             effect: self.effect,
             extension: ext,
             tau_s: (0..n).map(|m| self.block(p, m)[0].exp()).collect(),
-            gain_k_per_a2: (0..n)
-                .map(|m| match self.effect {
-                    Effect::CopperTempco => {
-                        self.block(p, m)[1] / self.tempco_scale(p[0] / 100.0, m)
-                    }
-                    _ => self.block(p, m)[1],
-                })
-                .collect(),
+            gain_k_per_a2: (0..n).map(|m| self.block(p, m)[1]).collect(),
             idle_c: (0..n).map(|m| self.block(p, m)[2]).collect(),
         }
     }
