@@ -32,6 +32,8 @@ pub struct Settings {
     pub period_s: f64,
     /// Worker threads.
     pub jobs: usize,
+    /// Hidden effects to score (`none` included); empty: `none` and the whole catalog.
+    pub effects: Vec<Effect>,
 }
 
 impl Default for Settings {
@@ -43,6 +45,7 @@ impl Default for Settings {
             duration_s: 7200.0,
             period_s: 1.0,
             jobs: 1,
+            effects: Vec::new(),
         }
     }
 }
@@ -171,6 +174,9 @@ pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
     let start = Instant::now();
     let mut effects = Vec::new();
     for effect in std::iter::once(Effect::None).chain(Effect::CATALOG) {
+        if !settings.effects.is_empty() && !settings.effects.contains(&effect) {
+            continue;
+        }
         let spec = Spec {
             duration_s: settings.duration_s,
             period_s: settings.period_s,

@@ -264,7 +264,7 @@ pub fn render(a: &Analysis, tr: &Traces, source: &str) -> Vec<(String, String)> 
     }
     let _ = writeln!(
         md,
-        "\n## Extensions tried\n\n| id | parameter | LR | p | ΔBIC | held-out RMSE | gain | t | verdict |\n|---|---|---|---|---|---|---|---|---|"
+        "\n## Extensions tried\n\n| id | parameter | LR | p | ΔBIC | held-out RMSE | gain | held-out slope (t) | verdict |\n|---|---|---|---|---|---|---|---|---|"
     );
     for c in &d.candidates {
         let par = c
@@ -273,14 +273,15 @@ pub fn render(a: &Analysis, tr: &Traces, source: &str) -> Vec<(String, String)> 
             .map_or("–".into(), |p| format!("{:.4} {}", p.value, p.unit));
         let _ = writeln!(
             md,
-            "| `{}` | {par} | {:.1} | {:.1e} | {:.1} | {:.4} | {:+.1} % | {:.2} | {} |",
+            "| `{}` | {par} | {:.1} | {:.1e} | {:.1} | {:.4} | {:+.1} % | {:.2} ({:.2}) | {} |",
             c.id,
             c.lr,
             c.p_value,
             c.delta_bic,
             c.heldout_rmse,
             100.0 * c.gain,
-            c.heldout_t,
+            c.heldout_slope,
+            c.heldout_slope_t,
             c.verdict
         );
     }

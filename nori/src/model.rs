@@ -86,6 +86,12 @@ pub struct BenchArgs {
     /// Print one JSON object.
     #[arg(long)]
     json: bool,
+    /// Only these hidden effects (catalog ids or `none`, comma-separated; all by default).
+    #[arg(long, value_delimiter = ',')]
+    effects: Vec<String>,
+    /// Skip the 2 h × 8 motors timing runs (for quick accuracy checks).
+    #[arg(long)]
+    no_timing: bool,
 }
 
 /// Runs a model-lab command.
@@ -210,8 +216,20 @@ fn run_bench(a: &BenchArgs) -> Result<()> {
         candidates: Vec::new(),
         ..Options::default()
     };
+    let mut only = Vec::new();
+    for id in &a.effects {
+        let Some(e) = Effect::from_id(id) else {
+            bail!("unknown effect {id:?}");
+        };
+        only.push(e);
+    }
     let mut timing = Vec::new();
-    for effect in [Effect::None, Effect::NeighborCoupling] {
+    let timed: &[Effect] = if a.no_timing {
+        &[]
+    } else {
+        &[Effect::None, Effect::NeighborCoupling]
+    };
+    for &effect in timed {
         let g = generate(
             &Spec {
                 motors: Some(8),
@@ -243,6 +261,7 @@ fn run_bench(a: &BenchArgs) -> Result<()> {
         seeds: a.seeds,
         sweep_seeds: a.sweep_seeds,
         jobs: a.jobs,
+        effects: only,
         ..Default::default()
     };
     let report = model_lab::bench::run(&settings, &mut |l| eprintln!("{l}"));
