@@ -202,7 +202,9 @@ pub struct ReenableArgs {
 /// Asks the supervisor to re-enable a bus it tripped, and reports its answer: granted only once
 /// every motor of the bus has cooled to the configured threshold.
 pub fn reenable(args: &ReenableArgs) -> Result<()> {
-    use telemetry::frames::{EventKind, SupervisorCommand, COMMAND_REENABLE_BUS};
+    use telemetry::frames::{
+        EventKind, SupervisorCommand, COMMAND_REENABLE_BUS, COMMAND_REFUSED_NOT_TRIPPED,
+    };
     let config = match &args.plane.driver_config {
         Some(p) => LoadedConfig::load(p)?,
         None => LoadedConfig::embedded()?,
@@ -242,12 +244,21 @@ pub fn reenable(args: &ReenableArgs) -> Result<()> {
                 Some(EventKind::ReenableRefused) => {
                     bail!("refused: bus {} is still at {:.0} °C", args.bus, e.value)
                 }
+                Some(EventKind::CommandRefused) => match e.level {
+                    COMMAND_REFUSED_NOT_TRIPPED => {
+                        bail!("nothing to do: bus {} is not tripped", args.bus)
+                    }
+                    why => bail!("the supervisor refused the command (reason {why})"),
+                },
                 _ => {}
             }
         }
         std::thread::sleep(Duration::from_millis(10));
     }
-    bail!("no answer from the supervisor (is the bus tripped, and the supervisor running on domain {:?}?)", args.plane.domain)
+    bail!(
+        "no answer from the supervisor (is it running on domain {:?}?)",
+        args.plane.domain
+    )
 }
 
 #[cfg(test)]

@@ -7,7 +7,8 @@ use crate::stall::{StallAction, StallDetector};
 use crate::thermal::{BusThermal, ThermalEvent};
 use telemetry::frames::{
     Directives, EventKind, GripFrame, GripSample, JointLayout, JointRole, JointState,
-    SupervisorCommand, SupervisorEvent, COMMAND_REENABLE_BUS, JOINT_FLAG_OUTPUT_LOST, MAX_BUSES,
+    SupervisorCommand, SupervisorEvent, COMMAND_REENABLE_BUS, COMMAND_REFUSED_NOT_TRIPPED,
+    COMMAND_REFUSED_NO_SUCH_BUS, COMMAND_REFUSED_UNKNOWN_KIND, JOINT_FLAG_OUTPUT_LOST, MAX_BUSES,
     MAX_GRIPPERS,
 };
 use telemetry::MAX_JOINTS;
@@ -350,17 +351,29 @@ impl Supervisor {
         true
     }
 
-    /// An operator's command. Re-enabling a bus is granted only after it has cooled.
+    /// An operator's command. Re-enabling a bus is granted only after it has cooled. A command
+    /// that is not carried out is answered with a reason, never silently dropped: the operator
+    /// (`nori reenable`) waits for an answer.
     pub fn command(&mut self, cmd: &SupervisorCommand, now_ns: u64) {
+        let refused = |s: &mut Self, why: u8| {
+            s.event(
+                now_ns,
+                EventKind::CommandRefused,
+                NONE,
+                cmd.bus,
+                why,
+                f32::from(cmd.kind),
+            );
+        };
         if cmd.kind != COMMAND_REENABLE_BUS {
-            return;
+            return refused(self, COMMAND_REFUSED_UNKNOWN_KIND);
         }
         let b = cmd.bus as usize;
         let Some(bus) = self.buses.get_mut(b) else {
-            return;
+            return refused(self, COMMAND_REFUSED_NO_SUCH_BUS);
         };
         if !bus.tripped {
-            return;
+            return refused(self, COMMAND_REFUSED_NOT_TRIPPED);
         }
         match bus.reenable(&self.config.thermal) {
             Ok(()) => {
@@ -508,6 +521,26 @@ mod tests {
         };
         sup.command(&cmd, 0);
         assert_eq!(kinds(&mut sup), [EventKind::ReenableRefused]);
+        // Commands that cannot be carried out are answered with their reason.
+        for (bad, why) in [
+            (
+                SupervisorCommand { kind: 99, ..cmd },
+                COMMAND_REFUSED_UNKNOWN_KIND,
+            ),
+            (
+                SupervisorCommand { bus: 7, ..cmd },
+                COMMAND_REFUSED_NO_SUCH_BUS,
+            ),
+            (
+                SupervisorCommand { bus: 1, ..cmd },
+                COMMAND_REFUSED_NOT_TRIPPED,
+            ),
+        ] {
+            sup.command(&bad, 0);
+            let e = sup.drain_events().next_back().unwrap();
+            assert_eq!((e.kind(), e.level), (Some(EventKind::CommandRefused), why));
+        }
+        assert_eq!(sup.directives(0).bus_enabled & 1, 0, "still latched");
         for k in 0..100 {
             sup.on_state(&state(k, (1000 + k) * 5 * MS, |_, j| {
                 j.temperature_c = 45.0

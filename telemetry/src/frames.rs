@@ -308,7 +308,16 @@ pub enum EventKind {
     DriverBack = 10,
     /// A re-enable command was refused (`value` hottest °C on the bus).
     ReenableRefused = 11,
+    /// An operator command was not carried out: `level` says why (`COMMAND_REFUSED_*`).
+    CommandRefused = 12,
 }
+
+/// [`EventKind::CommandRefused`]: a command kind the supervisor does not know.
+pub const COMMAND_REFUSED_UNKNOWN_KIND: u8 = 1;
+/// [`EventKind::CommandRefused`]: the command names a bus the robot does not have.
+pub const COMMAND_REFUSED_NO_SUCH_BUS: u8 = 2;
+/// [`EventKind::CommandRefused`]: re-enable asked for a bus that is not tripped.
+pub const COMMAND_REFUSED_NOT_TRIPPED: u8 = 3;
 
 /// Something the supervisor (or the driver) decided or observed.
 #[repr(C)]
@@ -347,6 +356,7 @@ impl SupervisorEvent {
             DriverLost,
             DriverBack,
             ReenableRefused,
+            CommandRefused,
         ]
         .into_iter()
         .find(|k| *k as u8 == self.kind)
