@@ -44,25 +44,35 @@ pub struct GoalArgs {
 }
 
 fn joint_names(args: &PlaneArgs) -> Result<Vec<String>> {
-    let config = match &args.driver_config {
-        Some(p) => LoadedConfig::load(p)?,
-        None => LoadedConfig::embedded()?,
-    };
-    Ok(config
+    Ok(driver_config(args)?
         .config
         .joints()
         .map(|(_, s)| s.joint.clone())
         .collect())
 }
 
+fn driver_config(args: &PlaneArgs) -> Result<LoadedConfig> {
+    Ok(match &args.driver_config {
+        Some(p) => LoadedConfig::load(p)?,
+        None => LoadedConfig::embedded()?,
+    })
+}
+
 /// Prints the newest joint state.
 pub fn state(args: &StateArgs) -> Result<()> {
     let names = joint_names(&args.plane)?;
+    let bus_names: Vec<String> = driver_config(&args.plane)?
+        .config
+        .bus
+        .iter()
+        .map(|b| b.name.clone())
+        .collect();
     let node = Plane::open(
         &args.plane.domain,
         &format!("nori-state-{}", std::process::id()),
     )?;
     let sub = node.subscriber(&plane::JOINT_STATE)?;
+    let health_sub = node.subscriber(&plane::BUS_HEALTH)?;
     let until = Instant::now() + Duration::from_secs_f64(args.timeout);
     let frame = loop {
         if let Some(f) = plane::newest(&sub) {
@@ -77,6 +87,28 @@ pub fn state(args: &StateArgs) -> Result<()> {
         }
         std::thread::sleep(Duration::from_millis(10));
     };
+    // Published a few times a second (history 1): the newest is there at once, or soon.
+    let health_until = Instant::now() + Duration::from_millis(300);
+    let health = loop {
+        let h = plane::newest(&health_sub);
+        if h.is_some() || Instant::now() > health_until {
+            break h;
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    let buses: Vec<(String, telemetry::frames::BusHealthEntry)> = health
+        .iter()
+        .flat_map(|h| h.buses().iter().copied().enumerate())
+        .map(|(i, b)| {
+            (
+                bus_names
+                    .get(i)
+                    .cloned()
+                    .unwrap_or_else(|| format!("bus{i}")),
+                b,
+            )
+        })
+        .collect();
     if args.json {
         let joints: Vec<_> = frame
             .joints()
@@ -90,10 +122,28 @@ pub fn state(args: &StateArgs) -> Result<()> {
                 })
             })
             .collect();
-        let json = serde_json::json!({"seq": frame.seq, "deadline_misses": frame.deadline_misses, "joints": joints});
+        let buses: Vec<_> = buses
+            .iter()
+            .map(|(name, b)| serde_json::json!({"bus": name, "health": b}))
+            .collect();
+        let json = serde_json::json!({"seq": frame.seq, "deadline_misses": frame.deadline_misses, "joints": joints, "buses": buses});
         return quiet_pipe(writeln!(std::io::stdout(), "{json}"));
     }
-    quiet_pipe(print_table(&mut std::io::stdout().lock(), &frame, &names))
+    let mut out = std::io::stdout().lock();
+    quiet_pipe(print_table(&mut out, &frame, &names).and_then(|()| {
+        for (name, b) in &buses {
+            use telemetry::frames::{BUS_HEALTH_CONNECTED, BUS_HEALTH_ENABLED};
+            writeln!(
+                out,
+                "bus {name}: {}{}; {} cycles, missing {}, checksum {}, framing {}, unexpected {}, status {}, transport {}, disconnects {}, reconnects {}, silences {}, servos lost {}",
+                if b.flags & BUS_HEALTH_CONNECTED != 0 { "connected" } else { "LOST" },
+                if b.flags & BUS_HEALTH_ENABLED != 0 { "" } else { ", disabled by the supervisor" },
+                b.cycles, b.missing, b.checksum_errors, b.framing_errors, b.unexpected_replies,
+                b.status_errors, b.transport_errors, b.disconnects, b.reconnects, b.silences, b.servos_lost
+            )?;
+        }
+        Ok(())
+    }))
 }
 
 /// A closed pipe (`nori state | head`) ends the output quietly.
