@@ -44,46 +44,17 @@ pub enum BusError {
     },
 }
 
-/// Error counts by kind, for telemetry.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
-pub struct BusCounters {
-    /// Feedback transactions.
-    pub cycles: u64,
-    /// Servo replies received and used.
-    pub replies: u64,
-    /// Servos that did not answer a feedback read in time.
-    pub missing: u64,
-    /// Packets with a bad checksum.
-    pub checksum_errors: u64,
-    /// Bytes skipped as garbage.
-    pub garbage_bytes: u64,
-    /// Headers with an impossible id or length, or truncated packets.
-    pub framing_errors: u64,
-    /// Replies from an id we did not ask, or with the wrong size.
-    pub unexpected_replies: u64,
-    /// Replies whose status byte had an error bit set.
-    pub status_errors: u64,
-    /// Transport failures.
-    pub transport_errors: u64,
-    /// Times the bus's device was lost (a transport failure: adapter unplugged).
-    pub disconnects: u64,
-    /// Times the device was opened again after a loss.
-    pub reconnects: u64,
-    /// Times every servo of the bus fell silent for the loss bound (safe state applied).
-    pub silences: u64,
-    /// Times one servo fell silent for the loss bound (taken off and set up again on return).
-    pub servos_lost: u64,
-}
+/// Error counts by kind (the type the driver publishes on `nori/bus-health`).
+pub use telemetry::frames::BusCounters;
 
-impl BusCounters {
-    fn count(&mut self, e: DecodeError) {
-        match e {
-            DecodeError::Garbage { bytes } => self.garbage_bytes += bytes as u64,
-            DecodeError::Checksum { .. } => self.checksum_errors += 1,
-            DecodeError::InvalidId { .. }
-            | DecodeError::InvalidLength { .. }
-            | DecodeError::Truncated { .. } => self.framing_errors += 1,
-        }
+/// Counts a decoder error by kind.
+fn count(c: &mut BusCounters, e: DecodeError) {
+    match e {
+        DecodeError::Garbage { bytes } => c.garbage_bytes += bytes as u64,
+        DecodeError::Checksum { .. } => c.checksum_errors += 1,
+        DecodeError::InvalidId { .. }
+        | DecodeError::InvalidLength { .. }
+        | DecodeError::Truncated { .. } => c.framing_errors += 1,
     }
 }
 
@@ -202,7 +173,7 @@ impl<T: Transport> Bus<T> {
                     continue;
                 }
                 Some(Err(e)) => {
-                    self.counters.count(e);
+                    count(&mut self.counters, e);
                     continue;
                 }
                 None if answered == ids.len() || at_end => break,
@@ -284,7 +255,7 @@ impl<T: Transport> Bus<T> {
                         }
                         _ => self.counters.unexpected_replies += 1,
                     },
-                    Err(e) => self.counters.count(e),
+                    Err(e) => count(&mut self.counters, e),
                 }
             }
             let timeout = deadline.saturating_duration_since(Instant::now());

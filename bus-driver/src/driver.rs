@@ -312,21 +312,8 @@ impl<T: Transport> Driver<T> {
         out.timestamp_ns = self.state.timestamp_ns;
         out.bus_count = self.buses.len().min(MAX_BUSES) as u32;
         for (b, e) in self.buses.iter().zip(out.buses.iter_mut()) {
-            let c = b.bus.counters;
             *e = BusHealthEntry {
-                cycles: c.cycles,
-                replies: c.replies,
-                missing: c.missing,
-                checksum_errors: c.checksum_errors,
-                garbage_bytes: c.garbage_bytes,
-                framing_errors: c.framing_errors,
-                unexpected_replies: c.unexpected_replies,
-                status_errors: c.status_errors,
-                transport_errors: c.transport_errors,
-                disconnects: c.disconnects,
-                reconnects: c.reconnects,
-                silences: c.silences,
-                servos_lost: c.servos_lost,
+                counters: b.bus.counters,
                 flags: (u32::from(b.connected) * BUS_HEALTH_CONNECTED)
                     | (u32::from(b.enabled) * BUS_HEALTH_ENABLED),
                 reserved: 0,

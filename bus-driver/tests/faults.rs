@@ -236,12 +236,12 @@ fn one_percent_corrupted_replies_never_publish_a_wrong_value() {
     }
     let injected = rig.faults();
     let h = rig.health();
-    let counted: u64 = h.buses().iter().map(|b| b.missing).sum();
-    let checksum: u64 = h.buses().iter().map(|b| b.checksum_errors).sum();
+    let counted: u64 = h.buses().iter().map(|b| b.counters.missing).sum();
+    let checksum: u64 = h.buses().iter().map(|b| b.counters.checksum_errors).sum();
     let framing: u64 = h
         .buses()
         .iter()
-        .map(|b| b.framing_errors + b.unexpected_replies)
+        .map(|b| b.counters.framing_errors + b.counters.unexpected_replies)
         .sum();
     eprintln!(
         "soak: {n} cycles, {checked} valid samples checked, {missing} missing; injected {injected:?}; \
@@ -265,7 +265,7 @@ fn one_percent_corrupted_replies_never_publish_a_wrong_value() {
     assert!(h
         .buses()
         .iter()
-        .all(|b| b.servos_lost == 0 && b.disconnects == 0));
+        .all(|b| b.counters.servos_lost == 0 && b.counters.disconnects == 0));
     assert!(checked as f64 >= 0.95 * (n * 18) as f64);
 }
 
@@ -291,7 +291,7 @@ fn a_silent_servo_is_taken_off_and_comes_back() {
         rig.check_against_truth(&s);
     }
     assert!(!rig.driver.ready().nth(joint).unwrap(), "taken off");
-    assert_eq!(rig.health().buses[0].servos_lost, 1);
+    assert_eq!(rig.health().buses[0].counters.servos_lost, 1);
     rig.buses[0].lock().unwrap().servo_mut(3).unwrap().answering = true;
     let mut back_after = None;
     for k in 0..100 {
@@ -328,8 +328,8 @@ fn bus_unplugged_and_back(safe_state: SafeState) {
         }
     }
     let h = rig.health();
-    assert_eq!(h.buses[1].disconnects, 1);
-    assert_eq!(h.buses[1].reconnects, 0);
+    assert_eq!(h.buses[1].counters.disconnects, 1);
+    assert_eq!(h.buses[1].counters.reconnects, 0);
     assert!(rig.driver.ready().skip(8).take(8).all(|r| !r));
     let before: Vec<u64> = {
         let b = rig.buses[1].lock().unwrap();
@@ -344,7 +344,7 @@ fn bus_unplugged_and_back(safe_state: SafeState) {
         assert!(cycles < 200, "bus not back after {cycles} cycles");
     }
     let h = rig.health();
-    assert_eq!(h.buses[1].reconnects, 1);
+    assert_eq!(h.buses[1].counters.reconnects, 1);
     let b = rig.buses[1].lock().unwrap();
     for (s, before) in b.servos.iter().zip(before) {
         // Set up again: torque off first (setup and, for torque-off, the bus-wide safe state).

@@ -133,13 +133,14 @@ pub fn state(args: &StateArgs) -> Result<()> {
     quiet_pipe(print_table(&mut out, &frame, &names).and_then(|()| {
         for (name, b) in &buses {
             use telemetry::frames::{BUS_HEALTH_CONNECTED, BUS_HEALTH_ENABLED};
+            let c = &b.counters;
             writeln!(
                 out,
                 "bus {name}: {}{}; {} cycles, missing {}, checksum {}, framing {}, unexpected {}, status {}, transport {}, disconnects {}, reconnects {}, silences {}, servos lost {}",
                 if b.flags & BUS_HEALTH_CONNECTED != 0 { "connected" } else { "LOST" },
                 if b.flags & BUS_HEALTH_ENABLED != 0 { "" } else { ", disabled by the supervisor" },
-                b.cycles, b.missing, b.checksum_errors, b.framing_errors, b.unexpected_replies,
-                b.status_errors, b.transport_errors, b.disconnects, b.reconnects, b.silences, b.servos_lost
+                c.cycles, c.missing, c.checksum_errors, c.framing_errors, c.unexpected_replies,
+                c.status_errors, c.transport_errors, c.disconnects, c.reconnects, c.silences, c.servos_lost
             )?;
         }
         Ok(())

@@ -419,12 +419,13 @@ pub struct SupervisorCommand {
 /// [`SupervisorCommand::kind`]: re-enable a tripped bus.
 pub const COMMAND_REENABLE_BUS: u8 = 1;
 
-/// One bus's error counts by kind, as the driver keeps them (`bus_driver::BusCounters`).
+/// One bus's error counts by kind: kept by the driver's bus layer (`bus_driver::bus`) as they
+/// happen and published as they are in [`BusHealthEntry`], so the two never drift apart.
 #[repr(C)]
 #[derive(
     Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend, serde::Serialize, serde::Deserialize,
 )]
-pub struct BusHealthEntry {
+pub struct BusCounters {
     /// Feedback transactions.
     pub cycles: u64,
     /// Servo replies received and used.
@@ -435,22 +436,33 @@ pub struct BusHealthEntry {
     pub checksum_errors: u64,
     /// Bytes skipped as garbage.
     pub garbage_bytes: u64,
-    /// Impossible headers or truncated packets.
+    /// Headers with an impossible id or length, or truncated packets.
     pub framing_errors: u64,
     /// Replies from an id not asked, or of the wrong size.
     pub unexpected_replies: u64,
-    /// Replies with an error bit in the status byte.
+    /// Replies whose status byte had an error bit set.
     pub status_errors: u64,
     /// Transport failures.
     pub transport_errors: u64,
-    /// Device lost (transport failure).
+    /// Times the bus's device was lost (a transport failure: adapter unplugged).
     pub disconnects: u64,
-    /// Device opened again after a loss.
+    /// Times the device was opened again after a loss.
     pub reconnects: u64,
-    /// Whole bus silent for the loss bound (safe state applied to it).
+    /// Times every servo of the bus fell silent for the loss bound (safe state applied).
     pub silences: u64,
-    /// One servo silent for the loss bound.
+    /// Times one servo fell silent for the loss bound (taken off and set up again on return).
     pub servos_lost: u64,
+}
+
+/// One bus's entry of [`BusHealth`].
+#[repr(C)]
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend, serde::Serialize, serde::Deserialize,
+)]
+pub struct BusHealthEntry {
+    /// The driver's counts.
+    #[serde(flatten)]
+    pub counters: BusCounters,
     /// [`BUS_HEALTH_CONNECTED`] and friends.
     pub flags: u32,
     /// Reserved, zero.
