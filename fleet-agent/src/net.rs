@@ -48,6 +48,31 @@ pub fn open_file(path: &std::path::Path) -> Result<zenoh::Session, NetError> {
         .map_err(|e| NetError::Open(e.to_string()))
 }
 
+/// Opens the session of a fleet-side process (`nori fleet`, `nori policy-server`): wholly from
+/// its zenoh JSON5 file when given (a TLS identity, a client of the router the file names), else
+/// a peer on `listen` and `connect`, listening on `default_listen` when told neither (where the
+/// robots' agents connect by default).
+pub fn open_fleet_side(
+    zenoh_config: Option<&std::path::Path>,
+    listen: &[String],
+    connect: &[String],
+    default_listen: &str,
+) -> Result<zenoh::Session, NetError> {
+    if let Some(file) = zenoh_config {
+        return open_file(file);
+    }
+    open(&ZenohConfig {
+        mode: "peer".into(),
+        listen: if listen.is_empty() && connect.is_empty() {
+            vec![default_listen.into()]
+        } else {
+            listen.to_vec()
+        },
+        connect: connect.to_vec(),
+        config_file: None,
+    })
+}
+
 /// Opens a session (blocking; zenoh runs its own runtime).
 pub fn open(z: &ZenohConfig) -> Result<zenoh::Session, NetError> {
     use zenoh::Wait;

@@ -6,7 +6,6 @@
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use fleet_agent::collector::Collector;
-use fleet_agent::config::ZenohConfig;
 use fleet_agent::keys::all_robots;
 use fleet_agent::zenoh::query::{ConsolidationMode, QueryTarget};
 use fleet_agent::zenoh::sample::{Sample, SampleKind};
@@ -65,19 +64,12 @@ fn lock(c: &Mutex<Collector>) -> MutexGuard<'_, Collector> {
 pub fn run(args: &FleetArgs) -> Result<()> {
     telemetry::process::init_logging();
     let stop = telemetry::process::stop_flag()?;
-    let session = match &args.zenoh_config {
-        Some(file) => fleet_agent::net::open_file(file),
-        None => fleet_agent::net::open(&ZenohConfig {
-            mode: "peer".into(),
-            listen: if args.listen.is_empty() && args.connect.is_empty() {
-                vec![DEFAULT_LISTEN.into()]
-            } else {
-                args.listen.clone()
-            },
-            connect: args.connect.clone(),
-            config_file: None,
-        }),
-    }
+    let session = fleet_agent::net::open_fleet_side(
+        args.zenoh_config.as_deref(),
+        &args.listen,
+        &args.connect,
+        DEFAULT_LISTEN,
+    )
     .context("opening the fleet collector's zenoh session")?;
     let z = |e: fleet_agent::zenoh::Error| anyhow!("{e}");
 

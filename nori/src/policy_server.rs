@@ -6,7 +6,6 @@
 
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
-use fleet_agent::config::ZenohConfig;
 use fleet_agent::keys::{all_robots, robot_key, robot_of};
 use fleet_agent::policy::{Motion, ScriptedPolicy, Trajectory};
 use fleet_agent::schema::{decode, encode, LayoutMsg, ObservationMsg};
@@ -91,19 +90,12 @@ pub fn run(args: &PolicyServerArgs) -> Result<()> {
         steps: args.steps,
         step_ms: args.step_ms,
     };
-    let session = match &args.zenoh_config {
-        Some(file) => fleet_agent::net::open_file(file),
-        None => fleet_agent::net::open(&ZenohConfig {
-            mode: "peer".into(),
-            listen: if args.listen.is_empty() && args.connect.is_empty() {
-                vec!["tcp/127.0.0.1:7447".into()]
-            } else {
-                args.listen.clone()
-            },
-            connect: args.connect.clone(),
-            config_file: None,
-        }),
-    }
+    let session = fleet_agent::net::open_fleet_side(
+        args.zenoh_config.as_deref(),
+        &args.listen,
+        &args.connect,
+        "tcp/127.0.0.1:7447",
+    )
     .context("opening the policy server's zenoh session")?;
     let z = |e: fleet_agent::zenoh::Error| anyhow!("{e}");
     let observations = session
