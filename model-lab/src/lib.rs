@@ -6,6 +6,8 @@
 //!   glitch rejection.
 //! * [`thermal`]: the nominal thermal model (τ·dT/dt = T_idle + k·I² − T per motor) and its
 //!   extensions, simulated open-loop and fitted by output error.
+//! * [`register`]: the temperature register's likelihood (rounding and noise), fitted as a
+//!   deviance residual.
 //! * [`electrical`]: the supply voltage channel (constant supply, or sagging with bus current).
 //! * [`catalog`]: the extensions (`sensor_lag`, `neighbor_coupling`, `copper_tempco`,
 //!   `ambient_drift`, `supply_sag`, `current_offset`) and `none`.
@@ -25,6 +27,7 @@ pub mod data;
 pub mod electrical;
 pub mod fit;
 pub mod generate;
+pub mod register;
 pub mod report;
 pub mod stats;
 pub mod thermal;

@@ -230,7 +230,7 @@ pub fn render(a: &Analysis, tr: &Traces, source: &str) -> Vec<(String, String)> 
     let _ = writeln!(
         md,
         "\n{} samples of {} motors, {:.0} s in {} segment(s); held out from t = {:.0} s. \
-         Glitches rejected: {}, missing readings: {}. Temperature register step {:.4} °C.\n",
+         Glitches rejected: {}, missing readings: {}. Temperature register step {:.4} °C{}.\n",
         d.samples,
         d.motors,
         d.duration_s,
@@ -238,7 +238,10 @@ pub fn render(a: &Analysis, tr: &Traces, source: &str) -> Vec<(String, String)> 
         d.split_t_s,
         d.cleaning.temperature_glitches,
         d.cleaning.temperature_missing,
-        d.temperature_quantum_c
+        d.temperature_quantum_c,
+        d.register_noise_c.map_or(String::new(), |s| format!(
+            ", noise before rounding σ = {s:.3} °C (estimated with the nominal model)"
+        ))
     );
     for n in &d.notes {
         let _ = writeln!(md, "- note: {n}");

@@ -10,11 +10,14 @@
 //! integrated exactly over each sample interval with the current held (zero-order hold).
 //! Predictions are open-loop: from the segment's initial temperature (a fitted parameter) and the
 //! measured currents only, never from past temperature readings, so an error in the dynamics
-//! accumulates and shows. The register reads round(T); the fit compares the continuous
-//! prediction with the rounded reading (the rounding is zero-mean noise of variance q²/12).
+//! accumulates and shows. The register reads round(T): the nominal model is first fitted by
+//! least squares (the rounding taken for zero-mean noise of variance q²/12), then refitted, like
+//! every extension, on the register's own likelihood ([`Register`]), which knows a reading of
+//! 31 means T + noise in [30.5, 31.5).
 
 use crate::catalog::Effect;
 use crate::fit::{levenberg_marquardt, Fitted, Problem};
+use crate::register::Register;
 use nalgebra::{DMatrix, DVector};
 
 /// Reference temperature of the winding resistance (k is the gain at this temperature), °C.
@@ -46,6 +49,8 @@ pub struct ThermalData {
     /// Initial temperature of each motor in each segment, from the first readings (used for
     /// segments that start in the held-out part).
     pub data_init: Vec<Vec<f64>>,
+    /// Step of the temperature register, °C.
+    pub quantum: f64,
 }
 
 /// Parameters of a thermal model, decoded.
@@ -69,6 +74,8 @@ pub struct ThermalModel<'a> {
     effect: Effect,
     /// Fit up to this sample (exclusive).
     until: usize,
+    /// Fit the register's deviance residuals (None: plain prediction − reading).
+    register: Option<&'a Register>,
 }
 
 const BOUNDS_LN_TAU: (f64, f64) = (0.0, 14.0); // 1 s .. 1.2e6 s
@@ -82,7 +89,8 @@ fn ext_count(effect: Effect) -> usize {
 fn ext_bounds(effect: Effect) -> (f64, f64) {
     match effect {
         Effect::SensorLag => (0.0, 10.0),
-        Effect::NeighborCoupling => (-0.5, 5.0),
+        // A conductance: heat flows down the temperature difference, never up it.
+        Effect::NeighborCoupling => (0.0, 5.0),
         Effect::CopperTempco => (-3.0, 3.0),
         Effect::AmbientDrift => (-50.0, 50.0),
         Effect::CurrentOffset => (-5.0, 5.0),
@@ -139,7 +147,20 @@ impl<'a> ThermalModel<'a> {
             data,
             effect,
             until: data.split,
+            register: None,
         }
+    }
+
+    /// The same model, fitted on the register's likelihood.
+    pub fn with_register(mut self, register: &'a Register) -> Self {
+        self.register = Some(register);
+        self
+    }
+
+    #[inline]
+    fn residual(&self, prediction: f64, reading: f64) -> f64 {
+        let e = prediction - reading;
+        self.register.map_or(e, |r| r.residual(e))
     }
 
     fn block<'p>(&self, p: &'p [f64], m: usize) -> &'p [f64] {
@@ -319,7 +340,7 @@ impl Problem for ThermalModel<'_> {
             o.extend(
                 self.data.fit_idx[m]
                     .iter()
-                    .map(|&k| y[m][k] - self.data.measured[m][k]),
+                    .map(|&k| self.residual(y[m][k], self.data.measured[m][k])),
             );
         }
     }
@@ -331,7 +352,7 @@ impl Problem for ThermalModel<'_> {
         out.extend(
             self.data.fit_idx[b]
                 .iter()
-                .map(|&k| y[k] - self.data.measured[b][k]),
+                .map(|&k| self.residual(y[k], self.data.measured[b][k])),
         );
     }
 
@@ -416,10 +437,29 @@ pub fn fit_nominal(data: &ThermalData) -> ThermalFit {
     }
 }
 
+/// Refits a least-squares nominal fit on the register's likelihood.
+pub fn refit_nominal(data: &ThermalData, ls: &ThermalFit, register: &Register) -> ThermalFit {
+    let model = ThermalModel::new(data, Effect::None).with_register(register);
+    let f = levenberg_marquardt(&model, &ls.p, 60);
+    ThermalFit {
+        effect: Effect::None,
+        p: f.p,
+        sse: f.sse,
+        iterations: ls.iterations + f.iterations,
+    }
+}
+
 /// Fits an extension, starting from the nominal fit and a few values of the extension's
 /// parameter (a short fit each), then refining the best start.
-pub fn fit_extension(data: &ThermalData, nominal: &ThermalFit, effect: Effect) -> ThermalFit {
-    let model = ThermalModel::new(data, effect);
+/// `register`: the likelihood the nominal fit was refitted on (None: least squares).
+pub fn fit_extension(
+    data: &ThermalData,
+    nominal: &ThermalFit,
+    effect: Effect,
+    register: Option<&Register>,
+) -> ThermalFit {
+    let mut model = ThermalModel::new(data, effect);
+    model.register = register;
     let mut best: Option<Fitted> = None;
     for &start in ext_starts(effect) {
         let mut p = vec![start];

@@ -196,9 +196,10 @@ fn run_generate(a: &GenerateArgs) -> Result<()> {
     write(&a.out.with_extension("meta.json"), &g.meta)?;
     let p = g.truth.parameter.as_ref();
     println!(
-        "wrote {}: {} motors, hidden {} {}",
+        "wrote {}: {} motors, sensor noise {:.3} °C, hidden {} {}",
         a.out.display(),
         g.truth.motors,
+        g.truth.sensor_noise_c,
         effect,
         p.map_or(String::new(), |p| format!(
             "{} = {:.4} {}",
