@@ -11,6 +11,7 @@ use crate::bus::{Bus, BusCounters, BusError};
 use crate::calibration::{wheel_speed_steps, GoalError, JointCalibration, STEPS_PER_RAD};
 use crate::config::{Backstops, LoadedConfig, Mode, Role, SafeState};
 use crate::cutoff::CutoffWatch;
+use crate::plausibility::FeedbackGate;
 use crate::transport::Transport;
 use feetech::registers::{self as reg, FeedbackBlock};
 use feetech::{ServoModel, ServoStatus, AMPS_PER_CURRENT_UNIT};
@@ -141,7 +142,9 @@ struct Joint {
     /// Torque limit last written to the servo, 0.1 %.
     torque_written: u16,
     cutoff: CutoffWatch,
-    /// Consecutive feedback reads it did not answer.
+    /// Holds back readings that jumped further than the servo can move or heat.
+    gate: FeedbackGate,
+    /// Consecutive feedback reads it did not answer (or answered implausibly).
     misses: u32,
     /// Failed setups in a row (spacing of the next attempt).
     setup_fails: u32,
@@ -242,6 +245,7 @@ impl<T: Transport> Driver<T> {
                     torque_wanted: 0,
                     torque_written: 0,
                     cutoff: CutoffWatch::default(),
+                    gate: FeedbackGate::default(),
                     misses: 0,
                     setup_fails: 0,
                     next_setup: 0,
@@ -596,6 +600,7 @@ impl<T: Transport> Driver<T> {
         let _ = bus.bus.torque_off_all();
         let range = bus.first_joint..bus.first_joint + bus.ids.len();
         for joint in &mut self.joints[range] {
+            joint.gate.reset();
             joint.ready = false;
         }
         self.counters.bus_disables += 1;
@@ -670,6 +675,7 @@ impl<T: Transport> Driver<T> {
     /// and missing) and reopened every 100 ms; a servo, or a whole bus, silent for 200 ms is
     /// taken off (the safe state applied to it) and set up again once it answers.
     pub fn cycle(&mut self) -> &JointState {
+        let now_s = telemetry::clock::monotonic_ns() as f64 * 1e-9;
         for b in &mut self.buses {
             b.failed = !b.connected || b.bus.request_feedback(&b.ids).is_err();
         }
@@ -684,7 +690,14 @@ impl<T: Transport> Driver<T> {
             for (k, fb) in b.feedback.iter().enumerate() {
                 let j = b.first_joint + k;
                 let joint = &mut self.joints[j];
-                let mut s = sample(joint, fb.as_ref());
+                let mut fb = fb.as_ref();
+                if fb.is_some_and(|(block, _)| !joint.gate.admit(block, now_s)) {
+                    // Held back: a missing sample, and a miss towards taking the servo off (a
+                    // servo answering garbage for 200 ms is as good as silent).
+                    fb = None;
+                    b.bus.counters.implausible += 1;
+                }
+                let mut s = sample(joint, fb);
                 if fb.is_some() {
                     answered += 1;
                     joint.misses = 0;
@@ -749,6 +762,7 @@ impl<T: Transport> Driver<T> {
         let range = b.first_joint..b.first_joint + b.ids.len();
         tracing::warn!(bus = %b.name, "bus device lost: its joints are missing; reopening every {} cycles", self.reopen_every);
         for joint in &mut self.joints[range] {
+            joint.gate.reset();
             joint.ready = false;
             joint.next_setup = 0;
             joint.setup_fails = 0;

@@ -11,6 +11,8 @@
 //! * [`config`]: the typed configuration, defaults embedded from `deploy/config/`.
 //! * [`driver`]: setup, the cycle, goal gating, the supervisor's directives, the safe state;
 //!   torque off on every stop.
+//! * [`plausibility`]: holds back feedback that jumped further than a servo can move or heat
+//!   (two flipped bits can pass the checksum; the servos' own 0 °C / 150 °C glitches do).
 //! * [`cutoff`]: inferring a servo's unannounced firmware over-temperature cutoff.
 //! * [`runloop`]: the fixed-rate loop, the supervisor's heartbeat watched.
 //!
@@ -26,6 +28,7 @@ pub mod calibration;
 pub mod config;
 pub mod cutoff;
 pub mod driver;
+pub mod plausibility;
 pub mod rt;
 pub mod runloop;
 pub mod transport;

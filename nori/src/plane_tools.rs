@@ -136,11 +136,11 @@ pub fn state(args: &StateArgs) -> Result<()> {
             let c = &b.counters;
             writeln!(
                 out,
-                "bus {name}: {}{}; {} cycles, missing {}, checksum {}, framing {}, unexpected {}, status {}, transport {}, disconnects {}, reconnects {}, silences {}, servos lost {}",
+                "bus {name}: {}{}; {} cycles, missing {}, checksum {}, framing {}, unexpected {}, implausible {}, status {}, transport {}, disconnects {}, reconnects {}, silences {}, servos lost {}",
                 if b.flags & BUS_HEALTH_CONNECTED != 0 { "connected" } else { "LOST" },
                 if b.flags & BUS_HEALTH_ENABLED != 0 { "" } else { ", disabled by the supervisor" },
                 c.cycles, c.missing, c.checksum_errors, c.framing_errors, c.unexpected_replies,
-                c.status_errors, c.transport_errors, c.disconnects, c.reconnects, c.silences, c.servos_lost
+                c.implausible, c.status_errors, c.transport_errors, c.disconnects, c.reconnects, c.silences, c.servos_lost
             )?;
         }
         Ok(())

@@ -43,6 +43,10 @@ pub struct ServeArgs {
     /// Line fault: probability per status packet of one flipped bit.
     #[arg(long, default_value_t = 0.0)]
     pub bit_flip_rate: f64,
+    /// Line fault: probability per status packet of two flipped bits (about 7 % of them pass
+    /// the checksum).
+    #[arg(long, default_value_t = 0.0)]
+    pub double_flip_rate: f64,
     /// Line fault: probability per status packet that it is not sent.
     #[arg(long, default_value_t = 0.0)]
     pub drop_rate: f64,
@@ -169,6 +173,7 @@ pub fn run(args: &ServeArgs) -> Result<()> {
     let faults = sim::faults::LineFaults {
         seed: args.fault_seed,
         bit_flip_rate: args.bit_flip_rate,
+        double_flip_rate: args.double_flip_rate,
         drop_rate: args.drop_rate,
         truncate_rate: args.truncate_rate,
     };
@@ -236,8 +241,13 @@ pub fn run(args: &ServeArgs) -> Result<()> {
     );
     if faults.any() {
         eprintln!(
-            "nori sim: line faults per status packet: bit flip {}, drop {}, truncate {} (seed {})",
-            faults.bit_flip_rate, faults.drop_rate, faults.truncate_rate, faults.seed
+            "nori sim: line faults per status packet: bit flip {}, double flip {}, drop {}, \
+             truncate {} (seed {})",
+            faults.bit_flip_rate,
+            faults.double_flip_rate,
+            faults.drop_rate,
+            faults.truncate_rate,
+            faults.seed
         );
     }
     let start = Instant::now();

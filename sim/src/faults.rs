@@ -1,5 +1,5 @@
-//! Line faults injected into the replies of a simulated bus: flipped bits, dropped and
-//! truncated status packets. Seeded, so a run is reproducible; rates are per status packet.
+//! Line faults injected into the replies of a simulated bus: one or two flipped bits, dropped
+//! and truncated status packets. Seeded, so a run is reproducible; rates are per status packet.
 //!
 //! The device side stays honest about what it meant to send: the bus records the true
 //! feedback block of every servo before any fault is applied (`SimBus::feedback_truth`), so a
@@ -15,6 +15,10 @@ pub struct LineFaults {
     pub seed: u64,
     /// One random bit of one random byte flipped.
     pub bit_flip_rate: f64,
+    /// Two random bits flipped in one packet (a burst of line noise). About 7 % of such
+    /// packets pass Feetech's 8-bit sum checksum.
+    #[serde(default)]
+    pub double_flip_rate: f64,
     /// The packet never sent (the servo seems not to answer this once).
     pub drop_rate: f64,
     /// Only a random prefix of the packet sent.
@@ -24,13 +28,17 @@ pub struct LineFaults {
 impl LineFaults {
     /// Whether any fault can happen.
     pub fn any(&self) -> bool {
-        self.bit_flip_rate > 0.0 || self.drop_rate > 0.0 || self.truncate_rate > 0.0
+        self.bit_flip_rate > 0.0
+            || self.double_flip_rate > 0.0
+            || self.drop_rate > 0.0
+            || self.truncate_rate > 0.0
     }
 
     /// Checks that the rates are probabilities whose sum is at most 1.
     pub fn validate(&self) -> Result<(), String> {
         for (name, r) in [
             ("bit-flip rate", self.bit_flip_rate),
+            ("double-flip rate", self.double_flip_rate),
             ("drop rate", self.drop_rate),
             ("truncate rate", self.truncate_rate),
         ] {
@@ -38,7 +46,7 @@ impl LineFaults {
                 return Err(format!("{name} must be in [0, 1], got {r}"));
             }
         }
-        let sum = self.bit_flip_rate + self.drop_rate + self.truncate_rate;
+        let sum = self.bit_flip_rate + self.double_flip_rate + self.drop_rate + self.truncate_rate;
         if sum > 1.0 {
             return Err(format!("fault rates sum to {sum}, more than 1"));
         }
@@ -51,6 +59,8 @@ impl LineFaults {
 pub struct FaultCounts {
     /// Status packets that had one bit flipped.
     pub flipped: u64,
+    /// Status packets that had two bits flipped.
+    pub double_flipped: u64,
     /// Status packets dropped.
     pub dropped: u64,
     /// Status packets truncated.
@@ -60,7 +70,7 @@ pub struct FaultCounts {
 impl FaultCounts {
     /// All faults injected.
     pub fn total(&self) -> u64 {
-        self.flipped + self.dropped + self.truncated
+        self.flipped + self.double_flipped + self.dropped + self.truncated
     }
 }
 
@@ -76,6 +86,8 @@ pub enum Fault {
         /// Bit index.
         bit: u8,
     },
+    /// Two different bits flipped: `(byte, bit)` each.
+    DoubleFlip([(usize, u8); 2]),
     /// Not sent.
     Drop,
     /// Only the first `keep` bytes sent.
@@ -153,6 +165,16 @@ impl FaultInjector {
                 byte: self.rng.below(len),
                 bit: self.rng.below(8) as u8,
             }
+        } else if r < c.drop_rate + c.truncate_rate + c.bit_flip_rate + c.double_flip_rate
+            && len > 0
+        {
+            self.counts.double_flipped += 1;
+            let first = (self.rng.below(len), self.rng.below(8) as u8);
+            let mut second = first;
+            while second == first {
+                second = (self.rng.below(len), self.rng.below(8) as u8);
+            }
+            Fault::DoubleFlip([first, second])
         } else {
             Fault::None
         }
@@ -171,6 +193,14 @@ pub fn apply(fault: Fault, packet: &mut [u8]) -> &[u8] {
             }
             packet
         }
+        Fault::DoubleFlip(flips) => {
+            for (byte, bit) in flips {
+                if let Some(b) = packet.get_mut(byte) {
+                    *b ^= 1 << bit;
+                }
+            }
+            packet
+        }
     }
 }
 
@@ -183,6 +213,7 @@ mod tests {
         let cfg = LineFaults {
             seed: 7,
             bit_flip_rate: 0.01,
+            double_flip_rate: 0.015,
             drop_rate: 0.02,
             truncate_rate: 0.03,
         };
@@ -195,6 +226,7 @@ mod tests {
         let c = a.counts;
         let near = |got: u64, rate: f64| (got as f64 / n as f64 - rate).abs() < rate * 0.15;
         assert!(near(c.flipped, 0.01), "{c:?}");
+        assert!(near(c.double_flipped, 0.015), "{c:?}");
         assert!(near(c.dropped, 0.02), "{c:?}");
         assert!(near(c.truncated, 0.03), "{c:?}");
         let mut other = FaultInjector::new(LineFaults { seed: 8, ..cfg });
@@ -202,10 +234,47 @@ mod tests {
         assert!(differs, "another seed, other faults");
     }
 
+    /// The fact the driver's plausibility gate exists for: Feetech's sum checksum catches every
+    /// single flipped bit but lets about 9/128 of double flips through (same bit position,
+    /// opposite directions; or bit 7 twice).
+    #[test]
+    fn two_flipped_bits_often_pass_the_checksum() {
+        let mut inj = FaultInjector::new(LineFaults {
+            seed: 3,
+            double_flip_rate: 1.0,
+            ..LineFaults::default()
+        });
+        let mut data = SplitMix64::new(11);
+        let (n, mut passed) = (20_000, 0);
+        for _ in 0..n {
+            // A feedback status packet: FF FF id len err params(15) checksum.
+            let mut p = vec![0xFF, 0xFF, 1 + data.below(20) as u8, 17, 0];
+            p.extend((0..15).map(|_| data.next_u64() as u8));
+            let sum = feetech::frame::checksum(p[2], p[3], p[4], &p[5..]);
+            p.push(sum);
+            // Flips in the body only (a broken header or length is refused anyway).
+            let fault = match inj.draw(p.len() - 4) {
+                Fault::DoubleFlip(f) => Fault::DoubleFlip(f.map(|(byte, bit)| (byte + 4, bit))),
+                other => panic!("{other:?}"),
+            };
+            apply(fault, &mut p);
+            let last = p.len() - 1;
+            passed +=
+                usize::from(feetech::frame::checksum(p[2], p[3], p[4], &p[5..last]) == p[last]);
+        }
+        let rate = passed as f64 / n as f64;
+        assert!((rate - 9.0 / 128.0).abs() < 0.01, "passed {rate}");
+    }
+
     #[test]
     fn faults_change_the_packet_as_said() {
         let mut p = [1u8, 2, 3, 4];
         assert_eq!(apply(Fault::Flip { byte: 2, bit: 1 }, &mut p), [1, 2, 1, 4]);
+        let mut p = [1u8, 2, 3, 4];
+        assert_eq!(
+            apply(Fault::DoubleFlip([(0, 0), (3, 7)]), &mut p),
+            [0, 2, 3, 0x84]
+        );
         let mut p = [1u8, 2, 3, 4];
         assert_eq!(apply(Fault::Truncate { keep: 3 }, &mut p), [1, 2, 3]);
         assert!(apply(Fault::Drop, &mut p).is_empty());

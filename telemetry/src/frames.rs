@@ -442,6 +442,10 @@ pub struct BusCounters {
     pub unexpected_replies: u64,
     /// Replies whose status byte had an error bit set.
     pub status_errors: u64,
+    /// Replies that passed the checksum but jumped further than the servo can move or heat
+    /// since its last accepted reading (held back as a missing sample; see
+    /// `bus_driver::plausibility`).
+    pub implausible: u64,
     /// Transport failures.
     pub transport_errors: u64,
     /// Times the bus's device was lost (a transport failure: adapter unplugged).
@@ -480,7 +484,7 @@ pub const BUS_HEALTH_ENABLED: u32 = 2;
 #[derive(
     Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend, serde::Serialize, serde::Deserialize,
 )]
-#[type_name("nori::BusHealth/1")]
+#[type_name("nori::BusHealth/2")]
 pub struct BusHealth {
     /// Driver cycle of the counts.
     pub seq: u64,
@@ -515,8 +519,8 @@ mod tests {
         assert_eq!(std::mem::size_of::<JointInfo>(), 40);
         assert_eq!(std::mem::size_of::<SupervisorEvent>(), 24);
         assert_eq!(std::mem::size_of::<Heartbeat>(), 24);
-        assert_eq!(std::mem::size_of::<BusHealthEntry>(), 112);
-        assert_eq!(std::mem::size_of::<BusHealth>(), 24 + 112 * MAX_BUSES);
+        assert_eq!(std::mem::size_of::<BusHealthEntry>(), 120);
+        assert_eq!(std::mem::size_of::<BusHealth>(), 24 + 120 * MAX_BUSES);
     }
 
     #[test]
