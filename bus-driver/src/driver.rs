@@ -600,7 +600,6 @@ impl<T: Transport> Driver<T> {
         let _ = bus.bus.torque_off_all();
         let range = bus.first_joint..bus.first_joint + bus.ids.len();
         for joint in &mut self.joints[range] {
-            joint.gate.reset();
             joint.ready = false;
         }
         self.counters.bus_disables += 1;
@@ -762,6 +761,7 @@ impl<T: Transport> Driver<T> {
         let range = b.first_joint..b.first_joint + b.ids.len();
         tracing::warn!(bus = %b.name, "bus device lost: its joints are missing; reopening every {} cycles", self.reopen_every);
         for joint in &mut self.joints[range] {
+            // Whatever changed while the bus was gone is no glitch: start the gate afresh.
             joint.gate.reset();
             joint.ready = false;
             joint.next_setup = 0;

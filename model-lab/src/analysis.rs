@@ -54,8 +54,9 @@ pub const MIN_HELDOUT_T: f64 = 1.645;
 /// extension: 1 / (2 · 1.645), so a correction the readings follow fully (β = 1) reaches
 /// [`MIN_HELDOUT_T`] with about 95 % probability.
 pub const MAX_INFORMATIVE_SE: f64 = 0.304;
-/// Blocks per motor of the held-out tests.
-const HELDOUT_BLOCKS: usize = 10;
+/// Contiguous blocks per motor of the block statistics (held-out slope, fitting-part score
+/// variance): residuals are correlated within a block, roughly independent between blocks.
+const TEST_BLOCKS: usize = 10;
 /// Lags of the Ljung–Box whiteness test.
 pub const LJUNG_BOX_LAGS: usize = 20;
 
@@ -794,11 +795,12 @@ struct FitTest {
 }
 
 /// The thermal channel's test: the likelihood ratio of the register model, Σρ²(nominal) −
-/// Σρ²(extended) (ρ the deviance residuals both fits minimised), against χ²(1). It is exact for
-/// independent readings; where the model misses something slow (real data), the per-reading
-/// score contributions of the extension, ρ·∂ρ/∂θ, are correlated in time, and the statistic is
-/// divided by their variance inflation φ (block variance over 10 contiguous blocks per motor
-/// over the independent-sample variance, at least 1), the effective sample size is n/φ.
+/// Σρ²(extended) (ρ the deviance residuals both fits minimised), against χ²(1), valid
+/// (asymptotically) for independent readings. Where the model misses something slow (real
+/// data), the per-reading score contributions of the extension, ρ·∂ρ/∂θ, are correlated in
+/// time: the statistic is then divided by their variance inflation φ (their variance over
+/// [`TEST_BLOCKS`] contiguous blocks per motor over their independent-sample variance, at least
+/// 1), and the effective sample size is n/φ.
 /// (The score contributions, unlike the ρ themselves, have zero conditional mean under a
 /// correct model: ρ alone is correlated in time even then, through the slowly moving position
 /// of T between two register steps.)
@@ -821,13 +823,13 @@ fn deviance_test(
             })
             .collect();
         n += scores.len();
-        if scores.len() < HELDOUT_BLOCKS {
+        if scores.len() < TEST_BLOCKS {
             continue;
         }
         let mean = stats::mean(&scores);
         let len = scores.len();
-        for j in 0..HELDOUT_BLOCKS {
-            let (lo, hi) = (j * len / HELDOUT_BLOCKS, (j + 1) * len / HELDOUT_BLOCKS);
+        for j in 0..TEST_BLOCKS {
+            let (lo, hi) = (j * len / TEST_BLOCKS, (j + 1) * len / TEST_BLOCKS);
             let sum: f64 = scores[lo..hi].iter().map(|s| s - mean).sum();
             block_var += sum * sum;
         }
@@ -968,11 +970,11 @@ fn slope_stats(base: &[Vec<f64>], ext: &[Vec<f64>]) -> (f64, f64, f64) {
     let mut blocks: Vec<(f64, f64)> = Vec::new();
     for (b, e) in base.iter().zip(ext) {
         let n = b.len().min(e.len());
-        if n < HELDOUT_BLOCKS {
+        if n < TEST_BLOCKS {
             continue;
         }
-        for j in 0..HELDOUT_BLOCKS {
-            let (lo, hi) = (j * n / HELDOUT_BLOCKS, (j + 1) * n / HELDOUT_BLOCKS);
+        for j in 0..TEST_BLOCKS {
+            let (lo, hi) = (j * n / TEST_BLOCKS, (j + 1) * n / TEST_BLOCKS);
             let (mut s, mut dd) = (0.0, 0.0);
             for k in lo..hi {
                 let d = b[k] - e[k];
@@ -1008,11 +1010,11 @@ fn improvement_t(base: &[Vec<f64>], ext: &[Vec<f64>]) -> f64 {
     let mut means = Vec::new();
     for (b, e) in base.iter().zip(ext) {
         let n = b.len().min(e.len());
-        if n < HELDOUT_BLOCKS {
+        if n < TEST_BLOCKS {
             continue;
         }
-        for j in 0..HELDOUT_BLOCKS {
-            let (lo, hi) = (j * n / HELDOUT_BLOCKS, (j + 1) * n / HELDOUT_BLOCKS);
+        for j in 0..TEST_BLOCKS {
+            let (lo, hi) = (j * n / TEST_BLOCKS, (j + 1) * n / TEST_BLOCKS);
             let d: f64 = (lo..hi).map(|k| b[k] * b[k] - e[k] * e[k]).sum();
             means.push(d / (hi - lo).max(1) as f64);
         }
