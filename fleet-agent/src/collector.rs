@@ -211,6 +211,7 @@ impl Collector {
                     "actions_accepted": counters.map(|c| c["actions_accepted"].clone()),
                     "actions_rejected": counters.map(|c| c["actions_rejected"].clone()),
                     "last_rejection": r.status.as_ref().map(|s| s["last_rejection"].clone()),
+                    "buses": r.status.as_ref().map(|s| s["buses"].clone()),
                 })
             })
             .collect();
@@ -232,6 +233,7 @@ impl Collector {
             counter(),
             counter(),
         );
+        let (bus_connected, bus_cycles, bus_errors) = (gauge(), counter(), counter());
         let label = |pairs: &[(&str, &str)]| -> Labels {
             pairs
                 .iter()
@@ -270,6 +272,32 @@ impl Collector {
                     }
                     if j.valid && j.current_a.is_finite() {
                         current.get_or_create(&joint).set(f64::from(j.current_a));
+                    }
+                }
+            }
+            for b in r
+                .status
+                .as_ref()
+                .and_then(|s| s["buses"].as_array())
+                .into_iter()
+                .flatten()
+            {
+                let bus = b["bus"].to_string();
+                let labels = label(&[("robot", id), ("bus", &bus)]);
+                if let Some(up) = b["connected"].as_bool() {
+                    bus_connected
+                        .get_or_create(&labels)
+                        .set(f64::from(u8::from(up)));
+                }
+                let counts = &b["counters"];
+                if let Some(n) = counts["cycles"].as_u64() {
+                    bus_cycles.get_or_create(&labels).inc_by(n);
+                }
+                for kind in BUS_ERROR_KINDS {
+                    if let Some(n) = counts[kind].as_u64() {
+                        bus_errors
+                            .get_or_create(&label(&[("robot", id), ("bus", &bus), ("kind", kind)]))
+                            .inc_by(n);
                     }
                 }
             }
@@ -335,6 +363,17 @@ impl Collector {
             valid,
         );
         registry.register(
+            "bus_connected",
+            "1 while the robot's bus device is open (driver's view, from the agent's status)",
+            bus_connected,
+        );
+        registry.register("bus_cycles", "feedback transactions on the bus", bus_cycles);
+        registry.register(
+            "bus_errors",
+            "the driver's error counts on the bus, by kind (see telemetry::frames::BusCounters)",
+            bus_errors,
+        );
+        registry.register(
             "fleet_undecodable_messages",
             "messages the collector could not decode, by key",
             undecodable,
@@ -345,6 +384,21 @@ impl Collector {
         text
     }
 }
+
+/// The [`telemetry::frames::BusCounters`] fields that count something going wrong.
+const BUS_ERROR_KINDS: [&str; 11] = [
+    "missing",
+    "checksum_errors",
+    "garbage_bytes",
+    "framing_errors",
+    "unexpected_replies",
+    "implausible",
+    "status_errors",
+    "transport_errors",
+    "disconnects",
+    "silences",
+    "servos_lost",
+];
 
 fn joint_names(r: &Robot) -> Vec<String> {
     r.layout
@@ -470,5 +524,36 @@ mod tests {
         assert!(text.contains(r#"nori_robot_online{robot="r2"} 1.0"#));
         c.alive("nori/r2/alive", false, 5).unwrap();
         assert!(c.metrics().contains(r#"nori_robot_online{robot="r2"} 0.0"#));
+    }
+
+    #[test]
+    fn bus_errors_come_from_the_robot_status() {
+        let mut c = Collector::new(1, 0);
+        let mut counters = telemetry::frames::BusCounters {
+            cycles: 1000,
+            checksum_errors: 7,
+            implausible: 2,
+            ..Default::default()
+        };
+        let bus = |i: usize, up: bool, counters| json!({"bus": i, "connected": up, "enabled": true, "counters": counters});
+        let first = bus(0, true, counters);
+        counters.disconnects = 1;
+        let second = bus(1, false, counters);
+        let status = json!({"counters": {}, "buses": [first, second]});
+        c.status("nori/r3/status", status.to_string().as_bytes(), 0)
+            .unwrap();
+        let text = c.metrics();
+        for line in [
+            r#"nori_bus_errors_total{robot="r3",bus="0",kind="checksum_errors"} 7"#,
+            r#"nori_bus_errors_total{robot="r3",bus="0",kind="implausible"} 2"#,
+            r#"nori_bus_errors_total{robot="r3",bus="1",kind="disconnects"} 1"#,
+            r#"nori_bus_errors_total{robot="r3",bus="0",kind="disconnects"} 0"#,
+            r#"nori_bus_cycles_total{robot="r3",bus="1"} 1000"#,
+            r#"nori_bus_connected{robot="r3",bus="0"} 1.0"#,
+            r#"nori_bus_connected{robot="r3",bus="1"} 0.0"#,
+        ] {
+            assert!(text.contains(line), "{line} not in\n{text}");
+        }
+        assert!(!text.contains(r#"kind="cycles""#), "cycles are not errors");
     }
 }

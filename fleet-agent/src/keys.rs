@@ -8,7 +8,7 @@
 //! | `nori/<id>/observation` | robot → inference | [`crate::schema::ObservationMsg`] |
 //! | `nori/<id>/actions` | inference → robot | [`crate::schema::ActionChunk`] |
 //! | `nori/<id>/alive` | liveliness token | present while the agent runs |
-//! | `nori/<id>/status` | queryable | JSON: versions, config, health, counters |
+//! | `nori/<id>/status` | queryable | JSON: versions, config, health, counters, bus counts |
 
 use thiserror::Error;
 

@@ -97,6 +97,7 @@ fn main() -> Result<()> {
     let states = node.subscriber(&plane::JOINT_STATE)?;
     let layouts = node.subscriber(&plane::LAYOUT)?;
     let events = node.subscriber(&plane::EVENTS)?;
+    let bus_health = node.subscriber(&plane::BUS_HEALTH)?;
     let goals = node.publisher(&plane::GOALS)?;
 
     let id = config.robot_id.clone();
@@ -151,6 +152,7 @@ fn main() -> Result<()> {
     let mut warn_every = Every::hz(1.0);
     let mut counters = Counters::default();
     let mut last_state: Option<telemetry::frames::JointState> = None;
+    let mut last_health: Option<telemetry::frames::BusHealth> = None;
     let mut goal_seq = 0u64;
     let started = std::time::Instant::now();
 
@@ -194,6 +196,9 @@ fn main() -> Result<()> {
                 counters.observations_sent += 1;
             }
         }
+        if let Some(h) = newest(&bus_health) {
+            last_health = Some(h);
+        }
         while let Some(e) = next(&events) {
             if event_pub
                 .put(encode(&outbound::event_msg(&e, &layout, wall_ms())))
@@ -232,7 +237,7 @@ fn main() -> Result<()> {
             }
         }
         while let Ok(Some(query)) = status_queries.try_recv() {
-            let status = status_json(
+            let mut status = status_json(
                 &config,
                 &gate,
                 &scheduler,
@@ -241,6 +246,7 @@ fn main() -> Result<()> {
                 &layout,
                 now,
             );
+            status["buses"] = buses_json(last_health.as_ref());
             // Answered on the robot's own key: a fleet asking `nori/*/status` learns from the
             // key which robot answered (a reply on the query's wildcard would not be valid).
             if let Err(e) = query.reply(&status_key, status.to_string()).wait() {
@@ -299,4 +305,24 @@ fn status_json(
         },
         "last_rejection": c.last_rejection,
     })
+}
+
+/// The driver's error counts per bus, in its configuration's order (`bus` is that index, as in
+/// the joint layout): how a fleet sees a failing cable or adapter before it fails.
+fn buses_json(health: Option<&telemetry::frames::BusHealth>) -> serde_json::Value {
+    use telemetry::frames::{BUS_HEALTH_CONNECTED, BUS_HEALTH_ENABLED};
+    health
+        .map(|h| h.buses())
+        .unwrap_or_default()
+        .iter()
+        .enumerate()
+        .map(|(i, b)| {
+            serde_json::json!({
+                "bus": i,
+                "connected": b.flags & BUS_HEALTH_CONNECTED != 0,
+                "enabled": b.flags & BUS_HEALTH_ENABLED != 0,
+                "counters": b.counters,
+            })
+        })
+        .collect()
 }

@@ -152,6 +152,29 @@ fn metrics_show_the_robot_its_joints_and_its_rejections() {
     );
     assert_eq!(rejected(&after, "stale"), Some(0.0));
 
+    // The driver's bus counts, through the agent's status: the arm's bus (the driver's only
+    // one here, index 0) connected and cycling, every error kind exported, no disconnect (the
+    // simulator here injects no faults).
+    let bus = [("robot", ROBOT), ("bus", "0")];
+    let buses = wait_for(
+        Duration::from_secs(10),
+        "the bus counts in /metrics",
+        || {
+            let s = scrape(&http)?;
+            (value(&s, "nori_bus_cycles_total", &bus)? > 0.0).then_some(s)
+        },
+    );
+    assert_eq!(value(&buses, "nori_bus_connected", &bus), Some(1.0));
+    let errors = |kind| {
+        value(
+            &buses,
+            "nori_bus_errors_total",
+            &[("robot", ROBOT), ("bus", "0"), ("kind", kind)],
+        )
+    };
+    assert_eq!(errors("disconnects"), Some(0.0));
+    assert!(errors("implausible").is_some() && errors("checksum_errors").is_some());
+
     // The page is served and fetches the JSON the test read.
     let page = get(&http, "/").unwrap();
     assert!(page.contains("fetch(\"/api/fleet\")") && page.contains("href=\"/metrics\""));
