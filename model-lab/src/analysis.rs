@@ -57,6 +57,13 @@ pub const MAX_INFORMATIVE_SE: f64 = 0.304;
 /// Contiguous blocks per motor of the block statistics (held-out slope, fitting-part score
 /// variance): residuals are correlated within a block, roughly independent between blocks.
 const TEST_BLOCKS: usize = 10;
+
+/// The [`TEST_BLOCKS`] contiguous index ranges a series of `len` samples is split into; none
+/// when the series is shorter than that.
+fn test_blocks(len: usize) -> impl Iterator<Item = std::ops::Range<usize>> {
+    let count = if len < TEST_BLOCKS { 0 } else { TEST_BLOCKS };
+    (0..count).map(move |j| j * len / TEST_BLOCKS..(j + 1) * len / TEST_BLOCKS)
+}
 /// Lags of the Ljung–Box whiteness test.
 pub const LJUNG_BOX_LAGS: usize = 20;
 
@@ -827,10 +834,8 @@ fn deviance_test(
             continue;
         }
         let mean = stats::mean(&scores);
-        let len = scores.len();
-        for j in 0..TEST_BLOCKS {
-            let (lo, hi) = (j * len / TEST_BLOCKS, (j + 1) * len / TEST_BLOCKS);
-            let sum: f64 = scores[lo..hi].iter().map(|s| s - mean).sum();
+        for r in test_blocks(scores.len()) {
+            let sum: f64 = scores[r].iter().map(|s| s - mean).sum();
             block_var += sum * sum;
         }
         plain_var += scores.iter().map(|s| (s - mean).powi(2)).sum::<f64>();
@@ -969,14 +974,9 @@ fn confirmation_slope(base: &[Vec<f64>], ext: &[Vec<f64>]) -> (f64, f64) {
 fn slope_stats(base: &[Vec<f64>], ext: &[Vec<f64>]) -> (f64, f64, f64) {
     let mut blocks: Vec<(f64, f64)> = Vec::new();
     for (b, e) in base.iter().zip(ext) {
-        let n = b.len().min(e.len());
-        if n < TEST_BLOCKS {
-            continue;
-        }
-        for j in 0..TEST_BLOCKS {
-            let (lo, hi) = (j * n / TEST_BLOCKS, (j + 1) * n / TEST_BLOCKS);
+        for r in test_blocks(b.len().min(e.len())) {
             let (mut s, mut dd) = (0.0, 0.0);
-            for k in lo..hi {
+            for k in r {
                 let d = b[k] - e[k];
                 s += b[k] * d;
                 dd += d * d;
@@ -1009,14 +1009,10 @@ fn slope_stats(base: &[Vec<f64>], ext: &[Vec<f64>]) -> (f64, f64, f64) {
 fn improvement_t(base: &[Vec<f64>], ext: &[Vec<f64>]) -> f64 {
     let mut means = Vec::new();
     for (b, e) in base.iter().zip(ext) {
-        let n = b.len().min(e.len());
-        if n < TEST_BLOCKS {
-            continue;
-        }
-        for j in 0..TEST_BLOCKS {
-            let (lo, hi) = (j * n / TEST_BLOCKS, (j + 1) * n / TEST_BLOCKS);
-            let d: f64 = (lo..hi).map(|k| b[k] * b[k] - e[k] * e[k]).sum();
-            means.push(d / (hi - lo).max(1) as f64);
+        for r in test_blocks(b.len().min(e.len())) {
+            let len = r.len().max(1) as f64;
+            let d: f64 = r.map(|k| b[k] * b[k] - e[k] * e[k]).sum();
+            means.push(d / len);
         }
     }
     let m = means.len() as f64;

@@ -8,7 +8,7 @@
 //! - `fleet-ingest`: how many robots streaming telemetry one collector (`nori fleet`'s
 //!   [`Collector`]) takes with no loss, against the offered load.
 
-use crate::stack::{sibling, Managed};
+use crate::stack::{sibling, supervisor_and_driver, Managed};
 use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
 use feetech::registers as reg;
@@ -133,33 +133,10 @@ pub fn action_latency(args: &ActionLatencyArgs) -> Result<()> {
     let endpoint = free_endpoint()?;
     let session = peer(vec![endpoint.clone()], vec![], "peer")?;
     let s = |v: &str| v.to_string();
+    let [supervisor, driver] = supervisor_and_driver(&domain, &dir, BUS, &dir)?;
     let mut processes = [
-        Managed::new(
-            "supervisor",
-            &sibling("supervisor")?,
-            &[
-                s("--domain"),
-                domain.clone(),
-                s("--status-every"),
-                s("0"),
-                s("--trip-file"),
-                dir.join("trips").display().to_string(),
-            ],
-        ),
-        Managed::new(
-            "bus-driver",
-            &sibling("bus-driver")?,
-            &[
-                s("--bus"),
-                s(BUS),
-                s("--device-dir"),
-                dir.display().to_string(),
-                s("--domain"),
-                domain.clone(),
-                s("--status-every"),
-                s("0"),
-            ],
-        ),
+        supervisor,
+        driver,
         Managed::new(
             "fleet-agent",
             &sibling("fleet-agent")?,

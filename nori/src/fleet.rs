@@ -20,20 +20,43 @@ const DASHBOARD: &str = include_str!("fleet.html");
 /// Where `nori fleet` listens when told nothing: the robots' agents connect here by default.
 pub const DEFAULT_LISTEN: &str = "tcp/127.0.0.1:7448";
 
-/// Options of `nori fleet`.
+/// How a fleet-side process (`nori fleet`, `nori policy-server`) joins zenoh.
 #[derive(Args, Debug)]
-pub struct FleetArgs {
-    /// zenoh endpoints to listen on (default: tcp/127.0.0.1:7448, where robots' agents connect,
-    /// unless it connects somewhere itself).
+pub struct FleetSideArgs {
+    /// zenoh endpoints to listen on (default, where robots' agents connect: tcp/127.0.0.1:7448
+    /// for `nori fleet`, tcp/127.0.0.1:7447 for `nori policy-server`; none when it connects
+    /// somewhere itself).
     #[arg(long)]
     pub listen: Vec<String>,
     /// zenoh endpoints to connect to (a router, in a real fleet).
     #[arg(long)]
     pub connect: Vec<String>,
-    /// A zenoh JSON5 configuration (the dashboard's TLS identity, made by
+    /// A zenoh JSON5 configuration (the process's TLS identity, made by
     /// deploy/zenoh/make-dev-ca.sh); it is then a client of the router its file names.
     #[arg(long, conflicts_with_all = ["listen", "connect"])]
     pub zenoh_config: Option<PathBuf>,
+}
+
+impl FleetSideArgs {
+    /// Opens the session, listening on `default_listen` when told nothing.
+    pub fn open(
+        &self,
+        default_listen: &str,
+    ) -> Result<fleet_agent::zenoh::Session, fleet_agent::net::NetError> {
+        fleet_agent::net::open_fleet_side(
+            self.zenoh_config.as_deref(),
+            &self.listen,
+            &self.connect,
+            default_listen,
+        )
+    }
+}
+
+/// Options of `nori fleet` (listens on tcp/127.0.0.1:7448 by default).
+#[derive(Args, Debug)]
+pub struct FleetArgs {
+    #[command(flatten)]
+    pub zenoh: FleetSideArgs,
     /// HTTP address of the dashboard and /metrics.
     #[arg(long, default_value = "127.0.0.1:9747")]
     pub http: String,
@@ -64,13 +87,10 @@ fn lock(c: &Mutex<Collector>) -> MutexGuard<'_, Collector> {
 pub fn run(args: &FleetArgs) -> Result<()> {
     telemetry::process::init_logging();
     let stop = telemetry::process::stop_flag()?;
-    let session = fleet_agent::net::open_fleet_side(
-        args.zenoh_config.as_deref(),
-        &args.listen,
-        &args.connect,
-        DEFAULT_LISTEN,
-    )
-    .context("opening the fleet collector's zenoh session")?;
+    let session = args
+        .zenoh
+        .open(DEFAULT_LISTEN)
+        .context("opening the fleet collector's zenoh session")?;
     let z = |e: fleet_agent::zenoh::Error| anyhow!("{e}");
 
     // Two samples a second for the plots.

@@ -16,20 +16,15 @@ use std::path::PathBuf;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
-/// Options of `nori policy-server`.
+/// Where `nori policy-server` listens when told nothing: the robots' agents connect here by
+/// default.
+pub const DEFAULT_LISTEN: &str = "tcp/127.0.0.1:7447";
+
+/// Options of `nori policy-server` (listens on tcp/127.0.0.1:7447 by default).
 #[derive(Args, Debug)]
 pub struct PolicyServerArgs {
-    /// zenoh endpoints to listen on (default: tcp/127.0.0.1:7447, where robots' agents
-    /// connect, unless it connects somewhere itself).
-    #[arg(long)]
-    pub listen: Vec<String>,
-    /// zenoh endpoints to connect to (a router, in a real fleet).
-    #[arg(long)]
-    pub connect: Vec<String>,
-    /// A zenoh JSON5 configuration applied first (TLS identity of the inference server); it is
-    /// then a client of the router its file names.
-    #[arg(long, conflicts_with_all = ["listen", "connect"])]
-    pub zenoh_config: Option<PathBuf>,
+    #[command(flatten)]
+    pub zenoh: crate::fleet::FleetSideArgs,
     /// Joints the wave moves (comma-separated).
     #[arg(long, value_delimiter = ',', default_value = "left_elbow,right_elbow")]
     pub joints: Vec<String>,
@@ -90,13 +85,10 @@ pub fn run(args: &PolicyServerArgs) -> Result<()> {
         steps: args.steps,
         step_ms: args.step_ms,
     };
-    let session = fleet_agent::net::open_fleet_side(
-        args.zenoh_config.as_deref(),
-        &args.listen,
-        &args.connect,
-        "tcp/127.0.0.1:7447",
-    )
-    .context("opening the policy server's zenoh session")?;
+    let session = args
+        .zenoh
+        .open(DEFAULT_LISTEN)
+        .context("opening the policy server's zenoh session")?;
     let z = |e: fleet_agent::zenoh::Error| anyhow!("{e}");
     let observations = session
         .declare_subscriber(all_robots("observation"))
@@ -106,7 +98,7 @@ pub fn run(args: &PolicyServerArgs) -> Result<()> {
         .declare_subscriber(all_robots("layout"))
         .wait()
         .map_err(z)?;
-    tracing::info!(listen = ?args.listen, replay = ?args.replay, joints = ?args.joints, "serving every robot on {}", all_robots("observation"));
+    tracing::info!(listen = ?args.zenoh.listen, replay = ?args.replay, joints = ?args.joints, "serving every robot on {}", all_robots("observation"));
     let mut robots: BTreeMap<String, Robot> = BTreeMap::new();
     let every = Duration::from_millis(args.chunk_every_ms);
     let started = Instant::now();

@@ -2,7 +2,7 @@
 //! pseudo-terminals, supervisor, bus-driver) driven into a protection scenario, observed over the
 //! state plane, and summarised as one JSON object.
 
-use crate::stack::{sibling, Managed};
+use crate::stack::{supervisor_and_driver, Managed};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use serde_json::json;
@@ -77,32 +77,7 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
             speedup.to_string(),
         ],
     );
-    let mut supervisor = Managed::new(
-        "supervisor",
-        &sibling("supervisor")?,
-        &[
-            s("--domain"),
-            domain.clone(),
-            s("--status-every"),
-            s("0"),
-            s("--trip-file"),
-            dir.join("trips").display().to_string(),
-        ],
-    );
-    let mut driver = Managed::new(
-        "bus-driver",
-        &sibling("bus-driver")?,
-        &[
-            s("--bus"),
-            s(SCENARIO_BUS),
-            s("--device-dir"),
-            dev.display().to_string(),
-            s("--domain"),
-            domain.clone(),
-            s("--status-every"),
-            s("0"),
-        ],
-    );
+    let [mut supervisor, mut driver] = supervisor_and_driver(&domain, &dir, SCENARIO_BUS, &dev)?;
     for (m, log) in [
         (&mut sim, "sim.log"),
         (&mut supervisor, "supervisor.log"),

@@ -24,6 +24,46 @@ pub fn sibling(name: &str) -> Result<PathBuf> {
     Ok(path)
 }
 
+/// The supervisor and the driver of one bus, for the scenarios and benchmarks that run a single
+/// arm: status printing off, the supervisor's trips recorded in `dir/trips`, the driver's
+/// devices in `device_dir`. Not started.
+pub fn supervisor_and_driver(
+    domain: &str,
+    dir: &Path,
+    bus: &str,
+    device_dir: &Path,
+) -> Result<[Managed; 2]> {
+    let s = |v: &str| v.to_string();
+    Ok([
+        Managed::new(
+            "supervisor",
+            &sibling("supervisor")?,
+            &[
+                s("--domain"),
+                s(domain),
+                s("--status-every"),
+                s("0"),
+                s("--trip-file"),
+                dir.join("trips").display().to_string(),
+            ],
+        ),
+        Managed::new(
+            "bus-driver",
+            &sibling("bus-driver")?,
+            &[
+                s("--bus"),
+                s(bus),
+                s("--device-dir"),
+                device_dir.display().to_string(),
+                s("--domain"),
+                s(domain),
+                s("--status-every"),
+                s("0"),
+            ],
+        ),
+    ])
+}
+
 /// One managed child process. Dropping it stops it.
 pub struct Managed {
     name: &'static str,
