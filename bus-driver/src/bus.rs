@@ -67,6 +67,8 @@ pub struct Bus<T: Transport> {
     rx: [u8; 256],
     margin: Duration,
     feedback_sent: Option<Instant>,
+    /// A unicast READ started by [`Bus::request_read`]: when, and the expected reply's size.
+    read_sent: Option<(Instant, u8, u8)>,
     /// Error counts.
     pub counters: BusCounters,
 }
@@ -81,6 +83,7 @@ impl<T: Transport> Bus<T> {
             rx: [0; 256],
             margin,
             feedback_sent: None,
+            read_sent: None,
             counters: BusCounters::default(),
         }
     }
@@ -106,11 +109,17 @@ impl<T: Transport> Bus<T> {
         Ok(())
     }
 
+    /// The line rate, baud.
+    pub fn baud(&self) -> u32 {
+        self.transport.baud()
+    }
+
     /// Opens the transport's device again and forgets any partial input.
     pub fn reopen(&mut self) -> Result<(), BusError> {
         self.transport.reopen()?;
         self.decoder.clear();
         self.feedback_sent = None;
+        self.read_sent = None;
         Ok(())
     }
 
@@ -143,6 +152,68 @@ impl<T: Transport> Bus<T> {
             sync_read_request_bytes(ids.len()) + ids.len() * status_bytes(FEEDBACK_LEN as usize);
         let deadline = sent + wire_time(bytes, self.transport.baud()) + self.margin;
         let mut answered = 0;
+        self.collect_until(deadline, |counters, status| {
+            let slot = ids.iter().position(|&id| id == status.id);
+            match (slot, FeedbackBlock::parse(status.params)) {
+                (Some(i), Some(block))
+                    if status.params.len() == FEEDBACK_LEN as usize && out[i].is_none() =>
+                {
+                    out[i] = Some((block, status.status));
+                    answered += 1;
+                    counters.replies += 1;
+                    if !status.status.is_ok() {
+                        counters.status_errors += 1;
+                    }
+                }
+                _ => counters.unexpected_replies += 1,
+            }
+            answered == ids.len()
+        })?;
+        self.counters.missing += (ids.len() - answered) as u64;
+        Ok(answered)
+    }
+
+    /// Starts a unicast READ of `len` bytes at `addr` from `id` without waiting for the reply
+    /// (collect it with [`Bus::collect_read`]; other buses can be started in between).
+    pub fn request_read(&mut self, id: u8, addr: u8, len: u8) -> Result<(), BusError> {
+        self.start()?;
+        self.send(Instruction::Read { id, addr, len })?;
+        self.read_sent = Some((Instant::now(), id, len));
+        Ok(())
+    }
+
+    /// Collects the reply to [`Bus::request_read`] into `out` (which must hold `len` bytes):
+    /// `Some(status)` if it arrived intact in time, `None` if not.
+    pub fn collect_read(&mut self, out: &mut [u8]) -> Result<Option<ServoStatus>, BusError> {
+        let Some((sent, id, len)) = self.read_sent.take() else {
+            return Ok(None);
+        };
+        let bytes = READ_REQUEST_BYTES + status_bytes(usize::from(len));
+        let deadline = sent + wire_time(bytes, self.transport.baud()) + self.margin;
+        let mut got = None;
+        self.collect_until(deadline, |counters, status| {
+            match out.get_mut(..usize::from(len)) {
+                Some(dst) if status.id == id && status.params.len() == usize::from(len) => {
+                    dst.copy_from_slice(status.params);
+                    got = Some(status.status);
+                    counters.replies += 1;
+                }
+                _ => counters.unexpected_replies += 1,
+            }
+            got.is_some()
+        })?;
+        Ok(got)
+    }
+
+    /// Decodes what arrives until `done` says so or `deadline` has passed (then whatever has
+    /// already arrived is still taken, and a header that never completed is looked behind).
+    /// Every intact status packet goes to `on_reply`; decoder errors are counted by kind.
+    fn collect_until(
+        &mut self,
+        deadline: Instant,
+        mut on_reply: impl FnMut(&mut BusCounters, &StatusPacket) -> bool,
+    ) -> Result<(), BusError> {
+        let mut done = false;
         let mut at_end = false;
         loop {
             let decoded = if at_end {
@@ -152,23 +223,9 @@ impl<T: Transport> Bus<T> {
             };
             match decoded {
                 Some(Ok(frame)) => {
-                    let Ok(status) = StatusPacket::parse(&frame) else {
-                        self.counters.unexpected_replies += 1;
-                        continue;
-                    };
-                    let slot = ids.iter().position(|&id| id == status.id);
-                    match (slot, FeedbackBlock::parse(status.params)) {
-                        (Some(i), Some(block))
-                            if status.params.len() == FEEDBACK_LEN as usize && out[i].is_none() =>
-                        {
-                            out[i] = Some((block, status.status));
-                            answered += 1;
-                            self.counters.replies += 1;
-                            if !status.status.is_ok() {
-                                self.counters.status_errors += 1;
-                            }
-                        }
-                        _ => self.counters.unexpected_replies += 1,
+                    match StatusPacket::parse(&frame) {
+                        Ok(status) => done |= on_reply(&mut self.counters, &status),
+                        Err(_) => self.counters.unexpected_replies += 1,
                     }
                     continue;
                 }
@@ -176,7 +233,7 @@ impl<T: Transport> Bus<T> {
                     count(&mut self.counters, e);
                     continue;
                 }
-                None if answered == ids.len() || at_end => break,
+                None if done || at_end => return Ok(()),
                 None => {}
             }
             let now = Instant::now();
@@ -203,8 +260,6 @@ impl<T: Transport> Bus<T> {
                 }
             }
         }
-        self.counters.missing += (ids.len() - answered) as u64;
-        Ok(answered)
     }
 
     /// SYNC_WRITE of `len` bytes per servo at `addr`; `payload` is `[id d…] × N`. No reply.
@@ -335,6 +390,9 @@ impl<T: Transport> Bus<T> {
         Ok(self.transact(id, write, 0)?.0)
     }
 }
+
+/// Bytes of a READ request: header, id, length, instruction, address, count, checksum.
+const READ_REQUEST_BYTES: usize = 8;
 
 /// Attempts of a unicast transaction before the servo is declared unreachable.
 pub const UNICAST_ATTEMPTS: usize = 3;

@@ -128,6 +128,11 @@ pub struct DriverConfig {
     /// Torque limit of the `hold` safe state, % of full output.
     #[serde(default = "default_hold_percent")]
     pub safe_hold_torque_percent: f64,
+    /// The driver's last-resort thermal tier, °C: while no supervisor is heard, a bus one of
+    /// whose motors reads this is turned off by the driver itself. At least 1 °C below every
+    /// firmware cutoff (`backstops.*.max-temperature-c`).
+    #[serde(default = "default_last_resort_trip")]
+    pub last_resort_trip_c: u8,
     /// Calibration file, relative to this file; the embedded A3 calibration when absent.
     #[serde(default)]
     pub calibration_file: Option<PathBuf>,
@@ -157,6 +162,15 @@ fn default_safe_state() -> SafeState {
 }
 fn default_hold_percent() -> f64 {
     20.0
+}
+fn default_last_resort_trip() -> u8 {
+    59
+}
+
+/// The largest wheel speed the Goal_Velocity register carries (sign-magnitude, 15 bits of
+/// steps/s), rad/s.
+pub fn max_encodable_wheel_speed() -> f64 {
+    f64::from(feetech::encoding::max_magnitude(15)) / crate::calibration::STEPS_PER_RAD
 }
 
 /// The calibration file: one table per joint.
@@ -225,8 +239,33 @@ impl DriverConfig {
                 ),
             ));
         }
-        if !(self.max_wheel_speed_rad_s.is_finite() && self.max_wheel_speed_rad_s > 0.0) {
-            return Err(invalid(origin, "max-wheel-speed-rad-s", "must be > 0"));
+        let encodable = max_encodable_wheel_speed();
+        if !(self.max_wheel_speed_rad_s.is_finite()
+            && self.max_wheel_speed_rad_s > 0.0
+            && self.max_wheel_speed_rad_s <= encodable)
+        {
+            return Err(invalid(
+                origin,
+                "max-wheel-speed-rad-s",
+                format!(
+                    "{} is outside (0, {encodable:.2}]: Goal_Velocity cannot carry more",
+                    self.max_wheel_speed_rad_s
+                ),
+            ));
+        }
+        if let Some((model, b)) = self
+            .backstops
+            .iter()
+            .find(|(_, b)| self.last_resort_trip_c >= b.max_temperature_c)
+        {
+            return Err(invalid(
+                origin,
+                "last-resort-trip-c",
+                format!(
+                    "{} °C is not below backstops.{model}.max-temperature-c {} °C: the driver's trip must come before the firmware cutoff",
+                    self.last_resort_trip_c, b.max_temperature_c
+                ),
+            ));
         }
         if !(1..=10_000).contains(&self.goal_max_age_ms) {
             return Err(invalid(
@@ -535,6 +574,19 @@ mod tests {
     }
 
     #[test]
+    fn the_largest_wheel_speed_allowed_is_the_largest_the_register_carries() {
+        let text = DEFAULT_CONFIG_TOML.replacen(
+            "max-wheel-speed-rad-s = 6.0",
+            &format!("max-wheel-speed-rad-s = {}", max_encodable_wheel_speed()),
+            1,
+        );
+        let c = with(&text, DEFAULT_CALIBRATION_TOML).unwrap();
+        let steps =
+            crate::calibration::wheel_speed_steps(0, 1e9, c.config.max_wheel_speed_rad_s, false);
+        assert!(feetech::encoding::encode_sign_magnitude(steps.unwrap(), 15).is_ok());
+    }
+
+    #[test]
     fn impossible_values_name_the_key_and_the_file() {
         for (from, to, key) in [
             (
@@ -563,6 +615,18 @@ mod tests {
                 "max-wheel-speed-rad-s = 6.0",
                 "max-wheel-speed-rad-s = inf",
                 "max-wheel-speed-rad-s",
+            ),
+            // Beyond what Goal_Velocity's 15 bits of steps/s carry (50.27 rad/s): an encode
+            // that fails would leave the wheel at its previous speed.
+            (
+                "max-wheel-speed-rad-s = 6.0",
+                "max-wheel-speed-rad-s = 60.0",
+                "max-wheel-speed-rad-s",
+            ),
+            (
+                "last-resort-trip-c = 59",
+                "last-resort-trip-c = 60",
+                "last-resort-trip-c",
             ),
             (
                 "safe-state = \"hold\"",

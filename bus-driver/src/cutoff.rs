@@ -1,7 +1,9 @@
-//! Inferring the hardware thermal tier. A servo's over-temperature cutoff drops its output
-//! without announcing it in the status byte; what the driver sees is a motor with torque enabled,
-//! far from its goal, whose output (load and current) has vanished, with no status bit that would
-//! explain it. Pure: one reading in, a verdict out.
+//! Inferring the hardware tier from the motor's behaviour. A firmware protection (over-
+//! temperature, over-current, overload) unloads the motor; what the driver sees is a motor with
+//! torque enabled, far from its goal, whose output (load and current) has vanished. The STS
+//! firmware also sets the protection's bit in the status byte, and the supervisor acts on that
+//! bit directly; the inference does not depend on it, so a servo that does not announce (or
+//! whose announcement is lost) is caught too. Pure: one reading in, a verdict out.
 
 /// Consecutive cycles of vanished output before the cutoff is inferred (50 ms at 200 Hz): a
 /// motor passing through zero output on its way to a goal does not stay there that long while
@@ -25,12 +27,11 @@ pub struct CutoffWatch {
 impl CutoffWatch {
     /// Feeds one valid reading of a joint with torque enabled; returns true when the output has
     /// just been inferred lost.
-    pub fn update(&mut self, error_rad: f32, load: f32, current_a: f32, status_bits: u8) -> bool {
+    pub fn update(&mut self, error_rad: f32, load: f32, current_a: f32) -> bool {
         let vanished = error_rad.abs() >= MIN_ERROR_RAD
             && load.abs() < MAX_LOAD
             && current_a.abs() < MAX_CURRENT_A;
-        // An announced protection (over-current, overload…) explains a silent motor by itself.
-        if !vanished || status_bits != 0 {
+        if !vanished {
             self.quiet_cycles = 0;
             self.lost = false;
             return false;
@@ -57,22 +58,23 @@ mod tests {
     fn a_silent_motor_far_from_its_goal_is_inferred_cut_off() {
         let mut w = CutoffWatch::default();
         for k in 1..CONFIRM_CYCLES {
-            assert!(!w.update(0.3, 0.0, 0.0, 0), "cycle {k}");
+            assert!(!w.update(0.3, 0.0, 0.0), "cycle {k}");
         }
-        assert!(w.update(0.3, 0.0, 0.0, 0));
+        assert!(w.update(0.3, 0.0, 0.0));
         assert!(w.lost);
-        assert!(!w.update(0.3, 0.0, 0.0, 0), "reported once");
-        w.update(0.3, 0.4, 1.0, 0);
+        assert!(!w.update(0.3, 0.0, 0.0), "reported once");
+        w.update(0.3, 0.4, 1.0);
         assert!(!w.lost, "output came back");
     }
 
     #[test]
-    fn at_the_goal_or_driving_or_announced_is_not_a_cutoff() {
+    fn at_the_goal_or_driving_is_not_a_cutoff() {
         let mut w = CutoffWatch::default();
         for _ in 0..100 {
-            assert!(!w.update(0.01, 0.0, 0.0, 0), "resting at its goal");
-            assert!(!w.update(0.3, 0.5, 1.2, 0), "driving toward its goal");
-            assert!(!w.update(0.3, 0.0, 0.0, 0x08), "over-current is announced");
+            assert!(!w.update(0.01, 0.0, 0.0), "resting at its goal");
+            assert!(!w.update(0.3, 0.5, 1.2), "driving toward its goal");
+            assert!(!w.update(-0.3, 0.0, 0.5), "current still flows");
+            assert!(!w.update(0.3, -0.2, 0.0), "load still there");
         }
     }
 }

@@ -17,8 +17,9 @@ use feetech::registers::{self as reg, FeedbackBlock};
 use feetech::{ServoModel, ServoStatus, AMPS_PER_CURRENT_UNIT};
 use telemetry::frames::{
     BusHealth, BusHealthEntry, Directives, JointInfo, JointLayout, JointRole, BUS_HEALTH_CONNECTED,
-    BUS_HEALTH_ENABLED, JOINT_FLAG_BUS_DISABLED, JOINT_FLAG_BUS_LOST, JOINT_FLAG_OUTPUT_LOST,
-    MAX_BUSES, STATE_FLAG_SAFE_STATE,
+    BUS_HEALTH_DRIVER_TRIP, BUS_HEALTH_ENABLED, BUS_HEALTH_LATCHED, JOINT_FLAG_BUS_DISABLED,
+    JOINT_FLAG_BUS_LOST, JOINT_FLAG_DRIVER_TRIP, JOINT_FLAG_OUTPUT_LOST, MAX_BUSES,
+    STATE_FLAG_SAFE_STATE,
 };
 use telemetry::{GoalFrame, JointSample, JointState, MAX_JOINTS};
 use thiserror::Error;
@@ -124,6 +125,11 @@ pub struct DriverCounters {
     pub bus_disables: u64,
     /// Unannounced firmware cutoffs inferred.
     pub outputs_lost: u64,
+    /// Buses turned off by the driver's last-resort thermal tier (no supervisor heard).
+    pub last_resort_trips: u64,
+    /// Supervisor heartbeats and directives ignored for their own timestamp (too old or from
+    /// the future).
+    pub stale_supervisor_frames: u64,
 }
 
 struct Joint {
@@ -150,6 +156,29 @@ struct Joint {
     setup_fails: u32,
     /// Cycle from which a setup may be tried again.
     next_setup: u64,
+    /// The safety settings last confirmed on the servo by a read-back; the servo is read again
+    /// with priority while what the driver wants differs from it.
+    confirmed: Option<Want>,
+}
+
+/// The safety settings the driver wants a servo to hold now.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Want {
+    /// Torque off.
+    Off,
+    /// Torque on at this limit (0.1 %); a held joint (hold safe state) also at its goal.
+    On {
+        /// Torque_Limit.
+        limit: u16,
+        /// The goal it must hold (the hold safe state), in register units.
+        hold_goal: Option<i32>,
+    },
+    /// Not driven: torque off, or a limit of at most this (the hold safe state applied to a
+    /// servo taken off).
+    AtMost {
+        /// Highest acceptable Torque_Limit.
+        limit: u16,
+    },
 }
 
 impl Joint {
@@ -166,14 +195,26 @@ struct BusState<T: Transport> {
     first_joint: usize,
     feedback: Vec<Option<(FeedbackBlock, ServoStatus)>>,
     payload: Vec<u8>,
-    /// The supervisor has not disabled it.
-    enabled: bool,
+    /// The supervisor's directive has it off.
+    directed_off: bool,
+    /// The trip record on disk latches it off (read at start and before a release is obeyed).
+    latched: bool,
+    /// The driver's own last-resort thermal tier turned it off (no supervisor was heard);
+    /// held until a directive of a live supervisor takes the trip over.
+    own_trip: bool,
     /// The transport failed this cycle (feedback not requested).
     failed: bool,
     /// The device is open (false after a transport failure, until reopened).
     connected: bool,
     /// Consecutive cycles in which no servo of the bus answered.
     silent_cycles: u32,
+}
+
+impl<T: Transport> BusState<T> {
+    /// Torque may be on: nothing holds the bus off.
+    fn on(&self) -> bool {
+        !(self.directed_off || self.latched || self.own_trip)
+    }
 }
 
 /// The driver over one transport per bus.
@@ -190,10 +231,23 @@ pub struct Driver<T: Transport> {
     /// When the safe state was last left: older goals are refused.
     recovered_at_ns: u64,
     setup_retry_cycles: u64,
+    /// A live supervisor is heard (set by the loop): the driver's last-resort thermal tier
+    /// stands down while it is.
+    supervised: bool,
+    /// The last-resort tier's trip temperature, °C.
+    last_resort_trip_c: f32,
     /// Cycles of silence after which a servo (or a whole bus) counts as lost.
     lost_after: u32,
     /// Cycles between attempts to reopen a lost device.
     reopen_every: u64,
+    /// Cycles between background read-backs (one servo per bus each).
+    verify_every: u64,
+    /// Slack after a reply's wire time before it is missing.
+    reply_margin: std::time::Duration,
+    /// Per bus: the next joint (offset in the bus) a background read-back looks at, and the
+    /// joint being read back this cycle.
+    verify_cursor: Vec<usize>,
+    verify_now: Vec<Option<usize>>,
     /// No setup before this cycle (one slow setup at a time, spaced out).
     next_setup_any: u64,
     next_retry: usize,
@@ -249,6 +303,7 @@ impl<T: Transport> Driver<T> {
                     misses: 0,
                     setup_fails: 0,
                     next_setup: 0,
+                    confirmed: None,
                 });
             }
             let n = bus_config.servo.len();
@@ -260,7 +315,9 @@ impl<T: Transport> Driver<T> {
                 first_joint,
                 feedback: vec![None; n],
                 payload: Vec::with_capacity(n * 3),
-                enabled: true,
+                directed_off: false,
+                latched: false,
+                own_trip: false,
                 failed: false,
                 connected: true,
                 silent_cycles: 0,
@@ -280,10 +337,17 @@ impl<T: Transport> Driver<T> {
             hold_permille: (c.safe_hold_torque_percent * 10.0).round() as u16,
             safe: c.supervisor_timeout_ms > 0,
             recovered_at_ns: 0,
+            supervised: false,
+            last_resort_trip_c: f32::from(c.last_resort_trip_c),
             setup_retry_cycles: c.rate_hz.round().max(1.0) as u64,
             // 200 ms of silence: 40 cycles at 200 Hz; a reopen attempt every 100 ms.
             lost_after: (c.rate_hz / 5.0).round().max(2.0) as u32,
             reopen_every: (c.rate_hz / 10.0).round().max(1.0) as u64,
+            // Every 20 ms: each of 8 servos confirmed every 160 ms at rest.
+            verify_every: (c.rate_hz / 50.0).round().max(1.0) as u64,
+            reply_margin: margin,
+            verify_cursor: vec![0; c.bus.len()],
+            verify_now: vec![None; c.bus.len()],
             next_setup_any: 0,
             next_retry: 0,
             counters: DriverCounters::default(),
@@ -319,7 +383,9 @@ impl<T: Transport> Driver<T> {
             *e = BusHealthEntry {
                 counters: b.bus.counters,
                 flags: (u32::from(b.connected) * BUS_HEALTH_CONNECTED)
-                    | (u32::from(b.enabled) * BUS_HEALTH_ENABLED),
+                    | (u32::from(b.on()) * BUS_HEALTH_ENABLED)
+                    | (u32::from(b.latched) * BUS_HEALTH_LATCHED)
+                    | (u32::from(b.own_trip) * BUS_HEALTH_DRIVER_TRIP),
                 reserved: 0,
             };
         }
@@ -398,9 +464,69 @@ impl<T: Transport> Driver<T> {
             .unwrap_or(0)
     }
 
-    /// Whether joint `j` may have torque: its bus is enabled and no torque-off safe state holds.
+    /// Whether joint `j` may have torque: nothing holds its bus off and no torque-off safe
+    /// state holds.
     fn may_drive(&self, j: usize) -> bool {
-        self.buses[self.bus_of(j)].enabled && !(self.safe && self.safe_kind == SafeState::TorqueOff)
+        self.buses[self.bus_of(j)].on() && !(self.safe && self.safe_kind == SafeState::TorqueOff)
+    }
+
+    /// Latches off every bus holding one of `joints` (the trip record's names) and releases
+    /// the others; returns the latched buses, one bit each. Called at start, before any torque
+    /// is turned on, and by the loop before it obeys a directive that would release a latch.
+    /// A newly latched bus gets torque off at once.
+    pub fn set_latch(&mut self, joints: &[String]) -> u32 {
+        let mut mask = 0;
+        for b in 0..self.buses.len() {
+            let range =
+                self.buses[b].first_joint..self.buses[b].first_joint + self.buses[b].ids.len();
+            let named = self.joints[range].iter().any(|j| joints.contains(&j.name));
+            self.change_bus(b, |bus| bus.latched = named);
+            mask |= u32::from(named) << b;
+        }
+        mask
+    }
+
+    /// Latches off every bus: the record could not be read, and an unknown latch is kept.
+    pub fn latch_all(&mut self) {
+        for b in 0..self.buses.len() {
+            self.change_bus(b, |bus| bus.latched = true);
+        }
+    }
+
+    /// Whether `d` would turn on a bus that the trip record latches: the record must be read
+    /// again first (the supervisor clears it before it releases a bus).
+    pub fn latch_release_pending(&self, d: &Directives) -> bool {
+        self.buses
+            .iter()
+            .enumerate()
+            .any(|(b, bus)| bus.latched && d.bus_enabled & (1 << b) != 0)
+    }
+
+    /// Tells the driver whether a live supervisor is heard (its last-resort thermal tier acts
+    /// only while none is).
+    pub fn set_supervised(&mut self, supervised: bool) {
+        self.supervised = supervised;
+    }
+
+    /// Changes what holds bus `b` off and acts on the outcome: a bus turned off gets torque off
+    /// at once; a bus turned on gets its servos set up again, one at a time by the loop
+    /// ([`Driver::retry_setup`]), so no cycle carries more than one setup.
+    fn change_bus(&mut self, b: usize, change: impl FnOnce(&mut BusState<T>)) {
+        let was = self.buses[b].on();
+        change(&mut self.buses[b]);
+        match (was, self.buses[b].on()) {
+            (true, false) => self.disable_bus(b),
+            (false, true) => {
+                let bus = &self.buses[b];
+                tracing::info!(bus = %bus.name, "bus on again: its servos are set up one at a time");
+                let range = bus.first_joint..bus.first_joint + bus.ids.len();
+                for joint in &mut self.joints[range] {
+                    joint.next_setup = 0;
+                    joint.setup_fails = 0;
+                }
+            }
+            _ => {}
+        }
     }
 
     /// One servo: model check, EEPROM backstops (read-compare-write), torque limit, first goal at
@@ -563,7 +689,10 @@ impl<T: Transport> Driver<T> {
 
     /// Applies the supervisor's directives: per-joint torque limits (written in the next cycle)
     /// and bus enables (a disabled bus gets torque off at once; a re-enabled one is set up again,
-    /// starting at its present positions).
+    /// one servo at a time, starting at its present positions). A bus the trip record latches
+    /// stays off whatever the directive says (see [`Driver::set_latch`]); a bus the driver's own
+    /// last-resort tier turned off stays off until a directive turns it off too: the supervisor
+    /// has then taken the trip over (and recorded it).
     pub fn apply_directives(&mut self, d: &Directives) -> Result<(), DirectiveMismatch> {
         if d.joint_count != self.joints.len() as u32 {
             return Err(DirectiveMismatch {
@@ -575,27 +704,24 @@ impl<T: Transport> Driver<T> {
             joint.torque_wanted = d.torque_limit_permille[j];
         }
         for b in 0..self.buses.len() {
-            let want = d.bus_enabled & (1 << b) != 0;
-            match (self.buses[b].enabled, want) {
-                (true, false) => {
-                    self.disable_bus(b);
-                    tracing::warn!(bus = %self.buses[b].name, "bus disabled by the supervisor: torque off");
-                }
-                (false, true) => {
-                    self.buses[b].enabled = true;
-                    tracing::info!(bus = %self.buses[b].name, "bus re-enabled by the supervisor");
-                    self.setup_bus(b);
-                }
-                _ => {}
+            let off = d.bus_enabled & (1 << b) == 0;
+            if off != self.buses[b].directed_off {
+                tracing::warn!(bus = %self.buses[b].name, off, "the supervisor turns the bus {}", if off { "off" } else { "on" });
             }
+            self.change_bus(b, |bus| {
+                bus.directed_off = off;
+                if off {
+                    bus.own_trip = false;
+                }
+            });
         }
         Ok(())
     }
 
+    /// Torque off on the whole bus (broadcast, twice: one corrupted packet must not leave a bus
+    /// energised); its joints are no longer driven.
     fn disable_bus(&mut self, b: usize) {
         let bus = &mut self.buses[b];
-        bus.enabled = false;
-        // Twice: one corrupted packet must not leave a bus energised.
         let _ = bus.bus.torque_off_all();
         let _ = bus.bus.torque_off_all();
         let range = bus.first_joint..bus.first_joint + bus.ids.len();
@@ -605,11 +731,32 @@ impl<T: Transport> Driver<T> {
         self.counters.bus_disables += 1;
     }
 
-    fn setup_bus(&mut self, b: usize) {
-        let first = self.buses[b].first_joint;
-        for j in first..first + self.buses[b].ids.len() {
-            if self.may_drive(j) && self.setup_joint(j).is_err() {
-                self.counters.setup_failures += 1;
+    /// The last-resort thermal tier: with no live supervisor, a bus one of whose motors reads
+    /// the trip temperature (validly: the feedback gate has already held back glitches) is
+    /// turned off by the driver itself. The firmware cutoff is then not the only protection
+    /// during a supervisor crash loop.
+    fn last_resort_tier(&mut self) {
+        if self.supervised {
+            return;
+        }
+        for b in 0..self.buses.len() {
+            if !self.buses[b].on() {
+                continue;
+            }
+            let first = self.buses[b].first_joint;
+            let hot = (first..first + self.buses[b].ids.len()).find(|&j| {
+                let s = &self.state.joints[j];
+                s.is_valid() && s.temperature_c >= self.last_resort_trip_c
+            });
+            if let Some(j) = hot {
+                tracing::warn!(
+                    bus = %self.buses[b].name,
+                    joint = %self.joints[j].name,
+                    temperature_c = self.state.joints[j].temperature_c,
+                    "no supervisor heard and a motor reached the trip temperature: the driver turns the bus off itself"
+                );
+                self.counters.last_resort_trips += 1;
+                self.change_bus(b, |bus| bus.own_trip = true);
             }
         }
     }
@@ -634,25 +781,16 @@ impl<T: Transport> Driver<T> {
                     j.ready = false;
                 }
             }
-            SafeState::Hold => {
-                // Hold where the joints are (their last reading), not where they were sent.
-                for (j, joint) in self.joints.iter_mut().enumerate() {
-                    let s = &self.state.joints[j];
-                    if let (Some(cal), true) = (joint.calibration, s.is_valid()) {
-                        if let Ok(steps) = cal.goal_steps(j, s.position_rad) {
-                            joint.goal = steps;
-                        }
-                    } else if joint.calibration.is_none() {
-                        joint.goal = 0;
-                    }
-                }
-            }
+            // Hold where the joints are (their last reading), not where they were sent.
+            SafeState::Hold => self.hold_where_they_are(),
         }
     }
 
-    /// Leaves the safe state: torque limits return to the directives, a torque-off state brings
-    /// the servos up again at their present positions, and goals produced before `now_ns` are
-    /// refused (they were meant for another situation).
+    /// Leaves the safe state: torque limits return to the directives, and goals produced
+    /// before `now_ns` are refused (they were meant for another situation). `hold` re-holds
+    /// every joint where it is now before its torque comes back (an arm that sagged at the
+    /// hold torque must not snap back to where it was frozen); `torque-off` brings the servos
+    /// up again at their present positions, one at a time.
     pub fn leave_safe_state(&mut self, now_ns: u64) {
         if !self.safe {
             return;
@@ -660,11 +798,28 @@ impl<T: Transport> Driver<T> {
         self.safe = false;
         self.recovered_at_ns = now_ns;
         self.state.flags &= !STATE_FLAG_SAFE_STATE;
-        if self.safe_kind == SafeState::TorqueOff {
-            for b in 0..self.buses.len() {
-                if self.buses[b].enabled {
-                    self.setup_bus(b);
+        match self.safe_kind {
+            SafeState::Hold => self.hold_where_they_are(),
+            SafeState::TorqueOff => {
+                for joint in &mut self.joints {
+                    joint.next_setup = 0;
+                    joint.setup_fails = 0;
                 }
+            }
+        }
+    }
+
+    /// Every position joint's goal becomes its last valid reading (clamped into range); a
+    /// wheel's becomes 0.
+    fn hold_where_they_are(&mut self) {
+        for (j, joint) in self.joints.iter_mut().enumerate() {
+            let s = &self.state.joints[j];
+            if let (Some(cal), true) = (joint.calibration, s.is_valid()) {
+                if let Ok(steps) = cal.goal_steps(j, s.position_rad) {
+                    joint.goal = steps;
+                }
+            } else if joint.calibration.is_none() {
+                joint.goal = 0;
             }
         }
     }
@@ -704,12 +859,10 @@ impl<T: Transport> Driver<T> {
                     joint.misses = joint.misses.saturating_add(1);
                 }
                 if joint.ready && joint.calibration.is_some() && s.is_valid() {
-                    if joint.cutoff.update(
-                        s.goal_rad - s.position_rad,
-                        s.load,
-                        s.current_a,
-                        s.status,
-                    ) {
+                    if joint
+                        .cutoff
+                        .update(s.goal_rad - s.position_rad, s.load, s.current_a)
+                    {
                         self.counters.outputs_lost += 1;
                     }
                 } else {
@@ -718,8 +871,11 @@ impl<T: Transport> Driver<T> {
                 if joint.cutoff.lost {
                     s.flags |= JOINT_FLAG_OUTPUT_LOST;
                 }
-                if !b.enabled {
+                if !b.on() {
                     s.flags |= JOINT_FLAG_BUS_DISABLED;
+                }
+                if b.own_trip {
+                    s.flags |= JOINT_FLAG_DRIVER_TRIP;
                 }
                 if !b.connected || newly_lost {
                     s.flags |= JOINT_FLAG_BUS_LOST;
@@ -738,12 +894,14 @@ impl<T: Transport> Driver<T> {
             }
         }
         self.state.timestamp_ns = telemetry::clock::monotonic_ns();
+        self.last_resort_tier();
         for bi in 0..self.buses.len() {
             if self.buses[bi].connected {
                 self.write_goals(bi);
                 self.write_torque_limits(bi);
             }
         }
+        self.read_back(false);
         self.reopen_lost();
         self.retry_setup();
         self.counters.cycles += 1;
@@ -840,16 +998,165 @@ impl<T: Transport> Driver<T> {
         }
     }
 
+    /// What joint `j` must hold now (see [`Want`]).
+    fn want(&self, j: usize) -> Want {
+        let joint = &self.joints[j];
+        if !self.may_drive(j) {
+            return Want::Off;
+        }
+        if !joint.ready {
+            return match self.safe_kind {
+                SafeState::TorqueOff => Want::Off,
+                SafeState::Hold => Want::AtMost {
+                    limit: self.hold_permille,
+                },
+            };
+        }
+        let held = self.safe && self.safe_kind == SafeState::Hold;
+        Want::On {
+            limit: self.effective_torque(j),
+            hold_goal: held.then_some(joint.goal),
+        }
+    }
+
+    /// Reads back, on each bus, one servo whose wanted safety settings are not confirmed yet
+    /// (they changed: the write went out this cycle or earlier and may have been lost). Part of
+    /// every cycle; rare, since wanted settings rarely change.
+    ///
+    /// [`Driver::read_back_in_turn`] is the background pass the loop runs in its idle time.
+    /// Only servos that answered this cycle's feedback read are read back, so a silent servo
+    /// costs no wait. All buses' reads are started before any is collected.
+    fn read_back(&mut self, in_turn: bool) {
+        for bi in 0..self.buses.len() {
+            self.verify_now[bi] = None;
+            let b = &self.buses[bi];
+            if !b.connected || b.failed {
+                continue;
+            }
+            let n = b.ids.len();
+            let answered = |k: usize| self.state.joints[b.first_joint + k].is_valid();
+            let unconfirmed = |k: usize| {
+                let j = b.first_joint + k;
+                self.joints[j].confirmed != Some(self.want(j))
+            };
+            let start = self.verify_cursor[bi];
+            let pick = (0..n)
+                .map(|i| (start + i) % n)
+                .find(|&k| answered(k) && (in_turn || unconfirmed(k)));
+            let Some(k) = pick else { continue };
+            let (id, j) = (b.ids[k], b.first_joint + k);
+            self.verify_cursor[bi] = (k + 1) % n;
+            if self.buses[bi]
+                .bus
+                .request_read(id, reg::SAFETY_ADDR, reg::SAFETY_LEN)
+                .is_ok()
+            {
+                self.verify_now[bi] = Some(j);
+            }
+        }
+        for bi in 0..self.buses.len() {
+            let Some(j) = self.verify_now[bi] else {
+                continue;
+            };
+            let mut raw = [0u8; reg::SAFETY_LEN as usize];
+            let block = match self.buses[bi].bus.collect_read(&mut raw) {
+                Ok(Some(_)) => reg::SafetyBlock::parse(&raw),
+                _ => None,
+            };
+            match block {
+                Some(block) => {
+                    self.buses[bi].bus.counters.verifies += 1;
+                    self.check_safety(bi, j, &block);
+                }
+                None => self.buses[bi].bus.counters.verify_missing += 1,
+            }
+        }
+    }
+
+    /// The background pass: every `verify_every` cycles, reads back the next servo of each bus in
+    /// turn, confirmed or not (a servo reset, or a write corrupted into another value that the
+    /// checksum let through). The loop calls it only when the rest of the period can take
+    /// [`Driver::read_back_cost`], so it never costs the loop its rate: it uses idle time.
+    pub fn read_back_in_turn(&mut self) {
+        if self.counters.cycles.is_multiple_of(self.verify_every) {
+            self.read_back(true);
+        }
+    }
+
+    /// The longest one read-back pass can take: its wire time plus the reply margin.
+    pub fn read_back_cost(&self) -> std::time::Duration {
+        let slowest = self
+            .buses
+            .iter()
+            .map(|b| b.bus.baud())
+            .min()
+            .unwrap_or(1_000_000);
+        let bytes = 8 + feetech::timing::status_bytes(usize::from(reg::SAFETY_LEN));
+        feetech::timing::wire_time(bytes, slowest) + self.reply_margin
+    }
+
+    /// Holds a read-back against what joint `j` must hold; what differs is re-sent at once and
+    /// counted, and the joint stays unconfirmed (read again next cycle) until it holds.
+    fn check_safety(&mut self, bi: usize, j: usize, block: &reg::SafetyBlock) {
+        let want = self.want(j);
+        let position_mode = self.buses[bi].mode == Mode::Position;
+        let goal = if position_mode {
+            block.goal_position
+        } else {
+            block.goal_velocity
+        };
+        let id = self.joints[j].id;
+        let holds = match want {
+            Want::Off => block.torque_enable == 0,
+            Want::On { limit, hold_goal } => {
+                block.torque_enable == 1
+                    && block.torque_limit == limit
+                    && hold_goal.is_none_or(|g| g == goal)
+            }
+            Want::AtMost { limit } => block.torque_enable == 0 || block.torque_limit <= limit,
+        };
+        if holds {
+            self.joints[j].confirmed = Some(want);
+            return;
+        }
+        self.joints[j].confirmed = None;
+        self.buses[bi].bus.counters.safety_mismatches += 1;
+        let bus = &mut self.buses[bi].bus;
+        match want {
+            Want::Off => {
+                let _ = bus.sync_write(reg::TORQUE_ENABLE.addr, 1, &[id, 0]);
+            }
+            Want::AtMost { limit } => {
+                let t = limit.to_le_bytes();
+                let _ = bus.sync_write(reg::TORQUE_LIMIT.addr, 2, &[id, t[0], t[1]]);
+            }
+            Want::On { limit, .. } if block.torque_enable == 1 => {
+                // The goal is written every cycle anyway; the limit is re-sent here.
+                let t = limit.to_le_bytes();
+                let _ = bus.sync_write(reg::TORQUE_LIMIT.addr, 2, &[id, t[0], t[1]]);
+            }
+            Want::On { .. } => {
+                // The servo dropped its torque on its own (a reset restores SRAM defaults):
+                // set it up again from where it is, like a servo that came back.
+                tracing::warn!(joint = %self.joints[j].name, "servo found with torque off: set up again");
+                let joint = &mut self.joints[j];
+                joint.ready = false;
+                joint.next_setup = 0;
+                joint.setup_fails = 0;
+            }
+        }
+    }
+
     fn write_goals(&mut self, bi: usize) {
         let b = &mut self.buses[bi];
         b.payload.clear();
         for (k, &id) in b.ids.iter().enumerate() {
             let joint = &self.joints[b.first_joint + k];
-            // Goal_Position and Goal_Velocity are both sign-magnitude at bit 15.
-            if let (true, Ok(raw)) = (
-                joint.ready,
-                feetech::encoding::encode_sign_magnitude(joint.goal, 15),
-            ) {
+            // Goal_Position and Goal_Velocity are both sign-magnitude at bit 15; a value the
+            // register cannot carry goes out clamped, never skipped (a skipped wheel goal would
+            // keep the previous speed).
+            if joint.ready {
+                let raw = feetech::encoding::encode_sign_magnitude_saturating(joint.goal, 15);
                 b.payload.push(id);
                 b.payload.extend_from_slice(&raw.to_le_bytes());
             }

@@ -13,7 +13,7 @@
 //!   torque off on every stop.
 //! * [`plausibility`]: holds back feedback that jumped further than a servo can move or heat
 //!   (two flipped bits can pass the checksum; the servos' own 0 °C / 150 °C glitches do).
-//! * [`cutoff`]: inferring a servo's unannounced firmware over-temperature cutoff.
+//! * [`cutoff`]: inferring from the motor that a firmware protection cut its output.
 //! * [`runloop`]: the fixed-rate loop, the supervisor's heartbeat watched.
 //!
 //! Safety behaviour: goals are clamped to the calibrated range at the bus layer; a goal frame

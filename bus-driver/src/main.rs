@@ -10,6 +10,7 @@ use clap::Parser;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 use telemetry::frames::{BusHealth, Directives, Heartbeat, JointLayout, Peer};
+use telemetry::latch;
 use telemetry::plane::{self, Plane, Pub, Sub};
 use telemetry::process::ServiceManager;
 use telemetry::{GoalFrame, JointState};
@@ -47,6 +48,11 @@ struct Args {
     /// Print the default calibration and exit.
     #[arg(long)]
     print_default_calibration: bool,
+    /// The trip record the supervisor keeps (the same path as its `--trip-file`): buses it
+    /// latches stay off from the start; `<temp dir>/nori-<domain>-trips` when absent.
+    /// Production: /var/lib/nori/trips.
+    #[arg(long)]
+    trip_file: Option<PathBuf>,
 }
 
 /// The driver's side of the state plane.
@@ -65,6 +71,7 @@ struct Ipc {
     last_seq: u64,
     publish_errors: u64,
     service: ServiceManager,
+    trip_file: PathBuf,
 }
 
 impl LoopIo for Ipc {
@@ -76,8 +83,12 @@ impl LoopIo for Ipc {
         plane::newest(&self.directives)
     }
 
-    fn supervisor_heartbeat(&mut self) -> Option<u32> {
-        plane::newest(&self.supervisor).map(|h| h.pid)
+    fn supervisor_heartbeat(&mut self) -> Option<Heartbeat> {
+        plane::newest(&self.supervisor)
+    }
+
+    fn latched_joints(&mut self) -> Result<Vec<String>, String> {
+        latch::load(&self.trip_file).map_err(|e| e.to_string())
     }
 
     fn publish_health(&mut self, health: &BusHealth) {
@@ -186,6 +197,28 @@ fn main() -> Result<()> {
         Duration::from_secs_f64(args.wait_for_devices.max(0.0)),
     )?;
     let mut driver = Driver::new(&config, transports);
+    // Before any torque is turned on: a bus latched off by a trip stays off, whatever the start
+    // order of the processes and whether a supervisor is up.
+    let trip_file = args
+        .trip_file
+        .clone()
+        .unwrap_or_else(|| latch::default_path(&args.domain));
+    match latch::load(&trip_file) {
+        Ok(joints) => {
+            let latched = driver.set_latch(&joints);
+            if latched != 0 {
+                tracing::warn!(
+                    buses = ?config.config.bus.iter().enumerate().filter(|(b, _)| latched & (1 << b) != 0).map(|(_, bus)| bus.name.as_str()).collect::<Vec<_>>(),
+                    file = %trip_file.display(),
+                    "buses latched off by a trip stay off until `nori reenable`"
+                );
+            }
+        }
+        Err(e) => {
+            tracing::error!("{e}: every bus stays off until the record can be read");
+            driver.latch_all();
+        }
+    }
     let mut io = Ipc {
         goals: node.subscriber(&plane::GOALS)?,
         directives: node.subscriber(&plane::DIRECTIVES)?,
@@ -205,6 +238,7 @@ fn main() -> Result<()> {
         last_seq: 0,
         publish_errors: 0,
         service: ServiceManager::from_env(),
+        trip_file,
     };
     plane::publish(&io.layout_out, &io.layout)?;
     let supervisor_timeout = match config.config.supervisor_timeout_ms {

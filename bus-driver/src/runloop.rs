@@ -7,7 +7,7 @@ use crate::transport::Transport;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
-use telemetry::frames::{BusHealth, Directives};
+use telemetry::frames::{BusHealth, Directives, Heartbeat};
 use telemetry::watchdog::{Liveness, Watchdog};
 use telemetry::{GoalFrame, JointState};
 
@@ -17,8 +17,13 @@ pub trait LoopIo {
     fn goals(&mut self) -> Option<GoalFrame>;
     /// The newest directives since the last call.
     fn directives(&mut self) -> Option<Directives>;
-    /// The pid of the newest supervisor heartbeat since the last call.
-    fn supervisor_heartbeat(&mut self) -> Option<u32>;
+    /// The newest supervisor heartbeat since the last call.
+    fn supervisor_heartbeat(&mut self) -> Option<Heartbeat>;
+    /// The joints the trip record latches now (read again before a latched bus is released);
+    /// an error keeps every bus latched. Without a record: none.
+    fn latched_joints(&mut self) -> Result<Vec<String>, String> {
+        Ok(Vec::new())
+    }
     /// Publishes one state frame (and the driver's heartbeat).
     fn publish(&mut self, state: &JointState);
     /// Publishes the error counts of every bus (every 100 ms).
@@ -35,7 +40,7 @@ impl LoopIo for Standalone {
     fn directives(&mut self) -> Option<Directives> {
         None
     }
-    fn supervisor_heartbeat(&mut self) -> Option<u32> {
+    fn supervisor_heartbeat(&mut self) -> Option<Heartbeat> {
         None
     }
     fn publish(&mut self, _: &JointState) {}
@@ -52,12 +57,17 @@ pub struct RunSummary {
     pub rate_hz: f64,
 }
 
+/// A supervisor frame stamped further ahead of this process's clock than this is not ours.
+const FUTURE_SLACK_NS: u64 = 1_000_000;
+
 /// Runs the loop at `period` until `shutdown` is set (or `max_cycles`), then turns torque off.
 ///
 /// With `supervisor_timeout`, the supervisor's heartbeat is required: until it is first heard,
-/// and whenever it is silent for longer, the driver's safe state is applied; directives are
-/// applied only from a live supervisor. Rejected goal frames are logged when the reason changes
-/// (not per cycle) and counted.
+/// and whenever it is silent for longer, the driver's safe state is applied. A heartbeat or a
+/// directive counts by its own timestamp (one older than the timeout proves nothing about now).
+/// The safe state is left only once a directive of the live supervisor has been applied, so a
+/// bus that supervisor keeps off is never energised on the way out. Rejected goal frames are
+/// logged when the reason changes (not per cycle) and counted.
 pub fn run<T: Transport>(
     driver: &mut Driver<T>,
     period: Duration,
@@ -70,37 +80,81 @@ pub fn run<T: Transport>(
     let mut next = start + period;
     let mut last_rejection: Option<std::mem::Discriminant<GoalRejection>> = None;
     let mut watchdog = supervisor_timeout.map(Watchdog::new);
+    let timeout_ns = supervisor_timeout.map_or(0, |t| t.as_nanos() as u64);
+    let fresh = |stamp: u64, now: u64| {
+        stamp <= now + FUTURE_SLACK_NS && now.saturating_sub(stamp) <= timeout_ns
+    };
     let mut supervisor = Liveness::Unknown;
+    // A directive of the live supervisor has been applied since it was (last) heard again.
+    let mut directed = false;
+    let mut directives_refused = false;
+    // The trip record is read again at most this often while a directive asks to release a
+    // latched bus (a failed release must not read the disk every cycle).
+    let latch_every = ((0.1 / period.as_secs_f64().max(1e-6)).round() as u64).max(1);
+    let mut next_latch_read = 0u64;
     let mut health = BusHealth::default();
     let health_every = ((0.1 / period.as_secs_f64().max(1e-6)).round() as u64).max(1);
     while !shutdown.load(Ordering::Relaxed) && max_cycles.is_none_or(|m| driver.counters.cycles < m)
     {
         let now = monotonic_ns();
         if let Some(w) = watchdog.as_mut() {
-            if let Some(pid) = io.supervisor_heartbeat() {
-                w.beat(now, pid);
+            if let Some(beat) = io.supervisor_heartbeat() {
+                if fresh(beat.timestamp_ns, now) {
+                    w.beat(beat.timestamp_ns.min(now), beat.pid);
+                } else {
+                    driver.counters.stale_supervisor_frames += 1;
+                }
             }
             let liveness = w.liveness(now);
-            if liveness != supervisor {
-                match liveness {
-                    Liveness::Alive => {
-                        driver.leave_safe_state(now);
-                        tracing::info!("supervisor present: driving");
-                    }
-                    _ => {
-                        driver.enter_safe_state();
-                        tracing::warn!(silence = ?w.silence(now), "supervisor missing: safe state applied");
-                    }
-                }
-                supervisor = liveness;
-            }
             if liveness == Liveness::Alive {
                 if let Some(d) = io.directives() {
-                    if let Err(e) = driver.apply_directives(&d) {
-                        tracing::warn!("directives refused: {e}");
+                    if !fresh(d.timestamp_ns, now) {
+                        driver.counters.stale_supervisor_frames += 1;
+                    } else {
+                        if driver.latch_release_pending(&d)
+                            && driver.counters.cycles >= next_latch_read
+                        {
+                            next_latch_read = driver.counters.cycles + latch_every;
+                            match io.latched_joints() {
+                                Ok(joints) => {
+                                    driver.set_latch(&joints);
+                                }
+                                Err(e) => {
+                                    tracing::error!("{e}: every bus stays latched off");
+                                    driver.latch_all();
+                                }
+                            }
+                        }
+                        match driver.apply_directives(&d) {
+                            Ok(()) => {
+                                directed = true;
+                                directives_refused = false;
+                            }
+                            Err(e) => {
+                                if !directives_refused {
+                                    tracing::warn!(
+                                        "directives refused (the safe state holds): {e}"
+                                    );
+                                }
+                                directives_refused = true;
+                            }
+                        }
                     }
                 }
+                if directed && driver.in_safe_state() {
+                    driver.set_supervised(true);
+                    driver.leave_safe_state(now);
+                    tracing::info!("supervisor present and directing: driving");
+                }
+            } else {
+                directed = false;
+                driver.set_supervised(false);
+                if supervisor == Liveness::Alive || !driver.in_safe_state() {
+                    driver.enter_safe_state();
+                    tracing::warn!(silence = ?w.silence(now), "supervisor missing: safe state applied");
+                }
             }
+            supervisor = liveness;
         }
         if let Some(frame) = io.goals() {
             match driver.apply_goals(&frame, now) {
@@ -119,6 +173,10 @@ pub fn run<T: Transport>(
         if driver.counters.cycles % health_every == 1 || health_every == 1 {
             driver.health(&mut health);
             io.publish_health(&health);
+        }
+        // The background read-back of safety settings runs in idle time only.
+        if Instant::now() + driver.read_back_cost() < next {
+            driver.read_back_in_turn();
         }
         let now = Instant::now();
         if now > next {

@@ -128,11 +128,7 @@ impl Transport for SerialTransport {
         self.port
             .set_timeout(timeout)
             .map_err(|e| self.io(std::io::Error::other(e)))?;
-        match self.port.read(buf) {
-            Ok(n) => Ok(n),
-            Err(e) if e.kind() == std::io::ErrorKind::TimedOut => Ok(0),
-            Err(e) => Err(self.io(e)),
-        }
+        received(self.port.read(buf)).map_err(|e| self.io(e))
     }
 
     fn discard_input(&mut self) -> Result<(), TransportError> {
@@ -140,6 +136,17 @@ impl Transport for SerialTransport {
         self.port
             .clear(serialport::ClearBuffer::Input)
             .map_err(|e| self.io(std::io::Error::other(e)))
+    }
+}
+
+/// What a read of the device came to: bytes, or none yet (it timed out, or a signal such as the
+/// SIGTERM that stops the driver interrupted the wait: the deadline loop simply goes on), or a
+/// failure of the device itself (which marks the bus lost).
+fn received(read: std::io::Result<usize>) -> std::io::Result<usize> {
+    use std::io::ErrorKind::{Interrupted, TimedOut, WouldBlock};
+    match read {
+        Err(e) if matches!(e.kind(), TimedOut | Interrupted | WouldBlock) => Ok(0),
+        other => other,
     }
 }
 
@@ -187,6 +194,22 @@ pub fn latency_timer(device: &Path) -> LatencyTimer {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_interrupted_read_is_no_lost_device() {
+        use std::io::{Error, ErrorKind};
+        assert_eq!(received(Ok(7)).unwrap(), 7);
+        for kind in [
+            ErrorKind::Interrupted,
+            ErrorKind::TimedOut,
+            ErrorKind::WouldBlock,
+        ] {
+            assert_eq!(received(Err(Error::from(kind))).unwrap(), 0, "{kind:?}");
+        }
+        for kind in [ErrorKind::BrokenPipe, ErrorKind::NotFound, ErrorKind::Other] {
+            assert_eq!(received(Err(Error::from(kind))).unwrap_err().kind(), kind);
+        }
+    }
 
     #[test]
     fn latency_timer_parsing() {

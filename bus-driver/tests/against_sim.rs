@@ -151,21 +151,38 @@ fn goals_are_followed_clamped_and_gated() {
 
     drop(d);
     // What reached the wire: goals only inside the calibrated ranges, torque off at the end.
+    // The simulator's thread takes the last bytes off the pseudo-terminals on its own time:
+    // wait (bounded) until it has, then judge what it received.
+    let stopped = |r: &[sim::BusReport]| {
+        r.iter()
+            .flat_map(|b| &b.servos)
+            .all(|s| s.log.last_torque_write.is_some_and(|(_, v)| v == 0))
+    };
+    let until = std::time::Instant::now() + Duration::from_secs(2);
+    while !stopped(&rig.served.reports()) && std::time::Instant::now() < until {
+        std::thread::sleep(Duration::from_millis(10));
+    }
     for (report, bus) in rig.served.reports().iter().zip(&rig.config.config.bus) {
         for (servo, cfg) in report.servos.iter().zip(&bus.servo) {
+            // The stop's torque-off is the last torque write, after the last goal (setup's own
+            // torque-off write would satisfy a mere count).
+            let (off_at, value) = servo.log.last_torque_write.expect("a torque write");
+            assert_eq!(value, 0, "{}: last torque write turned it on", cfg.joint);
             assert!(
-                servo.log.torque_off_writes > 0,
-                "{} left energised",
+                servo.log.last_goal_write_s.is_none_or(|g| g <= off_at),
+                "{}: a goal after the torque-off",
                 cfg.joint
             );
+            assert!(!servo.torque_enabled, "{} left energised", cfg.joint);
             if let Some(cal) = rig.config.calibration.joint.get(&cfg.joint) {
-                if let (Some(lo), Some(hi)) = (servo.log.goal_min, servo.log.goal_max) {
-                    assert!(
-                        lo >= cal.range_min && hi <= cal.range_max,
-                        "{}: goals {lo}..{hi} outside {cal:?}",
-                        cfg.joint
-                    );
-                }
+                let (Some(lo), Some(hi)) = (servo.log.goal_min, servo.log.goal_max) else {
+                    panic!("{}: no goal ever reached it", cfg.joint);
+                };
+                assert!(
+                    lo >= cal.range_min && hi <= cal.range_max,
+                    "{}: goals {lo}..{hi} outside {cal:?}",
+                    cfg.joint
+                );
             }
         }
     }

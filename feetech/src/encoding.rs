@@ -50,6 +50,25 @@ pub const fn encode_sign_magnitude(value: i32, sign_bit: u8) -> Result<u16, OutO
     }
 }
 
+/// Encodes `value` as a sign-magnitude word, clamped to the largest magnitude it holds: for a
+/// goal that must be sent (a wheel speed beyond the register is sent at the register's limit,
+/// never skipped).
+pub const fn encode_sign_magnitude_saturating(value: i32, sign_bit: u8) -> u16 {
+    let max = max_magnitude(sign_bit);
+    let clamped = if value > max {
+        max
+    } else if value < -max {
+        -max
+    } else {
+        value
+    };
+    if clamped < 0 {
+        ((-clamped) as u16) | (1 << sign_bit)
+    } else {
+        clamped as u16
+    }
+}
+
 /// Little-endian u16 from two bytes.
 pub const fn u16_le(lo: u8, hi: u8) -> u16 {
     (lo as u16) | ((hi as u16) << 8)
@@ -58,6 +77,20 @@ pub const fn u16_le(lo: u8, hi: u8) -> u16 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn saturating_encoding_clamps_instead_of_failing() {
+        assert_eq!(encode_sign_magnitude_saturating(40_000, 15), 0x7FFF);
+        assert_eq!(encode_sign_magnitude_saturating(-40_000, 15), 0xFFFF);
+        assert_eq!(
+            encode_sign_magnitude_saturating(-5, 15),
+            encode_sign_magnitude(-5, 15).unwrap_or(0)
+        );
+        assert_eq!(
+            decode_sign_magnitude(encode_sign_magnitude_saturating(i32::MIN, 11), 11),
+            -2047
+        );
+    }
 
     #[test]
     fn sign_magnitude_is_not_twos_complement() {

@@ -265,9 +265,67 @@ impl FeedbackBlock {
     }
 }
 
+/// First address of the safety block: `Torque_Enable` (40) through `Torque_Limit` (48–49), the
+/// settings that keep a motor from cooking, read back to confirm that a servo holds them.
+pub const SAFETY_ADDR: u8 = 40;
+/// Length of the safety block (40..=49).
+pub const SAFETY_LEN: u8 = 10;
+
+/// The decoded safety block (registers 40–49), in raw register units.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct SafetyBlock {
+    /// `Torque_Enable` (0 off, 1 on).
+    pub torque_enable: u8,
+    /// `Goal_Position`, steps.
+    pub goal_position: i32,
+    /// `Goal_Velocity`, steps/s.
+    pub goal_velocity: i32,
+    /// `Torque_Limit`, 0.1 % of full output.
+    pub torque_limit: u16,
+}
+
+impl SafetyBlock {
+    /// Decodes the 10 bytes read at address 40.
+    pub fn parse(bytes: &[u8]) -> Option<Self> {
+        let b: &[u8; SAFETY_LEN as usize] = bytes.get(..SAFETY_LEN as usize)?.try_into().ok()?;
+        let word = |addr: u8| {
+            let i = usize::from(addr - SAFETY_ADDR);
+            u16_le(b[i], b[i + 1])
+        };
+        Some(SafetyBlock {
+            torque_enable: b[usize::from(TORQUE_ENABLE.addr - SAFETY_ADDR)],
+            goal_position: decode_sign_magnitude(word(GOAL_POSITION.addr), 15),
+            goal_velocity: decode_sign_magnitude(word(GOAL_VELOCITY.addr), 15),
+            torque_limit: word(TORQUE_LIMIT.addr),
+        })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn safety_block_spans_torque_enable_to_torque_limit() {
+        assert_eq!(SAFETY_ADDR, TORQUE_ENABLE.addr);
+        assert_eq!(
+            SAFETY_ADDR + SAFETY_LEN,
+            TORQUE_LIMIT.addr + TORQUE_LIMIT.size
+        );
+        // Torque on, goal -5 steps, speed 300 steps/s, limit 25 %.
+        let bytes = [1, 0, 0x05, 0x80, 0, 0, 0x2C, 0x01, 0xFA, 0x00];
+        let b = SafetyBlock::parse(&bytes).unwrap();
+        assert_eq!(
+            b,
+            SafetyBlock {
+                torque_enable: 1,
+                goal_position: -5,
+                goal_velocity: 300,
+                torque_limit: 250
+            }
+        );
+        assert_eq!(SafetyBlock::parse(&bytes[..9]), None);
+    }
 
     #[test]
     fn table_is_sorted_and_does_not_overlap() {

@@ -47,6 +47,8 @@ struct Sample {
 #[derive(Debug, Default)]
 struct Robot {
     alive: bool,
+    /// Its liveliness token went away: what it last reported is history, not the present.
+    offline: bool,
     last_seen_ms: u64,
     layout: Option<LayoutMsg>,
     last_state: Option<StateMsg>,
@@ -144,7 +146,9 @@ impl Collector {
 
     /// The liveliness token `nori/<id>/alive` appeared (`true`) or went away.
     pub fn alive(&mut self, key: &str, alive: bool, now_ms: u64) -> Result<(), IngestError> {
-        self.robot(key, now_ms)?.alive = alive;
+        let r = self.robot(key, now_ms)?;
+        r.alive = alive;
+        r.offline = !alive;
         Ok(())
     }
 
@@ -251,7 +255,9 @@ impl Collector {
                     .get_or_create(&label(&[("robot", id), ("kind", kind)]))
                     .inc_by(*n);
             }
-            if let Some(s) = &r.last_state {
+            // An offline robot's last readings are not exported as live: a dashboard or an
+            // alert would read a motor that may have cooled, or cooked, since.
+            if let Some(s) = r.last_state.as_ref().filter(|_| !r.offline) {
                 safe.get_or_create(&robot)
                     .set(f64::from(u8::from(s.safe_state)));
                 misses.get_or_create(&robot).inc_by(s.deadline_misses);
@@ -386,7 +392,7 @@ impl Collector {
 }
 
 /// The [`telemetry::frames::BusCounters`] fields that count something going wrong.
-const BUS_ERROR_KINDS: [&str; 11] = [
+const BUS_ERROR_KINDS: [&str; 13] = [
     "missing",
     "checksum_errors",
     "garbage_bytes",
@@ -398,6 +404,8 @@ const BUS_ERROR_KINDS: [&str; 11] = [
     "disconnects",
     "silences",
     "servos_lost",
+    "verify_missing",
+    "safety_mismatches",
 ];
 
 fn joint_names(r: &Robot) -> Vec<String> {
@@ -524,6 +532,31 @@ mod tests {
         assert!(text.contains(r#"nori_robot_online{robot="r2"} 1.0"#));
         c.alive("nori/r2/alive", false, 5).unwrap();
         assert!(c.metrics().contains(r#"nori_robot_online{robot="r2"} 0.0"#));
+    }
+
+    #[test]
+    fn an_offline_robot_exports_no_live_readings() {
+        let mut c = Collector::new(10, 0);
+        c.layout("nori/r1/layout", &layout(), 0).unwrap();
+        c.alive("nori/r1/alive", true, 0).unwrap();
+        c.state("nori/r1/state", &state(1, &[41.0, 42.0]), 0)
+            .unwrap();
+        let live = r#"nori_joint_temperature_celsius{robot="r1",joint="elbow"} 41.0"#;
+        assert!(c.metrics().contains(live));
+        c.alive("nori/r1/alive", false, 10).unwrap();
+        let text = c.metrics();
+        assert!(
+            !text.contains("nori_joint_temperature_celsius{robot=\"r1\""),
+            "{text}"
+        );
+        assert!(!text.contains("nori_joint_current_amperes{robot=\"r1\""));
+        assert!(!text.contains("nori_robot_safe_state{robot=\"r1\""));
+        assert!(text.contains(r#"nori_robot_online{robot="r1"} 0.0"#));
+        c.alive("nori/r1/alive", true, 20).unwrap();
+        assert!(
+            c.metrics().contains(live),
+            "back online: its readings again"
+        );
     }
 
     #[test]

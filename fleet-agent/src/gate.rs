@@ -3,8 +3,11 @@
 //!
 //! A chunk is refused whole, with a reason, when it is malformed or of another schema version,
 //! has the wrong shape, carries a non-finite or out-of-range target, was computed from an
-//! observation older than `max-age-ms` (or one the robot has not made yet), or does not come
-//! after the last accepted chunk (a replay or a reordering).
+//! observation older than `max-age-ms` (or one the robot has not made yet), does not come
+//! after the last accepted chunk (a replay or a reordering), or was computed from an
+//! observation made before the driver last recovered (a driver restart or a safe state: the
+//! robot is not where that plan thought it was), or arrives while the driver is in its safe
+//! state. The gate watches the driver's state frames for that ([`ActionGate::observe_driver`]).
 
 use crate::schema::{decode, ActionChunk, DecodeError};
 use thiserror::Error;
@@ -92,10 +95,21 @@ pub enum Rejection {
     /// The driver's layout is not known yet.
     #[error("no joint layout from the driver yet")]
     NoLayout,
+    /// The driver is in its safe state (or has not been seen driving yet).
+    #[error("the driver is in its safe state: nothing planned now may move the arm")]
+    SafeState,
+    /// Computed from an observation older than the driver's last recovery.
+    #[error("observation {observation_ns} is from before the driver's recovery at {recovered_ns}")]
+    BeforeRecovery {
+        /// The chunk's.
+        observation_ns: u64,
+        /// When the driver left its last safe state (or restarted), robot time.
+        recovered_ns: u64,
+    },
 }
 
 /// Names of the rejection reasons, in counter order.
-pub const REASONS: [&str; 9] = [
+pub const REASONS: [&str; 11] = [
     "malformed",
     "version",
     "shape",
@@ -105,6 +119,8 @@ pub const REASONS: [&str; 9] = [
     "future",
     "replayed",
     "no_layout",
+    "safe_state",
+    "before_recovery",
 ];
 
 impl Rejection {
@@ -120,6 +136,8 @@ impl Rejection {
             Rejection::Future { .. } => 6,
             Rejection::Replayed { .. } => 7,
             Rejection::NoLayout => 8,
+            Rejection::SafeState => 9,
+            Rejection::BeforeRecovery { .. } => 10,
         }
     }
 
@@ -143,6 +161,11 @@ impl From<DecodeError> for Rejection {
 pub struct ActionGate {
     config: GateConfig,
     last: Option<(u64, u64)>,
+    /// When the driver was last seen leaving its safe state (or restarting out of it), robot
+    /// time; `None` while it is in its safe state or has not been seen.
+    recovered_ns: Option<u64>,
+    /// The last driver frame's sequence number (a driver restart starts it again).
+    driver_seq: u64,
     accepted: u64,
     rejected: [u64; REASONS.len()],
 }
@@ -153,6 +176,8 @@ impl ActionGate {
         ActionGate {
             config,
             last: None,
+            recovered_ns: None,
+            driver_seq: 0,
             accepted: 0,
             rejected: [0; REASONS.len()],
         }
@@ -166,6 +191,22 @@ impl ActionGate {
     /// Chunks refused so far, per reason ([`REASONS`] order).
     pub fn rejected(&self) -> &[u64; REASONS.len()] {
         &self.rejected
+    }
+
+    /// Feeds one of the driver's joint-state frames (every one, in order). Returns true when
+    /// the plan in force must be dropped: the driver entered its safe state or restarted, and
+    /// nothing planned before may move the arm. From the first frame out of the safe state on,
+    /// chunks are accepted again if computed from an observation made after it.
+    pub fn observe_driver(&mut self, seq: u64, timestamp_ns: u64, safe_state: bool) -> bool {
+        let restarted = seq <= self.driver_seq;
+        self.driver_seq = seq;
+        let drop_plan = (safe_state || restarted) && self.recovered_ns.is_some();
+        if safe_state {
+            self.recovered_ns = None;
+        } else if restarted || self.recovered_ns.is_none() {
+            self.recovered_ns = Some(timestamp_ns);
+        }
+        drop_plan || (restarted && !safe_state)
     }
 
     /// Checks `bytes` at robot time `now_ns` against the calibrated `ranges` (the layout, in
@@ -222,6 +263,15 @@ impl ActionGate {
                 limit_ms: self.config.max_age_ns as f64 / 1e6,
             });
         }
+        let Some(recovered_ns) = self.recovered_ns else {
+            return Err(Rejection::SafeState);
+        };
+        if chunk.observation_ns < recovered_ns {
+            return Err(Rejection::BeforeRecovery {
+                observation_ns: chunk.observation_ns,
+                recovered_ns,
+            });
+        }
         if let Some((last_observation_ns, last_seq)) = self.last {
             if (chunk.observation_ns, chunk.seq) <= (last_observation_ns, last_seq) {
                 return Err(Rejection::Replayed {
@@ -234,6 +284,14 @@ impl ActionGate {
         }
         Ok(chunk)
     }
+}
+
+/// Whether every joint of `mask` has its value in `ranges` (finite, inside the calibrated
+/// range): the check a target passes once more before it leaves the agent.
+pub fn within(ranges: &[Range], position: &[f32], mask: u32) -> bool {
+    (0..32usize).filter(|j| mask & (1 << j) != 0).all(|j| {
+        matches!((ranges.get(j), position.get(j)), (Some(r), Some(&v)) if (r.min..=r.max).contains(&v))
+    })
 }
 
 fn check_shape(chunk: &ActionChunk, joints: usize, config: &GateConfig) -> Result<(), Rejection> {
@@ -289,12 +347,15 @@ mod tests {
         Range { min: 0.0, max: 2.0 },
     ];
 
+    /// A gate whose driver has been driving since robot time 0.
     fn gate() -> ActionGate {
-        ActionGate::new(GateConfig {
+        let mut g = ActionGate::new(GateConfig {
             max_age_ns: 200 * MS,
             max_steps: 64,
             max_span_ns: 2000 * MS,
-        })
+        });
+        assert!(!g.observe_driver(1, 0, false));
+        g
     }
 
     fn chunk(seq: u64, observation_ns: u64) -> ActionChunk {
@@ -403,5 +464,47 @@ mod tests {
             .is_ok());
         assert_eq!(g.rejected()[7], 2);
         assert_eq!(g.accepted(), 2);
+    }
+
+    #[test]
+    fn nothing_planned_before_a_driver_recovery_passes() {
+        let mut g = gate();
+        assert!(g
+            .check(&encode(&chunk(1, 1000 * MS)), 1010 * MS, &RANGES)
+            .is_ok());
+        // The driver enters its safe state at 1020 (the supervisor went away): the plan must go.
+        assert!(!g.observe_driver(2, 1015 * MS, false));
+        assert!(g.observe_driver(3, 1020 * MS, true), "drop the plan");
+        assert!(!g.observe_driver(4, 1025 * MS, true), "once");
+        let during = g.check(&encode(&chunk(2, 1022 * MS)), 1030 * MS, &RANGES);
+        assert_eq!(during, Err(Rejection::SafeState));
+        // It recovers at 1040: a chunk computed from an observation before that is refused, one
+        // from after is accepted.
+        assert!(!g.observe_driver(5, 1040 * MS, false));
+        let r = g.check(&encode(&chunk(3, 1035 * MS)), 1045 * MS, &RANGES);
+        assert_eq!(r.unwrap_err().reason(), "before_recovery");
+        assert!(g
+            .check(&encode(&chunk(4, 1040 * MS)), 1050 * MS, &RANGES)
+            .is_ok());
+        // The driver restarts (its frames count from 1 again): the plan goes, and what was
+        // observed before its first frame is refused, even if that frame is not flagged safe.
+        assert!(
+            g.observe_driver(1, 1100 * MS, false),
+            "a restart drops the plan"
+        );
+        let r = g.check(&encode(&chunk(5, 1090 * MS)), 1110 * MS, &RANGES);
+        assert_eq!(r.unwrap_err().reason(), "before_recovery");
+        assert!(g
+            .check(&encode(&chunk(6, 1100 * MS)), 1110 * MS, &RANGES)
+            .is_ok());
+        // A fresh gate refuses everything until it has seen the driver out of its safe state.
+        let mut fresh = ActionGate::new(g.config);
+        let r = fresh.check(&encode(&chunk(1, 1000 * MS)), 1010 * MS, &RANGES);
+        assert_eq!(r, Err(Rejection::SafeState));
+        assert!(!fresh.observe_driver(7, 1000 * MS, true));
+        assert!(!fresh.observe_driver(8, 1005 * MS, false));
+        assert!(fresh
+            .check(&encode(&chunk(1, 1005 * MS)), 1010 * MS, &RANGES)
+            .is_ok());
     }
 }

@@ -66,6 +66,10 @@ struct Counters {
     observations_sent: u64,
     events_sent: u64,
     goals_forwarded: u64,
+    /// Plans dropped because the driver restarted or entered its safe state.
+    plans_dropped: u64,
+    /// Scheduled targets withheld at the last check (none, unless the scheduler is wrong).
+    goals_withheld: u64,
     last_rejection: String,
 }
 
@@ -177,7 +181,21 @@ fn main() -> Result<()> {
                 .put(encode(&outbound::layout_msg(&layout)))
                 .wait();
         }
-        if let Some(s) = newest(&states) {
+        // Every frame, in order: the gate must see the driver enter its safe state or restart,
+        // however briefly, to drop the plan made before it.
+        let mut newest_state = None;
+        while let Some(s) = next(&states) {
+            let safe = s.flags & telemetry::frames::STATE_FLAG_SAFE_STATE != 0;
+            if gate.observe_driver(s.seq, s.timestamp_ns, safe) && scheduler.planned_steps() > 0 {
+                scheduler.clear();
+                counters.plans_dropped += 1;
+                tracing::info!(
+                    "driver restarted or in its safe state: the plan made before is dropped"
+                );
+            }
+            newest_state = Some(s);
+        }
+        if let Some(s) = newest_state {
             last_state = Some(s);
             if state_every.due(now)
                 && state_pub
@@ -228,12 +246,24 @@ fn main() -> Result<()> {
         // A new plan goes out at once, not at the next forwarding tick (up to 10 ms later).
         let due = forward_every.due(now);
         if new_plan || due {
-            if let Some(target) = scheduler.target(now) {
-                goal_seq += 1;
-                let frame = outbound::goal_frame(&target, layout.joint_count, goal_seq, now);
-                if publish(&goals, &frame).is_ok() {
-                    counters.goals_forwarded += 1;
+            match scheduler.target(now) {
+                // The last door: a value outside a calibrated range never leaves the agent,
+                // whatever the scheduler made of the chunks.
+                Some(target)
+                    if !fleet_agent::gate::within(&ranges, &target.position, target.mask) =>
+                {
+                    counters.goals_withheld += 1;
+                    scheduler.clear();
+                    tracing::error!("a scheduled target outside the calibrated range was withheld and the plan dropped");
                 }
+                Some(target) => {
+                    goal_seq += 1;
+                    let frame = outbound::goal_frame(&target, layout.joint_count, goal_seq, now);
+                    if publish(&goals, &frame).is_ok() {
+                        counters.goals_forwarded += 1;
+                    }
+                }
+                None => {}
             }
         }
         while let Ok(Some(query)) = status_queries.try_recv() {
@@ -302,6 +332,8 @@ fn status_json(
             "steps_dropped_past": scheduler.dropped_past_steps(),
             "plans_expired": scheduler.expired(),
             "goals_forwarded": c.goals_forwarded,
+            "plans_dropped": c.plans_dropped,
+            "goals_withheld": c.goals_withheld,
         },
         "last_rejection": c.last_rejection,
     })

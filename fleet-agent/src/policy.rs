@@ -259,6 +259,8 @@ mod tests {
             max_steps: 128,
             max_span_ns: 3_000_000_000,
         });
+        // The driver has been driving since before the observation.
+        gate.observe_driver(1, 0, false);
         assert!(gate
             .check(&encode(&c), obs.timestamp_ns + 30_000_000, &ranges)
             .is_ok());

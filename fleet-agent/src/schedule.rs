@@ -8,6 +8,10 @@
 //!   step's target.
 //! - After the last step the last target is held for at most `horizon`; past it nothing is
 //!   forwarded, so on a network loss the driver keeps its last goal: the robot holds.
+//! - Every step keeps the joint mask of the chunk it came from, and only masked joints carry a
+//!   value (the others are zero and never forwarded): every value that leaves the scheduler
+//!   was range-checked by the gate, or is a blend or interpolation of such values. Between two
+//!   steps only the joints both command are forwarded.
 //!
 //! Fixed capacity: inserting and ticking never allocate.
 
@@ -21,6 +25,8 @@ pub const MAX_PLAN_STEPS: usize = 256;
 struct Step {
     t_ns: u64,
     target: [f32; MAX_JOINTS],
+    /// Joints this step commands (its chunk's mask).
+    mask: u32,
 }
 
 /// The plan in force.
@@ -28,7 +34,6 @@ struct Step {
 pub struct Scheduler {
     plan: Vec<Step>,
     scratch: Vec<Step>,
-    mask: u32,
     blend_new: f32,
     horizon_ns: u64,
     dropped_past_steps: u64,
@@ -51,7 +56,6 @@ impl Scheduler {
         Scheduler {
             plan: Vec::with_capacity(MAX_PLAN_STEPS),
             scratch: Vec::with_capacity(MAX_PLAN_STEPS),
-            mask: 0,
             blend_new: blend_new.clamp(0.0, 1.0),
             horizon_ns,
             dropped_past_steps: 0,
@@ -92,7 +96,6 @@ impl Scheduler {
         };
         self.dropped_past_steps += first_new as u64;
         let new_start = chunk.observation_ns + chunk.step_offsets_ns[first_new];
-        let old_mask = self.mask;
         self.scratch.clear();
         // The old plan until the new one starts.
         for s in &self.plan {
@@ -106,18 +109,26 @@ impl Scheduler {
             }
             let t_ns = chunk.observation_ns + offset;
             let mut target = [0f32; MAX_JOINTS];
-            target[..joints].copy_from_slice(&chunk.targets[k * joints..(k + 1) * joints]);
-            if let Some(old) = interpolate(&self.plan, t_ns, false) {
+            let values = &chunk.targets[k * joints..(k + 1) * joints];
+            for (j, (t, &v)) in target.iter_mut().zip(values).enumerate() {
+                if chunk.joint_mask & (1 << j) != 0 {
+                    *t = v;
+                }
+            }
+            if let Some((old, old_mask)) = interpolate(&self.plan, t_ns, false) {
                 for (j, value) in target.iter_mut().enumerate().take(joints) {
                     if old_mask & chunk.joint_mask & (1 << j) != 0 {
                         *value = self.blend_new * *value + (1.0 - self.blend_new) * old[j];
                     }
                 }
             }
-            self.scratch.push(Step { t_ns, target });
+            self.scratch.push(Step {
+                t_ns,
+                target,
+                mask: chunk.joint_mask,
+            });
         }
         std::mem::swap(&mut self.plan, &mut self.scratch);
-        self.mask = chunk.joint_mask;
     }
 
     /// The goal for robot time `now_ns`, or `None`: nothing planned, or the plan's last step
@@ -134,31 +145,41 @@ impl Scheduler {
         if behind > 1 {
             self.plan.drain(..behind - 1);
         }
-        interpolate(&self.plan, now_ns, true).map(|position| Target {
-            position,
-            mask: self.mask,
-        })
+        interpolate(&self.plan, now_ns, true)
+            .filter(|(_, mask)| *mask != 0)
+            .map(|(position, mask)| Target { position, mask })
     }
 }
 
-/// The plan's target at `t_ns`: linear between steps; outside the plan, the nearest end if
-/// `extend`, else nothing.
-fn interpolate(plan: &[Step], t_ns: u64, extend: bool) -> Option<[f32; MAX_JOINTS]> {
+/// The plan's target and the joints it commands at `t_ns`: a step's own at its time, linear
+/// between steps for the joints both command; outside the plan, the nearest end if `extend`,
+/// else nothing.
+fn interpolate(plan: &[Step], t_ns: u64, extend: bool) -> Option<([f32; MAX_JOINTS], u32)> {
     let (first, last) = (plan.first()?, plan.last()?);
     if t_ns <= first.t_ns {
-        return (extend || t_ns == first.t_ns).then_some(first.target);
+        return (extend || t_ns == first.t_ns).then_some((first.target, first.mask));
     }
     if t_ns >= last.t_ns {
-        return (extend || t_ns == last.t_ns).then_some(last.target);
+        return (extend || t_ns == last.t_ns).then_some((last.target, last.mask));
     }
     let i = plan.iter().position(|s| s.t_ns > t_ns)?;
     let (a, b) = (&plan[i - 1], &plan[i]);
-    let f = (t_ns - a.t_ns) as f32 / (b.t_ns - a.t_ns) as f32;
-    let mut out = a.target;
-    for (o, (x, y)) in out.iter_mut().zip(a.target.iter().zip(&b.target)) {
-        *o = x + f * (y - x);
+    if t_ns == a.t_ns {
+        return Some((a.target, a.mask));
     }
-    Some(out)
+    let f = (t_ns - a.t_ns) as f32 / (b.t_ns - a.t_ns) as f32;
+    let mask = a.mask & b.mask;
+    let mut out = [0f32; MAX_JOINTS];
+    for (j, (o, (x, y))) in out
+        .iter_mut()
+        .zip(a.target.iter().zip(&b.target))
+        .enumerate()
+    {
+        if mask & (1 << j) != 0 {
+            *o = x + f * (y - x);
+        }
+    }
+    Some((out, mask))
 }
 
 #[cfg(test)]
@@ -241,5 +262,40 @@ mod tests {
         s.insert(&chunk(2, 1000, 20, &[9.0, 9.0]), 1100 * MS);
         assert_eq!(s.dropped_past_steps(), 2);
         assert_eq!(at(&mut s, 1030), Some(1.0));
+    }
+
+    #[test]
+    fn a_joint_added_to_the_mask_never_follows_a_value_the_gate_did_not_check() {
+        let mut s = Scheduler::new(1.0, 100 * MS);
+        // Two joints; the first chunk commands joint 0 only and carries an unchecked 99 for
+        // joint 1 (uncommanded values are not range-checked by the gate).
+        let mut first = chunk(1, 1000, 20, &[0.1, 99.0, 0.2, 99.0, 0.3, 99.0]);
+        first.joint_count = 2;
+        first.step_offsets_ns.truncate(3);
+        s.insert(&first, 1000 * MS);
+        // The second commands both joints from 1060 on.
+        let mut second = chunk(2, 1030, 30, &[0.5, 0.4, 0.6, 0.4]);
+        second.joint_count = 2;
+        second.joint_mask = 0b11;
+        second.step_offsets_ns.truncate(2);
+        s.insert(&second, 1035 * MS);
+        let mut both = false;
+        for ms in (1035..=1200).step_by(5) {
+            if let Some(t) = s.target(ms * MS) {
+                both |= t.mask == 0b11;
+                if t.mask & 0b10 != 0 {
+                    assert_eq!(
+                        t.position[1], 0.4,
+                        "at {ms} ms joint 1 follows only checked values"
+                    );
+                } else {
+                    assert_eq!(t.position[1], 0.0, "an uncommanded joint carries no value");
+                }
+                if ms < 1060 {
+                    assert_eq!(t.mask, 0b01, "before the second chunk starts: joint 0 only");
+                }
+            }
+        }
+        assert!(both, "from 1060 on both joints are commanded");
     }
 }

@@ -63,7 +63,7 @@ enum Command {
 #[derive(Subcommand)]
 enum SimCommand {
     /// Serve the simulated buses on pseudo-terminals in real time.
-    Serve(sim_serve::ServeArgs),
+    Serve(Box<sim_serve::ServeArgs>),
     /// Run the whole stack into a protection scenario and print the outcome.
     Scenario(scenario::ScenarioArgs),
 }

@@ -132,15 +132,18 @@ pub fn state(args: &StateArgs) -> Result<()> {
     let mut out = std::io::stdout().lock();
     quiet_pipe(print_table(&mut out, &frame, &names).and_then(|()| {
         for (name, b) in &buses {
-            use telemetry::frames::{BUS_HEALTH_CONNECTED, BUS_HEALTH_ENABLED};
+            use telemetry::frames::{
+                BUS_HEALTH_CONNECTED, BUS_HEALTH_DRIVER_TRIP, BUS_HEALTH_ENABLED, BUS_HEALTH_LATCHED,
+            };
             let c = &b.counters;
             writeln!(
                 out,
-                "bus {name}: {}{}; {} cycles, missing {}, checksum {}, framing {}, unexpected {}, implausible {}, status {}, transport {}, disconnects {}, reconnects {}, silences {}, servos lost {}",
+                "bus {name}: {}{}; {} cycles, missing {}, checksum {}, framing {}, unexpected {}, implausible {}, status {}, transport {}, disconnects {}, reconnects {}, silences {}, servos lost {}, verified {} (missing {}), safety mismatches {}",
                 if b.flags & BUS_HEALTH_CONNECTED != 0 { "connected" } else { "LOST" },
-                if b.flags & BUS_HEALTH_ENABLED != 0 { "" } else { ", disabled by the supervisor" },
+                if b.flags & BUS_HEALTH_ENABLED != 0 { "" } else if b.flags & BUS_HEALTH_LATCHED != 0 { ", OFF: latched by a trip" } else if b.flags & BUS_HEALTH_DRIVER_TRIP != 0 { ", OFF: the driver's last-resort trip" } else { ", OFF: disabled by the supervisor" },
                 c.cycles, c.missing, c.checksum_errors, c.framing_errors, c.unexpected_replies,
-                c.implausible, c.status_errors, c.transport_errors, c.disconnects, c.reconnects, c.silences, c.servos_lost
+                c.implausible, c.status_errors, c.transport_errors, c.disconnects, c.reconnects, c.silences, c.servos_lost,
+                c.verifies, c.verify_missing, c.safety_mismatches
             )?;
         }
         Ok(())

@@ -10,7 +10,7 @@ use sim::scenario::{Scenario, GRIP_CONTACT_RAD, SCENARIO_BUS};
 use std::path::Path;
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
-use telemetry::frames::{EventKind, JointLayout, STATE_FLAG_SAFE_STATE};
+use telemetry::frames::{EventKind, JointLayout, JOINT_FLAG_DRIVER_TRIP, STATE_FLAG_SAFE_STATE};
 use telemetry::plane::{self, newest, next, publish, Plane};
 use telemetry::GoalFrame;
 
@@ -32,6 +32,11 @@ pub struct ScenarioArgs {
     /// Keep the processes' logs (printed at the end) instead of deleting them.
     #[arg(long)]
     keep_logs: bool,
+    /// Overheat only: SIGKILL the supervisor once a motor reads this (°C), as a crash loop
+    /// would leave it; the driver's own last-resort tier must then turn the bus off. The
+    /// supervisor is started again once the driver has, and must take the trip over.
+    #[arg(long, value_name = "CELSIUS")]
+    kill_supervisor_at: Option<f32>,
 }
 
 #[derive(Debug, Clone, serde::Serialize)]
@@ -78,6 +83,18 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
         ],
     );
     let [mut supervisor, mut driver] = supervisor_and_driver(&domain, &dir, SCENARIO_BUS, &dev)?;
+    if args.kill_supervisor_at.is_some() {
+        // A hold that still carries the payload (80 %, the drive limit), so the motor keeps
+        // heating while the supervisor is gone, as it does in a crash loop that keeps handing
+        // the arm back to full torque: only the driver's own tier stands before the firmware.
+        let config = dir.join("bus-driver.toml");
+        let text = bus_driver::config::DEFAULT_CONFIG_TOML.replace(
+            "safe-hold-torque-percent = 20",
+            "safe-hold-torque-percent = 80",
+        );
+        std::fs::write(&config, text).with_context(|| format!("writing {}", config.display()))?;
+        driver.add_args(&["--config".into(), config.display().to_string()]);
+    }
     for (m, log) in [
         (&mut sim, "sim.log"),
         (&mut supervisor, "supervisor.log"),
@@ -141,6 +158,9 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
     let mut depth_by_seq = std::collections::HashMap::new();
     let mut hold_at: Option<usize> = None;
     let mut first_trip_reading_ns: Option<u64> = None;
+    let mut supervisor_killed_ns: Option<u64> = None;
+    let mut driver_trip_ns: Option<u64> = None;
+    let mut supervisor_restarted = false;
     let mut end_at: Option<Instant> = None;
     let mut last_goal = Instant::now() - Duration::from_secs(1);
     let started = Instant::now();
@@ -174,6 +194,30 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
             if hot && first_trip_reading_ns.is_none() {
                 first_trip_reading_ns = Some(st.timestamp_ns);
             }
+            let hottest = st
+                .joints()
+                .iter()
+                .filter(|j| j.is_valid())
+                .map(|j| j.temperature_c)
+                .fold(f32::MIN, f32::max);
+            if let Some(at) = args.kill_supervisor_at {
+                if hottest >= at && supervisor_killed_ns.is_none() {
+                    supervisor.kill();
+                    supervisor_killed_ns = Some(monotonic_ns());
+                }
+            }
+            let driver_tripped = st
+                .joints()
+                .iter()
+                .any(|j| j.flags & JOINT_FLAG_DRIVER_TRIP != 0);
+            if driver_tripped && driver_trip_ns.is_none() {
+                driver_trip_ns = Some(st.timestamp_ns);
+            }
+        }
+        // The driver has tripped the bus alone: a supervisor comes back and must take it over.
+        if driver_trip_ns.is_some() && !supervisor_restarted {
+            supervisor.start()?;
+            supervisor_restarted = true;
         }
         while let Some(g) = next(&grips) {
             if let Some(sample) = g.grippers[..g.gripper_count as usize]
@@ -193,7 +237,9 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
             let kind = e.kind();
             let on_target = e.joint as usize == target;
             let done = match (scenario, kind) {
-                (Scenario::Overheat, Some(EventKind::ThermalTrip)) => true,
+                (Scenario::Overheat, Some(EventKind::ThermalTrip)) => {
+                    args.kill_supervisor_at.is_none() || supervisor_restarted
+                }
                 (Scenario::Stall | Scenario::Grip, Some(EventKind::TorqueReduced)) => on_target,
                 _ => false,
             };
@@ -213,7 +259,9 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
         }
         std::thread::sleep(Duration::from_millis(2));
     }
-    // Driver first: torque goes off while the bus is still there.
+    // Driver first: torque goes off while the bus is still there. Only what reached the wire
+    // before this counts as the protection's doing (the stop turns torque off by itself).
+    let stopped_ns = monotonic_ns();
     driver.stop(Duration::from_secs(5));
     supervisor.stop(Duration::from_secs(5));
     sim.stop(Duration::from_secs(5));
@@ -243,9 +291,10 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
             .iter()
             .filter_map(|t| t.as_f64())
             .map(|t| epoch + (t * 1e9) as u64)
-            .find(|&ns| ns >= read)
+            .find(|&ns| ns >= read && ns < stopped_ns)
             .map(|ns| (ns - read) as f64 * 1e-6)
     });
+    let trip_record = std::fs::read_to_string(dir.join("trips")).unwrap_or_default();
     // The paper's claim: force rises monotonically with squeeze depth. Median force per 0.02 rad
     // of depth past first contact (the median sets aside the transients of each goal step),
     // non-decreasing within one 6.5 mA register step of the estimate (0.008).
@@ -264,6 +313,10 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
         "torque_reduced": seen.iter().any(|e| e.kind == "TorqueReduced" && e.joint.as_deref() == names.get(target).map(String::as_str)),
         "bus_disabled": trip.is_some(),
         "trip_reaction_ms": reaction_ms,
+        "supervisor_killed_s": supervisor_killed_ns.map(|t| secs(t) * speedup),
+        "driver_trip_s": driver_trip_ns.map(|t| secs(t) * speedup),
+        "driver_trip_reaction_ms": driver_trip_ns.zip(first_trip_reading_ns).map(|(t, read)| t.saturating_sub(read) as f64 * 1e-6),
+        "trip_record": trip_record.lines().collect::<Vec<_>>(),
         "grip_force_max": (scenario == Scenario::Grip).then(|| grip_series.iter().copied().fold(0.0f32, f32::max)),
         "grip_force_monotone_in_depth": (scenario == Scenario::Grip).then_some(monotone),
         "grip_force_by_depth": (scenario == Scenario::Grip).then_some(&by_depth),

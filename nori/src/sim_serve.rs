@@ -25,9 +25,10 @@ pub struct ServeArgs {
     /// Serve only these buses (repeatable); all when absent.
     #[arg(long = "bus")]
     pub buses: Vec<String>,
-    /// Set up a protection scenario on the left arm (payload, obstacle or grasped object).
+    /// Set up a protection scenario on the left arm (payload, obstacle or grasped object);
+    /// repeatable: the set-ups combine (the chaos run uses all three).
     #[arg(long, value_enum)]
-    pub scenario: Option<sim::scenario::Scenario>,
+    pub scenario: Vec<sim::scenario::Scenario>,
     /// Integrate temperatures this many times faster than real time (accelerated heating).
     #[arg(long, default_value_t = 1.0)]
     pub thermal_speedup: f64,
@@ -53,6 +54,13 @@ pub struct ServeArgs {
     /// Line fault: probability per status packet that only a prefix is sent.
     #[arg(long, default_value_t = 0.0)]
     pub truncate_rate: f64,
+    /// Line fault: probability per host instruction that no servo receives it (a lost write).
+    #[arg(long, default_value_t = 0.0)]
+    pub instruction_drop_rate: f64,
+    /// Line fault: probability per host instruction of one flipped bit (the servos' checksum
+    /// refuses it: a corrupted write).
+    #[arg(long, default_value_t = 0.0)]
+    pub instruction_corrupt_rate: f64,
     /// Seed of the line faults (each bus adds its index).
     #[arg(long, default_value_t = 1)]
     pub fault_seed: u64,
@@ -141,7 +149,7 @@ pub fn run(args: &ServeArgs) -> Result<()> {
         Some(p) => RobotDescription::load(p)?,
         None => RobotDescription::nori_a3(),
     };
-    if let Some(scenario) = args.scenario {
+    for &scenario in &args.scenario {
         scenario.apply(&mut robot);
         eprintln!(
             "nori sim: scenario {scenario:?} set up on {}",
@@ -176,6 +184,8 @@ pub fn run(args: &ServeArgs) -> Result<()> {
         double_flip_rate: args.double_flip_rate,
         drop_rate: args.drop_rate,
         truncate_rate: args.truncate_rate,
+        instruction_drop_rate: args.instruction_drop_rate,
+        instruction_corrupt_rate: args.instruction_corrupt_rate,
     };
     faults
         .validate()
@@ -242,11 +252,13 @@ pub fn run(args: &ServeArgs) -> Result<()> {
     if faults.any() {
         eprintln!(
             "nori sim: line faults per status packet: bit flip {}, double flip {}, drop {}, \
-             truncate {} (seed {})",
+             truncate {}; per instruction: drop {}, corrupt {} (seed {})",
             faults.bit_flip_rate,
             faults.double_flip_rate,
             faults.drop_rate,
             faults.truncate_rate,
+            faults.instruction_drop_rate,
+            faults.instruction_corrupt_rate,
             faults.seed
         );
     }

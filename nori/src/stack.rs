@@ -25,7 +25,7 @@ pub fn sibling(name: &str) -> Result<PathBuf> {
 }
 
 /// The supervisor and the driver of one bus, for the scenarios and benchmarks that run a single
-/// arm: status printing off, the supervisor's trips recorded in `dir/trips`, the driver's
+/// arm: status printing off, trips recorded in `dir/trips` (read by both), the driver's
 /// devices in `device_dir`. Not started.
 pub fn supervisor_and_driver(
     domain: &str,
@@ -59,6 +59,8 @@ pub fn supervisor_and_driver(
                 s(domain),
                 s("--status-every"),
                 s("0"),
+                s("--trip-file"),
+                dir.join("trips").display().to_string(),
             ],
         ),
     ])
@@ -91,6 +93,11 @@ impl Managed {
             restart_at: None,
             restarts: 0,
         }
+    }
+
+    /// Adds arguments (before it is started).
+    pub fn add_args(&mut self, args: &[String]) {
+        self.command.args(args);
     }
 
     /// Sends its output to `log` instead of the terminal, and starts/stops it silently.
@@ -151,6 +158,14 @@ impl Managed {
             self.start()?;
         }
         Ok(())
+    }
+
+    /// SIGKILL at once (a crash), and reaps it.
+    pub fn kill(&mut self) {
+        if let Some(mut child) = self.child.take() {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
     }
 
     /// SIGTERM, then SIGKILL after `within`.

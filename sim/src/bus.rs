@@ -92,6 +92,27 @@ pub struct BusReport {
     pub line: LineStats,
     /// Servos.
     pub servos: Vec<ServoReport>,
+    /// Every change of a servo's Torque_Limit, in order (at most
+    /// [`MAX_TORQUE_LIMIT_CHANGES`]).
+    pub torque_limit_changes: Vec<TorqueLimitChange>,
+}
+
+/// Broadcast torque-off writes a bus keeps for its report (the newest).
+const MAX_TORQUE_OFF_BROADCASTS: usize = 1024;
+/// Most servos on one bus whose torque-limit changes are tracked.
+const MAX_SERVOS: usize = 32;
+/// Torque-limit changes a bus keeps for its report (a long test run's worth).
+pub const MAX_TORQUE_LIMIT_CHANGES: usize = 20_000;
+
+/// A servo's Torque_Limit register changed (a write that reached it).
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct TorqueLimitChange {
+    /// Simulated time, s.
+    pub t_s: f64,
+    /// Servo id.
+    pub id: u8,
+    /// New value, 0.1 %.
+    pub permille: u16,
 }
 
 /// One simulated bus.
@@ -130,6 +151,7 @@ pub struct SimBus {
     /// See [`BusReport::epoch_monotonic_ns`].
     pub epoch_monotonic_ns: u64,
     torque_off_broadcasts: VecDeque<f64>,
+    torque_limit_changes: Vec<TorqueLimitChange>,
     loads: JointLoads,
     q: Vec<f64>,
     qd: Vec<f64>,
@@ -198,6 +220,7 @@ impl SimBus {
             stats: LineStats::default(),
             epoch_monotonic_ns: 0,
             torque_off_broadcasts: VecDeque::new(),
+            torque_limit_changes: Vec::new(),
             loads: JointLoads::default(),
             q: vec![0.0; n_arm],
             qd: vec![0.0; n_arm],
@@ -312,7 +335,7 @@ impl SimBus {
             bytes = &bytes[taken..];
             while let Some(result) = self.decoder.next_frame() {
                 match result {
-                    Ok(frame) => self.execute(&frame),
+                    Ok(frame) => self.deliver(&frame),
                     Err(_) => self.stats.decode_errors += 1,
                 }
             }
@@ -345,6 +368,7 @@ impl SimBus {
             time_s: self.time,
             epoch_monotonic_ns: self.epoch_monotonic_ns,
             torque_off_broadcasts_s: self.torque_off_broadcasts.iter().copied().collect(),
+            torque_limit_changes: self.torque_limit_changes.clone(),
             line: self.stats,
             servos: self
                 .servos
@@ -363,7 +387,62 @@ impl SimBus {
         }
     }
 
+    /// Puts one host instruction on the line to the servos, through the instruction faults: a
+    /// dropped one reaches nobody; a flipped bit is decoded by the servos as it arrives (the
+    /// checksum refuses a single flip, so it is lost too, counted as a decode error).
+    fn deliver(&mut self, frame: &feetech::Frame) {
+        let mut bytes = [0u8; MAX_PACKET];
+        let Some(n) = frame.encode(&mut bytes) else {
+            return;
+        };
+        let fault = match self.faults.as_mut() {
+            Some(f) => {
+                let fault = f.draw_instruction(n);
+                self.stats.faults = f.counts;
+                fault
+            }
+            None => crate::faults::Fault::None,
+        };
+        if fault == crate::faults::Fault::None {
+            return self.execute(frame);
+        }
+        let arrived = crate::faults::apply(fault, &mut bytes[..n]);
+        let mut line = feetech::Decoder::new();
+        line.push(arrived);
+        while let Some(result) = line.finish() {
+            match result {
+                Ok(f) => self.execute(&f),
+                Err(_) => self.stats.decode_errors += 1,
+            }
+        }
+    }
+
+    /// Executes one instruction that reached the servos, and records the torque limits it
+    /// changed and when (what a test holds against the supervisor's reductions).
     fn execute(&mut self, frame: &feetech::Frame) {
+        let now = self.arrival;
+        for s in &mut self.servos {
+            s.now = now;
+        }
+        let before: [u16; MAX_SERVOS] =
+            std::array::from_fn(|i| self.servos.get(i).map_or(0, Servo::torque_limit));
+        self.execute_instruction(frame);
+        for (i, s) in self.servos.iter().enumerate() {
+            let limit = s.torque_limit();
+            if i < MAX_SERVOS
+                && limit != before[i]
+                && self.torque_limit_changes.len() < MAX_TORQUE_LIMIT_CHANGES
+            {
+                self.torque_limit_changes.push(TorqueLimitChange {
+                    t_s: now,
+                    id: s.id,
+                    permille: limit,
+                });
+            }
+        }
+    }
+
+    fn execute_instruction(&mut self, frame: &feetech::Frame) {
         let instruction = match Instruction::parse(frame) {
             Ok(i) => i,
             Err(_) => {
@@ -386,7 +465,7 @@ impl SimBus {
             Instruction::Write { id, addr, data } => {
                 let torque_off = feetech::registers::TORQUE_ENABLE.addr;
                 if id == BROADCAST_ID && addr == torque_off && data.first() == Some(&0) {
-                    if self.torque_off_broadcasts.len() == 16 {
+                    if self.torque_off_broadcasts.len() == MAX_TORQUE_OFF_BROADCASTS {
                         self.torque_off_broadcasts.pop_front();
                     }
                     self.torque_off_broadcasts.push_back(self.arrival);

@@ -1,5 +1,7 @@
-//! Line faults injected into the replies of a simulated bus: one or two flipped bits, dropped
-//! and truncated status packets. Seeded, so a run is reproducible; rates are per status packet.
+//! Line faults injected on a simulated bus: into the replies (one or two flipped bits, dropped
+//! and truncated status packets; rates per status packet) and into the host's instructions
+//! (dropped, or one bit flipped before the servos decode them; rates per instruction packet).
+//! Seeded, so a run is reproducible.
 //!
 //! The device side stays honest about what it meant to send: the bus records the true
 //! feedback block of every servo before any fault is applied (`SimBus::feedback_truth`), so a
@@ -23,6 +25,13 @@ pub struct LineFaults {
     pub drop_rate: f64,
     /// Only a random prefix of the packet sent.
     pub truncate_rate: f64,
+    /// A host instruction lost on the line: no servo sees it (a lost write).
+    #[serde(default)]
+    pub instruction_drop_rate: f64,
+    /// One random bit of a host instruction flipped on the line; the servos decode what
+    /// arrives (the checksum refuses a single flip, so the write is lost as a corrupted one).
+    #[serde(default)]
+    pub instruction_corrupt_rate: f64,
 }
 
 impl LineFaults {
@@ -32,6 +41,8 @@ impl LineFaults {
             || self.double_flip_rate > 0.0
             || self.drop_rate > 0.0
             || self.truncate_rate > 0.0
+            || self.instruction_drop_rate > 0.0
+            || self.instruction_corrupt_rate > 0.0
     }
 
     /// Checks that the rates are probabilities whose sum is at most 1.
@@ -41,6 +52,8 @@ impl LineFaults {
             ("double-flip rate", self.double_flip_rate),
             ("drop rate", self.drop_rate),
             ("truncate rate", self.truncate_rate),
+            ("instruction drop rate", self.instruction_drop_rate),
+            ("instruction corrupt rate", self.instruction_corrupt_rate),
         ] {
             if !(0.0..=1.0).contains(&r) {
                 return Err(format!("{name} must be in [0, 1], got {r}"));
@@ -49,6 +62,10 @@ impl LineFaults {
         let sum = self.bit_flip_rate + self.double_flip_rate + self.drop_rate + self.truncate_rate;
         if sum > 1.0 {
             return Err(format!("fault rates sum to {sum}, more than 1"));
+        }
+        let sum = self.instruction_drop_rate + self.instruction_corrupt_rate;
+        if sum > 1.0 {
+            return Err(format!("instruction fault rates sum to {sum}, more than 1"));
         }
         Ok(())
     }
@@ -65,10 +82,14 @@ pub struct FaultCounts {
     pub dropped: u64,
     /// Status packets truncated.
     pub truncated: u64,
+    /// Host instructions dropped.
+    pub instructions_dropped: u64,
+    /// Host instructions with a bit flipped.
+    pub instructions_corrupted: u64,
 }
 
 impl FaultCounts {
-    /// All faults injected.
+    /// All faults injected into status packets.
     pub fn total(&self) -> u64 {
         self.flipped + self.double_flipped + self.dropped + self.truncated
     }
@@ -133,6 +154,9 @@ pub struct FaultInjector {
     /// The rates.
     pub config: LineFaults,
     rng: SplitMix64,
+    /// A stream of its own, so adding instruction faults does not change the reply faults a
+    /// seed gives.
+    instruction_rng: SplitMix64,
     /// What was injected so far.
     pub counts: FaultCounts,
 }
@@ -143,7 +167,27 @@ impl FaultInjector {
         FaultInjector {
             config,
             rng: SplitMix64::new(config.seed),
+            instruction_rng: SplitMix64::new(config.seed ^ 0x1A57_0000_DEAD_BEEF),
             counts: FaultCounts::default(),
+        }
+    }
+
+    /// Draws the fault of one host instruction of `len` bytes and counts it: `Drop`, `Flip`
+    /// or `None`.
+    pub fn draw_instruction(&mut self, len: usize) -> Fault {
+        let c = self.config;
+        let r = self.instruction_rng.unit();
+        if r < c.instruction_drop_rate {
+            self.counts.instructions_dropped += 1;
+            Fault::Drop
+        } else if r < c.instruction_drop_rate + c.instruction_corrupt_rate && len > 0 {
+            self.counts.instructions_corrupted += 1;
+            Fault::Flip {
+                byte: self.instruction_rng.below(len),
+                bit: self.instruction_rng.below(8) as u8,
+            }
+        } else {
+            Fault::None
         }
     }
 
@@ -216,6 +260,7 @@ mod tests {
             double_flip_rate: 0.015,
             drop_rate: 0.02,
             truncate_rate: 0.03,
+            ..LineFaults::default()
         };
         let mut a = FaultInjector::new(cfg);
         let mut b = FaultInjector::new(cfg);

@@ -78,12 +78,12 @@ pub struct Protections {
     pub over_current: bool,
     /// Overload tripped: output limited to `Protective_Torque`.
     pub overload: bool,
-    /// Over-temperature cutoff: output off, not announced in the status byte.
+    /// Over-temperature cutoff: output off, announced by the status byte's overheat bit.
     pub over_temperature: bool,
 }
 
 /// Counters the tests read back ("what the servo received").
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
 pub struct ServoLog {
     /// Goal_Position writes received.
     pub goal_writes: u64,
@@ -101,6 +101,14 @@ pub struct ServoLog {
     pub overload_trips: u64,
     /// Torque_Enable = 0 writes.
     pub torque_off_writes: u64,
+    /// Torque_Enable = 1 writes.
+    pub torque_on_writes: u64,
+    /// When the last Goal_Position write arrived (simulated s).
+    pub last_goal_write_s: Option<f64>,
+    /// When the last Torque_Enable write arrived (simulated s), and the value written.
+    pub last_torque_write: Option<(f64, u8)>,
+    /// When the last Torque_Enable = 1 write arrived (simulated s).
+    pub last_torque_on_s: Option<f64>,
 }
 
 /// The registers the firmware consults every step, decoded once per write (not per step).
@@ -133,6 +141,8 @@ pub struct Servo {
     pub id: u8,
     /// Model.
     pub model: ServoModel,
+    /// When the instruction being executed arrived (simulated s), for the log.
+    pub now: f64,
     /// Plant constants.
     pub plant: Plant,
     /// Register file as the host sees it.
@@ -178,6 +188,7 @@ impl Servo {
         let mut s = Servo {
             id,
             model,
+            now: 0.0,
             plant: Plant::from_rating(rating),
             regs: [0; TABLE_SIZE],
             flash: [0; TABLE_SIZE],
@@ -300,7 +311,12 @@ impl Servo {
         self.fw.goal = f64::from(p);
     }
 
-    /// Whether the output stage is driving.
+    /// The Torque_Limit register, 0.1 %.
+    pub fn torque_limit(&self) -> u16 {
+        self.get(reg::TORQUE_LIMIT) as u16
+    }
+
+    /// Whether the output stage is driving: torque enabled and no protection holds it off.
     pub fn torque_enabled(&self) -> bool {
         self.fw.torque_enable == 1
             && !self.protections.over_current
@@ -357,11 +373,16 @@ impl Servo {
             log.goal_writes += 1;
             log.goal_min = Some(log.goal_min.map_or(goal, |m| m.min(goal)));
             log.goal_max = Some(log.goal_max.map_or(goal, |m| m.max(goal)));
+            log.last_goal_write_s = Some(self.now);
         }
         if touches(reg::TORQUE_ENABLE) {
-            match self.get(reg::TORQUE_ENABLE) {
+            let value = self.get(reg::TORQUE_ENABLE);
+            self.log.last_torque_write = Some((self.now, value as u8));
+            match value {
                 0 => self.log.torque_off_writes += 1,
                 1 => {
+                    self.log.torque_on_writes += 1;
+                    self.log.last_torque_on_s = Some(self.now);
                     // Re-enabling clears latched protections whose cause is gone.
                     let limit = f64::from(self.get(reg::MAX_TEMPERATURE_LIMIT));
                     self.protections.over_current = false;
@@ -378,9 +399,14 @@ impl Servo {
         true
     }
 
-    /// The status byte of a reply. The over-temperature cutoff is deliberately not announced.
+    /// The status byte of a reply (also register 65): the bit of each protection that has
+    /// unloaded the motor (overheat 2, over-current 3, overload 5) and the voltage window (bit 0),
+    /// as the STS firmware reports them in every reply (protocol notes, "ERR / Status bits").
     pub fn status(&self) -> ServoStatus {
         let mut bits = 0;
+        if self.protections.over_temperature {
+            bits |= ServoStatus::OVERHEAT;
+        }
         if self.protections.over_current {
             bits |= ServoStatus::OVER_CURRENT;
         }
@@ -655,7 +681,7 @@ mod tests {
     }
 
     #[test]
-    fn held_stall_heats_and_the_cutoff_drops_output_silently() {
+    fn held_stall_heats_and_the_cutoff_drops_output_and_announces_it() {
         let mut s = servo("sts3215");
         write_u16(&mut s, reg::MAX_TEMPERATURE_LIMIT, 60);
         write_u16(
@@ -675,7 +701,11 @@ mod tests {
         assert!(s.temperature >= 60.0 && s.temperature < 60.5);
         s.step(0.01, 10.0, 0.0, 25.0, 1.0);
         assert_eq!(s.current, 0.0);
-        assert!(s.status().is_ok(), "cutoff must not be announced");
+        assert_eq!(
+            s.status().0,
+            ServoStatus::OVERHEAT,
+            "the STS firmware reports its overheat protection in the status byte"
+        );
         assert_eq!(s.log.hardware_cutoffs, 1);
     }
 

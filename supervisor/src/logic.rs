@@ -8,14 +8,14 @@ use crate::thermal::{BusThermal, ThermalEvent};
 use telemetry::frames::{
     Directives, EventKind, GripFrame, GripSample, JointLayout, JointRole, JointState,
     SupervisorCommand, SupervisorEvent, COMMAND_REENABLE_BUS, COMMAND_REFUSED_NOT_TRIPPED,
-    COMMAND_REFUSED_NO_SUCH_BUS, COMMAND_REFUSED_UNKNOWN_KIND, JOINT_FLAG_OUTPUT_LOST, MAX_BUSES,
-    MAX_GRIPPERS,
+    COMMAND_REFUSED_NO_SUCH_BUS, COMMAND_REFUSED_UNKNOWN_KIND, JOINT_FLAG_DRIVER_TRIP,
+    JOINT_FLAG_OUTPUT_LOST, MAX_BUSES, MAX_GRIPPERS,
 };
 use telemetry::MAX_JOINTS;
 use thiserror::Error;
 
 /// A layout the supervisor cannot supervise.
-#[derive(Debug, Clone, PartialEq, Eq, Error)]
+#[derive(Debug, Clone, PartialEq, Error)]
 pub enum LayoutError {
     /// More buses than a directives frame can address.
     #[error("{0} buses exceed the {MAX_BUSES} a directives frame addresses")]
@@ -26,7 +26,25 @@ pub enum LayoutError {
     /// A gripper without grip-force calibration.
     #[error("gripper {0:?} has no [grip.{0}] calibration in the supervisor configuration")]
     NoGripCalibration(String),
+    /// The software trip would not fire before a motor's firmware cutoff (the two tiers must be
+    /// ordered: the recoverable, bus-wide trip first).
+    #[error("thermal.trip-c {trip_c} °C is not at least 1 °C below {joint}'s firmware cutoff of {cutoff_c} °C (the driver's Max_Temperature_Limit)")]
+    TripNotBelowCutoff {
+        /// The joint.
+        joint: String,
+        /// Its firmware cutoff, as the driver publishes it.
+        cutoff_c: u8,
+        /// The configured software trip.
+        trip_c: f32,
+    },
 }
+
+/// Status bits of the firmware protections that unload a motor: overheat, over-current,
+/// overload (the STS status byte; `Unloading_Condition` enables each).
+pub const PROTECTION_BITS: u8 = 0x04 | 0x08 | 0x20;
+/// Consecutive frames a protection bit must be seen before it counts: one corrupted reply that
+/// passed the checksum must not latch a bus off.
+pub const PROTECTION_CONFIRM_FRAMES: u8 = 2;
 
 /// No joint / no bus, in an event.
 pub const NONE: u8 = 0xFF;
@@ -43,6 +61,10 @@ pub struct Supervisor {
     grip: GripFrame,
     event_seq: u64,
     output_lost: Vec<bool>,
+    /// Per joint: consecutive frames with a protection bit, and whether it was reported.
+    protection: Vec<(u8, bool)>,
+    /// Per bus: the driver's own trip flag was seen (reported once per onset).
+    driver_trip: Vec<bool>,
     /// Bus enables and torque limits last handed out.
     published: (u32, [u16; MAX_JOINTS]),
 }
@@ -54,6 +76,17 @@ impl Supervisor {
             return Err(LayoutError::TooManyBuses(layout.bus_count));
         }
         let joints = layout.joints();
+        let trip_c = config.thermal.trip_c;
+        if let Some(j) = joints
+            .iter()
+            .find(|j| trip_c > f32::from(j.max_temperature_c) - 1.0)
+        {
+            return Err(LayoutError::TripNotBelowCutoff {
+                joint: j.name().into(),
+                cutoff_c: j.max_temperature_c,
+                trip_c,
+            });
+        }
         let stall = joints
             .iter()
             .map(|j| match j.role() {
@@ -108,6 +141,8 @@ impl Supervisor {
             events: Vec::with_capacity(64),
             event_seq: 0,
             output_lost: vec![false; joints.len()],
+            protection: vec![(0, false); joints.len()],
+            driver_trip: vec![false; layout.bus_count as usize],
             published: (directives.bus_enabled, directives.torque_limit_permille),
         })
     }
@@ -288,6 +323,71 @@ impl Supervisor {
             }
             self.output_lost[j] = lost;
         }
+        // The hardware tier announced itself: a firmware protection's status bit (seen in two
+        // frames in a row) disables the bus like the software trip.
+        for (j, sample) in joints.iter().enumerate() {
+            let bits = if sample.is_valid() {
+                sample.status & PROTECTION_BITS
+            } else {
+                0
+            };
+            let (frames, reported) = &mut self.protection[j];
+            if bits == 0 {
+                if sample.is_valid() {
+                    (*frames, *reported) = (0, false);
+                }
+                continue;
+            }
+            *frames = frames.saturating_add(1);
+            if *frames < PROTECTION_CONFIRM_FRAMES || *reported {
+                continue;
+            }
+            *reported = true;
+            let bus = self.layout.joints[j].bus;
+            self.event(
+                now,
+                EventKind::FirmwareProtection,
+                j as u8,
+                bus,
+                bits,
+                sample.temperature_c,
+            );
+            if self
+                .buses
+                .get_mut(bus as usize)
+                .is_some_and(BusThermal::force_trip)
+            {
+                self.event(
+                    now,
+                    EventKind::ThermalTrip,
+                    j as u8,
+                    bus,
+                    0,
+                    sample.temperature_c,
+                );
+            }
+        }
+        // The driver's last-resort tier tripped a bus while no supervisor was heard: the trip
+        // becomes this supervisor's, latched and recorded like its own.
+        for b in 0..self.driver_trip.len() {
+            let mut hottest = f32::NEG_INFINITY;
+            let mut flagged = false;
+            for (j, sample) in joints.iter().enumerate() {
+                if self.layout.joints[j].bus as usize == b {
+                    flagged |= sample.flags & JOINT_FLAG_DRIVER_TRIP != 0;
+                    if sample.is_valid() {
+                        hottest = hottest.max(sample.temperature_c);
+                    }
+                }
+            }
+            if flagged && !self.driver_trip[b] {
+                self.event(now, EventKind::DriverTrip, NONE, b as u8, 0, hottest);
+                if self.buses[b].force_trip() {
+                    self.event(now, EventKind::ThermalTrip, NONE, b as u8, 0, hottest);
+                }
+            }
+            self.driver_trip[b] = flagged;
+        }
         // Thermal tier, bus by bus.
         let t = now as f64 * 1e-9;
         for b in 0..self.buses.len() {
@@ -375,7 +475,7 @@ impl Supervisor {
         if !bus.tripped {
             return refused(self, COMMAND_REFUSED_NOT_TRIPPED);
         }
-        match bus.reenable(&self.config.thermal) {
+        match bus.reenable(&self.config.thermal, now_ns as f64 * 1e-9) {
             Ok(()) => {
                 self.directives.bus_enabled |= 1 << b;
                 self.event(now_ns, EventKind::BusReenabled, NONE, cmd.bus, 0, 0.0);
@@ -646,5 +746,106 @@ mod tests {
             Supervisor::new(&layout(), config),
             Err(LayoutError::NoGripCalibration(_))
         ));
+    }
+
+    #[test]
+    fn a_trip_not_below_a_published_firmware_cutoff_is_refused() {
+        let mut l = layout();
+        // The driver publishes a cutoff of 55 °C for one motor: a 59 °C trip would come after.
+        l.joints[2].max_temperature_c = 55;
+        match Supervisor::new(&l, SupervisorConfig::embedded().unwrap()) {
+            Err(LayoutError::TripNotBelowCutoff {
+                joint, cutoff_c, ..
+            }) => {
+                assert_eq!((joint.as_str(), cutoff_c), ("right_elbow", 55))
+            }
+            other => panic!("accepted: {:?}", other.map(|_| ())),
+        }
+        // 60 °C leaves the 1 °C the paper's ordering needs; 59.5 does not.
+        l.joints[2].max_temperature_c = 60;
+        assert!(Supervisor::new(&l, SupervisorConfig::embedded().unwrap()).is_ok());
+        let mut config = SupervisorConfig::embedded().unwrap();
+        config.thermal.trip_c = 59.5;
+        assert!(Supervisor::new(&l, config).is_err());
+    }
+
+    #[test]
+    fn a_firmware_protection_bit_disables_the_bus_once_confirmed() {
+        for bit in [0x04u8, 0x08, 0x20] {
+            let mut sup =
+                Supervisor::new(&layout(), SupervisorConfig::embedded().unwrap()).unwrap();
+            let with_bit = |k: u64| {
+                state(k, k * 5 * MS, move |i, j| {
+                    if i == 2 {
+                        j.status = bit;
+                        j.temperature_c = 52.0;
+                    }
+                })
+            };
+            // One frame with the bit (a corrupted reply can carry one): nothing yet.
+            sup.on_state(&with_bit(1));
+            assert_eq!(
+                sup.directives(0).bus_enabled & 3,
+                3,
+                "bit {bit:#x}: one frame"
+            );
+            sup.on_state(&state(2, 10 * MS, |_, _| {}));
+            sup.on_state(&with_bit(3));
+            assert_eq!(
+                sup.directives(0).bus_enabled & 3,
+                3,
+                "bit {bit:#x}: not in a row"
+            );
+            sup.on_state(&with_bit(4));
+            assert_eq!(
+                sup.directives(0).bus_enabled & 3,
+                1,
+                "bit {bit:#x}: bus 1 off"
+            );
+            let events: Vec<SupervisorEvent> = sup.drain_events().collect();
+            let e = events
+                .iter()
+                .find(|e| e.kind() == Some(EventKind::FirmwareProtection))
+                .expect("reported");
+            assert_eq!((e.level, e.joint, e.bus, e.value), (bit, 2, 1, 52.0));
+            let at = |k| events.iter().position(|e| e.kind() == Some(k));
+            assert!(at(EventKind::FirmwareProtection) < at(EventKind::ThermalTrip));
+            assert_eq!(
+                sup.tripped_joints(),
+                ["right_elbow"],
+                "latched and recorded"
+            );
+            sup.on_state(&with_bit(5));
+            assert!(kinds(&mut sup).is_empty(), "reported once");
+        }
+        // The voltage and angle-sensor bits are not protections that unload the motor.
+        let mut sup = Supervisor::new(&layout(), SupervisorConfig::embedded().unwrap()).unwrap();
+        for k in 0..10 {
+            sup.on_state(&state(k, k * 5 * MS, |_, j| j.status = 0x03));
+        }
+        assert_eq!(sup.directives(0).bus_enabled & 3, 3);
+    }
+
+    #[test]
+    fn the_drivers_own_trip_becomes_the_supervisors_latch() {
+        let mut sup = Supervisor::new(&layout(), SupervisorConfig::embedded().unwrap()).unwrap();
+        sup.on_state(&state(1, 0, |i, j| {
+            if i == 2 {
+                j.flags = JOINT_FLAG_DRIVER_TRIP | telemetry::frames::JOINT_FLAG_BUS_DISABLED;
+                j.temperature_c = 59.0;
+            } else if i < 2 {
+                j.temperature_c = 58.0;
+            }
+        }));
+        assert_eq!(
+            sup.directives(0).bus_enabled & 3,
+            1,
+            "bus 1 off in the directives"
+        );
+        assert_eq!(
+            kinds(&mut sup)[..2],
+            [EventKind::DriverTrip, EventKind::ThermalTrip]
+        );
+        assert_eq!(sup.tripped_joints(), ["right_elbow"]);
     }
 }

@@ -13,6 +13,7 @@ use supervisor::logic::NONE;
 use supervisor::{Supervisor, SupervisorConfig};
 use telemetry::clock::monotonic_ns;
 use telemetry::frames::{EventKind, Heartbeat, JointLayout, Peer, SupervisorEvent};
+use telemetry::latch;
 use telemetry::plane::{self, newest, next, publish, Plane};
 use telemetry::process::ServiceManager;
 use telemetry::watchdog::{Liveness, Watchdog};
@@ -38,39 +39,11 @@ struct Args {
     /// Print the default configuration and exit.
     #[arg(long)]
     print_default_config: bool,
-    /// Where latched thermal trips are kept across restarts (one joint name per line);
-    /// `<temp dir>/nori-<domain>-trips` when absent. Production: /var/lib/nori/trips.
+    /// Where latched trips are kept across restarts (one joint name per line; the bus-driver
+    /// reads the same record); `<temp dir>/nori-<domain>-trips` when absent. Production:
+    /// /var/lib/nori/trips.
     #[arg(long)]
     trip_file: Option<PathBuf>,
-}
-
-/// Reads the trips recorded by an earlier instance; a missing file means none.
-fn load_trips(path: &std::path::Path) -> Result<Vec<String>> {
-    match std::fs::read_to_string(path) {
-        Ok(text) => Ok(text
-            .lines()
-            .map(str::trim)
-            .filter(|l| !l.is_empty())
-            .map(String::from)
-            .collect()),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(Vec::new()),
-        Err(e) => Err(e).with_context(|| format!("reading the trip record {}", path.display())),
-    }
-}
-
-/// Records the trips atomically (write, fsync, rename): a crash leaves the old or the new record.
-fn save_trips(path: &std::path::Path, joints: &[String]) -> Result<()> {
-    use std::io::Write;
-    let tmp = path.with_extension("tmp");
-    let mut f = std::fs::File::create(&tmp)
-        .with_context(|| format!("writing the trip record {}", tmp.display()))?;
-    for j in joints {
-        writeln!(f, "{j}")?;
-    }
-    f.sync_all()?;
-    std::fs::rename(&tmp, path)
-        .with_context(|| format!("renaming the trip record to {}", path.display()))?;
-    Ok(())
 }
 
 /// Directives and heartbeat period.
@@ -107,8 +80,8 @@ fn main() -> Result<()> {
     let trip_file = args
         .trip_file
         .clone()
-        .unwrap_or_else(|| std::env::temp_dir().join(format!("nori-{}-trips", args.domain)));
-    let mut recorded_trips = load_trips(&trip_file)?;
+        .unwrap_or_else(|| latch::default_path(&args.domain));
+    let mut recorded_trips = latch::load(&trip_file)?;
     let mut recorded_mask = 0u32;
     let shutdown = telemetry::process::stop_flag().context("installing signal handlers")?;
     let node = Plane::open(&args.domain, "supervisor")?;
@@ -231,9 +204,13 @@ fn main() -> Result<()> {
         // Trips outlive this process: recorded before the directives that announce them.
         if s.tripped_buses() != recorded_mask {
             recorded_mask = s.tripped_buses();
-            recorded_trips = s.tripped_joints();
-            if let Err(e) = save_trips(&trip_file, &recorded_trips) {
-                tracing::error!("{e:#}: a restart would forget the latched trips");
+            // Latches of joints this layout does not have (a driver started on some of the
+            // buses) are not this instance's to release: they stay in the record.
+            let names: Vec<&str> = layout.joints().iter().map(|j| j.name()).collect();
+            recorded_trips.retain(|n| !names.contains(&n.as_str()));
+            recorded_trips.extend(s.tripped_joints());
+            if let Err(e) = latch::save(&trip_file, &recorded_trips) {
+                tracing::error!("{e}: a restart would forget the latched trips, and the driver keeps a released bus off");
             }
         }
         // Directives go out every period as the heartbeat of the decision, and at once when they

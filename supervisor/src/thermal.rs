@@ -8,6 +8,9 @@
 
 use crate::config::ThermalConfig;
 
+/// A re-enable needs every motor of the bus read at most this long ago, s.
+pub const REENABLE_READING_MAX_AGE_S: f64 = 1.0;
+
 /// Points of temperature history kept per motor (decimated to fill the slope window).
 const HISTORY: usize = 64;
 
@@ -94,7 +97,8 @@ pub enum ThermalEvent {
 pub struct BusThermal {
     joints: Vec<usize>,
     trajectories: Vec<Trajectory>,
-    last_temp: Vec<Option<f32>>,
+    /// Each motor's last reading and when it was read (s).
+    last_temp: Vec<Option<(f32, f64)>>,
     /// Current warning level.
     pub level: u8,
     /// Since when a lower level has been computed (de-escalation waits a slope window, so an
@@ -138,7 +142,7 @@ impl BusThermal {
             let Some(temp) = temperature(joint) else {
                 continue;
             };
-            self.last_temp[k] = Some(temp);
+            self.last_temp[k] = Some((temp, t));
             self.trajectories[k].record(t, temp, window);
             if temp >= c.trip_c && trip.is_none() {
                 trip = Some((joint, temp));
@@ -192,15 +196,21 @@ impl BusThermal {
         !std::mem::replace(&mut self.tripped, true)
     }
 
-    /// An explicit re-enable: granted when every motor read is at or below the threshold.
-    /// `Err` carries the hottest temperature.
-    pub fn reenable(&mut self, c: &ThermalConfig) -> Result<(), f32> {
-        let hottest = self
-            .last_temp
-            .iter()
-            .flatten()
-            .fold(f32::NEG_INFINITY, |a, &b| a.max(b));
-        if self.last_temp.iter().any(Option::is_none) || hottest > c.reenable_below_c {
+    /// An explicit re-enable at `now` (s): granted when every motor has been read within the
+    /// last [`REENABLE_READING_MAX_AGE_S`] and is at or below the threshold (a motor that went
+    /// silent may have kept heating: its old reading proves nothing). `Err` carries the hottest
+    /// temperature (NaN when a motor has no fresh reading).
+    pub fn reenable(&mut self, c: &ThermalConfig, now: f64) -> Result<(), f32> {
+        let mut hottest = f32::NEG_INFINITY;
+        for reading in &self.last_temp {
+            match reading {
+                Some((temp, at)) if now - at <= REENABLE_READING_MAX_AGE_S => {
+                    hottest = hottest.max(*temp)
+                }
+                _ => return Err(f32::NAN),
+            }
+        }
+        if hottest > c.reenable_below_c {
             return Err(hottest);
         }
         self.tripped = false;
@@ -263,12 +273,35 @@ mod tests {
         assert_eq!(levels, [1, 2, 3], "warnings escalate one level at a time");
         assert!(bus.tripped);
         // Still hot: re-enable refused; cooled: granted.
-        assert_eq!(bus.reenable(&c), Err(65.0));
+        let last = events.last().map_or(0.0, |e| e.0);
+        assert_eq!(bus.reenable(&c, last), Err(65.0));
         for k in 0..10 {
             bus.update(3600.0 + k as f64, |_| Some(45.0), &c);
         }
-        assert!(bus.reenable(&c).is_ok());
+        assert!(bus.reenable(&c, 3609.5).is_ok());
         assert!(!bus.tripped);
+    }
+
+    #[test]
+    fn a_reenable_is_not_judged_on_a_motor_that_went_silent() {
+        let c = config();
+        let mut bus = BusThermal::new(vec![0, 1]);
+        bus.update(0.0, |_| Some(59.0), &c);
+        assert!(bus.tripped);
+        // Both motors cool; then motor 1 goes silent (its old 45 °C is all that is known).
+        for k in 1..=10 {
+            bus.update(k as f64, |_| Some(45.0), &c);
+        }
+        for k in 11..=20 {
+            bus.update(k as f64, |j| (j == 0).then_some(45.0), &c);
+        }
+        assert!(
+            bus.reenable(&c, 20.0).unwrap_err().is_nan(),
+            "a stale reading is refused"
+        );
+        assert!(bus.tripped);
+        bus.update(21.0, |_| Some(45.0), &c);
+        assert!(bus.reenable(&c, 21.0).is_ok());
     }
 
     #[test]

@@ -39,14 +39,20 @@ pub struct JointSample {
     pub flags: u8,
 }
 
-/// The joint's output vanished while torque was on and no status bit explains it: the driver's
-/// inference of the servo's unannounced over-temperature cutoff (the hardware thermal tier).
+/// The joint's output vanished while torque was on (far from its goal, no load, no current, for
+/// 50 ms): the driver's inference of a firmware protection that cut the motor, announced in the
+/// status bits or not (the hardware tier).
 pub const JOINT_FLAG_OUTPUT_LOST: u8 = 1;
-/// The joint's bus is disabled by the supervisor.
+/// The joint's bus is off: the supervisor disabled it, the trip record latches it, or the
+/// driver's own last-resort tier tripped it.
 pub const JOINT_FLAG_BUS_DISABLED: u8 = 2;
 /// The joint's bus device is gone (transport failure); the driver reopens it and, when it
 /// answers, applies the safe state and sets the servos up again.
 pub const JOINT_FLAG_BUS_LOST: u8 = 4;
+/// The driver's last-resort thermal tier turned the joint's bus off (a motor read the trip
+/// temperature while no supervisor was heard); the supervisor latches such a bus as its own
+/// trip when it sees this.
+pub const JOINT_FLAG_DRIVER_TRIP: u8 = 8;
 
 impl JointSample {
     /// Whether this cycle's read of the joint succeeded.
@@ -300,7 +306,7 @@ pub enum EventKind {
     ThermalTrip = 6,
     /// A tripped bus was re-enabled after cooling and an explicit command.
     BusReenabled = 7,
-    /// The driver inferred a servo's unannounced firmware cutoff (`value` °C).
+    /// The driver inferred from the motor that a firmware protection cut its output (`value` °C).
     OutputLost = 8,
     /// The supervisor lost the driver (no joint state within the bound).
     DriverLost = 9,
@@ -310,6 +316,13 @@ pub enum EventKind {
     ReenableRefused = 11,
     /// An operator command was not carried out: `level` says why (`COMMAND_REFUSED_*`).
     CommandRefused = 12,
+    /// A servo reported a firmware protection in its status bits (`level`: the bits, overheat
+    /// 0x04, over-current 0x08, overload 0x20; `value` °C): the hardware tier fired, the bus
+    /// is disabled and latched.
+    FirmwareProtection = 13,
+    /// The driver's last-resort thermal tier had turned the bus off while no supervisor was
+    /// heard (`value` hottest °C on the bus); the supervisor latches it as its own trip.
+    DriverTrip = 14,
 }
 
 /// [`EventKind::CommandRefused`]: a command kind the supervisor does not know.
@@ -357,6 +370,8 @@ impl SupervisorEvent {
             DriverBack,
             ReenableRefused,
             CommandRefused,
+            FirmwareProtection,
+            DriverTrip,
         ]
         .into_iter()
         .find(|k| *k as u8 == self.kind)
@@ -456,6 +471,14 @@ pub struct BusCounters {
     pub silences: u64,
     /// Times one servo fell silent for the loss bound (taken off and set up again on return).
     pub servos_lost: u64,
+    /// Read-backs of a servo's safety settings (torque enable, torque limit, held goal) that
+    /// answered.
+    pub verifies: u64,
+    /// Read-backs that got no intact answer in time.
+    pub verify_missing: u64,
+    /// Safety settings found different on the servo from what the driver wants (a lost or
+    /// corrupted write, a servo reset): each re-sent.
+    pub safety_mismatches: u64,
 }
 
 /// One bus's entry of [`BusHealth`].
@@ -475,8 +498,12 @@ pub struct BusHealthEntry {
 
 /// [`BusHealthEntry::flags`]: the bus's device is open.
 pub const BUS_HEALTH_CONNECTED: u32 = 1;
-/// [`BusHealthEntry::flags`]: the supervisor has not disabled the bus.
+/// [`BusHealthEntry::flags`]: nothing holds the bus off (supervisor, trip record, driver).
 pub const BUS_HEALTH_ENABLED: u32 = 2;
+/// [`BusHealthEntry::flags`]: the trip record on disk latches the bus off.
+pub const BUS_HEALTH_LATCHED: u32 = 4;
+/// [`BusHealthEntry::flags`]: the driver's last-resort thermal tier turned the bus off.
+pub const BUS_HEALTH_DRIVER_TRIP: u32 = 8;
 
 /// The driver's error counts per bus, a few times a second: faults are counted, never logged
 /// per cycle, and this is where operators and tests see them.
@@ -484,7 +511,7 @@ pub const BUS_HEALTH_ENABLED: u32 = 2;
 #[derive(
     Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend, serde::Serialize, serde::Deserialize,
 )]
-#[type_name("nori::BusHealth/2")]
+#[type_name("nori::BusHealth/3")]
 pub struct BusHealth {
     /// Driver cycle of the counts.
     pub seq: u64,
@@ -519,8 +546,8 @@ mod tests {
         assert_eq!(std::mem::size_of::<JointInfo>(), 40);
         assert_eq!(std::mem::size_of::<SupervisorEvent>(), 24);
         assert_eq!(std::mem::size_of::<Heartbeat>(), 24);
-        assert_eq!(std::mem::size_of::<BusHealthEntry>(), 120);
-        assert_eq!(std::mem::size_of::<BusHealth>(), 24 + 120 * MAX_BUSES);
+        assert_eq!(std::mem::size_of::<BusHealthEntry>(), 144);
+        assert_eq!(std::mem::size_of::<BusHealth>(), 24 + 144 * MAX_BUSES);
     }
 
     #[test]

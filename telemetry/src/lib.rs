@@ -4,12 +4,14 @@
 //! shares (logging, SIGINT/SIGTERM).
 //!
 //! The frames, clock and config parsing do no I/O beyond reading a file the caller names; `plane`
-//! (shared memory) and `process` (signals) do, which is why they are a feature that only the
-//! processes enable.
+//! (shared memory), `process` (signals) and `latch` (the trip record on disk) do, which is why
+//! they are a feature that only the processes enable.
 
 pub mod clock;
 pub mod config;
 pub mod frames;
+#[cfg(feature = "ipc")]
+pub mod latch;
 #[cfg(feature = "ipc")]
 pub mod plane;
 #[cfg(feature = "ipc")]

@@ -325,6 +325,8 @@ impl ArmStack {
                 &self.domain,
                 "--status-every",
                 "0",
+                "--trip-file",
+                self.dir.join("trips").to_str().unwrap(),
             ],
             &self.dir.join(format!("driver-{}.log", self.starts)),
         );
@@ -390,18 +392,46 @@ pub fn check_left_arm_report(report: &serde_json::Value, max_c: f64) -> f64 {
     let mut hottest = f64::MIN;
     for (servo, cfg) in servos.iter().zip(&bus.servo) {
         let cal = config.calibration.joint[&cfg.joint];
-        if let (Some(lo), Some(hi)) = (servo["goal_min"].as_i64(), servo["goal_max"].as_i64()) {
-            assert!(
-                lo >= i64::from(cal.range_min) && hi <= i64::from(cal.range_max),
-                "{}: goals {lo}..{hi} reached the wire, calibrated range {}..{}",
-                cfg.joint,
-                cal.range_min,
-                cal.range_max
-            );
-        }
+        // No goal at all is no evidence: every servo of a running arm gets goals (its present
+        // position at setup, then each cycle's), so absent data fail the check.
+        let (Some(lo), Some(hi)) = (servo["goal_min"].as_i64(), servo["goal_max"].as_i64()) else {
+            panic!("{}: no goal ever reached the servo: {servo}", cfg.joint);
+        };
+        assert!(
+            lo >= i64::from(cal.range_min) && hi <= i64::from(cal.range_max),
+            "{}: goals {lo}..{hi} reached the wire, calibrated range {}..{}",
+            cfg.joint,
+            cal.range_min,
+            cal.range_max
+        );
         let t = servo["max_temperature_c"].as_f64().unwrap();
         assert!(t < max_c, "{} reached {t:.2} °C", cfg.joint);
         hottest = hottest.max(t);
     }
     hottest
+}
+
+/// A simulator report's servo was left with torque off by a stop: the last Torque_Enable write
+/// it received is 0, it came after its last goal, and its output is off. (A count of torque-off
+/// writes would not do: setup writes one too.)
+pub fn assert_left_off(servo: &serde_json::Value, what: &str) {
+    let joint = &servo["joint"];
+    let last = servo["last_torque_write"]
+        .as_array()
+        .unwrap_or_else(|| panic!("{what}: {joint} never got a torque write: {servo}"));
+    let (t, value) = (last[0].as_f64().unwrap(), last[1].as_u64().unwrap());
+    assert_eq!(
+        value, 0,
+        "{what}: {joint}'s last torque write turned it on: {servo}"
+    );
+    if let Some(goal_t) = servo["last_goal_write_s"].as_f64() {
+        assert!(
+            goal_t <= t,
+            "{what}: {joint} got a goal at {goal_t} s after its last torque-off at {t} s"
+        );
+    }
+    assert_eq!(
+        servo["torque_enabled"], false,
+        "{what}: {joint} left energised"
+    );
 }

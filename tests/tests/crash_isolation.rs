@@ -16,7 +16,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
-use telemetry::frames::{EventKind, STATE_FLAG_SAFE_STATE};
+use telemetry::frames::{EventKind, SupervisorEvent, STATE_FLAG_SAFE_STATE};
 use telemetry::plane::{self, newest, next, publish, Plane};
 use telemetry::{GoalFrame, JointState};
 
@@ -24,6 +24,11 @@ static SERIAL: Mutex<()> = Mutex::new(());
 
 /// The driver's supervisor timeout (deploy/config/bus-driver.toml), ms.
 const HEARTBEAT_BOUND_MS: f64 = 50.0;
+/// What the design promises after a supervisor dies: the last heartbeat is at most one
+/// heartbeat period (5 ms) old at the kill, the driver declares it missing at the bound and
+/// applies the safe state in the cycle that sees it (5 ms): 60 ms. Every sample must come in
+/// under that plus 40 ms, the scheduling slack this shared two-core VM keeps.
+const REACTION_CEILING_MS: f64 = HEARTBEAT_BOUND_MS + 5.0 + 5.0 + 40.0;
 /// Joints of the left arm.
 const JOINTS: u32 = 8;
 /// The elbow's index in the frame.
@@ -93,14 +98,17 @@ fn killing_the_supervisor_puts_the_driver_in_its_safe_state_within_the_bound() {
             "MISSED"
         }
     );
-    // The safe state is the heartbeat's doing: it comes after the bound, and typically within
-    // a few cycles of it. (The hard ceiling only catches a broken timeout, not a slow VM.)
+    // The safe state is the heartbeat's doing: it comes after the bound, typically within two
+    // cycles of it, and every time within the ceiling.
     assert!(
         latencies_ms.iter().all(|&l| l >= HEARTBEAT_BOUND_MS - 5.0),
         "safe state before the bound: {latencies_ms:?}"
     );
-    assert!(p50 <= 2.0 * HEARTBEAT_BOUND_MS, "p50 {p50:.1} ms");
-    assert!(max <= 10.0 * HEARTBEAT_BOUND_MS, "max {max:.1} ms");
+    assert!(p50 <= HEARTBEAT_BOUND_MS + 15.0, "p50 {p50:.1} ms");
+    assert!(
+        max <= REACTION_CEILING_MS,
+        "max {max:.1} ms (ceiling {REACTION_CEILING_MS} ms): {latencies_ms:?}"
+    );
     drop((states, node));
     stack.stop();
 }
@@ -211,22 +219,30 @@ fn a_killed_driver_is_reported_and_restarts_without_a_jump_or_a_stale_goal() {
 }
 
 /// Random goals at 50 Hz, many outside the calibrated ranges and some NaN: a policy gone wrong.
+/// Each random target is held for 0.1–1.5 s, long enough for a joint to stall against the
+/// obstacle or squeeze the gripper's object, as a policy stuck on a bad plan does.
 fn wild_goals(domain: String, seed: u64, stop: Arc<AtomicBool>) -> std::thread::JoinHandle<u64> {
     std::thread::spawn(move || {
         let node = Plane::open(&domain, "wild-policy").unwrap();
         let goals = node.publisher(&plane::GOALS).unwrap();
         let mut rng = Rng::new(seed);
         let mut sent = 0;
+        let mut target = [0f32; JOINTS as usize];
+        let mut until = Instant::now();
         while !stop.load(Ordering::Relaxed) {
+            if Instant::now() >= until {
+                for p in &mut target {
+                    *p = rng.uniform(-4.0, 4.0) as f32;
+                }
+                until = Instant::now() + Duration::from_secs_f64(rng.uniform(0.1, 1.5));
+            }
             let mut g = GoalFrame {
                 joint_count: JOINTS,
                 mask: (1 << JOINTS) - 1,
                 timestamp_ns: monotonic_ns(),
                 ..GoalFrame::default()
             };
-            for p in &mut g.position_rad[..JOINTS as usize] {
-                *p = rng.uniform(-4.0, 4.0) as f32;
-            }
+            g.position_rad[..JOINTS as usize].copy_from_slice(&target);
             if rng.below(20) == 0 {
                 g.position_rad[rng.below(u64::from(JOINTS)) as usize] = f32::NAN;
             }
@@ -240,6 +256,24 @@ fn wild_goals(domain: String, seed: u64, stop: Arc<AtomicBool>) -> std::thread::
 
 const CHAOS_ROBOT: &str = "chaos-robot";
 
+/// How many events of each kind.
+fn event_counts(events: &[SupervisorEvent]) -> std::collections::BTreeMap<String, usize> {
+    let mut counts = std::collections::BTreeMap::new();
+    for e in events {
+        *counts.entry(format!("{:?}", e.kind())).or_default() += 1;
+    }
+    counts
+}
+
+/// Seeded chaos for `NORI_CHAOS_SECONDS` (default 120 s): the overheat, stall and grip set-ups
+/// all on the left arm, a wild policy, 0.5 % of the host's instructions dropped and 0.5 %
+/// corrupted on the line, and SIGKILLs of the supervisor, the driver and the fleet agent at
+/// random moments. Afterwards, from what the simulated servos received: no motor reached
+/// 60 °C, no goal outside a calibrated range reached the wire, the bus latched off by the
+/// thermal trip got no Torque_Enable = 1 and no goal after it was turned off (through every
+/// later restart), and every torque reduction the supervisor announced was holding on the
+/// servo within 100 ms (or was overtaken within that time by a kill, a restore or the bus
+/// going off, each counted).
 #[test]
 fn a_seeded_chaos_run_keeps_every_invariant() {
     let _turn = serial();
@@ -250,15 +284,32 @@ fn a_seeded_chaos_run_keeps_every_invariant() {
     let seconds: f64 = std::env::var("NORI_CHAOS_SECONDS")
         .ok()
         .and_then(|s| s.parse().ok())
-        .unwrap_or(30.0);
-    // A heavy payload and accelerated heating: the thermal interlock is in play while processes
-    // die around it.
+        .unwrap_or(120.0);
+    let fault_seed = (seed ^ 7).to_string();
+    // A heavy payload heating fast enough to trip mid-run, an obstacle and an object in the
+    // gripper: every protection is in play while processes die around it.
     let mut stack = ArmStack::start(
         "chaos",
-        &["--scenario", "overheat", "--thermal-speedup", "30"],
+        &[
+            "--scenario",
+            "overheat",
+            "--scenario",
+            "stall",
+            "--scenario",
+            "grip",
+            "--thermal-speedup",
+            "40",
+            "--instruction-drop-rate",
+            "0.005",
+            "--instruction-corrupt-rate",
+            "0.005",
+            "--fault-seed",
+            &fault_seed,
+        ],
     );
     let node = Plane::open(&stack.domain, "test").unwrap();
     let states = node.subscriber(&plane::JOINT_STATE).unwrap();
+    let events = node.subscriber(&plane::EVENTS).unwrap();
     let driver_beats = node.subscriber(&plane::DRIVER_HEARTBEAT).unwrap();
     let supervisor_beats = node.subscriber(&plane::SUPERVISOR_HEARTBEAT).unwrap();
     wait_for(Duration::from_secs(20), "driving", || {
@@ -283,17 +334,28 @@ fn a_seeded_chaos_run_keeps_every_invariant() {
     let mut rng = Rng::new(seed);
     let mut restarts = [0u32; 3];
     let mut back_ms = Vec::new();
+    // (monotonic ns, victim) of every kill; every supervisor event seen.
+    let mut kills: Vec<(u64, usize)> = Vec::new();
+    let mut seen: Vec<SupervisorEvent> = Vec::new();
+    let pause = |seen: &mut Vec<SupervisorEvent>, d: Duration| {
+        let until = Instant::now() + d;
+        while Instant::now() < until {
+            seen.extend(std::iter::from_fn(|| next(&events)));
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    };
     let start = Instant::now();
     while start.elapsed().as_secs_f64() < seconds {
-        std::thread::sleep(Duration::from_secs_f64(rng.uniform(0.2, 1.5)));
+        pause(&mut seen, Duration::from_secs_f64(rng.uniform(0.2, 1.5)));
         let victim = rng.below(3) as usize;
+        kills.push((monotonic_ns(), victim));
         match victim {
             0 => stack.supervisor.kill(),
             1 => stack.driver.kill(),
             _ => stack.agent.kill(),
         }
         // systemd's RestartSec, randomised.
-        std::thread::sleep(Duration::from_secs_f64(rng.uniform(0.0, 0.3)));
+        pause(&mut seen, Duration::from_secs_f64(rng.uniform(0.0, 0.3)));
         let restarted = Instant::now();
         let what = ["the supervisor", "the driver", "the fleet agent"][victim];
         let label = format!("{what} back after restart {}", restarts[victim] + 1);
@@ -318,10 +380,12 @@ fn a_seeded_chaos_run_keeps_every_invariant() {
         back_ms.push(restarted.elapsed().as_secs_f64() * 1e3);
         restarts[victim] += 1;
     }
+    pause(&mut seen, Duration::from_millis(200));
     stop.store(true, Ordering::Relaxed);
     let sent = policy.join().unwrap();
     drop((
         states,
+        events,
         driver_beats,
         supervisor_beats,
         node,
@@ -330,15 +394,136 @@ fn a_seeded_chaos_run_keeps_every_invariant() {
     ));
     let report = stack.stop();
     let hottest = check_left_arm_report(&report, 60.0);
+    let bus = &report["buses"][0];
+    let epoch = bus["epoch_monotonic_ns"].as_u64().unwrap();
+    let sim_s = |ns: u64| ns.saturating_sub(epoch) as f64 * 1e-9;
+    let line = &bus["line"]["faults"];
+    let (dropped, corrupted) = (
+        line["instructions_dropped"].as_u64().unwrap(),
+        line["instructions_corrupted"].as_u64().unwrap(),
+    );
+
+    // The latch: from the torque-off that followed the first trip, nothing turned a servo of
+    // the bus on or sent it a goal, through every restart to the end of the run.
+    let trip = seen
+        .iter()
+        .find(|e| e.kind() == Some(EventKind::ThermalTrip));
+    let off_at = trip.and_then(|trip| {
+        bus["torque_off_broadcasts_s"]
+            .as_array()?
+            .iter()
+            .filter_map(serde_json::Value::as_f64)
+            .find(|&t| t >= sim_s(trip.timestamp_ns))
+    });
+    let mut writes_to_latched = 0;
+    for servo in bus["servos"].as_array().unwrap() {
+        let after = |key: &str| {
+            servo[key]
+                .as_f64()
+                .is_some_and(|t| off_at.is_some_and(|off| t > off))
+        };
+        if after("last_goal_write_s") || after("last_torque_on_s") {
+            writes_to_latched += 1;
+            eprintln!("written after the latch at {off_at:?} s: {servo}");
+        }
+    }
+
+    // Torque reductions: the servo holds the reduced limit within 100 ms of the announcement.
+    let config = bus_driver::LoadedConfig::embedded().unwrap();
+    let ids: Vec<u64> = config.config.bus[0]
+        .servo
+        .iter()
+        .map(|s| u64::from(s.id))
+        .collect();
+    let changes: Vec<(f64, u64, f64)> = bus["torque_limit_changes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| {
+            (
+                c["t_s"].as_f64().unwrap(),
+                c["id"].as_u64().unwrap(),
+                c["permille"].as_f64().unwrap(),
+            )
+        })
+        .collect();
+    let (mut confirmed, mut overtaken, mut late) = (Vec::new(), 0, Vec::new());
+    for e in seen
+        .iter()
+        .filter(|e| e.kind() == Some(EventKind::TorqueReduced))
+    {
+        let (t, id, limit) = (
+            sim_s(e.timestamp_ns),
+            ids[e.joint as usize],
+            f64::from(e.value) * 10.0,
+        );
+        let in_force = changes
+            .iter()
+            .rfind(|c| c.1 == id && c.0 <= t)
+            .is_some_and(|c| c.2 <= limit + 0.5);
+        let landed = changes
+            .iter()
+            .find(|c| c.1 == id && c.0 >= t - 0.005 && c.0 <= t + 0.1 && c.2 <= limit + 0.5);
+        if in_force {
+            confirmed.push(0.0);
+        } else if let Some(c) = landed {
+            confirmed.push((c.0 - t).max(0.0) * 1e3);
+        } else {
+            let window =
+                |ns: u64| ns + 100_000_000 >= e.timestamp_ns && ns <= e.timestamp_ns + 100_000_000;
+            let killed = kills.iter().any(|&(ns, victim)| victim < 2 && window(ns));
+            let superseded = seen.iter().any(|o| {
+                o.timestamp_ns >= e.timestamp_ns
+                    && o.timestamp_ns <= e.timestamp_ns + 100_000_000
+                    && match o.kind() {
+                        Some(EventKind::TorqueRestored) => o.joint == e.joint,
+                        Some(
+                            EventKind::ThermalTrip
+                            | EventKind::FirmwareProtection
+                            | EventKind::OutputLost
+                            | EventKind::DriverTrip,
+                        ) => true,
+                        _ => false,
+                    }
+            });
+            if killed || superseded {
+                overtaken += 1;
+            } else {
+                late.push((e.joint, t, limit));
+            }
+        }
+    }
     eprintln!(
         "chaos seed {seed:#x}, {seconds} s: {} supervisor, {} driver and {} fleet-agent kills, every restart back \
-         (p50 {:.0} ms, max {:.0} ms to the first heartbeat, or telemetry from the agent), {sent} wild goal frames, hottest \
-         motor {hottest:.1} °C, no goal outside a calibrated range on the wire",
+         (p50 {:.0} ms, max {:.0} ms to the first heartbeat, or telemetry from the agent), {sent} wild goal frames; \
+         host instructions dropped {dropped}, corrupted {corrupted}; hottest motor {hottest:.1} °C, no goal outside a \
+         calibrated range on the wire; trip at {:?} s (bus off at {off_at:?} s), {writes_to_latched} servos written \
+         after the latch; events {:?}; \
+         {} torque reductions holding on the servo (p50 {:.1} ms, max {:.1} ms), {overtaken} overtaken within 100 ms, \
+         {} late",
         restarts[0],
         restarts[1],
         restarts[2],
         quantile(&back_ms, 0.5),
-        quantile(&back_ms, 1.0)
+        quantile(&back_ms, 1.0),
+        trip.map(|t| sim_s(t.timestamp_ns)),
+        event_counts(&seen),
+        confirmed.len(),
+        quantile(&confirmed, 0.5),
+        quantile(&confirmed, 1.0),
+        late.len()
     );
     assert!(restarts.iter().all(|&n| n >= 1), "{restarts:?}");
+    assert!(
+        dropped > 0 && corrupted > 0,
+        "the line faults were injected"
+    );
+    assert!(trip.is_some(), "the overheat set-up never tripped the bus");
+    assert!(off_at.is_some(), "the trip did not turn the bus off");
+    assert_eq!(writes_to_latched, 0, "a latched bus was written to");
+    assert!(!confirmed.is_empty(), "no torque reduction was exercised");
+    assert!(
+        late.is_empty(),
+        "reductions not holding within 100 ms: {late:?}"
+    );
 }

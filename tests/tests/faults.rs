@@ -281,11 +281,7 @@ fn corrupted_replies_a_silent_servo_and_an_unplugged_bus() {
         );
         assert!(bus["line"]["faults"]["flipped"].as_u64().unwrap() > 0);
         for servo in bus["servos"].as_array().unwrap() {
-            assert!(
-                servo["torque_off_writes"].as_u64().unwrap() > 0,
-                "{} left energised",
-                servo["joint"]
-            );
+            nori_tests::assert_left_off(servo, "driver stopped");
         }
     }
 }

@@ -67,9 +67,11 @@ fn safe_state_follows_the_supervisor_and_a_lost_driver_is_reported() {
     });
     let reaction_ms = (safe.timestamp_ns.saturating_sub(killed_at)) as f64 * 1e-6;
     eprintln!("safe state {reaction_ms:.1} ms after the supervisor was killed (bound 50 ms)");
+    // The bound (50 ms) after a heartbeat at most 5 ms old, applied in the next 5 ms cycle,
+    // plus 40 ms of this shared VM's scheduling slack (see crash_isolation.rs).
     assert!(
-        reaction_ms < 1000.0,
-        "safe state only after {reaction_ms} ms"
+        (45.0..=100.0).contains(&reaction_ms),
+        "safe state after {reaction_ms} ms (bound 50 ms, ceiling 100 ms)"
     );
 
     // In the safe state goals are refused: the elbow does not move.

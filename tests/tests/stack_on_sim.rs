@@ -173,11 +173,7 @@ fn sixteen_servos_follow_goals_and_nothing_outside_a_range_reaches_the_wire() {
                 cal.range_min,
                 cal.range_max
             );
-            assert!(
-                servo["torque_off_writes"].as_u64().unwrap() >= 1,
-                "{} left energised",
-                servo_config.joint
-            );
+            nori_tests::assert_left_off(servo, "stack stopped");
             assert!(servo["max_temperature_c"].as_f64().unwrap() < 60.0);
             checked += 1;
         }

@@ -1,0 +1,227 @@
+//! A bus a trip has latched off stays off from the moment the driver starts, whatever the start
+//! order of the processes, whether a supervisor is up at all, and in either safe state: the
+//! simulated servos (which log every write they receive) get no Torque_Enable = 1 and no goal
+//! until the operator's re-enable is granted. Then the bus comes back.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use nori_tests::{binary, scratch, wait_for, Proc};
+use serde_json::Value;
+use std::path::Path;
+use std::process::Command;
+use std::time::Duration;
+use telemetry::frames::{JOINT_FLAG_BUS_DISABLED, STATE_FLAG_SAFE_STATE};
+use telemetry::plane::{self, newest, Plane};
+
+#[derive(Clone, Copy, PartialEq, Debug)]
+enum Start {
+    SupervisorFirst,
+    DriverFirst,
+    NoSupervisor,
+}
+
+struct Run {
+    report: Value,
+    trips: String,
+}
+
+/// The left arm latched in the trip record before anything starts; the processes started in
+/// `order`; 1.5 s of running (with a supervisor: 1.5 s after it directs the driver); then, if
+/// `reenable`, the operator's re-enable and the bus's return.
+fn run(tag: &str, order: Start, torque_off: bool, reenable: bool) -> Run {
+    let dir = scratch(tag);
+    let domain = format!("nori_{tag}_{}", std::process::id()).replace('-', "_");
+    let dev = dir.join("dev");
+    let trips = dir.join("trips");
+    std::fs::write(&trips, "left_shoulder_pitch\nleft_gripper\n").unwrap();
+    let report = dir.join("sim-report.json");
+    let mut sim = Proc::spawn(
+        "simulator",
+        &binary("nori"),
+        &[
+            "sim",
+            "serve",
+            "--bus",
+            "left_arm",
+            "--dir",
+            dev.to_str().unwrap(),
+            "--report",
+            report.to_str().unwrap(),
+        ],
+        &dir.join("sim.log"),
+    );
+    let mut driver_args = vec![
+        "--bus".to_string(),
+        "left_arm".into(),
+        "--device-dir".into(),
+        dev.display().to_string(),
+        "--domain".into(),
+        domain.clone(),
+        "--status-every".into(),
+        "0".into(),
+        "--trip-file".into(),
+        trips.display().to_string(),
+    ];
+    if torque_off {
+        let config = dir.join("bus-driver.toml");
+        let text = bus_driver::config::DEFAULT_CONFIG_TOML
+            .replace("safe-state = \"hold\"", "safe-state = \"torque-off\"");
+        assert!(text.contains("torque-off"));
+        std::fs::write(&config, text).unwrap();
+        driver_args.extend(["--config".into(), config.display().to_string()]);
+    }
+    let start_supervisor = || {
+        Proc::spawn(
+            "supervisor",
+            &binary("supervisor"),
+            &[
+                "--domain",
+                &domain,
+                "--status-every",
+                "0",
+                "--trip-file",
+                trips.to_str().unwrap(),
+            ],
+            &dir.join("supervisor.log"),
+        )
+    };
+    let start_driver = || {
+        let args: Vec<&str> = driver_args.iter().map(String::as_str).collect();
+        Proc::spawn(
+            "bus-driver",
+            &binary("bus-driver"),
+            &args,
+            &dir.join("driver.log"),
+        )
+    };
+    let node = Plane::open(&domain, "test").unwrap();
+    let states = node.subscriber(&plane::JOINT_STATE).unwrap();
+    let (mut supervisor, mut driver) = match order {
+        Start::SupervisorFirst => {
+            let s = start_supervisor();
+            std::thread::sleep(Duration::from_millis(300));
+            (s, start_driver())
+        }
+        Start::DriverFirst | Start::NoSupervisor => {
+            let d = start_driver();
+            // Running and reading its servos before anything else is there.
+            wait_for(Duration::from_secs(20), "the driver's first frames", || {
+                newest(&states).filter(|s| s.joints().iter().all(|j| j.is_valid()))
+            });
+            std::thread::sleep(Duration::from_millis(500));
+            let s = if order == Start::DriverFirst {
+                start_supervisor()
+            } else {
+                Proc::none("supervisor")
+            };
+            (s, d)
+        }
+    };
+    let off = |s: &telemetry::JointState| {
+        s.joint_count == 8
+            && s.joints()
+                .iter()
+                .all(|j| j.is_valid() && j.flags & JOINT_FLAG_BUS_DISABLED != 0)
+    };
+    if order == Start::NoSupervisor {
+        wait_for(Duration::from_secs(20), "the bus read, off", || {
+            newest(&states).filter(off)
+        });
+    } else {
+        wait_for(Duration::from_secs(20), "the supervisor directing", || {
+            newest(&states).filter(|s| off(s) && s.flags & STATE_FLAG_SAFE_STATE == 0)
+        });
+    }
+    std::thread::sleep(Duration::from_millis(1500));
+    if reenable {
+        let out = Command::new(binary("nori"))
+            .args(["reenable", "left_arm", "--domain", &domain])
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "re-enable refused: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        wait_for(Duration::from_secs(20), "the bus back, torque on", || {
+            newest(&states).filter(|s| {
+                s.joints()
+                    .iter()
+                    .all(|j| j.is_valid() && j.torque_enabled == 1 && j.flags == 0)
+            })
+        });
+    }
+    let trips_text = std::fs::read_to_string(&trips).unwrap_or_default();
+    drop((states, node));
+    driver.terminate(Duration::from_secs(5));
+    if supervisor.running() {
+        supervisor.terminate(Duration::from_secs(5));
+    }
+    sim.terminate(Duration::from_secs(5));
+    telemetry::plane::Plane::remove_unused_domain(&domain).unwrap();
+    let report = read_report(&report);
+    Run {
+        report,
+        trips: trips_text,
+    }
+}
+
+fn read_report(path: &Path) -> Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+/// Every servo of the left arm: no Torque_Enable = 1 and no goal ever received.
+fn assert_never_energised(r: &Run, what: &str) {
+    for s in r.report["buses"][0]["servos"].as_array().unwrap() {
+        assert_eq!(
+            (s["torque_on_writes"].as_u64(), s["goal_writes"].as_u64()),
+            (Some(0), Some(0)),
+            "{what}: {} received torque-on or goal writes while latched off: {s}",
+            s["joint"]
+        );
+        assert_eq!(s["torque_enabled"], false, "{what}: {}", s["joint"]);
+    }
+    assert!(
+        r.trips.contains("left_shoulder_pitch"),
+        "{what}: the latch was dropped from the record: {:?}",
+        r.trips
+    );
+}
+
+#[test]
+fn a_latched_bus_gets_no_torque_when_the_supervisor_starts_first() {
+    let r = run("latch-sup-first", Start::SupervisorFirst, false, false);
+    assert_never_energised(&r, "supervisor first, hold");
+}
+
+#[test]
+fn a_latched_bus_gets_no_torque_when_the_driver_starts_first() {
+    let r = run("latch-drv-first", Start::DriverFirst, false, false);
+    assert_never_energised(&r, "driver first, hold");
+}
+
+#[test]
+fn a_latched_bus_gets_no_torque_without_any_supervisor() {
+    let r = run("latch-no-sup", Start::NoSupervisor, false, false);
+    assert_never_energised(&r, "no supervisor, hold");
+}
+
+#[test]
+fn a_latched_bus_gets_no_torque_in_the_torque_off_safe_state() {
+    let r = run("latch-torque-off", Start::DriverFirst, true, false);
+    assert_never_energised(&r, "driver first, torque-off");
+}
+
+/// Released by the operator: the record is cleared first, then the driver brings the bus up.
+#[test]
+fn the_operators_reenable_releases_the_latch_and_the_bus_comes_back() {
+    let r = run("latch-release", Start::SupervisorFirst, false, true);
+    assert_eq!(r.trips.trim(), "", "the record no longer latches the bus");
+    for s in r.report["buses"][0]["servos"].as_array().unwrap() {
+        assert!(
+            s["torque_on_writes"].as_u64().unwrap() >= 1,
+            "{} not set up again: {s}",
+            s["joint"]
+        );
+    }
+}
