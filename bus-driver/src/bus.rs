@@ -183,13 +183,16 @@ impl<T: Transport> Bus<T> {
     }
 
     /// Collects the reply to [`Bus::request_read`] into `out` (which must hold `len` bytes):
-    /// `Some(status)` if it arrived intact in time, `None` if not.
-    pub fn collect_read(&mut self, out: &mut [u8]) -> Result<Option<ServoStatus>, BusError> {
+    /// `Some(status)` if it arrived intact within its wire time plus `margin`, `None` if not.
+    pub fn collect_read(
+        &mut self,
+        out: &mut [u8],
+        margin: Duration,
+    ) -> Result<Option<ServoStatus>, BusError> {
         let Some((sent, id, len)) = self.read_sent.take() else {
             return Ok(None);
         };
-        let bytes = READ_REQUEST_BYTES + status_bytes(usize::from(len));
-        let deadline = sent + wire_time(bytes, self.transport.baud()) + self.margin;
+        let deadline = sent + read_time(len, self.transport.baud()) + margin;
         let mut got = None;
         self.collect_until(deadline, |counters, status| {
             match out.get_mut(..usize::from(len)) {
@@ -393,6 +396,11 @@ impl<T: Transport> Bus<T> {
 
 /// Bytes of a READ request: header, id, length, instruction, address, count, checksum.
 const READ_REQUEST_BYTES: usize = 8;
+
+/// Wire time of a READ of `len` bytes and its reply at `baud`.
+pub fn read_time(len: u8, baud: u32) -> Duration {
+    wire_time(READ_REQUEST_BYTES + status_bytes(usize::from(len)), baud)
+}
 
 /// Attempts of a unicast transaction before the servo is declared unreachable.
 pub const UNICAST_ATTEMPTS: usize = 3;

@@ -65,16 +65,46 @@ mod tests {
         assert!(!w.update(0.3, 0.0, 0.0), "reported once");
         w.update(0.3, 0.4, 1.0);
         assert!(!w.lost, "output came back");
+        // A reset (torque turned off or on by the driver) forgets the count.
+        for _ in 1..CONFIRM_CYCLES {
+            w.update(0.3, 0.0, 0.0);
+        }
+        w.reset();
+        assert!(
+            !w.update(0.3, 0.0, 0.0),
+            "counting starts again after a reset"
+        );
+        for _ in 0..CONFIRM_CYCLES {
+            w.update(0.3, 0.0, 0.0);
+        }
+        w.reset();
+        assert!(!w.lost, "a reset clears the verdict");
     }
 
     #[test]
     fn at_the_goal_or_driving_is_not_a_cutoff() {
-        let mut w = CutoffWatch::default();
-        for _ in 0..100 {
-            assert!(!w.update(0.01, 0.0, 0.0), "resting at its goal");
-            assert!(!w.update(0.3, 0.5, 1.2), "driving toward its goal");
-            assert!(!w.update(-0.3, 0.0, 0.5), "current still flows");
-            assert!(!w.update(0.3, -0.2, 0.0), "load still there");
+        // Each case alone, for twice the confirmation: any one of the three conditions missing
+        // is enough to rule the cutoff out.
+        for (what, error, load, current) in [
+            ("resting at its goal", 0.01, 0.0, 0.0),
+            ("just inside the goal band", MIN_ERROR_RAD - 1e-4, 0.0, 0.0),
+            ("driving toward its goal", 0.3, 0.5, 1.2),
+            ("current still flows", -0.3, 0.0, 0.5),
+            ("load still there", 0.3, -0.2, 0.0),
+            ("load at the threshold", 0.3, MAX_LOAD, 0.0),
+            ("current at the threshold", 0.3, 0.0, MAX_CURRENT_A),
+        ] {
+            let mut w = CutoffWatch::default();
+            for _ in 0..2 * CONFIRM_CYCLES {
+                assert!(!w.update(error, load, current), "{what}");
+            }
+            assert!(!w.lost, "{what}");
         }
+        // Just past every threshold it is one.
+        let mut w = CutoffWatch::default();
+        for _ in 0..CONFIRM_CYCLES {
+            w.update(MIN_ERROR_RAD, MAX_LOAD * 0.99, MAX_CURRENT_A * 0.99);
+        }
+        assert!(w.lost);
     }
 }

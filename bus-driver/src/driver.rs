@@ -241,13 +241,15 @@ pub struct Driver<T: Transport> {
     /// Cycles between attempts to reopen a lost device.
     reopen_every: u64,
     /// Cycles between background read-backs (one servo per bus each).
-    verify_every: u64,
+    read_back_every: u64,
     /// Slack after a reply's wire time before it is missing.
     reply_margin: std::time::Duration,
+    /// The background read-back runs (off only to measure what it costs).
+    background_read_back: bool,
     /// Per bus: the next joint (offset in the bus) a background read-back looks at, and the
-    /// joint being read back this cycle.
-    verify_cursor: Vec<usize>,
-    verify_now: Vec<Option<usize>>,
+    /// joint whose read-back was requested and not yet collected.
+    read_back_cursor: Vec<usize>,
+    read_back_now: Vec<Option<usize>>,
     /// No setup before this cycle (one slow setup at a time, spaced out).
     next_setup_any: u64,
     next_retry: usize,
@@ -344,10 +346,11 @@ impl<T: Transport> Driver<T> {
             lost_after: (c.rate_hz / 5.0).round().max(2.0) as u32,
             reopen_every: (c.rate_hz / 10.0).round().max(1.0) as u64,
             // Every 20 ms: each of 8 servos confirmed every 160 ms at rest.
-            verify_every: (c.rate_hz / 50.0).round().max(1.0) as u64,
+            read_back_every: (c.rate_hz / 50.0).round().max(1.0) as u64,
             reply_margin: margin,
-            verify_cursor: vec![0; c.bus.len()],
-            verify_now: vec![None; c.bus.len()],
+            background_read_back: true,
+            read_back_cursor: vec![0; c.bus.len()],
+            read_back_now: vec![None; c.bus.len()],
             next_setup_any: 0,
             next_retry: 0,
             counters: DriverCounters::default(),
@@ -829,6 +832,9 @@ impl<T: Transport> Driver<T> {
     /// and missing) and reopened every 100 ms; a servo, or a whole bus, silent for 200 ms is
     /// taken off (the safe state applied to it) and set up again once it answers.
     pub fn cycle(&mut self) -> &JointState {
+        // The replies to the read-backs requested in the last period's idle time have had that
+        // time to arrive: take them before anything else is sent on the buses.
+        self.collect_read_backs(std::time::Duration::ZERO);
         let now_s = telemetry::clock::monotonic_ns() as f64 * 1e-9;
         for b in &mut self.buses {
             b.failed = !b.connected || b.bus.request_feedback(&b.ids).is_err();
@@ -901,7 +907,9 @@ impl<T: Transport> Driver<T> {
                 self.write_torque_limits(bi);
             }
         }
-        self.read_back(false);
+        if self.request_read_backs(false) {
+            self.collect_read_backs(self.read_back_margin());
+        }
         self.reopen_lost();
         self.retry_setup();
         self.counters.cycles += 1;
@@ -1019,18 +1027,17 @@ impl<T: Transport> Driver<T> {
         }
     }
 
-    /// Reads back, on each bus, one servo whose wanted safety settings are not confirmed yet
-    /// (they changed: the write went out this cycle or earlier and may have been lost). Part of
-    /// every cycle; rare, since wanted settings rarely change.
-    ///
-    /// [`Driver::read_back_in_turn`] is the background pass the loop runs in its idle time.
-    /// Only servos that answered this cycle's feedback read are read back, so a silent servo
-    /// costs no wait. All buses' reads are started before any is collected.
-    fn read_back(&mut self, in_turn: bool) {
+    /// Requests, on each bus, the read-back of one servo: with `in_turn`, the next one in turn;
+    /// otherwise one whose wanted safety settings are not confirmed yet (they changed: the write
+    /// went out this cycle or earlier and may have been lost), which is part of every cycle and
+    /// rare. Only servos that answered this cycle's feedback read are read back, so a silent
+    /// servo costs no wait. All buses' reads are started before any is collected. Returns
+    /// whether any was requested.
+    fn request_read_backs(&mut self, in_turn: bool) -> bool {
+        let mut any = false;
         for bi in 0..self.buses.len() {
-            self.verify_now[bi] = None;
             let b = &self.buses[bi];
-            if !b.connected || b.failed {
+            if !b.connected || b.failed || self.read_back_now[bi].is_some() {
                 continue;
             }
             let n = b.ids.len();
@@ -1039,51 +1046,67 @@ impl<T: Transport> Driver<T> {
                 let j = b.first_joint + k;
                 self.joints[j].confirmed != Some(self.want(j))
             };
-            let start = self.verify_cursor[bi];
+            let start = self.read_back_cursor[bi];
             let pick = (0..n)
                 .map(|i| (start + i) % n)
                 .find(|&k| answered(k) && (in_turn || unconfirmed(k)));
             let Some(k) = pick else { continue };
             let (id, j) = (b.ids[k], b.first_joint + k);
-            self.verify_cursor[bi] = (k + 1) % n;
+            self.read_back_cursor[bi] = (k + 1) % n;
             if self.buses[bi]
                 .bus
                 .request_read(id, reg::SAFETY_ADDR, reg::SAFETY_LEN)
                 .is_ok()
             {
-                self.verify_now[bi] = Some(j);
+                self.read_back_now[bi] = Some(j);
+                any = true;
             }
         }
+        any
+    }
+
+    /// Collects the read-backs requested, waiting at most `margin` past each reply's wire time,
+    /// and holds each against what its servo must hold.
+    fn collect_read_backs(&mut self, margin: std::time::Duration) {
         for bi in 0..self.buses.len() {
-            let Some(j) = self.verify_now[bi] else {
+            let Some(j) = self.read_back_now[bi].take() else {
                 continue;
             };
             let mut raw = [0u8; reg::SAFETY_LEN as usize];
-            let block = match self.buses[bi].bus.collect_read(&mut raw) {
+            let block = match self.buses[bi].bus.collect_read(&mut raw, margin) {
                 Ok(Some(_)) => reg::SafetyBlock::parse(&raw),
                 _ => None,
             };
             match block {
                 Some(block) => {
-                    self.buses[bi].bus.counters.verifies += 1;
+                    self.buses[bi].bus.counters.read_backs += 1;
                     self.check_safety(bi, j, &block);
                 }
-                None => self.buses[bi].bus.counters.verify_missing += 1,
+                None => self.buses[bi].bus.counters.read_back_missing += 1,
             }
         }
     }
 
-    /// The background pass: every `verify_every` cycles, reads back the next servo of each bus in
-    /// turn, confirmed or not (a servo reset, or a write corrupted into another value that the
-    /// checksum let through). The loop calls it only when the rest of the period can take
-    /// [`Driver::read_back_cost`], so it never costs the loop its rate: it uses idle time.
+    /// The background pass: every `read_back_every` cycles, requests the read-back of the next
+    /// servo of each bus in turn, confirmed or not (a servo reset, or a write corrupted into
+    /// another value that the checksum let through). It does not wait: the replies are taken at
+    /// the start of the next cycle. The loop calls it in its idle time, when the rest of the
+    /// period can carry the exchange ([`Driver::read_back_cost`]), so it never costs the loop
+    /// a wait and a reply never meets the next cycle's transaction on the line.
     pub fn read_back_in_turn(&mut self) {
-        if self.counters.cycles.is_multiple_of(self.verify_every) {
-            self.read_back(true);
+        if self.background_read_back && self.counters.cycles.is_multiple_of(self.read_back_every) {
+            self.request_read_backs(true);
         }
     }
 
-    /// The longest one read-back pass can take: its wire time plus the reply margin.
+    /// Turns the background read-back off or on (it is on; `nori bench driver-rate` turns it
+    /// off for the baseline it measures its cost against). The read-back of changed settings
+    /// is part of every cycle and stays.
+    pub fn set_background_read_back(&mut self, on: bool) {
+        self.background_read_back = on;
+    }
+
+    /// The longest one read-back pass can take: its wire time plus its reply margin.
     pub fn read_back_cost(&self) -> std::time::Duration {
         let slowest = self
             .buses
@@ -1091,8 +1114,13 @@ impl<T: Transport> Driver<T> {
             .map(|b| b.bus.baud())
             .min()
             .unwrap_or(1_000_000);
-        let bytes = 8 + feetech::timing::status_bytes(usize::from(reg::SAFETY_LEN));
-        feetech::timing::wire_time(bytes, slowest) + self.reply_margin
+        crate::bus::read_time(reg::SAFETY_LEN, slowest) + self.read_back_margin()
+    }
+
+    /// How long an in-cycle read-back's reply is waited for beyond its wire time: a quarter of
+    /// the feedback's margin (a later reply is no loss: the servo is read again next cycle).
+    fn read_back_margin(&self) -> std::time::Duration {
+        self.reply_margin / 4
     }
 
     /// Holds a read-back against what joint `j` must hold; what differs is re-sent at once and

@@ -88,12 +88,12 @@ pub fn run<T: Transport>(
     // A directive of the live supervisor has been applied since it was (last) heard again.
     let mut directed = false;
     let mut directives_refused = false;
-    // The trip record is read again at most this often while a directive asks to release a
-    // latched bus (a failed release must not read the disk every cycle).
-    let latch_every = ((0.1 / period.as_secs_f64().max(1e-6)).round() as u64).max(1);
+    // Cycles in 100 ms: how often bus health is published, and how often at most the trip
+    // record is read again while a directive asks to release a latched bus (a release the
+    // record refuses must not read the disk every cycle).
+    let every_100ms = ((0.1 / period.as_secs_f64().max(1e-6)).round() as u64).max(1);
     let mut next_latch_read = 0u64;
     let mut health = BusHealth::default();
-    let health_every = ((0.1 / period.as_secs_f64().max(1e-6)).round() as u64).max(1);
     while !shutdown.load(Ordering::Relaxed) && max_cycles.is_none_or(|m| driver.counters.cycles < m)
     {
         let now = monotonic_ns();
@@ -114,7 +114,7 @@ pub fn run<T: Transport>(
                         if driver.latch_release_pending(&d)
                             && driver.counters.cycles >= next_latch_read
                         {
-                            next_latch_read = driver.counters.cycles + latch_every;
+                            next_latch_read = driver.counters.cycles + every_100ms;
                             match io.latched_joints() {
                                 Ok(joints) => {
                                     driver.set_latch(&joints);
@@ -170,7 +170,7 @@ pub fn run<T: Transport>(
         }
         let state = driver.cycle();
         io.publish(state);
-        if driver.counters.cycles % health_every == 1 || health_every == 1 {
+        if driver.counters.cycles % every_100ms == 1 || every_100ms == 1 {
             driver.health(&mut health);
             io.publish_health(&health);
         }

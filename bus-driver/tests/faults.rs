@@ -22,8 +22,8 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use telemetry::clock::monotonic_ns;
 use telemetry::frames::{
-    BusHealth, Directives, BUS_HEALTH_DRIVER_TRIP, BUS_HEALTH_ENABLED, JOINT_FLAG_BUS_LOST,
-    JOINT_FLAG_DRIVER_TRIP,
+    BusHealth, Directives, BUS_HEALTH_DRIVER_TRIP, BUS_HEALTH_ENABLED, BUS_HEALTH_LATCHED,
+    JOINT_FLAG_BUS_LOST, JOINT_FLAG_DRIVER_TRIP, STATE_FLAG_SAFE_STATE,
 };
 use telemetry::GoalFrame;
 
@@ -278,10 +278,10 @@ fn one_percent_corrupted_replies_never_publish_a_wrong_value() {
     // corrupted read-back of safety settings is a read-back missing: together at least as many
     // as faults injected (setup's few unicast replies aside); a corrupted packet may take its
     // successor.
-    let verify_missing: u64 = h.buses().iter().map(|b| b.counters.verify_missing).sum();
+    let read_back_missing: u64 = h.buses().iter().map(|b| b.counters.read_back_missing).sum();
     assert!(
-        missing as u64 + verify_missing + 20 >= injected.total(),
-        "{missing} + {verify_missing} < {injected:?}"
+        missing as u64 + read_back_missing + 20 >= injected.total(),
+        "{missing} + {read_back_missing} < {injected:?}"
     );
     assert!((missing as u64) <= 3 * injected.total() + 5);
     assert_eq!(counted, missing as u64, "missing samples are counted");
@@ -781,6 +781,7 @@ fn a_disabled_bus_whose_torque_off_was_lost_is_turned_off() {
         rig.torque_on(1).iter().all(|&on| on),
         "the other buses untouched"
     );
+    assert_eq!(rig.driver.counters.bus_disables, 1);
     assert!(rig.health().buses[0].counters.safety_mismatches >= 8);
 }
 
@@ -920,6 +921,9 @@ fn a_latched_bus_gets_no_torque_until_the_record_releases_it() {
     assert_eq!(rig.torque_on(1), [false; 8]);
     let d = directives(0b111, &[]);
     assert!(rig.driver.latch_release_pending(&d));
+    // Only a directive that would turn the latched bus on asks for the record again.
+    assert!(!rig.driver.latch_release_pending(&directives(0b101, &[])));
+    assert!(!rig.driver.latch_release_pending(&directives(0b000, &[])));
     rig.driver.apply_directives(&d).unwrap();
     for _ in 0..40 {
         rig.cycle();
@@ -930,10 +934,27 @@ fn a_latched_bus_gets_no_torque_until_the_record_releases_it() {
         "a directive alone releases nothing"
     );
     assert_eq!(rig.driver.set_latch(&[]), 0);
+    assert!(!rig.driver.latch_release_pending(&d), "nothing latched");
     for _ in 0..200 {
         rig.cycle();
     }
     assert!(rig.torque_on(1).iter().all(|&on| on));
+    // A record that cannot be read latches everything: an unknown latch is kept.
+    rig.driver.latch_all();
+    for _ in 0..20 {
+        rig.cycle();
+    }
+    for bus in 0..3 {
+        assert!(
+            rig.torque_on(bus).iter().all(|&on| !on),
+            "bus {bus} still on"
+        );
+    }
+    assert!(rig
+        .health()
+        .buses()
+        .iter()
+        .all(|b| b.flags & BUS_HEALTH_LATCHED != 0 && b.flags & BUS_HEALTH_ENABLED == 0));
 }
 
 /// A supervisor seen through the loop's eyes: heartbeats stamped `beat_age_ns` before they are
@@ -1002,11 +1023,12 @@ fn the_safe_state_is_left_only_for_a_live_supervisor_whose_directives_were_appli
         directives: Some(wrong),
     });
     assert!(safe, "directives the driver refuses");
-    let (safe, _) = run(&mut FakeSupervisor {
+    let (safe, counters) = run(&mut FakeSupervisor {
         beat_age_ns: 1_000_000,
         directives: good,
     });
     assert!(!safe, "a live supervisor directing");
+    assert_eq!(counters.safe_state_entries, 0);
 }
 
 /// An arm that sagged while held at the hold torque is held where it is when the supervisor
@@ -1039,7 +1061,11 @@ fn leaving_the_hold_safe_state_re_holds_where_the_arm_is() {
     rig.cycle();
     rig.cycle();
     rig.driver.leave_safe_state(monotonic_ns());
-    rig.cycle();
+    assert_eq!(
+        rig.cycle().flags & STATE_FLAG_SAFE_STATE,
+        0,
+        "frames say it has left"
+    );
     let present = rig.buses[0]
         .lock()
         .unwrap()
@@ -1052,4 +1078,72 @@ fn leaving_the_hold_safe_state_re_holds_where_the_arm_is() {
         "held at {held}, the arm is at {present} (frozen at {frozen})"
     );
     assert!((frozen - present).abs() > 150, "the sag was real");
+}
+
+/// The background pass finds what changed behind the driver's back on a servo whose settings
+/// were already confirmed (a reset to EEPROM defaults, a write corrupted into another value
+/// that the checksum let through): every servo of every bus is read in turn, and the wrong
+/// limit is re-sent.
+#[test]
+fn the_background_read_back_finds_a_limit_changed_behind_the_drivers_back() {
+    let mut rig = rig(None, SafeState::Hold);
+    for _ in 0..20 {
+        rig.cycle();
+        rig.driver.read_back_in_turn();
+    }
+    let before = rig.health();
+    // Servo 6 of each arm and a wheel suddenly hold another limit; nothing the driver wanted
+    // changed, so only the background pass can notice.
+    for (bus, id) in [(0, 6), (1, 6), (2, 2)] {
+        let mut b = rig.buses[bus].lock().unwrap();
+        b.servo_mut(id)
+            .unwrap()
+            .write(reg::TORQUE_LIMIT.addr, &1000u16.to_le_bytes());
+    }
+    // Every 4 cycles one servo per bus: the 8 of a bus within 32 cycles.
+    for _ in 0..40 {
+        rig.cycle();
+        rig.driver.read_back_in_turn();
+    }
+    for (bus, id) in [(0, 6), (1, 6), (2, 2)] {
+        assert_eq!(
+            rig.torque_limit(bus, id),
+            800,
+            "bus {bus} servo {id} not repaired"
+        );
+    }
+    let after = rig.health();
+    for b in 0..3 {
+        let (was, now) = (before.buses[b].counters, after.buses[b].counters);
+        assert!(now.safety_mismatches > was.safety_mismatches, "bus {b}");
+        assert!(
+            now.read_backs >= was.read_backs + 8,
+            "bus {b}: every servo read back"
+        );
+    }
+    // Repaired and confirmed: servos that hold what is wanted are read on, never re-sent to.
+    for _ in 0..40 {
+        rig.cycle();
+        rig.driver.read_back_in_turn();
+    }
+    let settled = rig.health();
+    for b in 0..3 {
+        assert_eq!(
+            settled.buses[b].counters.safety_mismatches, after.buses[b].counters.safety_mismatches,
+            "bus {b}: a servo holding its settings counted as a mismatch"
+        );
+    }
+    // A servo that drops its torque on its own (a reset) is set up again, not just re-sent a
+    // limit: it is driven again, from where it is.
+    {
+        let mut b = rig.buses[0].lock().unwrap();
+        b.servo_mut(3).unwrap().write(reg::TORQUE_ENABLE.addr, &[0]);
+    }
+    assert!(!rig.torque_on(0)[2]);
+    for _ in 0..80 {
+        rig.cycle();
+        rig.driver.read_back_in_turn();
+    }
+    assert!(rig.torque_on(0)[2], "the reset servo is driven again");
+    assert!(rig.driver.ready().all(|r| r));
 }

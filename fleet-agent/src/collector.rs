@@ -404,7 +404,7 @@ const BUS_ERROR_KINDS: [&str; 13] = [
     "disconnects",
     "silences",
     "servos_lost",
-    "verify_missing",
+    "read_back_missing",
     "safety_mismatches",
 ];
 

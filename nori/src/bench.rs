@@ -43,6 +43,10 @@ pub struct DriverRateArgs {
     /// Buses to drive (in parallel).
     #[arg(long = "bus", default_values_t = ["left_arm".to_string(), "right_arm".to_string()])]
     buses: Vec<String>,
+    /// Loop set-point, Hz: 1000 runs free (shorter than any cycle's wire time), 200 is the
+    /// deployed rate (where the background read-back uses the idle time of each period).
+    #[arg(long, default_value_t = 1000.0)]
+    rate_hz: f64,
     /// Print one JSON object.
     #[arg(long)]
     json: bool,
@@ -78,22 +82,32 @@ pub fn run(bench: &Bench) -> Result<()> {
     }
 }
 
-fn driver_rate(args: &DriverRateArgs) -> Result<()> {
+/// One run of the loop for `driver_rate`.
+struct RateRun {
+    summary: bus_driver::RunSummary,
+    replies: u64,
+    missing: u64,
+    read_backs: u64,
+    late_bursts: u64,
+    max_lateness_us: f64,
+}
+
+/// Serves the buses, sets the driver up and runs its loop for `seconds` at `rate_hz` (no
+/// supervisor), with or without the background read-back of safety settings.
+fn rate_run(buses: &[String], rate_hz: f64, seconds: f64, read_back: bool) -> Result<RateRun> {
     let robot = RobotDescription::nori_a3();
     let dir = std::env::temp_dir().join(format!("nori-bench-{}", std::process::id()));
-    let mut buses = Vec::new();
-    for name in &args.buses {
+    let mut sims = Vec::new();
+    for name in buses {
         let bus = robot
             .bus(name)
             .with_context(|| format!("no bus {name:?}"))?;
-        buses.push((SimBus::new(&robot, bus), dir.join(name)));
+        sims.push((SimBus::new(&robot, bus), dir.join(name)));
     }
-    let served = serve(buses, 0.001)?;
+    let served = serve(sims, 0.001)?;
     let mut config = LoadedConfig::embedded()?.with_device_dir(&dir);
-    config.config.bus.retain(|b| args.buses.contains(&b.name));
-    // Free-running: a 1 kHz period is shorter than any cycle's wire time. The loop alone is
-    // measured, without a supervisor.
-    config.config.rate_hz = 1000.0;
+    config.config.bus.retain(|b| buses.contains(&b.name));
+    config.config.rate_hz = rate_hz;
     config.config.supervisor_timeout_ms = 0;
     let transports = config
         .config
@@ -102,8 +116,7 @@ fn driver_rate(args: &DriverRateArgs) -> Result<()> {
         .map(|b| SerialTransport::open(&b.device, b.baud))
         .collect::<Result<Vec<_>, _>>()?;
     let mut driver = Driver::new(&config, transports);
-    bus_driver::rt::prepare_control_thread();
-    let jitter = wakeup_jitter(Duration::from_secs(1));
+    driver.set_background_read_back(read_back);
     // A servo missed at setup (machine hiccup) is set up again before measuring.
     let mut failures = driver.setup();
     for _ in 0..5 {
@@ -113,16 +126,11 @@ fn driver_rate(args: &DriverRateArgs) -> Result<()> {
         failures = driver.setup();
     }
     anyhow::ensure!(failures.is_empty(), "setup failed: {failures:?}");
-    let servos_per_bus: Vec<usize> = config.config.bus.iter().map(|b| b.servo.len()).collect();
-    let slowest = servos_per_bus.iter().copied().max().unwrap_or(0);
-    let bytes = cycle_bytes(slowest, reg::FEEDBACK_LEN as usize, 2);
-    let wire_limited_hz = 1.0 / wire_time(bytes, 1_000_000).as_secs_f64();
-
     let shutdown = Arc::new(AtomicBool::new(false));
     let timer = {
-        let (stop, secs) = (shutdown.clone(), args.seconds);
+        let stop = shutdown.clone();
         std::thread::spawn(move || {
-            std::thread::sleep(Duration::from_secs_f64(secs));
+            std::thread::sleep(Duration::from_secs_f64(seconds));
             stop.store(true, Ordering::SeqCst);
         })
     };
@@ -135,34 +143,91 @@ fn driver_rate(args: &DriverRateArgs) -> Result<()> {
         None,
     );
     let _ = timer.join();
-    let missing: u64 = driver.bus_counters().map(|(_, c)| c.missing).sum();
-    let replies: u64 = driver.bus_counters().map(|(_, c)| c.replies).sum();
+    let sum = |f: fn(&bus_driver::bus::BusCounters) -> u64| -> u64 {
+        driver.bus_counters().map(|(_, c)| f(&c)).sum()
+    };
+    let (replies, missing, read_backs) = (
+        sum(|c| c.replies),
+        sum(|c| c.missing),
+        sum(|c| c.read_backs),
+    );
     drop(driver);
     let lines: Vec<_> = served.stop().into_iter().map(|r| r.line).collect();
-    let late_bursts: u64 = lines.iter().map(|l| l.late_bursts).sum();
-    let max_lateness_us = lines.iter().map(|l| l.max_lateness_us).fold(0.0, f64::max);
-    let ratio = summary.rate_hz / wire_limited_hz;
+    Ok(RateRun {
+        summary,
+        replies,
+        missing,
+        read_backs,
+        late_bursts: lines.iter().map(|l| l.late_bursts).sum(),
+        max_lateness_us: lines.iter().map(|l| l.max_lateness_us).fold(0.0, f64::max),
+    })
+}
+
+fn driver_rate(args: &DriverRateArgs) -> Result<()> {
+    bus_driver::rt::prepare_control_thread();
+    let jitter = wakeup_jitter(Duration::from_secs(1));
+    let robot = RobotDescription::nori_a3();
+    let slowest = args
+        .buses
+        .iter()
+        .filter_map(|b| robot.bus(b))
+        .map(|b| b.servo.len())
+        .max()
+        .unwrap_or(0);
+    let bytes = cycle_bytes(slowest, reg::FEEDBACK_LEN as usize, 2);
+    let wire_limited_hz = 1.0 / wire_time(bytes, 1_000_000).as_secs_f64();
+    // The baseline (no background read-back) and the stack as deployed, in the same run, in
+    // alternating halves so that a slow stretch of this shared machine hits both alike.
+    let half = args.seconds / 2.0;
+    let mut runs: [Vec<RateRun>; 2] = [Vec::new(), Vec::new()];
+    for read_back in [false, true, false, true] {
+        runs[usize::from(read_back)].push(rate_run(&args.buses, args.rate_hz, half, read_back)?);
+    }
+    let figures = |r: &[RateRun]| {
+        let cycles: u64 = r.iter().map(|x| x.summary.counters.cycles).sum();
+        let elapsed: f64 = r.iter().map(|x| x.summary.elapsed_s).sum();
+        let misses: u64 = r.iter().map(|x| x.summary.counters.deadline_misses).sum();
+        serde_json::json!({
+            "measured_hz": cycles as f64 / elapsed.max(1e-9),
+            "ratio_to_wire_limited": cycles as f64 / elapsed.max(1e-9) / wire_limited_hz,
+            "cycles": cycles,
+            "deadline_misses": misses,
+            "deadline_miss_ratio": misses as f64 / cycles.max(1) as f64,
+            "replies": r.iter().map(|x| x.replies).sum::<u64>(),
+            "missing_replies": r.iter().map(|x| x.missing).sum::<u64>(),
+            "read_backs": r.iter().map(|x| x.read_backs).sum::<u64>(),
+            "sim_late_bursts": r.iter().map(|x| x.late_bursts).sum::<u64>(),
+            "sim_max_lateness_us": r.iter().map(|x| x.max_lateness_us).fold(0.0, f64::max),
+        })
+    };
+    let (without, with) = (figures(&runs[0]), figures(&runs[1]));
+    let hz = |v: &serde_json::Value| v["measured_hz"].as_f64().unwrap_or(0.0);
     let out = serde_json::json!({
         "buses": args.buses.len(),
-        "servos": servos_per_bus.iter().sum::<usize>(),
+        "servos_per_bus": slowest,
+        "rate_hz_set": args.rate_hz,
         "cycle_bytes_per_bus": bytes,
         "wire_limited_hz": wire_limited_hz,
-        "measured_hz": summary.rate_hz,
-        "ratio": ratio,
-        "cycles": summary.counters.cycles,
-        "replies": replies,
-        "missing_replies": missing,
-        "sim_late_bursts": late_bursts,
-        "sim_max_lateness_us": max_lateness_us,
+        "baseline_without_background_read_back": without,
+        "with_background_read_back": with,
+        "rate_ratio_with_to_without": hz(&with) / hz(&without).max(1e-9),
         "machine_wakeup_overshoot_p99_us": jitter.0,
         "machine_wakeup_overshoot_max_us": jitter.1,
     });
     if args.json {
         println!("{out}");
     } else {
+        let line = |name: &str, v: &serde_json::Value| {
+            format!(
+                "{name}: {:.1} Hz (ratio to the wire-limited {:.3}), deadline misses {} of {} ({:.4}), {} replies, {} missing, {} read-backs",
+                hz(v), v["ratio_to_wire_limited"].as_f64().unwrap_or(0.0), v["deadline_misses"], v["cycles"],
+                v["deadline_miss_ratio"].as_f64().unwrap_or(0.0), v["replies"], v["missing_replies"], v["read_backs"]
+            )
+        };
         println!(
-            "driver loop, {} buses × {} servos in parallel: {:.1} Hz measured vs {:.1} Hz wire-limited ({} bytes a cycle at 1 Mbps): ratio {:.3}; {} replies, {} missing; simulator late by > 200 µs {} times (worst {:.0} µs); this machine wakes a 200 µs sleep up to {:.0} µs late at p99 ({:.0} µs max)",
-            args.buses.len(), slowest, summary.rate_hz, wire_limited_hz, bytes, ratio, replies, missing, late_bursts, max_lateness_us, jitter.0, jitter.1
+            "driver loop, {} buses × {slowest} servos in parallel at a {} Hz set-point; {wire_limited_hz:.1} Hz wire-limited ({bytes} bytes a cycle at 1 Mbps)\n  {}\n  {}\n  rate with / without: {:.3}; this machine wakes a 200 µs sleep up to {:.0} µs late at p99 ({:.0} µs max)",
+            args.buses.len(), args.rate_hz, line("baseline, no background read-back", &without), line("as deployed", &with),
+            hz(&with) / hz(&without).max(1e-9), jitter.0, jitter.1
         );
     }
     Ok(())

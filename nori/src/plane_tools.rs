@@ -138,12 +138,12 @@ pub fn state(args: &StateArgs) -> Result<()> {
             let c = &b.counters;
             writeln!(
                 out,
-                "bus {name}: {}{}; {} cycles, missing {}, checksum {}, framing {}, unexpected {}, implausible {}, status {}, transport {}, disconnects {}, reconnects {}, silences {}, servos lost {}, verified {} (missing {}), safety mismatches {}",
+                "bus {name}: {}{}; {} cycles, missing {}, checksum {}, framing {}, unexpected {}, implausible {}, status {}, transport {}, disconnects {}, reconnects {}, silences {}, servos lost {}, safety read-backs {} (missing {}), safety mismatches {}",
                 if b.flags & BUS_HEALTH_CONNECTED != 0 { "connected" } else { "LOST" },
                 if b.flags & BUS_HEALTH_ENABLED != 0 { "" } else if b.flags & BUS_HEALTH_LATCHED != 0 { ", OFF: latched by a trip" } else if b.flags & BUS_HEALTH_DRIVER_TRIP != 0 { ", OFF: the driver's last-resort trip" } else { ", OFF: disabled by the supervisor" },
                 c.cycles, c.missing, c.checksum_errors, c.framing_errors, c.unexpected_replies,
                 c.implausible, c.status_errors, c.transport_errors, c.disconnects, c.reconnects, c.silences, c.servos_lost,
-                c.verifies, c.verify_missing, c.safety_mismatches
+                c.read_backs, c.read_back_missing, c.safety_mismatches
             )?;
         }
         Ok(())

@@ -298,28 +298,8 @@ impl Supervisor {
             let lost = sample.flags & JOINT_FLAG_OUTPUT_LOST != 0;
             if lost && !self.output_lost[j] {
                 let bus = self.layout.joints[j].bus;
-                self.event(
-                    now,
-                    EventKind::OutputLost,
-                    j as u8,
-                    bus,
-                    0,
-                    sample.temperature_c,
-                );
-                if self
-                    .buses
-                    .get_mut(bus as usize)
-                    .is_some_and(BusThermal::force_trip)
-                {
-                    self.event(
-                        now,
-                        EventKind::ThermalTrip,
-                        j as u8,
-                        bus,
-                        0,
-                        sample.temperature_c,
-                    );
-                }
+                let t = sample.temperature_c;
+                self.trip_from_outside(now, EventKind::OutputLost, j as u8, bus, 0, t);
             }
             self.output_lost[j] = lost;
         }
@@ -344,28 +324,8 @@ impl Supervisor {
             }
             *reported = true;
             let bus = self.layout.joints[j].bus;
-            self.event(
-                now,
-                EventKind::FirmwareProtection,
-                j as u8,
-                bus,
-                bits,
-                sample.temperature_c,
-            );
-            if self
-                .buses
-                .get_mut(bus as usize)
-                .is_some_and(BusThermal::force_trip)
-            {
-                self.event(
-                    now,
-                    EventKind::ThermalTrip,
-                    j as u8,
-                    bus,
-                    0,
-                    sample.temperature_c,
-                );
-            }
+            let t = sample.temperature_c;
+            self.trip_from_outside(now, EventKind::FirmwareProtection, j as u8, bus, bits, t);
         }
         // The driver's last-resort tier tripped a bus while no supervisor was heard: the trip
         // becomes this supervisor's, latched and recorded like its own.
@@ -381,10 +341,7 @@ impl Supervisor {
                 }
             }
             if flagged && !self.driver_trip[b] {
-                self.event(now, EventKind::DriverTrip, NONE, b as u8, 0, hottest);
-                if self.buses[b].force_trip() {
-                    self.event(now, EventKind::ThermalTrip, NONE, b as u8, 0, hottest);
-                }
+                self.trip_from_outside(now, EventKind::DriverTrip, NONE, b as u8, 0, hottest);
             }
             self.driver_trip[b] = flagged;
         }
@@ -449,6 +406,28 @@ impl Supervisor {
             };
         }
         true
+    }
+
+    /// A tier outside this process fired on `bus` (the firmware, or the driver's own): the event
+    /// that says how, then the bus latched like a software trip (with a `ThermalTrip` event
+    /// when it was not tripped already).
+    fn trip_from_outside(
+        &mut self,
+        now: u64,
+        kind: EventKind,
+        joint: u8,
+        bus: u8,
+        level: u8,
+        temperature_c: f32,
+    ) {
+        self.event(now, kind, joint, bus, level, temperature_c);
+        if self
+            .buses
+            .get_mut(usize::from(bus))
+            .is_some_and(BusThermal::force_trip)
+        {
+            self.event(now, EventKind::ThermalTrip, joint, bus, 0, temperature_c);
+        }
     }
 
     /// An operator's command. Re-enabling a bus is granted only after it has cooled. A command
@@ -591,6 +570,7 @@ mod tests {
         let mut sup = Supervisor::new(&layout(), SupervisorConfig::embedded().unwrap()).unwrap();
         let mut temperature = 40.0f32;
         let mut tripped_at = None;
+        let mut first_warning_at = None;
         for k in 0..200_000u64 {
             // Joint 0 heats 1 °C per 10 s of a mock clock at 200 Hz.
             let t = k * 5 * MS;
@@ -601,6 +581,14 @@ mod tests {
                 }
             });
             sup.on_state(&s);
+            if first_warning_at.is_none()
+                && sup
+                    .events
+                    .iter()
+                    .any(|e| e.kind() == Some(EventKind::ThermalWarning))
+            {
+                first_warning_at = Some(temperature);
+            }
             let d = sup.directives(t);
             if d.bus_enabled & 1 == 0 {
                 tripped_at = Some(temperature);
@@ -609,6 +597,12 @@ mod tests {
             }
         }
         assert_eq!(tripped_at, Some(59.0), "software trip at 59 °C");
+        // The frames' nanoseconds are read as seconds: the trajectory warns before the first
+        // temperature level (50 °C) does.
+        assert!(
+            first_warning_at.is_some_and(|t| t < 50.0),
+            "first warning at {first_warning_at:?} °C"
+        );
         assert!(temperature < 60.0, "before the 60 °C firmware cutoff");
         let events = kinds(&mut sup);
         assert_eq!(events.last(), Some(&EventKind::ThermalTrip));
@@ -847,5 +841,90 @@ mod tests {
             [EventKind::DriverTrip, EventKind::ThermalTrip]
         );
         assert_eq!(sup.tripped_joints(), ["right_elbow"]);
+    }
+
+    /// What the process around the state machine relies on: the layout it was made for (a
+    /// different one makes a new supervisor), the trips as a bus mask (recorded when it
+    /// changes), whether the directives changed (published at once), rising sequence numbers.
+    #[test]
+    fn the_process_facing_accessors_say_what_happened() {
+        let mut sup = Supervisor::new(&layout(), SupervisorConfig::embedded().unwrap()).unwrap();
+        assert_eq!(*sup.layout(), layout());
+        assert_eq!(sup.tripped_buses(), 0);
+        let first = sup.directives(1);
+        assert!(!sup.directives_changed());
+        sup.on_state(&state(1, 5 * MS, |i, j| {
+            if i == 2 {
+                j.temperature_c = 59.0
+            }
+        }));
+        assert!(sup.directives_changed(), "a trip changes the directives");
+        assert_eq!(sup.tripped_buses(), 0b10);
+        let second = sup.directives(2);
+        assert!(second.seq > first.seq);
+        assert!(!sup.directives_changed(), "handed out");
+        // Both buses tripped: both bits.
+        sup.on_state(&state(2, 10 * MS, |_, j| j.temperature_c = 59.0));
+        assert_eq!(sup.tripped_buses(), 0b11);
+        let events: Vec<SupervisorEvent> = sup.drain_events().collect();
+        assert!(events.len() >= 2 && events[0].seq >= 1);
+        assert!(events.windows(2).all(|w| w[1].seq > w[0].seq), "{events:?}");
+    }
+
+    /// A restored latch is in the directives at once, before any frame is judged (a
+    /// supervisor that restarts with the driver down must not announce the bus as on).
+    #[test]
+    fn restored_trips_are_in_the_first_directives() {
+        let mut sup = Supervisor::new(&layout(), SupervisorConfig::embedded().unwrap()).unwrap();
+        assert_eq!(sup.restore_trips(&["right_elbow".into()], 0), [1]);
+        assert_eq!(sup.directives(0).bus_enabled & 0b11, 0b01);
+        let mut both = Supervisor::new(&layout(), SupervisorConfig::embedded().unwrap()).unwrap();
+        both.restore_trips(&["left_gripper".into(), "right_elbow".into()], 0);
+        assert_eq!(both.directives(0).bus_enabled & 0b11, 0);
+        assert_eq!(both.tripped_buses(), 0b11);
+    }
+
+    /// The re-enable of bus 1, judged at the robot's own time: granted on fresh cool readings,
+    /// refused when the newest reading of a motor is more than a second old.
+    #[test]
+    fn a_reenable_is_judged_on_fresh_readings_of_its_own_bus() {
+        let mut sup = Supervisor::new(&layout(), SupervisorConfig::embedded().unwrap()).unwrap();
+        let at = |k: u64, t: f32| state(k, k * 5 * MS, move |_, j| j.temperature_c = t);
+        sup.on_state(&at(1, 59.0));
+        for k in 2..40 {
+            sup.on_state(&at(k, 45.0));
+        }
+        let cmd = SupervisorCommand {
+            kind: COMMAND_REENABLE_BUS,
+            bus: 1,
+            ..SupervisorCommand::default()
+        };
+        // Two seconds after the last reading: stale.
+        sup.command(&cmd, 39 * 5 * MS + 2_000 * MS);
+        assert_eq!(kinds(&mut sup).last(), Some(&EventKind::ReenableRefused));
+        assert_eq!(sup.directives(0).bus_enabled & 0b10, 0);
+        sup.command(&cmd, 39 * 5 * MS + 10 * MS);
+        assert_eq!(kinds(&mut sup).last(), Some(&EventKind::BusReenabled));
+        assert_eq!(sup.directives(0).bus_enabled & 0b10, 0b10, "bus 1 back on");
+        assert_eq!(sup.tripped_buses() & 0b10, 0);
+    }
+
+    #[test]
+    fn a_torque_reduction_event_carries_the_limit_in_percent() {
+        let mut sup = Supervisor::new(&layout(), SupervisorConfig::embedded().unwrap()).unwrap();
+        for k in 0..15 {
+            sup.on_state(&state(k, k * 5 * MS, |i, j| {
+                if i == 1 {
+                    j.position_rad = 0.3;
+                    j.goal_rad = 0.8;
+                    j.current_a = 2.0;
+                }
+            }));
+        }
+        let e = sup
+            .drain_events()
+            .find(|e| e.kind() == Some(EventKind::TorqueReduced))
+            .unwrap();
+        assert_eq!((e.joint, e.value), (1, 25.0));
     }
 }

@@ -473,9 +473,9 @@ pub struct BusCounters {
     pub servos_lost: u64,
     /// Read-backs of a servo's safety settings (torque enable, torque limit, held goal) that
     /// answered.
-    pub verifies: u64,
+    pub read_backs: u64,
     /// Read-backs that got no intact answer in time.
-    pub verify_missing: u64,
+    pub read_back_missing: u64,
     /// Safety settings found different on the servo from what the driver wants (a lost or
     /// corrupted write, a servo reset): each re-sent.
     pub safety_mismatches: u64,

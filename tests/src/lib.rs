@@ -252,12 +252,23 @@ pub struct ArmStack {
     pub driver: Proc,
     /// The fleet agent (not started by [`ArmStack::start`]).
     pub agent: Proc,
+    /// Arguments added to the driver's (a `--config`, say) at its next (re)start.
+    pub driver_args: Vec<String>,
     starts: u32,
 }
 
 impl ArmStack {
     /// Starts the simulator (with `sim_args` added), the supervisor, then the driver.
     pub fn start(tag: &str, sim_args: &[&str]) -> ArmStack {
+        let mut stack = ArmStack::simulator_only(tag, sim_args);
+        stack.restart_supervisor();
+        stack.restart_driver();
+        stack
+    }
+
+    /// Starts the simulator (with `sim_args` added) only: the test starts the others, in the
+    /// order it is about.
+    pub fn simulator_only(tag: &str, sim_args: &[&str]) -> ArmStack {
         let dir = scratch(tag);
         let domain = format!("nori_{tag}_{}", std::process::id()).replace('-', "_");
         let dev = dir.join("dev");
@@ -274,25 +285,28 @@ impl ArmStack {
         ];
         args.extend_from_slice(sim_args);
         let sim = Proc::spawn("simulator", &binary("nori"), &args, &dir.join("sim.log"));
-        let mut stack = ArmStack {
+        ArmStack {
             supervisor: Proc::none("supervisor"),
             driver: Proc::none("bus-driver"),
             agent: Proc::none("fleet-agent"),
+            driver_args: Vec::new(),
             dir,
             domain,
             sim,
             starts: 0,
-        };
-        stack.restart_supervisor();
-        stack.restart_driver();
-        stack
+        }
+    }
+
+    /// The trip record both the supervisor and the driver are given.
+    pub fn trips(&self) -> PathBuf {
+        self.dir.join("trips")
     }
 
     /// (Re)starts the supervisor; a running one is killed first.
     pub fn restart_supervisor(&mut self) {
         self.supervisor.kill();
         self.starts += 1;
-        let trips = self.dir.join("trips");
+        let trips = self.trips();
         self.supervisor = Proc::spawn(
             "supervisor",
             &binary("supervisor"),
@@ -313,21 +327,24 @@ impl ArmStack {
         self.driver.kill();
         self.starts += 1;
         let dev = self.dir.join("dev");
+        let trips = self.trips();
+        let mut args = vec![
+            "--bus",
+            "left_arm",
+            "--device-dir",
+            dev.to_str().unwrap(),
+            "--domain",
+            &self.domain,
+            "--status-every",
+            "0",
+            "--trip-file",
+            trips.to_str().unwrap(),
+        ];
+        args.extend(self.driver_args.iter().map(String::as_str));
         self.driver = Proc::spawn(
             "bus-driver",
             &binary("bus-driver"),
-            &[
-                "--bus",
-                "left_arm",
-                "--device-dir",
-                dev.to_str().unwrap(),
-                "--domain",
-                &self.domain,
-                "--status-every",
-                "0",
-                "--trip-file",
-                self.dir.join("trips").to_str().unwrap(),
-            ],
+            &args,
             &self.dir.join(format!("driver-{}.log", self.starts)),
         );
     }

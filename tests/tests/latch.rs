@@ -5,9 +5,8 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use nori_tests::{binary, scratch, wait_for, Proc};
+use nori_tests::{binary, wait_for, ArmStack};
 use serde_json::Value;
-use std::path::Path;
 use std::process::Command;
 use std::time::Duration;
 use telemetry::frames::{JOINT_FLAG_BUS_DISABLED, STATE_FLAG_SAFE_STATE};
@@ -29,94 +28,36 @@ struct Run {
 /// `order`; 1.5 s of running (with a supervisor: 1.5 s after it directs the driver); then, if
 /// `reenable`, the operator's re-enable and the bus's return.
 fn run(tag: &str, order: Start, torque_off: bool, reenable: bool) -> Run {
-    let dir = scratch(tag);
-    let domain = format!("nori_{tag}_{}", std::process::id()).replace('-', "_");
-    let dev = dir.join("dev");
-    let trips = dir.join("trips");
-    std::fs::write(&trips, "left_shoulder_pitch\nleft_gripper\n").unwrap();
-    let report = dir.join("sim-report.json");
-    let mut sim = Proc::spawn(
-        "simulator",
-        &binary("nori"),
-        &[
-            "sim",
-            "serve",
-            "--bus",
-            "left_arm",
-            "--dir",
-            dev.to_str().unwrap(),
-            "--report",
-            report.to_str().unwrap(),
-        ],
-        &dir.join("sim.log"),
-    );
-    let mut driver_args = vec![
-        "--bus".to_string(),
-        "left_arm".into(),
-        "--device-dir".into(),
-        dev.display().to_string(),
-        "--domain".into(),
-        domain.clone(),
-        "--status-every".into(),
-        "0".into(),
-        "--trip-file".into(),
-        trips.display().to_string(),
-    ];
+    let mut stack = ArmStack::simulator_only(tag, &[]);
+    std::fs::write(stack.trips(), "left_shoulder_pitch\nleft_gripper\n").unwrap();
     if torque_off {
-        let config = dir.join("bus-driver.toml");
+        let config = stack.dir.join("bus-driver.toml");
         let text = bus_driver::config::DEFAULT_CONFIG_TOML
             .replace("safe-state = \"hold\"", "safe-state = \"torque-off\"");
         assert!(text.contains("torque-off"));
         std::fs::write(&config, text).unwrap();
-        driver_args.extend(["--config".into(), config.display().to_string()]);
+        stack.driver_args = vec!["--config".into(), config.display().to_string()];
     }
-    let start_supervisor = || {
-        Proc::spawn(
-            "supervisor",
-            &binary("supervisor"),
-            &[
-                "--domain",
-                &domain,
-                "--status-every",
-                "0",
-                "--trip-file",
-                trips.to_str().unwrap(),
-            ],
-            &dir.join("supervisor.log"),
-        )
-    };
-    let start_driver = || {
-        let args: Vec<&str> = driver_args.iter().map(String::as_str).collect();
-        Proc::spawn(
-            "bus-driver",
-            &binary("bus-driver"),
-            &args,
-            &dir.join("driver.log"),
-        )
-    };
-    let node = Plane::open(&domain, "test").unwrap();
+    let node = Plane::open(&stack.domain, "test").unwrap();
     let states = node.subscriber(&plane::JOINT_STATE).unwrap();
-    let (mut supervisor, mut driver) = match order {
+    match order {
         Start::SupervisorFirst => {
-            let s = start_supervisor();
+            stack.restart_supervisor();
             std::thread::sleep(Duration::from_millis(300));
-            (s, start_driver())
+            stack.restart_driver();
         }
         Start::DriverFirst | Start::NoSupervisor => {
-            let d = start_driver();
+            stack.restart_driver();
             // Running and reading its servos before anything else is there.
             wait_for(Duration::from_secs(20), "the driver's first frames", || {
                 newest(&states).filter(|s| s.joints().iter().all(|j| j.is_valid()))
             });
             std::thread::sleep(Duration::from_millis(500));
-            let s = if order == Start::DriverFirst {
-                start_supervisor()
-            } else {
-                Proc::none("supervisor")
-            };
-            (s, d)
+            if order == Start::DriverFirst {
+                stack.restart_supervisor();
+            }
         }
-    };
+    }
     let off = |s: &telemetry::JointState| {
         s.joint_count == 8
             && s.joints()
@@ -135,7 +76,7 @@ fn run(tag: &str, order: Start, torque_off: bool, reenable: bool) -> Run {
     std::thread::sleep(Duration::from_millis(1500));
     if reenable {
         let out = Command::new(binary("nori"))
-            .args(["reenable", "left_arm", "--domain", &domain])
+            .args(["reenable", "left_arm", "--domain", &stack.domain])
             .output()
             .unwrap();
         assert!(
@@ -151,23 +92,12 @@ fn run(tag: &str, order: Start, torque_off: bool, reenable: bool) -> Run {
             })
         });
     }
-    let trips_text = std::fs::read_to_string(&trips).unwrap_or_default();
+    let trips = std::fs::read_to_string(stack.trips()).unwrap_or_default();
     drop((states, node));
-    driver.terminate(Duration::from_secs(5));
-    if supervisor.running() {
-        supervisor.terminate(Duration::from_secs(5));
-    }
-    sim.terminate(Duration::from_secs(5));
-    telemetry::plane::Plane::remove_unused_domain(&domain).unwrap();
-    let report = read_report(&report);
     Run {
-        report,
-        trips: trips_text,
+        report: stack.stop(),
+        trips,
     }
-}
-
-fn read_report(path: &Path) -> Value {
-    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
 }
 
 /// Every servo of the left arm: no Torque_Enable = 1 and no goal ever received.

@@ -12,9 +12,14 @@ use std::sync::Mutex;
 static SERIAL: Mutex<()> = Mutex::new(());
 
 fn scenario(name: &str) -> Value {
+    scenario_with(name, &[])
+}
+
+fn scenario_with(name: &str, extra: &[&str]) -> Value {
     let _one_at_a_time = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let out = Command::new(binary("nori"))
         .args(["sim", "scenario", name, "--json", "--timeout", "120"])
+        .args(extra)
         .output()
         .expect("running nori sim scenario");
     assert!(
@@ -106,27 +111,7 @@ fn the_gripper_holds_gently_with_a_monotone_force_estimate() {
 /// supervisor started afterwards takes the trip over and records it.
 #[test]
 fn with_the_supervisor_dead_the_driver_trips_the_hot_bus_itself() {
-    let _one_at_a_time = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let out = Command::new(binary("nori"))
-        .args([
-            "sim",
-            "scenario",
-            "overheat",
-            "--json",
-            "--timeout",
-            "120",
-            "--kill-supervisor-at",
-            "55",
-        ])
-        .output()
-        .expect("running nori sim scenario");
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: Value = serde_json::from_slice(&out.stdout).expect("one JSON object");
-    assert_eq!(v["timed_out"], false, "did not reach its end: {v}");
+    let v = scenario_with("overheat", &["--kill-supervisor-at", "55"]);
     let killed = v["supervisor_killed_s"]
         .as_f64()
         .expect("supervisor killed");
