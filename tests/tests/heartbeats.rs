@@ -69,8 +69,9 @@ fn safe_state_follows_the_supervisor_and_a_lost_driver_is_reported() {
     eprintln!("safe state {reaction_ms:.1} ms after the supervisor was killed (bound 50 ms)");
     // The bound (50 ms) after a heartbeat at most 5 ms old, applied in the next 5 ms cycle,
     // plus 40 ms of this shared VM's scheduling slack (see crash_isolation.rs).
+    // (Not before the bound counted from the last heartbeat sent: crash_isolation.rs.)
     assert!(
-        (45.0..=100.0).contains(&reaction_ms),
+        reaction_ms <= 100.0,
         "safe state after {reaction_ms} ms (bound 50 ms, ceiling 100 ms)"
     );
 
