@@ -279,6 +279,17 @@ impl<T: Transport> Bus<T> {
         })
     }
 
+    /// `Torque_Enable = 0` to one servo, without waiting for an answer (it may not give one).
+    pub fn torque_off_one(&mut self, id: u8) -> Result<(), BusError> {
+        self.sync_write(reg::TORQUE_ENABLE.addr, 1, &[id, 0])
+    }
+
+    /// `Torque_Limit` (0.1 %) to one servo, without waiting for an answer.
+    pub fn torque_limit_one(&mut self, id: u8, permille: u16) -> Result<(), BusError> {
+        let t = permille.to_le_bytes();
+        self.sync_write(reg::TORQUE_LIMIT.addr, 2, &[id, t[0], t[1]])
+    }
+
     /// Broadcast `Torque_Enable = 0`: one packet that every servo on the bus obeys.
     pub fn torque_off_all(&mut self) -> Result<(), BusError> {
         self.send(Instruction::Write {

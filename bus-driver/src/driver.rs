@@ -182,6 +182,14 @@ enum Want {
 }
 
 impl Joint {
+    /// Not driven until the loop sets it up again (one servo per 1/50 s), with no back-off
+    /// left from earlier failures.
+    fn set_up_again(&mut self) {
+        self.ready = false;
+        self.next_setup = 0;
+        self.setup_fails = 0;
+    }
+
     fn max_torque(&self) -> u16 {
         backstops::max_torque_permille(&self.backstops) as u16
     }
@@ -523,10 +531,7 @@ impl<T: Transport> Driver<T> {
                 let bus = &self.buses[b];
                 tracing::info!(bus = %bus.name, "bus on again: its servos are set up one at a time");
                 let range = bus.first_joint..bus.first_joint + bus.ids.len();
-                for joint in &mut self.joints[range] {
-                    joint.next_setup = 0;
-                    joint.setup_fails = 0;
-                }
+                self.joints[range].iter_mut().for_each(Joint::set_up_again);
             }
             _ => {}
         }
@@ -803,12 +808,7 @@ impl<T: Transport> Driver<T> {
         self.state.flags &= !STATE_FLAG_SAFE_STATE;
         match self.safe_kind {
             SafeState::Hold => self.hold_where_they_are(),
-            SafeState::TorqueOff => {
-                for joint in &mut self.joints {
-                    joint.next_setup = 0;
-                    joint.setup_fails = 0;
-                }
-            }
+            SafeState::TorqueOff => self.joints.iter_mut().for_each(Joint::set_up_again),
         }
     }
 
@@ -929,9 +929,7 @@ impl<T: Transport> Driver<T> {
         for joint in &mut self.joints[range] {
             // Whatever changed while the bus was gone is no glitch: start the gate afresh.
             joint.gate.reset();
-            joint.ready = false;
-            joint.next_setup = 0;
-            joint.setup_fails = 0;
+            joint.set_up_again();
         }
     }
 
@@ -966,17 +964,11 @@ impl<T: Transport> Driver<T> {
         for _ in 0..2 {
             let _ = match (kind, id) {
                 (SafeState::TorqueOff, None) => b.bus.torque_off_all(),
-                (SafeState::TorqueOff, Some(id)) => {
-                    b.bus.sync_write(reg::TORQUE_ENABLE.addr, 1, &[id, 0])
-                }
+                (SafeState::TorqueOff, Some(id)) => b.bus.torque_off_one(id),
                 (SafeState::Hold, None) => b
                     .bus
                     .broadcast_write(reg::TORQUE_LIMIT.addr, &hold.to_le_bytes()),
-                (SafeState::Hold, Some(id)) => {
-                    let t = hold.to_le_bytes();
-                    b.bus
-                        .sync_write(reg::TORQUE_LIMIT.addr, 2, &[id, t[0], t[1]])
-                }
+                (SafeState::Hold, Some(id)) => b.bus.torque_limit_one(id, hold),
             };
         }
     }
@@ -995,9 +987,7 @@ impl<T: Transport> Driver<T> {
         for k in 0..n {
             let j = first + k;
             if self.joints[j].ready && self.joints[j].misses >= limit {
-                self.joints[j].ready = false;
-                self.joints[j].next_setup = 0;
-                self.joints[j].setup_fails = 0;
+                self.joints[j].set_up_again();
                 self.buses[bi].bus.counters.servos_lost += 1;
                 tracing::warn!(joint = %self.joints[j].name, "servo silent: taken off, set up again when it answers");
                 let id = self.joints[j].id;
@@ -1152,25 +1142,20 @@ impl<T: Transport> Driver<T> {
         let bus = &mut self.buses[bi].bus;
         match want {
             Want::Off => {
-                let _ = bus.sync_write(reg::TORQUE_ENABLE.addr, 1, &[id, 0]);
+                let _ = bus.torque_off_one(id);
             }
             Want::AtMost { limit } => {
-                let t = limit.to_le_bytes();
-                let _ = bus.sync_write(reg::TORQUE_LIMIT.addr, 2, &[id, t[0], t[1]]);
+                let _ = bus.torque_limit_one(id, limit);
             }
             Want::On { limit, .. } if block.torque_enable == 1 => {
                 // The goal is written every cycle anyway; the limit is re-sent here.
-                let t = limit.to_le_bytes();
-                let _ = bus.sync_write(reg::TORQUE_LIMIT.addr, 2, &[id, t[0], t[1]]);
+                let _ = bus.torque_limit_one(id, limit);
             }
             Want::On { .. } => {
                 // The servo dropped its torque on its own (a reset restores SRAM defaults):
                 // set it up again from where it is, like a servo that came back.
                 tracing::warn!(joint = %self.joints[j].name, "servo found with torque off: set up again");
-                let joint = &mut self.joints[j];
-                joint.ready = false;
-                joint.next_setup = 0;
-                joint.setup_fails = 0;
+                self.joints[j].set_up_again();
             }
         }
     }
