@@ -420,6 +420,7 @@ impl<T: Transport> Driver<T> {
             ..JointLayout::default()
         };
         for (b, bus) in self.buses.iter().enumerate() {
+            layout.set_bus_name(b, &bus.name);
             for k in 0..bus.ids.len() {
                 let j = &self.joints[bus.first_joint + k];
                 let mut info = JointInfo {

@@ -70,6 +70,20 @@ fn run_cycles(d: &mut Driver<SerialTransport>, n: usize) {
     }
 }
 
+/// A driver on a subset of the configuration's buses numbers them from 0 in its own order, and
+/// its layout (the one source of names for every other process) says so.
+#[test]
+fn the_layout_names_the_buses_the_driver_runs_in_its_order() {
+    let mut rig = rig("layout");
+    rig.config.config.bus.retain(|b| b.name == "right_arm");
+    let layout = driver(&rig.config).layout();
+    assert_eq!(layout.bus_names().collect::<Vec<_>>(), ["right_arm"]);
+    assert_eq!(layout.joint_count, 8);
+    assert_eq!(layout.joint_index("right_elbow"), Some(3));
+    assert!(layout.joints().iter().all(|j| j.bus == 0));
+    drop(rig.served);
+}
+
 #[test]
 fn goals_are_followed_clamped_and_gated() {
     let rig = rig("follow");

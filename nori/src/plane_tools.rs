@@ -1,13 +1,16 @@
 //! `nori state` and `nori goal`: look at and move the robot through the state plane.
 
 use anyhow::{bail, Context, Result};
-use bus_driver::LoadedConfig;
 use clap::Args;
 use std::io::Write;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
+use telemetry::frames::JointLayout;
 use telemetry::plane::{self, Plane};
 use telemetry::GoalFrame;
+
+/// How long `goal` and `reenable` wait for the driver's layout (published every second).
+const LAYOUT_TIMEOUT: Duration = Duration::from_secs(2);
 
 /// Options shared by the plane tools.
 #[derive(Args, Debug)]
@@ -15,9 +18,39 @@ pub struct PlaneArgs {
     /// State-plane domain.
     #[arg(long, default_value = plane::DEFAULT_DOMAIN)]
     pub domain: String,
-    /// Driver configuration (for joint names); the embedded default when absent.
-    #[arg(long)]
+    /// No longer used: joint and bus names come from the layout the running driver publishes
+    /// (accepted so that existing scripts keep working).
+    #[arg(long, hide = true)]
     pub driver_config: Option<PathBuf>,
+}
+
+impl PlaneArgs {
+    /// Opens the plane as `tool` and waits up to `timeout` for the running driver's layout: the
+    /// one source of joint and bus names.
+    fn open(&self, tool: &str, timeout: Duration) -> Result<(Plane, JointLayout)> {
+        if self.driver_config.is_some() {
+            eprintln!(
+                "nori {tool}: --driver-config is ignored: names come from the running driver's layout"
+            );
+        }
+        let node = Plane::open(&self.domain, &format!("nori-{tool}-{}", std::process::id()))?;
+        let layouts = node.subscriber(&plane::LAYOUT)?;
+        let until = Instant::now() + timeout;
+        let layout = loop {
+            if let Some(l) = plane::newest(&layouts).filter(|l| l.joint_count > 0) {
+                break l;
+            }
+            if Instant::now() > until {
+                bail!(
+                    "no joint layout on domain {:?} within {} s: is the bus-driver running?",
+                    self.domain,
+                    timeout.as_secs_f64()
+                );
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        };
+        Ok((node, layout))
+    }
 }
 
 /// Options of `nori state`.
@@ -43,37 +76,15 @@ pub struct GoalArgs {
     goals: Vec<String>,
 }
 
-fn joint_names(args: &PlaneArgs) -> Result<Vec<String>> {
-    Ok(driver_config(args)?
-        .config
-        .joints()
-        .map(|(_, s)| s.joint.clone())
-        .collect())
-}
-
-fn driver_config(args: &PlaneArgs) -> Result<LoadedConfig> {
-    Ok(match &args.driver_config {
-        Some(p) => LoadedConfig::load(p)?,
-        None => LoadedConfig::embedded()?,
-    })
-}
-
 /// Prints the newest joint state.
 pub fn state(args: &StateArgs) -> Result<()> {
-    let names = joint_names(&args.plane)?;
-    let bus_names: Vec<String> = driver_config(&args.plane)?
-        .config
-        .bus
-        .iter()
-        .map(|b| b.name.clone())
-        .collect();
-    let node = Plane::open(
-        &args.plane.domain,
-        &format!("nori-state-{}", std::process::id()),
-    )?;
+    let timeout = Duration::from_secs_f64(args.timeout);
+    let (node, layout) = args.plane.open("state", timeout)?;
+    let names: Vec<String> = layout.joint_names().map(str::to_string).collect();
+    let bus_names: Vec<String> = layout.bus_names().map(str::to_string).collect();
     let sub = node.subscriber(&plane::JOINT_STATE)?;
     let health_sub = node.subscriber(&plane::BUS_HEALTH)?;
-    let until = Instant::now() + Duration::from_secs_f64(args.timeout);
+    let until = Instant::now() + timeout;
     let frame = loop {
         if let Some(f) = plane::newest(&sub) {
             break f;
@@ -226,12 +237,9 @@ pub fn parse_goals(names: &[String], goals: &[String]) -> Result<GoalFrame> {
 
 /// Publishes one goal frame.
 pub fn goal(args: &GoalArgs) -> Result<()> {
-    let names = joint_names(&args.plane)?;
+    let (node, layout) = args.plane.open("goal", LAYOUT_TIMEOUT)?;
+    let names: Vec<String> = layout.joint_names().map(str::to_string).collect();
     let mut frame = parse_goals(&names, &args.goals)?;
-    let node = Plane::open(
-        &args.plane.domain,
-        &format!("nori-goal-{}", std::process::id()),
-    )?;
     let publisher = node.publisher(&plane::GOALS)?;
     // Give the driver's subscriber a moment to connect to a fresh publisher.
     std::thread::sleep(Duration::from_millis(100));
@@ -249,7 +257,7 @@ pub fn goal(args: &GoalArgs) -> Result<()> {
 pub struct ReenableArgs {
     #[command(flatten)]
     plane: PlaneArgs,
-    /// The tripped bus to re-enable (its name in the driver configuration).
+    /// The tripped bus to re-enable (its name, as the running driver's layout gives it).
     bus: String,
 }
 
@@ -259,19 +267,14 @@ pub fn reenable(args: &ReenableArgs) -> Result<()> {
     use telemetry::frames::{
         EventKind, SupervisorCommand, COMMAND_REENABLE_BUS, COMMAND_REFUSED_NOT_TRIPPED,
     };
-    let config = match &args.plane.driver_config {
-        Some(p) => LoadedConfig::load(p)?,
-        None => LoadedConfig::embedded()?,
-    };
-    let names: Vec<&str> = config.config.bus.iter().map(|b| b.name.as_str()).collect();
-    let bus = names
-        .iter()
-        .position(|n| *n == args.bus)
-        .with_context(|| format!("no bus {:?} (have: {})", args.bus, names.join(", ")))?;
-    let node = Plane::open(
-        &args.plane.domain,
-        &format!("nori-reenable-{}", std::process::id()),
-    )?;
+    let (node, layout) = args.plane.open("reenable", LAYOUT_TIMEOUT)?;
+    let bus = layout.bus_index(&args.bus).with_context(|| {
+        format!(
+            "the driver has no bus {:?} (it drives: {})",
+            args.bus,
+            layout.bus_names().collect::<Vec<_>>().join(", ")
+        )
+    })?;
     let events = node.subscriber(&plane::EVENTS)?;
     let commands = node.publisher(&plane::COMMANDS)?;
     std::thread::sleep(Duration::from_millis(100));

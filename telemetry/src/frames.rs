@@ -174,21 +174,32 @@ pub struct JointInfo {
     pub range_rad: [f32; 2],
 }
 
+/// A zero-padded UTF-8 name as text ("?" if it is not UTF-8).
+fn name_text(name: &[u8; NAME_LEN]) -> &str {
+    let end = name.iter().position(|&b| b == 0).unwrap_or(NAME_LEN);
+    std::str::from_utf8(&name[..end]).unwrap_or("?")
+}
+
+/// `name` zero-padded, truncated to [`NAME_LEN`] bytes at a character boundary.
+fn name_bytes(name: &str) -> [u8; NAME_LEN] {
+    let mut bytes = [0; NAME_LEN];
+    let mut end = name.len().min(NAME_LEN);
+    while !name.is_char_boundary(end) {
+        end -= 1;
+    }
+    bytes[..end].copy_from_slice(&name.as_bytes()[..end]);
+    bytes
+}
+
 impl JointInfo {
     /// The name as text.
     pub fn name(&self) -> &str {
-        let end = self.name.iter().position(|&b| b == 0).unwrap_or(NAME_LEN);
-        std::str::from_utf8(&self.name[..end]).unwrap_or("?")
+        name_text(&self.name)
     }
 
     /// Sets the name, truncated to [`NAME_LEN`] bytes at a character boundary.
     pub fn set_name(&mut self, name: &str) {
-        self.name = [0; NAME_LEN];
-        let mut end = name.len().min(NAME_LEN);
-        while !name.is_char_boundary(end) {
-            end -= 1;
-        }
-        self.name[..end].copy_from_slice(&name.as_bytes()[..end]);
+        self.name = name_bytes(name);
     }
 
     /// The role.
@@ -201,16 +212,20 @@ impl JointInfo {
     }
 }
 
-/// The driver's joints and buses, published once (history 1) so that other processes share the
-/// driver configuration without reading it.
+/// The driver's joints and buses as it runs them (history 1): the one source of names. A driver
+/// started on a subset of its configuration's buses numbers them from 0 in its own order, so
+/// every other process and tool names joints and buses from this frame, never from a file.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("nori::JointLayout/1")]
+#[type_name("nori::JointLayout/2")]
 pub struct JointLayout {
     /// Joints in use.
     pub joint_count: u32,
     /// Buses in use.
     pub bus_count: u32,
+    /// Bus names in the driver's order (the index frames and directives use), UTF-8,
+    /// zero-padded.
+    pub bus_names: [[u8; NAME_LEN]; MAX_BUSES],
     /// Per joint, in frame order.
     pub joints: [JointInfo; MAX_JOINTS],
 }
@@ -220,6 +235,7 @@ impl Default for JointLayout {
         JointLayout {
             joint_count: 0,
             bus_count: 0,
+            bus_names: [[0; NAME_LEN]; MAX_BUSES],
             joints: [JointInfo::default(); MAX_JOINTS],
         }
     }
@@ -229,6 +245,35 @@ impl JointLayout {
     /// The joints in use.
     pub fn joints(&self) -> &[JointInfo] {
         &self.joints[..(self.joint_count as usize).min(MAX_JOINTS)]
+    }
+
+    /// The names of the buses in use, by index.
+    pub fn bus_names(&self) -> impl Iterator<Item = &str> {
+        self.bus_names[..(self.bus_count as usize).min(MAX_BUSES)]
+            .iter()
+            .map(name_text)
+    }
+
+    /// Sets bus `b`'s name (ignored beyond [`MAX_BUSES`]).
+    pub fn set_bus_name(&mut self, b: usize, name: &str) {
+        if let Some(slot) = self.bus_names.get_mut(b) {
+            *slot = name_bytes(name);
+        }
+    }
+
+    /// The index of the bus named `name`.
+    pub fn bus_index(&self, name: &str) -> Option<usize> {
+        self.bus_names().position(|n| n == name)
+    }
+
+    /// The index of the joint named `name` in frames.
+    pub fn joint_index(&self, name: &str) -> Option<usize> {
+        self.joints().iter().position(|j| j.name() == name)
+    }
+
+    /// The joint names in frame order.
+    pub fn joint_names(&self) -> impl Iterator<Item = &str> {
+        self.joints().iter().map(JointInfo::name)
     }
 }
 
@@ -548,6 +593,35 @@ mod tests {
         assert_eq!(std::mem::size_of::<Heartbeat>(), 24);
         assert_eq!(std::mem::size_of::<BusHealthEntry>(), 144);
         assert_eq!(std::mem::size_of::<BusHealth>(), 24 + 144 * MAX_BUSES);
+        assert_eq!(
+            std::mem::size_of::<JointLayout>(),
+            8 + NAME_LEN * MAX_BUSES + 40 * MAX_JOINTS
+        );
+    }
+
+    #[test]
+    fn a_layout_names_its_buses_and_joints_by_index() {
+        let mut l = JointLayout {
+            joint_count: 2,
+            bus_count: 2,
+            ..JointLayout::default()
+        };
+        l.set_bus_name(0, "right_arm");
+        l.set_bus_name(1, "wheels");
+        l.set_bus_name(MAX_BUSES, "ignored");
+        l.joints[0].set_name("right_elbow");
+        l.joints[1].set_name("left_wheel");
+        // A name beyond the buses in use is not a bus.
+        l.bus_names[2] = *b"stale\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0\0";
+        assert_eq!(l.bus_names().collect::<Vec<_>>(), ["right_arm", "wheels"]);
+        assert_eq!(l.bus_index("wheels"), Some(1));
+        assert_eq!(l.bus_index("stale"), None);
+        assert_eq!(l.joint_index("left_wheel"), Some(1));
+        assert_eq!(l.joint_index("left_elbow"), None);
+        assert_eq!(
+            l.joint_names().collect::<Vec<_>>(),
+            ["right_elbow", "left_wheel"]
+        );
     }
 
     #[test]

@@ -254,6 +254,8 @@ pub struct ArmStack {
     pub agent: Proc,
     /// Arguments added to the driver's (a `--config`, say) at its next (re)start.
     pub driver_args: Vec<String>,
+    /// The one bus simulated and driven.
+    bus: String,
     starts: u32,
 }
 
@@ -269,6 +271,12 @@ impl ArmStack {
     /// Starts the simulator (with `sim_args` added) only: the test starts the others, in the
     /// order it is about.
     pub fn simulator_only(tag: &str, sim_args: &[&str]) -> ArmStack {
+        ArmStack::simulator_only_on(tag, "left_arm", sim_args)
+    }
+
+    /// [`ArmStack::simulator_only`] on `bus` instead of the left arm: the driver, started with
+    /// `--bus <bus>`, calls it bus 0 whatever its index in the configuration.
+    pub fn simulator_only_on(tag: &str, bus: &str, sim_args: &[&str]) -> ArmStack {
         let dir = scratch(tag);
         let domain = format!("nori_{tag}_{}", std::process::id()).replace('-', "_");
         let dev = dir.join("dev");
@@ -277,7 +285,7 @@ impl ArmStack {
             "sim",
             "serve",
             "--bus",
-            "left_arm",
+            bus,
             "--dir",
             dev.to_str().unwrap(),
             "--report",
@@ -290,6 +298,7 @@ impl ArmStack {
             driver: Proc::none("bus-driver"),
             agent: Proc::none("fleet-agent"),
             driver_args: Vec::new(),
+            bus: bus.to_string(),
             dir,
             domain,
             sim,
@@ -330,7 +339,7 @@ impl ArmStack {
         let trips = self.trips();
         let mut args = vec![
             "--bus",
-            "left_arm",
+            &self.bus,
             "--device-dir",
             dev.to_str().unwrap(),
             "--domain",
