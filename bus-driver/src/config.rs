@@ -267,6 +267,49 @@ impl DriverConfig {
                 ),
             ));
         }
+        self.validate_timing(origin)?;
+        if self.bus.is_empty() {
+            return Err(invalid(origin, "bus", "no bus configured"));
+        }
+        if let Some((model, b)) = self
+            .backstops
+            .iter()
+            .find(|(_, b)| self.safe_hold_torque_percent > b.max_torque_limit_percent)
+        {
+            return Err(invalid(
+                origin,
+                "safe-hold-torque-percent",
+                format!(
+                    "{} % exceeds backstops.{model}.max-torque-limit-percent {} %: the safe state must not hold harder than driving",
+                    self.safe_hold_torque_percent, b.max_torque_limit_percent
+                ),
+            ));
+        }
+        self.validate_backstops(origin)?;
+        let joints = self.validate_buses(origin, calibration, cal_origin)?;
+        if joints.len() > MAX_JOINTS {
+            return Err(invalid(
+                origin,
+                "bus",
+                format!("{} joints exceed the frame's {MAX_JOINTS}", joints.len()),
+            ));
+        }
+        if let Some(extra) = calibration
+            .joint
+            .keys()
+            .find(|j| !joints.contains(j.as_str()))
+        {
+            return Err(invalid(
+                cal_origin,
+                format!("joint.{extra}"),
+                "no such joint in the driver configuration",
+            ));
+        }
+        Ok(())
+    }
+
+    /// Goal age, supervisor timeout and reply margin.
+    fn validate_timing(&self, origin: &str) -> Result<(), ConfigError> {
         if !(1..=10_000).contains(&self.goal_max_age_ms) {
             return Err(invalid(
                 origin,
@@ -294,23 +337,11 @@ impl DriverConfig {
                 ),
             ));
         }
-        if self.bus.is_empty() {
-            return Err(invalid(origin, "bus", "no bus configured"));
-        }
-        if let Some((model, b)) = self
-            .backstops
-            .iter()
-            .find(|(_, b)| self.safe_hold_torque_percent > b.max_torque_limit_percent)
-        {
-            return Err(invalid(
-                origin,
-                "safe-hold-torque-percent",
-                format!(
-                    "{} % exceeds backstops.{model}.max-torque-limit-percent {} %: the safe state must not hold harder than driving",
-                    self.safe_hold_torque_percent, b.max_torque_limit_percent
-                ),
-            ));
-        }
+        Ok(())
+    }
+
+    /// Each model's firmware backstops: settable, and the cutoff at or below 60 °C.
+    fn validate_backstops(&self, origin: &str) -> Result<(), ConfigError> {
         for (model, b) in &self.backstops {
             let key = |k: &str| format!("backstops.{model}.{k}");
             if !matches!(model.as_str(), "sts3215" | "sts3250" | "sts3095") {
@@ -350,6 +381,17 @@ impl DriverConfig {
                 ));
             }
         }
+        Ok(())
+    }
+
+    /// Buses and servos: unique names, ids and joints, a servo baud rate, backstops for every
+    /// model, a valid calibration for every position joint. Returns the joints' names.
+    fn validate_buses<'a>(
+        &'a self,
+        origin: &str,
+        calibration: &CalibrationFile,
+        cal_origin: &str,
+    ) -> Result<HashSet<&'a str>, ConfigError> {
         let mut joints = HashSet::new();
         let mut buses = HashSet::new();
         for (i, bus) in self.bus.iter().enumerate() {
@@ -407,25 +449,7 @@ impl DriverConfig {
                 }
             }
         }
-        if joints.len() > MAX_JOINTS {
-            return Err(invalid(
-                origin,
-                "bus",
-                format!("{} joints exceed the frame's {MAX_JOINTS}", joints.len()),
-            ));
-        }
-        if let Some(extra) = calibration
-            .joint
-            .keys()
-            .find(|j| !joints.contains(j.as_str()))
-        {
-            return Err(invalid(
-                cal_origin,
-                format!("joint.{extra}"),
-                "no such joint in the driver configuration",
-            ));
-        }
-        Ok(())
+        Ok(joints)
     }
 }
 

@@ -5,13 +5,14 @@
 //! and SIGTERM end the loop with torque off.
 
 use anyhow::{Context, Result};
-use bus_driver::{run, Driver, LoadedConfig, LoopIo, SerialTransport};
+use bus_driver::{Driver, LoadedConfig, LoopIo, SerialTransport};
 use clap::Parser;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 use telemetry::frames::{BusHealth, Directives, Heartbeat, JointLayout, Peer};
 use telemetry::latch;
 use telemetry::plane::{self, Plane, Pub, Sub};
+use telemetry::process::Exit;
 use telemetry::process::ServiceManager;
 use telemetry::{GoalFrame, JointState};
 
@@ -161,8 +162,16 @@ fn open_transports(config: &LoadedConfig, wait: Duration) -> Result<Vec<SerialTr
         .collect()
 }
 
-fn main() -> Result<()> {
-    let args = Args::parse();
+fn main() -> std::process::ExitCode {
+    telemetry::process::finish(run(Args::parse()), |e| {
+        e.is::<bus_driver::transport::TransportError>()
+            .then_some(Exit::Unavailable)
+    })
+}
+
+/// The process; an error ends it with its fault class's exit code (ARCHITECTURE.md, "Exit
+/// codes").
+fn run(args: Args) -> Result<()> {
     if args.print_default_config {
         print!("{}", bus_driver::config::DEFAULT_CONFIG_TOML);
         return Ok(());
@@ -172,23 +181,7 @@ fn main() -> Result<()> {
         return Ok(());
     }
     telemetry::process::init_logging();
-    let mut config = match &args.config {
-        Some(path) => LoadedConfig::load(path)?,
-        None => LoadedConfig::embedded()?,
-    };
-    if let Some(dir) = &args.device_dir {
-        config = config.with_device_dir(dir);
-    }
-    if !args.buses.is_empty() {
-        if let Some(unknown) = args
-            .buses
-            .iter()
-            .find(|n| !config.config.bus.iter().any(|b| &b.name == *n))
-        {
-            anyhow::bail!("--bus {unknown}: no such bus in the configuration");
-        }
-        config.config.bus.retain(|b| args.buses.contains(&b.name));
-    }
+    let config = load_config(&args)?;
     let shutdown = telemetry::process::stop_flag().context("installing signal handlers")?;
     let node = Plane::open(&args.domain, "bus-driver")?;
     node.cleanup_dead();
@@ -203,22 +196,7 @@ fn main() -> Result<()> {
         .trip_file
         .clone()
         .unwrap_or_else(|| latch::default_path(&args.domain));
-    match latch::load(&trip_file) {
-        Ok(joints) => {
-            let latched = driver.set_latch(&joints);
-            if latched != 0 {
-                tracing::warn!(
-                    buses = ?config.config.bus.iter().enumerate().filter(|(b, _)| latched & (1 << b) != 0).map(|(_, bus)| bus.name.as_str()).collect::<Vec<_>>(),
-                    file = %trip_file.display(),
-                    "buses latched off by a trip stay off until `nori reenable`"
-                );
-            }
-        }
-        Err(e) => {
-            tracing::error!("{e}: every bus stays off until the record can be read");
-            driver.latch_all();
-        }
-    }
+    apply_trip_record(&mut driver, &config, &trip_file);
     let mut io = Ipc {
         goals: node.subscriber(&plane::GOALS)?,
         directives: node.subscriber(&plane::DIRECTIVES)?,
@@ -241,22 +219,7 @@ fn main() -> Result<()> {
         trip_file,
     };
     plane::publish(&io.layout_out, &io.layout)?;
-    let supervisor_timeout = match config.config.supervisor_timeout_ms {
-        0 => {
-            tracing::warn!(
-                "supervisor-timeout-ms = 0: driving WITHOUT a supervisor (no stall or thermal protection beyond the firmware); development only"
-            );
-            None
-        }
-        ms => {
-            tracing::info!(
-                "safe state ({:?}) until the supervisor is heard from on {}",
-                config.config.safe_state,
-                plane::SUPERVISOR_HEARTBEAT.name
-            );
-            Some(Duration::from_millis(ms))
-        }
-    };
+    let supervisor_timeout = supervisor_timeout(&config);
     let rt = bus_driver::rt::prepare_control_thread();
     tracing::info!(?rt, "real-time preparation of the control thread");
     let failures = driver.setup();
@@ -286,7 +249,7 @@ fn main() -> Result<()> {
     let max_cycles = args
         .run_for
         .map(|s| (s * config.config.rate_hz).round() as u64);
-    let summary = run(
+    let summary = bus_driver::run(
         &mut driver,
         config.config.period(),
         supervisor_timeout,
@@ -307,4 +270,77 @@ fn main() -> Result<()> {
     );
     println!("{}", serde_json::to_string(&summary)?);
     Ok(())
+}
+
+/// The configuration: the file (or the embedded default), its devices in `--device-dir`, only
+/// the buses named by `--bus`.
+fn load_config(args: &Args) -> Result<LoadedConfig> {
+    let mut config = match &args.config {
+        Some(path) => LoadedConfig::load(path)?,
+        None => LoadedConfig::embedded()?,
+    };
+    if let Some(dir) = &args.device_dir {
+        config = config.with_device_dir(dir);
+    }
+    if !args.buses.is_empty() {
+        if let Some(unknown) = args
+            .buses
+            .iter()
+            .find(|n| !config.config.bus.iter().any(|b| &b.name == *n))
+        {
+            let known: Vec<&str> = config.config.bus.iter().map(|b| b.name.as_str()).collect();
+            let why = format!(
+                "no bus {unknown:?} in the configuration (have: {})",
+                known.join(", ")
+            );
+            return Err(telemetry::config::invalid("the command line", "--bus", why).into());
+        }
+        config.config.bus.retain(|b| args.buses.contains(&b.name));
+    }
+    Ok(config)
+}
+
+/// Latches off, before any torque, every bus the trip record names (all of them if it cannot
+/// be read): whatever the start order of the processes and whether a supervisor is up.
+fn apply_trip_record(
+    driver: &mut Driver<SerialTransport>,
+    config: &LoadedConfig,
+    trip_file: &Path,
+) {
+    match latch::load(trip_file) {
+        Ok(joints) => {
+            let latched = driver.set_latch(&joints);
+            if latched != 0 {
+                tracing::warn!(
+                    buses = ?config.config.bus.iter().enumerate().filter(|(b, _)| latched & (1 << b) != 0).map(|(_, bus)| bus.name.as_str()).collect::<Vec<_>>(),
+                    file = %trip_file.display(),
+                    "buses latched off by a trip stay off until `nori reenable`"
+                );
+            }
+        }
+        Err(e) => {
+            tracing::error!("{e}: every bus stays off until the record can be read");
+            driver.latch_all();
+        }
+    }
+}
+
+/// The supervisor's heartbeat bound (`None`: driving without a supervisor, development only).
+fn supervisor_timeout(config: &LoadedConfig) -> Option<Duration> {
+    match config.config.supervisor_timeout_ms {
+        0 => {
+            tracing::warn!(
+                "supervisor-timeout-ms = 0: driving WITHOUT a supervisor (no stall or thermal protection beyond the firmware); development only"
+            );
+            None
+        }
+        ms => {
+            tracing::info!(
+                "safe state ({:?}) until the supervisor is heard from on {}",
+                config.config.safe_state,
+                plane::SUPERVISOR_HEARTBEAT.name
+            );
+            Some(Duration::from_millis(ms))
+        }
+    }
 }

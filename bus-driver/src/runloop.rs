@@ -57,6 +57,41 @@ pub struct RunSummary {
     pub rate_hz: f64,
 }
 
+/// Reads the trip record again before a release: an unreadable record latches every bus.
+fn read_latch<T: Transport>(driver: &mut Driver<T>, io: &mut dyn LoopIo) {
+    match io.latched_joints() {
+        Ok(joints) => {
+            driver.set_latch(&joints);
+        }
+        Err(e) => {
+            tracing::error!("{e}: every bus stays latched off");
+            driver.latch_all();
+        }
+    }
+}
+
+/// Applies a fresh directive of the live supervisor; whether it was applied. A refusal is
+/// logged once until one is applied again (the safe state holds meanwhile).
+fn apply_directives<T: Transport>(
+    driver: &mut Driver<T>,
+    d: &Directives,
+    refused: &mut bool,
+) -> bool {
+    match driver.apply_directives(d) {
+        Ok(()) => {
+            *refused = false;
+            true
+        }
+        Err(e) => {
+            if !*refused {
+                tracing::warn!("directives refused (the safe state holds): {e}");
+            }
+            *refused = true;
+            false
+        }
+    }
+}
+
 /// A supervisor frame stamped further ahead of this process's clock than this is not ours.
 const FUTURE_SLACK_NS: u64 = 1_000_000;
 
@@ -115,30 +150,10 @@ pub fn run<T: Transport>(
                             && driver.counters.cycles >= next_latch_read
                         {
                             next_latch_read = driver.counters.cycles + every_100ms;
-                            match io.latched_joints() {
-                                Ok(joints) => {
-                                    driver.set_latch(&joints);
-                                }
-                                Err(e) => {
-                                    tracing::error!("{e}: every bus stays latched off");
-                                    driver.latch_all();
-                                }
-                            }
+                            read_latch(driver, io);
                         }
-                        match driver.apply_directives(&d) {
-                            Ok(()) => {
-                                directed = true;
-                                directives_refused = false;
-                            }
-                            Err(e) => {
-                                if !directives_refused {
-                                    tracing::warn!(
-                                        "directives refused (the safe state holds): {e}"
-                                    );
-                                }
-                                directives_refused = true;
-                            }
-                        }
+                        let applied = apply_directives(driver, &d, &mut directives_refused);
+                        directed |= applied;
                     }
                 }
                 if directed && driver.in_safe_state() {

@@ -2,16 +2,16 @@
 //! events and observations from the state plane, and lets policy actions in only through the
 //! gate ([`gate`]) and the scheduler ([`schedule`]). Everything but [`net`] is pure.
 //!
-//! This is the only crate of the workspace that depends on zenoh; others that need a session
-//! (the `nori` CLI's fleet tools, tests) use the re-export [`zenoh`].
+//! Only what runs on the robot is here; the fleet's side (collector, dashboard, reference
+//! policies, router) is the `fleet` crate. The two are the only crates that use zenoh, through
+//! this crate's re-export [`zenoh`], so there is one zenoh version and one way to open a session.
 
-pub mod collector;
+pub mod agent;
 pub mod config;
 pub mod gate;
 pub mod keys;
 pub mod net;
 pub mod outbound;
-pub mod policy;
 pub mod schedule;
 pub mod schema;
 

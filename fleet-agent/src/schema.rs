@@ -132,6 +132,98 @@ pub struct ActionChunk {
     pub targets: Vec<f32>,
 }
 
+/// The agent's answer to `nori/<robot>/status`: what it is, how it is configured, how the
+/// link is doing, and the driver's per-bus error counts.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StatusMsg {
+    /// [`SCHEMA_VERSION`].
+    pub version: u16,
+    /// The robot's id.
+    pub robot_id: String,
+    /// The fleet agent's version (its crate version).
+    pub agent_version: String,
+    /// The agent's rates and action limits.
+    pub config: StatusConfig,
+    /// The robot as the agent sees it now.
+    pub health: StatusHealth,
+    /// What the agent has done since it started.
+    pub counters: AgentCounters,
+    /// The last refusal of an action chunk, with its reason (empty when none).
+    pub last_rejection: String,
+    /// Per bus of the driver, in its order.
+    pub buses: Vec<BusStatus>,
+}
+
+/// The agent's configured rates and action limits, in a [`StatusMsg`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StatusConfig {
+    /// Telemetry rate, Hz.
+    pub state_hz: f64,
+    /// Observation rate, Hz.
+    pub observation_hz: f64,
+    /// Oldest accepted action, ms after its observation.
+    pub max_age_ms: u64,
+    /// Longest plan, ms.
+    pub horizon_ms: u64,
+    /// Weight of a new chunk where it overlaps the plan.
+    pub blend_new: f32,
+    /// Goal forwarding rate, Hz.
+    pub forward_hz: f64,
+}
+
+/// The robot as the agent sees it, in a [`StatusMsg`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StatusHealth {
+    /// Joints in the driver's layout.
+    pub joints: u32,
+    /// Age of the newest joint state, ms (none seen yet: `None`).
+    pub state_age_ms: Option<f64>,
+    /// The driver is in its safe state.
+    pub safe_state: Option<bool>,
+    /// The driver's deadline misses.
+    pub deadline_misses: Option<u64>,
+    /// Steps planned ahead by the scheduler.
+    pub planned_steps: u64,
+}
+
+/// The agent's counters, in a [`StatusMsg`].
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct AgentCounters {
+    /// Telemetry messages sent.
+    pub state_sent: u64,
+    /// Observations sent.
+    pub observations_sent: u64,
+    /// Events sent.
+    pub events_sent: u64,
+    /// Action chunks accepted by the gate.
+    pub actions_accepted: u64,
+    /// Action chunks refused, by reason (every reason listed, zeros included).
+    pub actions_rejected: std::collections::BTreeMap<String, u64>,
+    /// Planned steps dropped because their time had passed.
+    pub steps_dropped_past: u64,
+    /// Plans that ran out.
+    pub plans_expired: u64,
+    /// Goal frames forwarded to the driver.
+    pub goals_forwarded: u64,
+    /// Plans dropped because the driver restarted or entered its safe state.
+    pub plans_dropped: u64,
+    /// Scheduled targets withheld at the last check (none, unless the scheduler is wrong).
+    pub goals_withheld: u64,
+}
+
+/// One bus of the driver, in a [`StatusMsg`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BusStatus {
+    /// The bus's name in the driver's layout.
+    pub name: String,
+    /// Its device is open.
+    pub connected: bool,
+    /// It is on (not disabled by the supervisor, a latch or the driver's own trip).
+    pub enabled: bool,
+    /// The driver's error and read-back counts.
+    pub counters: telemetry::frames::BusCounters,
+}
+
 /// A message that cannot be read.
 #[derive(Debug, Error, Clone, PartialEq)]
 pub enum DecodeError {

@@ -1077,7 +1077,7 @@ fn model_file(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::generate::Rng;
+    use sim::rng::Rng;
 
     /// Nominal residuals b = (true correction δ) + noise, the extension removing δ.
     fn residuals(follow: f64, seed: u64) -> (Vec<Vec<f64>>, Vec<Vec<f64>>) {

@@ -144,7 +144,7 @@ impl Register {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::generate::Rng;
+    use sim::rng::Rng;
 
     #[test]
     fn a_fine_register_is_least_squares_in_sigma_units() {

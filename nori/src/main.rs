@@ -1,25 +1,22 @@
-//! `nori`: the operator CLI of the Nori A3 stack.
+//! `nori`: the operator's command. Its own commands look at and move the robot (`state`,
+//! `goal`, `reenable`) and record demonstrations (`record`, `dataset`); every other command is
+//! a program of its own, installed next to it, that `nori` runs in its place (same process,
+//! same arguments), so the one command name reaches all of them:
 //!
-//! `nori up` runs the stack on the simulated robot; `nori sim serve` serves the simulated buses;
-//! `nori state` / `nori goal` look at and move the robot; `nori fleet` shows the fleet; `nori bench` measures; `nori model` holds the simulation against measured data;
-//! `nori record` records demonstrations, `nori dataset` recovers and exports them.
+//! | command | program | crate |
+//! |---|---|---|
+//! | `nori up`, `nori sim scenario` | `nori-stack up`, `nori-stack scenario` | `stack` |
+//! | `nori sim serve` | `nori-sim` | `sim` |
+//! | `nori fleet`, `nori policy-server`, `nori router` | `nori-fleet dashboard`, `… policy-server`, `… router` | `fleet` |
+//! | `nori bench …`, `nori model bench` | `nori-bench …`, `nori-bench model-lab` | `bench` |
+//! | `nori model analyze`, `nori model generate` | `nori-model …` | `model-lab` |
 
-mod bench;
-mod bench_fleet;
-mod bench_plane;
-mod fleet;
-mod model;
 mod plane_tools;
-mod policy_server;
 mod record;
-mod router;
-mod scenario;
-mod sim_serve;
-mod stack;
-mod up;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
+use std::os::unix::process::CommandExt;
 
 #[derive(Parser)]
 #[command(version, about = "Operator CLI of the Nori A3 control stack")]
@@ -28,10 +25,19 @@ struct Cli {
     command: Command,
 }
 
+/// The arguments of a command another program carries out, passed on as they are (`--help`
+/// included: that program answers it).
+#[derive(clap::Args, Debug)]
+struct Passed {
+    #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+    args: Vec<String>,
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// Run the whole stack on the simulated robot (no hardware) until Ctrl-C.
-    Up(up::UpArgs),
+    #[command(disable_help_flag = true)]
+    Up(Passed),
     /// The simulated robot.
     #[command(subcommand)]
     Sim(SimCommand),
@@ -42,17 +48,21 @@ enum Command {
     /// Ask the supervisor to re-enable a bus it tripped (granted once the bus has cooled).
     Reenable(plane_tools::ReenableArgs),
     /// The reference inference server: a scripted policy for every robot on the fleet.
-    PolicyServer(policy_server::PolicyServerArgs),
+    #[command(disable_help_flag = true)]
+    PolicyServer(Passed),
     /// The fleet side: live dashboard and Prometheus /metrics of every robot on zenoh.
-    Fleet(fleet::FleetArgs),
+    #[command(disable_help_flag = true)]
+    Fleet(Passed),
     /// A zenoh router for a site or a test fleet (TLS and access control from its JSON5 file).
-    Router(router::RouterArgs),
-    /// Benchmarks (figures next to their baseline).
-    #[command(subcommand)]
-    Bench(bench::Bench),
-    /// The model lab: the simulation held against measured data.
-    #[command(subcommand)]
-    Model(model::ModelCommand),
+    #[command(disable_help_flag = true)]
+    Router(Passed),
+    /// Benchmarks (figures next to their baseline): driver-rate, sim-speed, state-plane,
+    /// action-latency, fleet-ingest, model-lab.
+    #[command(disable_help_flag = true)]
+    Bench(Passed),
+    /// The model lab: the simulation held against measured data (analyze, generate, bench).
+    #[command(disable_help_flag = true)]
+    Model(Passed),
     /// Record demonstrations from the state plane into a LeRobot v3.0 dataset (crash-safe).
     Record(record::RecordArgs),
     /// Datasets recorded by `nori record`: recover after a crash, export for the model lab.
@@ -63,25 +73,44 @@ enum Command {
 #[derive(Subcommand)]
 enum SimCommand {
     /// Serve the simulated buses on pseudo-terminals in real time.
-    Serve(Box<sim_serve::ServeArgs>),
+    #[command(disable_help_flag = true)]
+    Serve(Passed),
     /// Run the whole stack into a protection scenario and print the outcome.
-    Scenario(scenario::ScenarioArgs),
+    #[command(disable_help_flag = true)]
+    Scenario(Passed),
+}
+
+/// Replaces this process with `program` (installed next to `nori`) run with `first` then
+/// `passed`; returns only if that fails.
+fn run_instead(program: &str, first: &[&str], passed: &Passed) -> Result<()> {
+    let path = telemetry::process::sibling(program)?;
+    let err = std::process::Command::new(&path)
+        .args(first)
+        .args(&passed.args)
+        .exec();
+    Err(err).with_context(|| format!("running {}", path.display()))
 }
 
 fn main() -> Result<()> {
     let cli = Cli::parse();
     match &cli.command {
-        Command::Up(a) => up::run(a),
-        Command::Sim(SimCommand::Serve(a)) => sim_serve::run(a),
-        Command::Sim(SimCommand::Scenario(a)) => scenario::run(a),
+        Command::Up(p) => run_instead("nori-stack", &["up"], p),
+        Command::Sim(SimCommand::Serve(p)) => run_instead("nori-sim", &[], p),
+        Command::Sim(SimCommand::Scenario(p)) => run_instead("nori-stack", &["scenario"], p),
         Command::State(a) => plane_tools::state(a),
         Command::Goal(a) => plane_tools::goal(a),
         Command::Reenable(a) => plane_tools::reenable(a),
-        Command::PolicyServer(a) => policy_server::run(a),
-        Command::Router(a) => router::run(a),
-        Command::Fleet(a) => fleet::run(a),
-        Command::Bench(b) => bench::run(b),
-        Command::Model(m) => model::run(m),
+        Command::PolicyServer(p) => run_instead("nori-fleet", &["policy-server"], p),
+        Command::Fleet(p) => run_instead("nori-fleet", &["dashboard"], p),
+        Command::Router(p) => run_instead("nori-fleet", &["router"], p),
+        Command::Bench(p) => run_instead("nori-bench", &[], p),
+        Command::Model(p) if p.args.first().is_some_and(|a| a == "bench") => {
+            let rest = Passed {
+                args: p.args[1..].to_vec(),
+            };
+            run_instead("nori-bench", &["model-lab"], &rest)
+        }
+        Command::Model(p) => run_instead("nori-model", &[], p),
         Command::Record(a) => record::record(a),
         Command::Dataset(d) => record::dataset(d),
     }

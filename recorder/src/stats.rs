@@ -10,6 +10,7 @@
 //! approximate by construction (exact global quantiles would need every frame again).
 
 use serde_json::{json, Value};
+use telemetry::stats::quantile_sorted;
 
 /// Quantile levels and their key names.
 pub const QUANTILES: [(f64, &str); 5] = [
@@ -42,16 +43,6 @@ pub struct FeatureStats {
     pub quantiles: [Vec<f64>; 5],
 }
 
-fn quantile_of_sorted(x: &[f64], q: f64) -> f64 {
-    if x.is_empty() {
-        return f64::NAN;
-    }
-    let h = (x.len() - 1) as f64 * q;
-    let lo = h.floor() as usize;
-    let hi = (lo + 1).min(x.len() - 1);
-    x[lo] + (h - lo as f64) * (x[hi] - x[lo])
-}
-
 impl FeatureStats {
     /// Statistics of `frames` values per dimension: `columns[d][frame]`.
     pub fn of_columns(columns: &[Vec<f64>], frames: usize) -> FeatureStats {
@@ -75,7 +66,7 @@ impl FeatureStats {
             s.mean.push(mean);
             s.std.push(var.sqrt());
             for (k, (q, _)) in QUANTILES.iter().enumerate() {
-                s.quantiles[k].push(quantile_of_sorted(&x, *q));
+                s.quantiles[k].push(quantile_sorted(&x, *q));
             }
         }
         s

@@ -7,6 +7,7 @@
 //! feedback block of every servo before any fault is applied (`SimBus::feedback_truth`), so a
 //! test can compare what the driver published as valid with what the servo really measured.
 
+use crate::rng::Rng;
 use serde::{Deserialize, Serialize};
 
 /// Fault rates of one bus, each the probability per status packet (mutually exclusive: at most
@@ -118,45 +119,15 @@ pub enum Fault {
     },
 }
 
-/// SplitMix64: a small, fast, seedable generator (no dependency, same sequence everywhere).
-#[derive(Debug, Clone)]
-pub struct SplitMix64(u64);
-
-impl SplitMix64 {
-    /// A generator from `seed`.
-    pub fn new(seed: u64) -> Self {
-        SplitMix64(seed)
-    }
-
-    /// The next 64 random bits.
-    pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform in [0, 1).
-    pub fn unit(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
-    }
-
-    /// Uniform in `0..n` (`n` > 0).
-    pub fn below(&mut self, n: usize) -> usize {
-        (self.next_u64() % n.max(1) as u64) as usize
-    }
-}
-
 /// Draws the faults of a bus's status packets.
 #[derive(Debug, Clone)]
 pub struct FaultInjector {
     /// The rates.
     pub config: LineFaults,
-    rng: SplitMix64,
+    rng: Rng,
     /// A stream of its own, so adding instruction faults does not change the reply faults a
     /// seed gives.
-    instruction_rng: SplitMix64,
+    instruction_rng: Rng,
     /// What was injected so far.
     pub counts: FaultCounts,
 }
@@ -166,8 +137,8 @@ impl FaultInjector {
     pub fn new(config: LineFaults) -> Self {
         FaultInjector {
             config,
-            rng: SplitMix64::new(config.seed),
-            instruction_rng: SplitMix64::new(config.seed ^ 0x1A57_0000_DEAD_BEEF),
+            rng: Rng::new(config.seed),
+            instruction_rng: Rng::new(config.seed ^ 0x1A57_0000_DEAD_BEEF),
             counts: FaultCounts::default(),
         }
     }
@@ -176,14 +147,14 @@ impl FaultInjector {
     /// or `None`.
     pub fn draw_instruction(&mut self, len: usize) -> Fault {
         let c = self.config;
-        let r = self.instruction_rng.unit();
+        let r = self.instruction_rng.uniform();
         if r < c.instruction_drop_rate {
             self.counts.instructions_dropped += 1;
             Fault::Drop
         } else if r < c.instruction_drop_rate + c.instruction_corrupt_rate && len > 0 {
             self.counts.instructions_corrupted += 1;
             Fault::Flip {
-                byte: self.instruction_rng.below(len),
+                byte: self.instruction_rng.below(len as u64) as usize,
                 bit: self.instruction_rng.below(8) as u8,
             }
         } else {
@@ -194,29 +165,29 @@ impl FaultInjector {
     /// Draws the fault of one status packet of `len` bytes and counts it.
     pub fn draw(&mut self, len: usize) -> Fault {
         let c = self.config;
-        let r = self.rng.unit();
+        let r = self.rng.uniform();
         if r < c.drop_rate {
             self.counts.dropped += 1;
             Fault::Drop
         } else if r < c.drop_rate + c.truncate_rate && len > 1 {
             self.counts.truncated += 1;
             Fault::Truncate {
-                keep: 1 + self.rng.below(len - 1),
+                keep: 1 + self.rng.below(len as u64 - 1) as usize,
             }
         } else if r < c.drop_rate + c.truncate_rate + c.bit_flip_rate && len > 0 {
             self.counts.flipped += 1;
             Fault::Flip {
-                byte: self.rng.below(len),
+                byte: self.rng.below(len as u64) as usize,
                 bit: self.rng.below(8) as u8,
             }
         } else if r < c.drop_rate + c.truncate_rate + c.bit_flip_rate + c.double_flip_rate
             && len > 0
         {
             self.counts.double_flipped += 1;
-            let first = (self.rng.below(len), self.rng.below(8) as u8);
+            let first = (self.rng.below(len as u64) as usize, self.rng.below(8) as u8);
             let mut second = first;
             while second == first {
-                second = (self.rng.below(len), self.rng.below(8) as u8);
+                second = (self.rng.below(len as u64) as usize, self.rng.below(8) as u8);
             }
             Fault::DoubleFlip([first, second])
         } else {
@@ -248,9 +219,177 @@ pub fn apply(fault: Fault, packet: &mut [u8]) -> &[u8] {
     }
 }
 
+/// A fault the simulator schedules in time: a bus unplugged (`id` none: the USB adapter pulled
+/// out and put back) or one servo silent, from `at` for `duration` seconds of the run.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Scheduled {
+    /// Bus name.
+    pub bus: String,
+    /// Servo id (silence) or none (unplug).
+    pub id: Option<u8>,
+    /// Start, s since the simulator started.
+    pub at: f64,
+    /// Duration, s.
+    pub duration: f64,
+}
+
+/// A scheduled fault that does not parse.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{text:?}: expected {form} (seconds), e.g. {example}")]
+pub struct ScheduleError {
+    /// What was given.
+    pub text: String,
+    /// The expected form.
+    pub form: &'static str,
+    /// An example of it.
+    pub example: &'static str,
+}
+
+impl Scheduled {
+    /// Parses `BUS@AT+FOR` (`with_id` false) or `BUS:ID@AT+FOR` (`with_id` true).
+    pub fn parse(text: &str, with_id: bool) -> Result<Scheduled, ScheduleError> {
+        let bad = || ScheduleError {
+            text: text.into(),
+            form: if with_id {
+                "BUS:ID@AT+FOR"
+            } else {
+                "BUS@AT+FOR"
+            },
+            example: if with_id {
+                "right_arm:3@10+3"
+            } else {
+                "right_arm@10+3"
+            },
+        };
+        let (target, when) = text.split_once('@').ok_or_else(bad)?;
+        let (at, duration) = when.split_once('+').ok_or_else(bad)?;
+        let at: f64 = at.trim().parse().map_err(|_| bad())?;
+        let duration: f64 = duration.trim().parse().map_err(|_| bad())?;
+        if !(at.is_finite() && at >= 0.0 && duration.is_finite() && duration > 0.0) {
+            return Err(bad());
+        }
+        let (bus, id) = if with_id {
+            let (bus, id) = target.split_once(':').ok_or_else(bad)?;
+            (bus, Some(id.trim().parse::<u8>().map_err(|_| bad())?))
+        } else {
+            (target, None)
+        };
+        if bus.is_empty() {
+            return Err(bad());
+        }
+        Ok(Scheduled {
+            bus: bus.to_string(),
+            id,
+            at,
+            duration,
+        })
+    }
+}
+
+/// Where a scheduled fault stands.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Phase {
+    Pending,
+    Active,
+    Over,
+}
+
+/// The run's fault schedule: which faults turn on or off as time passes (time passed in).
+#[derive(Debug, Clone, Default)]
+pub struct Schedule {
+    faults: Vec<(Scheduled, Phase)>,
+}
+
+impl Schedule {
+    /// A schedule of `faults`, none started.
+    pub fn new(faults: Vec<Scheduled>) -> Schedule {
+        Schedule {
+            faults: faults.into_iter().map(|f| (f, Phase::Pending)).collect(),
+        }
+    }
+
+    /// The faults.
+    pub fn faults(&self) -> impl Iterator<Item = &Scheduled> {
+        self.faults.iter().map(|(f, _)| f)
+    }
+
+    /// The changes due at `t` s since the start: each fault that turns on (`true`) or off
+    /// (`false`). A fault that began and ended between two calls only turns off (it never
+    /// took effect, and whatever it would have changed is restored).
+    pub fn advance(&mut self, t: f64) -> Vec<(&Scheduled, bool)> {
+        let mut changes = Vec::new();
+        for (fault, phase) in &mut self.faults {
+            let want = if t < fault.at {
+                Phase::Pending
+            } else if t < fault.at + fault.duration {
+                Phase::Active
+            } else {
+                Phase::Over
+            };
+            if want != *phase {
+                *phase = want;
+                changes.push((&*fault, want == Phase::Active));
+            }
+        }
+        changes
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn scheduled_faults_parse_or_say_why() {
+        assert_eq!(
+            Scheduled::parse("right_arm@10+3", false).unwrap(),
+            Scheduled {
+                bus: "right_arm".into(),
+                id: None,
+                at: 10.0,
+                duration: 3.0
+            }
+        );
+        assert_eq!(
+            Scheduled::parse("left_arm:3@5.5+0.5", true).unwrap().id,
+            Some(3)
+        );
+        for bad in [
+            "right_arm",
+            "right_arm@x+1",
+            "@1+1",
+            "a@1+0",
+            "a@-1+2",
+            "a@1+nan",
+        ] {
+            let e = Scheduled::parse(bad, false).unwrap_err().to_string();
+            assert!(e.contains("BUS@AT+FOR"), "{bad}: {e}");
+        }
+        let e = Scheduled::parse("left_arm:300@1+1", true).unwrap_err();
+        assert_eq!(e.form, "BUS:ID@AT+FOR");
+        assert!(Scheduled::parse("left_arm@1+1", true).is_err());
+    }
+
+    #[test]
+    fn a_schedule_turns_each_fault_on_then_off_once() {
+        let unplug = Scheduled::parse("a@1+2", false).unwrap();
+        let blip = Scheduled::parse("b:3@1.5+0.01", true).unwrap();
+        let mut s = Schedule::new(vec![unplug.clone(), blip.clone()]);
+        let names = |c: Vec<(&Scheduled, bool)>| {
+            c.into_iter()
+                .map(|(f, on)| (f.bus.clone(), on))
+                .collect::<Vec<_>>()
+        };
+        assert!(s.advance(0.5).is_empty());
+        assert_eq!(names(s.advance(1.0)), [("a".to_string(), true)]);
+        assert!(s.advance(1.2).is_empty());
+        // The blip began and ended between two calls: only its end is reported.
+        assert_eq!(names(s.advance(1.6)), [("b".to_string(), false)]);
+        assert!(s.advance(2.9).is_empty());
+        assert_eq!(names(s.advance(3.0)), [("a".to_string(), false)]);
+        assert!(s.advance(100.0).is_empty());
+        assert_eq!(s.faults().count(), 2);
+    }
 
     #[test]
     fn rates_are_honoured_and_seeded() {
@@ -289,7 +428,7 @@ mod tests {
             double_flip_rate: 1.0,
             ..LineFaults::default()
         });
-        let mut data = SplitMix64::new(11);
+        let mut data = Rng::new(11);
         let (n, mut passed) = (20_000, 0);
         for _ in 0..n {
             // A feedback status packet: FF FF id len err params(15) checksum.

@@ -19,6 +19,7 @@ pub mod description;
 pub mod extension;
 pub mod faults;
 pub mod pty;
+pub mod rng;
 pub mod scenario;
 pub mod servo;
 

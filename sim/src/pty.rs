@@ -22,6 +22,12 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 use thiserror::Error;
 
+/// Where the simulator links its devices by default (DIR/<bus name>), and the driver's
+/// `--device-dir` in a development run finds them.
+pub fn default_device_dir() -> std::path::PathBuf {
+    std::env::temp_dir().join("nori-sim")
+}
+
 /// How long a hung-up pty (no driver attached) is left out of the poll set.
 const HANGUP_BACKOFF: f64 = 0.005;
 

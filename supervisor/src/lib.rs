@@ -6,14 +6,19 @@
 //! * [`thermal`]: the software tier of the two-tier thermal interlock: warnings from the
 //!   temperature trajectory, the whole bus disabled at 59 °C, latched until cooled and commanded.
 //! * [`grip`]: sensorless grip force from the same current read.
+//! * [`event`]: what it reports, typed; a state-plane frame only at the edge.
 //! * [`logic`]: all of it as one pure state machine over joint-state frames; the frames'
 //!   timestamps are its clock, so tests drive it with a mock clock.
+//! * [`process`]: the loop around it (layout, trip record, directives and heartbeat timing)
+//!   against an I/O trait, so the process's own behaviour is tested in process too.
 //!
 //! It depends only on `telemetry`: it must outlive a crashed driver.
 
 pub mod config;
+pub mod event;
 pub mod grip;
 pub mod logic;
+pub mod process;
 pub mod stall;
 pub mod thermal;
 

@@ -2,15 +2,18 @@
 //! clock), directives, events and grip force out. The process around it only moves frames.
 
 use crate::config::{GripCalibration, SupervisorConfig};
+use crate::event::{Event, TripCause};
 use crate::grip::grip_force;
 use crate::stall::{StallAction, StallDetector};
 use crate::thermal::{BusThermal, ThermalEvent};
+use std::time::Duration;
 use telemetry::frames::{
-    Directives, EventKind, GripFrame, GripSample, JointLayout, JointRole, JointState,
+    Directives, GripFrame, GripSample, JointLayout, JointRole, JointSample, JointState,
     SupervisorCommand, SupervisorEvent, COMMAND_REENABLE_BUS, COMMAND_REFUSED_NOT_TRIPPED,
     COMMAND_REFUSED_NO_SUCH_BUS, COMMAND_REFUSED_UNKNOWN_KIND, JOINT_FLAG_DRIVER_TRIP,
     JOINT_FLAG_OUTPUT_LOST, MAX_BUSES, MAX_GRIPPERS,
 };
+use telemetry::watchdog::{Liveness, Watchdog};
 use telemetry::MAX_JOINTS;
 use thiserror::Error;
 
@@ -46,8 +49,7 @@ pub const PROTECTION_BITS: u8 = 0x04 | 0x08 | 0x20;
 /// passed the checksum must not latch a bus off.
 pub const PROTECTION_CONFIRM_FRAMES: u8 = 2;
 
-/// No joint / no bus, in an event.
-pub const NONE: u8 = 0xFF;
+pub use crate::event::NONE;
 
 /// The supervisor's state.
 pub struct Supervisor {
@@ -67,6 +69,16 @@ pub struct Supervisor {
     driver_trip: Vec<bool>,
     /// Bus enables and torque limits last handed out.
     published: (u32, [u16; MAX_JOINTS]),
+    /// The driver's heartbeats, and what was last said of them.
+    driver: DriverWatch,
+}
+
+/// The driver's liveness from its heartbeats; kept across a new layout (the same driver, or its
+/// successor, is watched on).
+#[derive(Debug, Clone, Copy)]
+struct DriverWatch {
+    watchdog: Watchdog,
+    state: Liveness,
 }
 
 impl Supervisor {
@@ -128,7 +140,6 @@ impl Supervisor {
             ..Directives::default()
         };
         Ok(Supervisor {
-            config,
             layout: *layout,
             stall,
             buses,
@@ -144,6 +155,11 @@ impl Supervisor {
             protection: vec![(0, false); joints.len()],
             driver_trip: vec![false; layout.bus_count as usize],
             published: (directives.bus_enabled, directives.torque_limit_permille),
+            driver: DriverWatch {
+                watchdog: Watchdog::new(Duration::from_millis(config.driver_timeout_ms)),
+                state: Liveness::Unknown,
+            },
+            config,
         })
     }
 
@@ -152,26 +168,47 @@ impl Supervisor {
         &self.layout
     }
 
-    /// Records an event.
-    pub fn event(
-        &mut self,
-        now_ns: u64,
-        kind: EventKind,
-        joint: u8,
-        bus: u8,
-        level: u8,
-        value: f32,
-    ) {
+    /// Records an event at `now_ns` (numbered in order; a frame only at the edge).
+    pub fn event(&mut self, now_ns: u64, event: Event) {
         self.event_seq += 1;
-        self.events.push(SupervisorEvent {
-            seq: self.event_seq,
-            timestamp_ns: now_ns,
-            kind: kind as u8,
-            joint,
-            bus,
-            level,
-            value,
-        });
+        self.events.push(event.frame(self.event_seq, now_ns));
+    }
+
+    /// Takes over the driver's watch from the instance this one replaces (a new layout).
+    pub fn inherit_driver_watch(&mut self, previous: &Supervisor) {
+        self.driver = previous.driver;
+    }
+
+    /// A driver heartbeat from process `pid`, received at `now_ns`: a new process is reported
+    /// back at once, with its pid.
+    pub fn driver_beat(&mut self, now_ns: u64, pid: u32) {
+        if self.driver.watchdog.beat(now_ns, pid) {
+            self.event(now_ns, Event::DriverBack { pid: Some(pid) });
+        }
+    }
+
+    /// Judges the driver's liveness at `now_ns`: lost after the configured silence, back when
+    /// heard again (each reported once).
+    pub fn watch_driver(&mut self, now_ns: u64) -> Liveness {
+        let now = self.driver.watchdog.liveness(now_ns);
+        match (self.driver.state, now) {
+            (Liveness::Alive, Liveness::Lost) => {
+                let silence = self.driver.watchdog.silence(now_ns).unwrap_or_default();
+                let silence_s = silence.as_secs_f32();
+                self.event(now_ns, Event::DriverLost { silence_s });
+            }
+            (Liveness::Lost, Liveness::Alive) => {
+                self.event(now_ns, Event::DriverBack { pid: None });
+            }
+            _ => {}
+        }
+        self.driver.state = now;
+        now
+    }
+
+    /// The driver's liveness as last judged by [`Supervisor::watch_driver`].
+    pub fn driver_liveness(&self) -> Liveness {
+        self.driver.state
     }
 
     /// Events since the last drain, in order.
@@ -242,7 +279,15 @@ impl Supervisor {
         }
         for &b in &restored {
             self.directives.bus_enabled &= !(1 << b);
-            self.event(now_ns, EventKind::ThermalTrip, NONE, b, 3, f32::NAN);
+            self.event(
+                now_ns,
+                Event::ThermalTrip {
+                    joint: None,
+                    bus: b,
+                    cause: TripCause::Restored,
+                    temperature_c: f32::NAN,
+                },
+            );
         }
         restored
     }
@@ -252,8 +297,21 @@ impl Supervisor {
         if state.joint_count != self.layout.joint_count {
             return false;
         }
-        let now = state.timestamp_ns;
-        let joints = state.joints();
+        let (now, joints) = (state.timestamp_ns, state.joints());
+        self.stall_tier(now, joints);
+        self.output_lost_tier(now, joints);
+        self.firmware_tier(now, joints);
+        self.driver_tier(now, joints);
+        self.thermal_tier(now, joints);
+        self.directives.bus_enabled = (0..32u32)
+            .filter(|&b| !self.bus_tripped(b as usize))
+            .fold(0, |mask, b| mask | (1 << b));
+        self.grip_force(state);
+        true
+    }
+
+    /// Stall detection and reaction, joint by joint.
+    fn stall_tier(&mut self, now: u64, joints: &[JointSample]) {
         // Stall detection and reaction.
         for (j, sample) in joints.iter().enumerate() {
             let Some(detector) = self.stall[j].as_mut() else {
@@ -268,41 +326,82 @@ impl Supervisor {
             let limit = detector.torque_limit_permille(&self.config.stall);
             self.directives.torque_limit_permille[j] = limit;
             let (bus, current) = (self.layout.joints[j].bus, sample.current_a);
+            let j8 = j as u8;
             match action {
                 StallAction::None => {}
                 StallAction::Retry => {
-                    self.event(now, EventKind::Stall, j as u8, bus, 0, current);
-                    self.event(now, EventKind::StallRetry, j as u8, bus, 0, current);
+                    self.event(
+                        now,
+                        Event::Stall {
+                            joint: j8,
+                            bus,
+                            current_a: current,
+                        },
+                    );
+                    self.event(
+                        now,
+                        Event::StallRetry {
+                            joint: j8,
+                            bus,
+                            current_a: current,
+                        },
+                    );
                 }
                 StallAction::Reduce => {
                     if self.layout.joints[j].role() == JointRole::Gripper {
-                        self.event(now, EventKind::Stall, j as u8, bus, 0, current);
+                        self.event(
+                            now,
+                            Event::Stall {
+                                joint: j8,
+                                bus,
+                                current_a: current,
+                            },
+                        );
                     }
+                    let limit_percent = f32::from(limit) / 10.0;
                     self.event(
                         now,
-                        EventKind::TorqueReduced,
-                        j as u8,
-                        bus,
-                        0,
-                        f32::from(limit) / 10.0,
+                        Event::TorqueReduced {
+                            joint: j8,
+                            bus,
+                            limit_percent,
+                        },
                     );
                 }
-                StallAction::Restore => {
-                    self.event(now, EventKind::TorqueRestored, j as u8, bus, 0, current)
-                }
+                StallAction::Restore => self.event(
+                    now,
+                    Event::TorqueRestored {
+                        joint: j8,
+                        bus,
+                        current_a: current,
+                    },
+                ),
             }
         }
+    }
+
+    /// A motor's output cut where the software tier did not fire.
+    fn output_lost_tier(&mut self, now: u64, joints: &[JointSample]) {
         // The hardware tier fired somewhere the software tier did not: the driver saw a motor's
         // output vanish. Disable that bus too.
         for (j, sample) in joints.iter().enumerate() {
             let lost = sample.flags & JOINT_FLAG_OUTPUT_LOST != 0;
             if lost && !self.output_lost[j] {
-                let bus = self.layout.joints[j].bus;
-                let t = sample.temperature_c;
-                self.trip_from_outside(now, EventKind::OutputLost, j as u8, bus, 0, t);
+                let (joint, bus) = (j as u8, self.layout.joints[j].bus);
+                let temperature_c = sample.temperature_c;
+                let event = Event::OutputLost {
+                    joint,
+                    bus,
+                    temperature_c,
+                };
+                self.trip_from_outside(now, event, Some(joint), bus, temperature_c);
             }
             self.output_lost[j] = lost;
         }
+    }
+
+    /// A firmware protection's status bits, confirmed over two frames.
+    fn firmware_tier(&mut self, now: u64, joints: &[JointSample]) {
         // The hardware tier announced itself: a firmware protection's status bit (seen in two
         // frames in a row) disables the bus like the software trip.
         for (j, sample) in joints.iter().enumerate() {
@@ -323,10 +422,20 @@ impl Supervisor {
                 continue;
             }
             *reported = true;
-            let bus = self.layout.joints[j].bus;
-            let t = sample.temperature_c;
-            self.trip_from_outside(now, EventKind::FirmwareProtection, j as u8, bus, bits, t);
+            let (joint, bus) = (j as u8, self.layout.joints[j].bus);
+            let temperature_c = sample.temperature_c;
+            let event = Event::FirmwareProtection {
+                joint,
+                bus,
+                bits,
+                temperature_c,
+            };
+            self.trip_from_outside(now, event, Some(joint), bus, temperature_c);
         }
+    }
+
+    /// The driver's last-resort trips, taken over as this supervisor's latches.
+    fn driver_tier(&mut self, now: u64, joints: &[JointSample]) {
         // The driver's last-resort tier tripped a bus while no supervisor was heard: the trip
         // becomes this supervisor's, latched and recorded like its own.
         for b in 0..self.driver_trip.len() {
@@ -341,10 +450,18 @@ impl Supervisor {
                 }
             }
             if flagged && !self.driver_trip[b] {
-                self.trip_from_outside(now, EventKind::DriverTrip, NONE, b as u8, 0, hottest);
+                let event = Event::DriverTrip {
+                    bus: b as u8,
+                    hottest_c: hottest,
+                };
+                self.trip_from_outside(now, event, None, b as u8, hottest);
             }
             self.driver_trip[b] = flagged;
         }
+    }
+
+    /// The software thermal tier, bus by bus.
+    fn thermal_tier(&mut self, now: u64, joints: &[JointSample]) {
         // Thermal tier, bus by bus.
         let t = now as f64 * 1e-9;
         for b in 0..self.buses.len() {
@@ -364,11 +481,12 @@ impl Supervisor {
                     temperature_c,
                 }) => self.event(
                     now,
-                    EventKind::ThermalTrip,
-                    joint as u8,
-                    b as u8,
-                    3,
-                    temperature_c,
+                    Event::ThermalTrip {
+                        joint: Some(joint as u8),
+                        bus: b as u8,
+                        cause: TripCause::Software,
+                        temperature_c,
+                    },
                 ),
                 Some(ThermalEvent::Warning {
                     level,
@@ -376,18 +494,21 @@ impl Supervisor {
                     time_to_trip_s,
                 }) => self.event(
                     now,
-                    EventKind::ThermalWarning,
-                    joint as u8,
-                    b as u8,
-                    level,
-                    time_to_trip_s,
+                    Event::ThermalWarning {
+                        joint: joint as u8,
+                        bus: b as u8,
+                        level,
+                        time_to_trip_s,
+                    },
                 ),
                 None => {}
             }
         }
-        self.directives.bus_enabled = (0..32u32)
-            .filter(|&b| !self.bus_tripped(b as usize))
-            .fold(0, |mask, b| mask | (1 << b));
+    }
+
+    /// Grip force from the frame's current read.
+    fn grip_force(&mut self, state: &JointState) {
+        let (now, joints) = (state.timestamp_ns, state.joints());
         // Grip force from the same current read.
         self.grip.state_seq = state.seq;
         self.grip.timestamp_ns = now;
@@ -405,7 +526,6 @@ impl Supervisor {
                 },
             };
         }
-        true
     }
 
     /// A tier outside this process fired on `bus` (the firmware, or the driver's own): the event
@@ -414,19 +534,27 @@ impl Supervisor {
     fn trip_from_outside(
         &mut self,
         now: u64,
-        kind: EventKind,
-        joint: u8,
+        event: Event,
+        joint: Option<u8>,
         bus: u8,
-        level: u8,
         temperature_c: f32,
     ) {
-        self.event(now, kind, joint, bus, level, temperature_c);
+        self.event(now, event);
         if self
             .buses
             .get_mut(usize::from(bus))
             .is_some_and(BusThermal::force_trip)
         {
-            self.event(now, EventKind::ThermalTrip, joint, bus, 0, temperature_c);
+            let cause = TripCause::Outside;
+            self.event(
+                now,
+                Event::ThermalTrip {
+                    joint,
+                    bus,
+                    cause,
+                    temperature_c,
+                },
+            );
         }
     }
 
@@ -435,14 +563,8 @@ impl Supervisor {
     /// (`nori reenable`) waits for an answer.
     pub fn command(&mut self, cmd: &SupervisorCommand, now_ns: u64) {
         let refused = |s: &mut Self, why: u8| {
-            s.event(
-                now_ns,
-                EventKind::CommandRefused,
-                NONE,
-                cmd.bus,
-                why,
-                f32::from(cmd.kind),
-            );
+            let (bus, command) = (cmd.bus, cmd.kind);
+            s.event(now_ns, Event::CommandRefused { bus, why, command });
         };
         if cmd.kind != COMMAND_REENABLE_BUS {
             return refused(self, COMMAND_REFUSED_UNKNOWN_KIND);
@@ -457,15 +579,14 @@ impl Supervisor {
         match bus.reenable(&self.config.thermal, now_ns as f64 * 1e-9) {
             Ok(()) => {
                 self.directives.bus_enabled |= 1 << b;
-                self.event(now_ns, EventKind::BusReenabled, NONE, cmd.bus, 0, 0.0);
+                self.event(now_ns, Event::BusReenabled { bus: cmd.bus });
             }
-            Err(hottest) => self.event(
+            Err(hottest_c) => self.event(
                 now_ns,
-                EventKind::ReenableRefused,
-                NONE,
-                cmd.bus,
-                0,
-                hottest,
+                Event::ReenableRefused {
+                    bus: cmd.bus,
+                    hottest_c,
+                },
             ),
         }
     }
@@ -474,7 +595,7 @@ impl Supervisor {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use telemetry::frames::{JointInfo, JointSample};
+    use telemetry::frames::{EventKind, JointInfo};
 
     const MS: u64 = 1_000_000;
 

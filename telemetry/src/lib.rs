@@ -16,6 +16,7 @@ pub mod latch;
 pub mod plane;
 #[cfg(feature = "ipc")]
 pub mod process;
+pub mod stats;
 pub mod watchdog;
 
 pub use frames::{GoalFrame, JointSample, JointState, MAX_JOINTS};

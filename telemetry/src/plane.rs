@@ -8,9 +8,13 @@ use crate::frames::{
     Directives, GoalFrame, GripFrame, Heartbeat, JointLayout, JointState, SupervisorCommand,
     SupervisorEvent,
 };
-use iceoryx2::port::publisher::Publisher;
-use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::node::{NodeCreationFailure, NodeListFailure};
+use iceoryx2::port::publisher::{Publisher, PublisherCreateError};
+use iceoryx2::port::subscriber::{Subscriber, SubscriberCreateError};
+use iceoryx2::port::SendError;
 use iceoryx2::prelude::*;
+use iceoryx2::service::builder::publish_subscribe::PublishSubscribeOpenOrCreateError;
+use iceoryx2::service::service_name::ServiceNameError;
 use std::marker::PhantomData;
 use thiserror::Error;
 
@@ -85,28 +89,78 @@ pub const COMMANDS: Topic<SupervisorCommand> = topic("nori/supervisor-commands",
 /// Driver → all: error counts by kind per bus, every 100 ms (history 1: the newest at once).
 pub const BUS_HEALTH: Topic<crate::frames::BusHealth> = topic("nori/bus-health", 1, 4, 2, 8);
 
-/// An iceoryx2 failure, with what was being done.
+/// A state-plane operation that failed, with iceoryx2's own error as its source.
 #[derive(Debug, Error)]
-#[error("state plane: {what}: {detail}")]
-pub struct PlaneError {
-    /// The operation.
-    pub what: String,
-    /// iceoryx2's error.
-    pub detail: String,
-}
-
-fn err<E: std::fmt::Debug>(what: impl Into<String>) -> impl FnOnce(E) -> PlaneError {
-    let what = what.into();
-    move |e| PlaneError {
-        what,
-        detail: format!("{e:?}"),
-    }
+pub enum PlaneError {
+    /// A domain or node name iceoryx2 does not accept.
+    #[error("state plane: {what} {name:?} is not a valid name")]
+    Name {
+        /// What the name is for ("domain", "node").
+        what: &'static str,
+        /// The name.
+        name: String,
+        /// iceoryx2's error.
+        source: SemanticStringError,
+    },
+    /// A service name iceoryx2 does not accept.
+    #[error("state plane: service {service:?} is not a valid name")]
+    ServiceName {
+        /// The name.
+        service: &'static str,
+        /// iceoryx2's error.
+        source: ServiceNameError,
+    },
+    /// The process's node could not be created (shared memory, permissions).
+    #[error("state plane: creating node {name:?}")]
+    Node {
+        /// The node's name.
+        name: String,
+        /// iceoryx2's error.
+        source: NodeCreationFailure,
+    },
+    /// The domain's nodes could not be listed.
+    #[error("state plane: listing the nodes")]
+    ListNodes(#[source] NodeListFailure),
+    /// `/dev/shm` could not be read.
+    #[error("state plane: reading /dev/shm")]
+    SharedMemory(#[source] std::io::Error),
+    /// A service could not be opened or created (another QoS, another payload type).
+    #[error("state plane: opening service {service}")]
+    Service {
+        /// The service.
+        service: &'static str,
+        /// iceoryx2's error.
+        source: PublishSubscribeOpenOrCreateError,
+    },
+    /// A publisher could not be created (too many).
+    #[error("state plane: a publisher on {service}")]
+    Publisher {
+        /// The service.
+        service: &'static str,
+        /// iceoryx2's error.
+        source: PublisherCreateError,
+    },
+    /// A subscriber could not be created (too many).
+    #[error("state plane: a subscriber on {service}")]
+    Subscriber {
+        /// The service.
+        service: &'static str,
+        /// iceoryx2's error.
+        source: SubscriberCreateError,
+    },
+    /// A sample could not be sent.
+    #[error("state plane: sending")]
+    Send(#[source] SendError),
 }
 
 fn domain_config(domain: &str) -> Result<Config, PlaneError> {
     let mut config = Config::default();
-    config.global.prefix = FileName::new(format!("{domain}_").as_bytes())
-        .map_err(err(format!("domain {domain:?}")))?;
+    config.global.prefix =
+        FileName::new(format!("{domain}_").as_bytes()).map_err(|source| PlaneError::Name {
+            what: "domain",
+            name: domain.into(),
+            source,
+        })?;
     Ok(config)
 }
 
@@ -121,12 +175,20 @@ impl Plane {
     pub fn open(domain: &str, name: &str) -> Result<Self, PlaneError> {
         iceoryx2::prelude::set_log_level(LogLevel::Warn);
         let config = domain_config(domain)?;
+        let node_name = NodeName::new(name).map_err(|source| PlaneError::Name {
+            what: "node",
+            name: name.into(),
+            source,
+        })?;
         let node = NodeBuilder::new()
-            .name(&NodeName::new(name).map_err(err(format!("node name {name:?}")))?)
+            .name(&node_name)
             .config(&config)
             .signal_handling_mode(SignalHandlingMode::Disabled)
             .create::<ipc::Service>()
-            .map_err(err("create node"))?;
+            .map_err(|source| PlaneError::Node {
+                name: name.into(),
+                source,
+            })?;
         Ok(Plane { node })
     }
 
@@ -143,7 +205,7 @@ impl Plane {
             }
             CallbackProgression::Continue
         })
-        .map_err(err("list nodes"))?;
+        .map_err(PlaneError::ListNodes)?;
         if alive > 0 {
             return Ok(0);
         }
@@ -151,7 +213,7 @@ impl Plane {
         let suffix = config.global.node.global_mgmt_suffix.to_string();
         let mut removed = 0;
         for entry in std::fs::read_dir("/dev/shm")
-            .map_err(err("reading /dev/shm"))?
+            .map_err(PlaneError::SharedMemory)?
             .flatten()
         {
             let name = entry.file_name();
@@ -183,10 +245,12 @@ impl Plane {
     {
         let q = topic.qos;
         self.node
-            .service_builder(
-                &ServiceName::new(topic.name)
-                    .map_err(err(format!("service name {}", topic.name)))?,
-            )
+            .service_builder(&ServiceName::new(topic.name).map_err(|source| {
+                PlaneError::ServiceName {
+                    service: topic.name,
+                    source,
+                }
+            })?)
             .publish_subscribe::<T>()
             .history_size(q.history)
             .subscriber_max_buffer_size(q.buffer)
@@ -194,7 +258,10 @@ impl Plane {
             .max_subscribers(q.subscribers)
             .enable_safe_overflow(true)
             .open_or_create()
-            .map_err(err(format!("open service {}", topic.name)))
+            .map_err(|source| PlaneError::Service {
+                service: topic.name,
+                source,
+            })
     }
 
     /// A publisher on `topic`.
@@ -205,7 +272,10 @@ impl Plane {
         self.service(topic)?
             .publisher_builder()
             .create()
-            .map_err(err(format!("publisher on {}", topic.name)))
+            .map_err(|source| PlaneError::Publisher {
+                service: topic.name,
+                source,
+            })
     }
 
     /// A subscriber on `topic`.
@@ -216,7 +286,10 @@ impl Plane {
         self.service(topic)?
             .subscriber_builder()
             .create()
-            .map_err(err(format!("subscriber on {}", topic.name)))
+            .map_err(|source| PlaneError::Subscriber {
+                service: topic.name,
+                source,
+            })
     }
 }
 
@@ -225,7 +298,10 @@ pub fn publish<T: std::fmt::Debug + ZeroCopySend + Copy + 'static>(
     publisher: &Pub<T>,
     value: &T,
 ) -> Result<(), PlaneError> {
-    publisher.send_copy(*value).map(|_| ()).map_err(err("send"))
+    publisher
+        .send_copy(*value)
+        .map(|_| ())
+        .map_err(PlaneError::Send)
 }
 
 /// The newest sample waiting on `subscriber`, older ones dropped; `None` if nothing new.

@@ -2,8 +2,113 @@
 //! info), and turn SIGINT/SIGTERM into a flag its loop checks, so it can stop cleanly (torque
 //! off, in the driver's case) instead of dying.
 
+use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
+
+/// How a robot process ends, by fault class (the numbers of `sysexits.h`), so that systemd can
+/// tell a fault a restart cannot fix (`RestartPreventExitStatus=78` in the units) from one it
+/// may (a device not there yet, a crash).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(u8)]
+pub enum Exit {
+    /// Stopped as asked (SIGINT/SIGTERM, `--run-for`).
+    Clean = 0,
+    /// Any other failure: restarted.
+    Failure = 1,
+    /// A command line that does not parse (clap's own code).
+    Usage = 2,
+    /// The state plane or a device could not be opened (`EX_UNAVAILABLE`): restarted, it may
+    /// be there next time.
+    Unavailable = 69,
+    /// A file the process must read or write failed, e.g. the trip record (`EX_IOERR`):
+    /// restarted.
+    Io = 74,
+    /// The configuration cannot be used: a bad file or key, an impossible value, a layout the
+    /// supervisor cannot supervise (`EX_CONFIG`). Not restarted: the same configuration would
+    /// fail the same way.
+    Config = 78,
+}
+
+/// The class of the first error in `error`'s chain that `class` (the binary's own types) or
+/// this crate (configuration, state plane, trip record) recognises; [`Exit::Failure`] when none
+/// does.
+pub fn fault_class(
+    error: &(dyn std::error::Error + 'static),
+    class: impl Fn(&(dyn std::error::Error + 'static)) -> Option<Exit>,
+) -> Exit {
+    let mut next = Some(error);
+    while let Some(e) = next {
+        if let Some(exit) = class(e) {
+            return exit;
+        }
+        if e.is::<crate::config::ConfigError>() {
+            return Exit::Config;
+        }
+        if e.is::<crate::plane::PlaneError>() {
+            return Exit::Unavailable;
+        }
+        if e.is::<crate::latch::LatchError>() {
+            return Exit::Io;
+        }
+        next = e.source();
+    }
+    Exit::Failure
+}
+
+/// Ends a process with `result`: an error is logged with its causes and turned into its
+/// class's exit code ([`fault_class`]).
+pub fn finish<E>(
+    result: Result<(), E>,
+    class: impl Fn(&(dyn std::error::Error + 'static)) -> Option<Exit>,
+) -> std::process::ExitCode
+where
+    E: AsRef<dyn std::error::Error + Send + Sync + 'static>,
+{
+    let Err(e) = result else {
+        return std::process::ExitCode::SUCCESS;
+    };
+    let e = e.as_ref();
+    let mut line = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        line += &format!(": {c}");
+        cause = c.source();
+    }
+    let exit = fault_class(e, class);
+    eprintln!("error: {line} (exit {}, {exit:?})", exit as u8);
+    std::process::ExitCode::from(exit as u8)
+}
+
+/// A sibling executable that cannot be found.
+#[derive(Debug, thiserror::Error)]
+pub enum SiblingError {
+    /// Not installed next to the running executable.
+    #[error("{name} not found next to {exe}: build all binaries first (cargo build --release --workspace --bins)")]
+    NotBuilt {
+        /// The executable looked for.
+        name: String,
+        /// The running executable.
+        exe: String,
+    },
+    /// The running executable's path is unknown.
+    #[error("locating the running executable: {0}")]
+    CurrentExe(#[source] std::io::Error),
+}
+
+/// A sibling executable: installed next to the running one, as cargo builds them and as
+/// `deploy/README.md` installs them.
+pub fn sibling(name: &str) -> Result<PathBuf, SiblingError> {
+    let exe = std::env::current_exe().map_err(SiblingError::CurrentExe)?;
+    let path = exe.with_file_name(name);
+    if !path.exists() {
+        return Err(SiblingError::NotBuilt {
+            name: name.into(),
+            exe: exe.display().to_string(),
+        });
+    }
+    Ok(path)
+}
 
 /// Logging to stderr, level from `RUST_LOG` (default `info`).
 pub fn init_logging() {
@@ -153,6 +258,23 @@ pub fn watchdog_ping_interval(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_fault_is_classed_by_the_first_known_error_in_its_chain() {
+        #[derive(Debug, thiserror::Error)]
+        #[error("outer")]
+        struct Outer(#[source] crate::config::ConfigError);
+        let config = Outer(crate::config::invalid("f.toml", "k", "bad"));
+        assert_eq!(fault_class(&config, |_| None), Exit::Config);
+        // The binary's own classes come first.
+        assert_eq!(
+            fault_class(&config, |e| e.is::<Outer>().then_some(Exit::Unavailable)),
+            Exit::Unavailable
+        );
+        let io = std::io::Error::other("x");
+        assert_eq!(fault_class(&io, |_| None), Exit::Failure);
+        assert_eq!(Exit::Config as u8, 78);
+    }
     use std::time::Duration;
 
     #[test]

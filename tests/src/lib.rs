@@ -8,7 +8,7 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
@@ -64,92 +64,63 @@ pub fn binary(name: &str) -> PathBuf {
     path
 }
 
-/// A child process killed (SIGKILL) and reaped when dropped, unless stopped before.
-pub struct Proc {
-    /// What it is, for messages.
-    pub name: String,
-    child: Option<Child>,
-}
+/// A child process of a test ([`stack::Managed`], as `nori up` runs them): its stderr to a log,
+/// its stdout kept; killed (SIGKILL) and reaped when dropped, unless stopped before.
+pub struct Proc(stack::Managed);
 
 impl Proc {
     /// Starts `program` with `args`; its stderr goes to `log`.
     pub fn spawn(name: &str, program: &Path, args: &[&str], log: &Path) -> Proc {
-        let err = std::fs::File::create(log).expect("log file");
-        let child = Command::new(program)
-            .args(args)
-            .stdin(Stdio::null())
-            .stdout(Stdio::piped())
-            .stderr(err)
-            .spawn()
-            .unwrap_or_else(|e| panic!("starting {name}: {e}"));
-        Proc {
-            name: name.into(),
-            child: Some(child),
-        }
+        let args: Vec<String> = args.iter().map(|a| a.to_string()).collect();
+        Proc::spawn_owned(name, program, &args, log)
+    }
+
+    /// [`Proc::spawn`] with owned arguments (as [`stack::Run`] spells them).
+    pub fn spawn_owned(name: &str, program: &Path, args: &[String], log: &Path) -> Proc {
+        let mut child = stack::Managed::new(name, program, args);
+        child.log_to(log).expect("log file");
+        child.capture_stdout();
+        child.start().unwrap_or_else(|e| panic!("{e}"));
+        Proc(child)
     }
 
     /// A placeholder for a process not started yet.
     pub fn none(name: &str) -> Proc {
-        Proc {
-            name: name.into(),
-            child: None,
-        }
+        Proc(stack::Managed::new(name, Path::new(name), &[]))
     }
 
-    /// Process id.
+    /// Process id (0 when not running).
     pub fn pid(&self) -> u32 {
-        self.child.as_ref().map_or(0, Child::id)
+        self.0.pid().unwrap_or(0)
     }
 
-    /// Sends SIGTERM and waits up to `within`; returns the exit code and stdout.
+    /// Sends SIGTERM and waits up to `within`; returns the exit code and stdout. Fails the test
+    /// if it had to be killed.
     pub fn terminate(&mut self, within: Duration) -> (Option<i32>, String) {
-        let mut child = self.child.take().expect("already stopped");
-        let _ = Command::new("kill")
-            .args(["-TERM", &child.id().to_string()])
-            .status();
-        let until = Instant::now() + within;
-        while Instant::now() < until {
-            if child.try_wait().ok().flatten().is_some() {
-                let out = child.wait_with_output().expect("output");
-                return (
-                    out.status.code(),
-                    String::from_utf8_lossy(&out.stdout).into_owned(),
-                );
-            }
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        let _ = child.kill();
-        let out = child.wait_with_output().expect("output");
-        panic!(
-            "{} did not stop within {:?} of SIGTERM (stdout: {})",
-            self.name,
-            within,
-            String::from_utf8_lossy(&out.stdout)
+        let name = self.0.name().to_string();
+        let stopped = self.0.stop(within).expect("already stopped");
+        assert!(
+            !stopped.killed,
+            "{name} did not stop within {within:?} of SIGTERM (stdout: {})",
+            stopped.stdout
         );
+        (stopped.code(), stopped.stdout)
     }
 
     /// SIGKILL, at once (a crash), and reaps it.
     pub fn kill(&mut self) {
-        if let Some(mut c) = self.child.take() {
-            let _ = c.kill();
-            let _ = c.wait();
-        }
+        self.0.kill();
     }
 
     /// Whether it is still running.
     pub fn running(&mut self) -> bool {
-        self.child
-            .as_mut()
-            .is_some_and(|c| c.try_wait().ok().flatten().is_none())
+        self.0.running()
     }
 }
 
 impl Drop for Proc {
     fn drop(&mut self) {
-        if let Some(mut c) = self.child.take() {
-            let _ = c.kill();
-            let _ = c.wait();
-        }
+        self.0.kill();
     }
 }
 
@@ -176,43 +147,10 @@ pub fn wait_for<T>(within: Duration, what: &str, mut f: impl FnMut() -> Option<T
     }
 }
 
-/// A small seeded generator (SplitMix64) for randomised process tests: the same seed gives the
-/// same kill schedule.
-pub struct Rng(u64);
+/// The random generator of the randomised process tests (the same seed, the same schedule).
+pub use sim::rng::Rng;
 
-impl Rng {
-    /// Seeded.
-    pub fn new(seed: u64) -> Rng {
-        Rng(seed)
-    }
-
-    /// Next 64 random bits.
-    pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform in `[lo, hi)`.
-    pub fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
-        lo + (hi - lo) * (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
-    }
-
-    /// Uniform in `0..n`.
-    pub fn below(&mut self, n: u64) -> u64 {
-        self.next_u64() % n
-    }
-}
-
-/// The `q`-quantile (0..=1) of `values`, nearest rank.
-pub fn quantile(values: &[f64], q: f64) -> f64 {
-    let mut v = values.to_vec();
-    v.sort_by(f64::total_cmp);
-    let rank = ((q * v.len() as f64).ceil() as usize).clamp(1, v.len());
-    v[rank - 1]
-}
+pub use telemetry::stats::quantile;
 
 /// Files of iceoryx2 under `/dev/shm` and `/tmp/iceoryx2` belonging to `domain`.
 pub fn plane_files(domain: &str) -> Vec<PathBuf> {
@@ -281,18 +219,14 @@ impl ArmStack {
         let domain = format!("nori_{tag}_{}", std::process::id()).replace('-', "_");
         let dev = dir.join("dev");
         let report = dir.join("sim-report.json");
-        let mut args = vec![
-            "sim",
-            "serve",
-            "--bus",
-            bus,
-            "--dir",
-            dev.to_str().unwrap(),
-            "--report",
-            report.to_str().unwrap(),
-        ];
-        args.extend_from_slice(sim_args);
-        let sim = Proc::spawn("simulator", &binary("nori"), &args, &dir.join("sim.log"));
+        let mut args = ArmStack::run_of(&domain, &dev, None).simulator(&[bus], &report);
+        args.extend(sim_args.iter().map(|a| a.to_string()));
+        let sim = Proc::spawn_owned(
+            "simulator",
+            &binary("nori-sim"),
+            &args,
+            &dir.join("sim.log"),
+        );
         ArmStack {
             supervisor: Proc::none("supervisor"),
             driver: Proc::none("bus-driver"),
@@ -311,22 +245,26 @@ impl ArmStack {
         self.dir.join("trips")
     }
 
+    /// This stack's run: its domain, devices and trip record, status printing off.
+    fn run_of<'a>(domain: &'a str, dev: &'a Path, trips: Option<&'a Path>) -> stack::Run<'a> {
+        stack::Run {
+            domain,
+            device_dir: dev,
+            trips,
+            quiet: true,
+        }
+    }
+
     /// (Re)starts the supervisor; a running one is killed first.
     pub fn restart_supervisor(&mut self) {
         self.supervisor.kill();
         self.starts += 1;
-        let trips = self.trips();
-        self.supervisor = Proc::spawn(
+        let (dev, trips) = (self.dir.join("dev"), self.trips());
+        let args = ArmStack::run_of(&self.domain, &dev, Some(&trips)).supervisor();
+        self.supervisor = Proc::spawn_owned(
             "supervisor",
             &binary("supervisor"),
-            &[
-                "--domain",
-                &self.domain,
-                "--status-every",
-                "0",
-                "--trip-file",
-                trips.to_str().unwrap(),
-            ],
+            &args,
             &self.dir.join(format!("supervisor-{}.log", self.starts)),
         );
     }
@@ -335,22 +273,10 @@ impl ArmStack {
     pub fn restart_driver(&mut self) {
         self.driver.kill();
         self.starts += 1;
-        let dev = self.dir.join("dev");
-        let trips = self.trips();
-        let mut args = vec![
-            "--bus",
-            &self.bus,
-            "--device-dir",
-            dev.to_str().unwrap(),
-            "--domain",
-            &self.domain,
-            "--status-every",
-            "0",
-            "--trip-file",
-            trips.to_str().unwrap(),
-        ];
-        args.extend(self.driver_args.iter().map(String::as_str));
-        self.driver = Proc::spawn(
+        let (dev, trips) = (self.dir.join("dev"), self.trips());
+        let mut args = ArmStack::run_of(&self.domain, &dev, Some(&trips)).driver(&[&self.bus]);
+        args.extend(self.driver_args.iter().cloned());
+        self.driver = Proc::spawn_owned(
             "bus-driver",
             &binary("bus-driver"),
             &args,
@@ -368,9 +294,10 @@ impl ArmStack {
     pub fn restart_agent_with(&mut self, args: &[&str]) {
         self.agent.kill();
         self.starts += 1;
-        let mut all = vec!["--domain", &self.domain];
-        all.extend_from_slice(args);
-        self.agent = Proc::spawn(
+        let dev = self.dir.join("dev");
+        let mut all = ArmStack::run_of(&self.domain, &dev, None).agent();
+        all.extend(args.iter().map(|a| a.to_string()));
+        self.agent = Proc::spawn_owned(
             "fleet-agent",
             &binary("fleet-agent"),
             &all,

@@ -58,7 +58,8 @@ fn refuses(
         let mut args = vec!["--config", path.to_str().unwrap()];
         args.extend_from_slice(extra);
         let (code, stderr) = run(&binary(program), &args, &dir.join(format!("{i}.stderr")));
-        assert_ne!(code, Some(0), "{program} accepted {to:?}");
+        // EX_CONFIG: the unit does not restart a process that refused its configuration.
+        assert_eq!(code, Some(78), "{program} with {to:?}: {stderr}");
         assert!(
             stderr.contains(key) && stderr.contains(path.to_str().unwrap()),
             "{program} with {to:?}: the error does not name {key:?} and the file:\n{stderr}"
@@ -133,7 +134,7 @@ fn the_bus_driver_refuses_bad_configurations_naming_file_and_key() {
         ],
         &dir.join("calibration.stderr"),
     );
-    assert_ne!(code, Some(0));
+    assert_eq!(code, Some(78), "{stderr}");
     assert!(
         stderr.contains(cal_path.to_str().unwrap())
             && stderr.contains("joint.left_shoulder_pitch")
@@ -188,4 +189,32 @@ fn the_fleet_agent_refuses_bad_configurations_naming_file_and_key() {
         "fleet-agent.toml",
     );
     assert!(nori_tests::plane_files(&domain).is_empty());
+}
+
+/// The exit code says the fault's class (ARCHITECTURE.md, "Exit codes"): a device that is not
+/// there is worth a restart (69), a bus the configuration does not have is not (78).
+#[test]
+fn the_driver_exits_with_the_class_of_its_fault() {
+    let dir = scratch("exit-codes");
+    let domain = format!("nori_exit_{}", std::process::id());
+    let devices = dir.join("no-devices");
+    let common = [
+        "--domain",
+        &domain,
+        "--device-dir",
+        devices.to_str().unwrap(),
+        "--wait-for-devices",
+        "0",
+    ];
+    let (code, stderr) = run(&binary("bus-driver"), &common, &dir.join("absent.stderr"));
+    assert_eq!(code, Some(69), "no device: {stderr}");
+    assert!(stderr.contains("no device"), "{stderr}");
+    let mut args = common.to_vec();
+    args.extend(["--bus", "tail"]);
+    let (code, stderr) = run(&binary("bus-driver"), &args, &dir.join("bus.stderr"));
+    assert_eq!(code, Some(78), "unknown bus: {stderr}");
+    assert!(
+        stderr.contains("--bus") && stderr.contains("\"tail\""),
+        "{stderr}"
+    );
 }

@@ -75,7 +75,7 @@ fn killing_the_supervisor_puts_the_driver_in_its_safe_state_within_the_bound() {
             "the driver driving under supervision",
             || newest(&states).filter(driving),
         );
-        std::thread::sleep(Duration::from_secs_f64(rng.uniform(0.05, 0.5)));
+        std::thread::sleep(Duration::from_secs_f64(rng.range(0.05, 0.5)));
         while next(&states).is_some() {}
         let killed_at = monotonic_ns();
         stack.supervisor.kill();
@@ -140,7 +140,7 @@ fn a_killed_driver_is_reported_and_restarts_without_a_jump_or_a_stale_goal() {
     let files_at_start = plane_files(&stack.domain).len();
     for round in 0..ROUNDS {
         // The elbow follows a moving goal, as under a policy, and the driver dies mid-motion.
-        let moving_for = rng.uniform(0.3, 1.2);
+        let moving_for = rng.range(0.3, 1.2);
         let start = Instant::now();
         while start.elapsed().as_secs_f64() < moving_for {
             let t = start.elapsed().as_secs_f32();
@@ -243,9 +243,9 @@ fn wild_goals(domain: String, seed: u64, stop: Arc<AtomicBool>) -> std::thread::
         while !stop.load(Ordering::Relaxed) {
             if Instant::now() >= until {
                 for p in &mut target {
-                    *p = rng.uniform(-4.0, 4.0) as f32;
+                    *p = rng.range(-4.0, 4.0) as f32;
                 }
-                until = Instant::now() + Duration::from_secs_f64(rng.uniform(0.1, 1.5));
+                until = Instant::now() + Duration::from_secs_f64(rng.range(0.1, 1.5));
             }
             let mut g = GoalFrame {
                 joint_count: JOINTS,
@@ -371,7 +371,7 @@ fn a_seeded_chaos_run_keeps_every_invariant() {
     };
     let start = Instant::now();
     while start.elapsed().as_secs_f64() < seconds {
-        pause(&mut seen, Duration::from_secs_f64(rng.uniform(0.2, 1.5)));
+        pause(&mut seen, Duration::from_secs_f64(rng.range(0.2, 1.5)));
         let victim = rng.below(3) as usize;
         kills.push((monotonic_ns(), victim));
         match victim {
@@ -380,7 +380,7 @@ fn a_seeded_chaos_run_keeps_every_invariant() {
             _ => stack.agent.kill(),
         }
         // systemd's RestartSec, randomised.
-        pause(&mut seen, Duration::from_secs_f64(rng.uniform(0.0, 0.3)));
+        pause(&mut seen, Duration::from_secs_f64(rng.range(0.0, 0.3)));
         let restarted = Instant::now();
         let what = ["the supervisor", "the driver", "the fleet agent"][victim];
         let label = format!("{what} back after restart {}", restarts[victim] + 1);

@@ -10,8 +10,8 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
+use fleet::policy::Motion;
 use fleet_agent::keys::robot_key;
-use fleet_agent::policy::Motion;
 use fleet_agent::schema::{decode, encode, ActionChunk, StateMsg, SCHEMA_VERSION};
 use fleet_agent::zenoh::{self, Wait};
 use nori_tests::{binary, check_left_arm_report, free_endpoint, scratch, wait_for, ArmStack, Proc};
@@ -49,7 +49,9 @@ fn status(session: &zenoh::Session, robot: &str) -> serde_json::Value {
             .ok()?;
         let reply = replies.recv().ok()?;
         let sample = reply.result().ok()?;
-        serde_json::from_slice(&sample.payload().to_bytes()).ok()
+        let msg: fleet_agent::schema::StatusMsg =
+            fleet_agent::schema::decode(&sample.payload().to_bytes()).ok()?;
+        serde_json::to_value(msg).ok()
     })
 }
 

@@ -153,9 +153,9 @@ fn metrics_show_the_robot_its_joints_and_its_rejections() {
     assert_eq!(rejected(&after, "stale"), Some(0.0));
 
     // The driver's bus counts, through the agent's status: the arm's bus (the driver's only
-    // one here, index 0) connected and cycling, every error kind exported, no disconnect (the
-    // simulator here injects no faults).
-    let bus = [("robot", ROBOT), ("bus", "0")];
+    // one here, named from its layout) connected and cycling, every error kind exported, no
+    // disconnect (the simulator here injects no faults).
+    let bus = [("robot", ROBOT), ("bus", "left_arm")];
     let buses = wait_for(
         Duration::from_secs(10),
         "the bus counts in /metrics",
@@ -169,7 +169,7 @@ fn metrics_show_the_robot_its_joints_and_its_rejections() {
         value(
             &buses,
             "nori_bus_errors_total",
-            &[("robot", ROBOT), ("bus", "0"), ("kind", kind)],
+            &[("robot", ROBOT), ("bus", "left_arm"), ("kind", kind)],
         )
     };
     assert_eq!(errors("disconnects"), Some(0.0));

@@ -31,7 +31,9 @@ fn status(dashboard: &zenoh::Session) -> serde_json::Value {
             .wait()
             .ok()?;
         let sample = replies.recv().ok()?.into_result().ok()?;
-        serde_json::from_slice(&sample.payload().to_bytes()).ok()
+        let msg: fleet_agent::schema::StatusMsg =
+            fleet_agent::schema::decode(&sample.payload().to_bytes()).ok()?;
+        serde_json::to_value(msg).ok()
     })
 }
 

@@ -363,7 +363,7 @@ fn kill_9_loses_at_most_the_last_flush_interval_and_never_the_dataset() {
             ),
             &stack.dir.join(format!("record-chaos-{round}.log")),
         );
-        std::thread::sleep(Duration::from_secs_f64(rng.uniform(0.5, 3.0)));
+        std::thread::sleep(Duration::from_secs_f64(rng.range(0.5, 3.0)));
         rec.kill();
         let summary = lerobot_check(&dataset, &["--in-flight"]);
         let repaired = recover(&dataset);

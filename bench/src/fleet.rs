@@ -8,17 +8,17 @@
 //! - `fleet-ingest`: how many robots streaming telemetry one collector (`nori fleet`'s
 //!   [`Collector`]) takes with no loss, against the offered load.
 
-use crate::stack::{sibling, supervisor_and_driver, Managed};
 use anyhow::{anyhow, bail, Context, Result};
+use bench::zenoh_session;
 use clap::Args;
 use feetech::registers as reg;
-use fleet_agent::collector::Collector;
-use fleet_agent::config::ZenohConfig;
+use fleet::collector::Collector;
+use stack::{sibling, supervisor_and_driver, Managed, Run};
+use telemetry::stats::quantile_sorted;
+
 use fleet_agent::keys::{all_robots, robot_key};
-use fleet_agent::schema::{
-    decode, encode, ActionChunk, JointMsg, LayoutMsg, ObservationMsg, StateMsg, SCHEMA_VERSION,
-};
-use fleet_agent::zenoh::qos::CongestionControl;
+use fleet_agent::schema::{decode, encode, ActionChunk, LayoutMsg, ObservationMsg, SCHEMA_VERSION};
+
 use fleet_agent::zenoh::sample::Sample;
 use fleet_agent::zenoh::Wait;
 use sim::{RobotDescription, SimBus};
@@ -61,44 +61,9 @@ pub struct FleetIngestArgs {
     json: bool,
 }
 
-/// Options of the publishing side of `fleet-ingest` (internal).
-#[derive(Args, Debug)]
-pub struct FleetPublishArgs {
-    /// The collector's endpoint.
-    #[arg(long)]
-    connect: String,
-    #[arg(long)]
-    robots: usize,
-    #[arg(long)]
-    hz: f64,
-    #[arg(long)]
-    seconds: f64,
-}
-
 fn free_endpoint() -> Result<String> {
     let l = std::net::TcpListener::bind("127.0.0.1:0")?;
     Ok(format!("tcp/127.0.0.1:{}", l.local_addr()?.port()))
-}
-
-fn peer(
-    listen: Vec<String>,
-    connect: Vec<String>,
-    mode: &str,
-) -> Result<fleet_agent::zenoh::Session> {
-    fleet_agent::net::open(&ZenohConfig {
-        mode: mode.into(),
-        listen,
-        connect,
-        config_file: None,
-    })
-    .context("opening a zenoh session")
-}
-
-fn percentile(sorted: &[f64], p: f64) -> f64 {
-    if sorted.is_empty() {
-        return f64::NAN;
-    }
-    sorted[((sorted.len() - 1) as f64 * p).round() as usize]
 }
 
 /// Peak resident set of a process, MB (VmHWM).
@@ -131,25 +96,24 @@ pub fn action_latency(args: &ActionLatencyArgs) -> Result<()> {
     };
 
     let endpoint = free_endpoint()?;
-    let session = peer(vec![endpoint.clone()], vec![], "peer")?;
-    let s = |v: &str| v.to_string();
-    let [supervisor, driver] = supervisor_and_driver(&domain, &dir, BUS, &dir)?;
-    let mut processes = [
-        supervisor,
-        driver,
-        Managed::new(
-            "fleet-agent",
-            &sibling("fleet-agent")?,
-            &[
-                s("--domain"),
-                domain.clone(),
-                s("--robot-id"),
-                s(ROBOT),
-                s("--connect"),
-                endpoint.clone(),
-            ],
-        ),
-    ];
+    let session =
+        zenoh_session(vec![endpoint.clone()], vec![], "peer").context("opening a zenoh session")?;
+    let trips = dir.join("trips");
+    let run = Run {
+        domain: &domain,
+        device_dir: &dir,
+        trips: Some(&trips),
+        quiet: true,
+    };
+    let [supervisor, driver] = supervisor_and_driver(&run, BUS)?;
+    let mut agent = Managed::new("fleet-agent", &sibling("fleet-agent")?, &run.agent());
+    agent.add_args(&[
+        "--robot-id".into(),
+        ROBOT.into(),
+        "--connect".into(),
+        endpoint.clone(),
+    ]);
+    let mut processes = [supervisor, driver, agent];
     for (m, log) in processes
         .iter_mut()
         .zip(["supervisor.log", "driver.log", "agent.log"])
@@ -253,9 +217,9 @@ pub fn action_latency(args: &ActionLatencyArgs) -> Result<()> {
         // Let the chunk's plan run out (step + horizon) before the next trial.
         std::thread::sleep(Duration::from_millis(250));
     }
-    let rss: Vec<(&str, Option<f64>)> = processes
+    let rss: Vec<(String, Option<f64>)> = processes
         .iter()
-        .map(|m| (m.name(), m.pid().and_then(peak_rss_mb)))
+        .map(|m| (m.name().to_string(), m.pid().and_then(peak_rss_mb)))
         .collect();
     for m in &mut processes {
         m.stop(Duration::from_secs(3));
@@ -263,8 +227,14 @@ pub fn action_latency(args: &ActionLatencyArgs) -> Result<()> {
     drop(served.stop());
     zenoh_ms.sort_by(f64::total_cmp);
     plane_ms.sort_by(f64::total_cmp);
-    let (z50, z99) = (percentile(&zenoh_ms, 0.5), percentile(&zenoh_ms, 0.99));
-    let (p50, p99) = (percentile(&plane_ms, 0.5), percentile(&plane_ms, 0.99));
+    let (z50, z99) = (
+        quantile_sorted(&zenoh_ms, 0.5),
+        quantile_sorted(&zenoh_ms, 0.99),
+    );
+    let (p50, p99) = (
+        quantile_sorted(&plane_ms, 0.5),
+        quantile_sorted(&plane_ms, 0.99),
+    );
     let out = serde_json::json!({
         "trials_per_path": args.trials,
         "no_goal_within_500ms": missed,
@@ -297,30 +267,6 @@ pub fn action_latency(args: &ActionLatencyArgs) -> Result<()> {
     Ok(())
 }
 
-/// An 18-joint state message (the A3's bus joints) as a robot's agent sends it.
-fn state_msg(seq: u64) -> StateMsg {
-    StateMsg {
-        version: SCHEMA_VERSION,
-        seq,
-        timestamp_ns: monotonic_ns(),
-        wall_ms: 0,
-        safe_state: false,
-        deadline_misses: 0,
-        joints: (0..18)
-            .map(|i| JointMsg {
-                position: 0.01 * i as f32,
-                velocity: 0.0,
-                temperature_c: 30.0,
-                current_a: 0.1,
-                goal: 0.0,
-                valid: true,
-                torque: true,
-                flags: 0,
-            })
-            .collect(),
-    }
-}
-
 /// CPU time this process has used, s.
 fn cpu_seconds() -> f64 {
     nix::sys::resource::getrusage(nix::sys::resource::UsageWho::RUSAGE_SELF).map_or(0.0, |u| {
@@ -331,11 +277,12 @@ fn cpu_seconds() -> f64 {
 
 /// Runs `nori bench fleet-ingest`.
 pub fn fleet_ingest(args: &FleetIngestArgs) -> Result<()> {
-    let nori = std::env::current_exe()?;
+    let publisher = stack::sibling("nori-bench-fleet-publisher")?;
     let mut rows = Vec::new();
     for &robots in &args.robots {
         let endpoint = free_endpoint()?;
-        let session = peer(vec![endpoint.clone()], vec![], "peer")?;
+        let session = zenoh_session(vec![endpoint.clone()], vec![], "peer")
+            .context("opening a zenoh session")?;
         let collector = Arc::new(Mutex::new(Collector::new(120, 500)));
         let c = collector.clone();
         let _states = session
@@ -348,8 +295,8 @@ pub fn fleet_ingest(args: &FleetIngestArgs) -> Result<()> {
             .wait()
             .map_err(|e| anyhow!("{e}"))?;
         let cpu_before = cpu_seconds();
-        let output = Command::new(&nori)
-            .args(["bench", "fleet-publish", "--connect", &endpoint])
+        let output = Command::new(&publisher)
+            .args(["--connect", &endpoint])
             .args([
                 "--robots",
                 &robots.to_string(),
@@ -401,40 +348,5 @@ pub fn fleet_ingest(args: &FleetIngestArgs) -> Result<()> {
             );
         }
     }
-    Ok(())
-}
-
-/// The publishing side: `robots` client sessions, each a robot streaming telemetry as its agent
-/// does (congestion control Drop), paced together; prints the messages sent per robot (JSON).
-pub fn fleet_publish(args: &FleetPublishArgs) -> Result<()> {
-    let mut robots = Vec::with_capacity(args.robots);
-    for r in 0..args.robots {
-        let session = peer(vec![], vec![args.connect.clone()], "client")?;
-        let publisher = session
-            .declare_publisher(robot_key(&format!("r{r:04}"), "state"))
-            .congestion_control(CongestionControl::Drop)
-            .wait()
-            .map_err(|e| anyhow!("{e}"))?;
-        robots.push((session, publisher));
-    }
-    // Let every session finish joining before the clock starts.
-    std::thread::sleep(Duration::from_millis(500));
-    let period = Duration::from_secs_f64(1.0 / args.hz);
-    let ticks = (args.seconds * args.hz).round() as u64;
-    let mut sent = vec![0u64; args.robots];
-    let start = Instant::now();
-    for tick in 0..ticks {
-        let payload = encode(&state_msg(tick));
-        for ((_, publisher), n) in robots.iter().zip(&mut sent) {
-            if publisher.put(payload.clone()).wait().is_ok() {
-                *n += 1;
-            }
-        }
-        let next = start + period * (tick as u32 + 1);
-        if let Some(wait) = next.checked_duration_since(Instant::now()) {
-            std::thread::sleep(wait);
-        }
-    }
-    println!("{}", serde_json::to_string(&sent)?);
     Ok(())
 }

@@ -1,21 +1,23 @@
-//! `nori sim serve`: the simulated robot on pseudo-terminals, one per bus.
+//! `nori-sim` (`nori sim serve`): the simulated robot on pseudo-terminals, one per bus, in real
+//! time, with its scheduled faults; a JSON report of what the servos received.
 
 use anyhow::{Context, Result};
-use clap::Args;
-use sim::pty::serve;
+use clap::Parser;
+use sim::faults::{Schedule, Scheduled};
+use sim::pty::{default_device_dir, serve};
 use sim::{BusReport, RobotDescription, SimBus};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
-/// Where the simulator links its devices by default.
-pub fn default_device_dir() -> PathBuf {
-    std::env::temp_dir().join("nori-sim")
-}
-
-/// Options of `nori sim serve`.
-#[derive(Args, Debug, Clone)]
-pub struct ServeArgs {
+/// Options of `nori-sim` (`nori sim serve`).
+#[derive(Parser, Debug, Clone)]
+#[command(
+    name = "nori-sim",
+    version,
+    about = "The simulated Nori A3: its servo buses on pseudo-terminals, in real time"
+)]
+struct ServeArgs {
     /// Robot description (TOML); the embedded Nori A3 when absent.
     #[arg(long)]
     pub description: Option<PathBuf>,
@@ -75,61 +77,11 @@ pub struct ServeArgs {
     pub silence: Vec<String>,
 }
 
-/// A scheduled fault of `nori sim serve`.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Scheduled {
-    /// Bus name.
-    pub bus: String,
-    /// Servo id (silence) or none (unplug).
-    pub id: Option<u8>,
-    /// Start, s since the simulator started.
-    pub at: f64,
-    /// Duration, s.
-    pub duration: f64,
-}
-
-/// Parses `BUS@AT+FOR` (`with_id` false) or `BUS:ID@AT+FOR` (`with_id` true).
-pub fn parse_scheduled(text: &str, with_id: bool) -> Result<Scheduled> {
-    let form = if with_id {
-        "BUS:ID@AT+FOR"
-    } else {
-        "BUS@AT+FOR"
-    };
-    let bad = || {
-        anyhow::anyhow!(
-            "{text:?}: expected {form} (seconds), e.g. right_arm{}@10+3",
-            if with_id { ":3" } else { "" }
-        )
-    };
-    let (target, when) = text.split_once('@').ok_or_else(bad)?;
-    let (at, duration) = when.split_once('+').ok_or_else(bad)?;
-    let at: f64 = at.trim().parse().map_err(|_| bad())?;
-    let duration: f64 = duration.trim().parse().map_err(|_| bad())?;
-    if !(at.is_finite() && at >= 0.0 && duration.is_finite() && duration > 0.0) {
-        return Err(bad());
-    }
-    let (bus, id) = if with_id {
-        let (bus, id) = target.split_once(':').ok_or_else(bad)?;
-        (bus, Some(id.trim().parse::<u8>().map_err(|_| bad())?))
-    } else {
-        (target, None)
-    };
-    if bus.is_empty() {
-        return Err(bad());
-    }
-    Ok(Scheduled {
-        bus: bus.to_string(),
-        id,
-        at,
-        duration,
-    })
-}
-
 /// The simulator's report: one entry per bus.
 #[derive(serde::Serialize)]
-pub struct SimReport {
+struct SimReport {
     /// Buses.
-    pub buses: Vec<BusReport>,
+    buses: Vec<BusReport>,
 }
 
 fn write_report(path: &Path, buses: &[BusReport]) -> Result<()> {
@@ -143,8 +95,12 @@ fn write_report(path: &Path, buses: &[BusReport]) -> Result<()> {
     Ok(())
 }
 
-/// Runs `nori sim serve` until SIGINT/SIGTERM or `--run-for`.
-pub fn run(args: &ServeArgs) -> Result<()> {
+fn main() -> Result<()> {
+    run(&ServeArgs::parse())
+}
+
+/// Serves until SIGINT/SIGTERM or `--run-for`.
+fn run(args: &ServeArgs) -> Result<()> {
     let mut robot = match &args.description {
         Some(p) => RobotDescription::load(p)?,
         None => RobotDescription::nori_a3(),
@@ -190,14 +146,14 @@ pub fn run(args: &ServeArgs) -> Result<()> {
     faults
         .validate()
         .map_err(|e| anyhow::anyhow!("line faults: {e}"))?;
-    let mut schedule = Vec::new();
+    let mut faults_in_time = Vec::new();
     for text in &args.unplug {
-        schedule.push(parse_scheduled(text, false).context("--unplug")?);
+        faults_in_time.push(Scheduled::parse(text, false).context("--unplug")?);
     }
     for text in &args.silence {
-        schedule.push(parse_scheduled(text, true).context("--silence")?);
+        faults_in_time.push(Scheduled::parse(text, true).context("--silence")?);
     }
-    for s in &schedule {
+    for s in &faults_in_time {
         let served_bus = args.buses.is_empty() || args.buses.contains(&s.bus);
         let bus = robot.bus(&s.bus).filter(|_| served_bus);
         let Some(bus) = bus else {
@@ -212,6 +168,7 @@ pub fn run(args: &ServeArgs) -> Result<()> {
             }
         }
     }
+    let mut schedule = Schedule::new(faults_in_time);
     let shutdown = telemetry::process::stop_flag()?;
     let mut buses = Vec::new();
     for (i, bus) in robot
@@ -264,8 +221,6 @@ pub fn run(args: &ServeArgs) -> Result<()> {
     }
     let start = Instant::now();
     let mut last_report = Instant::now();
-    // Per scheduled fault: 0 pending, 1 active, 2 over.
-    let mut phase = vec![0u8; schedule.len()];
     while !shutdown.load(Ordering::Relaxed)
         && args
             .run_for
@@ -273,26 +228,13 @@ pub fn run(args: &ServeArgs) -> Result<()> {
     {
         std::thread::sleep(Duration::from_millis(20));
         let t = start.elapsed().as_secs_f64();
-        for (s, phase) in schedule.iter().zip(phase.iter_mut()) {
-            let want = if t < s.at {
-                0
-            } else if t < s.at + s.duration {
-                1
-            } else {
-                2
-            };
-            if want == *phase {
-                continue;
-            }
-            // Pending → over in one step (a fault shorter than the 20 ms tick): restore only.
-            let active = want == 1;
+        for (s, active) in schedule.advance(t) {
             match s.id {
+                None if active => {
+                    served.unplug(&s.bus);
+                }
                 None => {
-                    if active {
-                        served.unplug(&s.bus);
-                    } else {
-                        served.replug(&s.bus);
-                    }
+                    served.replug(&s.bus);
                 }
                 Some(id) => {
                     served.with_bus(&s.bus, |b| {
@@ -308,7 +250,6 @@ pub fn run(args: &ServeArgs) -> Result<()> {
                 s.bus,
                 s.id.map(|i| format!(" servo {i}")).unwrap_or_default()
             );
-            *phase = want;
         }
         if let Some(path) = &args.report {
             if last_report.elapsed() >= Duration::from_secs(1) {
@@ -328,39 +269,4 @@ pub fn run(args: &ServeArgs) -> Result<()> {
         .fold(f64::NAN, f64::max);
     eprintln!("nori sim: stopped; hottest servo reached {hottest:.1} °C");
     Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn scheduled_faults_parse_or_say_why() {
-        assert_eq!(
-            parse_scheduled("right_arm@10+3", false).unwrap(),
-            Scheduled {
-                bus: "right_arm".into(),
-                id: None,
-                at: 10.0,
-                duration: 3.0
-            }
-        );
-        assert_eq!(
-            parse_scheduled("left_arm:3@5.5+0.5", true).unwrap().id,
-            Some(3)
-        );
-        for bad in [
-            "right_arm",
-            "right_arm@x+1",
-            "@1+1",
-            "a@1+0",
-            "a@-1+2",
-            "a@1+nan",
-        ] {
-            let e = parse_scheduled(bad, false).unwrap_err().to_string();
-            assert!(e.contains("BUS@AT+FOR"), "{bad}: {e}");
-        }
-        assert!(parse_scheduled("left_arm:300@1+1", true).is_err());
-        assert!(parse_scheduled("left_arm@1+1", true).is_err());
-    }
 }

@@ -2,11 +2,11 @@
 //! pseudo-terminals, supervisor, bus-driver) driven into a protection scenario, observed over the
 //! state plane, and summarised as one JSON object.
 
-use crate::stack::{supervisor_and_driver, Managed};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use serde_json::json;
 use sim::scenario::{Scenario, GRIP_CONTACT_RAD, SCENARIO_BUS};
+use stack::{sibling, supervisor_and_driver, Managed, Run};
 use std::path::Path;
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
@@ -61,28 +61,25 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
     std::fs::create_dir_all(&dev).with_context(|| format!("creating {}", dev.display()))?;
     let report_path = dir.join("sim-report.json");
     let domain = format!("nori_scenario_{pid}");
-    let s = |v: &str| v.to_string();
-
-    let nori = std::env::current_exe()?;
+    let trips = dir.join("trips");
+    let run = Run {
+        domain: &domain,
+        device_dir: &dev,
+        trips: Some(&trips),
+        quiet: true,
+    };
     let mut sim = Managed::new(
         "simulator",
-        &nori,
-        &[
-            s("sim"),
-            s("serve"),
-            s("--scenario"),
-            format!("{scenario:?}").to_lowercase(),
-            s("--bus"),
-            s(SCENARIO_BUS),
-            s("--dir"),
-            dev.display().to_string(),
-            s("--report"),
-            report_path.display().to_string(),
-            s("--thermal-speedup"),
-            speedup.to_string(),
-        ],
+        &sibling("nori-sim")?,
+        &run.simulator(&[SCENARIO_BUS], &report_path),
     );
-    let [mut supervisor, mut driver] = supervisor_and_driver(&domain, &dir, SCENARIO_BUS, &dev)?;
+    sim.add_args(&[
+        "--scenario".into(),
+        format!("{scenario:?}").to_lowercase(),
+        "--thermal-speedup".into(),
+        speedup.to_string(),
+    ]);
+    let [mut supervisor, mut driver] = supervisor_and_driver(&run, SCENARIO_BUS)?;
     if args.kill_supervisor_at.is_some() {
         // A hold that still carries the payload (80 %, the drive limit), so the motor keeps
         // heating while the supervisor is gone, as it does in a crash loop that keeps handing

@@ -1,9 +1,9 @@
-//! `nori bench`: benchmarks that print their figures next to the baseline they are judged by.
-//! No timing threshold lives in a test; these are run by hand and recorded in BENCHMARKS.md.
+//! `driver-rate` (the driver's loop against the wire-timed simulator) and `sim-speed` (batch
+//! simulation against real time).
 
 use anyhow::{Context, Result};
 use bus_driver::{Driver, LoadedConfig, SerialTransport, Standalone};
-use clap::{Args, Subcommand};
+use clap::Args;
 use feetech::registers as reg;
 use feetech::timing::{cycle_bytes, wire_time};
 use sim::pty::serve;
@@ -11,28 +11,6 @@ use sim::{RobotDescription, SimBus};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
-
-/// The benchmarks.
-#[derive(Subcommand, Debug)]
-pub enum Bench {
-    /// The driver's loop rate against the wire-timed simulator, as a ratio of the wire-limited rate.
-    DriverRate(DriverRateArgs),
-    /// Batch-mode simulation speed as a multiple of real time.
-    SimSpeed(SimSpeedArgs),
-    /// Driver → supervisor latency: iceoryx2 against a Unix socket + postcard baseline.
-    StatePlane(crate::bench_plane::StatePlaneArgs),
-    /// A policy's action on zenoh to the goal on the simulated wire, through the fleet agent,
-    /// against a goal published straight on the state plane.
-    ActionLatency(crate::bench_fleet::ActionLatencyArgs),
-    /// Robots streaming telemetry that one fleet collector ingests with no loss.
-    FleetIngest(crate::bench_fleet::FleetIngestArgs),
-    /// The publishing robots of `fleet-ingest` (internal).
-    #[command(hide = true)]
-    FleetPublish(crate::bench_fleet::FleetPublishArgs),
-    /// The reader process of `state-plane` (internal).
-    #[command(hide = true)]
-    PlanePeer(crate::bench_plane::PeerArgs),
-}
 
 /// Options of `nori bench driver-rate`.
 #[derive(Args, Debug)]
@@ -67,19 +45,6 @@ pub struct SimSpeedArgs {
     /// Print one JSON object.
     #[arg(long)]
     json: bool,
-}
-
-/// Runs a benchmark.
-pub fn run(bench: &Bench) -> Result<()> {
-    match bench {
-        Bench::DriverRate(a) => driver_rate(a),
-        Bench::SimSpeed(a) => sim_speed(a),
-        Bench::StatePlane(a) => crate::bench_plane::run(a),
-        Bench::PlanePeer(a) => crate::bench_plane::peer(a),
-        Bench::ActionLatency(a) => crate::bench_fleet::action_latency(a),
-        Bench::FleetIngest(a) => crate::bench_fleet::fleet_ingest(a),
-        Bench::FleetPublish(a) => crate::bench_fleet::fleet_publish(a),
-    }
 }
 
 /// One run of the loop for `driver_rate`.
@@ -163,7 +128,7 @@ fn rate_run(buses: &[String], rate_hz: f64, seconds: f64, read_back: bool) -> Re
     })
 }
 
-fn driver_rate(args: &DriverRateArgs) -> Result<()> {
+pub fn driver_rate(args: &DriverRateArgs) -> Result<()> {
     bus_driver::rt::prepare_control_thread();
     let jitter = wakeup_jitter(Duration::from_secs(1));
     let robot = RobotDescription::nori_a3();
@@ -249,7 +214,7 @@ fn wakeup_jitter(over: Duration) -> (f64, f64) {
     (p99, late.last().copied().unwrap_or(0.0))
 }
 
-fn sim_speed(args: &SimSpeedArgs) -> Result<()> {
+pub fn sim_speed(args: &SimSpeedArgs) -> Result<()> {
     let mut walls: Vec<f64> = (0..args.repetitions.max(1))
         .map(|_| batch_run(args.sim_seconds, args.dt))
         .collect();

@@ -1,11 +1,11 @@
 //! `nori fleet`: the fleet side. Subscribes to every robot's telemetry, events, layout and
 //! liveliness under `nori/**`, asks each robot's status (the gate's counters) every second, and
 //! serves a live dashboard (`/`, `/api/fleet`) and Prometheus metrics (`/metrics`) over HTTP.
-//! What it knows is `fleet_agent::collector::Collector`; this file only wires zenoh and HTTP.
+//! What it knows is `fleet::collector::Collector`; this file only wires zenoh and HTTP.
 
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
-use fleet_agent::collector::Collector;
+use fleet::collector::Collector;
 use fleet_agent::keys::all_robots;
 use fleet_agent::zenoh::query::{ConsolidationMode, QueryTarget};
 use fleet_agent::zenoh::sample::{Sample, SampleKind};
@@ -15,7 +15,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-const DASHBOARD: &str = include_str!("fleet.html");
+const DASHBOARD: &str = include_str!("dashboard.html");
 
 /// Where `nori fleet` listens when told nothing: the robots' agents connect here by default.
 pub const DEFAULT_LISTEN: &str = "tcp/127.0.0.1:7448";
@@ -98,8 +98,7 @@ pub fn run(args: &FleetArgs) -> Result<()> {
         (args.history_s * 2) as usize,
         500,
     )));
-    type Ingest =
-        fn(&mut Collector, &str, &[u8], u64) -> Result<(), fleet_agent::collector::IngestError>;
+    type Ingest = fn(&mut Collector, &str, &[u8], u64) -> Result<(), fleet::collector::IngestError>;
     let mut subscribers = Vec::new();
     for (leaf, ingest) in [
         ("state", Collector::state as Ingest),

@@ -3,10 +3,10 @@
 //! stops the driver first (it turns torque off while the buses are still there), then the rest.
 //! Production uses systemd (deploy/systemd) instead.
 
-use crate::sim_serve::default_device_dir;
-use crate::stack::{sibling, Managed};
 use anyhow::Result;
 use clap::Args;
+use sim::pty::default_device_dir;
+use stack::{sibling, Managed, Run};
 use std::path::PathBuf;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
@@ -34,45 +34,28 @@ pub struct UpArgs {
 
 /// Runs the stack until Ctrl-C (or `--run-for`).
 pub fn run(args: &UpArgs) -> Result<()> {
-    let nori = std::env::current_exe()?;
-    let driver = sibling("bus-driver")?;
-    let supervisor = sibling("supervisor")?;
-    let agent = sibling("fleet-agent")?;
     let shutdown = telemetry::process::stop_flag()?;
-    let dir = args.dir.display().to_string();
-    let report = args.dir.join("sim-report.json").display().to_string();
+    let run = Run {
+        domain: &args.domain,
+        device_dir: &args.dir,
+        trips: None,
+        quiet: false,
+    };
+    let report = args.dir.join("sim-report.json");
     let mut sim = Managed::new(
         "simulator",
-        &nori,
-        &[
-            "sim".into(),
-            "serve".into(),
-            "--dir".into(),
-            dir.clone(),
-            "--report".into(),
-            report.clone(),
-        ],
+        &sibling("nori-sim")?,
+        &run.simulator(&[], &report),
     );
-    let mut driver_args = vec![
-        "--device-dir".into(),
-        dir,
-        "--domain".into(),
-        args.domain.clone(),
-    ];
+    let mut bus_driver = Managed::new("bus-driver", &sibling("bus-driver")?, &run.driver(&[]));
     if let Some(c) = &args.driver_config {
-        driver_args.extend(["--config".into(), c.display().to_string()]);
+        bus_driver.add_args(&["--config".into(), c.display().to_string()]);
     }
-    let mut bus_driver = Managed::new("bus-driver", &driver, &driver_args);
-    let mut supervising = Managed::new(
-        "supervisor",
-        &supervisor,
-        &["--domain".into(), args.domain.clone()],
-    );
-    let mut agent_args = vec!["--domain".into(), args.domain.clone()];
+    let mut supervising = Managed::new("supervisor", &sibling("supervisor")?, &run.supervisor());
+    let mut fleet_agent = Managed::new("fleet-agent", &sibling("fleet-agent")?, &run.agent());
     if let Some(c) = &args.agent_config {
-        agent_args.extend(["--config".into(), c.display().to_string()]);
+        fleet_agent.add_args(&["--config".into(), c.display().to_string()]);
     }
-    let mut fleet_agent = Managed::new("fleet-agent", &agent, &agent_args);
     eprintln!("nori up: the Nori A3 stack on the simulated robot (no hardware)");
     sim.start()?;
     // The supervisor first: the driver holds its safe state until the supervisor is heard from.
@@ -81,8 +64,9 @@ pub fn run(args: &UpArgs) -> Result<()> {
     fleet_agent.start()?;
     eprintln!(
         "nori up: watch the joints with `nori state --domain {d}`, move one with `nori goal --domain {d} left_elbow=-1.0`; \
-         the simulator's report is {report}. `nori policy-server` in another terminal drives the elbows \
+         the simulator's report is {}. `nori policy-server` in another terminal drives the elbows \
          through the fleet agent. Ctrl-C stops everything with torque off.",
+        report.display(),
         d = args.domain
     );
     let start = Instant::now();

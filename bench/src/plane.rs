@@ -1,28 +1,20 @@
 //! `nori bench state-plane`: driver → supervisor latency of one joint-state frame, iceoryx2
 //! (zero-copy shared memory) side by side with a Unix datagram socket carrying the same frame
-//! encoded with postcard, in the same run. The reader is a second process (`nori bench
-//! plane-peer`); latency is its receive time minus the frame's send time on the shared
+//! encoded with postcard, in the same run. The reader is a second process
+//! (`nori-bench-plane-reader`); latency is its receive time minus the frame's send time on the shared
 //! CLOCK_MONOTONIC.
 
 use anyhow::{bail, Context, Result};
-use clap::{Args, ValueEnum};
+use bench::Transport;
+use clap::Args;
 use std::io::{BufRead, BufReader};
 use std::os::unix::net::UnixDatagram;
-use std::path::PathBuf;
+
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
-use telemetry::plane::{self, next, publish, Plane};
+use telemetry::plane::{self, publish, Plane};
 use telemetry::JointState;
-
-/// A transport under test.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum Transport {
-    /// iceoryx2 publish-subscribe, the reader polling.
-    Iceoryx2,
-    /// A Unix datagram socket, postcard-encoded, the reader blocking in recv.
-    Uds,
-}
 
 /// Options of `nori bench state-plane`.
 #[derive(Args, Debug)]
@@ -38,84 +30,12 @@ pub struct StatePlaneArgs {
     json: bool,
 }
 
-/// Options of the hidden reader process.
-#[derive(Args, Debug)]
-pub struct PeerArgs {
-    /// Transport to read.
-    #[arg(long, value_enum)]
-    transport: Transport,
-    /// iceoryx2 domain.
-    #[arg(long)]
-    domain: String,
-    /// Socket path (uds).
-    #[arg(long)]
-    socket: PathBuf,
-    /// Frames to expect (the last one, seq = frames, ends the run).
-    #[arg(long)]
-    frames: u64,
-}
-
-/// The reader: records latencies, prints "ready" once listening, then one JSON line of results.
-pub fn peer(args: &PeerArgs) -> Result<()> {
-    let mut latencies: Vec<u64> = Vec::with_capacity(args.frames as usize);
-    let mut last_seq = 0;
-    let record = |state: &JointState, latencies: &mut Vec<u64>, last_seq: &mut u64| {
-        latencies.push(monotonic_ns().saturating_sub(state.timestamp_ns));
-        *last_seq = state.seq;
-    };
-    match args.transport {
-        Transport::Iceoryx2 => {
-            let node = Plane::open(&args.domain, "bench-reader")?;
-            let sub = node.subscriber(&plane::JOINT_STATE)?;
-            println!("ready");
-            let deadline = Instant::now() + Duration::from_secs(600);
-            while last_seq < args.frames && Instant::now() < deadline {
-                match next(&sub) {
-                    Some(s) => record(&s, &mut latencies, &mut last_seq),
-                    // Spin, as a reader on its own core does (the Pi has four); yielding
-                    // instead measured a worse tail on a two-core machine.
-                    None => std::hint::spin_loop(),
-                }
-            }
-        }
-        Transport::Uds => {
-            let _ = std::fs::remove_file(&args.socket);
-            let socket = UnixDatagram::bind(&args.socket).context("binding the socket")?;
-            socket.set_read_timeout(Some(Duration::from_secs(5)))?;
-            println!("ready");
-            let mut buf = [0u8; 2048];
-            while last_seq < args.frames {
-                let n = socket.recv(&mut buf).context("receiving (timed out?)")?;
-                let state: JointState = postcard::from_bytes(&buf[..n]).context("decoding")?;
-                record(&state, &mut latencies, &mut last_seq);
-            }
-            let _ = std::fs::remove_file(&args.socket);
-        }
-    }
-    latencies.sort_unstable();
-    let pct = |p: usize| {
-        latencies
-            .get(latencies.len() * p / 100)
-            .copied()
-            .unwrap_or(0) as f64
-            / 1e3
-    };
-    let out = serde_json::json!({
-        "received": latencies.len(),
-        "p50_us": pct(50),
-        "p99_us": pct(99),
-        "max_us": latencies.last().copied().unwrap_or(0) as f64 / 1e3,
-    });
-    println!("{out}");
-    Ok(())
-}
-
 fn run_one(transport: Transport, args: &StatePlaneArgs) -> Result<serde_json::Value> {
     let pid = std::process::id();
     let domain = format!("nori_bench_{pid}");
     let socket = std::env::temp_dir().join(format!("nori-bench-{pid}.sock"));
-    let mut child = Command::new(std::env::current_exe()?)
-        .args(["bench", "plane-peer", "--transport"])
+    let mut child = Command::new(stack::sibling("nori-bench-plane-reader")?)
+        .arg("--transport")
         .arg(format!("{transport:?}").to_lowercase())
         .args(["--domain", &domain, "--socket"])
         .arg(&socket)

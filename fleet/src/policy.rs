@@ -3,7 +3,7 @@
 //! which targets must reach the servos) or replayed (a recorded trajectory, looped on the
 //! robot's clock). Pure: an observation in, an action chunk out.
 
-use crate::schema::{ActionChunk, LayoutMsg, ObservationMsg, SCHEMA_VERSION};
+use fleet_agent::schema::{ActionChunk, LayoutMsg, ObservationMsg, SCHEMA_VERSION};
 use thiserror::Error;
 
 /// Where the policy sends its joints over time.
@@ -202,8 +202,8 @@ impl ScriptedPolicy {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gate::{ActionGate, GateConfig, Range};
-    use crate::schema::{encode, JointInfoMsg};
+    use fleet_agent::gate::{ActionGate, GateConfig, Range};
+    use fleet_agent::schema::{encode, JointInfoMsg};
 
     #[test]
     fn the_reference_policy_passes_the_gate_and_stays_in_range() {

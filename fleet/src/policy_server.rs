@@ -1,13 +1,13 @@
 //! `nori policy-server`: the reference off-board inference server. It serves every robot that
 //! publishes observations on `nori/*/observation`, answering each with an action chunk from a
-//! scripted wave or a replayed trajectory (`fleet_agent::policy::ScriptedPolicy`) at most every
+//! scripted wave or a replayed trajectory (`fleet::policy::ScriptedPolicy`) at most every
 //! `--chunk-every-ms`. A Python
 //! VLA/ACT server speaks the same schema (docs/fleet-schema.md).
 
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
+use fleet::policy::{Motion, ScriptedPolicy, Trajectory};
 use fleet_agent::keys::{all_robots, robot_key, robot_of};
-use fleet_agent::policy::{Motion, ScriptedPolicy, Trajectory};
 use fleet_agent::schema::{decode, encode, LayoutMsg, ObservationMsg};
 use fleet_agent::zenoh::qos::{CongestionControl, Priority};
 use fleet_agent::zenoh::Wait;
@@ -24,7 +24,7 @@ pub const DEFAULT_LISTEN: &str = "tcp/127.0.0.1:7447";
 #[derive(Args, Debug)]
 pub struct PolicyServerArgs {
     #[command(flatten)]
-    pub zenoh: crate::fleet::FleetSideArgs,
+    pub zenoh: crate::dashboard::FleetSideArgs,
     /// Joints the wave moves (comma-separated).
     #[arg(long, value_delimiter = ',', default_value = "left_elbow,right_elbow")]
     pub joints: Vec<String>,

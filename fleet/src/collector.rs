@@ -3,8 +3,8 @@
 //! Prometheus text (`/metrics`). Pure: bytes and the collector's wall time in, views out; the
 //! zenoh subscriptions and the HTTP server live in the `nori` binary.
 
-use crate::keys::robot_of;
-use crate::schema::{decode, DecodeError, EventMsg, LayoutMsg, StateMsg};
+use fleet_agent::keys::robot_of;
+use fleet_agent::schema::{decode, DecodeError, EventMsg, LayoutMsg, StateMsg, StatusMsg};
 use prometheus_client::encoding::text::encode;
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
@@ -56,7 +56,7 @@ struct Robot {
     events: VecDeque<EventMsg>,
     event_counts: BTreeMap<String, u64>,
     states_received: u64,
-    status: Option<Value>,
+    status: Option<StatusMsg>,
 }
 
 /// The fleet as the collector sees it.
@@ -152,16 +152,10 @@ impl Collector {
         Ok(())
     }
 
-    /// A reply of `nori/<id>/status` (the agent's JSON).
+    /// A reply of `nori/<id>/status` (the agent's [`StatusMsg`]).
     pub fn status(&mut self, key: &str, payload: &[u8], now_ms: u64) -> Result<(), IngestError> {
-        let value: Value = serde_json::from_slice(payload).map_err(|e| {
-            *self.undecodable.entry("status").or_default() += 1;
-            IngestError::Decode {
-                key: key.into(),
-                error: DecodeError::Malformed(e.to_string()),
-            }
-        })?;
-        self.robot(key, now_ms)?.status = Some(value);
+        let msg: StatusMsg = self.decoded("status", key, payload)?;
+        self.robot(key, now_ms)?.status = Some(msg);
         Ok(())
     }
 
@@ -193,7 +187,7 @@ impl Collector {
                         })
                         .collect()
                 });
-                let counters = r.status.as_ref().map(|s| &s["counters"]);
+                let counters = r.status.as_ref().map(|s| &s.counters);
                 json!({
                     "id": id,
                     "alive": r.alive,
@@ -212,10 +206,12 @@ impl Collector {
                         "value": finite(e.value), "wall_ms": e.wall_ms,
                     })).collect::<Vec<_>>(),
                     "event_counts": r.event_counts,
-                    "actions_accepted": counters.map(|c| c["actions_accepted"].clone()),
-                    "actions_rejected": counters.map(|c| c["actions_rejected"].clone()),
-                    "last_rejection": r.status.as_ref().map(|s| s["last_rejection"].clone()),
-                    "buses": r.status.as_ref().map(|s| s["buses"].clone()),
+                    "actions_accepted": counters.map(|c| c.actions_accepted),
+                    "actions_rejected": counters.map(|c| &c.actions_rejected),
+                    "last_rejection": r.status.as_ref().map(|s| s.last_rejection.clone()),
+                    "buses": r.status.as_ref().map(|s| s.buses.iter().map(|b| json!({
+                        "bus": b.name, "connected": b.connected, "enabled": b.enabled, "counters": b.counters,
+                    })).collect::<Vec<_>>()),
                 })
             })
             .collect();
@@ -281,42 +277,31 @@ impl Collector {
                     }
                 }
             }
-            for b in r
-                .status
-                .as_ref()
-                .and_then(|s| s["buses"].as_array())
-                .into_iter()
-                .flatten()
-            {
-                let bus = b["bus"].to_string();
-                let labels = label(&[("robot", id), ("bus", &bus)]);
-                if let Some(up) = b["connected"].as_bool() {
-                    bus_connected
-                        .get_or_create(&labels)
-                        .set(f64::from(u8::from(up)));
-                }
-                let counts = &b["counters"];
-                if let Some(n) = counts["cycles"].as_u64() {
-                    bus_cycles.get_or_create(&labels).inc_by(n);
-                }
+            for b in r.status.iter().flat_map(|s| &s.buses) {
+                let labels = label(&[("robot", id), ("bus", &b.name)]);
+                bus_connected
+                    .get_or_create(&labels)
+                    .set(f64::from(u8::from(b.connected)));
+                bus_cycles.get_or_create(&labels).inc_by(b.counters.cycles);
+                let counts = serde_json::to_value(b.counters).unwrap_or_default();
                 for kind in BUS_ERROR_KINDS {
                     if let Some(n) = counts[kind].as_u64() {
                         bus_errors
-                            .get_or_create(&label(&[("robot", id), ("bus", &bus), ("kind", kind)]))
+                            .get_or_create(&label(&[
+                                ("robot", id),
+                                ("bus", &b.name),
+                                ("kind", kind),
+                            ]))
                             .inc_by(n);
                     }
                 }
             }
-            if let Some(c) = r.status.as_ref().map(|s| &s["counters"]) {
-                if let Some(n) = c["actions_accepted"].as_u64() {
-                    accepted.get_or_create(&robot).inc_by(n);
-                }
-                if let Some(reasons) = c["actions_rejected"].as_object() {
-                    for (reason, n) in reasons {
-                        rejected
-                            .get_or_create(&label(&[("robot", id), ("reason", reason)]))
-                            .inc_by(n.as_u64().unwrap_or(0));
-                    }
+            if let Some(c) = r.status.as_ref().map(|s| &s.counters) {
+                accepted.get_or_create(&robot).inc_by(c.actions_accepted);
+                for (reason, n) in &c.actions_rejected {
+                    rejected
+                        .get_or_create(&label(&[("robot", id), ("reason", reason)]))
+                        .inc_by(*n);
                 }
             }
         }
@@ -423,7 +408,10 @@ fn finite(v: f32) -> Option<f32> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::schema::{encode, JointInfoMsg, JointMsg, SCHEMA_VERSION};
+    use fleet_agent::schema::{
+        encode, AgentCounters, BusStatus, JointInfoMsg, JointMsg, StatusConfig, StatusHealth,
+        SCHEMA_VERSION,
+    };
 
     fn state(seq: u64, temps: &[f32]) -> Vec<u8> {
         encode(&StateMsg {
@@ -518,12 +506,42 @@ mod tests {
         assert_eq!(c.states_received("r1"), 50);
     }
 
+    /// A status reply with `counters` and `buses`.
+    fn status(counters: AgentCounters, buses: Vec<BusStatus>) -> Vec<u8> {
+        encode(&StatusMsg {
+            version: SCHEMA_VERSION,
+            robot_id: "r".into(),
+            agent_version: "0".into(),
+            config: StatusConfig {
+                state_hz: 50.0,
+                observation_hz: 50.0,
+                max_age_ms: 300,
+                horizon_ms: 1000,
+                blend_new: 1.0,
+                forward_hz: 100.0,
+            },
+            health: StatusHealth {
+                joints: 1,
+                state_age_ms: None,
+                safe_state: None,
+                deadline_misses: None,
+                planned_steps: 0,
+            },
+            counters,
+            last_rejection: "stale: 300 ms".into(),
+            buses,
+        })
+    }
+
     #[test]
     fn rejections_come_from_the_robot_status() {
         let mut c = Collector::new(1, 0);
-        let status = json!({"counters": {"actions_accepted": 4,
-            "actions_rejected": {"stale": 2, "out_of_range": 1}}, "last_rejection": "stale: 300 ms"});
-        c.status("nori/r2/status", status.to_string().as_bytes(), 0)
+        let counters = AgentCounters {
+            actions_accepted: 4,
+            actions_rejected: [("stale".into(), 2), ("out_of_range".into(), 1)].into(),
+            ..AgentCounters::default()
+        };
+        c.status("nori/r2/status", &status(counters, vec![]), 0)
             .unwrap();
         c.alive("nori/r2/alive", true, 0).unwrap();
         let text = c.metrics();
@@ -532,6 +550,14 @@ mod tests {
         assert!(text.contains(r#"nori_robot_online{robot="r2"} 1.0"#));
         c.alive("nori/r2/alive", false, 5).unwrap();
         assert!(c.metrics().contains(r#"nori_robot_online{robot="r2"} 0.0"#));
+        let snap = c.snapshot(5);
+        assert_eq!(snap["robots"][0]["actions_rejected"]["stale"], 2);
+        assert_eq!(snap["robots"][0]["last_rejection"], "stale: 300 ms");
+        // A status of another shape is refused and counted, not half-read.
+        assert!(c
+            .status("nori/r2/status", b"{\"counters\": {}}", 6)
+            .is_err());
+        assert_eq!(c.snapshot(6)["undecodable"]["status"], 1);
     }
 
     #[test]
@@ -568,22 +594,30 @@ mod tests {
             implausible: 2,
             ..Default::default()
         };
-        let bus = |i: usize, up: bool, counters| json!({"bus": i, "connected": up, "enabled": true, "counters": counters});
-        let first = bus(0, true, counters);
+        let bus = |name: &str, connected: bool, counters| BusStatus {
+            name: name.into(),
+            connected,
+            enabled: true,
+            counters,
+        };
+        let first = bus("left_arm", true, counters);
         counters.disconnects = 1;
-        let second = bus(1, false, counters);
-        let status = json!({"counters": {}, "buses": [first, second]});
-        c.status("nori/r3/status", status.to_string().as_bytes(), 0)
-            .unwrap();
+        let second = bus("wheels", false, counters);
+        c.status(
+            "nori/r3/status",
+            &status(AgentCounters::default(), vec![first, second]),
+            0,
+        )
+        .unwrap();
         let text = c.metrics();
         for line in [
-            r#"nori_bus_errors_total{robot="r3",bus="0",kind="checksum_errors"} 7"#,
-            r#"nori_bus_errors_total{robot="r3",bus="0",kind="implausible"} 2"#,
-            r#"nori_bus_errors_total{robot="r3",bus="1",kind="disconnects"} 1"#,
-            r#"nori_bus_errors_total{robot="r3",bus="0",kind="disconnects"} 0"#,
-            r#"nori_bus_cycles_total{robot="r3",bus="1"} 1000"#,
-            r#"nori_bus_connected{robot="r3",bus="0"} 1.0"#,
-            r#"nori_bus_connected{robot="r3",bus="1"} 0.0"#,
+            r#"nori_bus_errors_total{robot="r3",bus="left_arm",kind="checksum_errors"} 7"#,
+            r#"nori_bus_errors_total{robot="r3",bus="left_arm",kind="implausible"} 2"#,
+            r#"nori_bus_errors_total{robot="r3",bus="wheels",kind="disconnects"} 1"#,
+            r#"nori_bus_errors_total{robot="r3",bus="left_arm",kind="disconnects"} 0"#,
+            r#"nori_bus_cycles_total{robot="r3",bus="wheels"} 1000"#,
+            r#"nori_bus_connected{robot="r3",bus="left_arm"} 1.0"#,
+            r#"nori_bus_connected{robot="r3",bus="wheels"} 0.0"#,
         ] {
             assert!(text.contains(line), "{line} not in\n{text}");
         }

@@ -1,0 +1,46 @@
+//! `nori-bench` (`nori bench`): benchmarks that print their figures next to the baseline they
+//! are judged by, measured in the same run (this machine is shared and noisy: ratios, not
+//! absolute times). No timing threshold lives in a test; these are run by hand and recorded in
+//! BENCHMARKS.md with the command that gave each figure.
+
+mod driver;
+mod fleet;
+mod model_lab;
+mod plane;
+
+use anyhow::Result;
+use clap::Parser;
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "nori-bench",
+    version,
+    about = "Benchmarks of the Nori A3 stack, each next to its baseline"
+)]
+enum Bench {
+    /// The driver's loop rate against the wire-timed simulator, as a ratio of the wire-limited rate.
+    DriverRate(driver::DriverRateArgs),
+    /// Batch-mode simulation speed as a multiple of real time.
+    SimSpeed(driver::SimSpeedArgs),
+    /// Driver → supervisor latency: iceoryx2 against a Unix socket + postcard baseline.
+    StatePlane(plane::StatePlaneArgs),
+    /// A policy's action on zenoh to the goal on the simulated wire, through the fleet agent,
+    /// against a goal published straight on the state plane.
+    ActionLatency(fleet::ActionLatencyArgs),
+    /// Robots streaming telemetry that one fleet collector ingests with no loss.
+    FleetIngest(fleet::FleetIngestArgs),
+    /// The model lab: accuracy per hidden effect, detection limits, analysis time (also `nori
+    /// model bench`).
+    ModelLab(model_lab::BenchArgs),
+}
+
+fn main() -> Result<()> {
+    match &Bench::parse() {
+        Bench::DriverRate(a) => driver::driver_rate(a),
+        Bench::SimSpeed(a) => driver::sim_speed(a),
+        Bench::StatePlane(a) => plane::run(a),
+        Bench::ActionLatency(a) => fleet::action_latency(a),
+        Bench::FleetIngest(a) => fleet::fleet_ingest(a),
+        Bench::ModelLab(a) => model_lab::run_bench(a),
+    }
+}

@@ -1,0 +1,173 @@
+//! `model-lab`: the model lab's accuracy over many seeds per hidden effect, its detection limits,
+//! and its analysis time next to the nominal fit alone on the same data.
+
+use anyhow::{bail, Result};
+use clap::Args;
+use model_lab::generate::{generate, Spec};
+use model_lab::{analyze, Effect, Options};
+use std::time::Instant;
+
+/// Options of `nori bench model-lab`.
+#[derive(Args, Debug)]
+pub struct BenchArgs {
+    /// Seeds per effect.
+    #[arg(long, default_value_t = 50)]
+    seeds: u64,
+    /// Seeds per size step of the detection-limit sweep (0: skip the sweep).
+    #[arg(long, default_value_t = 20)]
+    sweep_seeds: u64,
+    /// Worker threads.
+    #[arg(long, default_value_t = 2)]
+    jobs: usize,
+    /// Print one JSON object.
+    #[arg(long)]
+    json: bool,
+    /// Only these hidden effects (catalog ids or `none`, comma-separated; all by default).
+    #[arg(long, value_delimiter = ',')]
+    effects: Vec<String>,
+    /// Skip the 2 h × 8 motors timing runs (for quick accuracy checks).
+    #[arg(long)]
+    no_timing: bool,
+}
+
+/// Runs `nori bench model-lab`.
+pub fn run_bench(a: &BenchArgs) -> Result<()> {
+    // Analysis time on the acceptance case: 2 h of 8 motors at 2 Hz (CSV parsing included),
+    // next to its baseline in the same run: the nominal model alone (calibration and misfit
+    // statistics, no extension tried) on the same data.
+    let nominal_only = Options {
+        candidates: Vec::new(),
+        ..Options::default()
+    };
+    let mut only = Vec::new();
+    for id in &a.effects {
+        let Some(e) = Effect::from_id(id) else {
+            bail!("unknown effect {id:?}");
+        };
+        only.push(e);
+    }
+    let mut timing = Vec::new();
+    let timed: &[Effect] = if a.no_timing {
+        &[]
+    } else {
+        &[Effect::None, Effect::NeighborCoupling]
+    };
+    for &effect in timed {
+        let g = generate(
+            &Spec {
+                motors: Some(8),
+                period_s: 0.5,
+                ..Spec::new(effect)
+            },
+            7,
+        );
+        let t = Instant::now();
+        let base = analyze(g.dataset()?, &nominal_only, &mut |_| {})?;
+        let baseline_s = t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        let out = analyze(g.dataset()?, &Options::default(), &mut |_| {})?;
+        let s = t.elapsed().as_secs_f64();
+        eprintln!(
+            "2 h × 8 motors at 2 Hz, hidden {effect}: named {} in {s:.2} s; nominal fit only \
+             {baseline_s:.2} s; ratio {:.1}",
+            out.analysis.cause,
+            s / baseline_s
+        );
+        timing.push(serde_json::json!({
+            "hidden": effect, "named": out.analysis.cause, "seconds": s,
+            "nominal_only_seconds": baseline_s, "ratio": s / baseline_s,
+            "nominal_only_cause": base.analysis.cause,
+            "samples": g.truth.motors * 14_400,
+        }));
+    }
+    let settings = model_lab::bench::Settings {
+        seeds: a.seeds,
+        sweep_seeds: a.sweep_seeds,
+        jobs: a.jobs,
+        effects: only,
+        ..Default::default()
+    };
+    let report = model_lab::bench::run(&settings, &mut |l| eprintln!("{l}"));
+    if a.json {
+        let mut v = serde_json::to_value(&report)?;
+        v["timing_2h_8_motors_2hz"] = serde_json::Value::Array(timing);
+        println!("{}", serde_json::to_string_pretty(&v)?);
+        return Ok(());
+    }
+    println!(
+        "{} seeds per effect, {:.0} s at {} s per sample, 2..=8 motors; {:.0} s total",
+        report.seeds, report.duration_s, report.period_s, report.seconds
+    );
+    for t in &timing {
+        println!(
+            "analysis of 2 h × 8 motors at 2 Hz (hidden {}, named {}): {:.2} s; nominal fit \
+             only: {:.2} s; ratio {:.1} (goal ≤ 10 s)",
+            t["hidden"].as_str().unwrap_or("?"),
+            t["named"].as_str().unwrap_or("?"),
+            t["seconds"].as_f64().unwrap_or(f64::NAN),
+            t["nominal_only_seconds"].as_f64().unwrap_or(f64::NAN),
+            t["ratio"].as_f64().unwrap_or(f64::NAN),
+        );
+    }
+    if let Some(null) = report.effects.iter().find(|e| e.effect == Effect::None) {
+        println!(
+            "false alarms on null data: {:.1} % ({} of {} runs named an effect; goal ≤ 5 %)",
+            100.0 * (1.0 - null.accuracy),
+            null.runs - (null.accuracy * null.runs as f64).round() as usize,
+            null.runs
+        );
+    }
+    println!("| hidden | size range | named correctly | parameter within 25 % | median parameter error | detection limit (≥ 90 %) | mean analysis |");
+    println!("|---|---|---|---|---|---|---|");
+    for e in &report.effects {
+        println!(
+            "| `{}` | {} | {:.0} % | {} | {} | {} | {:.2} s |",
+            e.effect,
+            if e.effect == Effect::None {
+                "–".to_string()
+            } else {
+                format!("{}–{} {}", e.size_range.0, e.size_range.1, e.unit)
+            },
+            100.0 * e.accuracy,
+            if e.effect == Effect::None {
+                "–".to_string()
+            } else {
+                format!("{:.0} %", 100.0 * e.recovered)
+            },
+            e.median_parameter_error
+                .map_or("–".into(), |v| format!("{:.1} %", 100.0 * v)),
+            e.detection_limit
+                .map_or("–".into(), |v| format!("{v:.4} {}", e.unit)),
+            e.mean_seconds
+        );
+    }
+    println!();
+    println!(
+        "| hidden | detection sweep: size → named (seeds 1000..) | confusions (accuracy runs) |"
+    );
+    println!("|---|---|---|");
+    for e in &report.effects {
+        let sweep: Vec<String> = e
+            .sweep
+            .iter()
+            .map(|(s, r)| format!("{s:.4} → {:.0} %", 100.0 * r))
+            .collect();
+        let conf: Vec<String> = e
+            .confusions
+            .iter()
+            .map(|(c, n)| format!("{c} × {n}"))
+            .collect();
+        println!(
+            "| `{}` | {} {} | {} |",
+            e.effect,
+            sweep.join(", "),
+            e.unit,
+            if conf.is_empty() {
+                "–".into()
+            } else {
+                conf.join(", ")
+            }
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,330 @@
+//! The fleet agent's loop, shaped like the driver's: [`Agent`] holds everything the agent knows
+//! (the gate, the plan, the rates, its counters) and [`Agent::poll`] does one turn of the loop
+//! against an [`AgentIo`], the state plane on one side and the fleet on the other, with time
+//! passed in. The binary wires iceoryx2 and zenoh into an `AgentIo` and calls [`run`]; the
+//! tests wire queues and call `poll` with the clock they choose.
+//!
+//! The agent's state is its plan of accepted actions and nothing else: killed, it takes the
+//! plan with it, the driver stops getting goals and holds, and a restarted agent starts with
+//! none.
+
+use crate::gate::{within, ActionGate, Range, REASONS};
+use crate::outbound::{self, Every};
+use crate::schedule::Scheduler;
+use crate::schema::{
+    encode, AgentCounters, BusStatus, StatusConfig, StatusHealth, StatusMsg, SCHEMA_VERSION,
+};
+use crate::AgentConfig;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+use telemetry::frames::{
+    BusHealth, GoalFrame, JointLayout, JointState, SupervisorEvent, BUS_HEALTH_CONNECTED,
+    BUS_HEALTH_ENABLED, STATE_FLAG_SAFE_STATE,
+};
+
+/// What the agent sends to the fleet, each on its own key expression of the robot.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Outbound {
+    /// `nori/<robot>/state` (dropped on congestion).
+    State,
+    /// `nori/<robot>/observation` (dropped on congestion).
+    Observation,
+    /// `nori/<robot>/layout`.
+    Layout,
+    /// `nori/<robot>/events` (blocks on congestion: events are rare and matter).
+    Event,
+}
+
+/// The agent's two planes, as its loop uses them. Every call returns at once.
+pub trait AgentIo {
+    /// The newest joint layout of the driver, if one was published.
+    fn layout(&mut self) -> Option<JointLayout>;
+    /// The next joint-state frame not yet taken, oldest first.
+    fn next_state(&mut self) -> Option<JointState>;
+    /// The newest bus health of the driver.
+    fn bus_health(&mut self) -> Option<BusHealth>;
+    /// The next supervisor event not yet taken.
+    fn next_event(&mut self) -> Option<SupervisorEvent>;
+    /// Publishes a goal frame to the driver; whether it went out.
+    fn send_goal(&mut self, goal: &GoalFrame) -> bool;
+    /// Publishes `payload` to the fleet; whether it went out.
+    fn publish(&mut self, what: Outbound, payload: Vec<u8>) -> bool;
+    /// The next action chunk received from the fleet (its bytes, undecoded).
+    fn next_action(&mut self) -> Option<Vec<u8>>;
+    /// Answers every status query waiting, each with `status()`'s bytes.
+    fn answer_status(&mut self, status: &mut dyn FnMut() -> Vec<u8>);
+}
+
+/// The agent's counters beyond the gate's and the scheduler's own.
+#[derive(Debug, Default, Clone)]
+struct Counters {
+    state_sent: u64,
+    observations_sent: u64,
+    events_sent: u64,
+    goals_forwarded: u64,
+    plans_dropped: u64,
+    goals_withheld: u64,
+    last_rejection: String,
+}
+
+/// Everything the agent knows.
+pub struct Agent {
+    config: AgentConfig,
+    gate: ActionGate,
+    scheduler: Scheduler,
+    layout: JointLayout,
+    ranges: Vec<Range>,
+    state_every: Every,
+    observation_every: Every,
+    layout_every: Every,
+    forward_every: Every,
+    warn_every: Every,
+    counters: Counters,
+    last_state: Option<JointState>,
+    last_health: Option<BusHealth>,
+    goal_seq: u64,
+}
+
+impl Agent {
+    /// An agent with `config`, no layout and no plan yet.
+    pub fn new(config: &AgentConfig) -> Agent {
+        Agent {
+            gate: ActionGate::new(config.gate()),
+            scheduler: Scheduler::new(
+                config.actions.blend_new,
+                config.actions.horizon_ms * 1_000_000,
+            ),
+            layout: JointLayout::default(),
+            ranges: Vec::new(),
+            state_every: Every::hz(config.telemetry.state_hz),
+            observation_every: Every::hz(config.telemetry.observation_hz),
+            layout_every: Every::hz(1.0 / config.telemetry.layout_every_s),
+            forward_every: Every::hz(config.actions.forward_hz),
+            warn_every: Every::hz(1.0),
+            counters: Counters::default(),
+            last_state: None,
+            last_health: None,
+            goal_seq: 0,
+            config: config.clone(),
+        }
+    }
+
+    /// One turn of the loop at robot time `now` (CLOCK_MONOTONIC ns) and wall time `wall_ms`
+    /// (for the fleet's plots only).
+    pub fn poll(&mut self, io: &mut impl AgentIo, now: u64, wall_ms: u64) {
+        self.take_layout(io, now);
+        self.forward_telemetry(io, now, wall_ms);
+        let new_plan = self.take_actions(io, now);
+        // A new plan goes out at once, not at the next forwarding tick (up to 10 ms later).
+        let due = self.forward_every.due(now);
+        if new_plan || due {
+            self.forward_goal(io, now);
+        }
+        io.answer_status(&mut || encode(&self.status(now)));
+    }
+
+    fn take_layout(&mut self, io: &mut impl AgentIo, now: u64) {
+        if let Some(l) = io.layout() {
+            if l != self.layout {
+                self.layout = l;
+                self.ranges = outbound::ranges(&self.layout);
+                // A new driver (or a new layout): the old plan was made for another robot state.
+                self.scheduler.clear();
+                self.layout_every = Every::hz(1.0 / self.config.telemetry.layout_every_s);
+            }
+        }
+        if self.layout.joint_count > 0 && self.layout_every.due(now) {
+            io.publish(
+                Outbound::Layout,
+                encode(&outbound::layout_msg(&self.layout)),
+            );
+        }
+    }
+
+    fn forward_telemetry(&mut self, io: &mut impl AgentIo, now: u64, wall_ms: u64) {
+        // Every frame, in order: the gate must see the driver enter its safe state or restart,
+        // however briefly, to drop the plan made before it.
+        let mut newest = None;
+        while let Some(s) = io.next_state() {
+            let safe = s.flags & STATE_FLAG_SAFE_STATE != 0;
+            if self.gate.observe_driver(s.seq, s.timestamp_ns, safe)
+                && self.scheduler.planned_steps() > 0
+            {
+                self.scheduler.clear();
+                self.counters.plans_dropped += 1;
+                tracing::info!(
+                    "driver restarted or in its safe state: the plan made before is dropped"
+                );
+            }
+            newest = Some(s);
+        }
+        if let Some(s) = newest {
+            self.last_state = Some(s);
+            if self.state_every.due(now)
+                && io.publish(Outbound::State, encode(&outbound::state_msg(&s, wall_ms)))
+            {
+                self.counters.state_sent += 1;
+            }
+            if self.observation_every.due(now)
+                && io.publish(
+                    Outbound::Observation,
+                    encode(&outbound::observation_msg(&s)),
+                )
+            {
+                self.counters.observations_sent += 1;
+            }
+        }
+        if let Some(h) = io.bus_health() {
+            self.last_health = Some(h);
+        }
+        while let Some(e) = io.next_event() {
+            let msg = outbound::event_msg(&e, &self.layout, wall_ms);
+            if io.publish(Outbound::Event, encode(&msg)) {
+                self.counters.events_sent += 1;
+            }
+        }
+    }
+
+    /// Checks every chunk received; whether one was accepted (a new plan).
+    fn take_actions(&mut self, io: &mut impl AgentIo, now: u64) -> bool {
+        let mut new_plan = false;
+        while let Some(bytes) = io.next_action() {
+            match self.gate.check(&bytes, now, &self.ranges) {
+                Ok(chunk) => {
+                    self.scheduler.insert(&chunk, now);
+                    new_plan = true;
+                }
+                Err(r) => {
+                    self.counters.last_rejection = r.to_string();
+                    if self.warn_every.due(now) {
+                        tracing::warn!(reason = r.reason(), "action refused: {r}");
+                    }
+                }
+            }
+        }
+        new_plan
+    }
+
+    fn forward_goal(&mut self, io: &mut impl AgentIo, now: u64) {
+        match self.scheduler.target(now) {
+            // The last door: a value outside a calibrated range never leaves the agent,
+            // whatever the scheduler made of the chunks.
+            Some(target) if !within(&self.ranges, &target.position, target.mask) => {
+                self.counters.goals_withheld += 1;
+                self.scheduler.clear();
+                tracing::error!(
+                    "a scheduled target outside the calibrated range was withheld and the plan dropped"
+                );
+            }
+            Some(target) => {
+                self.goal_seq += 1;
+                let frame =
+                    outbound::goal_frame(&target, self.layout.joint_count, self.goal_seq, now);
+                if io.send_goal(&frame) {
+                    self.counters.goals_forwarded += 1;
+                }
+            }
+            None => {}
+        }
+    }
+
+    /// The status reply at `now`.
+    pub fn status(&self, now: u64) -> StatusMsg {
+        let c = &self.counters;
+        let a = &self.config.actions;
+        let state = self.last_state.as_ref();
+        StatusMsg {
+            version: SCHEMA_VERSION,
+            robot_id: self.config.robot_id.clone(),
+            agent_version: env!("CARGO_PKG_VERSION").into(),
+            config: StatusConfig {
+                state_hz: self.config.telemetry.state_hz,
+                observation_hz: self.config.telemetry.observation_hz,
+                max_age_ms: a.max_age_ms,
+                horizon_ms: a.horizon_ms,
+                blend_new: a.blend_new,
+                forward_hz: a.forward_hz,
+            },
+            health: StatusHealth {
+                joints: self.layout.joint_count,
+                state_age_ms: state.map(|s| now.saturating_sub(s.timestamp_ns) as f64 / 1e6),
+                safe_state: state.map(|s| s.flags & STATE_FLAG_SAFE_STATE != 0),
+                deadline_misses: state.map(|s| s.deadline_misses),
+                planned_steps: self.scheduler.planned_steps() as u64,
+            },
+            counters: AgentCounters {
+                state_sent: c.state_sent,
+                observations_sent: c.observations_sent,
+                events_sent: c.events_sent,
+                actions_accepted: self.gate.accepted(),
+                actions_rejected: REASONS
+                    .iter()
+                    .zip(self.gate.rejected())
+                    .map(|(r, n)| (r.to_string(), *n))
+                    .collect(),
+                steps_dropped_past: self.scheduler.dropped_past_steps(),
+                plans_expired: self.scheduler.expired(),
+                goals_forwarded: c.goals_forwarded,
+                plans_dropped: c.plans_dropped,
+                goals_withheld: c.goals_withheld,
+            },
+            last_rejection: c.last_rejection.clone(),
+            // Named from the driver's layout: the one source of names.
+            buses: self
+                .last_health
+                .as_ref()
+                .map(BusHealth::buses)
+                .unwrap_or_default()
+                .iter()
+                .enumerate()
+                .map(|(i, b)| BusStatus {
+                    name: self
+                        .layout
+                        .bus_names()
+                        .nth(i)
+                        .map_or_else(|| format!("bus{i}"), str::to_string),
+                    connected: b.flags & BUS_HEALTH_CONNECTED != 0,
+                    enabled: b.flags & BUS_HEALTH_ENABLED != 0,
+                    counters: b.counters,
+                })
+                .collect(),
+        }
+    }
+
+    /// Action chunks accepted so far.
+    pub fn accepted(&self) -> u64 {
+        self.gate.accepted()
+    }
+
+    /// Goal frames forwarded so far.
+    pub fn goals_forwarded(&self) -> u64 {
+        self.counters.goals_forwarded
+    }
+}
+
+/// How often the loop polls.
+pub const POLL: Duration = Duration::from_millis(1);
+
+/// Runs the agent until `shutdown` (or `run_for`), polling every [`POLL`]; `keepalive` is
+/// called every turn (the service manager's watchdog).
+pub fn run(
+    agent: &mut Agent,
+    io: &mut impl AgentIo,
+    shutdown: &AtomicBool,
+    run_for: Option<Duration>,
+    keepalive: &mut dyn FnMut(Instant),
+) {
+    let started = Instant::now();
+    while !shutdown.load(Ordering::Relaxed) && run_for.is_none_or(|d| started.elapsed() < d) {
+        keepalive(Instant::now());
+        agent.poll(io, telemetry::clock::monotonic_ns(), wall_ms());
+        std::thread::sleep(POLL);
+    }
+}
+
+/// Wall-clock time, ms since the Unix epoch.
+pub fn wall_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}

@@ -1,0 +1,238 @@
+//! The fleet agent's loop in process: `Agent::poll` against queues standing for the state plane
+//! and the fleet, on a clock the test chooses. (The process tests in `tests/` run the binary
+//! over real iceoryx2 and zenoh.)
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use fleet_agent::agent::{Agent, AgentIo, Outbound};
+use fleet_agent::schema::{decode, encode, ActionChunk, EventMsg, StatusMsg, SCHEMA_VERSION};
+use fleet_agent::AgentConfig;
+use std::collections::VecDeque;
+use telemetry::frames::{
+    BusHealth, BusHealthEntry, EventKind, GoalFrame, JointInfo, JointLayout, JointSample,
+    JointState, SupervisorEvent, BUS_HEALTH_CONNECTED, BUS_HEALTH_ENABLED, STATE_FLAG_SAFE_STATE,
+};
+
+const MS: u64 = 1_000_000;
+
+#[derive(Default)]
+struct Queues {
+    layout: Option<JointLayout>,
+    states: VecDeque<JointState>,
+    health: Option<BusHealth>,
+    events: VecDeque<SupervisorEvent>,
+    actions: VecDeque<Vec<u8>>,
+    status_queries: usize,
+    goals: Vec<GoalFrame>,
+    published: Vec<(Outbound, Vec<u8>)>,
+    status_replies: Vec<Vec<u8>>,
+}
+
+impl AgentIo for Queues {
+    fn layout(&mut self) -> Option<JointLayout> {
+        self.layout
+    }
+    fn next_state(&mut self) -> Option<JointState> {
+        self.states.pop_front()
+    }
+    fn bus_health(&mut self) -> Option<BusHealth> {
+        self.health
+    }
+    fn next_event(&mut self) -> Option<SupervisorEvent> {
+        self.events.pop_front()
+    }
+    fn send_goal(&mut self, goal: &GoalFrame) -> bool {
+        self.goals.push(*goal);
+        true
+    }
+    fn publish(&mut self, what: Outbound, payload: Vec<u8>) -> bool {
+        self.published.push((what, payload));
+        true
+    }
+    fn next_action(&mut self) -> Option<Vec<u8>> {
+        self.actions.pop_front()
+    }
+    fn answer_status(&mut self, status: &mut dyn FnMut() -> Vec<u8>) {
+        for _ in 0..std::mem::take(&mut self.status_queries) {
+            self.status_replies.push(status());
+        }
+    }
+}
+
+/// Two joints of bus "right_arm", each with the range [-1, 1] rad.
+fn layout() -> JointLayout {
+    let mut l = JointLayout {
+        joint_count: 2,
+        bus_count: 1,
+        ..JointLayout::default()
+    };
+    l.set_bus_name(0, "right_arm");
+    for (i, name) in ["right_elbow", "right_wrist"].iter().enumerate() {
+        let mut j = JointInfo {
+            range_rad: [-1.0, 1.0],
+            ..JointInfo::default()
+        };
+        j.set_name(name);
+        l.joints[i] = j;
+    }
+    l
+}
+
+fn state(seq: u64, t: u64, safe: bool) -> JointState {
+    let mut s = JointState {
+        seq,
+        timestamp_ns: t,
+        joint_count: 2,
+        flags: if safe { STATE_FLAG_SAFE_STATE } else { 0 },
+        ..JointState::default()
+    };
+    for j in &mut s.joints[..2] {
+        *j = JointSample {
+            temperature_c: 30.0,
+            ..JointSample::default()
+        };
+    }
+    s
+}
+
+/// A chunk computed from the observation at `obs`: joint 0 to `target` over 10 steps 20 ms apart.
+fn chunk(seq: u64, obs: u64, target: f32) -> Vec<u8> {
+    encode(&ActionChunk {
+        version: SCHEMA_VERSION,
+        seq,
+        observation_ns: obs,
+        step_offsets_ns: (1..=10).map(|k| k * 20 * MS).collect(),
+        joint_count: 2,
+        joint_mask: 0b01,
+        targets: (0..10).flat_map(|_| [target, 0.0]).collect(),
+    })
+}
+
+/// An agent that has seen the layout and the driver running (frames 1..=5, 1 ms apart from
+/// t0): ready to accept actions.
+fn running() -> (Agent, Queues, u64) {
+    let mut agent = Agent::new(&AgentConfig::embedded().unwrap());
+    let mut io = Queues {
+        layout: Some(layout()),
+        ..Queues::default()
+    };
+    let t0 = 1_000_000 * MS;
+    io.states
+        .extend((1..=5).map(|k| state(k, t0 + k * MS, false)));
+    agent.poll(&mut io, t0 + 5 * MS, 0);
+    (agent, io, t0 + 5 * MS)
+}
+
+/// The status as a query gets it: answered in the next turn of the loop, decoded.
+fn status(agent: &mut Agent, io: &mut Queues, now: u64) -> StatusMsg {
+    io.status_queries = 1;
+    io.status_replies.clear();
+    agent.poll(io, now, 0);
+    assert_eq!(io.status_replies.len(), 1, "one query, one answer");
+    decode(&io.status_replies[0]).unwrap()
+}
+
+#[test]
+fn a_checked_chunk_is_forwarded_and_an_out_of_range_one_never_is() {
+    let (mut agent, mut io, now) = running();
+    io.actions.push_back(chunk(1, now, 1.5));
+    agent.poll(&mut io, now + MS, 0);
+    assert!(io.goals.is_empty(), "an out-of-range chunk moved the arm");
+    let st = status(&mut agent, &mut io, now + MS);
+    assert_eq!(st.counters.actions_rejected["out_of_range"], 1);
+    assert!(
+        st.last_rejection.contains("outside the calibrated"),
+        "{st:?}"
+    );
+
+    io.actions.push_back(chunk(2, now, 0.5));
+    agent.poll(&mut io, now + 2 * MS, 0);
+    let first = *io
+        .goals
+        .first()
+        .expect("the accepted plan goes out at once");
+    assert_eq!((first.mask, first.joint_count), (0b01, 2));
+    // Along the plan: at its last step (200 ms after the observation), the chunk's target.
+    agent.poll(&mut io, now + 200 * MS, 0);
+    let last = io.goals.last().unwrap();
+    assert!((last.position_rad[0] - 0.5).abs() < 1e-6, "{last:?}");
+    assert!(io.goals.iter().all(|g| g.position_rad[0].abs() <= 1.0));
+    assert_eq!(
+        status(&mut agent, &mut io, now + 200 * MS)
+            .counters
+            .actions_accepted,
+        1
+    );
+}
+
+#[test]
+fn a_driver_restart_or_safe_state_drops_the_plan() {
+    for restart in [true, false] {
+        let (mut agent, mut io, now) = running();
+        io.actions.push_back(chunk(1, now, 0.5));
+        agent.poll(&mut io, now + MS, 0);
+        assert!(!io.goals.is_empty());
+        // The driver comes back (its frame numbers start again) or goes to its safe state.
+        let frame = if restart {
+            state(1, now + 10 * MS, false)
+        } else {
+            state(6, now + 10 * MS, true)
+        };
+        io.states.push_back(frame);
+        agent.poll(&mut io, now + 10 * MS, 0);
+        let sent = io.goals.len();
+        for k in 11..=200 {
+            agent.poll(&mut io, now + k * MS, 0);
+        }
+        assert_eq!(
+            io.goals.len(),
+            sent,
+            "restart {restart}: the old plan went on"
+        );
+        let st = status(&mut agent, &mut io, now + 200 * MS);
+        assert_eq!(st.counters.plans_dropped, 1, "restart {restart}");
+        assert_eq!(st.health.planned_steps, 0);
+    }
+}
+
+#[test]
+fn telemetry_events_and_status_go_out_named_from_the_layout() {
+    let (mut agent, mut io, now) = running();
+    let mut health = BusHealth {
+        bus_count: 1,
+        ..BusHealth::default()
+    };
+    health.buses[0] = BusHealthEntry {
+        flags: BUS_HEALTH_CONNECTED | BUS_HEALTH_ENABLED,
+        ..BusHealthEntry::default()
+    };
+    health.buses[0].counters.checksum_errors = 3;
+    io.health = Some(health);
+    io.events.push_back(SupervisorEvent {
+        seq: 1,
+        timestamp_ns: now,
+        kind: EventKind::ThermalTrip as u8,
+        joint: 1,
+        ..SupervisorEvent::default()
+    });
+    agent.poll(&mut io, now + MS, 0);
+    let event = io
+        .published
+        .iter()
+        .find(|(k, _)| *k == Outbound::Event)
+        .expect("the event went out");
+    let event: EventMsg = decode(&event.1).unwrap();
+    assert_eq!(
+        (event.kind.as_str(), event.joint.as_str()),
+        ("ThermalTrip", "right_wrist")
+    );
+    assert!(io.published.iter().any(|(k, _)| *k == Outbound::State));
+    assert!(io.published.iter().any(|(k, _)| *k == Outbound::Layout));
+    let st = status(&mut agent, &mut io, now + MS);
+    assert_eq!(st.buses.len(), 1);
+    assert_eq!(st.buses[0].name, "right_arm");
+    assert!(st.buses[0].connected && st.buses[0].enabled);
+    assert_eq!(st.buses[0].counters.checksum_errors, 3);
+    assert_eq!(st.health.joints, 2);
+    assert_eq!(st.counters.events_sent, 1);
+}

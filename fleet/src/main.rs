@@ -1,0 +1,34 @@
+//! `nori-fleet`: the fleet-side processes. `nori fleet`, `nori policy-server` and `nori router`
+//! are its commands.
+
+mod dashboard;
+mod policy_server;
+mod router;
+
+use anyhow::Result;
+use clap::Parser;
+
+#[derive(Parser)]
+#[command(
+    name = "nori-fleet",
+    version,
+    about = "The fleet side of the Nori A3 stack: dashboard, reference inference server, zenoh router"
+)]
+enum Command {
+    /// The live dashboard and Prometheus /metrics of every robot on zenoh (`nori fleet`).
+    Dashboard(dashboard::FleetArgs),
+    /// The reference inference server: a scripted policy for every robot on the fleet (`nori
+    /// policy-server`).
+    PolicyServer(policy_server::PolicyServerArgs),
+    /// A zenoh router for a site or a test fleet, TLS and access control from its JSON5 file
+    /// (`nori router`).
+    Router(router::RouterArgs),
+}
+
+fn main() -> Result<()> {
+    match Command::parse() {
+        Command::Dashboard(a) => dashboard::run(&a),
+        Command::PolicyServer(a) => policy_server::run(&a),
+        Command::Router(a) => router::run(&a),
+    }
+}

@@ -1,0 +1,188 @@
+//! `nori-model` (`nori model`): the model lab on measured data (`analyze`) and its truth-model
+//! generator (`generate`); its accuracy benchmark is `nori bench model-lab` (`nori model bench`
+//! runs it). The work is in the library; this binary reads arguments, writes files and prints.
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, Parser};
+use model_lab::electrical::CurrentEstimator;
+use model_lab::generate::{generate, Spec};
+use model_lab::{analyze, Effect, Options};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// The model-lab commands.
+#[derive(Parser, Debug)]
+#[command(
+    name = "nori-model",
+    version,
+    about = "The model lab: the simulation's servo model held against measured data"
+)]
+enum ModelCommand {
+    /// Hold the simulation's servo model against measured data: misfit, cause, extension, gain.
+    Analyze(AnalyzeArgs),
+    /// Write measured-like data with one hidden effect (the truth model of the tests).
+    Generate(GenerateArgs),
+}
+
+/// Options of `nori model analyze`.
+#[derive(Args, Debug)]
+struct AnalyzeArgs {
+    /// Telemetry CSV (shared/data/README.md format), or a directory of them (one run each).
+    data: PathBuf,
+    /// Print one JSON object instead of the summary.
+    #[arg(long)]
+    json: bool,
+    /// Write a report (Markdown + SVG plots) and the extended model into this directory.
+    #[arg(long, value_name = "DIR")]
+    report: Option<PathBuf>,
+    /// Write the extended model (TOML, loaded by the simulator) to this file.
+    #[arg(long, value_name = "FILE")]
+    model_out: Option<PathBuf>,
+    /// Fraction of the samples, in time order, used for fitting.
+    #[arg(long, default_value_t = 0.7)]
+    fit_fraction: f64,
+    /// Servo model whose rated constants estimate currents the data do not carry.
+    #[arg(long, default_value = "sts3215")]
+    servo: String,
+    /// Position gain (P_Coefficient) the data were recorded with, to estimate currents.
+    #[arg(long, default_value_t = 32.0)]
+    kp: f64,
+}
+
+/// Options of `nori model generate`.
+#[derive(Args, Debug)]
+struct GenerateArgs {
+    /// Output CSV (a `.meta.json` sidecar is written next to it).
+    out: PathBuf,
+    /// Hidden effect: a catalog id or `none`.
+    #[arg(long, default_value = "none")]
+    effect: String,
+    /// Seed.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Effect size in the catalog unit (random in the generator's range when absent).
+    #[arg(long)]
+    size: Option<f64>,
+    /// Motors (random 2..=8 when absent).
+    #[arg(long)]
+    motors: Option<usize>,
+    /// Recording length, s.
+    #[arg(long, default_value_t = 7200.0)]
+    duration_s: f64,
+    /// Sample period, s.
+    #[arg(long, default_value_t = 1.0)]
+    period_s: f64,
+}
+
+fn main() -> Result<()> {
+    match &ModelCommand::parse() {
+        ModelCommand::Analyze(a) => run_analyze(a),
+        ModelCommand::Generate(a) => run_generate(a),
+    }
+}
+
+fn write(path: &Path, text: &str) -> Result<()> {
+    std::fs::write(path, text).with_context(|| format!("cannot write {}", path.display()))
+}
+
+fn run_analyze(a: &AnalyzeArgs) -> Result<()> {
+    let robot = sim::RobotDescription::nori_a3();
+    let Some(rating) = robot.rating(&a.servo) else {
+        bail!(
+            "unknown servo model {:?} (sts3215, sts3250, sts3095)",
+            a.servo
+        );
+    };
+    let opts = Options {
+        fit_fraction: a.fit_fraction,
+        estimator: Some(CurrentEstimator {
+            kp: a.kp,
+            resistance_ohm: rating.rated_voltage / rating.stall_current_a,
+            ke_v_s_per_rad: rating.rated_voltage / rating.no_load_speed_rad_s,
+        }),
+        ..Options::default()
+    };
+    let data = model_lab::load(&a.data)?;
+    let start = Instant::now();
+    let out = analyze(data, &opts, &mut |line| {
+        eprintln!("[{:6.1} s] {line}", start.elapsed().as_secs_f64())
+    })?;
+    let an = &out.analysis;
+    let source = a.data.display().to_string();
+    let model_text = format!(
+        "# Model extension fitted by `nori model analyze {source}`.\n{}",
+        out.model.to_toml()
+    );
+    if let Some(dir) = &a.report {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        for (name, text) in model_lab::report::render(an, &out.traces, &source) {
+            write(&dir.join(name), &text)?;
+        }
+        write(&dir.join("extended-model.toml"), &model_text)?;
+        write(
+            &dir.join("analysis.json"),
+            &serde_json::to_string_pretty(an)?,
+        )?;
+        eprintln!("report written to {}", dir.join("report.md").display());
+    }
+    if let Some(path) = &a.model_out {
+        write(path, &model_text)?;
+    }
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(an)?);
+        return Ok(());
+    }
+    println!("data: {source}");
+    println!(
+        "cause: {} ({})\nheld-out RMSE ({:?}): nominal {:.4} {u}, extended {:.4} {u}, gain {:.1} %",
+        an.cause,
+        an.description,
+        an.channel,
+        an.baseline_rmse,
+        an.extended_rmse,
+        100.0 * an.gain,
+        u = an.unit
+    );
+    for p in &an.parameters {
+        println!("  {} = {:.4} {}", p.name, p.value, p.unit);
+    }
+    for c in &an.diagnostics.candidates {
+        println!(
+            "  tried {:18} gain {:+6.1} %  ΔBIC {:10.1}  {}",
+            c.id.id(),
+            100.0 * c.gain,
+            c.delta_bic,
+            c.verdict
+        );
+    }
+    Ok(())
+}
+
+fn run_generate(a: &GenerateArgs) -> Result<()> {
+    let Some(effect) = Effect::from_id(&a.effect) else {
+        bail!("unknown effect {:?}", a.effect);
+    };
+    let spec = Spec {
+        effect,
+        size: a.size,
+        duration_s: a.duration_s,
+        period_s: a.period_s,
+        motors: a.motors,
+    };
+    let g = generate(&spec, a.seed);
+    write(&a.out, &g.csv)?;
+    write(&a.out.with_extension("meta.json"), &g.meta)?;
+    let p = g.truth.parameter.as_ref();
+    println!(
+        "wrote {}: {} motors, sensor noise {:.3} °C, hidden {} {}",
+        a.out.display(),
+        g.truth.motors,
+        g.truth.sensor_noise_c,
+        effect,
+        p.map_or(String::new(), |p| format!(
+            "{} = {:.4} {}",
+            p.name, p.value, p.unit
+        ))
+    );
+    Ok(())
+}

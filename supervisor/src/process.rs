@@ -1,0 +1,250 @@
+//! The supervisor's loop, shaped like the driver's: [`Process`] holds what the process knows
+//! beyond the pure [`Supervisor`] (the trip record as last saved, the heartbeat, the publish
+//! timer) and [`Process::poll`] does one turn of the loop against a [`SupervisorIo`] with time
+//! passed in. The binary wires iceoryx2 and the trip file into a `SupervisorIo` and calls
+//! [`run`]; the tests wire queues and a clock of their own.
+//!
+//! Its heartbeat means "supervising": it is sent only once the driver's layout is known, so a
+//! driver never leaves its safe state for a supervisor that cannot yet supervise. A trip is
+//! saved to the record before the directives that announce it are published, so no restart
+//! can come between a bus turned off and the latch that keeps it off.
+
+use crate::logic::{LayoutError, Supervisor};
+use crate::SupervisorConfig;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+use telemetry::frames::{
+    Directives, EventKind, GripFrame, Heartbeat, JointLayout, JointState, Peer, SupervisorCommand,
+    SupervisorEvent,
+};
+use telemetry::latch::LatchError;
+use telemetry::watchdog::Liveness;
+
+/// Directives and heartbeat period.
+pub const PUBLISH_EVERY: Duration = Duration::from_millis(5);
+/// Poll period of the loop.
+pub const POLL: Duration = Duration::from_millis(1);
+
+/// The supervisor's plane and its trip record, as its loop uses them. Every call returns at
+/// once.
+pub trait SupervisorIo {
+    /// The newest joint layout of the driver, if one was published.
+    fn layout(&mut self) -> Option<JointLayout>;
+    /// The next joint-state frame not yet taken, oldest first.
+    fn next_state(&mut self) -> Option<JointState>;
+    /// The next operator command not yet taken.
+    fn next_command(&mut self) -> Option<SupervisorCommand>;
+    /// The next driver heartbeat not yet taken.
+    fn next_driver_beat(&mut self) -> Option<Heartbeat>;
+    /// Publishes the directives.
+    fn directives(&mut self, d: &Directives);
+    /// Publishes an event.
+    fn event(&mut self, e: &SupervisorEvent);
+    /// Publishes the heartbeat.
+    fn heartbeat(&mut self, h: &Heartbeat);
+    /// Publishes the grip force.
+    fn grip(&mut self, g: &GripFrame);
+    /// Saves the trip record: the joints of every latched bus, by name.
+    fn save_trips(&mut self, joints: &[String]) -> Result<(), LatchError>;
+}
+
+/// What a turn of the loop changed, for the binary's status line and log.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Change {
+    /// Supervising a (new) layout; the buses re-latched from the record.
+    Supervising {
+        /// Joints supervised.
+        joints: u32,
+        /// Buses latched again from the record.
+        restored: Vec<u8>,
+    },
+}
+
+/// The supervisor process's state.
+pub struct Process {
+    config: SupervisorConfig,
+    supervisor: Option<Supervisor>,
+    /// The trip record as last loaded or saved (names of joints of latched buses, including
+    /// those of buses this layout does not have).
+    trips: Vec<String>,
+    /// Buses latched when the record was last written.
+    recorded_mask: u32,
+    heartbeat: Heartbeat,
+    last_publish_ns: Option<u64>,
+    frames: u64,
+    last_state: Option<JointState>,
+}
+
+impl Process {
+    /// A process with `config` and the trip record `trips` as loaded at start; its heartbeat
+    /// carries `pid`.
+    pub fn new(config: SupervisorConfig, trips: Vec<String>, pid: u32) -> Process {
+        Process {
+            config,
+            supervisor: None,
+            trips,
+            recorded_mask: 0,
+            heartbeat: Heartbeat {
+                pid,
+                peer: Peer::Supervisor as u8,
+                ..Heartbeat::default()
+            },
+            last_publish_ns: None,
+            frames: 0,
+            last_state: None,
+        }
+    }
+
+    /// The supervisor, once a layout is known.
+    pub fn supervisor(&self) -> Option<&Supervisor> {
+        self.supervisor.as_ref()
+    }
+
+    /// Joint-state frames seen so far.
+    pub fn frames(&self) -> u64 {
+        self.frames
+    }
+
+    /// One turn of the loop at `now` (CLOCK_MONOTONIC ns). A layout the supervisor cannot
+    /// supervise is an error (the process exits: a configuration fault, not a crash).
+    pub fn poll(
+        &mut self,
+        io: &mut impl SupervisorIo,
+        now: u64,
+    ) -> Result<Option<Change>, LayoutError> {
+        let change = self.take_layout(io, now)?;
+        let Some(s) = self.supervisor.as_mut() else {
+            return Ok(change);
+        };
+        while let Some(state) = io.next_state() {
+            self.frames += 1;
+            if s.on_state(&state) {
+                io.grip(s.grip());
+            }
+            self.last_state = Some(state);
+        }
+        while let Some(cmd) = io.next_command() {
+            s.command(&cmd, now);
+        }
+        while let Some(beat) = io.next_driver_beat() {
+            s.driver_beat(now, beat.pid);
+        }
+        s.watch_driver(now);
+        let layout = *s.layout();
+        for e in s.drain_events() {
+            log_event(&e, &layout, self.last_state.as_ref());
+            io.event(&e);
+        }
+        // Trips outlive this process: recorded before the directives that announce them.
+        if s.tripped_buses() != self.recorded_mask {
+            self.recorded_mask = s.tripped_buses();
+            // Latches of joints this layout does not have (a driver started on some of the
+            // buses) are not this instance's to release: they stay in the record.
+            let names: Vec<&str> = layout.joint_names().collect();
+            self.trips.retain(|n| !names.contains(&n.as_str()));
+            self.trips.extend(s.tripped_joints());
+            if let Err(e) = io.save_trips(&self.trips) {
+                tracing::error!("{e}: a restart would forget the latched trips, and the driver keeps a released bus off");
+            }
+        }
+        // Directives go out every period as the heartbeat of the decision, and at once when they
+        // change (a trip must not wait for the next period).
+        let period_over = self
+            .last_publish_ns
+            .is_none_or(|t| now.saturating_sub(t) >= PUBLISH_EVERY.as_nanos() as u64);
+        if s.directives_changed() || period_over {
+            io.directives(&s.directives(now));
+        }
+        if period_over {
+            self.last_publish_ns = Some(now);
+            self.heartbeat.seq += 1;
+            self.heartbeat.timestamp_ns = now;
+            io.heartbeat(&self.heartbeat);
+        }
+        Ok(change)
+    }
+
+    /// Takes a new layout: a fresh supervisor, the recorded trips latched again.
+    fn take_layout(
+        &mut self,
+        io: &mut impl SupervisorIo,
+        now: u64,
+    ) -> Result<Option<Change>, LayoutError> {
+        let Some(layout) = io.layout() else {
+            return Ok(None);
+        };
+        if self
+            .supervisor
+            .as_ref()
+            .is_some_and(|s| *s.layout() == layout)
+        {
+            return Ok(None);
+        }
+        let mut fresh = Supervisor::new(&layout, self.config.clone())?;
+        if let Some(previous) = &self.supervisor {
+            fresh.inherit_driver_watch(previous);
+        }
+        let restored = fresh.restore_trips(&self.trips, now);
+        self.recorded_mask = fresh.tripped_buses();
+        self.supervisor = Some(fresh);
+        Ok(Some(Change::Supervising {
+            joints: layout.joint_count,
+            restored,
+        }))
+    }
+
+    /// The driver's liveness as last judged (unknown before a layout).
+    pub fn driver(&self) -> Liveness {
+        self.supervisor
+            .as_ref()
+            .map_or(Liveness::Unknown, Supervisor::driver_liveness)
+    }
+}
+
+/// Logs an event (rare: never per cycle); a stall names what was seen.
+fn log_event(e: &SupervisorEvent, layout: &JointLayout, last: Option<&JointState>) {
+    let joint = layout
+        .joints()
+        .get(e.joint as usize)
+        .map_or("-", |j| j.name());
+    let mut line = format!(
+        "{:?} joint {} bus {} level {} value {:.2}",
+        e.kind(),
+        joint,
+        e.bus,
+        e.level,
+        e.value
+    );
+    if let (Some(EventKind::Stall), Some(st)) = (e.kind(), last) {
+        if let Some(j) = st.joints().get(e.joint as usize) {
+            line += &format!(
+                " | frame {} position {:.3} goal {:.3} current {:.2} A load {:.2}",
+                st.seq, j.position_rad, j.goal_rad, j.current_a, j.load
+            );
+        }
+    }
+    match e.kind() {
+        Some(EventKind::ThermalTrip | EventKind::OutputLost | EventKind::DriverLost) => {
+            tracing::warn!("{line}")
+        }
+        _ => tracing::info!("{line}"),
+    }
+}
+
+/// Runs the loop until `shutdown` (or `run_for`), polling every [`POLL`]; `each_turn` is called
+/// with what changed (the service manager's keep-alive and status).
+pub fn run(
+    process: &mut Process,
+    io: &mut impl SupervisorIo,
+    shutdown: &AtomicBool,
+    run_for: Option<Duration>,
+    each_turn: &mut dyn FnMut(&mut Process, Option<Change>),
+) -> Result<(), LayoutError> {
+    let started = Instant::now();
+    while !shutdown.load(Ordering::Relaxed) && run_for.is_none_or(|d| started.elapsed() < d) {
+        let change = process.poll(io, telemetry::clock::monotonic_ns())?;
+        each_turn(process, change);
+        std::thread::sleep(POLL);
+    }
+    Ok(())
+}

@@ -1,0 +1,294 @@
+//! The supervisor process's loop in process: `Process::poll` against queues standing for the
+//! state plane and the trip record, on a clock the test chooses, with every call the loop makes
+//! logged in order. (The process tests in `tests/` run the binary over real iceoryx2.)
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use std::collections::VecDeque;
+use supervisor::process::{Change, Process, SupervisorIo};
+use supervisor::SupervisorConfig;
+use telemetry::frames::{
+    Directives, EventKind, GripFrame, Heartbeat, JointInfo, JointLayout, JointRole, JointSample,
+    JointState, SupervisorCommand, SupervisorEvent, COMMAND_REENABLE_BUS,
+};
+use telemetry::latch::LatchError;
+
+const MS: u64 = 1_000_000;
+
+/// One call the loop made, in order.
+#[derive(Debug, Clone, PartialEq)]
+enum Call {
+    Directives { bus_enabled: u32 },
+    Event(Option<EventKind>, f32),
+    Heartbeat,
+    Grip,
+    Save(Vec<String>),
+}
+
+#[derive(Default)]
+struct Queues {
+    layout: Option<JointLayout>,
+    states: VecDeque<JointState>,
+    commands: VecDeque<SupervisorCommand>,
+    beats: VecDeque<Heartbeat>,
+    calls: Vec<Call>,
+}
+
+impl SupervisorIo for Queues {
+    fn layout(&mut self) -> Option<JointLayout> {
+        self.layout
+    }
+    fn next_state(&mut self) -> Option<JointState> {
+        self.states.pop_front()
+    }
+    fn next_command(&mut self) -> Option<SupervisorCommand> {
+        self.commands.pop_front()
+    }
+    fn next_driver_beat(&mut self) -> Option<Heartbeat> {
+        self.beats.pop_front()
+    }
+    fn directives(&mut self, d: &Directives) {
+        self.calls.push(Call::Directives {
+            bus_enabled: d.bus_enabled,
+        });
+    }
+    fn event(&mut self, e: &SupervisorEvent) {
+        self.calls.push(Call::Event(e.kind(), e.value));
+    }
+    fn heartbeat(&mut self, _: &Heartbeat) {
+        self.calls.push(Call::Heartbeat);
+    }
+    fn grip(&mut self, _: &GripFrame) {
+        self.calls.push(Call::Grip);
+    }
+    fn save_trips(&mut self, joints: &[String]) -> Result<(), LatchError> {
+        self.calls.push(Call::Save(joints.to_vec()));
+        Ok(())
+    }
+}
+
+/// Two buses: bus 0 two arm joints, bus 1 one joint; firmware cutoffs at 60 °C.
+fn layout() -> JointLayout {
+    let mut l = JointLayout {
+        joint_count: 3,
+        bus_count: 2,
+        ..JointLayout::default()
+    };
+    l.set_bus_name(0, "left_arm");
+    l.set_bus_name(1, "right_arm");
+    for (i, (name, bus)) in [
+        ("left_elbow", 0),
+        ("left_wrist_pitch", 0),
+        ("right_elbow", 1),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let mut info = JointInfo {
+            bus,
+            role: JointRole::Joint as u8,
+            model: 2825,
+            max_temperature_c: 60,
+            ..JointInfo::default()
+        };
+        info.set_name(name);
+        l.joints[i] = info;
+    }
+    l
+}
+
+/// A frame at `t` with joint 0 at `hot_c` and the others at 30 °C.
+fn state(seq: u64, t: u64, hot_c: f32) -> JointState {
+    let mut s = JointState {
+        seq,
+        timestamp_ns: t,
+        joint_count: 3,
+        ..JointState::default()
+    };
+    for (i, j) in s.joints[..3].iter_mut().enumerate() {
+        *j = JointSample {
+            valid: 1,
+            torque_enabled: 1,
+            temperature_c: if i == 0 { hot_c } else { 30.0 },
+            ..JointSample::default()
+        };
+    }
+    s
+}
+
+fn config() -> SupervisorConfig {
+    SupervisorConfig::embedded().unwrap()
+}
+
+fn beat(pid: u32) -> Heartbeat {
+    Heartbeat {
+        pid,
+        ..Heartbeat::default()
+    }
+}
+
+fn events(io: &Queues, kind: EventKind) -> Vec<f32> {
+    io.calls
+        .iter()
+        .filter_map(|c| match c {
+            Call::Event(Some(k), v) if *k == kind => Some(*v),
+            _ => None,
+        })
+        .collect()
+}
+
+#[test]
+fn nothing_is_published_before_the_layout_and_the_heartbeat_follows_it() {
+    let mut p = Process::new(config(), vec![], 7);
+    let mut io = Queues::default();
+    for k in 0..20 {
+        assert_eq!(p.poll(&mut io, k * MS).unwrap(), None);
+    }
+    assert!(io.calls.is_empty(), "{:?}", io.calls);
+    io.layout = Some(layout());
+    let change = p.poll(&mut io, 20 * MS).unwrap();
+    assert_eq!(
+        change,
+        Some(Change::Supervising {
+            joints: 3,
+            restored: vec![]
+        })
+    );
+    assert_eq!(
+        io.calls,
+        [
+            Call::Directives {
+                bus_enabled: u32::MAX
+            },
+            Call::Heartbeat
+        ]
+    );
+    // The same layout again is no change; the next heartbeat waits for the period (5 ms).
+    io.calls.clear();
+    p.poll(&mut io, 24 * MS).unwrap();
+    assert!(io.calls.is_empty(), "{:?}", io.calls);
+    p.poll(&mut io, 25 * MS).unwrap();
+    assert_eq!(
+        io.calls,
+        [
+            Call::Directives {
+                bus_enabled: u32::MAX
+            },
+            Call::Heartbeat
+        ]
+    );
+}
+
+#[test]
+fn a_trip_is_saved_before_the_directives_that_announce_it_and_they_go_out_at_once() {
+    let mut p = Process::new(config(), vec![], 7);
+    let mut io = Queues {
+        layout: Some(layout()),
+        ..Queues::default()
+    };
+    p.poll(&mut io, 0).unwrap();
+    io.calls.clear();
+    // Within the publish period (1 ms later): only a change may publish.
+    io.states.push_back(state(1, MS, 59.5));
+    p.poll(&mut io, MS).unwrap();
+    let save = io
+        .calls
+        .iter()
+        .position(|c| matches!(c, Call::Save(_)))
+        .expect("the trip was recorded");
+    let off = io
+        .calls
+        .iter()
+        .position(|c| matches!(c, Call::Directives { bus_enabled } if bus_enabled & 1 == 0))
+        .expect("bus 0 turned off at once, not at the next period");
+    assert!(
+        save < off,
+        "recorded after it was announced: {:?}",
+        io.calls
+    );
+    assert_eq!(
+        io.calls[save],
+        Call::Save(vec!["left_elbow".into(), "left_wrist_pitch".into()])
+    );
+    assert_eq!(events(&io, EventKind::ThermalTrip), [59.5]);
+}
+
+#[test]
+fn recorded_trips_latch_again_and_a_release_keeps_what_this_layout_lacks() {
+    let record = vec!["left_wrist_pitch".to_string(), "head_pan".to_string()];
+    let mut p = Process::new(config(), record, 7);
+    let mut io = Queues {
+        layout: Some(layout()),
+        ..Queues::default()
+    };
+    let change = p.poll(&mut io, 0).unwrap();
+    assert_eq!(
+        change,
+        Some(Change::Supervising {
+            joints: 3,
+            restored: vec![0]
+        })
+    );
+    // The very first directives already keep bus 0 off.
+    assert_eq!(io.calls[1], Call::Directives { bus_enabled: !1 });
+    // Cool, then released by the operator: the record drops bus 0's joints, keeps head_pan.
+    io.states.push_back(state(1, 10 * MS, 30.0));
+    io.commands.push_back(SupervisorCommand {
+        kind: COMMAND_REENABLE_BUS,
+        bus: 0,
+        ..SupervisorCommand::default()
+    });
+    io.calls.clear();
+    p.poll(&mut io, 10 * MS).unwrap();
+    assert_eq!(
+        events(&io, EventKind::BusReenabled).len(),
+        1,
+        "{:?}",
+        io.calls
+    );
+    assert!(
+        io.calls.contains(&Call::Save(vec!["head_pan".into()])),
+        "{:?}",
+        io.calls
+    );
+    assert!(io.calls.contains(&Call::Directives {
+        bus_enabled: u32::MAX
+    }));
+}
+
+#[test]
+fn a_silent_driver_is_reported_lost_once_and_its_successor_back_with_its_pid() {
+    let config = config();
+    let timeout = config.driver_timeout_ms * MS;
+    let mut p = Process::new(config, vec![], 7);
+    let mut io = Queues {
+        layout: Some(layout()),
+        ..Queues::default()
+    };
+    io.beats.push_back(beat(100));
+    p.poll(&mut io, 0).unwrap();
+    for k in 1..=3 {
+        p.poll(&mut io, k * timeout).unwrap();
+    }
+    let lost = events(&io, EventKind::DriverLost);
+    assert_eq!(lost.len(), 1, "{:?}", io.calls);
+    assert!(lost[0] * 1e9 > timeout as f32, "silence {} s", lost[0]);
+    io.beats.push_back(beat(200));
+    p.poll(&mut io, 4 * timeout).unwrap();
+    let back = events(&io, EventKind::DriverBack);
+    assert_eq!(back.first(), Some(&200.0), "{:?}", io.calls);
+}
+
+#[test]
+fn a_layout_without_room_for_the_software_tier_is_an_error() {
+    let mut l = layout();
+    l.joints[2].max_temperature_c = 59;
+    let mut p = Process::new(config(), vec![], 7);
+    let mut io = Queues {
+        layout: Some(l),
+        ..Queues::default()
+    };
+    let e = p.poll(&mut io, 0).unwrap_err().to_string();
+    assert!(e.contains("right_elbow"), "{e}");
+    assert!(io.calls.is_empty());
+}

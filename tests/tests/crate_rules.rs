@@ -1,0 +1,261 @@
+//! The crate rules of ARCHITECTURE.md, kept by a test so the layered graph stays layered: which
+//! workspace crate may depend on which, which crates alone may pull in the heavy or
+//! side-effecting dependencies (zenoh, iceoryx2, parquet, the serial port, the HTTP server),
+//! that no robot process's crate depends on what runs only off the robot, and that every crate
+//! keeps the workspace lints (no `unwrap`/`expect` outside tests) without opting out of them.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use serde_json::Value;
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// Each workspace crate and the workspace crates it may depend on (normal dependencies).
+const ALLOWED: &[(&str, &[&str])] = &[
+    ("feetech", &[]),
+    ("telemetry", &[]),
+    ("bus-driver", &["feetech", "telemetry"]),
+    ("supervisor", &["telemetry"]),
+    ("fleet-agent", &["telemetry"]),
+    ("sim", &["feetech", "telemetry"]),
+    ("recorder", &["telemetry"]),
+    ("model-lab", &["sim"]),
+    ("fleet", &["fleet-agent", "telemetry"]),
+    ("stack", &["telemetry", "sim", "bus-driver"]),
+    ("nori", &["telemetry", "recorder", "feetech"]),
+    (
+        "bench",
+        &[
+            "feetech",
+            "telemetry",
+            "bus-driver",
+            "fleet-agent",
+            "fleet",
+            "sim",
+            "model-lab",
+            "stack",
+        ],
+    ),
+    (
+        "nori-tests",
+        &[
+            "bus-driver",
+            "feetech",
+            "sim",
+            "stack",
+            "fleet",
+            "supervisor",
+            "fleet-agent",
+            "model-lab",
+            "telemetry",
+        ],
+    ),
+];
+
+/// Outside dependencies only these crates may name directly.
+const CONFINED: &[(&str, &[&str])] = &[
+    ("zenoh", &["fleet-agent"]),
+    ("iceoryx2", &["telemetry"]),
+    ("parquet", &["recorder"]),
+    ("serialport", &["bus-driver"]),
+    ("tiny_http", &["fleet"]),
+    ("prometheus-client", &["fleet"]),
+];
+
+/// The crates of the programs that run on the robot (its processes and the operator's `nori`),
+/// and what they may never reach, even through another crate: the fleet's side, the
+/// orchestration, the simulator, the model lab, the benchmarks.
+const ROBOT: &[&str] = &[
+    "feetech",
+    "telemetry",
+    "bus-driver",
+    "supervisor",
+    "fleet-agent",
+    "recorder",
+    "nori",
+];
+const OFF_ROBOT: &[&str] = &["fleet", "stack", "bench", "nori-tests", "model-lab", "sim"];
+
+struct Package {
+    manifest: PathBuf,
+    /// Normal (not dev, not build) dependencies: name → whether it is a workspace path.
+    deps: BTreeMap<String, bool>,
+    /// Features enabled on `telemetry`, when it is a dependency.
+    telemetry_features: Vec<String>,
+}
+
+fn workspace() -> BTreeMap<String, Package> {
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap();
+    let out = Command::new(cargo)
+        .args([
+            "metadata",
+            "--format-version",
+            "1",
+            "--no-deps",
+            "--offline",
+        ])
+        .current_dir(root)
+        .output()
+        .expect("running cargo metadata");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let meta: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let mut packages = BTreeMap::new();
+    for p in meta["packages"].as_array().unwrap() {
+        let mut deps = BTreeMap::new();
+        let mut telemetry_features = Vec::new();
+        for d in p["dependencies"].as_array().unwrap() {
+            if !d["kind"].is_null() {
+                continue;
+            }
+            let name = d["name"].as_str().unwrap().to_string();
+            if name == "telemetry" {
+                telemetry_features = d["features"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|f| f.as_str().unwrap().to_string())
+                    .collect();
+            }
+            deps.insert(name, d["path"].is_string());
+        }
+        packages.insert(
+            p["name"].as_str().unwrap().to_string(),
+            Package {
+                manifest: PathBuf::from(p["manifest_path"].as_str().unwrap()),
+                deps,
+                telemetry_features,
+            },
+        );
+    }
+    packages
+}
+
+#[test]
+fn workspace_crates_depend_only_downward() {
+    let ws = workspace();
+    let allowed: BTreeMap<&str, &[&str]> = ALLOWED.iter().copied().collect();
+    let listed: BTreeSet<&str> = allowed.keys().copied().collect();
+    let present: BTreeSet<&str> = ws.keys().map(String::as_str).collect();
+    assert_eq!(
+        listed, present,
+        "every workspace crate has its row in ALLOWED (and ARCHITECTURE.md's crate table)"
+    );
+    let mut wrong = Vec::new();
+    for (name, p) in &ws {
+        for (dep, &is_workspace) in &p.deps {
+            if is_workspace && !allowed[name.as_str()].contains(&dep.as_str()) {
+                wrong.push(format!("{name} → {dep}"));
+            }
+        }
+    }
+    assert!(
+        wrong.is_empty(),
+        "dependencies against the rules: {wrong:?}"
+    );
+}
+
+#[test]
+fn heavy_and_side_effecting_dependencies_stay_in_their_crate() {
+    let ws = workspace();
+    let mut wrong = Vec::new();
+    for (dep, owners) in CONFINED {
+        for (name, p) in &ws {
+            if p.deps.contains_key(*dep) && !owners.contains(&name.as_str()) {
+                wrong.push(format!("{name} names {dep} (only {owners:?} may)"));
+            }
+        }
+    }
+    assert!(wrong.is_empty(), "{wrong:?}");
+    // The recorder reads frames, never the shared memory: its tests need no iceoryx2 services.
+    assert!(
+        ws["recorder"].telemetry_features.is_empty(),
+        "recorder enables telemetry features {:?}",
+        ws["recorder"].telemetry_features
+    );
+}
+
+#[test]
+fn no_robot_crate_reaches_what_runs_off_the_robot() {
+    let ws = workspace();
+    for robot in ROBOT {
+        // Everything reachable through workspace dependencies.
+        let mut seen = BTreeSet::new();
+        let mut todo = vec![robot.to_string()];
+        while let Some(c) = todo.pop() {
+            for (dep, &is_workspace) in &ws[&c].deps {
+                if is_workspace && seen.insert(dep.clone()) {
+                    todo.push(dep.clone());
+                }
+            }
+        }
+        let reached: Vec<&String> = seen
+            .iter()
+            .filter(|c| OFF_ROBOT.contains(&c.as_str()))
+            .collect();
+        assert!(reached.is_empty(), "{robot} reaches {reached:?}");
+    }
+}
+
+#[test]
+fn every_crate_keeps_the_workspace_lints_and_no_library_opts_out() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap();
+    let top = std::fs::read_to_string(root.join("Cargo.toml")).unwrap();
+    for lint in ["unwrap_used = \"warn\"", "expect_used = \"warn\""] {
+        assert!(top.contains(lint), "workspace lint {lint} is gone");
+    }
+    let clippy = std::fs::read_to_string(root.join("clippy.toml")).unwrap();
+    assert!(clippy.contains("allow-unwrap-in-tests = true"));
+    for (name, p) in workspace() {
+        let manifest = std::fs::read_to_string(&p.manifest).unwrap();
+        assert!(
+            manifest.contains("[lints]\nworkspace = true"),
+            "{name} does not inherit the workspace lints"
+        );
+        // Source outside tests may not allow unwrap/expect: only a test module may (the opt-out
+        // sits within a few lines of its `#[cfg(test)]`/`mod tests`).
+        let src = p.manifest.parent().unwrap().join("src");
+        for file in rust_files(&src) {
+            let text = std::fs::read_to_string(&file).unwrap();
+            let lines: Vec<&str> = text.lines().collect();
+            for (i, line) in lines.iter().enumerate() {
+                if !(line.contains("allow(clippy::unwrap_used")
+                    || line.contains("allow(clippy::expect_used"))
+                {
+                    continue;
+                }
+                let in_test = name == "nori-tests"
+                    || lines[i.saturating_sub(3)..i]
+                        .iter()
+                        .any(|l| l.contains("#[cfg(test)]") || l.contains("mod tests"));
+                assert!(
+                    in_test,
+                    "{}:{}: unwrap/expect allowed outside a test module",
+                    file.display(),
+                    i + 1
+                );
+            }
+        }
+    }
+}
+
+fn rust_files(dir: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return out;
+    };
+    for e in entries.flatten() {
+        let path = e.path();
+        if path.is_dir() {
+            out.extend(rust_files(&path));
+        } else if path.extension().is_some_and(|x| x == "rs") {
+            out.push(path);
+        }
+    }
+    out
+}
