@@ -11,6 +11,7 @@ use sim::{RobotDescription, SimBus};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
+use telemetry::config::ProcessConfig;
 
 /// Options of `nori bench driver-rate`.
 #[derive(Args, Debug)]

@@ -9,7 +9,7 @@ use serde::Deserialize;
 use std::collections::{BTreeMap, HashSet};
 use std::path::{Path, PathBuf};
 pub use telemetry::config::ConfigError;
-use telemetry::config::{invalid, parse, read};
+use telemetry::config::{invalid, parse, read, ProcessConfig};
 use telemetry::MAX_JOINTS;
 
 /// The embedded default driver configuration.
@@ -453,18 +453,18 @@ impl DriverConfig {
     }
 }
 
+/// The driver's configuration and the calibration it names (relative to the file; the
+/// embedded calibration when it names none).
+impl ProcessConfig for LoadedConfig {
+    const DEFAULT_TOML: &'static str = DEFAULT_CONFIG_TOML;
+    const FILE_NAME: &'static str = "bus-driver.toml";
+
+    fn parse_in(text: &str, origin: &str, dir: Option<&Path>) -> Result<Self, ConfigError> {
+        Self::from_texts(text, origin, dir)
+    }
+}
+
 impl LoadedConfig {
-    /// The embedded defaults.
-    pub fn embedded() -> Result<Self, ConfigError> {
-        Self::from_texts(DEFAULT_CONFIG_TOML, "<embedded bus-driver.toml>", None)
-    }
-
-    /// Loads a configuration file and the calibration it names.
-    pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        let text = read(path)?;
-        Self::from_texts(&text, &path.display().to_string(), path.parent())
-    }
-
     /// Parses and validates a configuration text and a calibration text (`origin`s name them
     /// in errors), without reading any file: the configuration's `calibration-file` is
     /// ignored in favour of `calibration`.

@@ -13,7 +13,7 @@ use telemetry::frames::{BusHealth, Directives, Heartbeat, JointLayout, Peer};
 use telemetry::latch;
 use telemetry::plane::{self, Plane, Pub, Sub};
 use telemetry::process::Exit;
-use telemetry::process::ServiceManager;
+use telemetry::process::{start, ServiceManager, Started};
 use telemetry::{GoalFrame, JointState};
 
 #[derive(Parser)]
@@ -172,17 +172,16 @@ fn main() -> std::process::ExitCode {
 /// The process; an error ends it with its fault class's exit code (ARCHITECTURE.md, "Exit
 /// codes").
 fn run(args: Args) -> Result<()> {
-    if args.print_default_config {
-        print!("{}", bus_driver::config::DEFAULT_CONFIG_TOML);
-        return Ok(());
-    }
     if args.print_default_calibration {
         print!("{}", bus_driver::config::DEFAULT_CALIBRATION_TOML);
         return Ok(());
     }
-    telemetry::process::init_logging();
-    let config = load_config(&args)?;
-    let shutdown = telemetry::process::stop_flag().context("installing signal handlers")?;
+    let Some(Started { config, shutdown }) =
+        start::<LoadedConfig>(args.print_default_config, args.config.as_deref())?
+    else {
+        return Ok(());
+    };
+    let config = select_buses(config, &args)?;
     let node = Plane::open(&args.domain, "bus-driver")?;
     node.cleanup_dead();
     let transports = open_transports(
@@ -272,13 +271,8 @@ fn run(args: Args) -> Result<()> {
     Ok(())
 }
 
-/// The configuration: the file (or the embedded default), its devices in `--device-dir`, only
-/// the buses named by `--bus`.
-fn load_config(args: &Args) -> Result<LoadedConfig> {
-    let mut config = match &args.config {
-        Some(path) => LoadedConfig::load(path)?,
-        None => LoadedConfig::embedded()?,
-    };
+/// The configuration with its devices in `--device-dir` and only the buses named by `--bus`.
+fn select_buses(mut config: LoadedConfig, args: &Args) -> Result<LoadedConfig> {
     if let Some(dir) = &args.device_dir {
         config = config.with_device_dir(dir);
     }

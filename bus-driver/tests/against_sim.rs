@@ -10,6 +10,7 @@ use sim::{RobotDescription, SimBus};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 use telemetry::clock::monotonic_ns;
+use telemetry::config::ProcessConfig;
 use telemetry::GoalFrame;
 
 struct Rig {

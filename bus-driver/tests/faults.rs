@@ -21,6 +21,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use telemetry::clock::monotonic_ns;
+use telemetry::config::ProcessConfig;
 use telemetry::frames::{
     BusHealth, Directives, BUS_HEALTH_DRIVER_TRIP, BUS_HEALTH_ENABLED, BUS_HEALTH_LATCHED,
     JOINT_FLAG_BUS_LOST, JOINT_FLAG_DRIVER_TRIP, STATE_FLAG_SAFE_STATE,

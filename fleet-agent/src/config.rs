@@ -7,7 +7,7 @@ use crate::schedule::MAX_PLAN_STEPS;
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
 pub use telemetry::config::ConfigError;
-use telemetry::config::{invalid, parse, read};
+use telemetry::config::{invalid, parse, ProcessConfig};
 
 /// The embedded default (also `deploy/config/fleet-agent.toml`).
 pub const DEFAULT_CONFIG_TOML: &str = include_str!("../../deploy/config/fleet-agent.toml");
@@ -70,17 +70,16 @@ pub struct AgentConfig {
     pub actions: ActionsConfig,
 }
 
+impl ProcessConfig for AgentConfig {
+    const DEFAULT_TOML: &'static str = DEFAULT_CONFIG_TOML;
+    const FILE_NAME: &'static str = "fleet-agent.toml";
+
+    fn parse_in(text: &str, origin: &str, _dir: Option<&Path>) -> Result<Self, ConfigError> {
+        Self::parse(text, origin)
+    }
+}
+
 impl AgentConfig {
-    /// The embedded default.
-    pub fn embedded() -> Result<Self, ConfigError> {
-        Self::parse(DEFAULT_CONFIG_TOML, "<embedded fleet-agent.toml>")
-    }
-
-    /// Loads and validates a file.
-    pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        Self::parse(&read(path)?, &path.display().to_string())
-    }
-
     /// Parses and validates text; `origin` names it in errors.
     pub fn parse(text: &str, origin: &str) -> Result<Self, ConfigError> {
         let c: AgentConfig = parse(text, origin)?;

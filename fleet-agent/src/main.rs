@@ -18,7 +18,7 @@ use std::time::Duration;
 use telemetry::frames::{BusHealth, GoalFrame, JointLayout, JointState, SupervisorEvent};
 use telemetry::plane::{self, newest, next, publish, Plane, Pub, Sub};
 use telemetry::process::Exit;
-use telemetry::process::ServiceManager;
+use telemetry::process::{start, ServiceManager, Started};
 
 #[derive(Parser)]
 #[command(
@@ -120,14 +120,12 @@ fn main() -> std::process::ExitCode {
 /// The process; an error ends it with its fault class's exit code (ARCHITECTURE.md, "Exit
 /// codes").
 fn run(args: Args) -> Result<()> {
-    if args.print_default_config {
-        print!("{}", fleet_agent::config::DEFAULT_CONFIG_TOML);
+    let Some(Started {
+        mut config,
+        shutdown,
+    }) = start::<AgentConfig>(args.print_default_config, args.config.as_deref())?
+    else {
         return Ok(());
-    }
-    telemetry::process::init_logging();
-    let mut config = match &args.config {
-        Some(p) => AgentConfig::load(p)?,
-        None => AgentConfig::embedded()?,
     };
     if let Some(id) = &args.robot_id {
         fleet_agent::keys::check_robot_id(id)?;
@@ -139,7 +137,6 @@ fn run(args: Args) -> Result<()> {
     if !args.listen.is_empty() {
         config.zenoh.listen = args.listen.clone();
     }
-    let stop = telemetry::process::stop_flag().context("installing signal handlers")?;
     let node = Plane::open(&args.domain, "fleet-agent")?;
     node.cleanup_dead();
     let id = config.robot_id.clone();
@@ -157,7 +154,7 @@ fn run(args: Args) -> Result<()> {
     service.ready(&format!("robot {id} on the fleet"));
     let mut agent = Agent::new(&config);
     let run_for = args.run_for.map(Duration::from_secs_f64);
-    fleet_agent::agent::run(&mut agent, &mut io, &stop, run_for, &mut |t| {
+    fleet_agent::agent::run(&mut agent, &mut io, &shutdown, run_for, &mut |t| {
         service.keepalive(t)
     });
     service.stopping();

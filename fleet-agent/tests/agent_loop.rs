@@ -8,6 +8,7 @@ use fleet_agent::agent::{Agent, AgentIo, Outbound};
 use fleet_agent::schema::{decode, encode, ActionChunk, EventMsg, StatusMsg, SCHEMA_VERSION};
 use fleet_agent::AgentConfig;
 use std::collections::VecDeque;
+use telemetry::config::ProcessConfig;
 use telemetry::frames::{
     BusHealth, BusHealthEntry, EventKind, GoalFrame, JointInfo, JointLayout, JointSample,
     JointState, SupervisorEvent, BUS_HEALTH_CONNECTED, BUS_HEALTH_ENABLED, STATE_FLAG_SAFE_STATE,

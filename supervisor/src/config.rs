@@ -5,7 +5,7 @@ use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::path::Path;
 pub use telemetry::config::ConfigError;
-use telemetry::config::{parse, read};
+use telemetry::config::{parse, ProcessConfig};
 
 /// The embedded default (also `deploy/config/supervisor.toml`).
 pub const DEFAULT_CONFIG_TOML: &str = include_str!("../../deploy/config/supervisor.toml");
@@ -82,17 +82,16 @@ pub struct SupervisorConfig {
     pub grip: BTreeMap<String, GripCalibration>,
 }
 
+impl ProcessConfig for SupervisorConfig {
+    const DEFAULT_TOML: &'static str = DEFAULT_CONFIG_TOML;
+    const FILE_NAME: &'static str = "supervisor.toml";
+
+    fn parse_in(text: &str, origin: &str, _dir: Option<&Path>) -> Result<Self, ConfigError> {
+        Self::parse(text, origin)
+    }
+}
+
 impl SupervisorConfig {
-    /// The embedded default.
-    pub fn embedded() -> Result<Self, ConfigError> {
-        Self::parse(DEFAULT_CONFIG_TOML, "<embedded supervisor.toml>")
-    }
-
-    /// Loads and validates a file.
-    pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        Self::parse(&read(path)?, &path.display().to_string())
-    }
-
     /// Parses and validates text; `origin` names it in errors.
     pub fn parse(text: &str, origin: &str) -> Result<Self, ConfigError> {
         let c: SupervisorConfig = parse(text, origin)?;

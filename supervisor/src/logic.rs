@@ -595,6 +595,7 @@ impl Supervisor {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use telemetry::config::ProcessConfig;
     use telemetry::frames::{EventKind, JointInfo};
 
     const MS: u64 = 1_000_000;

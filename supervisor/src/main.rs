@@ -2,7 +2,7 @@
 //! its configuration and the trip record, and wires the state plane (iceoryx2) and the record's
 //! file into it.
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use clap::Parser;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -14,7 +14,7 @@ use telemetry::frames::{
 use telemetry::latch::{self, LatchError};
 use telemetry::plane::{self, newest, next, publish, Plane, Pub, Sub};
 use telemetry::process::Exit;
-use telemetry::process::ServiceManager;
+use telemetry::process::{start, ServiceManager, Started};
 
 #[derive(Parser)]
 #[command(
@@ -97,21 +97,16 @@ fn main() -> std::process::ExitCode {
 /// The process; an error ends it with its fault class's exit code (ARCHITECTURE.md, "Exit
 /// codes").
 fn run(args: Args) -> Result<()> {
-    if args.print_default_config {
-        print!("{}", supervisor::config::DEFAULT_CONFIG_TOML);
+    let Some(Started { config, shutdown }) =
+        start::<SupervisorConfig>(args.print_default_config, args.config.as_deref())?
+    else {
         return Ok(());
-    }
-    telemetry::process::init_logging();
-    let config = match &args.config {
-        Some(p) => SupervisorConfig::load(p)?,
-        None => SupervisorConfig::embedded()?,
     };
     let trip_file = args
         .trip_file
         .clone()
         .unwrap_or_else(|| latch::default_path(&args.domain));
     let trips = latch::load(&trip_file)?;
-    let shutdown = telemetry::process::stop_flag().context("installing signal handlers")?;
     let node = Plane::open(&args.domain, "supervisor")?;
     node.cleanup_dead();
     let mut io = Wired {

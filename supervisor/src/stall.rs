@@ -164,6 +164,7 @@ impl StallDetector {
 mod tests {
     use super::*;
     use crate::config::SupervisorConfig;
+    use telemetry::config::ProcessConfig;
 
     fn config() -> StallConfig {
         SupervisorConfig::embedded().unwrap().stall

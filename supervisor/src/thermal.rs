@@ -222,6 +222,7 @@ impl BusThermal {
 mod tests {
     use super::*;
     use crate::config::SupervisorConfig;
+    use telemetry::config::ProcessConfig;
 
     fn config() -> ThermalConfig {
         SupervisorConfig::embedded().unwrap().thermal

@@ -7,6 +7,7 @@
 use std::collections::VecDeque;
 use supervisor::process::{Change, Process, SupervisorIo};
 use supervisor::SupervisorConfig;
+use telemetry::config::ProcessConfig;
 use telemetry::frames::{
     Directives, EventKind, GripFrame, Heartbeat, JointInfo, JointLayout, JointRole, JointSample,
     JointState, SupervisorCommand, SupervisorEvent, COMMAND_REENABLE_BUS,

@@ -37,6 +37,42 @@ pub enum ConfigError {
     },
 }
 
+/// The configuration of one of the stack's processes: embedded in its binary (the commented
+/// file of `deploy/config/`, which `--print-default-config` prints), or read from `--config`.
+/// One way to load all three, so each names the file and the key the same way when it refuses.
+pub trait ProcessConfig: Sized {
+    /// The commented default, embedded.
+    const DEFAULT_TOML: &'static str;
+    /// Its file name, to name the embedded default in errors (`<embedded NAME>`).
+    const FILE_NAME: &'static str;
+
+    /// Parses and validates `text`; `origin` names it in errors; files it names are found
+    /// relative to `dir` (`None`: the embedded default, which names none).
+    fn parse_in(text: &str, origin: &str, dir: Option<&Path>) -> Result<Self, ConfigError>;
+
+    /// The embedded default.
+    fn embedded() -> Result<Self, ConfigError> {
+        Self::parse_in(
+            Self::DEFAULT_TOML,
+            &format!("<embedded {}>", Self::FILE_NAME),
+            None,
+        )
+    }
+
+    /// A file (and what it names, relative to it).
+    fn load(path: &Path) -> Result<Self, ConfigError> {
+        Self::parse_in(&read(path)?, &path.display().to_string(), path.parent())
+    }
+
+    /// `--config PATH` when given, the embedded default otherwise.
+    fn from_arg(path: Option<&Path>) -> Result<Self, ConfigError> {
+        match path {
+            Some(p) => Self::load(p),
+            None => Self::embedded(),
+        }
+    }
+}
+
 /// Reads a configuration file as text.
 pub fn read(path: &Path) -> Result<String, ConfigError> {
     std::fs::read_to_string(path).map_err(|source| ConfigError::Io {

@@ -110,6 +110,44 @@ pub fn sibling(name: &str) -> Result<PathBuf, SiblingError> {
     Ok(path)
 }
 
+/// A process that started: its configuration and its stop flag.
+#[derive(Debug)]
+pub struct Started<C> {
+    /// The configuration (`--config`, or the embedded default).
+    pub config: C,
+    /// Set when SIGINT or SIGTERM arrives.
+    pub shutdown: Arc<AtomicBool>,
+}
+
+/// Why a process could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum StartError {
+    /// Its configuration was refused.
+    #[error("configuration")]
+    Config(#[source] crate::config::ConfigError),
+    /// Its signal handlers could not be installed.
+    #[error("installing signal handlers")]
+    Signals(#[source] std::io::Error),
+}
+
+/// What every process of the stack does first, once its command line is parsed: print its
+/// commented default configuration and stop when asked (`None`), else log to stderr, load its
+/// configuration (`config`: `--config`, or the embedded default) and turn SIGINT/SIGTERM into
+/// the flag its loop checks.
+pub fn start<C: crate::config::ProcessConfig>(
+    print_default: bool,
+    config: Option<&std::path::Path>,
+) -> Result<Option<Started<C>>, StartError> {
+    if print_default {
+        print!("{}", C::DEFAULT_TOML);
+        return Ok(None);
+    }
+    init_logging();
+    let config = C::from_arg(config).map_err(StartError::Config)?;
+    let shutdown = stop_flag().map_err(StartError::Signals)?;
+    Ok(Some(Started { config, shutdown }))
+}
+
 /// Logging to stderr, level from `RUST_LOG` (default `info`).
 pub fn init_logging() {
     tracing_subscriber::fmt()

@@ -11,6 +11,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
+use telemetry::config::ProcessConfig;
 
 /// The workspace's `target/release` (this test binary lives in `target/<profile>/deps`).
 fn release_dir() -> PathBuf {

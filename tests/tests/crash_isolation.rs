@@ -16,6 +16,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
+use telemetry::config::ProcessConfig;
 use telemetry::frames::{EventKind, SupervisorEvent, STATE_FLAG_SAFE_STATE};
 use telemetry::plane::{self, newest, next, publish, Plane};
 use telemetry::{GoalFrame, JointState};

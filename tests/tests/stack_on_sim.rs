@@ -6,6 +6,7 @@
 
 use nori_tests::{binary, scratch, wait_for, Proc};
 use std::time::Duration;
+use telemetry::config::ProcessConfig;
 use telemetry::plane::{newest, publish, Plane};
 use telemetry::{GoalFrame, JointState};
 

@@ -9,6 +9,7 @@ use feetech::registers as reg;
 use sim::scenario::SCENARIO_BUS;
 use sim::{RobotDescription, SimBus};
 use supervisor::{Supervisor, SupervisorConfig};
+use telemetry::config::ProcessConfig;
 use telemetry::frames::{JointInfo, JointLayout, JointRole};
 use telemetry::{JointSample, JointState};
 
