@@ -237,3 +237,84 @@ fn telemetry_events_and_status_go_out_named_from_the_layout() {
     assert_eq!(st.health.joints, 2);
     assert_eq!(st.counters.events_sent, 1);
 }
+
+#[test]
+fn the_status_reports_what_the_agent_did_and_saw() {
+    let (mut agent, mut io, now) = running();
+    assert_eq!(agent.accepted(), 0);
+    let st = status(&mut agent, &mut io, now);
+    assert_eq!(st.health.safe_state, Some(false));
+    assert_eq!(st.health.joints, 2);
+    // A restart with no plan in force drops nothing.
+    io.states.push_back(state(1, now + MS, false));
+    agent.poll(&mut io, now + MS, 0);
+    let mut last = state(2, now + 2 * MS, true);
+    last.deadline_misses = 3;
+    io.states.push_back(last);
+    let mut health = BusHealth {
+        bus_count: 2,
+        ..BusHealth::default()
+    };
+    health.buses[0].flags = BUS_HEALTH_CONNECTED;
+    health.buses[1].flags = BUS_HEALTH_ENABLED;
+    io.health = Some(health);
+    io.events.extend((1..=2).map(|seq| SupervisorEvent {
+        seq,
+        kind: EventKind::Stall as u8,
+        ..SupervisorEvent::default()
+    }));
+    let st = status(&mut agent, &mut io, now + 7 * MS);
+    assert_eq!(st.counters.plans_dropped, 0);
+    assert_eq!(st.health.safe_state, Some(true));
+    assert_eq!(st.health.deadline_misses, Some(3));
+    assert_eq!(st.health.state_age_ms, Some(5.0));
+    assert_eq!(st.counters.events_sent, 2);
+    let sent = |k| io.published.iter().filter(|(o, _)| *o == k).count() as u64;
+    assert_eq!(st.counters.state_sent, sent(Outbound::State));
+    assert_eq!(st.counters.observations_sent, sent(Outbound::Observation));
+    assert!(st.counters.state_sent >= 1 && st.counters.observations_sent >= 1);
+    let flags: Vec<(bool, bool)> = st.buses.iter().map(|b| (b.connected, b.enabled)).collect();
+    assert_eq!(flags, [(true, false), (false, true)]);
+    // The second bus has no name in the layout: named by its index, not left blank.
+    assert_eq!(st.buses[1].name, "bus1");
+    assert_eq!(st.counters.goals_forwarded, 0);
+
+    // In the driver's running state again, a plan: every goal sent is counted, and the
+    // binary's summary getters agree with the status.
+    io.states.push_back(state(3, now + 8 * MS, false));
+    agent.poll(&mut io, now + 8 * MS, 0);
+    io.actions.push_back(chunk(1, now + 8 * MS, 0.5));
+    for k in 9..60 {
+        agent.poll(&mut io, now + k * MS, 0);
+    }
+    let st = status(&mut agent, &mut io, now + 60 * MS);
+    assert!(io.goals.len() > 1);
+    assert_eq!(st.counters.goals_forwarded, io.goals.len() as u64);
+    assert_eq!(agent.goals_forwarded(), io.goals.len() as u64);
+    assert_eq!(agent.accepted(), 1);
+    assert_eq!(st.counters.goals_withheld, 0);
+    let seqs: Vec<u64> = io.goals.iter().map(|g| g.seq).collect();
+    assert!(seqs.windows(2).all(|w| w[1] == w[0] + 1), "{seqs:?}");
+}
+
+#[test]
+fn the_loop_turns_until_told_to_stop_or_its_time_is_up() {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::time::Duration;
+    let mut agent = Agent::new(&AgentConfig::embedded().unwrap());
+    let mut io = Queues {
+        layout: Some(layout()),
+        ..Queues::default()
+    };
+    let stop = AtomicBool::new(true);
+    let mut turns = 0;
+    fleet_agent::agent::run(&mut agent, &mut io, &stop, None, &mut |_| turns += 1);
+    assert_eq!(turns, 0, "stopped before the first turn");
+    stop.store(false, Ordering::Relaxed);
+    let run_for = Some(Duration::from_millis(30));
+    fleet_agent::agent::run(&mut agent, &mut io, &stop, run_for, &mut |_| turns += 1);
+    assert!(turns > 0, "the loop never turned");
+    assert!(io.published.iter().any(|(k, _)| *k == Outbound::Layout));
+    // Wall time for the fleet's plots is the Unix clock's.
+    assert!(fleet_agent::agent::wall_ms() > 1_700_000_000_000);
+}

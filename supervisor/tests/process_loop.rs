@@ -33,6 +33,7 @@ struct Queues {
     commands: VecDeque<SupervisorCommand>,
     beats: VecDeque<Heartbeat>,
     calls: Vec<Call>,
+    beat_seqs: Vec<u64>,
 }
 
 impl SupervisorIo for Queues {
@@ -56,8 +57,9 @@ impl SupervisorIo for Queues {
     fn event(&mut self, e: &SupervisorEvent) {
         self.calls.push(Call::Event(e.kind(), e.value));
     }
-    fn heartbeat(&mut self, _: &Heartbeat) {
+    fn heartbeat(&mut self, h: &Heartbeat) {
         self.calls.push(Call::Heartbeat);
+        self.beat_seqs.push(h.seq);
     }
     fn grip(&mut self, _: &GripFrame) {
         self.calls.push(Call::Grip);
@@ -164,10 +166,14 @@ fn nothing_is_published_before_the_layout_and_the_heartbeat_follows_it() {
             Call::Heartbeat
         ]
     );
+    assert!(p.supervisor().is_some());
     // The same layout again is no change; the next heartbeat waits for the period (5 ms).
     io.calls.clear();
-    p.poll(&mut io, 24 * MS).unwrap();
-    assert!(io.calls.is_empty(), "{:?}", io.calls);
+    io.states.push_back(state(1, 24 * MS, 30.0));
+    assert_eq!(p.poll(&mut io, 24 * MS).unwrap(), None);
+    assert_eq!(io.calls, [Call::Grip], "{:?}", io.calls);
+    assert_eq!(p.frames(), 1);
+    io.calls.clear();
     p.poll(&mut io, 25 * MS).unwrap();
     assert_eq!(
         io.calls,
@@ -178,6 +184,35 @@ fn nothing_is_published_before_the_layout_and_the_heartbeat_follows_it() {
             Call::Heartbeat
         ]
     );
+    // Heartbeats count up: the driver tells a live supervisor from a replayed frame by them.
+    assert_eq!(io.beat_seqs, [1, 2]);
+}
+
+#[test]
+fn the_loop_turns_until_told_to_stop_or_its_time_is_up() {
+    use std::sync::atomic::AtomicBool;
+    use std::time::Duration;
+    let mut io = Queues {
+        layout: Some(layout()),
+        ..Queues::default()
+    };
+    let mut turns = 0;
+    let mut p = Process::new(config(), vec![], 7);
+    let stop = AtomicBool::new(true);
+    supervisor::process::run(&mut p, &mut io, &stop, None, &mut |_, _| turns += 1).unwrap();
+    assert_eq!(turns, 0, "stopped before the first turn");
+    stop.store(false, std::sync::atomic::Ordering::Relaxed);
+    let run_for = Some(Duration::from_millis(30));
+    supervisor::process::run(&mut p, &mut io, &stop, run_for, &mut |_, _| turns += 1).unwrap();
+    assert!(turns > 0, "the loop never turned");
+    assert!(io.calls.contains(&Call::Heartbeat));
+    // A layout it cannot supervise ends the loop with the error.
+    let mut bad = layout();
+    bad.joints[0].max_temperature_c = 59;
+    let mut p = Process::new(config(), vec![], 7);
+    io.layout = Some(bad);
+    let e = supervisor::process::run(&mut p, &mut io, &stop, run_for, &mut |_, _| {});
+    assert!(e.is_err());
 }
 
 #[test]
