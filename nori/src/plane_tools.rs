@@ -35,21 +35,32 @@ impl PlaneArgs {
         }
         let node = Plane::open(&self.domain, &format!("nori-{tool}-{}", std::process::id()))?;
         let layouts = node.subscriber(&plane::LAYOUT)?;
-        let until = Instant::now() + timeout;
-        let layout = loop {
-            if let Some(l) = plane::newest(&layouts).filter(|l| l.joint_count > 0) {
-                break l;
-            }
-            if Instant::now() > until {
-                bail!(
-                    "no joint layout on domain {:?} within {} s: is the bus-driver running?",
-                    self.domain,
-                    timeout.as_secs_f64()
-                );
-            }
-            std::thread::sleep(Duration::from_millis(10));
-        };
+        let layout = wait_for_layout(&layouts, &self.domain, timeout, None)?;
         Ok((node, layout))
+    }
+}
+
+/// The running driver's layout, waited for up to `timeout` (or until `stop` is set): the one
+/// source of joint and bus names.
+pub fn wait_for_layout(
+    layouts: &plane::Sub<JointLayout>,
+    domain: &str,
+    timeout: Duration,
+    stop: Option<&std::sync::atomic::AtomicBool>,
+) -> Result<JointLayout> {
+    let until = Instant::now() + timeout;
+    loop {
+        if let Some(l) = plane::newest(layouts).filter(|l| l.joint_count > 0) {
+            return Ok(l);
+        }
+        let stopped = stop.is_some_and(|s| s.load(std::sync::atomic::Ordering::Relaxed));
+        if Instant::now() > until || stopped {
+            bail!(
+                "no joint layout on domain {domain:?} within {} s: is the bus-driver running?",
+                timeout.as_secs_f64()
+            );
+        }
+        std::thread::sleep(Duration::from_millis(10));
     }
 }
 
@@ -78,7 +89,12 @@ pub struct GoalArgs {
 
 /// Prints the newest joint state.
 pub fn state(args: &StateArgs) -> Result<()> {
-    let timeout = Duration::from_secs_f64(args.timeout);
+    let timeout = Duration::try_from_secs_f64(args.timeout).with_context(|| {
+        format!(
+            "--timeout {}: not a non-negative number of seconds",
+            args.timeout
+        )
+    })?;
     let (node, layout) = args.plane.open("state", timeout)?;
     let names: Vec<String> = layout.joint_names().map(str::to_string).collect();
     let bus_names: Vec<String> = layout.bus_names().map(str::to_string).collect();

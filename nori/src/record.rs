@@ -144,8 +144,11 @@ fn report_recovery(r: &Recovery) {
     }
 }
 
-/// Records episodes until done or SIGINT/SIGTERM (which ends the current episode and keeps it).
-pub fn record(args: &RecordArgs) -> Result<()> {
+/// Refuses options that cannot make a dataset.
+fn check(args: &RecordArgs) -> Result<()> {
+    if !(args.wait_s >= 0.0 && args.wait_s <= 3600.0) {
+        bail!("--wait-s {} must be 0..=3600 seconds", args.wait_s);
+    }
     if !(args.episode_s > 0.0 && args.episode_s.is_finite()) {
         bail!(
             "--episode-s {} must be a positive number of seconds",
@@ -164,26 +167,20 @@ pub fn record(args: &RecordArgs) -> Result<()> {
     if args.fps == 0 || args.fps > 1000 {
         bail!("--fps {} must be 1..=1000", args.fps);
     }
+    Ok(())
+}
+
+/// Records episodes until done or SIGINT/SIGTERM (which ends the current episode and keeps it).
+pub fn record(args: &RecordArgs) -> Result<()> {
+    check(args)?;
     let stop = telemetry::process::stop_flag().context("installing signal handlers")?;
     let node = Plane::open(&args.domain, &format!("nori-record-{}", std::process::id()))?;
     let states = node.subscriber(&plane::JOINT_STATE)?;
     let layouts = node.subscriber(&plane::LAYOUT)?;
     let grips = node.subscriber(&plane::GRIP)?;
 
-    let until = Instant::now() + Duration::from_secs_f64(args.wait_s);
-    let layout = loop {
-        if let Some(l) = plane::newest(&layouts).filter(|l| l.joint_count > 0) {
-            break l;
-        }
-        if Instant::now() > until || stop.load(Ordering::Relaxed) {
-            bail!(
-                "no joint layout on domain {:?} within {} s: is the bus-driver running?",
-                args.domain,
-                args.wait_s
-            );
-        }
-        std::thread::sleep(Duration::from_millis(10));
-    };
+    let wait = Duration::from_secs_f64(args.wait_s);
+    let layout = crate::plane_tools::wait_for_layout(&layouts, &args.domain, wait, Some(&stop))?;
     let features = Features::from_layout(&layout);
     let settings = Settings {
         fps: args.fps,
