@@ -7,7 +7,7 @@ use nix::sys::signal::{kill, Signal};
 use nix::unistd::Pid;
 use std::io::Read;
 use std::os::unix::process::CommandExt;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::time::{Duration, Instant};
 use thiserror::Error;
@@ -42,11 +42,6 @@ pub enum ChildError {
         /// Cause.
         source: std::io::Error,
     },
-}
-
-/// A sibling executable (installed next to the running one, as cargo builds them).
-pub fn sibling(name: &str) -> Result<PathBuf, ChildError> {
-    Ok(telemetry::process::sibling(name)?)
 }
 
 /// How a stopped child ended.
@@ -274,11 +269,5 @@ mod tests {
         }
         assert_eq!(m.restarts, 1);
         assert!(m.backoff >= Duration::from_secs(1), "backoff doubled");
-    }
-
-    #[test]
-    fn a_missing_sibling_is_named() {
-        let e = sibling("no-such-nori-binary").unwrap_err().to_string();
-        assert!(e.contains("no-such-nori-binary not found"), "{e}");
     }
 }

@@ -6,8 +6,9 @@
 pub mod child;
 pub mod commands;
 
-pub use child::{sibling, ChildError, Managed, Stopped};
+pub use child::{ChildError, Managed, Stopped};
 pub use commands::Run;
+pub use telemetry::process::sibling;
 
 /// The supervisor and the driver of `bus`, for the scenarios and benchmarks that run a single
 /// arm from sibling executables; not started.

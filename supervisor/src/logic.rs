@@ -327,17 +327,15 @@ impl Supervisor {
             self.directives.torque_limit_permille[j] = limit;
             let (bus, current) = (self.layout.joints[j].bus, sample.current_a);
             let j8 = j as u8;
+            let stall = Event::Stall {
+                joint: j8,
+                bus,
+                current_a: current,
+            };
             match action {
                 StallAction::None => {}
                 StallAction::Retry => {
-                    self.event(
-                        now,
-                        Event::Stall {
-                            joint: j8,
-                            bus,
-                            current_a: current,
-                        },
-                    );
+                    self.event(now, stall);
                     self.event(
                         now,
                         Event::StallRetry {
@@ -349,14 +347,7 @@ impl Supervisor {
                 }
                 StallAction::Reduce => {
                     if self.layout.joints[j].role() == JointRole::Gripper {
-                        self.event(
-                            now,
-                            Event::Stall {
-                                joint: j8,
-                                bus,
-                                current_a: current,
-                            },
-                        );
+                        self.event(now, stall);
                     }
                     let limit_percent = f32::from(limit) / 10.0;
                     self.event(

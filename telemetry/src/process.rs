@@ -298,6 +298,12 @@ mod tests {
     use super::*;
 
     #[test]
+    fn a_missing_sibling_is_named() {
+        let e = sibling("no-such-nori-binary").unwrap_err().to_string();
+        assert!(e.contains("no-such-nori-binary not found"), "{e}");
+    }
+
+    #[test]
     fn a_fault_is_classed_by_the_first_known_error_in_its_chain() {
         #[derive(Debug, thiserror::Error)]
         #[error("outer")]
