@@ -153,6 +153,20 @@ pub use sim::rng::Rng;
 
 pub use telemetry::stats::quantile;
 
+/// `joint` in the newest state frame that read it, older frames dropped; `None` if no waiting
+/// frame did. A servo that missed its reply in a cycle (a late reply on a loaded machine) is
+/// reported as zeros with `valid == 0`, so reading its goal or position from such a frame
+/// reads 0, not where the joint is.
+pub fn newest_read(
+    states: &telemetry::plane::Sub<telemetry::frames::JointState>,
+    joint: usize,
+) -> Option<telemetry::frames::JointSample> {
+    std::iter::from_fn(|| telemetry::plane::next(states))
+        .map(|s| s.joints[joint])
+        .filter(|j| j.is_valid())
+        .last()
+}
+
 /// Files of iceoryx2 under `/dev/shm` and `/tmp/iceoryx2` belonging to `domain`.
 pub fn plane_files(domain: &str) -> Vec<PathBuf> {
     fn walk(dir: &Path, prefix: &str, out: &mut Vec<PathBuf>) {

@@ -8,7 +8,7 @@
 use fleet_agent::keys::robot_key;
 use fleet_agent::schema::{decode, encode, ActionChunk, StateMsg, SCHEMA_VERSION};
 use fleet_agent::zenoh::{self, Wait};
-use nori_tests::{binary, check_left_arm_report, scratch, wait_for, ArmStack, Proc};
+use nori_tests::{binary, check_left_arm_report, newest_read, scratch, wait_for, ArmStack, Proc};
 use std::path::Path;
 use std::process::Command;
 use std::time::Duration;
@@ -162,7 +162,12 @@ fn only_the_inference_identity_moves_the_robot() {
     server.terminate(Duration::from_secs(5));
     std::thread::sleep(Duration::from_millis(1000));
     let before = accepted(&dashboard);
-    let goal = || newest(&states).unwrap().joints[ELBOW].goal_rad;
+    let goal = || {
+        wait_for(Duration::from_secs(5), "the elbow read", || {
+            newest_read(&states, ELBOW)
+        })
+        .goal_rad
+    };
     let held = goal();
     let target = if held < -0.9 { -0.4 } else { -1.4 };
 

@@ -4,7 +4,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use nori_tests::{binary, scratch, wait_for, Proc};
+use nori_tests::{binary, newest_read, scratch, wait_for, Proc};
 use std::time::Duration;
 use telemetry::clock::monotonic_ns;
 use telemetry::frames::{EventKind, STATE_FLAG_SAFE_STATE};
@@ -87,11 +87,13 @@ fn safe_state_follows_the_supervisor_and_a_lost_driver_is_reported() {
         publish(&goals, &g).unwrap();
         std::thread::sleep(Duration::from_millis(10));
     }
-    let s = wait_for(Duration::from_secs(1), "a frame", || newest(&states));
+    let elbow = wait_for(Duration::from_secs(1), "a frame", || {
+        newest_read(&states, 3)
+    });
     assert!(
-        s.joints[3].position_rad > -0.3,
+        elbow.position_rad > -0.3,
         "a goal acted on without a supervisor: {}",
-        s.joints[3].position_rad
+        elbow.position_rad
     );
 
     // A supervisor again: the driver leaves the safe state and goals move the elbow.

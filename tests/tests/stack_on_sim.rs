@@ -4,7 +4,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use nori_tests::{binary, scratch, wait_for, Proc};
+use nori_tests::{binary, newest_read, scratch, wait_for, Proc};
 use std::time::Duration;
 use telemetry::config::ProcessConfig;
 use telemetry::plane::{newest, publish, Plane};
@@ -126,11 +126,13 @@ fn sixteen_servos_follow_goals_and_nothing_outside_a_range_reaches_the_wire() {
         publish(&goals, &bad).unwrap();
         std::thread::sleep(Duration::from_millis(20));
     }
-    let s = wait_for(Duration::from_secs(2), "a fresh frame", || newest(&state));
+    let elbow = wait_for(Duration::from_secs(2), "a fresh frame", || {
+        newest_read(&state, 3)
+    });
     assert!(
-        (s.joints[3].goal_rad + 1.0).abs() < 1e-3,
+        (elbow.goal_rad + 1.0).abs() < 1e-3,
         "NaN frame applied: goal {}",
-        s.joints[3].goal_rad
+        elbow.goal_rad
     );
     assert!(driver.running() && sim.running() && supervisor.running());
 
