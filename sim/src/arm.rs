@@ -147,6 +147,23 @@ impl Arm {
         [t.x, t.y, t.z]
     }
 
+    /// The chain at configuration `q` for drawing it: the shoulder, each joint's position and
+    /// the tool point, world frame, into `points`; returns the tool frame's rotation.
+    pub fn chain(&mut self, q: &[f64], points: &mut Vec<[f64; 3]>) -> Matrix3<f64> {
+        let mut rot = Matrix3::identity();
+        let mut p = self.base;
+        points.clear();
+        points.push([p.x, p.y, p.z]);
+        for (j, &qi) in self.joints.iter().zip(q) {
+            p += rot * j.origin;
+            points.push([p.x, p.y, p.z]);
+            rot *= *nalgebra::Rotation3::from_axis_angle(&j.axis, qi).matrix();
+        }
+        let tip = p + rot * self.tip;
+        points.push([tip.x, tip.y, tip.z]);
+        rot
+    }
+
     /// Computes the loads on each chain joint at configuration `q`, speeds `qd`.
     ///
     /// Gravity torque about joint `i` follows from suffix sums of the distal mass moments

@@ -273,6 +273,20 @@ impl SimBus {
         self.arm.as_mut()
     }
 
+    /// The arm's joint angles into `q` (chain order) and its gripper's angle, rad; `None` for a
+    /// bus without an arm.
+    pub fn arm_angles(&self, q: &mut Vec<f64>) -> Option<Option<f64>> {
+        self.arm.as_ref()?;
+        q.clear();
+        q.extend(self.arm_servos.iter().map(|&i| self.servos[i].angle));
+        let gripper = self
+            .roles
+            .iter()
+            .position(|r| *r == Role::Gripper)
+            .map(|i| self.servos[i].angle);
+        Some(gripper)
+    }
+
     /// Advances the mechanics and thermal state by one step of `dt` seconds.
     pub fn step(&mut self, dt: f64) {
         let total_current: f64 = self.servos.iter().map(|s| s.current.abs()).sum();

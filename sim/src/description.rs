@@ -227,6 +227,59 @@ pub struct RobotDescription {
     pub servo_models: BTreeMap<String, ServoRating>,
     /// Buses.
     pub bus: Vec<BusDescription>,
+    /// Cameras the simulator renders (served at `<device dir>/camera-<name>`).
+    #[serde(default)]
+    pub camera: Vec<CameraDescription>,
+    /// Things in the room the cameras see (a table, something to reach for).
+    #[serde(default)]
+    pub object: Vec<SceneObject>,
+}
+
+/// Where a camera is fixed.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct CameraDescription {
+    /// Name (the robot's `nori-camera --camera NAME`).
+    pub name: String,
+    /// `"body"`, or the name of the bus whose arm's tip carries it (a wrist camera).
+    pub mount: String,
+    /// Optical centre, m: world frame on the body, the tip's frame on a wrist.
+    pub position: [f64; 3],
+    /// On the body: the point it looks at, world frame. On a wrist: the direction it looks,
+    /// in the tip's frame.
+    pub look: [f64; 3],
+    /// Horizontal field of view, degrees.
+    pub fov_deg: f64,
+    /// What it delivers: "yuyv" or "mjpeg".
+    pub format: String,
+    /// Width, px.
+    pub width: u32,
+    /// Height, px.
+    pub height: u32,
+    /// Frames per second.
+    pub fps: u32,
+}
+
+/// A solid in the room.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct SceneObject {
+    /// Name (for people reading the file).
+    pub name: String,
+    /// sRGB colour.
+    pub colour: [u8; 3],
+    /// A ball's centre (with `radius-m`).
+    #[serde(default)]
+    pub center: Option<[f64; 3]>,
+    /// A ball's radius, m.
+    #[serde(default)]
+    pub radius_m: Option<f64>,
+    /// A box's lowest corner (with `max`).
+    #[serde(default)]
+    pub min: Option<[f64; 3]>,
+    /// A box's highest corner.
+    #[serde(default)]
+    pub max: Option<[f64; 3]>,
 }
 
 impl RobotDescription {

@@ -15,10 +15,12 @@
 
 pub mod arm;
 pub mod bus;
+pub mod camera;
 pub mod description;
 pub mod extension;
 pub mod faults;
 pub mod pty;
+pub mod render;
 pub mod rng;
 pub mod scenario;
 pub mod servo;

@@ -75,6 +75,12 @@ struct ServeArgs {
     /// Repeatable.
     #[arg(long, value_name = "BUS:ID@AT+FOR")]
     pub silence: Vec<String>,
+    /// Camera fault: probability per MJPEG frame that the JPEG is cut short.
+    #[arg(long, default_value_t = 0.0)]
+    pub camera_truncate_rate: f64,
+    /// Camera fault: probability per frame that its bytes are garbage.
+    #[arg(long, default_value_t = 0.0)]
+    pub camera_garbage_rate: f64,
 }
 
 /// The simulator's report: one entry per bus.
@@ -185,7 +191,38 @@ fn run(args: &ServeArgs) -> Result<()> {
         }));
         buses.push((sim_bus, args.dir.join(&bus.name)));
     }
+    for (name, rate) in [
+        ("--camera-truncate-rate", args.camera_truncate_rate),
+        ("--camera-garbage-rate", args.camera_garbage_rate),
+    ] {
+        if !(0.0..=1.0).contains(&rate) {
+            anyhow::bail!("{name} must be a probability in [0, 1], got {rate}");
+        }
+    }
+    sim::camera::validate(&robot)?;
     let served = serve(buses, args.dt)?;
+    // Cameras render only while a reader is connected: a run without nori-camera pays nothing.
+    let cameras = sim::camera::serve(
+        &robot,
+        served.shared_buses(),
+        &args.dir,
+        sim::camera::CameraFaults {
+            truncate_rate: args.camera_truncate_rate,
+            garbage_rate: args.camera_garbage_rate,
+            seed: args.fault_seed,
+        },
+    )?;
+    for (camera, socket) in robot.camera.iter().zip(&cameras.sockets) {
+        eprintln!(
+            "nori sim: serving camera {} ({} {}×{} at {} fps) on {}",
+            camera.name,
+            camera.format,
+            camera.width,
+            camera.height,
+            camera.fps,
+            socket.display()
+        );
+    }
     for (device, bus) in served.devices.iter().zip(
         robot
             .bus
@@ -258,6 +295,7 @@ fn run(args: &ServeArgs) -> Result<()> {
             }
         }
     }
+    drop(cameras);
     let reports = served.stop();
     if let Some(path) = &args.report {
         write_report(path, &reports)?;

@@ -72,6 +72,11 @@ impl ServedRobot {
         buses.iter_mut().find(|b| b.name == name).map(f)
     }
 
+    /// The buses, shared with the threads that read the simulated state (the cameras).
+    pub fn shared_buses(&self) -> Arc<Mutex<Vec<SimBus>>> {
+        self.buses.clone()
+    }
+
     /// Unplugs bus `name`, as a USB adapter pulled out: its pseudo-terminal is closed (a driver
     /// that has it open gets a hang-up) and its device link removed; the servos behind it keep
     /// running on their last goals. Returns false for an unknown bus.

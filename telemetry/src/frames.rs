@@ -175,13 +175,13 @@ pub struct JointInfo {
 }
 
 /// A zero-padded UTF-8 name as text ("?" if it is not UTF-8).
-fn name_text(name: &[u8; NAME_LEN]) -> &str {
+pub(crate) fn name_text(name: &[u8; NAME_LEN]) -> &str {
     let end = name.iter().position(|&b| b == 0).unwrap_or(NAME_LEN);
     std::str::from_utf8(&name[..end]).unwrap_or("?")
 }
 
 /// `name` zero-padded, truncated to [`NAME_LEN`] bytes at a character boundary.
-fn name_bytes(name: &str) -> [u8; NAME_LEN] {
+pub(crate) fn name_bytes(name: &str) -> [u8; NAME_LEN] {
     let mut bytes = [0; NAME_LEN];
     let mut end = name.len().min(NAME_LEN);
     while !name.is_char_boundary(end) {

@@ -16,6 +16,7 @@ pub mod latch;
 pub mod plane;
 #[cfg(feature = "ipc")]
 pub mod process;
+pub mod sensors;
 pub mod stats;
 pub mod watchdog;
 

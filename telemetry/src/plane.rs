@@ -8,10 +8,11 @@ use crate::frames::{
     Directives, GoalFrame, GripFrame, Heartbeat, JointLayout, JointState, SupervisorCommand,
     SupervisorEvent,
 };
+use crate::sensors::{CameraFrameHeader, LidarScan};
 use iceoryx2::node::{NodeCreationFailure, NodeListFailure};
 use iceoryx2::port::publisher::{Publisher, PublisherCreateError};
 use iceoryx2::port::subscriber::{Subscriber, SubscriberCreateError};
-use iceoryx2::port::SendError;
+use iceoryx2::port::{LoanError, SendError};
 use iceoryx2::prelude::*;
 use iceoryx2::service::builder::publish_subscribe::PublishSubscribeOpenOrCreateError;
 use iceoryx2::service::service_name::ServiceNameError;
@@ -25,6 +26,11 @@ pub const DEFAULT_DOMAIN: &str = "nori";
 pub type Pub<T> = Publisher<ipc::Service, T, ()>;
 /// A subscriber of `T` on the plane.
 pub type Sub<T> = Subscriber<ipc::Service, T, ()>;
+
+/// A camera's frame publisher: a [`CameraFrameHeader`] beside the pixels as a byte slice.
+pub type FramePub = Publisher<ipc::Service, [u8], CameraFrameHeader>;
+/// A camera's frame subscriber.
+pub type FrameSub = Subscriber<ipc::Service, [u8], CameraFrameHeader>;
 
 /// Queue sizes and port limits of a service.
 #[derive(Debug, Clone, Copy)]
@@ -89,6 +95,25 @@ pub const COMMANDS: Topic<SupervisorCommand> = topic("nori/supervisor-commands",
 /// Driver → all: error counts by kind per bus, every 100 ms (history 1: the newest at once).
 pub const BUS_HEALTH: Topic<crate::frames::BusHealth> = topic("nori/bus-health", 1, 4, 2, 8);
 
+/// Lidar → all: one frame per revolution (8–12 Hz). A late subscriber gets the newest at once.
+pub const LIDAR_SCAN: Topic<LidarScan> = topic("nori/lidar/scan", 1, 4, 1, 8);
+
+/// The service of camera `name`'s frames.
+pub fn camera_service(name: &str) -> String {
+    format!("nori/camera/{name}")
+}
+
+/// A camera's frames: the newest at once for a late subscriber, and two in each subscriber's
+/// queue, the older overwritten: a reader that falls behind loses frames, never holds the
+/// camera. Each queued frame is a block of shared memory as large as the biggest image, so
+/// the subscribers are few (recorder, fleet agent, operator page, one tool).
+pub const CAMERA_QOS: Qos = Qos {
+    history: 1,
+    buffer: 2,
+    publishers: 1,
+    subscribers: 4,
+};
+
 /// A state-plane operation that failed, with iceoryx2's own error as its source.
 #[derive(Debug, Error)]
 pub enum PlaneError {
@@ -106,7 +131,7 @@ pub enum PlaneError {
     #[error("state plane: service {service:?} is not a valid name")]
     ServiceName {
         /// The name.
-        service: &'static str,
+        service: String,
         /// iceoryx2's error.
         source: ServiceNameError,
     },
@@ -128,7 +153,7 @@ pub enum PlaneError {
     #[error("state plane: opening service {service}")]
     Service {
         /// The service.
-        service: &'static str,
+        service: String,
         /// iceoryx2's error.
         source: PublishSubscribeOpenOrCreateError,
     },
@@ -136,7 +161,7 @@ pub enum PlaneError {
     #[error("state plane: a publisher on {service}")]
     Publisher {
         /// The service.
-        service: &'static str,
+        service: String,
         /// iceoryx2's error.
         source: PublisherCreateError,
     },
@@ -144,10 +169,14 @@ pub enum PlaneError {
     #[error("state plane: a subscriber on {service}")]
     Subscriber {
         /// The service.
-        service: &'static str,
+        service: String,
         /// iceoryx2's error.
         source: SubscriberCreateError,
     },
+    /// No shared memory for a sample (a frame larger than the service's maximum, all samples
+    /// held by slow readers).
+    #[error("state plane: loaning a sample")]
+    Loan(#[source] LoanError),
     /// A sample could not be sent.
     #[error("state plane: sending")]
     Send(#[source] SendError),
@@ -247,7 +276,7 @@ impl Plane {
         self.node
             .service_builder(&ServiceName::new(topic.name).map_err(|source| {
                 PlaneError::ServiceName {
-                    service: topic.name,
+                    service: topic.name.into(),
                     source,
                 }
             })?)
@@ -259,7 +288,7 @@ impl Plane {
             .enable_safe_overflow(true)
             .open_or_create()
             .map_err(|source| PlaneError::Service {
-                service: topic.name,
+                service: topic.name.into(),
                 source,
             })
     }
@@ -273,7 +302,7 @@ impl Plane {
             .publisher_builder()
             .create()
             .map_err(|source| PlaneError::Publisher {
-                service: topic.name,
+                service: topic.name.into(),
                 source,
             })
     }
@@ -287,10 +316,84 @@ impl Plane {
             .subscriber_builder()
             .create()
             .map_err(|source| PlaneError::Subscriber {
-                service: topic.name,
+                service: topic.name.into(),
                 source,
             })
     }
+}
+
+impl Plane {
+    fn camera_service_port(
+        &self,
+        camera: &str,
+    ) -> Result<
+        iceoryx2::service::port_factory::publish_subscribe::PortFactory<
+            ipc::Service,
+            [u8],
+            CameraFrameHeader,
+        >,
+        PlaneError,
+    > {
+        let service = camera_service(camera);
+        let name = ServiceName::new(&service).map_err(|source| PlaneError::ServiceName {
+            service: service.clone(),
+            source,
+        })?;
+        let q = CAMERA_QOS;
+        self.node
+            .service_builder(&name)
+            .publish_subscribe::<[u8]>()
+            .user_header::<CameraFrameHeader>()
+            .history_size(q.history)
+            .subscriber_max_buffer_size(q.buffer)
+            .max_publishers(q.publishers)
+            .max_subscribers(q.subscribers)
+            .enable_safe_overflow(true)
+            .open_or_create()
+            .map_err(|source| PlaneError::Service { service, source })
+    }
+
+    /// The publisher of camera `camera`'s frames, of at most `max_bytes` each. Its shared memory
+    /// is allocated once, here (static allocation: nothing is allocated per frame).
+    pub fn camera_publisher(&self, camera: &str, max_bytes: usize) -> Result<FramePub, PlaneError> {
+        self.camera_service_port(camera)?
+            .publisher_builder()
+            .initial_max_slice_len(max_bytes)
+            .allocation_strategy(AllocationStrategy::Static)
+            .create()
+            .map_err(|source| PlaneError::Publisher {
+                service: camera_service(camera),
+                source,
+            })
+    }
+
+    /// A subscriber of camera `camera`'s frames.
+    pub fn camera_subscriber(&self, camera: &str) -> Result<FrameSub, PlaneError> {
+        self.camera_service_port(camera)?
+            .subscriber_builder()
+            .create()
+            .map_err(|source| PlaneError::Subscriber {
+                service: camera_service(camera),
+                source,
+            })
+    }
+}
+
+/// Publishes one camera frame of `len` bytes: `fill` writes the pixels straight into shared
+/// memory (the decoder's output is the sample: no copy), and returns whether it succeeded; a
+/// frame it refuses is not sent. Returns whether one was sent.
+pub fn publish_frame(
+    publisher: &FramePub,
+    header: &CameraFrameHeader,
+    len: usize,
+    fill: impl FnOnce(&mut [u8]) -> bool,
+) -> Result<bool, PlaneError> {
+    let mut sample = publisher.loan_slice(len).map_err(PlaneError::Loan)?;
+    *sample.user_header_mut() = *header;
+    if !fill(sample.payload_mut()) {
+        return Ok(false);
+    }
+    sample.send().map(|_| true).map_err(PlaneError::Send)
 }
 
 /// Publishes `value` by copying it into a loaned sample (no heap allocation).
@@ -359,5 +462,55 @@ mod tests {
         // Other domains see nothing.
         let other = Plane::open(&format!("{domain}x"), "c").unwrap();
         assert!(newest(&other.subscriber(&JOINT_STATE).unwrap()).is_none());
+    }
+
+    #[test]
+    fn camera_frames_cross_the_plane_and_a_slow_reader_loses_the_oldest() {
+        let domain = format!("nori_test_cam_{}", std::process::id());
+        let a = Plane::open(&domain, "camera").unwrap();
+        let b = Plane::open(&domain, "reader").unwrap();
+        let publisher = a.camera_publisher("head", 64).unwrap();
+        let reader = b.camera_subscriber("head").unwrap();
+        let other_camera = b.camera_subscriber("neck").unwrap();
+        for seq in 0..5u64 {
+            let mut h = CameraFrameHeader {
+                seq,
+                width: 4,
+                height: 2,
+                ..Default::default()
+            };
+            h.set_camera("head");
+            let sent = publish_frame(&publisher, &h, 8, |px| {
+                px.fill(seq as u8);
+                true
+            })
+            .unwrap();
+            assert!(sent);
+        }
+        // Five sent into a queue of two: the reader gets the newest two, in order.
+        let mut got = Vec::new();
+        while let Ok(Some(sample)) = reader.receive() {
+            assert_eq!(sample.user_header().camera(), "head");
+            assert_eq!(sample.payload().len(), 8);
+            assert!(sample
+                .payload()
+                .iter()
+                .all(|&p| p == sample.user_header().seq as u8));
+            got.push(sample.user_header().seq);
+        }
+        assert_eq!(got, [3, 4]);
+        assert!(
+            other_camera.receive().unwrap().is_none(),
+            "cameras are apart"
+        );
+
+        // A refused frame is not sent; one larger than the maximum is an error, not a panic.
+        let h = CameraFrameHeader::default();
+        assert!(!publish_frame(&publisher, &h, 8, |_| false).unwrap());
+        assert!(reader.receive().unwrap().is_none());
+        assert!(matches!(
+            publish_frame(&publisher, &h, 65, |_| true),
+            Err(PlaneError::Loan(_))
+        ));
     }
 }

@@ -18,7 +18,8 @@ const ALLOWED: &[(&str, &[&str])] = &[
     ("bus-driver", &["feetech", "telemetry"]),
     ("supervisor", &["telemetry"]),
     ("fleet-agent", &["telemetry"]),
-    ("sim", &["feetech", "telemetry"]),
+    ("camera", &["telemetry"]),
+    ("sim", &["feetech", "telemetry", "camera"]),
     ("recorder", &["telemetry"]),
     ("model-lab", &["sim"]),
     ("fleet", &["fleet-agent", "telemetry"]),
@@ -49,6 +50,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
             "fleet-agent",
             "model-lab",
             "telemetry",
+            "camera",
         ],
     ),
 ];
@@ -59,6 +61,7 @@ const CONFINED: &[(&str, &[&str])] = &[
     ("iceoryx2", &["telemetry"]),
     ("parquet", &["recorder"]),
     ("serialport", &["bus-driver"]),
+    ("v4l", &["camera"]),
     ("tiny_http", &["fleet"]),
     ("prometheus-client", &["fleet"]),
 ];
@@ -73,6 +76,7 @@ const ROBOT: &[&str] = &[
     "supervisor",
     "fleet-agent",
     "recorder",
+    "camera",
     "nori",
 ];
 const OFF_ROBOT: &[&str] = &["fleet", "stack", "bench", "nori-tests", "model-lab", "sim"];

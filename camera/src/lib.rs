@@ -1,0 +1,18 @@
+//! The robot's cameras: frames from V4L2 devices (or the simulator's sockets) onto the state
+//! plane as RGB24, one process per camera (`nori-camera --camera NAME`).
+//!
+//! Pure parts, also used by the simulator: [`convert`] (YUYV and MJPEG to RGB, and the reverse
+//! the simulated cameras need) and [`stream`] (the framing of a camera on a byte stream). With
+//! the `process` feature: the sources ([`source`], [`v4l2`]), the configuration and the loop.
+
+pub mod convert;
+pub mod stream;
+
+#[cfg(feature = "process")]
+pub mod config;
+#[cfg(feature = "process")]
+pub mod process;
+#[cfg(feature = "process")]
+pub mod source;
+#[cfg(feature = "process")]
+pub mod v4l2;

@@ -1,0 +1,95 @@
+//! `nori-camera`: one camera onto the state plane. The loop is `camera::process`; this binary
+//! reads the configuration, opens the plane and reports what it did at exit (JSON on stdout).
+
+use anyhow::{Context, Result};
+use camera::config::CamerasConfig;
+use camera::convert::rgb_len;
+use camera::process::{run, Camera, RunError};
+use camera::source::{self, SourceError};
+use clap::Parser;
+use std::path::PathBuf;
+use std::time::Duration;
+use telemetry::plane::{self, Plane};
+use telemetry::process::{finish, start, Exit, Started};
+
+#[derive(Parser)]
+#[command(
+    version,
+    about = "Nori A3 camera: frames from a V4L2 camera onto the state plane"
+)]
+struct Args {
+    /// The camera to serve, by its name in the configuration.
+    #[arg(long, required_unless_present = "print_default_config")]
+    camera: Option<String>,
+    /// Configuration file (TOML); the embedded default when absent.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Read the camera at DIR/camera-<name> (the simulator's sockets) instead of its device.
+    #[arg(long, value_name = "DIR")]
+    device_dir: Option<PathBuf>,
+    /// State-plane domain.
+    #[arg(long, default_value = plane::DEFAULT_DOMAIN)]
+    domain: String,
+    /// Stop after this many seconds.
+    #[arg(long)]
+    run_for: Option<f64>,
+    /// Print the default configuration and exit.
+    #[arg(long)]
+    print_default_config: bool,
+}
+
+fn main() -> std::process::ExitCode {
+    finish(serve(&Args::parse()), |e| {
+        match e.downcast_ref::<RunError>() {
+            Some(RunError::Source(SourceError::Mode { .. } | SourceError::Unexpected { .. })) => {
+                Some(Exit::Config)
+            }
+            Some(RunError::Source(_)) => Some(Exit::Unavailable),
+            _ => None,
+        }
+    })
+}
+
+fn serve(args: &Args) -> Result<()> {
+    let Some(Started {
+        config, shutdown, ..
+    }) = start::<CamerasConfig>(args.print_default_config, args.config.as_deref())?
+    else {
+        return Ok(());
+    };
+    let config = match &args.device_dir {
+        Some(dir) => config.with_device_dir(dir),
+        None => config,
+    };
+    let name = args.camera.as_deref().unwrap_or_default();
+    let Some(cam) = config.camera(name) else {
+        let have: Vec<_> = config.cameras.iter().map(|c| c.name.as_str()).collect();
+        return Err(telemetry::config::invalid(
+            "--camera",
+            "camera",
+            format!("no camera {name:?} (have: {})", have.join(", ")),
+        )
+        .into());
+    };
+    let run_for = match args.run_for {
+        Some(s) if !(s.is_finite() && s > 0.0) => {
+            return Err(telemetry::config::invalid(
+                "--run-for",
+                "run-for",
+                format!("{s}: a positive number of seconds"),
+            )
+            .into())
+        }
+        s => s.map(Duration::from_secs_f64),
+    };
+    let node = Plane::open(&args.domain, &format!("camera_{name}"))?;
+    let publisher = node.camera_publisher(name, rgb_len(cam.mode.width, cam.mode.height))?;
+    let mut camera = Camera::new(name, cam.mode, publisher);
+    let result = run(&mut camera, &cam.device, source::open, &shutdown, run_for)
+        .with_context(|| format!("camera {name}"));
+    println!(
+        "{}",
+        serde_json::json!({"camera": name, "counters": camera.counters})
+    );
+    result
+}
