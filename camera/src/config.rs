@@ -1,11 +1,10 @@
 //! The camera process's configuration (`deploy/config/camera.toml`, embedded).
 
-use crate::source::Mode;
+use crate::mode::{check, format_named, Mode};
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
 use telemetry::config::{invalid, parse, ConfigError, ProcessConfig};
 use telemetry::frames::NAME_LEN;
-use telemetry::sensors::PixelFormat;
 
 /// The commented default.
 pub const DEFAULT_CONFIG_TOML: &str = include_str!("../../deploy/config/camera.toml");
@@ -21,17 +20,10 @@ struct File {
 struct CameraFile {
     name: String,
     device: PathBuf,
-    format: FormatName,
+    format: String,
     width: u32,
     height: u32,
     fps: u32,
-}
-
-#[derive(Debug, Clone, Copy, Deserialize)]
-#[serde(rename_all = "lowercase")]
-enum FormatName {
-    Mjpeg,
-    Yuyv,
 }
 
 /// One camera.
@@ -51,9 +43,6 @@ pub struct CamerasConfig {
     /// In the file's order.
     pub cameras: Vec<CameraConfig>,
 }
-
-/// The largest image a camera may be set to: 1920×1080 (a frame's shared memory is sized by it).
-pub const MAX_PIXELS: u32 = 1920 * 1080;
 
 impl ProcessConfig for CamerasConfig {
     const DEFAULT_TOML: &'static str = DEFAULT_CONFIG_TOML;
@@ -83,28 +72,15 @@ impl ProcessConfig for CamerasConfig {
             if cameras.iter().any(|o| o.name == c.name) {
                 return Err(invalid(origin, key("name"), format!("{:?} twice", c.name)));
             }
-            // YUYV packs two pixels in four bytes: an odd width has no whole last pair.
-            if c.width < 16 || c.height < 16 || c.width % 2 != 0 {
-                return Err(invalid(
+            check(c.width, c.height, c.fps)
+                .map_err(|(k, reason)| invalid(origin, key(k), reason))?;
+            let format = format_named(&c.format).ok_or_else(|| {
+                invalid(
                     origin,
-                    key("width"),
-                    format!("{}×{}: at least 16×16, even width", c.width, c.height),
-                ));
-            }
-            if c.width.saturating_mul(c.height) > MAX_PIXELS {
-                return Err(invalid(
-                    origin,
-                    key("width"),
-                    format!("{}×{} is larger than 1920×1080", c.width, c.height),
-                ));
-            }
-            if !(1..=120).contains(&c.fps) {
-                return Err(invalid(origin, key("fps"), format!("{}: 1 to 120", c.fps)));
-            }
-            let format = match c.format {
-                FormatName::Mjpeg => PixelFormat::Mjpeg,
-                FormatName::Yuyv => PixelFormat::Yuyv,
-            };
+                    key("format"),
+                    format!("{:?}: \"mjpeg\" or \"yuyv\"", c.format),
+                )
+            })?;
             cameras.push(CameraConfig {
                 name: c.name,
                 device: c.device,
@@ -138,6 +114,7 @@ impl CamerasConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use telemetry::sensors::PixelFormat;
 
     #[test]
     fn the_embedded_default_has_the_four_cameras_of_the_a3() {

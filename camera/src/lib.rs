@@ -2,10 +2,11 @@
 //! plane as RGB24, one process per camera (`nori-camera --camera NAME`).
 //!
 //! Pure parts, also used by the simulator: [`convert`] (YUYV and MJPEG to RGB, and the reverse
-//! the simulated cameras need) and [`stream`] (the framing of a camera on a byte stream). With
+//! the simulated cameras need), [`mode`] (the limits every camera keeps) and [`stream`] (the framing of a camera on a byte stream). With
 //! the `process` feature: the sources ([`source`], [`v4l2`]), the configuration and the loop.
 
 pub mod convert;
+pub mod mode;
 pub mod stream;
 
 #[cfg(feature = "process")]

@@ -2,7 +2,7 @@
 //! memory, each counted as published, corrupt, dropped or late. A bad frame is refused, counted
 //! and logged (the first, then at each doubling of the count); it never stops the loop.
 
-use crate::convert::{rgb_len, to_rgb, FrameError};
+use crate::convert::{rgb_len, to_rgb};
 use crate::source::{FrameSource, Mode, RawFrame, SourceError};
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -37,8 +37,6 @@ pub struct Camera {
     last_sequence: Option<u32>,
     /// What happened so far.
     pub counters: Counters,
-    /// The last corrupt frame's reason.
-    pub last_error: Option<FrameError>,
 }
 
 impl Camera {
@@ -50,7 +48,6 @@ impl Camera {
             publisher,
             last_sequence: None,
             counters: Counters::default(),
-            last_error: None,
         }
     }
 
@@ -112,7 +109,6 @@ impl Camera {
                     frame.sequence
                 );
             }
-            self.last_error = Some(e);
             return Ok(false);
         }
         c.published += 1;

@@ -10,26 +10,7 @@ use std::time::Duration;
 use telemetry::sensors::PixelFormat;
 use thiserror::Error;
 
-/// What a camera is set to deliver.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Mode {
-    /// Pixel format asked of the device.
-    pub format: PixelFormat,
-    /// Width.
-    pub width: u32,
-    /// Height.
-    pub height: u32,
-    /// Frames per second.
-    pub fps: u32,
-}
-
-impl Mode {
-    /// The largest buffer a frame of this mode can take (an MJPEG frame is bounded by the
-    /// uncompressed size: a UVC camera's buffers are sized so).
-    pub fn max_frame_bytes(&self) -> usize {
-        self.width as usize * self.height as usize * 3
-    }
-}
+pub use crate::mode::Mode;
 
 /// One frame as the device delivered it.
 #[derive(Debug)]
@@ -135,11 +116,6 @@ impl SocketSource {
             mode,
             chunk: vec![0; 256 * 1024],
         })
-    }
-
-    /// Times the stream lost its framing so far.
-    pub fn resyncs(&self) -> u64 {
-        self.reader.resyncs
     }
 }
 

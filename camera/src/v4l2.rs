@@ -7,7 +7,7 @@ use crate::source::{describe, FrameSource, Mode, RawFrame, SourceError};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 use telemetry::sensors::PixelFormat;
-use v4l::buffer::Type;
+use v4l::buffer::{Flags, Type};
 use v4l::io::mmap::Stream;
 use v4l::io::traits::CaptureStream;
 use v4l::video::Capture;
@@ -47,9 +47,8 @@ pub fn check_granted(
 /// A buffer's capture time on the common clock, if the driver stamped it with CLOCK_MONOTONIC
 /// (UVC does); otherwise `None` and the reader stamps the frame when it dequeues it.
 pub fn capture_ns(flags_bits: u32, sec: i64, usec: i64) -> Option<u64> {
-    const TIMESTAMP_MASK: u32 = 0x0000_e000;
-    const TIMESTAMP_MONOTONIC: u32 = 0x0000_2000;
-    if flags_bits & TIMESTAMP_MASK != TIMESTAMP_MONOTONIC || sec < 0 || usec < 0 {
+    let clock = flags_bits & Flags::TIMESTAMP_MASK.bits();
+    if clock != Flags::TIMESTAMP_MONOTONIC.bits() || sec < 0 || usec < 0 {
         return None;
     }
     Some(sec as u64 * 1_000_000_000 + usec as u64 * 1_000)

@@ -9,6 +9,7 @@ use crate::description::{CameraDescription, RobotDescription, SceneObject};
 use crate::render::{render, Item, Shape, View};
 use crate::rng::Rng;
 use camera::convert::rgb_to_yuyv;
+use camera::mode::{check, format_named};
 use camera::stream::StreamHeader;
 use nalgebra::{Matrix3, Vector3};
 use std::io::Write;
@@ -194,7 +195,8 @@ pub fn validate(robot: &RobotDescription) -> Result<(), CameraError> {
             camera: c.name.clone(),
             reason,
         };
-        format_of(c).ok_or_else(|| bad(format!("format {:?}: yuyv or mjpeg", c.format)))?;
+        format_named(&c.format)
+            .ok_or_else(|| bad(format!("format {:?}: yuyv or mjpeg", c.format)))?;
         if c.mount != "body"
             && !robot
                 .bus
@@ -206,17 +208,9 @@ pub fn validate(robot: &RobotDescription) -> Result<(), CameraError> {
                 c.mount
             )));
         }
-        if c.width < 16 || c.height < 16 || c.width % 2 != 0 || c.width * c.height > 1920 * 1080 {
-            return Err(bad(format!(
-                "{}×{}: 16×16 to 1920×1080, even width",
-                c.width, c.height
-            )));
-        }
-        if !(1..=120).contains(&c.fps) || !(10.0..=170.0).contains(&c.fov_deg) {
-            return Err(bad(format!(
-                "fps {} (1..120), fov {}° (10..170)",
-                c.fps, c.fov_deg
-            )));
+        check(c.width, c.height, c.fps).map_err(|(_, reason)| bad(reason))?;
+        if !(10.0..=170.0).contains(&c.fov_deg) {
+            return Err(bad(format!("fov {}°: 10 to 170", c.fov_deg)));
         }
     }
     for o in &robot.object {
@@ -228,14 +222,6 @@ pub fn validate(robot: &RobotDescription) -> Result<(), CameraError> {
         }
     }
     Ok(())
-}
-
-fn format_of(c: &CameraDescription) -> Option<PixelFormat> {
-    match c.format.as_str() {
-        "yuyv" => Some(PixelFormat::Yuyv),
-        "mjpeg" => Some(PixelFormat::Mjpeg),
-        _ => None,
-    }
 }
 
 /// Camera faults: a probability per frame that its JPEG is cut short (a USB packet lost), and
@@ -297,7 +283,7 @@ pub fn serve(
         served.sockets.push(path);
         let mut stream = CameraStream {
             camera: cam.clone(),
-            format: format_of(cam).unwrap_or(PixelFormat::Yuyv),
+            format: format_named(&cam.format).unwrap_or(PixelFormat::Yuyv),
             scene: Scene::new(robot),
             faults: Rng::new(faults.seed.wrapping_add(i as u64)),
             fault_rates: faults,

@@ -199,7 +199,6 @@ fn run(args: &ServeArgs) -> Result<()> {
             anyhow::bail!("{name} must be a probability in [0, 1], got {rate}");
         }
     }
-    sim::camera::validate(&robot)?;
     let served = serve(buses, args.dt)?;
     // Cameras render only while a reader is connected: a run without nori-camera pays nothing.
     let cameras = sim::camera::serve(

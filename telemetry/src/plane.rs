@@ -114,6 +114,27 @@ pub const CAMERA_QOS: Qos = Qos {
     subscribers: 4,
 };
 
+/// A service builder with a [`Qos`] applied: the one place the QoS reaches iceoryx2, for typed
+/// frames and camera slices alike. Overflow is safe everywhere: a full queue loses its oldest
+/// sample, a publisher never waits for a reader.
+trait WithQos {
+    fn with_qos(self, q: Qos) -> Self;
+}
+
+impl<P, H> WithQos for iceoryx2::service::builder::publish_subscribe::Builder<P, H, ipc::Service>
+where
+    P: std::fmt::Debug + IceoryxSend + ?Sized,
+    H: std::fmt::Debug + ZeroCopySend,
+{
+    fn with_qos(self, q: Qos) -> Self {
+        self.history_size(q.history)
+            .subscriber_max_buffer_size(q.buffer)
+            .max_publishers(q.publishers)
+            .max_subscribers(q.subscribers)
+            .enable_safe_overflow(true)
+    }
+}
+
 /// A state-plane operation that failed, with iceoryx2's own error as its source.
 #[derive(Debug, Error)]
 pub enum PlaneError {
@@ -272,7 +293,6 @@ impl Plane {
     where
         T: std::fmt::Debug + ZeroCopySend + 'static,
     {
-        let q = topic.qos;
         self.node
             .service_builder(&ServiceName::new(topic.name).map_err(|source| {
                 PlaneError::ServiceName {
@@ -281,11 +301,7 @@ impl Plane {
                 }
             })?)
             .publish_subscribe::<T>()
-            .history_size(q.history)
-            .subscriber_max_buffer_size(q.buffer)
-            .max_publishers(q.publishers)
-            .max_subscribers(q.subscribers)
-            .enable_safe_overflow(true)
+            .with_qos(topic.qos)
             .open_or_create()
             .map_err(|source| PlaneError::Service {
                 service: topic.name.into(),
@@ -339,16 +355,11 @@ impl Plane {
             service: service.clone(),
             source,
         })?;
-        let q = CAMERA_QOS;
         self.node
             .service_builder(&name)
             .publish_subscribe::<[u8]>()
             .user_header::<CameraFrameHeader>()
-            .history_size(q.history)
-            .subscriber_max_buffer_size(q.buffer)
-            .max_publishers(q.publishers)
-            .max_subscribers(q.subscribers)
-            .enable_safe_overflow(true)
+            .with_qos(CAMERA_QOS)
             .open_or_create()
             .map_err(|source| PlaneError::Service { service, source })
     }

@@ -33,6 +33,7 @@ fn the_shipped_configuration_files_are_what_the_binaries_print_and_load() {
         ),
         ("supervisor", "--print-default-config", "supervisor.toml"),
         ("fleet-agent", "--print-default-config", "fleet-agent.toml"),
+        ("nori-camera", "--print-default-config", "camera.toml"),
     ] {
         let shipped = std::fs::read_to_string(deploy().join("config").join(file)).unwrap();
         assert_eq!(
@@ -48,6 +49,7 @@ fn the_shipped_configuration_files_are_what_the_binaries_print_and_load() {
     bus_driver::LoadedConfig::load(&deploy().join("config/bus-driver.toml")).unwrap();
     supervisor::SupervisorConfig::load(&deploy().join("config/supervisor.toml")).unwrap();
     fleet_agent::AgentConfig::load(&deploy().join("config/fleet-agent.toml")).unwrap();
+    camera::config::CamerasConfig::load(&deploy().join("config/camera.toml")).unwrap();
 }
 
 #[test]
@@ -66,10 +68,17 @@ fn the_systemd_units_verify() {
         let text = text.replace("/usr/local/bin", bin_dir.to_str().unwrap());
         std::fs::write(dir.join(entry.file_name()), text).unwrap();
     }
+    // A template is verified as one of its instances.
+    std::fs::copy(
+        dir.join("nori-camera@.service"),
+        dir.join("nori-camera@head.service"),
+    )
+    .unwrap();
     for unit in [
         "nori-supervisor.service",
         "nori-bus-driver.service",
         "nori-fleet-agent.service",
+        "nori-camera@head.service",
         "nori.target",
     ] {
         let out = Command::new("systemd-analyze")
