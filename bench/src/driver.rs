@@ -1,6 +1,7 @@
 //! `driver-rate` (the driver's loop against the wire-timed simulator) and `sim-speed` (batch
 //! simulation against real time).
 
+use crate::cameras::CameraLoad;
 use anyhow::{Context, Result};
 use bus_driver::{Driver, LoadedConfig, SerialTransport, Standalone};
 use clap::Args;
@@ -26,6 +27,20 @@ pub struct DriverRateArgs {
     /// deployed rate (where the background read-back uses the idle time of each period).
     #[arg(long, default_value_t = 1000.0)]
     rate_hz: f64,
+    /// Compare against this many cameras streaming MJPEG into `nori-camera` processes (the
+    /// robot's camera load, as deployed) instead of against the background read-back: both
+    /// halves then read back as deployed, and the cameras stream in every other one.
+    #[arg(long, default_value_t = 0)]
+    cameras: usize,
+    /// Camera image width, px.
+    #[arg(long, default_value_t = 1280)]
+    camera_width: u32,
+    /// Camera image height, px.
+    #[arg(long, default_value_t = 720)]
+    camera_height: u32,
+    /// Camera frames per second.
+    #[arg(long, default_value_t = 30)]
+    camera_fps: u32,
     /// Print one JSON object.
     #[arg(long)]
     json: bool,
@@ -142,13 +157,53 @@ pub fn driver_rate(args: &DriverRateArgs) -> Result<()> {
         .unwrap_or(0);
     let bytes = cycle_bytes(slowest, reg::FEEDBACK_LEN as usize, 2);
     let wire_limited_hz = 1.0 / wire_time(bytes, 1_000_000).as_secs_f64();
-    // The baseline (no background read-back) and the stack as deployed, in the same run, in
-    // alternating halves so that a slow stretch of this shared machine hits both alike.
+    // The baseline and the variant in the same run, in alternating halves so that a slow
+    // stretch of this shared machine hits both alike. The variant is the background read-back
+    // (the stack as deployed), or with --cameras the cameras streaming (both halves as deployed).
     let half = args.seconds / 2.0;
+    let domain = format!("nori_bench_cameras_{}", std::process::id());
+    let cameras = match args.cameras {
+        0 => None,
+        n => Some(CameraLoad::start(
+            n,
+            args.camera_width,
+            args.camera_height,
+            args.camera_fps,
+            &domain,
+        )?),
+    };
     let mut runs: [Vec<RateRun>; 2] = [Vec::new(), Vec::new()];
-    for read_back in [false, true, false, true] {
-        runs[usize::from(read_back)].push(rate_run(&args.buses, args.rate_hz, half, read_back)?);
+    let (mut camera_cpu_s, mut camera_s) = (0.0, 0.0);
+    for variant in [false, true, false, true] {
+        let read_back = variant || cameras.is_some();
+        if let Some(load) = &cameras {
+            load.feed(variant);
+            // Let the cameras reach (or leave) their steady rate before timing.
+            std::thread::sleep(Duration::from_millis(500));
+        }
+        let cpu_before = cameras.as_ref().map_or(0.0, CameraLoad::cpu_seconds);
+        let run = rate_run(&args.buses, args.rate_hz, half, read_back)?;
+        if let (Some(load), true) = (&cameras, variant) {
+            camera_cpu_s += load.cpu_seconds() - cpu_before;
+            camera_s += run.summary.elapsed_s;
+        }
+        runs[usize::from(variant)].push(run);
     }
+    let camera_figures = cameras.as_ref().map(|load| {
+        let published = camera_frames_published(&domain, args.cameras);
+        serde_json::json!({
+            "cameras": args.cameras,
+            "width": args.camera_width,
+            "height": args.camera_height,
+            "fps": args.camera_fps,
+            "jpeg_bytes": load.jpeg_bytes,
+            "frames_published": published,
+            "streaming_seconds": camera_s,
+            "cpu_per_camera_percent_of_a_core": 100.0 * camera_cpu_s / camera_s.max(1e-9) / args.cameras as f64,
+            "peak_rss_mb": load.peak_rss_mb(),
+        })
+    });
+    drop(cameras);
     let figures = |r: &[RateRun]| {
         let cycles: u64 = r.iter().map(|x| x.summary.counters.cycles).sum();
         let elapsed: f64 = r.iter().map(|x| x.summary.elapsed_s).sum();
@@ -174,9 +229,12 @@ pub fn driver_rate(args: &DriverRateArgs) -> Result<()> {
         "rate_hz_set": args.rate_hz,
         "cycle_bytes_per_bus": bytes,
         "wire_limited_hz": wire_limited_hz,
-        "baseline_without_background_read_back": without,
-        "with_background_read_back": with,
-        "rate_ratio_with_to_without": hz(&with) / hz(&without).max(1e-9),
+        "baseline": if args.cameras > 0 { "as deployed, cameras idle" } else { "no background read-back" },
+        "variant": if args.cameras > 0 { "as deployed, cameras streaming" } else { "as deployed (background read-back)" },
+        "baseline_figures": without,
+        "variant_figures": with,
+        "camera_load": camera_figures,
+        "rate_ratio_variant_to_baseline": hz(&with) / hz(&without).max(1e-9),
         "machine_wakeup_overshoot_p99_us": jitter.0,
         "machine_wakeup_overshoot_max_us": jitter.1,
     });
@@ -190,13 +248,52 @@ pub fn driver_rate(args: &DriverRateArgs) -> Result<()> {
                 v["deadline_miss_ratio"].as_f64().unwrap_or(0.0), v["replies"], v["missing_replies"], v["read_backs"]
             )
         };
+        let (base, variant) = match args.cameras {
+            0 => ("baseline, no background read-back", "as deployed"),
+            _ => (
+                "as deployed, cameras idle",
+                "as deployed, cameras streaming",
+            ),
+        };
         println!(
-            "driver loop, {} buses × {slowest} servos in parallel at a {} Hz set-point; {wire_limited_hz:.1} Hz wire-limited ({bytes} bytes a cycle at 1 Mbps)\n  {}\n  {}\n  rate with / without: {:.3}; this machine wakes a 200 µs sleep up to {:.0} µs late at p99 ({:.0} µs max)",
-            args.buses.len(), args.rate_hz, line("baseline, no background read-back", &without), line("as deployed", &with),
+            "driver loop, {} buses × {slowest} servos in parallel at a {} Hz set-point; {wire_limited_hz:.1} Hz wire-limited ({bytes} bytes a cycle at 1 Mbps)\n  {}\n  {}\n  rate {variant} / {base}: {:.3}; this machine wakes a 200 µs sleep up to {:.0} µs late at p99 ({:.0} µs max)",
+            args.buses.len(), args.rate_hz, line(base, &without), line(variant, &with),
             hz(&with) / hz(&without).max(1e-9), jitter.0, jitter.1
         );
+        if let Some(c) = out["camera_load"].as_object() {
+            println!(
+                "  cameras: {} × {}×{} MJPEG at {} fps into nori-camera (JPEG {} bytes): {} frames published, {:.1} % of a core per camera while streaming, peak RSS {} MB",
+                c["cameras"], c["width"], c["height"], c["fps"], c["jpeg_bytes"], c["frames_published"],
+                c["cpu_per_camera_percent_of_a_core"].as_f64().unwrap_or(f64::NAN), c["peak_rss_mb"]
+            );
+        }
     }
     Ok(())
+}
+
+/// Frames each camera process published so far: the newest frame's sequence number + 1. (A
+/// new subscriber is connected at its publisher's next frame, so this waits a few frames.)
+fn camera_frames_published(domain: &str, count: usize) -> Vec<u64> {
+    let robot = RobotDescription::nori_a3();
+    let Ok(node) = telemetry::plane::Plane::open(domain, "bench-counter") else {
+        return Vec::new();
+    };
+    let subs: Vec<_> = robot
+        .camera
+        .iter()
+        .take(count)
+        .map(|c| node.camera_subscriber(&c.name).ok())
+        .collect();
+    std::thread::sleep(Duration::from_millis(300));
+    subs.iter()
+        .map(|sub| {
+            let mut newest = 0;
+            while let Some(Ok(Some(sample))) = sub.as_ref().map(|s| s.receive()) {
+                newest = sample.user_header().seq + 1;
+            }
+            newest
+        })
+        .collect()
 }
 
 /// How late this machine wakes a thread from a 200 µs sleep (p99, max), µs: the noise floor

@@ -66,14 +66,6 @@ fn free_endpoint() -> Result<String> {
     Ok(format!("tcp/127.0.0.1:{}", l.local_addr()?.port()))
 }
 
-/// Peak resident set of a process, MB (VmHWM).
-fn peak_rss_mb(pid: u32) -> Option<f64> {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
-    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kb / 1024.0)
-}
-
 /// Runs `nori bench action-latency`.
 pub fn action_latency(args: &ActionLatencyArgs) -> Result<()> {
     let pid = std::process::id();
@@ -219,7 +211,7 @@ pub fn action_latency(args: &ActionLatencyArgs) -> Result<()> {
     }
     let rss: Vec<(String, Option<f64>)> = processes
         .iter()
-        .map(|m| (m.name().to_string(), m.pid().and_then(peak_rss_mb)))
+        .map(|m| (m.name().to_string(), m.pid().and_then(bench::peak_rss_mb)))
         .collect();
     for m in &mut processes {
         m.stop(Duration::from_secs(3));

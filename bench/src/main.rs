@@ -3,6 +3,7 @@
 //! absolute times). No timing threshold lives in a test; these are run by hand and recorded in
 //! BENCHMARKS.md with the command that gave each figure.
 
+mod cameras;
 mod driver;
 mod fleet;
 mod model_lab;
@@ -24,6 +25,9 @@ enum Bench {
     SimSpeed(driver::SimSpeedArgs),
     /// Driver → supervisor latency: iceoryx2 against a Unix socket + postcard baseline.
     StatePlane(plane::StatePlaneArgs),
+    /// Camera frame latency (2.7 MB at 720p): iceoryx2 zero-copy against a Unix stream socket
+    /// copy.
+    CameraFrame(plane::CameraFrameArgs),
     /// A policy's action on zenoh to the goal on the simulated wire, through the fleet agent,
     /// against a goal published straight on the state plane.
     ActionLatency(fleet::ActionLatencyArgs),
@@ -39,6 +43,7 @@ fn main() -> Result<()> {
         Bench::DriverRate(a) => driver::driver_rate(a),
         Bench::SimSpeed(a) => driver::sim_speed(a),
         Bench::StatePlane(a) => plane::run(a),
+        Bench::CameraFrame(a) => plane::camera_frame(a),
         Bench::ActionLatency(a) => fleet::action_latency(a),
         Bench::FleetIngest(a) => fleet::fleet_ingest(a),
         Bench::ModelLab(a) => model_lab::run_bench(a),

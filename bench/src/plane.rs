@@ -6,14 +6,16 @@
 
 use anyhow::{bail, Context, Result};
 use bench::Transport;
+use camera::stream::StreamHeader;
 use clap::Args;
-use std::io::{BufRead, BufReader};
-use std::os::unix::net::UnixDatagram;
-
-use std::process::{Command, Stdio};
+use std::io::{BufRead, BufReader, Lines, Write};
+use std::os::unix::net::{UnixDatagram, UnixStream};
+use std::path::PathBuf;
+use std::process::{Child, ChildStdout, Command, Stdio};
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
 use telemetry::plane::{self, publish, Plane};
+use telemetry::sensors::{CameraFrameHeader, PixelFormat};
 use telemetry::JointState;
 
 /// Options of `nori bench state-plane`.
@@ -30,24 +32,65 @@ pub struct StatePlaneArgs {
     json: bool,
 }
 
-fn run_one(transport: Transport, args: &StatePlaneArgs) -> Result<serde_json::Value> {
-    let pid = std::process::id();
-    let domain = format!("nori_bench_{pid}");
-    let socket = std::env::temp_dir().join(format!("nori-bench-{pid}.sock"));
-    let mut child = Command::new(stack::sibling("nori-bench-plane-reader")?)
-        .arg("--transport")
-        .arg(format!("{transport:?}").to_lowercase())
-        .args(["--domain", &domain, "--socket"])
-        .arg(&socket)
-        .args(["--frames", &args.frames.to_string()])
-        .stdout(Stdio::piped())
-        .spawn()
-        .context("starting the reader")?;
-    let mut lines = BufReader::new(child.stdout.take().context("reader stdout")?).lines();
-    if lines.next().transpose()?.as_deref() != Some("ready") {
-        bail!("the reader did not start");
+/// The reading process, started and listening.
+struct Reader {
+    child: Child,
+    lines: Lines<BufReader<ChildStdout>>,
+    domain: String,
+    socket: PathBuf,
+}
+
+impl Reader {
+    /// Starts `nori-bench-plane-reader` on `transport` for `frames` frames (camera frames of
+    /// `camera_bytes` when given), and waits until it listens.
+    fn start(transport: Transport, frames: u64, camera_bytes: Option<usize>) -> Result<Self> {
+        let pid = std::process::id();
+        let domain = format!("nori_bench_{pid}");
+        let socket = std::env::temp_dir().join(format!("nori-bench-{pid}.sock"));
+        let mut command = Command::new(stack::sibling("nori-bench-plane-reader")?);
+        command
+            .arg("--transport")
+            .arg(format!("{transport:?}").to_lowercase())
+            .args(["--domain", &domain, "--socket"])
+            .arg(&socket)
+            .args(["--frames", &frames.to_string()]);
+        if let Some(bytes) = camera_bytes {
+            command.args(["--camera-bytes", &bytes.to_string()]);
+        }
+        let mut child = command
+            .stdout(Stdio::piped())
+            .spawn()
+            .context("starting the reader")?;
+        let mut lines = BufReader::new(child.stdout.take().context("reader stdout")?).lines();
+        if lines.next().transpose()?.as_deref() != Some("ready") {
+            bail!("the reader did not start");
+        }
+        Ok(Reader {
+            child,
+            lines,
+            domain,
+            socket,
+        })
     }
-    let node = Plane::open(&domain, "bench-writer")?;
+
+    /// The reader's figures, with the writer's send errors.
+    fn finish(mut self, send_errors: u64) -> Result<serde_json::Value> {
+        let result = self
+            .lines
+            .next()
+            .transpose()?
+            .context("no result from the reader")?;
+        let _ = self.child.wait();
+        let mut v: serde_json::Value = serde_json::from_str(&result)?;
+        v["send_errors"] = send_errors.into();
+        Ok(v)
+    }
+}
+
+fn run_one(transport: Transport, args: &StatePlaneArgs) -> Result<serde_json::Value> {
+    let reader = Reader::start(transport, args.frames, None)?;
+    let (domain, socket) = (&reader.domain, &reader.socket);
+    let node = Plane::open(domain, "bench-writer")?;
     let publisher = node.publisher(&plane::JOINT_STATE)?;
     let out = UnixDatagram::unbound()?;
     let mut state = JointState {
@@ -66,7 +109,7 @@ fn run_one(transport: Transport, args: &StatePlaneArgs) -> Result<serde_json::Va
         let sent = match transport {
             Transport::Iceoryx2 => publish(&publisher, &state).is_ok(),
             Transport::Uds => match postcard::to_slice(&state, &mut buf) {
-                Ok(bytes) => out.send_to(bytes, &socket).is_ok(),
+                Ok(bytes) => out.send_to(bytes, socket).is_ok(),
                 Err(_) => false,
             },
         };
@@ -78,17 +121,10 @@ fn run_one(transport: Transport, args: &StatePlaneArgs) -> Result<serde_json::Va
             std::thread::sleep(wait);
         }
     }
-    let result = lines
-        .next()
-        .transpose()?
-        .context("no result from the reader")?;
-    let _ = child.wait();
-    let mut v: serde_json::Value = serde_json::from_str(&result)?;
-    v["send_errors"] = send_errors.into();
-    Ok(v)
+    reader.finish(send_errors)
 }
 
-/// Runs the benchmark.
+/// Runs `nori bench state-plane`.
 pub fn run(args: &StatePlaneArgs) -> Result<()> {
     let size = std::mem::size_of::<JointState>();
     let mut buf = [0u8; 2048];
@@ -128,6 +164,119 @@ pub fn run(args: &StatePlaneArgs) -> Result<()> {
             uds["max_us"].as_f64().unwrap_or(f64::NAN),
             ratio("p50_us"),
             ratio("p99_us")
+        );
+    }
+    Ok(())
+}
+
+/// Options of `nori bench camera-frame`.
+#[derive(Args, Debug)]
+pub struct CameraFrameArgs {
+    /// Frames per transport.
+    #[arg(long, default_value_t = 300)]
+    frames: u64,
+    /// Frame rate, Hz.
+    #[arg(long, default_value_t = 30.0)]
+    rate_hz: f64,
+    /// Image width, px (RGB24).
+    #[arg(long, default_value_t = 1280)]
+    width: u32,
+    /// Image height, px.
+    #[arg(long, default_value_t = 720)]
+    height: u32,
+    /// Print one JSON object.
+    #[arg(long)]
+    json: bool,
+}
+
+/// Sends `args.frames` camera frames of `image` over `transport`; the image is written into
+/// the sample (iceoryx2: what the camera's decoder does) or into the socket (a copy through the
+/// kernel), and its send time is taken once it is whole in the writer's memory.
+fn camera_one(
+    transport: Transport,
+    args: &CameraFrameArgs,
+    image: &[u8],
+) -> Result<serde_json::Value> {
+    let reader = Reader::start(transport, args.frames, Some(image.len()))?;
+    let node = Plane::open(&reader.domain, "bench-writer")?;
+    let publisher = node.camera_publisher("bench", image.len())?;
+    let mut socket = match transport {
+        Transport::Uds => Some(UnixStream::connect(&reader.socket).context("connecting")?),
+        Transport::Iceoryx2 => None,
+    };
+    // Let the reader's subscriber connect before the first frame.
+    std::thread::sleep(Duration::from_millis(200));
+    let period = Duration::from_secs_f64(1.0 / args.rate_hz);
+    let mut next_send = Instant::now();
+    let mut send_errors = 0u64;
+    for seq in 0..args.frames {
+        let sent = match socket.as_mut() {
+            None => match publisher.loan_slice_uninit(image.len()) {
+                Ok(sample) => {
+                    let mut sample = sample.write_from_slice(image);
+                    *sample.user_header_mut() = CameraFrameHeader {
+                        seq,
+                        publish_ns: monotonic_ns(),
+                        ..CameraFrameHeader::default()
+                    };
+                    sample.send().is_ok()
+                }
+                Err(_) => false,
+            },
+            Some(out) => {
+                let header = StreamHeader {
+                    fourcc: PixelFormat::Rgb24.fourcc(),
+                    width: args.width,
+                    height: args.height,
+                    sequence: seq as u32,
+                    len: image.len() as u32,
+                    capture_ns: monotonic_ns(),
+                };
+                out.write_all(&header.encode())
+                    .and_then(|()| out.write_all(image))
+                    .is_ok()
+            }
+        };
+        if !sent {
+            send_errors += 1;
+        }
+        next_send += period;
+        if let Some(wait) = next_send.checked_duration_since(Instant::now()) {
+            std::thread::sleep(wait);
+        }
+    }
+    drop(socket);
+    reader.finish(send_errors)
+}
+
+/// Runs `nori bench camera-frame`.
+pub fn camera_frame(args: &CameraFrameArgs) -> Result<()> {
+    let bytes = camera::convert::rgb_len(args.width, args.height);
+    // A picture, not zeros: pages of zeros could be shared or compressed away.
+    let image: Vec<u8> = (0..bytes).map(|i| (i * 31 % 251) as u8).collect();
+    let ice = camera_one(Transport::Iceoryx2, args, &image)?;
+    let uds = camera_one(Transport::Uds, args, &image)?;
+    let ratio = |k: &str| ice[k].as_f64().unwrap_or(f64::NAN) / uds[k].as_f64().unwrap_or(f64::NAN);
+    let out = serde_json::json!({
+        "frame_bytes": bytes,
+        "frames": args.frames,
+        "rate_hz": args.rate_hz,
+        "iceoryx2": ice,
+        "uds_stream_copy": uds,
+        "p50_ratio": ratio("p50_us"),
+        "p99_ratio": ratio("p99_us"),
+        "reader": "second process; reads one byte of each 4 KiB page of every frame; iceoryx2 reader spins on receive(), the socket reader blocks in read",
+    });
+    if args.json {
+        println!("{out}");
+    } else {
+        let f = |v: &serde_json::Value, k: &str| v[k].as_f64().unwrap_or(f64::NAN);
+        println!(
+            "camera frame {}×{} RGB ({bytes} B), {} frames at {} Hz, second process:\n  iceoryx2 (zero-copy)     p50 {:>8.1} µs  p99 {:>8.1} µs  max {:>8.1} µs  received {}\n  Unix stream socket copy  p50 {:>8.1} µs  p99 {:>8.1} µs  max {:>8.1} µs  received {}\n  ratio iceoryx2/socket: p50 {:.3}, p99 {:.3}",
+            args.width, args.height, args.frames, args.rate_hz,
+            f(&ice, "p50_us"), f(&ice, "p99_us"), f(&ice, "max_us"), ice["received"],
+            f(&uds, "p50_us"), f(&uds, "p99_us"), f(&uds, "max_us"), uds["received"],
+            ratio("p50_us"), ratio("p99_us")
         );
     }
     Ok(())

@@ -36,6 +36,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
             "sim",
             "model-lab",
             "stack",
+            "camera",
         ],
     ),
     (
