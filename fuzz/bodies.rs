@@ -278,3 +278,53 @@ pub fn telemetry_csv(data: &[u8]) {
         }
     }
 }
+
+/// The lidar's line: the protocol decoder and the revolution assembler over any bytes, from
+/// inside a scan stream (first byte odd) or waiting for an answer. Whatever comes in, a node
+/// has an angle below 360°, and a published revolution holds at most a frame's points, each
+/// bearing in [0, 2π) and each range 0 or within the limits.
+pub fn lidar_stream(data: &[u8]) {
+    use lidar::protocol::{Decoder, Event, FULL_TURN_Q6};
+    use lidar::scan::{Assembler, ScanLimits};
+    use telemetry::sensors::MAX_SCAN_POINTS;
+
+    let limits = ScanLimits::C1;
+    let mut decoder = Decoder::new();
+    let mut assembler = Assembler::new(limits);
+    if data.first().is_some_and(|b| b & 1 == 1) {
+        for b in [0xA5, 0x5A, 0x05, 0x00, 0x00, 0x40, 0x81] {
+            decoder.push(b);
+        }
+    }
+    for (i, &b) in data.iter().enumerate() {
+        let Some(Event::Node(node)) = decoder.push(b) else {
+            continue;
+        };
+        assert!(node.angle_q6 < FULL_TURN_Q6);
+        if assembler.push(node, i as u64) {
+            let scan = assembler.scan_mut();
+            assert!(scan.point_count as usize <= MAX_SCAN_POINTS);
+            for p in scan.points() {
+                assert!((0.0..std::f32::consts::TAU).contains(&p.angle_rad), "{p:?}");
+                let r = f64::from(p.range_m);
+                assert!(r == 0.0 || (limits.min_range_m..=limits.max_range_m).contains(&r));
+            }
+        }
+    }
+}
+
+/// A camera's byte stream (the simulator's framing): any bytes, in pieces whose sizes come
+/// from the data; every frame read is one its header describes, never longer than the bound.
+pub fn camera_stream(data: &[u8]) {
+    use camera::stream::StreamReader;
+    const MAX: usize = 4096;
+    let mut reader = StreamReader::new(MAX);
+    let piece = 1 + usize::from(data.first().copied().unwrap_or(0) % 61);
+    for chunk in data.chunks(piece) {
+        reader.push(chunk);
+        while let Some((header, payload)) = reader.next_frame() {
+            assert_eq!(payload.len(), header.len as usize);
+            assert!(payload.len() <= MAX);
+        }
+    }
+}

@@ -230,9 +230,44 @@ pub struct RobotDescription {
     /// Cameras the simulator renders (served at `<device dir>/camera-<name>`).
     #[serde(default)]
     pub camera: Vec<CameraDescription>,
-    /// Things in the room the cameras see (a table, something to reach for).
+    /// Things in the room the cameras see (a table, something to reach for); the lidar sees
+    /// those that cross its scan plane.
     #[serde(default)]
     pub object: Vec<SceneObject>,
+    /// The lidar the simulator serves (at `<device dir>/lidar`).
+    #[serde(default)]
+    pub lidar: Option<LidarDescription>,
+    /// The room's walls (what the lidar sees; the cameras do not draw them).
+    #[serde(default)]
+    pub room: Option<RoomDescription>,
+}
+
+/// The lidar: an RPLIDAR C1 on the base.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct LidarDescription {
+    /// Optical centre on the base, m (x forward, y left, z up; the base starts at the world's
+    /// origin facing +x).
+    pub position: [f64; 3],
+    /// Where its 0° points, degrees counter-clockwise from the base's forward axis.
+    pub yaw_deg: f64,
+    /// Revolutions per second (the C1: 8-12, typically 10).
+    pub rotation_hz: f64,
+    /// Measurements per second (the C1: 5000).
+    pub sample_rate_hz: f64,
+    /// Longest range, m; farther is no return.
+    pub range_m: f64,
+    /// Range noise, m (standard deviation).
+    pub noise_m: f64,
+}
+
+/// The room: a floor plan of walls.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct RoomDescription {
+    /// The walls as a closed polygon on the floor, m, world frame (the last corner joins the
+    /// first).
+    pub walls: Vec<[f64; 2]>,
 }
 
 /// Where a camera is fixed.
@@ -430,6 +465,31 @@ impl RobotDescription {
                         format!("servo {id} is not on this bus"),
                     ));
                 }
+            }
+        }
+        if let Some(l) = &self.lidar {
+            let checks = [
+                ("lidar.rotation-hz", l.rotation_hz, 1.0, 20.0),
+                ("lidar.sample-rate-hz", l.sample_rate_hz, 100.0, 20_000.0),
+                ("lidar.range-m", l.range_m, 0.1, 100.0),
+                ("lidar.noise-m", l.noise_m, 0.0, 1.0),
+                ("lidar.yaw-deg", l.yaw_deg, -360.0, 360.0),
+            ];
+            for (key, v, lo, hi) in checks {
+                if !(v.is_finite() && (lo..=hi).contains(&v)) {
+                    return Err(invalid(key.into(), format!("{v}: {lo} to {hi}")));
+                }
+            }
+            if !l.position.iter().all(|v| v.is_finite()) {
+                return Err(invalid("lidar.position".into(), "must be finite".into()));
+            }
+        }
+        if let Some(room) = &self.room {
+            if room.walls.len() < 3 || !room.walls.iter().flatten().all(|v| v.is_finite()) {
+                return Err(invalid(
+                    "room.walls".into(),
+                    "a closed polygon needs at least three finite corners".into(),
+                ));
             }
         }
         Ok(())

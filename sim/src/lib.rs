@@ -8,6 +8,8 @@
 //! * [`bus`]: one bus, sans-IO: the device side of the `feetech` codec with the line's timing
 //!   (replies complete `bytes × 10 / baud` after the request, plus the return delay).
 //! * [`pty`]: serving buses on pseudo-terminals in real time for the unmodified driver.
+//! * [`camera`], [`lidar`]: the sensors, rendered and ray-cast from the simulated robot and
+//!   its room, served as the devices `nori-camera` and `nori-lidar` read.
 //! * [`description`]: the robot description file; the A3's is embedded.
 //! * [`extension`]: model extensions fitted on measured data by the model lab.
 //!
@@ -19,6 +21,7 @@ pub mod camera;
 pub mod description;
 pub mod extension;
 pub mod faults;
+pub mod lidar;
 pub mod pty;
 pub mod render;
 pub mod rng;

@@ -66,9 +66,9 @@ struct ServeArgs {
     /// Seed of the line faults (each bus adds its index).
     #[arg(long, default_value_t = 1)]
     pub fault_seed: u64,
-    /// Unplug a bus for a while, as a USB adapter pulled out and put back: BUS@AT+FOR (seconds
-    /// since start), e.g. `right_arm@10+3`; the device link comes back at the same path.
-    /// Repeatable.
+    /// Unplug a bus (or `lidar`) for a while, as a USB adapter pulled out and put back:
+    /// BUS@AT+FOR (seconds since start), e.g. `right_arm@10+3`; the device link comes back at
+    /// the same path. Repeatable.
     #[arg(long, value_name = "BUS@AT+FOR")]
     pub unplug: Vec<String>,
     /// Make one servo stop answering for a while: BUS:ID@AT+FOR, e.g. `left_arm:3@5+2`.
@@ -81,24 +81,48 @@ struct ServeArgs {
     /// Camera fault: probability per frame that its bytes are garbage.
     #[arg(long, default_value_t = 0.0)]
     pub camera_garbage_rate: f64,
+    /// Lidar fault: probability per measurement that its check bits are broken.
+    #[arg(long, default_value_t = 0.0)]
+    pub lidar_corrupt_rate: f64,
+    /// Lidar fault: probability per turn that the device stops sending part-way through it.
+    #[arg(long, default_value_t = 0.0)]
+    pub lidar_truncate_rate: f64,
+    /// Lidar fault: probability per turn of a burst of random bytes on the line.
+    #[arg(long, default_value_t = 0.0)]
+    pub lidar_garbage_rate: f64,
+    /// Make the lidar report a protection stop (until a RESET clears it).
+    #[arg(long)]
+    pub lidar_protection_stop: bool,
 }
 
-/// The simulator's report: one entry per bus.
+/// The simulator's report: one entry per bus, and the lidar's.
 #[derive(serde::Serialize)]
 struct SimReport {
     /// Buses.
     buses: Vec<BusReport>,
+    /// The lidar, if served.
+    lidar: Option<sim::lidar::LidarReport>,
 }
 
-fn write_report(path: &Path, buses: &[BusReport]) -> Result<()> {
+fn write_report(
+    path: &Path,
+    buses: &[BusReport],
+    lidar: Option<sim::lidar::LidarReport>,
+) -> Result<()> {
     let tmp = path.with_extension("tmp");
     let report = SimReport {
         buses: buses.to_vec(),
+        lidar,
     };
     std::fs::write(&tmp, serde_json::to_vec_pretty(&report)?)
         .with_context(|| format!("writing {}", tmp.display()))?;
     std::fs::rename(&tmp, path).with_context(|| format!("renaming to {}", path.display()))?;
     Ok(())
+}
+
+/// Whether a scheduled unplug is the lidar's (not a bus's).
+fn is_lidar(s: &Scheduled) -> bool {
+    s.bus == "lidar" && s.id.is_none()
 }
 
 fn main() -> Result<()> {
@@ -159,7 +183,7 @@ fn run(args: &ServeArgs) -> Result<()> {
     for text in &args.silence {
         faults_in_time.push(Scheduled::parse(text, true).context("--silence")?);
     }
-    for s in &faults_in_time {
+    for s in faults_in_time.iter().filter(|s| !is_lidar(s)) {
         let served_bus = args.buses.is_empty() || args.buses.contains(&s.bus);
         let bus = robot.bus(&s.bus).filter(|_| served_bus);
         let Some(bus) = bus else {
@@ -173,6 +197,9 @@ fn run(args: &ServeArgs) -> Result<()> {
                 );
             }
         }
+    }
+    if faults_in_time.iter().any(is_lidar) && robot.lidar.is_none() {
+        anyhow::bail!("--unplug lidar: the description has no lidar");
     }
     let mut schedule = Schedule::new(faults_in_time);
     let shutdown = telemetry::process::stop_flag()?;
@@ -199,7 +226,27 @@ fn run(args: &ServeArgs) -> Result<()> {
             anyhow::bail!("{name} must be a probability in [0, 1], got {rate}");
         }
     }
+    let lidar_faults = sim::lidar::LidarFaults {
+        corrupt_rate: args.lidar_corrupt_rate,
+        truncate_rate: args.lidar_truncate_rate,
+        garbage_rate: args.lidar_garbage_rate,
+        seed: args.fault_seed,
+    };
+    lidar_faults.validate().map_err(|e| anyhow::anyhow!(e))?;
     let served = serve(buses, args.dt)?;
+    let lidar = match sim::lidar::LidarDevice::new(&robot, lidar_faults) {
+        Some(mut device) => {
+            device.protection_stop = args.lidar_protection_stop;
+            let served = sim::lidar::serve(device, args.dir.join("lidar"))?;
+            eprintln!(
+                "nori sim: serving the lidar (RPLIDAR C1 protocol) on {}",
+                served.device.display()
+            );
+            Some(served)
+        }
+        None => None,
+    };
+    let lidar_report = || lidar.as_ref().map(sim::lidar::ServedLidar::report);
     // Cameras render only while a reader is connected: a run without nori-camera pays nothing.
     let cameras = sim::camera::serve(
         &robot,
@@ -265,6 +312,16 @@ fn run(args: &ServeArgs) -> Result<()> {
         std::thread::sleep(Duration::from_millis(20));
         let t = start.elapsed().as_secs_f64();
         for (s, active) in schedule.advance(t) {
+            if is_lidar(s) {
+                if let Some(l) = &lidar {
+                    l.set_plugged(!active);
+                }
+                eprintln!(
+                    "nori sim: t = {t:.2} s: lidar {}",
+                    if active { "unplugged" } else { "plugged in" }
+                );
+                continue;
+            }
             match s.id {
                 None if active => {
                     served.unplug(&s.bus);
@@ -289,15 +346,17 @@ fn run(args: &ServeArgs) -> Result<()> {
         }
         if let Some(path) = &args.report {
             if last_report.elapsed() >= Duration::from_secs(1) {
-                write_report(path, &served.reports())?;
+                write_report(path, &served.reports(), lidar_report())?;
                 last_report = Instant::now();
             }
         }
     }
     drop(cameras);
+    let final_lidar = lidar_report();
+    drop(lidar);
     let reports = served.stop();
     if let Some(path) = &args.report {
-        write_report(path, &reports)?;
+        write_report(path, &reports, final_lidar)?;
     }
     let hottest = reports
         .iter()

@@ -144,7 +144,7 @@ impl Drop for ServedRobot {
     }
 }
 
-fn open_pty(bus: &str, device: &Path) -> Result<OwnedFd, ServeError> {
+pub(crate) fn open_pty(bus: &str, device: &Path) -> Result<OwnedFd, ServeError> {
     let fail = |what| {
         move |source| ServeError::Pty {
             bus: bus.into(),

@@ -128,7 +128,9 @@ pub struct LidarScan {
     pub end_ns: u64,
     /// Points in use.
     pub point_count: u32,
-    /// Measurements refused so far (check bits, start flags, a reply cut short).
+    /// Measurements dropped so far as unconfirmed: next to a place where the byte stream lost
+    /// its alignment (broken check bits, bytes lost or inserted), where their own bytes
+    /// cannot be trusted.
     pub bad_points: u32,
     /// Times so far the reader lost the byte stream and searched for the next measurement.
     pub resyncs: u32,

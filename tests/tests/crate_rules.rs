@@ -19,6 +19,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
     ("supervisor", &["telemetry"]),
     ("fleet-agent", &["telemetry"]),
     ("camera", &["telemetry"]),
+    ("lidar", &["telemetry"]),
     ("sim", &["feetech", "telemetry", "camera"]),
     ("recorder", &["telemetry"]),
     ("model-lab", &["sim"]),
@@ -52,6 +53,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
             "model-lab",
             "telemetry",
             "camera",
+            "lidar",
         ],
     ),
 ];
@@ -61,7 +63,7 @@ const CONFINED: &[(&str, &[&str])] = &[
     ("zenoh", &["fleet-agent"]),
     ("iceoryx2", &["telemetry"]),
     ("parquet", &["recorder"]),
-    ("serialport", &["bus-driver"]),
+    ("serialport", &["bus-driver", "lidar"]),
     ("v4l", &["camera"]),
     ("tiny_http", &["fleet"]),
     ("prometheus-client", &["fleet"]),
@@ -78,6 +80,7 @@ const ROBOT: &[&str] = &[
     "fleet-agent",
     "recorder",
     "camera",
+    "lidar",
     "nori",
 ];
 const OFF_ROBOT: &[&str] = &["fleet", "stack", "bench", "nori-tests", "model-lab", "sim"];

@@ -34,6 +34,7 @@ fn the_shipped_configuration_files_are_what_the_binaries_print_and_load() {
         ("supervisor", "--print-default-config", "supervisor.toml"),
         ("fleet-agent", "--print-default-config", "fleet-agent.toml"),
         ("nori-camera", "--print-default-config", "camera.toml"),
+        ("nori-lidar", "--print-default-config", "lidar.toml"),
     ] {
         let shipped = std::fs::read_to_string(deploy().join("config").join(file)).unwrap();
         assert_eq!(
@@ -50,6 +51,7 @@ fn the_shipped_configuration_files_are_what_the_binaries_print_and_load() {
     supervisor::SupervisorConfig::load(&deploy().join("config/supervisor.toml")).unwrap();
     fleet_agent::AgentConfig::load(&deploy().join("config/fleet-agent.toml")).unwrap();
     camera::config::CamerasConfig::load(&deploy().join("config/camera.toml")).unwrap();
+    lidar::config::LidarConfig::load(&deploy().join("config/lidar.toml")).unwrap();
 }
 
 #[test]
@@ -79,6 +81,7 @@ fn the_systemd_units_verify() {
         "nori-bus-driver.service",
         "nori-fleet-agent.service",
         "nori-camera@head.service",
+        "nori-lidar.service",
         "nori.target",
     ] {
         let out = Command::new("systemd-analyze")

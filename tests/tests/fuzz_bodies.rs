@@ -298,3 +298,44 @@ fn a_csv_with_thousands_of_motors_is_refused_within_the_bound() {
     .unwrap_err();
     assert!(e.to_string().contains("5000 distinct motor ids"), "{e}");
 }
+
+/// Two turns of an RPLIDAR C1 scan (500 nodes each, S on the first), as the device sends them.
+fn lidar_turns() -> Vec<u8> {
+    let mut out = vec![0x01];
+    for i in 0..1000u32 {
+        let index = i % 500;
+        let start = u8::from(index == 0);
+        let angle = ((index * 46) << 1 | 1) as u16;
+        let distance = (8000 + i % 17) as u16;
+        out.extend_from_slice(&[40 << 2 | (1 - start) << 1 | start]);
+        out.extend_from_slice(&angle.to_le_bytes());
+        out.extend_from_slice(&distance.to_le_bytes());
+    }
+    out
+}
+
+#[test]
+fn lidar_stream_property() {
+    let turns = lidar_turns();
+    let mut info = vec![0x00, 0xA5, 0x5A, 0x14, 0, 0, 0, 0x04, 0x41, 2, 1, 18];
+    info.extend_from_slice(&[0xAB; 16]);
+    run("lidar_stream", bodies::lidar_stream, vec![turns, info], 256);
+}
+
+#[test]
+fn camera_stream_property() {
+    let header = camera::stream::StreamHeader {
+        fourcc: *b"YUYV",
+        width: 4,
+        height: 2,
+        sequence: 7,
+        len: 16,
+        capture_ns: 1_000,
+    };
+    let mut frames = vec![0x05];
+    for _ in 0..3 {
+        frames.extend_from_slice(&header.encode());
+        frames.extend_from_slice(&[0x80; 16]);
+    }
+    run("camera_stream", bodies::camera_stream, vec![frames], 512);
+}

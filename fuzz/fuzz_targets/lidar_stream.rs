@@ -1,0 +1,7 @@
+//! cargo-fuzz target: `bodies::lidar_stream` (see `fuzz/bodies.rs`).
+#![no_main]
+
+#[path = "../bodies.rs"]
+mod bodies;
+
+libfuzzer_sys::fuzz_target!(|data: &[u8]| bodies::lidar_stream(data));
