@@ -2,6 +2,7 @@
 //! simulation against real time).
 
 use crate::cameras::CameraLoad;
+use crate::lidar::LidarLoad;
 use anyhow::{Context, Result};
 use bus_driver::{Driver, LoadedConfig, SerialTransport, Standalone};
 use clap::Args;
@@ -41,6 +42,11 @@ pub struct DriverRateArgs {
     /// Camera frames per second.
     #[arg(long, default_value_t = 30)]
     camera_fps: u32,
+    /// Compare against the lidar scanning into `nori-lidar` (as deployed; with `--cameras`,
+    /// both sensors together): both halves read back as deployed, the lidar scans in every
+    /// other one and is unplugged in the rest.
+    #[arg(long)]
+    lidar: bool,
     /// Print one JSON object.
     #[arg(long)]
     json: bool,
@@ -161,7 +167,13 @@ pub fn driver_rate(args: &DriverRateArgs) -> Result<()> {
     // stretch of this shared machine hits both alike. The variant is the background read-back
     // (the stack as deployed), or with --cameras the cameras streaming (both halves as deployed).
     let half = args.seconds / 2.0;
-    let domain = format!("nori_bench_cameras_{}", std::process::id());
+    let domain = format!("nori_bench_sensors_{}", std::process::id());
+    let sensors = args.cameras > 0 || args.lidar;
+    let lidar = if args.lidar {
+        Some(LidarLoad::start(&domain)?)
+    } else {
+        None
+    };
     let cameras = match args.cameras {
         0 => None,
         n => Some(CameraLoad::start(
@@ -173,19 +185,31 @@ pub fn driver_rate(args: &DriverRateArgs) -> Result<()> {
         )?),
     };
     let mut runs: [Vec<RateRun>; 2] = [Vec::new(), Vec::new()];
-    let (mut camera_cpu_s, mut camera_s) = (0.0, 0.0);
+    let (mut camera_cpu_s, mut lidar_cpu_s, mut streaming_s) = (0.0, 0.0, 0.0);
     for variant in [false, true, false, true] {
-        let read_back = variant || cameras.is_some();
+        let read_back = variant || sensors;
         if let Some(load) = &cameras {
             load.feed(variant);
-            // Let the cameras reach (or leave) their steady rate before timing.
-            std::thread::sleep(Duration::from_millis(500));
         }
-        let cpu_before = cameras.as_ref().map_or(0.0, CameraLoad::cpu_seconds);
+        if let Some(load) = &lidar {
+            load.feed(variant);
+        }
+        if sensors {
+            // Let the sensors reach (or leave) their steady rate before timing.
+            let settle = if args.lidar {
+                LidarLoad::SETTLE
+            } else {
+                Duration::from_millis(500)
+            };
+            std::thread::sleep(settle);
+        }
+        let camera_before = cameras.as_ref().map_or(0.0, CameraLoad::cpu_seconds);
+        let lidar_before = lidar.as_ref().map_or(0.0, LidarLoad::cpu_seconds);
         let run = rate_run(&args.buses, args.rate_hz, half, read_back)?;
-        if let (Some(load), true) = (&cameras, variant) {
-            camera_cpu_s += load.cpu_seconds() - cpu_before;
-            camera_s += run.summary.elapsed_s;
+        if variant {
+            camera_cpu_s += cameras.as_ref().map_or(0.0, CameraLoad::cpu_seconds) - camera_before;
+            lidar_cpu_s += lidar.as_ref().map_or(0.0, LidarLoad::cpu_seconds) - lidar_before;
+            streaming_s += run.summary.elapsed_s;
         }
         runs[usize::from(variant)].push(run);
     }
@@ -198,12 +222,21 @@ pub fn driver_rate(args: &DriverRateArgs) -> Result<()> {
             "fps": args.camera_fps,
             "jpeg_bytes": load.jpeg_bytes,
             "frames_published": published,
-            "streaming_seconds": camera_s,
-            "cpu_per_camera_percent_of_a_core": 100.0 * camera_cpu_s / camera_s.max(1e-9) / args.cameras as f64,
+            "streaming_seconds": streaming_s,
+            "cpu_per_camera_percent_of_a_core": 100.0 * camera_cpu_s / streaming_s.max(1e-9) / args.cameras as f64,
             "peak_rss_mb": load.peak_rss_mb(),
         })
     });
     drop(cameras);
+    let lidar_figures = lidar.as_ref().map(|load| {
+        serde_json::json!({
+            "scans_published": crate::lidar::scans_published(&domain),
+            "scanning_seconds": streaming_s,
+            "cpu_percent_of_a_core": 100.0 * lidar_cpu_s / streaming_s.max(1e-9),
+            "peak_rss_mb": load.peak_rss_mb(),
+        })
+    });
+    drop(lidar);
     let figures = |r: &[RateRun]| {
         let cycles: u64 = r.iter().map(|x| x.summary.counters.cycles).sum();
         let elapsed: f64 = r.iter().map(|x| x.summary.elapsed_s).sum();
@@ -229,11 +262,12 @@ pub fn driver_rate(args: &DriverRateArgs) -> Result<()> {
         "rate_hz_set": args.rate_hz,
         "cycle_bytes_per_bus": bytes,
         "wire_limited_hz": wire_limited_hz,
-        "baseline": if args.cameras > 0 { "as deployed, cameras idle" } else { "no background read-back" },
-        "variant": if args.cameras > 0 { "as deployed, cameras streaming" } else { "as deployed (background read-back)" },
+        "baseline": if sensors { "as deployed, sensors idle" } else { "no background read-back" },
+        "variant": if sensors { "as deployed, sensors streaming" } else { "as deployed (background read-back)" },
         "baseline_figures": without,
         "variant_figures": with,
         "camera_load": camera_figures,
+        "lidar_load": lidar_figures,
         "rate_ratio_variant_to_baseline": hz(&with) / hz(&without).max(1e-9),
         "machine_wakeup_overshoot_p99_us": jitter.0,
         "machine_wakeup_overshoot_max_us": jitter.1,
@@ -248,12 +282,13 @@ pub fn driver_rate(args: &DriverRateArgs) -> Result<()> {
                 v["deadline_miss_ratio"].as_f64().unwrap_or(0.0), v["replies"], v["missing_replies"], v["read_backs"]
             )
         };
-        let (base, variant) = match args.cameras {
-            0 => ("baseline, no background read-back", "as deployed"),
-            _ => (
-                "as deployed, cameras idle",
-                "as deployed, cameras streaming",
-            ),
+        let (base, variant) = if sensors {
+            (
+                "as deployed, sensors idle",
+                "as deployed, sensors streaming",
+            )
+        } else {
+            ("baseline, no background read-back", "as deployed")
         };
         println!(
             "driver loop, {} buses × {slowest} servos in parallel at a {} Hz set-point; {wire_limited_hz:.1} Hz wire-limited ({bytes} bytes a cycle at 1 Mbps)\n  {}\n  {}\n  rate {variant} / {base}: {:.3}; this machine wakes a 200 µs sleep up to {:.0} µs late at p99 ({:.0} µs max)",
@@ -265,6 +300,13 @@ pub fn driver_rate(args: &DriverRateArgs) -> Result<()> {
                 "  cameras: {} × {}×{} MJPEG at {} fps into nori-camera (JPEG {} bytes): {} frames published, {:.1} % of a core per camera while streaming, peak RSS {} MB",
                 c["cameras"], c["width"], c["height"], c["fps"], c["jpeg_bytes"], c["frames_published"],
                 c["cpu_per_camera_percent_of_a_core"].as_f64().unwrap_or(f64::NAN), c["peak_rss_mb"]
+            );
+        }
+        if let Some(l) = out["lidar_load"].as_object() {
+            println!(
+                "  lidar: the simulated C1 (5000 measurements/s, 10 Hz) into nori-lidar: {} revolutions published, {:.1} % of a core while scanning, peak RSS {} MB",
+                l["scans_published"],
+                l["cpu_percent_of_a_core"].as_f64().unwrap_or(f64::NAN), l["peak_rss_mb"]
             );
         }
     }

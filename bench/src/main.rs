@@ -6,6 +6,7 @@
 mod cameras;
 mod driver;
 mod fleet;
+mod lidar;
 mod model_lab;
 mod plane;
 

@@ -10,7 +10,7 @@
 //! on a line nobody listens to.
 
 use crate::bus::{BusReport, SimBus};
-use nix::fcntl::{fcntl, FcntlArg, OFlag};
+use nix::fcntl::{fcntl, FcntlArg, FdFlag, OFlag};
 use nix::poll::{ppoll, PollFd, PollFlags};
 use nix::sys::termios::{cfmakeraw, tcgetattr, tcsetattr, SetArg};
 use nix::sys::time::TimeSpec;
@@ -160,6 +160,10 @@ pub(crate) fn open_pty(bus: &str, device: &Path) -> Result<OwnedFd, ServeError> 
     let name = nix::unistd::ttyname(&pty.slave).map_err(fail("ttyname"))?;
     fcntl(&pty.master, FcntlArg::F_SETFL(OFlag::O_NONBLOCK))
         .map_err(fail("non-blocking master"))?;
+    // Not inherited by programs this process starts (a benchmark serves the lidar and then
+    // starts nori-lidar): a child holding a copy of the master would keep the line up after
+    // an unplug, and the reader would never see the hang-up.
+    fcntl(&pty.master, FcntlArg::F_SETFD(FdFlag::FD_CLOEXEC)).map_err(fail("close-on-exec"))?;
     drop(pty.slave);
     let link = |source| ServeError::Link {
         path: device.into(),
@@ -326,5 +330,27 @@ fn run(mut lines: Lines, buses: &Mutex<Vec<SimBus>>, stop: &AtomicBool, dt: f64)
                 hung_up_until[i] = now + HANGUP_BACKOFF;
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_program_started_while_serving_does_not_inherit_the_line() {
+        // Otherwise the child's copy of the master keeps the line up after an unplug, and a
+        // driver or lidar process started by the same program never sees the hang-up.
+        let dir = std::env::temp_dir().join(format!("nori-pty-cloexec-{}", std::process::id()));
+        let master = open_pty("test", &dir.join("line")).unwrap();
+        let out = std::process::Command::new("ls")
+            .args(["-l", "/proc/self/fd"])
+            .output()
+            .unwrap();
+        let fds = String::from_utf8_lossy(&out.stdout);
+        assert!(out.status.success());
+        assert!(!fds.contains("ptmx"), "the child holds the master: {fds}");
+        drop(master);
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }
