@@ -231,6 +231,27 @@ pub fn record(args: &RecordArgs) -> Result<()> {
                 std::thread::sleep(Duration::from_millis(1));
             }
         }
+        // An episode starts once every joint and grip force was read: a held value needs a
+        // first read to hold.
+        let deadline = Instant::now() + wait;
+        loop {
+            drain(&mut sampler);
+            let unread = sampler.unread();
+            if unread.is_empty() || stop.load(Ordering::Relaxed) {
+                break;
+            }
+            if Instant::now() >= deadline {
+                bail!(
+                    "never read within --wait-s {} s: {} (a servo not answering, or no supervisor publishing grip force); nothing recorded for episode {episode}",
+                    args.wait_s,
+                    unread.join(", ")
+                );
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        if stop.load(Ordering::Relaxed) {
+            break;
+        }
         let mut writer = ds.begin_episode(&args.task, flush_every)?;
         let start = monotonic_ns();
         let mut late_max_ns = 0u64;
@@ -249,7 +270,9 @@ pub fn record(args: &RecordArgs) -> Result<()> {
                 continue;
             }
             late_max_ns = late_max_ns.max(now - tick);
-            let frame = sampler.frame(now);
+            let frame = sampler
+                .frame(now)
+                .context("a joint read before the episode began is no longer known")?;
             missing += frame.missing_joints();
             let t0 = Instant::now();
             if writer.push(frame)? {

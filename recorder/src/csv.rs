@@ -1,6 +1,7 @@
 //! Export of recorded episodes to the telemetry CSV format the model lab reads
 //! (`shared/data/README.md`: long format, one row per motor per sample, empty cells for missing
-//! samples), one file per episode with its `NAME.meta.json` sidecar.
+//! samples: a joint `observation.joint_valid` marks as held), one file per episode with its
+//! `NAME.meta.json` sidecar.
 //!
 //! Episodes are separate runs (nothing is known about the robot between two), so each gets its
 //! own file: the model lab reads a directory as a sequence of runs, each its own segment.
@@ -36,6 +37,8 @@ pub fn episode_csv(features: &Features, rows: &[DataRow]) -> String {
         for j in 0..features.joints.len() {
             let _ = write!(out, "{:.6},{j}", r.timestamp);
             let f = &r.frame;
+            // A held read (the joint was not read in this frame period) is a missing sample.
+            let held = f.valid.get(j).is_none_or(|&v| v < 0.5);
             for v in [
                 f.action[j],
                 f.state[j],
@@ -44,7 +47,7 @@ pub fn episode_csv(features: &Features, rows: &[DataRow]) -> String {
                 f.temperature[j],
                 f.current[j],
             ] {
-                cell(&mut out, v);
+                cell(&mut out, if held { f32::NAN } else { v });
             }
             out.push('\n');
         }

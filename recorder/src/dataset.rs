@@ -32,7 +32,10 @@
 //! it again from its staged parts (it is not).
 //!
 //! A lock (`flock` on `.nori-staging/lock`) keeps a second recorder out; the kernel releases it
-//! when the holder dies, however it dies.
+//! when the holder dies, however it dies. Closing the dataset removes the lock and the staging
+//! directory once it is empty, so a dataset closed cleanly holds only LeRobot's files (nothing
+//! of ours would be published by `push_to_hub`); after a crash they stay until the next open
+//! (`nori dataset recover`) repairs and closes it.
 
 use crate::error::RecordError;
 use crate::features::{FeatureSpec, Features, Ordered, SCALARS};
@@ -54,8 +57,8 @@ pub const CODEBASE_VERSION: &str = "v3.0";
 pub const CHUNKS_SIZE: i64 = 1000;
 /// LeRobot's `DEFAULT_DATA_FILE_SIZE_IN_MB`.
 pub const DATA_FILES_SIZE_IN_MB: u64 = 100;
-/// LeRobot's `DEFAULT_VIDEO_FILE_SIZE_IN_MB` (no video is recorded; kept for the field).
-pub const VIDEO_FILES_SIZE_IN_MB: u64 = 500;
+/// LeRobot's `DEFAULT_VIDEO_FILE_SIZE_IN_MB` (200 since LeRobot 0.4.1).
+pub const VIDEO_FILES_SIZE_IN_MB: u64 = 200;
 /// LeRobot's `DEFAULT_DATA_PATH`.
 pub const DATA_PATH: &str = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet";
 /// Staging directory under the root (hidden: LeRobot reads only `data/`, `meta/`, `videos/`).
@@ -82,13 +85,17 @@ impl Default for Settings {
     }
 }
 
-/// `meta/info.json`, field for field as LeRobot's `create_empty_dataset_info` writes it.
+/// `meta/info.json`, field for field and in the order LeRobot 0.6 writes it (its `DatasetInfo`
+/// dataclass, serialised field by field).
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Info {
     /// "v3.0".
     pub codebase_version: String,
-    /// Robot type.
-    pub robot_type: Option<String>,
+    /// Frames per second.
+    pub fps: u32,
+    /// Features in order.
+    #[serde(deserialize_with = "ordered_features")]
+    pub features: Ordered<FeatureSpec>,
     /// Episodes.
     pub total_episodes: i64,
     /// Frames.
@@ -101,17 +108,14 @@ pub struct Info {
     pub data_files_size_in_mb: u64,
     /// Video file size limit, MB.
     pub video_files_size_in_mb: u64,
-    /// Frames per second.
-    pub fps: u32,
-    /// `{"train": "0:N"}`.
-    pub splits: BTreeMap<String, String>,
     /// Data file template.
     pub data_path: String,
     /// Video file template; `null`: no video.
     pub video_path: Option<String>,
-    /// Features in order.
-    #[serde(deserialize_with = "ordered_features")]
-    pub features: Ordered<FeatureSpec>,
+    /// Robot type.
+    pub robot_type: Option<String>,
+    /// `{"train": "0:N"}`.
+    pub splits: BTreeMap<String, String>,
 }
 
 fn ordered_features<'de, D: serde::Deserializer<'de>>(
@@ -464,10 +468,7 @@ impl Dataset {
         } else {
             None
         };
-        let props = pq::properties(vec![(
-            "huggingface".into(),
-            pq::huggingface_metadata(&self.features),
-        )]);
+        let props = pq::properties(pq::data_metadata(&self.features));
         fsutil::replace_with(path, |out| {
             let mut writer = SerializedFileWriter::new(out, schema.clone(), props)
                 .map_err(RecordError::parquet(path))?;
@@ -492,23 +493,23 @@ impl Dataset {
         }
         let info = Info {
             codebase_version: CODEBASE_VERSION.into(),
-            robot_type: Some(self.settings.robot_type.clone()),
+            fps: self.settings.fps,
+            features: self.features.info_json(),
             total_episodes: self.episodes.len() as i64,
             total_frames,
             total_tasks: self.tasks.len() as i64,
             chunks_size: CHUNKS_SIZE,
             data_files_size_in_mb: self.settings.data_files_size_in_mb,
             video_files_size_in_mb: VIDEO_FILES_SIZE_IN_MB,
-            fps: self.settings.fps,
-            splits,
             data_path: DATA_PATH.into(),
             video_path: None,
-            features: self.features.info_json(),
+            robot_type: Some(self.settings.robot_type.clone()),
+            splits,
         };
         let nori = NoriMeta {
             features: self.features.clone(),
             action: "the joint position goal the bus-driver sent in the sampled cycle, after its calibration clamp (JointState goal_rad)".into(),
-            missing: "NaN: no valid read of the joint within the last frame period".into(),
+            missing: "observation.joint_valid = 0: no valid read of the joint (or of a gripper's grip force) within the last frame period; its values are its last read, held. Frames are recorded only once every joint was read".into(),
         };
         let path = self.root.join("meta/nori.json");
         fsutil::replace(&path, &json_bytes(&path, &nori)?)?;
@@ -1047,6 +1048,17 @@ impl EpisodeWriter<'_> {
     pub fn discard(mut self) -> Result<(), RecordError> {
         self.wait_for_writer()?;
         remove_dir(&self.dir)
+    }
+}
+
+impl Drop for Dataset {
+    fn drop(&mut self) {
+        // Unlinked while still held (the lock itself is released after this body): a recorder
+        // that opens the path now creates a new lock file and takes that one.
+        let staging = self.root.join(STAGING);
+        let _ = std::fs::remove_file(staging.join("lock"));
+        // Fails, as it should, while an episode is still staged.
+        let _ = std::fs::remove_dir(&staging);
     }
 }
 

@@ -53,6 +53,9 @@ pub enum Vector {
     Voltage,
     /// `observation.grip_force`: normalised grip force per gripper, 0..1.
     GripForce,
+    /// `observation.joint_valid`: 1 where every value of the joint in this frame was read in
+    /// this frame period, 0 where its last read is held (the servo did not answer in time).
+    Valid,
 }
 
 impl Vector {
@@ -66,6 +69,7 @@ impl Vector {
             Vector::Temperature => "observation.temperature",
             Vector::Voltage => "observation.voltage",
             Vector::GripForce => "observation.grip_force",
+            Vector::Valid => "observation.joint_valid",
         }
     }
 }
@@ -136,6 +140,7 @@ impl Features {
         if !self.grippers().is_empty() {
             v.push(Vector::GripForce);
         }
+        v.push(Vector::Valid);
         v
     }
 
@@ -270,6 +275,7 @@ mod tests {
                 "observation.temperature",
                 "observation.voltage",
                 "observation.grip_force",
+                "observation.joint_valid",
                 "timestamp",
                 "frame_index",
                 "episode_index",

@@ -14,11 +14,12 @@
 //! <root>/meta/episodes/chunk-000/file-000.parquet       one row per episode, with its stats
 //! <root>/data/chunk-000/file-000.parquet                frames, one row group per episode
 //! <root>/meta/nori.json                                 the joint layout (bus, id, model): not LeRobot's
-//! <root>/.nori-staging/                                 the episode being recorded, flushed parts
+//! <root>/.nori-staging/                                 while open: the lock, the episode being recorded
 //! ```
 //!
 //! Crash safety: see [`dataset`].
 
+pub mod arrow_schema;
 pub mod csv;
 pub mod dataset;
 pub mod error;

@@ -126,6 +126,40 @@ pub fn huggingface_metadata(features: &Features) -> String {
     serde_json::json!({"info": {"features": map}}).to_string()
 }
 
+/// The Arrow types of the frame table's columns, in order (what `ARROW:schema` says).
+pub fn data_arrow_schema(features: &Features) -> String {
+    use crate::arrow_schema::{arrow_schema, ArrowType};
+    let mut columns: Vec<(&str, ArrowType)> = features
+        .vectors()
+        .into_iter()
+        .map(|v| {
+            let t = match features.width(v) {
+                1 => ArrowType::Float32,
+                n => ArrowType::Float32List(n as i32),
+            };
+            (v.key(), t)
+        })
+        .collect();
+    for (key, dtype) in SCALARS {
+        let t = if dtype == "float32" {
+            ArrowType::Float32
+        } else {
+            ArrowType::Int64
+        };
+        columns.push((key, t));
+    }
+    arrow_schema(&columns)
+}
+
+/// The schema metadata of a data file: Hugging Face's features and the Arrow schema, as a
+/// file LeRobot writes carries them.
+pub fn data_metadata(features: &Features) -> Vec<(String, String)> {
+    vec![
+        ("huggingface".into(), huggingface_metadata(features)),
+        ("ARROW:schema".into(), data_arrow_schema(features)),
+    ]
+}
+
 /// Writer properties: snappy (as LeRobot), with the given schema metadata.
 pub fn properties(metadata: Vec<(String, String)>) -> Arc<WriterProperties> {
     let kv = metadata
@@ -581,14 +615,15 @@ pub fn read_episodes(path: &Path, features: &Features) -> Result<Vec<EpisodeRow>
 }
 
 /// The `pandas` schema metadata that makes `pandas.read_parquet` restore the task text as the
-/// frame's index, as LeRobot's `tasks.to_parquet` leaves it (`tasks.loc[text].task_index`).
+/// frame's index named `task`, as LeRobot's `tasks.to_parquet` leaves it
+/// (`pd.Index(tasks, name="task")`; it reads `tasks.loc[text].task_index`).
 fn pandas_tasks_metadata() -> String {
     serde_json::json!({
-        "index_columns": ["__index_level_0__"],
+        "index_columns": ["task"],
         "column_indexes": [{"name": null, "field_name": null, "pandas_type": "unicode", "numpy_type": "object", "metadata": {"encoding": "UTF-8"}}],
         "columns": [
             {"name": "task_index", "field_name": "task_index", "pandas_type": "int64", "numpy_type": "int64", "metadata": null},
-            {"name": null, "field_name": "__index_level_0__", "pandas_type": "unicode", "numpy_type": "object", "metadata": null}
+            {"name": "task", "field_name": "task", "pandas_type": "unicode", "numpy_type": "object", "metadata": null}
         ],
         "creator": {"library": "nori-recorder", "version": env!("CARGO_PKG_VERSION")},
         "pandas_version": "2.2.0"
@@ -600,7 +635,7 @@ fn pandas_tasks_metadata() -> String {
 pub fn write_tasks<W: std::io::Write + Send>(out: W, tasks: &[String]) -> PqResult<()> {
     let schema = message(vec![
         optional("task_index", Physical::INT64, None)?,
-        optional("__index_level_0__", Physical::BYTE_ARRAY, string())?,
+        optional("task", Physical::BYTE_ARRAY, string())?,
     ])?;
     let props = properties(vec![("pandas".into(), pandas_tasks_metadata())]);
     let mut writer = SerializedFileWriter::new(out, schema, props)?;
@@ -633,7 +668,8 @@ pub fn read_tasks(path: &Path) -> Result<Vec<String>, RecordError> {
         let cols = columns(&row);
         let i = as_i64(path, "task_index", want(path, &cols, "task_index")?)?;
         let text =
-            match want(path, &cols, "__index_level_0__").or_else(|_| want(path, &cols, "task"))? {
+            // `__index_level_0__`: the unnamed index this recorder wrote before.
+            match want(path, &cols, "task").or_else(|_| want(path, &cols, "__index_level_0__"))? {
                 Field::Str(s) => s.clone(),
                 other => return Err(RecordError::invalid(path, format!("task text {other:?}"))),
             };

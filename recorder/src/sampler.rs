@@ -2,9 +2,15 @@
 //!
 //! The driver publishes a joint-state frame every cycle (200 Hz) and the supervisor a grip frame
 //! per joint-state frame; a dataset frame is taken at each tick of the recording rate from the
-//! newest *valid* sample of each joint. A joint whose reads all failed during the last frame
-//! period is recorded as NaN (missing), never as an old value: the driver's rule that a missing
-//! servo is missing, carried into the dataset.
+//! newest *valid* sample of each joint.
+//!
+//! A joint whose reads all failed during the last frame period keeps its last read values, and
+//! the frame says so: `observation.joint_valid` is 0 for it (1 when every value of the joint,
+//! its grip force included for a gripper, is from this period). The driver's rule that a missing
+//! servo is missing is carried into the dataset by the mask, not by NaN: LeRobot has no masking,
+//! a NaN spreads through its statistics and every loss of an action chunk that touches it, and
+//! the mask lets a policy or a filter drop what was held. An episode starts only once every
+//! joint (and grip force) has been read ([`Sampler::unread`]), so nothing is ever invented.
 
 use crate::features::{Features, Vector};
 use telemetry::frames::{GripFrame, JointSample, JointState};
@@ -26,10 +32,12 @@ pub struct Frame {
     pub voltage: Vec<f32>,
     /// Normalised grip force per gripper.
     pub grip_force: Vec<f32>,
+    /// Per joint: 1 if read in this frame period, 0 if its last read is held.
+    pub valid: Vec<f32>,
 }
 
 impl Frame {
-    /// A frame of NaN for `features`.
+    /// A frame of NaN for `features`, every joint invalid (what a reader fills).
     pub fn missing(features: &Features) -> Frame {
         let n = features.joints.len();
         let g = features.grippers().len();
@@ -41,6 +49,7 @@ impl Frame {
             temperature: vec![f32::NAN; n],
             voltage: vec![f32::NAN; n],
             grip_force: vec![f32::NAN; g],
+            valid: vec![0.0; n],
         }
     }
 
@@ -54,6 +63,7 @@ impl Frame {
             Vector::Temperature => &self.temperature,
             Vector::Voltage => &self.voltage,
             Vector::GripForce => &self.grip_force,
+            Vector::Valid => &self.valid,
         }
     }
 
@@ -67,12 +77,13 @@ impl Frame {
             Vector::Temperature => &mut self.temperature,
             Vector::Voltage => &mut self.voltage,
             Vector::GripForce => &mut self.grip_force,
+            Vector::Valid => &mut self.valid,
         }
     }
 
-    /// Count of missing (NaN) joint positions in this frame.
+    /// Count of joints whose last read is held in this frame.
     pub fn missing_joints(&self) -> usize {
-        self.state.iter().filter(|x| x.is_nan()).count()
+        self.valid.iter().filter(|&&v| v < 0.5).count()
     }
 }
 
@@ -84,6 +95,8 @@ pub struct Sampler {
     joints: Vec<Option<(u64, JointSample)>>,
     /// Joint-frame index of each gripper (in [`Features::grippers`] order).
     gripper_joints: Vec<usize>,
+    /// Index of each gripper among the recorded joints.
+    gripper_rows: Vec<usize>,
     /// Newest grip force per gripper, with its timestamp.
     grips: Vec<Option<(u64, f32)>>,
     max_age_ns: u64,
@@ -100,6 +113,7 @@ impl Sampler {
         Sampler {
             joints: vec![None; features.joints.len()],
             grips: vec![None; gripper_joints.len()],
+            gripper_rows: features.grippers(),
             gripper_joints,
             features,
             max_age_ns,
@@ -138,27 +152,53 @@ impl Sampler {
         }
     }
 
-    /// The frame at `now_ns` (CLOCK_MONOTONIC, the driver's clock).
-    pub fn frame(&self, now_ns: u64) -> Frame {
-        let mut f = Frame::missing(&self.features);
+    /// What has never been read (joint names, `<gripper> grip force`): a frame is taken only
+    /// once this is empty.
+    pub fn unread(&self) -> Vec<String> {
+        let joints = &self.features.joints;
+        let unread_joints = (self.joints.iter().zip(joints))
+            .filter(|(slot, _)| slot.is_none())
+            .map(|(_, j)| j.name.clone());
+        let grippers = self.features.grippers();
+        let unread_grips = (self.grips.iter().zip(&grippers))
+            .filter(|(slot, _)| slot.is_none())
+            .map(|(_, &i)| format!("{} grip force", joints[i].name));
+        unread_joints.chain(unread_grips).collect()
+    }
+
+    /// The frame at `now_ns` (CLOCK_MONOTONIC, the driver's clock); `None` while something was
+    /// never read ([`Sampler::unread`]).
+    pub fn frame(&self, now_ns: u64) -> Option<Frame> {
+        let n = self.features.joints.len();
+        let mut f = Frame {
+            action: Vec::with_capacity(n),
+            state: Vec::with_capacity(n),
+            velocity: Vec::with_capacity(n),
+            current: Vec::with_capacity(n),
+            temperature: Vec::with_capacity(n),
+            voltage: Vec::with_capacity(n),
+            grip_force: Vec::with_capacity(self.grips.len()),
+            valid: Vec::with_capacity(n),
+        };
         let fresh = |t: u64| now_ns.saturating_sub(t) <= self.max_age_ns;
-        for (i, slot) in self.joints.iter().enumerate() {
-            if let Some((t, s)) = slot.filter(|(t, _)| fresh(*t)) {
-                let _ = t;
-                f.action[i] = s.goal_rad;
-                f.state[i] = s.position_rad;
-                f.velocity[i] = s.velocity_rad_s;
-                f.current[i] = s.current_a;
-                f.temperature[i] = s.temperature_c;
-                f.voltage[i] = s.voltage_v;
+        for slot in &self.joints {
+            let (t, s) = (*slot)?;
+            f.action.push(s.goal_rad);
+            f.state.push(s.position_rad);
+            f.velocity.push(s.velocity_rad_s);
+            f.current.push(s.current_a);
+            f.temperature.push(s.temperature_c);
+            f.voltage.push(s.voltage_v);
+            f.valid.push(if fresh(t) { 1.0 } else { 0.0 });
+        }
+        for (slot, &gripper) in self.grips.iter().zip(&self.gripper_rows) {
+            let (t, force) = (*slot)?;
+            f.grip_force.push(force);
+            if !fresh(t) {
+                f.valid[gripper] = 0.0;
             }
         }
-        for (k, slot) in self.grips.iter().enumerate() {
-            if let Some((_, force)) = slot.filter(|(t, _)| fresh(*t)) {
-                f.grip_force[k] = force;
-            }
-        }
-        f
+        Some(f)
     }
 }
 
@@ -209,12 +249,28 @@ mod tests {
         s
     }
 
+    fn grip(t: u64, force: f32) -> GripFrame {
+        let mut g = GripFrame {
+            timestamp_ns: t,
+            gripper_count: 1,
+            ..GripFrame::default()
+        };
+        g.grippers[0] = GripSample {
+            joint: 2,
+            valid: 1,
+            force,
+            ..GripSample::default()
+        };
+        g
+    }
+
     #[test]
     fn a_frame_takes_the_newest_valid_sample_of_each_joint() {
         let mut s = Sampler::new(features(), 40);
         s.on_state(&state(100, [true, true, true], 1.0));
         s.on_state(&state(110, [true, true, false], 2.0));
-        let f = s.frame(120);
+        s.on_grip(&grip(110, 0.3));
+        let f = s.frame(120).unwrap();
         assert_eq!(
             f.state,
             [2.0, 3.0],
@@ -226,21 +282,47 @@ mod tests {
             "the goal the driver sent, beside its position"
         );
         assert_eq!(f.current, [0.5, 0.5]);
+        assert_eq!(f.valid, [1.0, 1.0]);
+        assert_eq!(f.grip_force, [0.3]);
     }
 
     #[test]
-    fn a_joint_without_a_valid_read_in_the_last_period_is_missing() {
+    fn no_frame_until_everything_was_read_once() {
+        let mut s = Sampler::new(features(), 40);
+        assert_eq!(s.unread(), ["elbow", "gripper", "gripper grip force"]);
+        assert_eq!(s.frame(0), None);
+        s.on_state(&state(100, [true, true, false], 1.0));
+        assert_eq!(s.unread(), ["gripper", "gripper grip force"]);
+        assert_eq!(s.frame(100), None);
+        s.on_state(&state(110, [true, true, true], 1.0));
+        s.on_grip(&grip(110, 0.1));
+        assert!(s.unread().is_empty());
+        assert!(s.frame(110).is_some());
+    }
+
+    #[test]
+    fn a_joint_without_a_valid_read_in_the_last_period_keeps_its_last_read_marked_invalid() {
         let mut s = Sampler::new(features(), 40);
         s.on_state(&state(100, [true, true, true], 1.0));
+        s.on_grip(&grip(100, 0.2));
         s.on_state(&state(150, [true, true, false], 2.0));
-        let f = s.frame(150);
+        s.on_grip(&grip(150, 0.4));
+        let f = s.frame(150).unwrap();
         assert_eq!(f.state[0], 2.0);
-        assert!(
-            f.state[1].is_nan() && f.action[1].is_nan(),
-            "gripper last read 50 ns ago > 40"
+        assert_eq!(
+            (f.state[1], f.action[1]),
+            (3.0, 13.0),
+            "the gripper's read of t = 100 held (50 ns ago > 40)"
         );
+        assert_eq!(f.valid, [1.0, 0.0]);
         assert_eq!(f.missing_joints(), 1);
-        assert!(f.grip_force[0].is_nan(), "no grip frame yet");
+        assert!(f.vector(Vector::State).iter().all(|x| x.is_finite()));
+        // A gripper whose position is fresh but whose grip force is stale is not valid either.
+        s.on_state(&state(190, [true, true, true], 3.0));
+        let f = s.frame(191).unwrap();
+        assert_eq!(f.grip_force, [0.4]);
+        assert_eq!(f.valid, [1.0, 0.0], "grip force 41 ns old");
+        assert_eq!(s.frame(189).unwrap().valid, [1.0, 1.0]);
     }
 
     #[test]
@@ -264,7 +346,17 @@ mod tests {
             ..GripSample::default()
         };
         s.on_grip(&g);
-        assert_eq!(s.frame(120).grip_force, [0.25]);
-        assert!(s.frame(141).grip_force[0].is_nan(), "stale");
+        s.on_state(&state(100, [true, true, true], 1.0));
+        let f = s.frame(120).unwrap();
+        assert_eq!(
+            (f.grip_force.as_slice(), f.valid[1]),
+            ([0.25].as_slice(), 1.0)
+        );
+        let stale = s.frame(141).unwrap();
+        assert_eq!(
+            (stale.grip_force[0], stale.valid[1]),
+            (0.25, 0.0),
+            "held, marked"
+        );
     }
 }

@@ -46,6 +46,8 @@ fn frame(f: &Features, episode: usize, i: usize) -> Frame {
         fr.current[j] = 0.2 + j as f32;
         fr.temperature[j] = 30.0;
         fr.voltage[j] = 12.0;
+        // Every fifth frame holds joint 1's last read.
+        fr.valid[j] = if j == 1 && i % 5 == 4 { 0.0 } else { 1.0 };
     }
     fr.grip_force[0] = (i % 10) as f32 / 10.0;
     fr
@@ -125,16 +127,56 @@ fn episodes_are_committed_read_back_and_extended_after_a_restart() {
     assert_eq!(info["total_frames"], 86);
     assert_eq!(info["total_episodes"], 3);
     assert_eq!(info["splits"]["train"], "0:3");
+    assert_eq!(
+        info["video_files_size_in_mb"], 200,
+        "LeRobot's default since 0.4.1"
+    );
+    // Keys in the order LeRobot 0.6 writes them (its DatasetInfo dataclass).
+    let text = std::fs::read_to_string(root.join("meta/info.json")).unwrap();
+    let order = [
+        "codebase_version",
+        "fps",
+        "features",
+        "total_episodes",
+        "total_frames",
+        "total_tasks",
+        "chunks_size",
+        "data_files_size_in_mb",
+        "video_files_size_in_mb",
+        "data_path",
+        "video_path",
+        "robot_type",
+        "splits",
+    ];
+    let at: Vec<usize> = order
+        .iter()
+        .map(|k| {
+            text.find(&format!("\n  \"{k}\""))
+                .unwrap_or_else(|| panic!("{k}"))
+        })
+        .collect();
+    assert!(at.windows(2).all(|w| w[0] < w[1]), "{text}");
+    assert_eq!(
+        info["features"]["observation.joint_valid"]["names"],
+        serde_json::json!(["left_shoulder", "left_elbow", "left_gripper"])
+    );
     let stats: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(root.join("meta/stats.json")).unwrap())
             .unwrap();
     assert_eq!(stats["observation.state"]["count"], serde_json::json!([86]));
     assert_eq!(stats["index"]["max"], serde_json::json!([85.0]));
     assert!(matches!(ds.read_episode(3), Err(RecordError::Request(_))));
+    assert!(root.join(".nori-staging/lock").exists(), "held while open");
     drop(ds);
+    // Closed: nothing of the recorder's is left for `push_to_hub` to publish.
+    assert!(!root.join(".nori-staging").exists());
     let reader = DatasetReader::open(&root).unwrap();
     assert_eq!(reader.features, f);
     assert_eq!(reader.read_episode(0).unwrap().len(), 45);
+    assert!(
+        !root.join(".nori-staging").exists(),
+        "a reader takes no lock"
+    );
 }
 
 #[test]
@@ -366,7 +408,7 @@ fn the_csv_export_is_the_model_labs_format() {
     let f = ds.features().clone();
     let mut w = ds.begin_episode("wave", 30).unwrap();
     let mut fr = frame(&f, 1, 0);
-    fr.state[1] = f32::NAN;
+    fr.valid[1] = 0.0;
     w.push(fr).unwrap();
     w.finish().unwrap();
     drop(ds);
@@ -378,9 +420,10 @@ fn the_csv_export_is_the_model_labs_format() {
     assert_eq!(lines[0], recorder::csv::HEADER);
     assert_eq!(lines.len(), 1 + 3, "one row per joint");
     assert_eq!(
-        lines[2], "0.000000,1,101.5,,0.1,12,30,1.2",
-        "a missing position is an empty cell"
+        lines[2], "0.000000,1,,,,,,",
+        "a joint whose last read is held is a missing sample"
     );
+    assert_eq!(lines[3], "0.000000,2,102.5,102,0.1,12,30,2.2");
     let side: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(out.join("episode-000001.meta.json")).unwrap(),
     )

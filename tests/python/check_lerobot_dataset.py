@@ -6,11 +6,12 @@ does (`lerobot/datasets/utils.py`: `load_info`, `load_nested_dataset` over `data
 `load_episodes` over `meta/episodes/*/*.parquet`, `pd.read_parquet(meta/tasks.parquet)`,
 `load_stats`), and checks field names, schema, row counts, indices, timestamps and statistics.
 
-Usage: check_lerobot_dataset.py ROOT [--episodes N] [--in-flight]
+Usage: check_lerobot_dataset.py ROOT [--episodes N] [--in-flight] [--closed]
 
 --in-flight accepts what a recorder killed during a commit leaves before the next start repairs
 it: `info.json` (written last) may not count the one episode being committed, whose row may
 already be in the episode table and whose frames may already be in the data file.
+--closed: the recorder exited cleanly, so nothing of its own (`.nori-staging`) may be left.
 Prints a JSON summary on success; exits 1 with the reason on the first failure, 3 if pyarrow,
 pandas or numpy cannot be imported.
 """
@@ -28,9 +29,10 @@ except ImportError as e:  # the Rust test decides whether that is a skip or a fa
     print(f"cannot import: {e}", file=sys.stderr)
     sys.exit(3)
 
+# The order LeRobot 0.6 writes (its DatasetInfo dataclass, serialised field by field).
 INFO_KEYS = [
-    "codebase_version", "robot_type", "total_episodes", "total_frames", "total_tasks", "chunks_size",
-    "data_files_size_in_mb", "video_files_size_in_mb", "fps", "splits", "data_path", "video_path", "features",
+    "codebase_version", "fps", "features", "total_episodes", "total_frames", "total_tasks", "chunks_size",
+    "data_files_size_in_mb", "video_files_size_in_mb", "data_path", "video_path", "robot_type", "splits",
 ]
 DEFAULT_FEATURES = {
     "timestamp": {"dtype": "float32", "shape": [1], "names": None},
@@ -42,7 +44,7 @@ DEFAULT_FEATURES = {
 DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
 STATS = ["min", "max", "mean", "std", "count", "q01", "q10", "q50", "q90", "q99"]
 QUANTILES = {"q01": 0.01, "q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
-REQUIRED = ["observation.state", "observation.current", "action"]
+REQUIRED = ["observation.state", "observation.current", "action", "observation.joint_valid"]
 
 
 def fail(msg):
@@ -96,7 +98,7 @@ def stats_of(x):
 
 def main():
     args = sys.argv[1:]
-    check(args, "usage: check_lerobot_dataset.py ROOT [--episodes N] [--in-flight]")
+    check(args, "usage: check_lerobot_dataset.py ROOT [--episodes N] [--in-flight] [--closed]")
     root = Path(args[0])
     expect_episodes = int(args[args.index("--episodes") + 1]) if "--episodes" in args else None
     in_flight = "--in-flight" in args
@@ -107,6 +109,9 @@ def main():
     check(info["data_path"] == DATA_PATH, f"data_path {info['data_path']}")
     check(info["video_path"] is None, "video_path should be null without videos")
     check(info["chunks_size"] == 1000, "chunks_size")
+    check(info["video_files_size_in_mb"] == 200, f"video_files_size_in_mb {info['video_files_size_in_mb']}, LeRobot's default is 200")
+    # Nothing of the recorder's is left in a dataset closed cleanly (push_to_hub would publish it).
+    check("--closed" not in args or not (root / ".nori-staging").exists(), ".nori-staging left behind after a clean exit")
     fps = info["fps"]
     check(isinstance(fps, int) and fps > 0, f"fps {fps}")
     features = info["features"]
@@ -128,6 +133,7 @@ def main():
     # Tasks, as LeRobot loads them: the task text is the pandas index.
     tasks = pd.read_parquet(root / "meta/tasks.parquet")
     check(list(tasks.columns) == ["task_index"], f"tasks.parquet columns {list(tasks.columns)}")
+    check(tasks.index.name == "task", f"tasks.parquet index named {tasks.index.name!r}, LeRobot's is 'task'")
     check(len(tasks) == info["total_tasks"] or (in_flight and len(tasks) == info["total_tasks"] + 1),
           f"{len(tasks)} tasks, info says {info['total_tasks']}")
     for text in tasks.index:
@@ -154,6 +160,12 @@ def main():
     for k in ["frame_index", "episode_index", "index", "task_index"]:
         check(data.schema.field(k).type == pa.int64(), f"{k} is {data.schema.field(k).type}")
     check(data.schema.field("timestamp").type == pa.float32(), f"timestamp is {data.schema.field('timestamp').type}")
+    for k, spec in features.items():
+        if k in DEFAULT_FEATURES:
+            continue
+        t = data.schema.field(k).type
+        want = pa.float32() if spec["shape"] == [1] else pa.list_(pa.field("element", pa.float32()), spec["shape"][0])
+        check(t == want, f"{k} is {t}, LeRobot writes {want}")
     cols = {k: column_array(data, k, spec) for k, spec in features.items()}
     total = info["total_frames"]
     orphan_rows = data.num_rows - total
@@ -234,7 +246,14 @@ def main():
         check(len(first["observation.state"]) == features["observation.state"]["shape"][0], "datasets: state width")
         hf_loaded = len(loaded)
 
+    # No NaN or infinity anywhere: LeRobot has no masking, one NaN spreads through the stats and
+    # every action chunk. A joint not read in a frame period is held and marked in the mask.
+    for k, x in cols.items():
+        check(np.isfinite(x).all(), f"{k} has non-finite values")
+    valid = cols["observation.joint_valid"]
+    check(np.isin(valid, [0.0, 1.0]).all(), "observation.joint_valid is not 0/1")
     state = cols["observation.state"][:total] if orphan_rows else cols["observation.state"]
+    valid = valid[:total] if orphan_rows else valid
     print(json.dumps({
         "episodes": info["total_episodes"],
         "frames": total,
@@ -243,8 +262,8 @@ def main():
         "grippers": features.get("observation.grip_force", {}).get("names", []),
         "data_files": [str(p.relative_to(root)) for p in data_paths],
         "orphan_rows": int(orphan_rows),
-        "missing_fraction": float(np.isnan(state).mean()) if state.size else 0.0,
-        "state_span_rad": float(np.nanmax(state) - np.nanmin(state)) if state.size else 0.0,
+        "missing_fraction": float((valid < 0.5).mean()) if valid.size else 0.0,
+        "state_span_rad": float(state.max() - state.min()) if state.size else 0.0,
         "tasks": list(tasks.index),
         "hf_datasets_loaded": hf_loaded,
     }))

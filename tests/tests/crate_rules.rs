@@ -54,6 +54,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
             "telemetry",
             "camera",
             "lidar",
+            "recorder",
         ],
     ),
 ];

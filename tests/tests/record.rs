@@ -192,7 +192,7 @@ fn recorded_episodes_read_as_lerobot_v3_and_export_to_the_model_lab() {
     stop.store(true, Ordering::Relaxed);
     waver.join().unwrap();
 
-    if let Some(summary) = lerobot_check(&dataset, &["--episodes", "3"]) {
+    if let Some(summary) = lerobot_check(&dataset, &["--episodes", "3", "--closed"]) {
         eprintln!("LeRobot check: {summary}");
         assert_eq!(summary["lengths"], serde_json::json!([60, 60, 30]));
         assert_eq!(summary["grippers"], serde_json::json!(["left_gripper"]));
@@ -205,8 +205,9 @@ fn recorded_episodes_read_as_lerobot_v3_and_export_to_the_model_lab() {
             summary["state_span_rad"].as_f64().unwrap() > 0.3,
             "the wave is in the data: {summary}"
         );
-        // A joint is missing only when all its reads failed for a whole frame period: rare,
-        // though a loaded two-core machine can make the simulator late enough.
+        // A joint is held (marked in observation.joint_valid) only when all its reads failed
+        // for a whole frame period: rare, though a loaded two-core machine can make the
+        // simulator late enough.
         assert!(
             summary["missing_fraction"].as_f64().unwrap() < 0.05,
             "{summary}"
@@ -380,4 +381,94 @@ fn kill_9_loses_at_most_the_last_flush_interval_and_never_the_dataset() {
     stop.store(true, Ordering::Relaxed);
     waver.join().unwrap();
     stack.stop();
+}
+
+#[test]
+fn a_servo_that_goes_silent_is_held_and_marked_never_nan_and_one_never_read_is_refused() {
+    let _turn = serial();
+    // The left elbow (id 4) stops answering 12 s after the simulator starts, for 1.5 s: inside
+    // the 15 s episode whenever the stack came up in under 12 s.
+    let stack = ArmStack::start("record-silent", &["--silence", "left_arm:4@12+1.5"]);
+    wait_driving(&stack.domain);
+    let stop = Arc::new(AtomicBool::new(false));
+    let waver = wave(stack.domain.clone(), stop.clone());
+    let dataset = stack.dir.join("dataset");
+    let ds = dataset.to_str().unwrap();
+    let out = Command::new(binary("nori"))
+        .args(record_args(&stack.domain, ds, &["--episode-s", "15"]))
+        .output()
+        .unwrap();
+    stop.store(true, Ordering::Relaxed);
+    waver.join().unwrap();
+    assert!(
+        out.status.success(),
+        "nori record: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    if let Some(summary) = lerobot_check(&dataset, &["--episodes", "1", "--closed"]) {
+        // 1.5 s of 15 s held: about a tenth of the elbow's frames, an eighth of a joint.
+        let held = summary["missing_fraction"].as_f64().unwrap();
+        assert!(
+            held > 0.5 / 15.0 / 8.0,
+            "the silence is in the mask: {summary}"
+        );
+    }
+    // Read back with the recorder's reader: while held, the elbow's values are its last read.
+    let reader = recorder::dataset::DatasetReader::open(&dataset).unwrap();
+    let rows = reader.read_episode(0).unwrap();
+    let held: Vec<usize> = (0..rows.len())
+        .filter(|&i| rows[i].frame.valid[ELBOW] < 0.5)
+        .collect();
+    assert!(
+        held.len() >= FPS as usize,
+        "at least a second of the silence held: {held:?}"
+    );
+    for &i in &held {
+        let f = &rows[i].frame;
+        assert!(f.state.iter().chain(&f.action).all(|x| x.is_finite()));
+        if i > 0 && rows[i - 1].frame.valid[ELBOW] < 0.5 {
+            assert_eq!(
+                f.state[ELBOW],
+                rows[i - 1].frame.state[ELBOW],
+                "frame {i}: a held value does not change"
+            );
+        }
+        assert_eq!(
+            f.valid.iter().filter(|&&v| v < 0.5).count(),
+            1,
+            "frame {i}: only the elbow"
+        );
+    }
+    // The other joints go on being read during the silence.
+    let shoulder: Vec<f32> = held.iter().map(|&i| rows[i].frame.valid[0]).collect();
+    assert!(shoulder.iter().all(|&v| v == 1.0));
+    drop(stack);
+
+    // A servo silent from the start: the recorder refuses to begin, naming it.
+    let stack = ArmStack::start("record-never", &["--silence", "left_arm:4@0+120"]);
+    let never = stack.dir.join("never");
+    let out = Command::new(binary("nori"))
+        .args(record_args(
+            &stack.domain,
+            never.to_str().unwrap(),
+            &["--episode-s", "1", "--wait-s", "8"],
+        ))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(
+        err.contains("never read") && err.contains("left_elbow"),
+        "{err}"
+    );
+    let info = never.join("meta/info.json");
+    if info.exists() {
+        let info: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(info).unwrap()).unwrap();
+        assert_eq!(info["total_frames"], 0);
+    }
+    assert!(
+        !never.join(".nori-staging").exists(),
+        "closed on the error path too"
+    );
 }
