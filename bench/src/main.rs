@@ -9,6 +9,7 @@ mod fleet;
 mod lidar;
 mod model_lab;
 mod plane;
+mod video;
 
 use anyhow::Result;
 use clap::Parser;
@@ -34,6 +35,9 @@ enum Bench {
     ActionLatency(fleet::ActionLatencyArgs),
     /// Robots streaming telemetry that one fleet collector ingests with no loss.
     FleetIngest(fleet::FleetIngestArgs),
+    /// Camera frames to a LeRobot video per codec (FFmpeg), against LeRobot's default encoder
+    /// in the same run: CPU, size, fidelity, decoding cost.
+    VideoEncode(video::VideoEncodeArgs),
     /// The model lab: accuracy per hidden effect, detection limits, analysis time (also `nori
     /// model bench`).
     ModelLab(model_lab::BenchArgs),
@@ -47,6 +51,7 @@ fn main() -> Result<()> {
         Bench::CameraFrame(a) => plane::camera_frame(a),
         Bench::ActionLatency(a) => fleet::action_latency(a),
         Bench::FleetIngest(a) => fleet::fleet_ingest(a),
+        Bench::VideoEncode(a) => video::run(a),
         Bench::ModelLab(a) => model_lab::run_bench(a),
     }
 }
