@@ -67,11 +67,43 @@ impl Run<'_> {
     pub fn agent(&self) -> Vec<String> {
         vec![s("--domain"), s(self.domain)]
     }
+
+    /// `nori-lidar` reading the simulator's lidar.
+    pub fn lidar(&self) -> Vec<String> {
+        vec![
+            s("--device-dir"),
+            self.device_dir.display().to_string(),
+            s("--domain"),
+            s(self.domain),
+        ]
+    }
+
+    /// `nori-camera` for camera `name`, reading the simulator's.
+    pub fn camera(&self, name: &str) -> Vec<String> {
+        let mut args = vec![s("--camera"), s(name)];
+        args.extend(self.lidar());
+        args
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_sensors_read_the_simulators_devices_on_the_runs_domain() {
+        let run = Run {
+            domain: "d",
+            device_dir: Path::new("/dev/x"),
+            trips: None,
+            quiet: true,
+        };
+        assert_eq!(run.lidar().join(" "), "--device-dir /dev/x --domain d");
+        assert_eq!(
+            run.camera("head").join(" "),
+            "--camera head --device-dir /dev/x --domain d"
+        );
+    }
 
     #[test]
     fn the_supervisor_and_the_driver_share_the_domain_and_the_trip_record() {

@@ -1,7 +1,8 @@
 //! `nori up`: the whole stack on the simulated robot, for development. Starts the simulator, the
-//! supervisor, the driver and the fleet agent as separate processes, restarts a process that dies (with backoff), and on Ctrl-C
-//! stops the driver first (it turns torque off while the buses are still there), then the rest.
-//! Production uses systemd (deploy/systemd) instead.
+//! supervisor, the driver, the fleet agent, the lidar and (on request) cameras as separate
+//! processes, restarts a process that dies (with backoff), and on Ctrl-C stops the driver first
+//! (it turns torque off while the buses are still there), then the rest. Production uses systemd
+//! (deploy/systemd) instead.
 
 use anyhow::Result;
 use clap::Args;
@@ -27,9 +28,36 @@ pub struct UpArgs {
     /// connecting to `nori policy-server` on 127.0.0.1:7447) when absent.
     #[arg(long)]
     pub agent_config: Option<PathBuf>,
+    /// Cameras to run (`nori-camera` each, reading the simulator's rendering of it), by name
+    /// (`head`, `neck`, `left_wrist`, `right_wrist`) or `all`; repeatable. None by default: the
+    /// simulator renders a camera only while it is read, at 720p30, and that is a core's work
+    /// on a small machine.
+    #[arg(long = "camera", value_name = "NAME")]
+    pub cameras: Vec<String>,
+    /// Leave the lidar out.
+    #[arg(long)]
+    pub no_lidar: bool,
     /// Stop by itself after this many seconds.
     #[arg(long)]
     pub run_for: Option<f64>,
+}
+
+/// The cameras asked for, checked against the simulated robot's.
+fn cameras(asked: &[String]) -> Result<Vec<String>> {
+    let robot = sim::RobotDescription::nori_a3();
+    let have: Vec<String> = robot.camera.iter().map(|c| c.name.clone()).collect();
+    if asked.iter().any(|a| a == "all") {
+        return Ok(have);
+    }
+    for a in asked {
+        if !have.contains(a) {
+            anyhow::bail!(
+                "--camera {a}: the simulated A3 has {} (or all)",
+                have.join(", ")
+            );
+        }
+    }
+    Ok(asked.to_vec())
 }
 
 /// Runs the stack until Ctrl-C (or `--run-for`).
@@ -56,12 +84,32 @@ pub fn run(args: &UpArgs) -> Result<()> {
     if let Some(c) = &args.agent_config {
         fleet_agent.add_args(&["--config".into(), c.display().to_string()]);
     }
+    // The sensors, each its own process as on the robot: nothing of the control loop waits on
+    // them, and one that dies is restarted like the rest.
+    let mut sensors = Vec::new();
+    if !args.no_lidar {
+        sensors.push(Managed::new(
+            "nori-lidar",
+            &sibling("nori-lidar")?,
+            &run.lidar(),
+        ));
+    }
+    for name in cameras(&args.cameras)? {
+        sensors.push(Managed::new(
+            &format!("nori-camera {name}"),
+            &sibling("nori-camera")?,
+            &run.camera(&name),
+        ));
+    }
     eprintln!("nori up: the Nori A3 stack on the simulated robot (no hardware)");
     sim.start()?;
     // The supervisor first: the driver holds its safe state until the supervisor is heard from.
     supervising.start()?;
     bus_driver.start()?;
     fleet_agent.start()?;
+    for s in &mut sensors {
+        s.start()?;
+    }
     eprintln!(
         "nori up: watch the joints with `nori state --domain {d}`, move one with `nori goal --domain {d} left_elbow=-1.0`; \
          the simulator's report is {}. `nori policy-server` in another terminal drives the elbows \
@@ -79,11 +127,18 @@ pub fn run(args: &UpArgs) -> Result<()> {
         supervising.supervise()?;
         bus_driver.supervise()?;
         fleet_agent.supervise()?;
+        for s in &mut sensors {
+            s.supervise()?;
+        }
         std::thread::sleep(Duration::from_millis(50));
     }
     eprintln!("nori up: stopping (driver first, so torque goes off while the buses are up)");
-    // The agent first: no new goals while the driver turns torque off.
+    // The agent first: no new goals while the driver turns torque off. The sensors with it (the
+    // lidar stops its motor on the way out).
     fleet_agent.stop(Duration::from_secs(5));
+    for s in &mut sensors {
+        s.stop(Duration::from_secs(5));
+    }
     bus_driver.stop(Duration::from_secs(5));
     supervising.stop(Duration::from_secs(5));
     sim.stop(Duration::from_secs(5));
@@ -94,9 +149,17 @@ pub fn run(args: &UpArgs) -> Result<()> {
             args.domain
         ),
     }
+    let sensor_restarts: Vec<String> = sensors
+        .iter()
+        .map(|s| format!(", {} {}", s.name(), s.restarts))
+        .collect();
     eprintln!(
-        "nori up: stopped; restarts: simulator {}, supervisor {}, bus-driver {}, fleet-agent {}",
-        sim.restarts, supervising.restarts, bus_driver.restarts, fleet_agent.restarts
+        "nori up: stopped; restarts: simulator {}, supervisor {}, bus-driver {}, fleet-agent {}{}",
+        sim.restarts,
+        supervising.restarts,
+        bus_driver.restarts,
+        fleet_agent.restarts,
+        sensor_restarts.concat()
     );
     Ok(())
 }

@@ -1,5 +1,6 @@
-//! `nori up` as a developer uses it: the whole stack on the simulated robot, and Ctrl-C leaves
-//! torque off on every servo, no process and nothing of the state plane behind.
+//! `nori up` as a developer uses it: the whole stack on the simulated robot, its lidar included,
+//! and Ctrl-C leaves torque off on every servo, the lidar stopped, no process and nothing of the
+//! state plane behind.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
@@ -53,6 +54,9 @@ fn ctrl_c_leaves_torque_off_no_process_and_no_plane_resource() {
             })
         });
         assert_eq!(all_up.joint_count, 18);
+        let scans = node.subscriber(&plane::LIDAR_SCAN).unwrap();
+        let scan = wait_for(Duration::from_secs(20), "a lidar scan", || newest(&scans));
+        assert!(scan.point_count > 400, "{} points", scan.point_count);
     }
     // Ctrl-C: the terminal sends SIGINT to nori (its children are in their own process group).
     nix::sys::signal::kill(
@@ -88,5 +92,9 @@ fn ctrl_c_leaves_torque_off_no_process_and_no_plane_resource() {
         }
     }
     assert_eq!(servos, 18);
+    assert_eq!(
+        report["lidar"]["scanning"], false,
+        "the lidar was told to stop\n{log}"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
