@@ -324,7 +324,10 @@ fn camera_frames_published(domain: &str, count: usize) -> Vec<u64> {
         .camera
         .iter()
         .take(count)
-        .map(|c| node.camera_subscriber(&c.name).ok())
+        .map(|c| {
+            node.camera_subscriber(&c.name, telemetry::plane::CameraStream::Rgb)
+                .ok()
+        })
         .collect();
     std::thread::sleep(Duration::from_millis(300));
     subs.iter()

@@ -14,7 +14,7 @@ use std::path::PathBuf;
 use std::process::{Child, ChildStdout, Command, Stdio};
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
-use telemetry::plane::{self, publish, Plane};
+use telemetry::plane::{self, publish, CameraStream, Plane};
 use telemetry::sensors::{CameraFrameHeader, PixelFormat};
 use telemetry::JointState;
 
@@ -199,7 +199,7 @@ fn camera_one(
 ) -> Result<serde_json::Value> {
     let reader = Reader::start(transport, args.frames, Some(image.len()))?;
     let node = Plane::open(&reader.domain, "bench-writer")?;
-    let publisher = node.camera_publisher("bench", image.len())?;
+    let publisher = node.camera_publisher("bench", CameraStream::Rgb, image.len())?;
     let mut socket = match transport {
         Transport::Uds => Some(UnixStream::connect(&reader.socket).context("connecting")?),
         Transport::Iceoryx2 => None,

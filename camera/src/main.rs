@@ -4,13 +4,14 @@
 use anyhow::{Context, Result};
 use camera::config::CamerasConfig;
 use camera::convert::rgb_len;
-use camera::process::{run, Camera, RunError};
+use camera::process::{jpeg_max_len, run, Camera, RunError};
 use camera::source::{self, SourceError};
 use clap::Parser;
 use std::path::PathBuf;
 use std::time::Duration;
-use telemetry::plane::{self, Plane};
+use telemetry::plane::{self, CameraStream, Plane};
 use telemetry::process::{finish, start, Exit, Started};
+use telemetry::sensors::PixelFormat;
 
 #[derive(Parser)]
 #[command(
@@ -83,8 +84,15 @@ fn serve(args: &Args) -> Result<()> {
         s => s.map(Duration::from_secs_f64),
     };
     let node = Plane::open(&args.domain, &format!("camera_{name}"))?;
-    let publisher = node.camera_publisher(name, rgb_len(cam.mode.width, cam.mode.height))?;
-    let mut camera = Camera::new(name, cam.mode, publisher);
+    let (width, height) = (cam.mode.width, cam.mode.height);
+    let publisher = node.camera_publisher(name, CameraStream::Rgb, rgb_len(width, height))?;
+    let jpegs = match cam.mode.format {
+        PixelFormat::Mjpeg => {
+            Some(node.camera_publisher(name, CameraStream::Mjpeg, jpeg_max_len(width, height))?)
+        }
+        _ => None,
+    };
+    let mut camera = Camera::new(name, cam.mode, publisher, jpegs);
     let result = run(&mut camera, &cam.device, source::open, &shutdown, run_for)
         .with_context(|| format!("camera {name}"));
     println!(

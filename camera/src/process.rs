@@ -1,6 +1,8 @@
 //! The camera process's loop: frames from the device, converted straight into the plane's shared
 //! memory, each counted as published, corrupt, dropped or late. A bad frame is refused, counted
-//! and logged (the first, then at each doubling of the count); it never stops the loop.
+//! and logged (the first, then at each doubling of the count); it never stops the loop. A camera
+//! that delivers MJPEG also has each published frame's JPEG, untouched, on its second stream
+//! (what a recording stores without encoding again).
 
 use crate::convert::{rgb_len, to_rgb};
 use crate::source::{FrameSource, Mode, RawFrame, SourceError};
@@ -23,6 +25,10 @@ pub struct Counters {
     pub dropped: u64,
     /// Frames published more than two frame periods after their capture.
     pub late: u64,
+    /// JPEGs published on the MJPEG stream.
+    pub jpegs_published: u64,
+    /// JPEGs too large for the MJPEG stream's samples (their RGB frame was published).
+    pub jpegs_oversized: u64,
     /// Waits of a second with no frame.
     pub silences: u64,
     /// Times the device was lost and opened again.
@@ -34,18 +40,22 @@ pub struct Camera {
     name: String,
     mode: Mode,
     publisher: FramePub,
+    /// The MJPEG stream, for a camera that delivers MJPEG.
+    jpegs: Option<FramePub>,
     last_sequence: Option<u32>,
     /// What happened so far.
     pub counters: Counters,
 }
 
 impl Camera {
-    /// A camera publishing on `publisher` (made with at least [`rgb_len`] bytes per frame).
-    pub fn new(name: &str, mode: Mode, publisher: FramePub) -> Self {
+    /// A camera publishing on `publisher` (made with at least [`rgb_len`] bytes per frame) and,
+    /// for an MJPEG camera, its JPEGs on `jpegs` (made with [`jpeg_max_len`] bytes).
+    pub fn new(name: &str, mode: Mode, publisher: FramePub, jpegs: Option<FramePub>) -> Self {
         Camera {
             name: name.into(),
             mode,
             publisher,
+            jpegs,
             last_sequence: None,
             counters: Counters::default(),
         }
@@ -112,12 +122,31 @@ impl Camera {
             return Ok(false);
         }
         c.published += 1;
+        if let (Some(jpegs), PixelFormat::Mjpeg) = (&self.jpegs, frame.format) {
+            if frame.bytes.len() <= jpeg_max_len(width, height) {
+                let mut h = header;
+                (h.fourcc, h.stride) = (PixelFormat::Mjpeg.fourcc(), 0);
+                publish_frame(jpegs, &h, frame.bytes.len(), |out| {
+                    out.copy_from_slice(frame.bytes);
+                    true
+                })?;
+                c.jpegs_published += 1;
+            } else {
+                c.jpegs_oversized += 1;
+            }
+        }
         let period_ns = 1_000_000_000 / u64::from(self.mode.fps.max(1));
         if now_ns.saturating_sub(frame.capture_ns) > 2 * period_ns {
             c.late += 1;
         }
         Ok(sent)
     }
+}
+
+/// The largest JPEG the MJPEG stream carries for a `width`×`height` camera: a quarter of the
+/// RGB image (UVC cameras' 720p JPEGs are 50-300 KB of its 2.7 MB).
+pub fn jpeg_max_len(width: u32, height: u32) -> usize {
+    rgb_len(width, height) / 4
 }
 
 /// Why the loop stopped for good.

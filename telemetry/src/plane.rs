@@ -98,9 +98,23 @@ pub const BUS_HEALTH: Topic<crate::frames::BusHealth> = topic("nori/bus-health",
 /// Lidar → all: one frame per revolution (8–12 Hz). A late subscriber gets the newest at once.
 pub const LIDAR_SCAN: Topic<LidarScan> = topic("nori/lidar/scan", 1, 4, 1, 8);
 
-/// The service of camera `name`'s frames.
-pub fn camera_service(name: &str) -> String {
-    format!("nori/camera/{name}")
+/// What a camera service carries.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CameraStream {
+    /// Decoded pixels, RGB24 (`nori/camera/<name>`): what readers of images take.
+    Rgb,
+    /// The device's own JPEG of each frame published on the RGB stream, untouched
+    /// (`nori/camera/<name>/mjpeg`, same `seq`): what a recording stores without encoding
+    /// anything again. Only for cameras that deliver MJPEG.
+    Mjpeg,
+}
+
+/// The service of camera `name`'s `stream`.
+pub fn camera_service(name: &str, stream: CameraStream) -> String {
+    match stream {
+        CameraStream::Rgb => format!("nori/camera/{name}"),
+        CameraStream::Mjpeg => format!("nori/camera/{name}/mjpeg"),
+    }
 }
 
 /// A camera's frames: the newest at once for a late subscriber, and two in each subscriber's
@@ -342,6 +356,7 @@ impl Plane {
     fn camera_service_port(
         &self,
         camera: &str,
+        stream: CameraStream,
     ) -> Result<
         iceoryx2::service::port_factory::publish_subscribe::PortFactory<
             ipc::Service,
@@ -350,7 +365,7 @@ impl Plane {
         >,
         PlaneError,
     > {
-        let service = camera_service(camera);
+        let service = camera_service(camera, stream);
         let name = ServiceName::new(&service).map_err(|source| PlaneError::ServiceName {
             service: service.clone(),
             source,
@@ -364,27 +379,36 @@ impl Plane {
             .map_err(|source| PlaneError::Service { service, source })
     }
 
-    /// The publisher of camera `camera`'s frames, of at most `max_bytes` each. Its shared memory
-    /// is allocated once, here (static allocation: nothing is allocated per frame).
-    pub fn camera_publisher(&self, camera: &str, max_bytes: usize) -> Result<FramePub, PlaneError> {
-        self.camera_service_port(camera)?
+    /// The publisher of camera `camera`'s `stream`, of at most `max_bytes` a frame. Its shared
+    /// memory is allocated once, here (static allocation: nothing is allocated per frame).
+    pub fn camera_publisher(
+        &self,
+        camera: &str,
+        stream: CameraStream,
+        max_bytes: usize,
+    ) -> Result<FramePub, PlaneError> {
+        self.camera_service_port(camera, stream)?
             .publisher_builder()
             .initial_max_slice_len(max_bytes)
             .allocation_strategy(AllocationStrategy::Static)
             .create()
             .map_err(|source| PlaneError::Publisher {
-                service: camera_service(camera),
+                service: camera_service(camera, stream),
                 source,
             })
     }
 
-    /// A subscriber of camera `camera`'s frames.
-    pub fn camera_subscriber(&self, camera: &str) -> Result<FrameSub, PlaneError> {
-        self.camera_service_port(camera)?
+    /// A subscriber of camera `camera`'s `stream`.
+    pub fn camera_subscriber(
+        &self,
+        camera: &str,
+        stream: CameraStream,
+    ) -> Result<FrameSub, PlaneError> {
+        self.camera_service_port(camera, stream)?
             .subscriber_builder()
             .create()
             .map_err(|source| PlaneError::Subscriber {
-                service: camera_service(camera),
+                service: camera_service(camera, stream),
                 source,
             })
     }
@@ -480,9 +504,10 @@ mod tests {
         let domain = format!("nori_test_cam_{}", std::process::id());
         let a = Plane::open(&domain, "camera").unwrap();
         let b = Plane::open(&domain, "reader").unwrap();
-        let publisher = a.camera_publisher("head", 64).unwrap();
-        let reader = b.camera_subscriber("head").unwrap();
-        let other_camera = b.camera_subscriber("neck").unwrap();
+        let publisher = a.camera_publisher("head", CameraStream::Rgb, 64).unwrap();
+        let reader = b.camera_subscriber("head", CameraStream::Rgb).unwrap();
+        let other_camera = b.camera_subscriber("neck", CameraStream::Rgb).unwrap();
+        let other_stream = b.camera_subscriber("head", CameraStream::Mjpeg).unwrap();
         for seq in 0..5u64 {
             let mut h = CameraFrameHeader {
                 seq,
@@ -513,6 +538,18 @@ mod tests {
         assert!(
             other_camera.receive().unwrap().is_none(),
             "cameras are apart"
+        );
+        assert!(
+            other_stream.receive().unwrap().is_none(),
+            "a camera's streams are apart"
+        );
+        assert_eq!(
+            camera_service("head", CameraStream::Rgb),
+            "nori/camera/head"
+        );
+        assert_eq!(
+            camera_service("head", CameraStream::Mjpeg),
+            "nori/camera/head/mjpeg"
         );
 
         // A refused frame is not sent; one larger than the maximum is an error, not a panic.

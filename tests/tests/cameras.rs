@@ -9,7 +9,7 @@ use nori_tests::{binary, newest_read, wait_for, ArmStack, Proc};
 use std::time::Duration;
 use telemetry::clock::monotonic_ns;
 use telemetry::frames::GoalFrame;
-use telemetry::plane::{self, newest, publish, FrameSub, Plane};
+use telemetry::plane::{self, newest, publish, CameraStream, FrameSub, Plane};
 use telemetry::sensors::{CameraFrameHeader, PixelFormat};
 
 /// The left arm's shoulder pitch (about y: negative swings the arm forward) and elbow.
@@ -77,7 +77,8 @@ fn the_head_camera_sees_the_arm_move_refuses_corrupt_jpegs_and_dies_alone() {
     };
     let mut head = spawn_camera(1);
     let node = Plane::open(&stack.domain, "test").unwrap();
-    let frames = node.camera_subscriber("head").unwrap();
+    let frames = node.camera_subscriber("head", CameraStream::Rgb).unwrap();
+    let jpegs = node.camera_subscriber("head", CameraStream::Mjpeg).unwrap();
     let states = node.subscriber(&plane::JOINT_STATE).unwrap();
     let goals = node.publisher(&plane::GOALS).unwrap();
 
@@ -133,6 +134,30 @@ fn the_head_camera_sees_the_arm_move_refuses_corrupt_jpegs_and_dies_alone() {
         "the picture changes without motion: {drift} pixels, {moved} when the arm rose"
     );
 
+    // The MJPEG stream carries each published frame's JPEG untouched: same sequence number, and
+    // it decodes to exactly the RGB frame published under that number.
+    let mut rgb_by_seq = std::collections::HashMap::new();
+    let mut matched = 0;
+    wait_for(Duration::from_secs(10), "JPEGs matching RGB frames", || {
+        while let Ok(Some(sample)) = frames.receive() {
+            rgb_by_seq.insert(sample.user_header().seq, sample.payload().to_vec());
+        }
+        while let Ok(Some(sample)) = jpegs.receive() {
+            let h = *sample.user_header();
+            assert_eq!(h.format(), Some(PixelFormat::Mjpeg), "{h:?}");
+            assert_eq!((h.width, h.height, h.stride), (W, H, 0));
+            let Some(rgb) = rgb_by_seq.get(&h.seq) else {
+                continue;
+            };
+            let mut decoded = vec![0u8; rgb.len()];
+            camera::convert::to_rgb(PixelFormat::Mjpeg, W, H, 0, sample.payload(), &mut decoded)
+                .unwrap();
+            assert!(decoded == *rgb, "JPEG {} is not RGB frame {}", h.seq, h.seq);
+            matched += 1;
+        }
+        (matched >= 5).then_some(())
+    });
+
     // One JPEG in five is cut short: refused and counted, and frames keep coming.
     let (late, _) = wait_for(Duration::from_secs(10), "corrupt frames counted", || {
         newest_frame(&frames).filter(|(h, _)| h.corrupt >= 3)
@@ -168,7 +193,11 @@ fn the_head_camera_sees_the_arm_move_refuses_corrupt_jpegs_and_dies_alone() {
         c["published"].as_u64().unwrap() + c["corrupt"].as_u64().unwrap(),
         "every frame captured is published or refused: {summary}"
     );
-    drop((frames, states, goals, node));
+    assert_eq!(
+        c["jpegs_published"], c["published"],
+        "every published frame's JPEG, and no corrupt one: {summary}"
+    );
+    drop((frames, jpegs, states, goals, node));
     stack.stop();
 }
 

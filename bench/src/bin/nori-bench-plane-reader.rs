@@ -12,7 +12,7 @@ use std::os::unix::net::{UnixDatagram, UnixListener};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
-use telemetry::plane::{self, next, Plane};
+use telemetry::plane::{self, next, CameraStream, Plane};
 use telemetry::stats::quantile_sorted;
 use telemetry::JointState;
 
@@ -71,7 +71,7 @@ fn read_camera_frames(args: &PeerArgs, bytes: usize) -> Result<Vec<u64>> {
     match args.transport {
         Transport::Iceoryx2 => {
             let node = Plane::open(&args.domain, "bench-reader")?;
-            let sub = node.camera_subscriber("bench")?;
+            let sub = node.camera_subscriber("bench", CameraStream::Rgb)?;
             println!("ready");
             while Instant::now() < deadline {
                 match sub.receive() {
