@@ -28,6 +28,7 @@ pub mod fsutil;
 pub mod pq;
 pub mod sampler;
 pub mod stats;
+pub mod video;
 
 pub use dataset::{Dataset, EpisodeWriter, Recovery};
 pub use error::RecordError;
