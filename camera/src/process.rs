@@ -84,6 +84,7 @@ impl Camera {
             stride: width * 3,
             dropped: c.dropped.min(u64::from(u32::MAX)) as u32,
             corrupt: c.corrupt.min(u64::from(u32::MAX)) as u32,
+            late: c.late.min(u64::from(u32::MAX)) as u32,
             ..CameraFrameHeader::default()
         };
         header.set_camera(&self.name);

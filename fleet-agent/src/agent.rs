@@ -12,7 +12,8 @@ use crate::gate::{within, ActionGate, Range, REASONS};
 use crate::outbound::{self, Every};
 use crate::schedule::Scheduler;
 use crate::schema::{
-    encode, AgentCounters, BusStatus, StatusConfig, StatusHealth, StatusMsg, SCHEMA_VERSION,
+    encode, AgentCounters, BusStatus, CameraStatus, LidarStatus, StatusConfig, StatusHealth,
+    StatusMsg, SCHEMA_VERSION,
 };
 use crate::AgentConfig;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -21,6 +22,7 @@ use telemetry::frames::{
     BusHealth, GoalFrame, JointLayout, JointState, SupervisorEvent, BUS_HEALTH_CONNECTED,
     BUS_HEALTH_ENABLED, STATE_FLAG_SAFE_STATE,
 };
+use telemetry::sensors::{CameraFrameHeader, LidarScan};
 
 /// What the agent sends to the fleet, each on its own key expression of the robot.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -43,6 +45,10 @@ pub trait AgentIo {
     fn next_state(&mut self) -> Option<JointState>;
     /// The newest bus health of the driver.
     fn bus_health(&mut self) -> Option<BusHealth>;
+    /// The header of the newest frame of configured camera `index` (`sensors.cameras`).
+    fn camera(&mut self, index: usize) -> Option<CameraFrameHeader>;
+    /// The newest lidar scan.
+    fn lidar(&mut self) -> Option<LidarScan>;
     /// The next supervisor event not yet taken.
     fn next_event(&mut self) -> Option<SupervisorEvent>;
     /// Publishes a goal frame to the driver; whether it went out.
@@ -82,7 +88,20 @@ pub struct Agent {
     counters: Counters,
     last_state: Option<JointState>,
     last_health: Option<BusHealth>,
+    last_cameras: Vec<Option<CameraFrameHeader>>,
+    last_lidar: Option<LidarStatusOf>,
     goal_seq: u64,
+}
+
+/// What the status says of the newest scan (a scan frame is 12 KB; this is what is kept).
+#[derive(Debug, Clone, Copy)]
+struct LidarStatusOf {
+    seq: u64,
+    bad_points: u32,
+    resyncs: u32,
+    short_scans: u32,
+    end_ns: u64,
+    rotation_hz: Option<f64>,
 }
 
 impl Agent {
@@ -104,6 +123,8 @@ impl Agent {
             counters: Counters::default(),
             last_state: None,
             last_health: None,
+            last_cameras: vec![None; config.sensors.cameras.len()],
+            last_lidar: None,
             goal_seq: 0,
             config: config.clone(),
         }
@@ -176,6 +197,23 @@ impl Agent {
         }
         if let Some(h) = io.bus_health() {
             self.last_health = Some(h);
+        }
+        for (i, slot) in self.last_cameras.iter_mut().enumerate() {
+            if let Some(h) = io.camera(i) {
+                *slot = Some(h);
+            }
+        }
+        if self.config.sensors.lidar {
+            if let Some(scan) = io.lidar() {
+                self.last_lidar = Some(LidarStatusOf {
+                    seq: scan.seq,
+                    bad_points: scan.bad_points,
+                    resyncs: scan.resyncs,
+                    short_scans: scan.short_scans,
+                    end_ns: scan.end_ns,
+                    rotation_hz: scan.rotation_hz(),
+                });
+            }
         }
         while let Some(e) = io.next_event() {
             let msg = outbound::event_msg(&e, &self.layout, wall_ms);
@@ -288,6 +326,32 @@ impl Agent {
                     counters: b.counters,
                 })
                 .collect(),
+            cameras: self
+                .config
+                .sensors
+                .cameras
+                .iter()
+                .zip(&self.last_cameras)
+                .map(|(name, h)| CameraStatus {
+                    name: name.clone(),
+                    frames: h.map_or(0, |h| h.seq + 1),
+                    dropped: h.map_or(0, |h| u64::from(h.dropped)),
+                    corrupt: h.map_or(0, |h| u64::from(h.corrupt)),
+                    late: h.map_or(0, |h| u64::from(h.late)),
+                    age_ms: h.map(|h| now.saturating_sub(h.capture_ns) as f64 * 1e-6),
+                })
+                .collect(),
+            lidar: self.config.sensors.lidar.then(|| {
+                let l = self.last_lidar;
+                LidarStatus {
+                    scans: l.map_or(0, |l| l.seq + 1),
+                    bad_points: l.map_or(0, |l| u64::from(l.bad_points)),
+                    resyncs: l.map_or(0, |l| u64::from(l.resyncs)),
+                    short_scans: l.map_or(0, |l| u64::from(l.short_scans)),
+                    rotation_hz: l.and_then(|l| l.rotation_hz),
+                    age_ms: l.map(|l| now.saturating_sub(l.end_ns) as f64 * 1e-6),
+                }
+            }),
         }
     }
 

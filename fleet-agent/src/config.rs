@@ -56,6 +56,16 @@ pub struct ActionsConfig {
     pub forward_hz: f64,
 }
 
+/// Which sensors the agent watches (their health goes into its status).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct SensorsConfig {
+    /// Cameras, by name (`nori/camera/<name>`).
+    pub cameras: Vec<String>,
+    /// Whether the robot has a lidar (`nori/lidar/scan`).
+    pub lidar: bool,
+}
+
 /// The agent's configuration.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, rename_all = "kebab-case")]
@@ -68,6 +78,8 @@ pub struct AgentConfig {
     pub telemetry: TelemetryConfig,
     /// Incoming actions.
     pub actions: ActionsConfig,
+    /// Sensors watched.
+    pub sensors: SensorsConfig,
 }
 
 impl ProcessConfig for AgentConfig {
@@ -164,6 +176,22 @@ impl AgentConfig {
                 format!("{} is outside (0, 1]", a.blend_new),
             );
         }
+        for (i, name) in c.sensors.cameras.iter().enumerate() {
+            let ok = !name.is_empty()
+                && name.len() <= telemetry::frames::NAME_LEN
+                && name
+                    .bytes()
+                    .all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'_');
+            if !ok || c.sensors.cameras[..i].contains(name) {
+                return bad(
+                    "sensors.cameras",
+                    format!(
+                        "{name:?}: a camera named once, 1 to {} of a-z, 0-9 and _",
+                        telemetry::frames::NAME_LEN
+                    ),
+                );
+            }
+        }
         Ok(c)
     }
 
@@ -192,6 +220,16 @@ mod tests {
     fn bad_values_name_their_key() {
         for (from, to, key) in [
             ("robot-id = \"sim-0001\"", "robot-id = \"a/b\"", "robot-id"),
+            (
+                "cameras = [\"head\", \"neck\", \"left_wrist\", \"right_wrist\"]",
+                "cameras = [\"head\", \"head\"]",
+                "sensors.cameras",
+            ),
+            (
+                "cameras = [\"head\", \"neck\", \"left_wrist\", \"right_wrist\"]",
+                "cameras = [\"Head Cam\"]",
+                "sensors.cameras",
+            ),
             ("mode = \"peer\"", "mode = \"router\"", "zenoh.mode"),
             ("state-hz = 10.0", "state-hz = nan", "telemetry.state-hz"),
             ("max-age-ms = 250", "max-age-ms = 0", "actions.max-age-ms"),

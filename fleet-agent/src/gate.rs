@@ -438,7 +438,7 @@ mod tests {
         let mut g = gate();
         assert_eq!(g.check(&encode(&good), now, &[]), Err(Rejection::NoLayout));
         assert_eq!(
-            g.check(&[0x01, 0xff, 0xff], now, &RANGES)
+            g.check(&[SCHEMA_VERSION as u8, 0xff, 0xff], now, &RANGES)
                 .unwrap_err()
                 .reason(),
             "malformed"

@@ -5,6 +5,7 @@
 use anyhow::{Context, Result};
 use clap::Parser;
 use fleet_agent::agent::{Agent, AgentIo, Outbound};
+use fleet_agent::config::SensorsConfig;
 use fleet_agent::keys::robot_key;
 use fleet_agent::zenoh::handlers::FifoChannelHandler;
 use fleet_agent::zenoh::pubsub::{Publisher, Subscriber};
@@ -16,9 +17,10 @@ use fleet_agent::{net, AgentConfig};
 use std::path::PathBuf;
 use std::time::Duration;
 use telemetry::frames::{BusHealth, GoalFrame, JointLayout, JointState, SupervisorEvent};
-use telemetry::plane::{self, newest, next, publish, Plane, Pub, Sub};
+use telemetry::plane::{self, newest, next, publish, CameraStream, FrameSub, Plane, Pub, Sub};
 use telemetry::process::Exit;
 use telemetry::process::{start, ServiceManager, Started};
+use telemetry::sensors::{CameraFrameHeader, LidarScan};
 
 #[derive(Parser)]
 #[command(
@@ -55,6 +57,9 @@ struct Wired {
     states: Sub<JointState>,
     events: Sub<SupervisorEvent>,
     bus_health: Sub<BusHealth>,
+    /// Per configured camera; `None` where the service could not be opened (logged).
+    cameras: Vec<Option<FrameSub>>,
+    lidar: Option<Sub<LidarScan>>,
     goals: Pub<GoalFrame>,
     state_pub: Publisher<'static>,
     observation_pub: Publisher<'static>,
@@ -74,6 +79,18 @@ impl AgentIo for Wired {
     }
     fn bus_health(&mut self) -> Option<BusHealth> {
         newest(&self.bus_health)
+    }
+    fn camera(&mut self, index: usize) -> Option<CameraFrameHeader> {
+        // The newest frame's header; the pixels stay in shared memory, untouched.
+        let sub = self.cameras.get(index)?.as_ref()?;
+        let mut newest = None;
+        while let Ok(Some(sample)) = sub.receive() {
+            newest = Some(*sample.user_header());
+        }
+        newest
+    }
+    fn lidar(&mut self) -> Option<LidarScan> {
+        newest(self.lidar.as_ref()?)
     }
     fn next_event(&mut self) -> Option<SupervisorEvent> {
         next(&self.events)
@@ -142,7 +159,7 @@ fn run(args: Args) -> Result<()> {
     let id = config.robot_id.clone();
     let session = net::open(&config.zenoh)
         .with_context(|| format!("joining the fleet as {id} via {:?}", config.zenoh.connect))?;
-    let mut io = wire(&node, &session, &id)?;
+    let mut io = wire(&node, &session, &id, &config.sensors)?;
     let _alive = session
         .liveliness()
         .declare_token(robot_key(&id, "alive"))
@@ -164,7 +181,12 @@ fn run(args: Args) -> Result<()> {
 }
 
 /// Opens the agent's ports on the state plane and its declarations on zenoh.
-fn wire(node: &Plane, session: &fleet_agent::zenoh::Session, id: &str) -> Result<Wired> {
+fn wire(
+    node: &Plane,
+    session: &fleet_agent::zenoh::Session,
+    id: &str,
+    sensors: &SensorsConfig,
+) -> Result<Wired> {
     let z = |e: fleet_agent::zenoh::Error| anyhow::anyhow!("{e}");
     let publisher = |key: &str, congestion| {
         session
@@ -179,6 +201,20 @@ fn wire(node: &Plane, session: &fleet_agent::zenoh::Session, id: &str) -> Result
         states: node.subscriber(&plane::JOINT_STATE)?,
         events: node.subscriber(&plane::EVENTS)?,
         bus_health: node.subscriber(&plane::BUS_HEALTH)?,
+        cameras: sensors
+            .cameras
+            .iter()
+            .map(|name| {
+                node.camera_subscriber(name, CameraStream::Rgb)
+                    .inspect_err(|e| tracing::warn!("camera {name}: {e}; not watched"))
+                    .ok()
+            })
+            .collect(),
+        lidar: if sensors.lidar {
+            Some(node.subscriber(&plane::LIDAR_SCAN)?)
+        } else {
+            None
+        },
         goals: node.publisher(&plane::GOALS)?,
         state_pub: publisher("state", CongestionControl::Drop)?,
         observation_pub: publisher("observation", CongestionControl::Drop)?,

@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 /// The schema version this build speaks.
-pub const SCHEMA_VERSION: u16 = 1;
+pub const SCHEMA_VERSION: u16 = 2;
 
 /// Joint telemetry for dashboards, rate-limited (`nori/<robot>/state`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -152,6 +152,44 @@ pub struct StatusMsg {
     pub last_rejection: String,
     /// Per bus of the driver, in its order.
     pub buses: Vec<BusStatus>,
+    /// Per configured camera, in the configuration's order.
+    pub cameras: Vec<CameraStatus>,
+    /// The lidar, when the agent watches one.
+    pub lidar: Option<LidarStatus>,
+}
+
+/// One camera, from the header of its newest frame on the state plane, in a [`StatusMsg`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CameraStatus {
+    /// The camera's name.
+    pub name: String,
+    /// Frames its process published (newest sequence number + 1; 0: none seen).
+    pub frames: u64,
+    /// Frames lost (the device's gaps, a reader too slow).
+    pub dropped: u64,
+    /// Frames refused as corrupt.
+    pub corrupt: u64,
+    /// Frames published more than two frame periods after capture.
+    pub late: u64,
+    /// Age of the newest frame's capture, ms (none seen: `None`).
+    pub age_ms: Option<f64>,
+}
+
+/// The lidar, from its newest scan on the state plane, in a [`StatusMsg`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LidarStatus {
+    /// Revolutions its process published (newest sequence number + 1; 0: none seen).
+    pub scans: u64,
+    /// Measurements dropped as unconfirmed.
+    pub bad_points: u64,
+    /// Times the byte stream lost its alignment.
+    pub resyncs: u64,
+    /// Revolutions dropped for a hole in their coverage.
+    pub short_scans: u64,
+    /// Revolutions per second of the newest scan.
+    pub rotation_hz: Option<f64>,
+    /// Age of the newest scan's end, ms (none seen: `None`).
+    pub age_ms: Option<f64>,
 }
 
 /// The agent's configured rates and action limits, in a [`StatusMsg`].
@@ -288,10 +326,12 @@ mod tests {
     #[test]
     fn another_version_is_refused_by_name() {
         let mut c = chunk();
-        c.version = 2;
+        c.version = SCHEMA_VERSION + 1;
         assert_eq!(
             decode::<ActionChunk>(&encode(&c)),
-            Err(DecodeError::Version { got: 2 })
+            Err(DecodeError::Version {
+                got: SCHEMA_VERSION + 1
+            })
         );
     }
 

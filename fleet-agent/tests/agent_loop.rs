@@ -13,6 +13,7 @@ use telemetry::frames::{
     BusHealth, BusHealthEntry, EventKind, GoalFrame, JointInfo, JointLayout, JointSample,
     JointState, SupervisorEvent, BUS_HEALTH_CONNECTED, BUS_HEALTH_ENABLED, STATE_FLAG_SAFE_STATE,
 };
+use telemetry::sensors::{CameraFrameHeader, LidarScan};
 
 const MS: u64 = 1_000_000;
 
@@ -21,6 +22,8 @@ struct Queues {
     layout: Option<JointLayout>,
     states: VecDeque<JointState>,
     health: Option<BusHealth>,
+    cameras: Vec<Option<CameraFrameHeader>>,
+    lidar: Option<LidarScan>,
     events: VecDeque<SupervisorEvent>,
     actions: VecDeque<Vec<u8>>,
     status_queries: usize,
@@ -38,6 +41,12 @@ impl AgentIo for Queues {
     }
     fn bus_health(&mut self) -> Option<BusHealth> {
         self.health
+    }
+    fn camera(&mut self, index: usize) -> Option<CameraFrameHeader> {
+        self.cameras.get_mut(index)?.take()
+    }
+    fn lidar(&mut self) -> Option<LidarScan> {
+        self.lidar.take()
     }
     fn next_event(&mut self) -> Option<SupervisorEvent> {
         self.events.pop_front()
@@ -236,6 +245,57 @@ fn telemetry_events_and_status_go_out_named_from_the_layout() {
     assert_eq!(st.buses[0].counters.checksum_errors, 3);
     assert_eq!(st.health.joints, 2);
     assert_eq!(st.counters.events_sent, 1);
+}
+
+#[test]
+fn the_status_reports_each_configured_sensor_from_its_newest_frame() {
+    let (mut agent, mut io, now) = running();
+    // The embedded configuration watches the four cameras and the lidar.
+    let st = status(&mut agent, &mut io, now);
+    let names: Vec<&str> = st.cameras.iter().map(|c| c.name.as_str()).collect();
+    assert_eq!(names, ["head", "neck", "left_wrist", "right_wrist"]);
+    assert!(st
+        .cameras
+        .iter()
+        .all(|c| c.frames == 0 && c.age_ms.is_none()));
+    let lidar = st.lidar.clone().unwrap();
+    assert_eq!((lidar.scans, lidar.age_ms), (0, None));
+
+    let mut neck = CameraFrameHeader {
+        seq: 41,
+        capture_ns: now - 40 * MS,
+        dropped: 3,
+        corrupt: 2,
+        late: 5,
+        ..CameraFrameHeader::default()
+    };
+    neck.set_camera("neck");
+    io.cameras = vec![None, Some(neck), None, None];
+    io.lidar = Some(LidarScan {
+        seq: 99,
+        start_ns: now - 120 * MS,
+        end_ns: now - 20 * MS,
+        bad_points: 4,
+        resyncs: 1,
+        short_scans: 2,
+        ..LidarScan::default()
+    });
+    let st = status(&mut agent, &mut io, now);
+    let c = &st.cameras[1];
+    assert_eq!((c.frames, c.dropped, c.corrupt, c.late), (42, 3, 2, 5));
+    assert!((c.age_ms.unwrap() - 40.0).abs() < 1e-9);
+    assert_eq!(st.cameras[0].frames, 0, "head: nothing seen");
+    let l = st.lidar.unwrap();
+    assert_eq!(
+        (l.scans, l.bad_points, l.resyncs, l.short_scans),
+        (100, 4, 1, 2)
+    );
+    assert!((l.rotation_hz.unwrap() - 10.0).abs() < 1e-9);
+    assert!((l.age_ms.unwrap() - 20.0).abs() < 1e-9);
+    // Kept while nothing newer comes, aging.
+    let later = status(&mut agent, &mut io, now + 1000 * MS);
+    assert_eq!(later.cameras[1].frames, 42);
+    assert!((later.cameras[1].age_ms.unwrap() - 1040.0).abs() < 1e-9);
 }
 
 #[test]

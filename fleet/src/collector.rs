@@ -234,6 +234,9 @@ impl Collector {
             counter(),
         );
         let (bus_connected, bus_cycles, bus_errors) = (gauge(), counter(), counter());
+        let (camera_frames, camera_lost, camera_age) = (counter(), counter(), gauge());
+        let (lidar_scans, lidar_lost, lidar_age, lidar_hz) =
+            (counter(), counter(), gauge(), gauge());
         let label = |pairs: &[(&str, &str)]| -> Labels {
             pairs
                 .iter()
@@ -294,6 +297,44 @@ impl Collector {
                             ]))
                             .inc_by(n);
                     }
+                }
+            }
+            for c in r.status.iter().flat_map(|s| &s.cameras) {
+                let labels = label(&[("robot", id), ("camera", &c.name)]);
+                camera_frames.get_or_create(&labels).inc_by(c.frames);
+                for (kind, n) in [
+                    ("dropped", c.dropped),
+                    ("corrupt", c.corrupt),
+                    ("late", c.late),
+                ] {
+                    camera_lost
+                        .get_or_create(&label(&[
+                            ("robot", id),
+                            ("camera", &c.name),
+                            ("kind", kind),
+                        ]))
+                        .inc_by(n);
+                }
+                if let Some(ms) = c.age_ms {
+                    camera_age.get_or_create(&labels).set(ms * 1e-3);
+                }
+            }
+            if let Some(l) = r.status.as_ref().and_then(|s| s.lidar.as_ref()) {
+                lidar_scans.get_or_create(&robot).inc_by(l.scans);
+                for (kind, n) in [
+                    ("bad_points", l.bad_points),
+                    ("resyncs", l.resyncs),
+                    ("short_scans", l.short_scans),
+                ] {
+                    lidar_lost
+                        .get_or_create(&label(&[("robot", id), ("kind", kind)]))
+                        .inc_by(n);
+                }
+                if let Some(ms) = l.age_ms {
+                    lidar_age.get_or_create(&robot).set(ms * 1e-3);
+                }
+                if let Some(hz) = l.rotation_hz {
+                    lidar_hz.get_or_create(&robot).set(hz);
                 }
             }
             if let Some(c) = r.status.as_ref().map(|s| &s.counters) {
@@ -364,6 +405,37 @@ impl Collector {
             "the driver's error counts on the bus, by kind (see telemetry::frames::BusCounters)",
             bus_errors,
         );
+        registry.register(
+            "camera_frames",
+            "frames the robot's camera process published (agent's status)",
+            camera_frames,
+        );
+        registry.register(
+            "camera_frames_lost",
+            "camera frames dropped, refused as corrupt, or published late (over two periods), by kind",
+            camera_lost,
+        );
+        registry.register(
+            "camera_frame_age_seconds",
+            "age of the camera's newest frame when the agent answered",
+            camera_age,
+        );
+        registry.register(
+            "lidar_scans",
+            "revolutions the robot's lidar process published",
+            lidar_scans,
+        );
+        registry.register(
+            "lidar_faults",
+            "lidar measurements unconfirmed, stream resyncs, revolutions dropped as short, by kind",
+            lidar_lost,
+        );
+        registry.register(
+            "lidar_scan_age_seconds",
+            "age of the lidar's newest revolution when the agent answered",
+            lidar_age,
+        );
+        registry.register("lidar_rotation_hz", "revolutions per second", lidar_hz);
         registry.register(
             "fleet_undecodable_messages",
             "messages the collector could not decode, by key",
@@ -472,7 +544,7 @@ mod tests {
         let mut c = Collector::new(10, 0);
         c.state("nori/r1/state", &state(1, &[30.0]), 0).unwrap();
         let mut other_version = state(2, &[99.0]);
-        other_version[0] = 2;
+        other_version[0] = SCHEMA_VERSION as u8 + 1;
         assert!(matches!(
             c.state("nori/r1/state", &other_version, 1),
             Err(IngestError::Decode { .. })
@@ -530,6 +602,8 @@ mod tests {
             counters,
             last_rejection: "stale: 300 ms".into(),
             buses,
+            cameras: vec![],
+            lidar: None,
         })
     }
 
@@ -622,5 +696,58 @@ mod tests {
             assert!(text.contains(line), "{line} not in\n{text}");
         }
         assert!(!text.contains(r#"kind="cycles""#), "cycles are not errors");
+    }
+
+    #[test]
+    fn sensor_health_comes_from_the_robot_status() {
+        use fleet_agent::schema::{CameraStatus, LidarStatus};
+        let mut c = Collector::new(1, 0);
+        let mut st: StatusMsg =
+            fleet_agent::schema::decode(&status(AgentCounters::default(), vec![])).unwrap();
+        st.cameras = vec![
+            CameraStatus {
+                name: "head".into(),
+                frames: 900,
+                dropped: 3,
+                corrupt: 2,
+                late: 7,
+                age_ms: Some(40.0),
+            },
+            CameraStatus {
+                name: "neck".into(),
+                frames: 0,
+                dropped: 0,
+                corrupt: 0,
+                late: 0,
+                age_ms: None,
+            },
+        ];
+        st.lidar = Some(LidarStatus {
+            scans: 300,
+            bad_points: 12,
+            resyncs: 4,
+            short_scans: 1,
+            rotation_hz: Some(10.0),
+            age_ms: Some(20.0),
+        });
+        c.status("nori/r4/status", &encode(&st), 0).unwrap();
+        let text = c.metrics();
+        for line in [
+            r#"nori_camera_frames_total{robot="r4",camera="head"} 900"#,
+            r#"nori_camera_frames_lost_total{robot="r4",camera="head",kind="dropped"} 3"#,
+            r#"nori_camera_frames_lost_total{robot="r4",camera="head",kind="corrupt"} 2"#,
+            r#"nori_camera_frames_lost_total{robot="r4",camera="head",kind="late"} 7"#,
+            r#"nori_camera_frame_age_seconds{robot="r4",camera="head"} 0.04"#,
+            r#"nori_camera_frames_total{robot="r4",camera="neck"} 0"#,
+            r#"nori_lidar_scans_total{robot="r4"} 300"#,
+            r#"nori_lidar_faults_total{robot="r4",kind="bad_points"} 12"#,
+            r#"nori_lidar_faults_total{robot="r4",kind="short_scans"} 1"#,
+            r#"nori_lidar_scan_age_seconds{robot="r4"} 0.02"#,
+            r#"nori_lidar_rotation_hz{robot="r4"} 10.0"#,
+        ] {
+            assert!(text.contains(line), "{line} not in\n{text}");
+        }
+        // A camera never seen has no age: no sample rather than a made-up one.
+        assert!(!text.contains(r#"nori_camera_frame_age_seconds{robot="r4",camera="neck"}"#));
     }
 }

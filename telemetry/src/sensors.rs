@@ -48,7 +48,7 @@ impl PixelFormat {
 /// The header of one camera frame; its pixels follow as the sample's byte slice.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
-#[type_name("nori::CameraFrameHeader/1")]
+#[type_name("nori::CameraFrameHeader/2")]
 pub struct CameraFrameHeader {
     /// Frames published by this camera process, from 0.
     pub seq: u64,
@@ -71,6 +71,10 @@ pub struct CameraFrameHeader {
     pub dropped: u32,
     /// Frames refused so far as corrupt (a JPEG that does not decode, a short buffer).
     pub corrupt: u32,
+    /// Frames so far published more than two frame periods after their capture.
+    pub late: u32,
+    /// Padding.
+    pub reserved: u32,
 }
 
 impl CameraFrameHeader {
@@ -175,7 +179,7 @@ mod tests {
     #[test]
     fn sensor_layouts_are_stable() {
         // A change here changes the service identity: bump the version in the type name.
-        assert_eq!(std::mem::size_of::<CameraFrameHeader>(), 24 + NAME_LEN + 24);
+        assert_eq!(std::mem::size_of::<CameraFrameHeader>(), 24 + NAME_LEN + 32);
         assert_eq!(std::mem::size_of::<ScanPoint>(), 12);
         assert_eq!(std::mem::size_of::<LidarScan>(), 40 + 12 * MAX_SCAN_POINTS);
     }

@@ -230,9 +230,9 @@ fn bad_actions_are_refused_with_their_reason_and_a_killed_agent_leaves_nothing_q
 
     // The rogue's gallery. Robot time: the same CLOCK_MONOTONIC on this machine.
     let now = monotonic_ns();
-    put(vec![0x01, 0xff, 0xff, 0xff]);
+    put(vec![SCHEMA_VERSION as u8, 0xff, 0xff, 0xff]);
     let mut other_version = elbow_chunk(&layout, 1, now, -1.0, 10);
-    other_version.version = 2;
+    other_version.version = SCHEMA_VERSION + 1;
     put(encode(&other_version));
     put(encode(&elbow_chunk(&layout, 2, now, hi + 0.5, 10)));
     put(encode(&elbow_chunk(&layout, 3, now, f32::NAN, 10)));

@@ -141,7 +141,10 @@ fn metrics_show_the_robot_its_joints_and_its_rejections() {
         "the rejections in /metrics",
         || {
             actions.put(out_of_range_chunk(1, joints)).wait().ok()?;
-            actions.put(vec![1u8, 0xff, 0xff]).wait().ok()?;
+            actions
+                .put(vec![SCHEMA_VERSION as u8, 0xff, 0xff])
+                .wait()
+                .ok()?;
             let s = scrape(&http)?;
             (rejected(&s, "out_of_range")? >= 1.0 && rejected(&s, "malformed")? >= 1.0).then_some(s)
         },

@@ -202,7 +202,7 @@ fn messages() -> Vec<Vec<u8>> {
     let mut nan = good.clone();
     nan.targets[0] = f32::NAN;
     let mut version = good.clone();
-    version.version = 2;
+    version.version = SCHEMA_VERSION + 1;
     vec![
         encode(&good),
         encode(&out_of_range),
