@@ -8,7 +8,6 @@ use camera::process::{jpeg_max_len, run, Camera, RunError};
 use camera::source::{self, SourceError};
 use clap::Parser;
 use std::path::PathBuf;
-use std::time::Duration;
 use telemetry::plane::{self, CameraStream, Plane};
 use telemetry::process::{finish, start, Exit, Started};
 use telemetry::sensors::PixelFormat;
@@ -72,17 +71,7 @@ fn serve(args: &Args) -> Result<()> {
         )
         .into());
     };
-    let run_for = match args.run_for {
-        Some(s) if !(s.is_finite() && s > 0.0) => {
-            return Err(telemetry::config::invalid(
-                "--run-for",
-                "run-for",
-                format!("{s}: a positive number of seconds"),
-            )
-            .into())
-        }
-        s => s.map(Duration::from_secs_f64),
-    };
+    let run_for = telemetry::process::run_for(args.run_for)?;
     let node = Plane::open(&args.domain, &format!("camera_{name}"))?;
     let (width, height) = (cam.mode.width, cam.mode.height);
     let publisher = node.camera_publisher(name, CameraStream::Rgb, rgb_len(width, height))?;

@@ -6,7 +6,6 @@ use clap::Parser;
 use lidar::config::LidarConfig;
 use lidar::process::{run, Lidar, LidarError, LinkError, SerialLink};
 use std::path::PathBuf;
-use std::time::Duration;
 use telemetry::plane::{self, Plane, LIDAR_SCAN};
 use telemetry::process::{finish, start, Exit, Started};
 
@@ -54,17 +53,7 @@ fn serve(args: &Args) -> Result<()> {
         Some(dir) => config.with_device_dir(dir),
         None => config,
     };
-    let run_for = match args.run_for {
-        Some(s) if !(s.is_finite() && s > 0.0) => {
-            return Err(telemetry::config::invalid(
-                "--run-for",
-                "run-for",
-                format!("{s}: a positive number of seconds"),
-            )
-            .into())
-        }
-        s => s.map(Duration::from_secs_f64),
-    };
+    let run_for = telemetry::process::run_for(args.run_for)?;
     let node = Plane::open(&args.domain, "lidar")?;
     let mut lidar = Lidar::new(config.limits, node.publisher(&LIDAR_SCAN)?);
     let baud = config.baud;

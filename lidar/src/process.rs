@@ -352,56 +352,73 @@ pub fn run<L: Link>(
     let started = Instant::now();
     let running = || !stop.load(Ordering::Relaxed) && run_for.is_none_or(|t| started.elapsed() < t);
     let mut link = open(device)?;
-    let mut buf = [0u8; 1024];
-    'start: while running() {
-        match lidar.start_scan(&mut link) {
-            Ok(()) => tracing::info!("scanning from {}", device.display()),
+    while running() {
+        let lost = match lidar.start_scan(&mut link) {
+            Ok(()) => {
+                tracing::info!("scanning from {}", device.display());
+                match scan(lidar, &mut link, silence, &running)? {
+                    Scanned::Stopped => break,
+                    Scanned::Silent => continue,
+                    Scanned::Lost(e) => e,
+                }
+            }
             Err(e @ LidarError::NoAnswer { .. }) => {
                 lidar.counters.silences += 1;
                 tracing::warn!("{e}; trying again");
-                continue 'start;
+                continue;
             }
-            Err(LidarError::Link(e)) => {
-                tracing::warn!("{e}; opening it again");
-                match reopen(&open, device, &running) {
-                    Some(l) => link = l,
-                    None => return Ok(()),
-                }
-                lidar.counters.reconnects += 1;
-                continue 'start;
-            }
+            Err(LidarError::Link(e)) => e,
             Err(e) => return Err(e),
+        };
+        tracing::warn!("{lost}; opening it again");
+        match reopen(&open, device, &running) {
+            Some(l) => link = l,
+            None => return Ok(()),
         }
-        let mut last_node = Instant::now();
-        while running() {
-            let n = match link.receive(&mut buf, Duration::from_millis(100)) {
-                Ok(n) => n,
-                Err(e) => {
-                    tracing::warn!("{e}; opening it again");
-                    match reopen(&open, device, &running) {
-                        Some(l) => link = l,
-                        None => return Ok(()),
-                    }
-                    lidar.counters.reconnects += 1;
-                    continue 'start;
-                }
-            };
-            let before = lidar.nodes;
-            lidar.pump(&buf[..n], telemetry::clock::monotonic_ns())?;
-            if lidar.nodes > before {
-                last_node = Instant::now();
-            } else if last_node.elapsed() >= silence {
-                lidar.counters.silences += 1;
-                tracing::warn!("no measurement for {silence:?}; starting the scan again");
-                continue 'start;
-            }
-        }
+        lidar.counters.reconnects += 1;
     }
     // The C1's motor spins while it scans: stop it on the way out.
     if let Err(e) = lidar.stop(&mut link) {
         tracing::warn!("cannot stop the lidar: {e}");
     }
     Ok(())
+}
+
+/// How a scan ended.
+enum Scanned {
+    /// Asked to stop.
+    Stopped,
+    /// No measurement for the silence bound: start the scan again.
+    Silent,
+    /// The link failed: open it again.
+    Lost(LinkError),
+}
+
+/// Reads the scan stream until it stops, goes silent or loses its link.
+fn scan(
+    lidar: &mut Lidar,
+    link: &mut dyn Link,
+    silence: Duration,
+    running: &impl Fn() -> bool,
+) -> Result<Scanned, LidarError> {
+    let mut buf = [0u8; 1024];
+    let mut last_node = Instant::now();
+    while running() {
+        let n = match link.receive(&mut buf, Duration::from_millis(100)) {
+            Ok(n) => n,
+            Err(e) => return Ok(Scanned::Lost(e)),
+        };
+        let before = lidar.nodes;
+        lidar.pump(&buf[..n], telemetry::clock::monotonic_ns())?;
+        if lidar.nodes > before {
+            last_node = Instant::now();
+        } else if last_node.elapsed() >= silence {
+            lidar.counters.silences += 1;
+            tracing::warn!("no measurement for {silence:?}; starting the scan again");
+            return Ok(Scanned::Silent);
+        }
+    }
+    Ok(Scanned::Stopped)
 }
 
 fn reopen<L>(

@@ -148,6 +148,21 @@ pub fn start<C: crate::config::ProcessConfig>(
     Ok(Some(Started { config, shutdown }))
 }
 
+/// A process's `--run-for` in seconds as a duration, refused (naming the option) unless
+/// positive and finite.
+pub fn run_for(
+    seconds: Option<f64>,
+) -> Result<Option<std::time::Duration>, crate::config::ConfigError> {
+    match seconds {
+        Some(s) if !(s.is_finite() && s > 0.0) => Err(crate::config::invalid(
+            "--run-for",
+            "run-for",
+            format!("{s}: a positive number of seconds"),
+        )),
+        s => Ok(s.map(std::time::Duration::from_secs_f64)),
+    }
+}
+
 /// Logging to stderr, level from `RUST_LOG` (default `info`).
 pub fn init_logging() {
     tracing_subscriber::fmt()
@@ -296,6 +311,21 @@ pub fn watchdog_ping_interval(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn run_for_takes_positive_seconds_and_names_the_option_otherwise() {
+        assert_eq!(run_for(None).unwrap(), None);
+        assert_eq!(
+            run_for(Some(1.5)).unwrap(),
+            Some(std::time::Duration::from_millis(1500))
+        );
+        for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+            assert!(run_for(Some(bad))
+                .unwrap_err()
+                .to_string()
+                .contains("--run-for"));
+        }
+    }
 
     #[test]
     fn a_missing_sibling_is_named() {
