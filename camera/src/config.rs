@@ -53,11 +53,7 @@ impl ProcessConfig for CamerasConfig {
         let mut cameras: Vec<CameraConfig> = Vec::new();
         for (i, c) in file.camera.into_iter().enumerate() {
             let key = |k: &str| format!("camera[{i}].{k}");
-            let name_ok = !c.name.is_empty()
-                && c.name.len() <= NAME_LEN
-                && c.name
-                    .bytes()
-                    .all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'_');
+            let name_ok = telemetry::sensors::valid_camera_name(&c.name);
             if !name_ok {
                 return Err(invalid(
                     origin,

@@ -177,11 +177,7 @@ impl AgentConfig {
             );
         }
         for (i, name) in c.sensors.cameras.iter().enumerate() {
-            let ok = !name.is_empty()
-                && name.len() <= telemetry::frames::NAME_LEN
-                && name
-                    .bytes()
-                    .all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'_');
+            let ok = telemetry::sensors::valid_camera_name(name);
             if !ok || c.sensors.cameras[..i].contains(name) {
                 return bad(
                     "sensors.cameras",

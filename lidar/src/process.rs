@@ -4,7 +4,7 @@
 //! A bad byte, node or revolution is refused and counted; it never stops the loop.
 
 use crate::protocol::{Command, DecodeCounters, Decoder, DeviceInfo, Event, Health, HealthStatus};
-use crate::scan::{Assembler, ScanCounters, ScanLimits};
+use crate::scan::{saturate, Assembler, ScanCounters, ScanLimits};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
@@ -312,10 +312,6 @@ impl Lidar {
     pub fn stop(&mut self, link: &mut dyn Link) -> Result<(), LidarError> {
         self.request(link, Command::Stop)
     }
-}
-
-fn saturate(n: u64) -> u32 {
-    n.min(u64::from(u32::MAX)) as u32
 }
 
 fn log_identity(info: &DeviceInfo) {

@@ -179,7 +179,8 @@ impl Assembler {
     }
 }
 
-fn saturate(n: u64) -> u32 {
+/// A cumulative count as the scan frame's 32-bit field holds it (stuck at the top, not wrapped).
+pub(crate) fn saturate(n: u64) -> u32 {
     n.min(u64::from(u32::MAX)) as u32
 }
 

@@ -7,6 +7,16 @@
 use crate::frames::{name_bytes, name_text, NAME_LEN};
 use iceoryx2::prelude::ZeroCopySend;
 
+/// Whether `name` can name a camera: 1 to [`NAME_LEN`] of a-z, 0-9 and _ (it names a plane
+/// service and a dataset key, and fits the frame header).
+pub fn valid_camera_name(name: &str) -> bool {
+    !name.is_empty()
+        && name.len() <= NAME_LEN
+        && name
+            .bytes()
+            .all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'_')
+}
+
 /// Pixel layouts a camera frame can carry, as V4L2 four-character codes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum PixelFormat {
