@@ -3,18 +3,21 @@
 //!
 //! The process moves frames: joint-state and grip frames into a `recorder::Sampler`, a dataset
 //! frame at every tick of the recording rate into a `recorder::EpisodeWriter`, which stages them
-//! every flush interval and commits each episode at its end. Everything about files and crash
-//! safety lives in the `recorder` crate.
+//! every flush interval and commits each episode at its end. With `--camera`, each tick also
+//! takes each camera's newest JPEG (from its `mjpeg` stream, stored as the camera sent it), or
+//! holds the last one when none is fresh. Everything about files and crash safety lives in the
+//! `recorder` crate.
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
 use recorder::dataset::Settings;
-use recorder::{Dataset, Features, Recovery, Sampler};
+use recorder::features::CameraMeta;
+use recorder::{Dataset, Features, RecordError, Recovery, Sampler};
 use std::path::PathBuf;
-use std::sync::atomic::Ordering;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
-use telemetry::plane::{self, Plane};
+use telemetry::plane::{self, CameraStream, FrameSub, Plane};
 
 /// Options of `nori record`.
 #[derive(Args, Debug)]
@@ -53,6 +56,14 @@ pub struct RecordArgs {
     /// Wait this long for the driver's layout and first frame, s.
     #[arg(long, default_value_t = 10.0)]
     wait_s: f64,
+    /// Record this camera's video as `observation.images.<NAME>` (repeat for several; the
+    /// camera must publish MJPEG: `nori-camera`).
+    #[arg(long = "camera", value_name = "NAME")]
+    cameras: Vec<String>,
+    /// A camera image captured longer than this before a frame's tick is not fresh: the last
+    /// one is held and `observation.camera_valid` is 0 for the frame, ms.
+    #[arg(long, default_value_t = 100)]
+    camera_stale_ms: u32,
 }
 
 /// `nori dataset ...`.
@@ -96,6 +107,7 @@ pub fn dataset(cmd: &DatasetCommand) -> Result<()> {
                 fps: reader.info.fps,
                 robot_type: reader.info.robot_type.clone().unwrap_or_default(),
                 data_files_size_in_mb: reader.info.data_files_size_in_mb,
+                video_files_size_in_mb: reader.info.video_files_size_in_mb,
             };
             let (ds, recovery) =
                 Dataset::open(&a.dataset, settings, reader.features, a.drop_unfinished)
@@ -167,7 +179,94 @@ fn check(args: &RecordArgs) -> Result<()> {
     if args.fps == 0 || args.fps > 1000 {
         bail!("--fps {} must be 1..=1000", args.fps);
     }
+    for (i, name) in args.cameras.iter().enumerate() {
+        if !telemetry::sensors::valid_camera_name(name) {
+            bail!("--camera {name:?}: a camera name is 1 to 32 of a-z, 0-9 and _");
+        }
+        if args.cameras[..i].contains(name) {
+            bail!("--camera {name} given twice");
+        }
+    }
+    if args.camera_stale_ms == 0 || args.camera_stale_ms > 10_000 {
+        bail!(
+            "--camera-stale-ms {} must be 1..=10000",
+            args.camera_stale_ms
+        );
+    }
     Ok(())
+}
+
+/// One recorded camera: its JPEG stream and its newest JPEG.
+struct CameraFeed {
+    name: String,
+    jpegs: FrameSub,
+    newest: Vec<u8>,
+    /// JPEGs refused because their size is not the camera's (a restart with another
+    /// configuration): the last good one is held instead.
+    refused: u64,
+}
+
+impl CameraFeed {
+    /// Takes in what the camera published since the last call: the newest JPEG of the
+    /// recorded size is kept; returns its capture time.
+    fn drain(&mut self, meta: Option<&CameraMeta>) -> Option<u64> {
+        let mut captured = None;
+        while let Ok(Some(sample)) = self.jpegs.receive() {
+            let h = sample.user_header();
+            if meta.is_some_and(|m| (h.width, h.height) != (m.width, m.height)) {
+                self.refused += 1;
+                continue;
+            }
+            self.newest.clear();
+            self.newest.extend_from_slice(sample.payload());
+            captured = Some(h.capture_ns);
+        }
+        captured
+    }
+}
+
+/// Waits for each camera's first JPEG: its size and pixel format make the video feature.
+fn first_images(
+    feeds: &mut [CameraFeed],
+    wait: Duration,
+    stop: &AtomicBool,
+) -> Result<Vec<CameraMeta>> {
+    let deadline = Instant::now() + wait;
+    let mut metas: Vec<Option<CameraMeta>> = vec![None; feeds.len()];
+    while metas.iter().any(Option::is_none) {
+        for (feed, meta) in feeds.iter_mut().zip(&mut metas) {
+            if meta.is_none() && feed.drain(None).is_some() {
+                let f = recorder::video::jpeg_format(&feed.newest).with_context(|| {
+                    format!(
+                        "camera {}: its JPEG has no frame header FFmpeg can name",
+                        feed.name
+                    )
+                })?;
+                *meta = Some(CameraMeta {
+                    name: feed.name.clone(),
+                    width: f.width,
+                    height: f.height,
+                    pix_fmt: f.pix_fmt.into(),
+                });
+            }
+        }
+        if stop.load(Ordering::Relaxed) {
+            bail!("stopped while waiting for the cameras");
+        }
+        if Instant::now() >= deadline {
+            let silent: Vec<&str> = (feeds.iter().zip(&metas))
+                .filter(|(_, m)| m.is_none())
+                .map(|(f, _)| f.name.as_str())
+                .collect();
+            bail!(
+                "no JPEG from camera {} within --wait-s {} s (is nori-camera running for it, with an MJPEG source?)",
+                silent.join(", "),
+                wait.as_secs_f64()
+            );
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    Ok(metas.into_iter().flatten().collect())
 }
 
 /// Records episodes until done or SIGINT/SIGTERM (which ends the current episode and keeps it).
@@ -179,9 +278,23 @@ pub fn record(args: &RecordArgs) -> Result<()> {
     let layouts = node.subscriber(&plane::LAYOUT)?;
     let grips = node.subscriber(&plane::GRIP)?;
 
+    let mut feeds = args
+        .cameras
+        .iter()
+        .map(|name| {
+            Ok(CameraFeed {
+                name: name.clone(),
+                jpegs: node.camera_subscriber(name, CameraStream::Mjpeg)?,
+                newest: Vec::new(),
+                refused: 0,
+            })
+        })
+        .collect::<Result<Vec<_>>>()?;
+
     let wait = Duration::from_secs_f64(args.wait_s);
     let layout = crate::plane_tools::wait_for_layout(&layouts, &args.domain, wait, Some(&stop))?;
-    let features = Features::from_layout(&layout);
+    let cameras = first_images(&mut feeds, wait, &stop)?;
+    let features = Features::from_layout(&layout).with_cameras(cameras);
     let settings = Settings {
         fps: args.fps,
         robot_type: args.robot_type.clone(),
@@ -197,25 +310,38 @@ pub fn record(args: &RecordArgs) -> Result<()> {
     report_recovery(&recovery);
 
     let period_ns = 1_000_000_000 / u64::from(args.fps);
-    let mut sampler = Sampler::new(features.clone(), period_ns);
+    let mut sampler = Sampler::new(features.clone(), period_ns)
+        .with_camera_staleness(u64::from(args.camera_stale_ms) * 1_000_000);
     let flush_every = ((u64::from(args.fps) * u64::from(args.flush_ms)) / 1000).max(1) as usize;
     let frames_per_episode = (args.episode_s * f64::from(args.fps)).round().max(1.0) as usize;
     eprintln!(
-        "nori record: {} joints ({}), {} fps, {} episode(s) of {} frames into {} (staged every {} frames, in the background)",
+        "nori record: {} joints ({}), {} camera(s) ({}), {} fps, {} episode(s) of {} frames into {} (staged every {} frames, in the background)",
         features.joints.len(),
         features.joint_names().join(", "),
+        features.cameras.len(),
+        features
+            .cameras
+            .iter()
+            .map(|c| format!("{} {}x{} {}", c.name, c.width, c.height, c.pix_fmt))
+            .collect::<Vec<_>>()
+            .join(", "),
         args.fps,
         args.episodes,
         frames_per_episode,
         args.dataset.display(),
         flush_every
     );
-    let drain = |sampler: &mut Sampler| {
+    let drain = |sampler: &mut Sampler, feeds: &mut [CameraFeed]| {
         while let Some(s) = plane::next(&states) {
             sampler.on_state(&s);
         }
         while let Some(g) = plane::next(&grips) {
             sampler.on_grip(&g);
+        }
+        for (i, (feed, meta)) in feeds.iter_mut().zip(&features.cameras).enumerate() {
+            if let Some(captured) = feed.drain(Some(meta)) {
+                sampler.on_camera(i, captured);
+            }
         }
         plane::newest(&layouts)
     };
@@ -227,7 +353,7 @@ pub fn record(args: &RecordArgs) -> Result<()> {
         if episode > 0 && args.reset_s > 0.0 {
             let resume = Instant::now() + Duration::from_secs_f64(args.reset_s);
             while Instant::now() < resume && !stop.load(Ordering::Relaxed) {
-                drain(&mut sampler);
+                drain(&mut sampler, &mut feeds);
                 std::thread::sleep(Duration::from_millis(1));
             }
         }
@@ -235,14 +361,14 @@ pub fn record(args: &RecordArgs) -> Result<()> {
         // first read to hold.
         let deadline = Instant::now() + wait;
         loop {
-            drain(&mut sampler);
+            drain(&mut sampler, &mut feeds);
             let unread = sampler.unread();
             if unread.is_empty() || stop.load(Ordering::Relaxed) {
                 break;
             }
             if Instant::now() >= deadline {
                 bail!(
-                    "never read within --wait-s {} s: {} (a servo not answering, or no supervisor publishing grip force); nothing recorded for episode {episode}",
+                    "never read within --wait-s {} s: {} (a servo not answering, no supervisor publishing grip force, or a camera silent); nothing recorded for episode {episode}",
                     args.wait_s,
                     unread.join(", ")
                 );
@@ -256,10 +382,11 @@ pub fn record(args: &RecordArgs) -> Result<()> {
         let start = monotonic_ns();
         let mut late_max_ns = 0u64;
         let mut missing = 0usize;
+        let mut held = 0usize;
         let mut flush_max = Duration::ZERO;
         while writer.len() < frames_per_episode && !stop.load(Ordering::Relaxed) {
-            if let Some(l) = drain(&mut sampler) {
-                if Features::from_layout(&l) != features {
+            if let Some(l) = drain(&mut sampler, &mut feeds) {
+                if Features::from_layout(&l).joints != features.joints {
                     bail!("the driver's joint layout changed during the recording (driver restarted with another configuration?)");
                 }
             }
@@ -274,9 +401,17 @@ pub fn record(args: &RecordArgs) -> Result<()> {
                 .frame(now)
                 .context("a joint read before the episode began is no longer known")?;
             missing += frame.missing_joints();
+            held += frame.held_images();
+            let images = feeds.iter().map(|f| f.newest.clone()).collect();
             let t0 = Instant::now();
-            if writer.push(frame)? {
-                flush_max = flush_max.max(t0.elapsed());
+            match writer.push_with_images(frame, images) {
+                Ok(true) => flush_max = flush_max.max(t0.elapsed()),
+                Ok(false) => {}
+                Err(e @ RecordError::VideoBehind { .. }) => {
+                    eprintln!("nori record: {e}");
+                    break;
+                }
+                Err(e) => return Err(e.into()),
             }
         }
         let frames = writer.len();
@@ -285,17 +420,20 @@ pub fn record(args: &RecordArgs) -> Result<()> {
         let commit = t0.elapsed();
         if let Some(row) = row {
             eprintln!(
-                "nori record: episode {} committed: {} frames, latest tick {:.1} ms late, {} missing joint samples, slowest flush hand-over {:.1} ms, commit {:.1} ms",
+                "nori record: episode {} committed: {} frames, latest tick {:.1} ms late, {} missing joint samples, {} held images, slowest flush hand-over {:.1} ms, commit {:.1} ms",
                 row.episode_index,
                 frames,
                 late_max_ns as f64 * 1e-6,
                 missing,
+                held,
                 flush_max.as_secs_f64() * 1e3,
                 commit.as_secs_f64() * 1e3
             );
             summary.push(serde_json::json!({
                 "episode": row.episode_index, "frames": frames, "max_tick_late_ms": late_max_ns as f64 * 1e-6,
-                "missing_joint_samples": missing, "max_flush_ms": flush_max.as_secs_f64() * 1e3,
+                "missing_joint_samples": missing, "held_images": held,
+                "refused_images": feeds.iter().map(|f| f.refused).sum::<u64>(),
+                "max_flush_ms": flush_max.as_secs_f64() * 1e3,
                 "commit_ms": commit.as_secs_f64() * 1e3,
             }));
         }

@@ -31,6 +31,19 @@
 //! rolls the episode forward (its row is in the episode table) or cuts its rows off and completes
 //! it again from its staged parts (it is not).
 //!
+//! # Video
+//!
+//! Each camera's frames of an episode are staged as a fragmented MP4
+//! (`.nori-staging/episode-NNNNNN/videos/<key>.mp4`, [`crate::video::VideoWriter`]: one JPEG
+//! per dataset frame, flushed frame by frame). The commit appends it to the camera's video file
+//! (`videos/<key>/chunk-NNN/file-NNN.mp4`, a new file once 200 MB would be passed) by stream
+//! copy into a temporary renamed over the file, after the data file and before the episode
+//! table, and samples it for the image statistics. Every piece is cut at a frame count, so a
+//! video file is always exactly its committed episodes plus, after a crash between its rename and
+//! the episode table's, the one in flight: [`Dataset::open`] cuts that off (or removes a file no
+//! episode references), and recovering a staged episode takes the frames that its data parts
+//! *and* every camera's staged video hold.
+//!
 //! A lock (`flock` on `.nori-staging/lock`) keeps a second recorder out; the kernel releases it
 //! when the holder dies, however it dies. Closing the dataset removes the lock and the staging
 //! directory once it is empty, so a dataset closed cleanly holds only LeRobot's files (nothing
@@ -38,11 +51,12 @@
 //! (`nori dataset recover`) repairs and closes it.
 
 use crate::error::RecordError;
-use crate::features::{FeatureSpec, Features, Ordered, SCALARS};
+use crate::features::{CameraMeta, FeatureSpec, Features, Ordered, SCALARS};
 use crate::fsutil;
-use crate::pq::{self, DataRow, EpisodeRow};
+use crate::pq::{self, DataRow, EpisodeRow, VideoSpan};
 use crate::sampler::Frame;
 use crate::stats::FeatureStats;
+use crate::video::{self, VideoWriter};
 use nix::fcntl::{Flock, FlockArg};
 use parquet::file::writer::SerializedFileWriter;
 use serde::{Deserialize, Serialize};
@@ -61,6 +75,8 @@ pub const DATA_FILES_SIZE_IN_MB: u64 = 100;
 pub const VIDEO_FILES_SIZE_IN_MB: u64 = 200;
 /// LeRobot's `DEFAULT_DATA_PATH`.
 pub const DATA_PATH: &str = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet";
+/// LeRobot's `DEFAULT_VIDEO_PATH`.
+pub const VIDEO_PATH: &str = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4";
 /// Staging directory under the root (hidden: LeRobot reads only `data/`, `meta/`, `videos/`).
 pub const STAGING: &str = ".nori-staging";
 
@@ -73,6 +89,8 @@ pub struct Settings {
     pub robot_type: String,
     /// Size at which a data (or episode) file is closed and the next one started, MB.
     pub data_files_size_in_mb: u64,
+    /// Size at which a video file is closed and the next one started, MB.
+    pub video_files_size_in_mb: u64,
 }
 
 impl Default for Settings {
@@ -81,6 +99,7 @@ impl Default for Settings {
             fps: 30,
             robot_type: "nori_a3".into(),
             data_files_size_in_mb: DATA_FILES_SIZE_IN_MB,
+            video_files_size_in_mb: VIDEO_FILES_SIZE_IN_MB,
         }
     }
 }
@@ -151,6 +170,9 @@ pub struct Recovery {
     pub dropped: Vec<(i64, usize, String)>,
     /// Staging directories of episodes that had been committed already.
     pub already_committed: usize,
+    /// Video frames no episode referenced, cut off (from the end of a camera's last file, or
+    /// whole files).
+    pub orphan_video_frames_removed: u64,
 }
 
 impl Recovery {
@@ -187,6 +209,15 @@ fn episodes_file(chunk: i64, file: i64) -> String {
     format!("meta/episodes/chunk-{chunk:03}/file-{file:03}.parquet")
 }
 
+fn video_file(key: &str, chunk: i64, file: i64) -> String {
+    format!("videos/{key}/chunk-{chunk:03}/file-{file:03}.mp4")
+}
+
+/// Where a staged episode's video of `camera` is.
+fn staged_video(dir: &Path, camera: &CameraMeta) -> PathBuf {
+    dir.join("videos").join(format!("{}.mp4", camera.key()))
+}
+
 fn next_file(chunk: i64, file: i64) -> (i64, i64) {
     if file == CHUNKS_SIZE - 1 {
         (chunk + 1, 0)
@@ -195,8 +226,8 @@ fn next_file(chunk: i64, file: i64) -> (i64, i64) {
     }
 }
 
-/// `chunk-NNN/file-NNN.parquet` files under `dir`, sorted, with their indices.
-fn chunk_files(dir: &Path) -> Result<Vec<(i64, i64, PathBuf)>, RecordError> {
+/// `chunk-NNN/file-NNN.<ext>` files under `dir`, sorted, with their indices.
+fn chunk_files(dir: &Path, ext: &str) -> Result<Vec<(i64, i64, PathBuf)>, RecordError> {
     let mut out = Vec::new();
     let Ok(chunks) = std::fs::read_dir(dir) else {
         return Ok(out);
@@ -214,7 +245,8 @@ fn chunk_files(dir: &Path) -> Result<Vec<(i64, i64, PathBuf)>, RecordError> {
             let fname = f.file_name().to_string_lossy().into_owned();
             if let Some(file) = fname
                 .strip_prefix("file-")
-                .and_then(|n| n.strip_suffix(".parquet"))
+                .and_then(|n| n.strip_suffix(ext))
+                .and_then(|n| n.strip_suffix('.'))
                 .and_then(|n| n.parse::<i64>().ok())
             {
                 out.push((chunk, file, f.path()));
@@ -299,6 +331,7 @@ impl Dataset {
             ds.check_compatible(&read_json::<Info>(&info_path)?)?;
             ds.load()?;
             recovery.orphan_rows_removed = ds.cut_orphan_rows()?;
+            recovery.orphan_video_frames_removed = ds.cut_orphan_video()?;
         } else if root.join("data").exists() || root.join("meta/episodes").exists() {
             return Err(RecordError::invalid(
                 root,
@@ -334,7 +367,7 @@ impl Dataset {
             )));
         }
         let mut theirs = info.features.0.clone();
-        let mut ours = self.features.info_json().0;
+        let mut ours = self.features.info_json(self.settings.fps).0;
         theirs.sort_by(|a, b| a.0.cmp(&b.0));
         ours.sort_by(|a, b| a.0.cmp(&b.0));
         if theirs != ours {
@@ -373,7 +406,7 @@ impl Dataset {
         if tasks_path.exists() {
             self.tasks = pq::read_tasks(&tasks_path)?;
         }
-        for (_, _, path) in chunk_files(&self.root.join("meta/episodes"))? {
+        for (_, _, path) in chunk_files(&self.root.join("meta/episodes"), "parquet")? {
             self.episodes
                 .extend(pq::read_episodes(&path, &self.features)?);
         }
@@ -412,7 +445,7 @@ impl Dataset {
     /// episode, in order); returns the rows removed.
     fn cut_orphan_rows(&mut self) -> Result<i64, RecordError> {
         let mut removed = 0;
-        for (chunk, file, path) in chunk_files(&self.root.join("data"))? {
+        for (chunk, file, path) in chunk_files(&self.root.join("data"), "parquet")? {
             let committed: Vec<&EpisodeRow> = self
                 .episodes
                 .iter()
@@ -443,6 +476,75 @@ impl Dataset {
             } else {
                 let keep = committed.len();
                 self.rewrite_data_file(&path, keep, &[])?;
+            }
+        }
+        Ok(removed)
+    }
+
+    /// Cuts off video frames that no committed episode references: a camera's files after its
+    /// last referenced one are removed, and that one is cut to the frames its episodes span.
+    /// Returns the frames removed.
+    fn cut_orphan_video(&mut self) -> Result<u64, RecordError> {
+        let mut removed = 0;
+        for (c, camera) in self.features.cameras.iter().enumerate() {
+            let key = camera.key();
+            let spans: Vec<(i64, i64, i64)> = self
+                .episodes
+                .iter()
+                .map(|e| {
+                    e.videos
+                        .get(c)
+                        .map(|v| (v.chunk_index, v.file_index, e.length))
+                        .ok_or_else(|| {
+                            RecordError::invalid(
+                                self.root.join("meta/episodes"),
+                                format!("episode {} has no video of {key}", e.episode_index),
+                            )
+                        })
+                })
+                .collect::<Result<_, _>>()?;
+            let last = spans.last().map(|&(chunk, file, _)| (chunk, file));
+            for (chunk, file, path) in chunk_files(&self.root.join("videos").join(&key), "mp4")? {
+                if last.is_some_and(|l| (chunk, file) <= l) {
+                    continue;
+                }
+                removed += video::count_frames(&path).unwrap_or(0);
+                std::fs::remove_file(&path).map_err(RecordError::io(
+                    &path,
+                    "removing an unreferenced video file",
+                ))?;
+                if let Some(dir) = path.parent() {
+                    fsutil::sync_dir(dir)?;
+                }
+            }
+            let Some((chunk, file)) = last else {
+                continue;
+            };
+            let referenced: i64 = spans
+                .iter()
+                .filter(|&&(c, f, _)| (c, f) == (chunk, file))
+                .map(|&(_, _, len)| len)
+                .sum();
+            let path = self.root.join(video_file(&key, chunk, file));
+            let held = video::count_frames(&path)?;
+            match held.cmp(&(referenced as u64)) {
+                std::cmp::Ordering::Equal => {}
+                std::cmp::Ordering::Less => {
+                    return Err(RecordError::invalid(
+                        &path,
+                        format!("holds {held} frames; its episodes span {referenced}"),
+                    ))
+                }
+                std::cmp::Ordering::Greater => {
+                    let tmp = fsutil::temp_path(&path);
+                    let piece = video::Piece {
+                        path: &path,
+                        frames: referenced as u64,
+                    };
+                    video::concat(&[piece], self.settings.fps, &tmp)?;
+                    fsutil::rename_into_place(&tmp, &path)?;
+                    removed += held - referenced as u64;
+                }
             }
         }
         Ok(removed)
@@ -494,7 +596,7 @@ impl Dataset {
         let info = Info {
             codebase_version: CODEBASE_VERSION.into(),
             fps: self.settings.fps,
-            features: self.features.info_json(),
+            features: self.features.info_json(self.settings.fps),
             total_episodes: self.episodes.len() as i64,
             total_frames,
             total_tasks: self.tasks.len() as i64,
@@ -502,14 +604,14 @@ impl Dataset {
             data_files_size_in_mb: self.settings.data_files_size_in_mb,
             video_files_size_in_mb: VIDEO_FILES_SIZE_IN_MB,
             data_path: DATA_PATH.into(),
-            video_path: None,
+            video_path: (!self.features.cameras.is_empty()).then(|| VIDEO_PATH.into()),
             robot_type: Some(self.settings.robot_type.clone()),
             splits,
         };
         let nori = NoriMeta {
             features: self.features.clone(),
             action: "the joint position goal the bus-driver sent in the sampled cycle, after its calibration clamp (JointState goal_rad)".into(),
-            missing: "observation.joint_valid = 0: no valid read of the joint (or of a gripper's grip force) within the last frame period; its values are its last read, held. Frames are recorded only once every joint was read".into(),
+            missing: "observation.joint_valid = 0: no valid read of the joint (or of a gripper's grip force) within the last frame period; its values are its last read, held. observation.camera_valid = 0: the camera's image is its last one, held (none captured within the staleness bound). Frames are recorded only once every joint was read and every camera seen".into(),
         };
         let path = self.root.join("meta/nori.json");
         fsutil::replace(&path, &json_bytes(&path, &nori)?)?;
@@ -519,17 +621,18 @@ impl Dataset {
                     .keys()
                     .into_iter()
                     .filter_map(|key| {
+                        let image = self.features.is_video(&key);
                         let parts: Vec<FeatureStats> = self
                             .episodes
                             .iter()
                             .filter_map(|e| {
                                 e.stats
                                     .iter()
-                                    .find(|(k, _)| k == key)
+                                    .find(|(k, _)| *k == key)
                                     .map(|(_, s)| s.clone())
                             })
                             .collect();
-                        FeatureStats::aggregate(&parts).map(|s| (key.to_string(), s.to_json()))
+                        FeatureStats::aggregate(&parts).map(|s| (key, s.to_json(image)))
                     })
                     .collect(),
             );
@@ -572,26 +675,47 @@ impl Dataset {
                 remove_dir(&dir)?;
                 continue;
             }
-            let frames = self.read_parts(&dir)?;
+            let mut frames = self.read_parts(&dir)?;
+            let (in_videos, short) = self.staged_video_frames(&dir);
+            let unplaceable = frames.len();
+            frames.truncate(in_videos.min(unplaceable));
             if frames.is_empty() || drop_unfinished || meta.fps != self.settings.fps {
-                let why = if frames.is_empty() {
-                    "no frame was flushed"
+                let why = if unplaceable == 0 {
+                    "no frame was flushed".to_string()
+                } else if frames.is_empty() {
+                    format!("no frame of its video{}", short.unwrap_or_default())
                 } else if drop_unfinished {
-                    "unfinished episodes are dropped (asked)"
+                    "unfinished episodes are dropped (asked)".to_string()
                 } else {
-                    "staged at another fps"
+                    "staged at another fps".to_string()
                 };
                 recovery
                     .dropped
-                    .push((meta.episode_index, frames.len(), why.into()));
+                    .push((meta.episode_index, unplaceable, why));
                 remove_dir(&dir)?;
                 continue;
             }
-            let row = self.commit(&meta.task, &frames)?;
+            let row = self.commit(&meta.task, &frames, &dir)?;
             recovery.recovered.push((row.episode_index, frames.len()));
             remove_dir(&dir)?;
         }
         Ok(())
+    }
+
+    /// The frames every camera's staged video of the episode staged in `dir` holds (unbounded
+    /// without cameras), and which camera holds the fewest, with its reason if unreadable.
+    fn staged_video_frames(&self, dir: &Path) -> (usize, Option<String>) {
+        let mut fewest = (usize::MAX, None);
+        for camera in &self.features.cameras {
+            let (n, why) = match video::count_frames(&staged_video(dir, camera)) {
+                Ok(n) => (n as usize, format!(" (camera {}: {n} frames)", camera.name)),
+                Err(e) => (0, format!(" (camera {}: {e})", camera.name)),
+            };
+            if n < fewest.0 {
+                fewest = (n, Some(why));
+            }
+        }
+        fewest
     }
 
     /// The frames of a staged episode's parts, in order, up to the first gap.
@@ -651,6 +775,16 @@ impl Dataset {
         };
         let path = dir.join("episode.json");
         fsutil::replace(&path, &json_bytes(&path, &staged)?)?;
+        let mut videos = Vec::new();
+        if !self.features.cameras.is_empty() {
+            fsutil::create_dir(&dir.join("videos"))?;
+        }
+        for camera in &self.features.cameras {
+            videos.push(VideoWriter::start(
+                &staged_video(&dir, camera),
+                self.settings.fps,
+            )?);
+        }
         let (jobs, queue) = mpsc::channel();
         let (done, written) = mpsc::channel();
         let features = self.features.clone();
@@ -671,12 +805,18 @@ impl Dataset {
             written,
             on_disk: 0,
             writer: Some(writer),
+            videos,
         })
     }
 
-    /// Appends an episode of `frames` of `task` to the dataset (see the module documentation for
-    /// the order of the writes).
-    fn commit(&mut self, task: &str, frames: &[Frame]) -> Result<EpisodeRow, RecordError> {
+    /// Appends an episode of `frames` of `task`, staged in `staged` (its videos), to the
+    /// dataset (see the module documentation for the order of the writes).
+    fn commit(
+        &mut self,
+        task: &str,
+        frames: &[Frame],
+        staged: &Path,
+    ) -> Result<EpisodeRow, RecordError> {
         let task_index = match self.tasks.iter().position(|t| t == task) {
             Some(i) => i as i64,
             None => {
@@ -733,6 +873,7 @@ impl Dataset {
             .filter(|e| e.data_chunk_index == chunk && e.data_file_index == file)
             .count();
         self.rewrite_data_file(&self.root.join(data_file(chunk, file)), in_file, &rows)?;
+        let (videos, video_stats) = self.append_videos(staged, frames.len() as u64)?;
 
         let (mut meta_chunk, mut meta_file) = self
             .episodes
@@ -754,7 +895,8 @@ impl Dataset {
             data_file_index: file,
             dataset_from_index: from,
             dataset_to_index: from + frames.len() as i64,
-            stats: episode_stats(&self.features, &rows),
+            videos,
+            stats: episode_stats(&self.features, &rows, video_stats),
             meta_chunk_index: meta_chunk,
             meta_file_index: meta_file,
         };
@@ -773,6 +915,76 @@ impl Dataset {
         self.episodes.push(row.clone());
         self.write_summaries()?;
         Ok(row)
+    }
+
+    /// Appends the first `frames` frames of each camera's video staged in `staged` to the
+    /// camera's video file (a new file when the current one would pass the size limit), and
+    /// samples them for statistics. Returns where each landed and its statistics.
+    fn append_videos(
+        &self,
+        staged: &Path,
+        frames: u64,
+    ) -> Result<(Vec<VideoSpan>, KeyedStats), RecordError> {
+        let fps = f64::from(self.settings.fps);
+        let limit = self.settings.video_files_size_in_mb * 1024 * 1024;
+        let mut spans = Vec::new();
+        let mut stats = Vec::new();
+        for (c, camera) in self.features.cameras.iter().enumerate() {
+            let key = camera.key();
+            let episode = staged_video(staged, camera);
+            let (histograms, sampled) =
+                video::channel_histograms(&episode, frames, camera.width, camera.height)?;
+            stats.push((
+                key.clone(),
+                FeatureStats::of_histograms(&histograms, sampled),
+            ));
+            let (mut chunk, mut file) = self
+                .episodes
+                .last()
+                .and_then(|e| e.videos.get(c))
+                .map_or((0, 0), |v| (v.chunk_index, v.file_index));
+            let mut in_file: i64 = self
+                .episodes
+                .iter()
+                .filter(|e| {
+                    e.videos
+                        .get(c)
+                        .is_some_and(|v| (v.chunk_index, v.file_index) == (chunk, file))
+                })
+                .map(|e| e.length)
+                .sum();
+            let size = |p: &Path| std::fs::metadata(p).map_or(0, |m| m.len());
+            let current = self.root.join(video_file(&key, chunk, file));
+            if in_file > 0 && size(&current) + size(&episode) >= limit {
+                (chunk, file) = next_file(chunk, file);
+                in_file = 0;
+            }
+            let path = self.root.join(video_file(&key, chunk, file));
+            let mut pieces = Vec::new();
+            if in_file > 0 {
+                pieces.push(video::Piece {
+                    path: &path,
+                    frames: in_file as u64,
+                });
+            }
+            pieces.push(video::Piece {
+                path: &episode,
+                frames,
+            });
+            let tmp = fsutil::temp_path(&path);
+            if let Some(dir) = path.parent() {
+                fsutil::create_dir(dir)?;
+            }
+            video::concat(&pieces, self.settings.fps, &tmp)?;
+            fsutil::rename_into_place(&tmp, &path)?;
+            spans.push(VideoSpan {
+                chunk_index: chunk,
+                file_index: file,
+                from_timestamp: in_file as f64 / fps,
+                to_timestamp: (in_file as u64 + frames) as f64 / fps,
+            });
+        }
+        Ok((spans, stats))
     }
 
     /// The dataset's root.
@@ -841,8 +1053,11 @@ fn read_episode_rows(
     Ok(rows)
 }
 
-/// Statistics of every feature of one episode, in feature order.
-fn episode_stats(features: &Features, rows: &[DataRow]) -> Vec<(String, FeatureStats)> {
+/// Statistics by feature key.
+type KeyedStats = Vec<(String, FeatureStats)>;
+
+/// Statistics of every feature of one episode, in feature order (`videos`: the cameras').
+fn episode_stats(features: &Features, rows: &[DataRow], videos: KeyedStats) -> KeyedStats {
     let n = rows.len();
     let mut out = Vec::new();
     for v in features.vectors() {
@@ -855,6 +1070,7 @@ fn episode_stats(features: &Features, rows: &[DataRow]) -> Vec<(String, FeatureS
             .collect();
         out.push((v.key().to_string(), FeatureStats::of_columns(&columns, n)));
     }
+    out.extend(videos);
     for (key, _) in SCALARS {
         let column: Vec<f64> = rows
             .iter()
@@ -925,11 +1141,40 @@ pub struct EpisodeWriter<'a> {
     written: mpsc::Receiver<usize>,
     on_disk: usize,
     writer: Option<std::thread::JoinHandle<Result<(), RecordError>>>,
+    /// Each camera's staged video, in [`Features::cameras`] order.
+    videos: Vec<VideoWriter>,
 }
 
 impl EpisodeWriter<'_> {
-    /// Adds the next frame; flushes when a flush interval is full. Returns whether it flushed.
+    /// Adds the next frame of a dataset without cameras; flushes when a flush interval is full.
+    /// Returns whether it flushed.
     pub fn push(&mut self, frame: Frame) -> Result<bool, RecordError> {
+        self.push_with_images(frame, Vec::new())
+    }
+
+    /// Adds the next frame with each camera's JPEG (in [`Features::cameras`] order). A frame
+    /// some camera's video could not take (its writer two seconds behind) is not added, so the
+    /// data and the videos stay frame for frame: the episode should end there
+    /// ([`RecordError::VideoBehind`]).
+    pub fn push_with_images(
+        &mut self,
+        frame: Frame,
+        images: Vec<Vec<u8>>,
+    ) -> Result<bool, RecordError> {
+        if images.len() != self.videos.len() {
+            return Err(RecordError::Request(format!(
+                "{} image(s) for {} camera(s)",
+                images.len(),
+                self.videos.len()
+            )));
+        }
+        for (c, (video, jpeg)) in self.videos.iter_mut().zip(images).enumerate() {
+            if !video.push(jpeg) {
+                return Err(RecordError::VideoBehind {
+                    camera: self.dataset.features.cameras[c].name.clone(),
+                });
+            }
+        }
         self.frames.push(frame);
         if self.frames.len() - self.flushed >= self.flush_every {
             self.flush()?;
@@ -1028,12 +1273,19 @@ impl EpisodeWriter<'_> {
     /// Commits the episode to the dataset; `None` (and nothing written) if it has no frame.
     pub fn finish(mut self) -> Result<Option<EpisodeRow>, RecordError> {
         self.wait_for_writer()?;
-        if self.frames.is_empty() {
+        for video in std::mem::take(&mut self.videos) {
+            video.finish()?;
+        }
+        // Every video holds at least the frames pushed (one may hold one more, see
+        // `push_with_images`); a video FFmpeg lost frames of shortens the episode.
+        let (in_videos, _) = self.dataset.staged_video_frames(&self.dir);
+        let mut frames = std::mem::take(&mut self.frames);
+        frames.truncate(in_videos);
+        if frames.is_empty() {
             remove_dir(&self.dir)?;
             return Ok(None);
         }
-        let frames = std::mem::take(&mut self.frames);
-        let row = self.dataset.commit(&self.task, &frames)?;
+        let row = self.dataset.commit(&self.task, &frames, &self.dir)?;
         remove_dir(&self.dir)?;
         Ok(Some(row))
     }
@@ -1089,7 +1341,7 @@ impl DatasetReader {
         let info: Info = read_json(&root.join("meta/info.json"))?;
         let nori: NoriMeta = read_json(&root.join("meta/nori.json"))?;
         let mut episodes = Vec::new();
-        for (_, _, path) in chunk_files(&root.join("meta/episodes"))? {
+        for (_, _, path) in chunk_files(&root.join("meta/episodes"), "parquet")? {
             episodes.extend(pq::read_episodes(&path, &nori.features)?);
         }
         episodes.sort_by_key(|e| e.episode_index);

@@ -59,6 +59,16 @@ pub enum RecordError {
     /// A request that makes no sense (bad fps, empty task, unknown episode).
     #[error("{0}")]
     Request(String),
+    /// A video could not be written or read.
+    #[error(transparent)]
+    Video(#[from] crate::video::VideoError),
+    /// A camera's video writer fell behind (FFmpeg or the disk two seconds late): the frame was
+    /// not recorded, and the episode must end before the video and the data part ways.
+    #[error("the video of camera {camera} fell two seconds behind (disk or FFmpeg too slow): the episode ends here")]
+    VideoBehind {
+        /// The camera.
+        camera: String,
+    },
 }
 
 impl RecordError {

@@ -56,6 +56,11 @@ pub enum Vector {
     /// `observation.joint_valid`: 1 where every value of the joint in this frame was read in
     /// this frame period, 0 where its last read is held (the servo did not answer in time).
     Valid,
+    /// `observation.camera_valid`: per camera, 1 where the frame's image was captured within
+    /// the staleness bound of the frame's tick, 0 where the camera's last image is held (it
+    /// stalled or died). Not named `...images...`: LeRobot treats every key containing "image"
+    /// as a picture.
+    CameraValid,
 }
 
 impl Vector {
@@ -70,6 +75,7 @@ impl Vector {
             Vector::Voltage => "observation.voltage",
             Vector::GripForce => "observation.grip_force",
             Vector::Valid => "observation.joint_valid",
+            Vector::CameraValid => "observation.camera_valid",
         }
     }
 }
@@ -83,12 +89,39 @@ pub const SCALARS: [(&str, &str); 5] = [
     ("task_index", "int64"),
 ];
 
-/// The joints of a recording and the features made of them.
+/// One recorded camera: its video feature `observation.images.<name>`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CameraMeta {
+    /// Camera name (as on the state plane).
+    pub name: String,
+    /// Image width, px.
+    pub width: u32,
+    /// Image height, px.
+    pub height: u32,
+    /// FFmpeg's name of the JPEGs' pixel format (`yuvj420p`, ...): `video.pix_fmt`.
+    pub pix_fmt: String,
+}
+
+impl CameraMeta {
+    /// The LeRobot feature key.
+    pub fn key(&self) -> String {
+        format!("observation.images.{}", self.name)
+    }
+}
+
+/// The codec of the recorded videos: the cameras' own JPEGs, stored without encoding again
+/// (`nori bench video-encode` has the figures behind that choice).
+pub const VIDEO_CODEC: &str = "mjpeg";
+
+/// The joints and cameras of a recording and the features made of them.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Features {
     /// Position-mode joints (arm joints and grippers), in frame order. Wheels are left out: their
     /// "position" is an angle modulo a turn and their goal a speed, not a position target.
     pub joints: Vec<JointMeta>,
+    /// Cameras recorded as videos, in feature order (none in a joints-only dataset).
+    #[serde(default)]
+    pub cameras: Vec<CameraMeta>,
 }
 
 impl Features {
@@ -112,7 +145,16 @@ impl Features {
                 range_rad: j.range_rad,
             })
             .collect();
-        Features { joints }
+        Features {
+            joints,
+            cameras: Vec::new(),
+        }
+    }
+
+    /// The same joints with `cameras` recorded as videos.
+    pub fn with_cameras(mut self, cameras: Vec<CameraMeta>) -> Features {
+        self.cameras = cameras;
+        self
     }
 
     /// Joint names.
@@ -127,7 +169,8 @@ impl Features {
             .collect()
     }
 
-    /// The vector features present (grip force only when there is a gripper).
+    /// The vector features present (grip force only when there is a gripper, camera validity
+    /// only when there is a camera).
     pub fn vectors(&self) -> Vec<Vector> {
         let mut v = vec![
             Vector::Action,
@@ -141,6 +184,9 @@ impl Features {
             v.push(Vector::GripForce);
         }
         v.push(Vector::Valid);
+        if !self.cameras.is_empty() {
+            v.push(Vector::CameraValid);
+        }
         v
     }
 
@@ -148,6 +194,7 @@ impl Features {
     pub fn width(&self, v: Vector) -> usize {
         match v {
             Vector::GripForce => self.grippers().len(),
+            Vector::CameraValid => self.cameras.len(),
             _ => self.joints.len(),
         }
     }
@@ -160,22 +207,31 @@ impl Features {
                 .into_iter()
                 .map(|i| self.joints[i].name.clone())
                 .collect(),
+            Vector::CameraValid => self.cameras.iter().map(|c| c.name.clone()).collect(),
             _ => self.joint_names(),
         }
     }
 
-    /// Every feature key, vectors then scalars: the order of `info.json` and of the data columns.
-    pub fn keys(&self) -> Vec<&'static str> {
+    /// Every feature key, vectors, videos, then scalars: the order of `info.json` and of the
+    /// statistics (the data columns are the vectors and the scalars: a video is in its own file).
+    pub fn keys(&self) -> Vec<String> {
         self.vectors()
             .into_iter()
-            .map(Vector::key)
-            .chain(SCALARS.iter().map(|(k, _)| *k))
+            .map(|v| v.key().to_string())
+            .chain(self.cameras.iter().map(CameraMeta::key))
+            .chain(SCALARS.iter().map(|(k, _)| k.to_string()))
             .collect()
+    }
+
+    /// Whether `key` is a video feature (its statistics are per colour channel, shaped
+    /// `[3, 1, 1]` as LeRobot keeps an image's).
+    pub fn is_video(&self, key: &str) -> bool {
+        self.cameras.iter().any(|c| c.key() == key)
     }
 
     /// The `features` object of `info.json`, in order, as LeRobot writes it
     /// (`{"dtype", "shape", "names"}`, names `null` for the scalars).
-    pub fn info_json(&self) -> Ordered<FeatureSpec> {
+    pub fn info_json(&self, fps: u32) -> Ordered<FeatureSpec> {
         let mut out = Vec::new();
         for v in self.vectors() {
             out.push((
@@ -184,6 +240,27 @@ impl Features {
                     dtype: "float32".into(),
                     shape: vec![self.width(v)],
                     names: Some(self.names(v)),
+                    info: None,
+                },
+            ));
+        }
+        for c in &self.cameras {
+            out.push((
+                c.key(),
+                FeatureSpec {
+                    dtype: "video".into(),
+                    shape: vec![c.height as usize, c.width as usize, 3],
+                    names: Some(vec!["height".into(), "width".into(), "channels".into()]),
+                    info: Some(VideoInfo {
+                        height: c.height,
+                        width: c.width,
+                        codec: VIDEO_CODEC.into(),
+                        pix_fmt: c.pix_fmt.clone(),
+                        is_depth_map: false,
+                        fps,
+                        channels: 3,
+                        has_audio: false,
+                    }),
                 },
             ));
         }
@@ -194,6 +271,7 @@ impl Features {
                     dtype: dtype.into(),
                     shape: vec![1],
                     names: None,
+                    info: None,
                 },
             ));
         }
@@ -210,6 +288,37 @@ pub struct FeatureSpec {
     pub shape: Vec<usize>,
     /// Names of the dimensions (`null` for scalars).
     pub names: Option<Vec<String>>,
+    /// A video's stream description (video features only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub info: Option<VideoInfo>,
+}
+
+/// The `info` block of a video feature, as LeRobot writes it (`get_video_info`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct VideoInfo {
+    /// Frame height, px.
+    #[serde(rename = "video.height")]
+    pub height: u32,
+    /// Frame width, px.
+    #[serde(rename = "video.width")]
+    pub width: u32,
+    /// FFmpeg codec name.
+    #[serde(rename = "video.codec")]
+    pub codec: String,
+    /// FFmpeg pixel format name.
+    #[serde(rename = "video.pix_fmt")]
+    pub pix_fmt: String,
+    /// Always false here.
+    #[serde(rename = "video.is_depth_map")]
+    pub is_depth_map: bool,
+    /// Frames per second.
+    #[serde(rename = "video.fps")]
+    pub fps: u32,
+    /// Colour channels.
+    #[serde(rename = "video.channels")]
+    pub channels: u32,
+    /// Always false here.
+    pub has_audio: bool,
 }
 
 /// A JSON object that keeps its keys in the given order (serde_json's own map sorts them).
@@ -283,7 +392,7 @@ mod tests {
                 "task_index"
             ]
         );
-        let info = serde_json::to_value(f.info_json()).unwrap();
+        let info = serde_json::to_value(f.info_json(30)).unwrap();
         assert_eq!(info["observation.state"]["shape"], serde_json::json!([2]));
         assert_eq!(
             info["observation.grip_force"]["names"],

@@ -53,11 +53,22 @@ where
         .open(&tmp)
         .map_err(RecordError::io(&tmp, "creating"))?;
     write(&mut file)?;
-    file.sync_all().map_err(RecordError::io(&tmp, "syncing"))?;
     drop(file);
-    std::fs::rename(&tmp, path)
+    rename_into_place(&tmp, path)
+}
+
+/// Makes the finished temporary `tmp` (written by another program, e.g. FFmpeg) the file at
+/// `path`, durably: fsync of the temporary, rename, fsync of the directory.
+pub fn rename_into_place(tmp: &Path, path: &Path) -> Result<(), RecordError> {
+    File::open(tmp)
+        .and_then(|f| f.sync_all())
+        .map_err(RecordError::io(tmp, "syncing"))?;
+    std::fs::rename(tmp, path)
         .map_err(RecordError::io(path, "renaming the new version into place"))?;
-    sync_dir(dir)
+    match path.parent() {
+        Some(dir) => sync_dir(dir),
+        None => Ok(()),
+    }
 }
 
 /// Replaces `path` with `bytes`, durably and atomically.

@@ -69,6 +69,27 @@ fn list(name: &str, physical: Physical, logical: Option<LogicalType>) -> PqResul
     ))
 }
 
+/// `depth` nested nullable lists of nullable `physical` (`list<list<list<double>>>` for an
+/// image's statistics, shaped `[3, 1, 1]`).
+fn nested_list(name: &str, depth: usize, physical: Physical) -> PqResult<TypePtr> {
+    if depth <= 1 {
+        return list(name, physical, None);
+    }
+    let element = nested_list("element", depth - 1, physical)?;
+    let repeated = Type::group_type_builder("list")
+        .with_repetition(Repetition::REPEATED)
+        .with_fields(vec![element])
+        .build()?;
+    Ok(Arc::new(
+        Type::group_type_builder(name)
+            .with_repetition(Repetition::OPTIONAL)
+            .with_logical_type(Some(LogicalType::List))
+            .with_converted_type(ConvertedType::LIST)
+            .with_fields(vec![Arc::new(repeated)])
+            .build()?,
+    ))
+}
+
 fn message(fields: Vec<TypePtr>) -> PqResult<TypePtr> {
     Ok(Arc::new(
         Type::group_type_builder("schema")
@@ -347,19 +368,24 @@ fn as_f64_list(path: &Path, key: &str, f: &Field) -> Result<Vec<f64>, RecordErro
             format!("column {key:?} is not a list"),
         ));
     };
-    list.elements()
-        .iter()
-        .map(|e| match e {
-            Field::Float(v) => Ok(f64::from(*v)),
-            Field::Double(v) => Ok(*v),
-            Field::Long(v) => Ok(*v as f64),
-            Field::Null => Ok(f64::NAN),
-            other => Err(RecordError::invalid(
-                path,
-                format!("column {key:?}: element {other:?}"),
-            )),
-        })
-        .collect()
+    let mut out = Vec::new();
+    for e in list.elements() {
+        match e {
+            Field::Float(v) => out.push(f64::from(*v)),
+            Field::Double(v) => out.push(*v),
+            Field::Long(v) => out.push(*v as f64),
+            Field::Null => out.push(f64::NAN),
+            // An image's statistics nest one value per channel as `[[v]]`.
+            nested @ Field::ListInternal(_) => out.extend(as_f64_list(path, key, nested)?),
+            other => {
+                return Err(RecordError::invalid(
+                    path,
+                    format!("column {key:?}: element {other:?}"),
+                ))
+            }
+        }
+    }
+    Ok(out)
 }
 
 /// Reads every row of a frame table (a data file or a staged part) for `features`.
@@ -418,12 +444,38 @@ pub struct EpisodeRow {
     pub dataset_from_index: i64,
     /// One past the last dataset index.
     pub dataset_to_index: i64,
+    /// Where each camera's frames of the episode are, in [`Features::cameras`] order.
+    pub videos: Vec<VideoSpan>,
     /// Statistics per feature key, in feature order.
     pub stats: Vec<(String, FeatureStats)>,
     /// Episode file chunk.
     pub meta_chunk_index: i64,
     /// Episode file index within the chunk.
     pub meta_file_index: i64,
+}
+
+/// Where an episode's frames of one camera are: a video file, and the time span in it (frame
+/// `k` of the episode at `from_timestamp + k / fps`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct VideoSpan {
+    /// Video file chunk.
+    pub chunk_index: i64,
+    /// Video file index within the chunk.
+    pub file_index: i64,
+    /// The episode's first frame, s into the file.
+    pub from_timestamp: f64,
+    /// One frame past its last, s.
+    pub to_timestamp: f64,
+}
+
+/// The episode table's columns of the video of `key`, in LeRobot's names.
+fn video_columns(key: &str) -> [String; 4] {
+    [
+        format!("videos/{key}/chunk_index"),
+        format!("videos/{key}/file_index"),
+        format!("videos/{key}/from_timestamp"),
+        format!("videos/{key}/to_timestamp"),
+    ]
 }
 
 fn episodes_schema(features: &Features) -> PqResult<TypePtr> {
@@ -440,14 +492,23 @@ fn episodes_schema(features: &Features) -> PqResult<TypePtr> {
     ] {
         fields.push(optional(k, Physical::INT64, None)?);
     }
+    for camera in &features.cameras {
+        let [chunk, file, from, to] = video_columns(&camera.key());
+        fields.push(optional(&chunk, Physical::INT64, None)?);
+        fields.push(optional(&file, Physical::INT64, None)?);
+        fields.push(optional(&from, Physical::DOUBLE, None)?);
+        fields.push(optional(&to, Physical::DOUBLE, None)?);
+    }
     for key in features.keys() {
         for stat in STAT_NAMES {
-            let physical = if stat == "count" {
-                Physical::INT64
+            let name = format!("stats/{key}/{stat}");
+            fields.push(if stat == "count" {
+                list(&name, Physical::INT64, None)?
+            } else if features.is_video(&key) {
+                nested_list(&name, 3, Physical::DOUBLE)?
             } else {
-                Physical::DOUBLE
-            };
-            fields.push(list(&format!("stats/{key}/{stat}"), physical, None)?);
+                list(&name, Physical::DOUBLE, None)?
+            });
         }
     }
     fields.push(optional(
@@ -509,7 +570,32 @@ pub fn write_episodes<W: std::io::Write + Send>(
     int_column(&mut rg, ints(|r| r.data_file_index))?;
     int_column(&mut rg, ints(|r| r.dataset_from_index))?;
     int_column(&mut rg, ints(|r| r.dataset_to_index))?;
+    for c in 0..features.cameras.len() {
+        let span = |r: &EpisodeRow| {
+            r.videos.get(c).cloned().ok_or_else(|| {
+                parquet::errors::ParquetError::General(format!(
+                    "episode {} has no video of {}",
+                    r.episode_index, features.cameras[c].name
+                ))
+            })
+        };
+        let spans = rows.iter().map(span).collect::<PqResult<Vec<_>>>()?;
+        int_column(&mut rg, spans.iter().map(|s| s.chunk_index).collect())?;
+        int_column(&mut rg, spans.iter().map(|s| s.file_index).collect())?;
+        for time in [
+            spans.iter().map(|s| s.from_timestamp).collect::<Vec<_>>(),
+            spans.iter().map(|s| s.to_timestamp).collect(),
+        ] {
+            let mut col = rg
+                .next_column()?
+                .ok_or_else(|| parquet::errors::ParquetError::General("columns".into()))?;
+            col.typed::<DoubleType>()
+                .write_batch(&time, Some(&def1), None)?;
+            col.close()?;
+        }
+    }
     for key in features.keys() {
+        let image = features.is_video(&key);
         for stat in STAT_NAMES {
             let mut values = Vec::new();
             let mut width = None;
@@ -517,7 +603,7 @@ pub fn write_episodes<W: std::io::Write + Send>(
                 let s = r
                     .stats
                     .iter()
-                    .find(|(k, _)| k == key)
+                    .find(|(k, _)| *k == key)
                     .map(|(_, s)| s)
                     .ok_or_else(|| {
                         parquet::errors::ParquetError::General(format!(
@@ -534,7 +620,18 @@ pub fn write_episodes<W: std::io::Write + Send>(
                 values.extend(x);
             }
             let w = width.unwrap_or(0);
-            let (def, rep) = list_levels(n, w);
+            let (def, rep) = if image && stat != "count" {
+                // `[[v]]` per channel: a new channel repeats at the outer level (1), every
+                // value is fully defined (7: three optional lists, three repeated levels and
+                // the optional element).
+                let mut rep = vec![1i16; n * w];
+                for r in 0..n {
+                    rep[r * w] = 0;
+                }
+                (vec![7i16; n * w], rep)
+            } else {
+                list_levels(n, w)
+            };
             let mut col = rg
                 .next_column()?
                 .ok_or_else(|| parquet::errors::ParquetError::General("columns".into()))?;
@@ -573,6 +670,23 @@ pub fn read_episodes(path: &Path, features: &Features) -> Result<Vec<EpisodeRow>
                 .collect(),
             _ => return Err(RecordError::invalid(path, "tasks is not a list")),
         };
+        let mut videos = Vec::new();
+        for camera in &features.cameras {
+            let [chunk, file, from, to] = video_columns(&camera.key());
+            let time = |k: &str| match want(path, &cols, k)? {
+                Field::Double(v) => Ok(*v),
+                other => Err(RecordError::invalid(
+                    path,
+                    format!("column {k:?}: {other:?} is not a time"),
+                )),
+            };
+            videos.push(VideoSpan {
+                chunk_index: int(&chunk)?,
+                file_index: int(&file)?,
+                from_timestamp: time(&from)?,
+                to_timestamp: time(&to)?,
+            });
+        }
         let mut stats = Vec::new();
         for key in features.keys() {
             let mut failure = None;
@@ -596,7 +710,7 @@ pub fn read_episodes(path: &Path, features: &Features) -> Result<Vec<EpisodeRow>
                     ),
                 )
             })?;
-            stats.push((key.to_string(), s));
+            stats.push((key, s));
         }
         out.push(EpisodeRow {
             episode_index: int("episode_index")?,
@@ -606,6 +720,7 @@ pub fn read_episodes(path: &Path, features: &Features) -> Result<Vec<EpisodeRow>
             data_file_index: int("data/file_index")?,
             dataset_from_index: int("dataset_from_index")?,
             dataset_to_index: int("dataset_to_index")?,
+            videos,
             stats,
             meta_chunk_index: int("meta/episodes/chunk_index")?,
             meta_file_index: int("meta/episodes/file_index")?,

@@ -11,8 +11,14 @@
 //! a NaN spreads through its statistics and every loss of an action chunk that touches it, and
 //! the mask lets a policy or a filter drop what was held. An episode starts only once every
 //! joint (and grip force) has been read ([`Sampler::unread`]), so nothing is ever invented.
+//!
+//! Cameras are sampled the same way: each frame takes the camera's newest image, and
+//! `observation.camera_valid` says whether it was captured within the staleness bound of the
+//! tick ([`crate::video::pick`]) or is the last one, held (the camera stalled or died: the
+//! video keeps one frame per dataset frame, so the gap is marked, not skipped).
 
 use crate::features::{Features, Vector};
+use crate::video::{pick, Pick};
 use telemetry::frames::{GripFrame, JointSample, JointState};
 
 /// One dataset frame: the vector features, each in [`Features`] order.
@@ -34,6 +40,8 @@ pub struct Frame {
     pub grip_force: Vec<f32>,
     /// Per joint: 1 if read in this frame period, 0 if its last read is held.
     pub valid: Vec<f32>,
+    /// Per camera: 1 if its image is fresh, 0 if its last image is held.
+    pub camera_valid: Vec<f32>,
 }
 
 impl Frame {
@@ -50,6 +58,7 @@ impl Frame {
             voltage: vec![f32::NAN; n],
             grip_force: vec![f32::NAN; g],
             valid: vec![0.0; n],
+            camera_valid: vec![0.0; features.cameras.len()],
         }
     }
 
@@ -64,6 +73,7 @@ impl Frame {
             Vector::Voltage => &self.voltage,
             Vector::GripForce => &self.grip_force,
             Vector::Valid => &self.valid,
+            Vector::CameraValid => &self.camera_valid,
         }
     }
 
@@ -78,12 +88,18 @@ impl Frame {
             Vector::Voltage => &mut self.voltage,
             Vector::GripForce => &mut self.grip_force,
             Vector::Valid => &mut self.valid,
+            Vector::CameraValid => &mut self.camera_valid,
         }
     }
 
     /// Count of joints whose last read is held in this frame.
     pub fn missing_joints(&self) -> usize {
         self.valid.iter().filter(|&&v| v < 0.5).count()
+    }
+
+    /// Count of cameras whose last image is held in this frame.
+    pub fn held_images(&self) -> usize {
+        self.camera_valid.iter().filter(|&&v| v < 0.5).count()
     }
 }
 
@@ -100,10 +116,15 @@ pub struct Sampler {
     /// Newest grip force per gripper, with its timestamp.
     grips: Vec<Option<(u64, f32)>>,
     max_age_ns: u64,
+    /// Capture time of each camera's newest image.
+    cameras: Vec<Option<u64>>,
+    camera_stale_ns: u64,
 }
 
 impl Sampler {
-    /// A sampler for `features`; a sample older than `max_age_ns` at a tick is missing.
+    /// A sampler for `features`; a sample older than `max_age_ns` at a tick is missing, and so
+    /// is a camera image captured longer than `max_age_ns` before it unless
+    /// [`Sampler::with_camera_staleness`] says otherwise.
     pub fn new(features: Features, max_age_ns: u64) -> Sampler {
         let gripper_joints = features
             .grippers()
@@ -115,8 +136,25 @@ impl Sampler {
             grips: vec![None; gripper_joints.len()],
             gripper_rows: features.grippers(),
             gripper_joints,
+            cameras: vec![None; features.cameras.len()],
+            camera_stale_ns: max_age_ns,
             features,
             max_age_ns,
+        }
+    }
+
+    /// Images captured up to `stale_ns` before a tick are fresh (a camera's frame period and
+    /// its delivery latency add to the recording's period).
+    pub fn with_camera_staleness(mut self, stale_ns: u64) -> Sampler {
+        self.camera_stale_ns = stale_ns;
+        self
+    }
+
+    /// Takes in that camera `index` (in [`Features::cameras`] order) delivered an image
+    /// captured at `capture_ns`.
+    pub fn on_camera(&mut self, index: usize, capture_ns: u64) {
+        if let Some(slot) = self.cameras.get_mut(index) {
+            *slot = Some(slot.map_or(capture_ns, |t| t.max(capture_ns)));
         }
     }
 
@@ -163,7 +201,13 @@ impl Sampler {
         let unread_grips = (self.grips.iter().zip(&grippers))
             .filter(|(slot, _)| slot.is_none())
             .map(|(_, &i)| format!("{} grip force", joints[i].name));
-        unread_joints.chain(unread_grips).collect()
+        let unseen_cameras = (self.cameras.iter().zip(&self.features.cameras))
+            .filter(|(slot, _)| slot.is_none())
+            .map(|(_, c)| format!("camera {}", c.name));
+        unread_joints
+            .chain(unread_grips)
+            .chain(unseen_cameras)
+            .collect()
     }
 
     /// The frame at `now_ns` (CLOCK_MONOTONIC, the driver's clock); `None` while something was
@@ -179,7 +223,16 @@ impl Sampler {
             voltage: Vec::with_capacity(n),
             grip_force: Vec::with_capacity(self.grips.len()),
             valid: Vec::with_capacity(n),
+            camera_valid: Vec::with_capacity(self.cameras.len()),
         };
+        for &newest in &self.cameras {
+            f.camera_valid
+                .push(match pick(newest, now_ns, self.camera_stale_ns) {
+                    Pick::Fresh => 1.0,
+                    Pick::Held => 0.0,
+                    Pick::Nothing => return None,
+                });
+        }
         let fresh = |t: u64| now_ns.saturating_sub(t) <= self.max_age_ns;
         for slot in &self.joints {
             let (t, s) = (*slot)?;
@@ -298,6 +351,40 @@ mod tests {
         s.on_grip(&grip(110, 0.1));
         assert!(s.unread().is_empty());
         assert!(s.frame(110).is_some());
+    }
+
+    #[test]
+    fn a_camera_image_is_fresh_within_its_bound_held_after_it_and_awaited_before_the_first() {
+        let camera = crate::features::CameraMeta {
+            name: "head".into(),
+            width: 64,
+            height: 48,
+            pix_fmt: "yuvj420p".into(),
+        };
+        let mut s =
+            Sampler::new(features().with_cameras(vec![camera]), 40).with_camera_staleness(100);
+        s.on_state(&state(1_000, [true, true, true], 1.0));
+        s.on_grip(&grip(1_000, 0.1));
+        assert_eq!(s.unread(), ["camera head"]);
+        assert_eq!(s.frame(1_000), None, "no image yet: nothing to hold");
+        s.on_camera(0, 950);
+        assert_eq!(s.frame(1_000).unwrap().camera_valid, [1.0]);
+        // 100 ns after its capture still fresh (the joints' 40 ns bound does not apply).
+        assert_eq!(s.frame(1_050).unwrap().camera_valid, [1.0]);
+        let held = s.frame(1_051).unwrap();
+        assert_eq!(held.camera_valid, [0.0]);
+        assert_eq!(held.held_images(), 1);
+        // An older image arriving late does not make the camera look fresher.
+        s.on_camera(0, 900);
+        assert_eq!(s.frame(1_051).unwrap().camera_valid, [0.0]);
+        s.on_camera(0, 1_040);
+        assert_eq!(s.frame(1_060).unwrap().camera_valid, [1.0]);
+        s.on_camera(7, 5_000);
+        assert_eq!(
+            s.frame(1_060).unwrap().camera_valid.len(),
+            1,
+            "unknown index ignored"
+        );
     }
 
     #[test]

@@ -72,6 +72,59 @@ impl FeatureStats {
         s
     }
 
+    /// Statistics of 8-bit image channels given as histograms (`histograms[channel][value]`),
+    /// values scaled to 0..1 as LeRobot scales pixels; `frames` is the images sampled (LeRobot's
+    /// `count` of an image feature). Exact: the same as [`FeatureStats::of_columns`] over every
+    /// sampled pixel.
+    pub fn of_histograms(histograms: &[[u64; 256]], frames: u64) -> FeatureStats {
+        let mut s = FeatureStats {
+            min: Vec::new(),
+            max: Vec::new(),
+            mean: Vec::new(),
+            std: Vec::new(),
+            count: frames,
+            quantiles: Default::default(),
+        };
+        for h in histograms {
+            let n: u64 = h.iter().sum();
+            let value = |v: usize| v as f64 / 255.0;
+            let present = || (0..256).filter(|&v| h[v] > 0);
+            let mean = (0..256).map(|v| value(v) * h[v] as f64).sum::<f64>() / n as f64;
+            let var = (0..256)
+                .map(|v| (value(v) - mean).powi(2) * h[v] as f64)
+                .sum::<f64>()
+                / n as f64;
+            s.min.push(present().next().map_or(f64::NAN, value));
+            s.max.push(present().next_back().map_or(f64::NAN, value));
+            s.mean.push(mean);
+            s.std.push(var.sqrt());
+            // The value of rank r (0-based) in the sorted samples.
+            let ranked = |r: u64| {
+                let mut seen = 0;
+                for (v, count) in h.iter().enumerate() {
+                    seen += count;
+                    if seen > r {
+                        return value(v);
+                    }
+                }
+                f64::NAN
+            };
+            for (k, (q, _)) in QUANTILES.iter().enumerate() {
+                // numpy's linear interpolation between order statistics, as `quantile_sorted`.
+                let x = if n == 0 {
+                    f64::NAN
+                } else {
+                    let pos = (n - 1) as f64 * q;
+                    let lo = pos.floor() as u64;
+                    let hi = (lo + 1).min(n - 1);
+                    ranked(lo) + (pos - lo as f64) * (ranked(hi) - ranked(lo))
+                };
+                s.quantiles[k].push(x);
+            }
+        }
+        s
+    }
+
     /// One statistic by name, as stored (count as a one-element vector).
     pub fn get(&self, name: &str) -> Option<Vec<f64>> {
         Some(match name {
@@ -143,14 +196,21 @@ impl FeatureStats {
         Some(out)
     }
 
-    /// The object LeRobot writes per feature in `stats.json` (non-finite values as `null`).
-    pub fn to_json(&self) -> crate::features::Ordered<Value> {
+    /// The object LeRobot writes per feature in `stats.json` (non-finite values as `null`); an
+    /// image's statistics per channel shaped `[3, 1, 1]`, as LeRobot keeps them so that they
+    /// broadcast over a `[3, H, W]` image.
+    pub fn to_json(&self, image: bool) -> crate::features::Ordered<Value> {
         let mut out = Vec::new();
         for name in STAT_NAMES {
             let v = if name == "count" {
                 json!([self.count])
             } else {
-                json!(self.get(name).unwrap_or_default())
+                let values = self.get(name).unwrap_or_default();
+                if image {
+                    json!(values.iter().map(|v| json!([[v]])).collect::<Vec<_>>())
+                } else {
+                    json!(values)
+                }
             };
             out.push((name.to_string(), v));
         }
@@ -216,8 +276,50 @@ mod tests {
             s.get(n)
         })
         .is_none());
-        let json = serde_json::to_value(s.to_json()).unwrap();
+        let json = serde_json::to_value(s.to_json(false)).unwrap();
         assert_eq!(json["count"], json!([2]));
         assert_eq!(json["q50"], json!([1.5, 4.0]));
+        let image = serde_json::to_value(s.to_json(true)).unwrap();
+        assert_eq!(image["count"], json!([2]));
+        assert_eq!(image["q50"], json!([[[1.5]], [[4.0]]]));
+    }
+
+    #[test]
+    fn image_histograms_give_the_statistics_of_their_pixels() {
+        // Three channels of pixels with uneven, gappy distributions.
+        let pixels: Vec<[u8; 3]> = (0..1001u32)
+            .map(|i| {
+                [
+                    (i * 7 % 256) as u8,
+                    (i % 3 * 100) as u8,
+                    (255 - i % 40) as u8,
+                ]
+            })
+            .collect();
+        let mut h = [[0u64; 256]; 3];
+        for p in &pixels {
+            for c in 0..3 {
+                h[c][usize::from(p[c])] += 1;
+            }
+        }
+        let columns: Vec<Vec<f64>> = (0..3)
+            .map(|c| pixels.iter().map(|p| f64::from(p[c]) / 255.0).collect())
+            .collect();
+        let direct = FeatureStats::of_columns(&columns, 7);
+        let from_h = FeatureStats::of_histograms(&h, 7);
+        assert_eq!(from_h.count, 7, "the images sampled, not the pixels");
+        for (a, b) in [
+            (&from_h.min, &direct.min),
+            (&from_h.max, &direct.max),
+            (&from_h.mean, &direct.mean),
+            (&from_h.std, &direct.std),
+        ]
+        .into_iter()
+        .chain(from_h.quantiles.iter().zip(&direct.quantiles))
+        {
+            for (x, y) in a.iter().zip(b) {
+                assert!((x - y).abs() < 1e-12, "{a:?} vs {b:?}");
+            }
+        }
     }
 }

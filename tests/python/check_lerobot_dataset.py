@@ -5,6 +5,10 @@ Reads the dataset with pyarrow/pandas/numpy only (no code of this repository), t
 does (`lerobot/datasets/utils.py`: `load_info`, `load_nested_dataset` over `data/*/*.parquet`,
 `load_episodes` over `meta/episodes/*/*.parquet`, `pd.read_parquet(meta/tasks.parquet)`,
 `load_stats`), and checks field names, schema, row counts, indices, timestamps and statistics.
+Videos (`dtype: video` features) are decoded with PyAV, as LeRobot's `pyav` backend decodes them:
+every episode's frames are where its `videos/<key>/from_timestamp..to_timestamp` says, one per
+data frame at `from + k / fps`, of the feature's size, and the image statistics are those of the
+decoded pictures.
 
 Usage: check_lerobot_dataset.py ROOT [--episodes N] [--in-flight] [--closed]
 
@@ -13,7 +17,7 @@ it: `info.json` (written last) may not count the one episode being committed, wh
 already be in the episode table and whose frames may already be in the data file.
 --closed: the recorder exited cleanly, so nothing of its own (`.nori-staging`) may be left.
 Prints a JSON summary on success; exits 1 with the reason on the first failure, 3 if pyarrow,
-pandas or numpy cannot be imported.
+pandas or numpy (or, for a dataset with videos, PyAV) cannot be imported.
 """
 import json
 import math
@@ -42,6 +46,9 @@ DEFAULT_FEATURES = {
     "task_index": {"dtype": "int64", "shape": [1], "names": None},
 }
 DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
+VIDEO_PATH = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
+VIDEO_INFO_KEYS = ["video.height", "video.width", "video.codec", "video.pix_fmt", "video.is_depth_map",
+                   "video.fps", "video.channels", "has_audio"]
 STATS = ["min", "max", "mean", "std", "count", "q01", "q10", "q50", "q90", "q99"]
 QUANTILES = {"q01": 0.01, "q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
 REQUIRED = ["observation.state", "observation.current", "action", "observation.joint_valid"]
@@ -79,6 +86,37 @@ def column_array(table, key, spec):
     return np.array(values, dtype=np.float32).reshape(len(values), spec["shape"][0])
 
 
+def decode_episode(path, start, stop, fps):
+    """RGB frames of the video at `path` whose times fall in [start, stop), with their times."""
+    try:
+        import av
+    except ImportError as e:
+        print(f"cannot import: {e} (pip install av)", file=sys.stderr)
+        sys.exit(3)
+    frames, times = [], []
+    with av.open(str(path)) as container:
+        stream = container.streams.video[0]
+        for frame in container.decode(stream):
+            t = float(frame.pts * stream.time_base)
+            if start - 1e-4 <= t < stop - 1e-4:
+                frames.append(frame.to_ndarray(format="rgb24"))
+                times.append(t)
+    return frames, times
+
+
+def image_stats(frames):
+    """LeRobot's image statistics of sampled frames (compute_stats.py): frames evenly sampled,
+    shrunk by an integer stride to about 150 px, per channel over [0, 1], shaped (3, 1, 1)."""
+    n = len(frames)
+    k = max(min(n, 100), min(int(n ** 0.75), 10_000))
+    idx = np.round(np.linspace(0, n - 1, k)).astype(int)
+    h, w = frames[0].shape[:2]
+    f = 1 if max(h, w) < 300 else (w // 150 if w > h else h // 150)
+    x = np.stack([frames[i][::f, ::f, :] for i in idx]).astype(np.float64) / 255.0
+    return {"mean": x.mean(axis=(0, 1, 2)), "std": x.std(axis=(0, 1, 2)),
+            "min": x.min(axis=(0, 1, 2)), "max": x.max(axis=(0, 1, 2))}
+
+
 def stats_of(x):
     """LeRobot's per-feature stats, exact, over finite values; x is (frames, width)."""
     x = x.astype(np.float64)
@@ -107,14 +145,27 @@ def main():
     check(list(info) == INFO_KEYS, f"info.json keys {list(info)} != LeRobot's {INFO_KEYS}")
     check(info["codebase_version"] == "v3.0", f"codebase_version {info['codebase_version']}")
     check(info["data_path"] == DATA_PATH, f"data_path {info['data_path']}")
-    check(info["video_path"] is None, "video_path should be null without videos")
+    videos = {k: v for k, v in info["features"].items() if v["dtype"] == "video"}
+    if videos:
+        check(info["video_path"] == VIDEO_PATH, f"video_path {info['video_path']}, LeRobot's is {VIDEO_PATH}")
+    else:
+        check(info["video_path"] is None, "video_path should be null without videos")
     check(info["chunks_size"] == 1000, "chunks_size")
     check(info["video_files_size_in_mb"] == 200, f"video_files_size_in_mb {info['video_files_size_in_mb']}, LeRobot's default is 200")
     # Nothing of the recorder's is left in a dataset closed cleanly (push_to_hub would publish it).
     check("--closed" not in args or not (root / ".nori-staging").exists(), ".nori-staging left behind after a clean exit")
     fps = info["fps"]
     check(isinstance(fps, int) and fps > 0, f"fps {fps}")
-    features = info["features"]
+    for k, spec in videos.items():
+        check(k.startswith("observation.images."), f"video feature {k} outside observation.images.")
+        check(list(spec) == ["dtype", "shape", "names", "info"], f"video feature {k}: keys {list(spec)}")
+        check(spec["names"] == ["height", "width", "channels"], f"video feature {k}: names {spec['names']}")
+        vi = spec["info"]
+        check(list(vi) == VIDEO_INFO_KEYS, f"video feature {k}: info keys {list(vi)}")
+        check(spec["shape"] == [vi["video.height"], vi["video.width"], vi["video.channels"]] and vi["video.channels"] == 3,
+              f"video feature {k}: shape {spec['shape']} vs info {vi}")
+        check(vi["video.fps"] == fps and vi["has_audio"] is False and vi["video.is_depth_map"] is False, f"video feature {k}: {vi}")
+    features = {k: v for k, v in info["features"].items() if v["dtype"] != "video"}
     for k, v in DEFAULT_FEATURES.items():
         check(features.get(k) == v, f"feature {k}: {features.get(k)} != LeRobot's default {v}")
     for k in REQUIRED:
@@ -148,7 +199,8 @@ def main():
     check(extra_episode == 0 or (in_flight and extra_episode == 1), f"{len(episodes)} episode rows, info says {info['total_episodes']}")
     for col in ["episode_index", "tasks", "length", "data/chunk_index", "data/file_index", "dataset_from_index",
                 "dataset_to_index", "meta/episodes/chunk_index", "meta/episodes/file_index"] + \
-               [f"stats/{k}/{s}" for k in features for s in STATS]:
+               [f"stats/{k}/{s}" for k in list(features) + list(videos) for s in STATS] + \
+               [f"videos/{k}/{c}" for k in videos for c in ["chunk_index", "file_index", "from_timestamp", "to_timestamp"]]:
         check(col in episodes[0], f"episode table has no column {col}")
 
     # Frames, as load_nested_dataset reads them: every data/*/*.parquet, sorted, concatenated.
@@ -200,6 +252,28 @@ def main():
             for s in STATS:
                 close(stored[s], want[s], f"episode {i} stats/{k}/{s}")
             mine[k] = stored
+        for k, spec in videos.items():
+            path = root / VIDEO_PATH.format(video_key=k, chunk_index=ep[f"videos/{k}/chunk_index"],
+                                            file_index=ep[f"videos/{k}/file_index"])
+            check(path.exists(), f"episode {i}: no video {path}")
+            start, stop = ep[f"videos/{k}/from_timestamp"], ep[f"videos/{k}/to_timestamp"]
+            check(abs((stop - start) - n / fps) < 1e-6, f"episode {i} {k}: spans {start}..{stop} for {n} frames")
+            frames, times = decode_episode(path, start, stop, fps)
+            check(len(frames) == n, f"episode {i} {k}: {len(frames)} frames decoded in {start}..{stop}, length {n}")
+            check(np.allclose(times, start + np.arange(n) / fps, atol=1e-4), f"episode {i} {k}: frame times {times[:5]}...")
+            check(frames[0].shape == tuple(spec["shape"]), f"episode {i} {k}: frames of {frames[0].shape}, feature {spec['shape']}")
+            stored = {s: np.array(ep[f"stats/{k}/{s}"], dtype=object) for s in STATS}
+            for s in STATS:
+                if s != "count":
+                    v = np.array(stored[s].tolist(), dtype=np.float64)
+                    check(v.shape == (3, 1, 1), f"episode {i} stats/{k}/{s}: shape {v.shape}, LeRobot's is (3, 1, 1)")
+                    check(((v >= 0) & (v <= 1)).all(), f"episode {i} stats/{k}/{s} outside [0, 1]: {v.ravel()}")
+            want = image_stats(frames)
+            for s in ["mean", "std"]:
+                got = np.array(stored[s].tolist(), dtype=np.float64).ravel()
+                # FFmpeg's and PyAV's YUV->RGB conversions may differ by a level or two.
+                close(got, want[s], f"episode {i} stats/{k}/{s} vs the decoded frames", atol=0.02)
+            mine[k] = {s: np.array(stored[s].tolist(), dtype=np.float64) for s in STATS}
         per_episode_stats.append(mine)
 
     # Global stats: min/max/mean/std/count over every committed frame, quantiles the
@@ -207,7 +281,15 @@ def main():
     check(episodes[info["total_episodes"] - 1]["dataset_to_index"] == total if total else True,
           f"info total_frames {total} is not where episode {info['total_episodes'] - 1} ends")
     stats = json.loads((root / "meta/stats.json").read_text())
-    check(set(stats) == set(features), f"stats.json features {sorted(stats)}")
+    check(set(stats) == set(features) | set(videos), f"stats.json features {sorted(stats)}")
+    for k in videos:
+        check(list(stats[k]) == STATS, f"stats.json {k}: keys {list(stats[k])}")
+        for s in STATS:
+            v = np.array(stats[k][s], dtype=np.float64)
+            check(v.shape == ((1,) if s == "count" else (3, 1, 1)), f"stats.json {k}/{s}: shape {v.shape}")
+        counts = np.array([e[k]["count"][0] for e in per_episode_stats], dtype=np.float64)
+        weighted = sum(e[k]["mean"] * c for e, c in zip(per_episode_stats, counts)) / counts.sum()
+        close(np.array(stats[k]["mean"], dtype=np.float64), weighted, f"stats.json {k}/mean")
     # stats.json is written before info.json: in flight it may already count the new episode.
     covered = stats["index"]["count"][0]
     check(covered == total or (in_flight and extra_episode == 1 and covered == episodes[-1]["dataset_to_index"]),
@@ -252,6 +334,12 @@ def main():
         check(np.isfinite(x).all(), f"{k} has non-finite values")
     valid = cols["observation.joint_valid"]
     check(np.isin(valid, [0.0, 1.0]).all(), "observation.joint_valid is not 0/1")
+    camera_valid = cols.get("observation.camera_valid")
+    if videos:
+        check(camera_valid is not None, "videos without observation.camera_valid")
+        check(features["observation.camera_valid"]["names"] == [k.removeprefix("observation.images.") for k in videos],
+              "observation.camera_valid does not name the cameras in feature order")
+        check(np.isin(camera_valid, [0.0, 1.0]).all(), "observation.camera_valid is not 0/1")
     state = cols["observation.state"][:total] if orphan_rows else cols["observation.state"]
     valid = valid[:total] if orphan_rows else valid
     print(json.dumps({
@@ -266,6 +354,11 @@ def main():
         "state_span_rad": float(state.max() - state.min()) if state.size else 0.0,
         "tasks": list(tasks.index),
         "hf_datasets_loaded": hf_loaded,
+        "cameras": list(videos),
+        "held_images_per_camera": (camera_valid[:total] < 0.5).sum(axis=0).tolist() if videos else [],
+        "held_frames_by_episode": [
+            int((camera_valid[e["dataset_from_index"]:e["dataset_to_index"]] < 0.5).any(axis=1).sum())
+            for e in episodes[:info["total_episodes"]]] if videos else [],
     }))
 
 

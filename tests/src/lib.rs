@@ -108,6 +108,22 @@ impl Proc {
         (stopped.code(), stopped.stdout)
     }
 
+    /// Waits up to `within` for it to exit by itself; returns the exit code and stdout. Fails
+    /// the test if it is still running then.
+    pub fn wait_exit(&mut self, within: Duration) -> (Option<i32>, String) {
+        let until = std::time::Instant::now() + within;
+        while !self.0.exited() {
+            assert!(
+                std::time::Instant::now() < until,
+                "{} still running after {within:?}",
+                self.0.name()
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        let stopped = self.0.stop(Duration::ZERO).expect("exited");
+        (stopped.code(), stopped.stdout)
+    }
+
     /// SIGKILL, at once (a crash), and reaps it.
     pub fn kill(&mut self) {
         self.0.kill();
@@ -123,6 +139,22 @@ impl Drop for Proc {
     fn drop(&mut self) {
         self.0.kill();
     }
+}
+
+/// The embedded robot and camera configuration with every camera at 160×120, 15 fps (a test's
+/// two cores render them), written to `dir`: (robot description, camera configuration).
+pub fn small_camera_files(dir: &Path) -> (String, String) {
+    let shrink = |text: &str| {
+        text.replace(
+            "width = 1280\nheight = 720\nfps = 30",
+            "width = 160\nheight = 120\nfps = 15",
+        )
+    };
+    let robot = dir.join("robot.toml");
+    std::fs::write(&robot, shrink(sim::description::NORI_A3_TOML)).expect("robot.toml");
+    let cameras = dir.join("camera.toml");
+    std::fs::write(&cameras, shrink(camera::config::DEFAULT_CONFIG_TOML)).expect("camera.toml");
+    (robot.display().to_string(), cameras.display().to_string())
 }
 
 /// A fresh scratch directory for one test.

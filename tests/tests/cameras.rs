@@ -5,7 +5,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use nori_tests::{binary, newest_read, wait_for, ArmStack, Proc};
+use nori_tests::{binary, newest_read, small_camera_files, wait_for, ArmStack, Proc};
 use std::time::Duration;
 use telemetry::clock::monotonic_ns;
 use telemetry::frames::GoalFrame;
@@ -17,21 +17,6 @@ const SHOULDER: usize = 0;
 const ELBOW: usize = 3;
 const W: u32 = 160;
 const H: u32 = 120;
-
-/// The embedded robot with its cameras at 160×120, 15 fps (the test's two cores render them).
-fn small_camera_files(dir: &std::path::Path) -> (String, String) {
-    let shrink = |text: &str| {
-        text.replace(
-            "width = 1280\nheight = 720\nfps = 30",
-            "width = 160\nheight = 120\nfps = 15",
-        )
-    };
-    let robot = dir.join("robot.toml");
-    std::fs::write(&robot, shrink(sim::description::NORI_A3_TOML)).unwrap();
-    let cameras = dir.join("camera.toml");
-    std::fs::write(&cameras, shrink(camera::config::DEFAULT_CONFIG_TOML)).unwrap();
-    (robot.display().to_string(), cameras.display().to_string())
-}
 
 fn newest_frame(sub: &FrameSub) -> Option<(CameraFrameHeader, Vec<u8>)> {
     let mut last = None;

@@ -472,3 +472,191 @@ fn a_servo_that_goes_silent_is_held_and_marked_never_nan_and_one_never_read_is_r
         "closed on the error path too"
     );
 }
+
+/// ffprobe's packet sizes of a video (bytes, in order).
+fn packet_sizes(path: &Path) -> Vec<u64> {
+    let out = Command::new("ffprobe")
+        .args(["-v", "error", "-select_streams", "v:0", "-of", "csv=p=0"])
+        .args(["-show_entries", "packet=size"])
+        .arg(path)
+        .output()
+        .expect("ffprobe (deploy/install-build-deps.sh installs ffmpeg)");
+    String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .map(|l| l.trim_end_matches(',').parse().unwrap())
+        .collect()
+}
+
+#[test]
+fn cameras_are_recorded_as_video_frame_for_frame_and_a_dead_camera_is_held_and_marked() {
+    let _turn = serial();
+    let files = nori_tests::scratch("record-video-files");
+    let (robot, camera_toml) = nori_tests::small_camera_files(&files);
+    let stack = ArmStack::start("record-video", &["--description", &robot]);
+    let dev = stack.dir.join("dev").display().to_string();
+    let spawn_camera = |name: &str, n: u32| {
+        Proc::spawn(
+            "nori-camera",
+            &binary("nori-camera"),
+            &[
+                "--camera",
+                name,
+                "--config",
+                &camera_toml,
+                "--device-dir",
+                &dev,
+                "--domain",
+                &stack.domain,
+            ],
+            &stack.dir.join(format!("camera-{name}-{n}.log")),
+        )
+    };
+    let mut head = spawn_camera("head", 1);
+    let mut wrist = spawn_camera("left_wrist", 1);
+    wait_driving(&stack.domain);
+    let stop = Arc::new(AtomicBool::new(false));
+    let waver = wave(stack.domain.clone(), stop.clone());
+    let dataset = stack.dir.join("dataset");
+    let ds = dataset.to_str().unwrap().to_string();
+
+    // Two episodes of 3 s; the wrist camera is killed 1.5 s into the first and restarted once
+    // it is committed.
+    let cameras = ["--camera", "head", "--camera", "left_wrist"];
+    let mut extra = vec!["--episodes", "2", "--episode-s", "3", "--reset-s", "1"];
+    extra.extend(cameras);
+    let mut rec = Proc::spawn(
+        "nori record",
+        &binary("nori"),
+        &record_args(&stack.domain, &ds, &extra),
+        &stack.dir.join("record-video.log"),
+    );
+    wait_for(Duration::from_secs(30), "episode 0 recording", || {
+        (staged_parts(&dataset, 0) >= 3).then_some(())
+    });
+    let node = Plane::open(&stack.domain, "test-video").unwrap();
+    let states = node.subscriber(&plane::JOINT_STATE).unwrap();
+    let before_kill = wait_for(Duration::from_secs(2), "driver frames", || newest(&states));
+    wrist.kill();
+    wait_for(Duration::from_secs(30), "episode 0 committed", || {
+        dataset.join("meta/episodes").exists().then_some(())
+    });
+    let after_kill = wait_for(Duration::from_secs(2), "driver frames", || newest(&states));
+    assert!(
+        after_kill.seq >= before_kill.seq + 200,
+        "the driver kept its loop while a camera died: {} -> {}",
+        before_kill.seq,
+        after_kill.seq
+    );
+    let mut wrist = spawn_camera("left_wrist", 2);
+    let (code, stdout) = rec.wait_exit(Duration::from_secs(60));
+    assert_eq!(code, Some(0), "nori record: see record-video.log");
+    let report: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+    eprintln!("nori record: {report}");
+    stop.store(true, Ordering::Relaxed);
+    waver.join().unwrap();
+
+    let reader = recorder::dataset::DatasetReader::open(&dataset).unwrap();
+    let names: Vec<&str> = reader
+        .features
+        .cameras
+        .iter()
+        .map(|c| c.name.as_str())
+        .collect();
+    assert_eq!(names, ["head", "left_wrist"]);
+    assert_eq!(
+        (
+            reader.features.cameras[0].width,
+            reader.features.cameras[0].height
+        ),
+        (160, 120)
+    );
+    // Episode 0: the wrist camera valid, then held to the end once killed (never valid again:
+    // nothing invented); the head camera valid throughout but for scheduling hiccups.
+    let rows = reader.read_episode(0).unwrap();
+    assert_eq!(rows.len(), 90);
+    let wrist_valid: Vec<f32> = rows.iter().map(|r| r.frame.camera_valid[1]).collect();
+    let first_held = wrist_valid.iter().position(|&v| v < 0.5).expect("a gap");
+    assert!(
+        wrist_valid[first_held..].iter().all(|&v| v < 0.5),
+        "held from the kill to the end: {wrist_valid:?}"
+    );
+    assert!(
+        (15..80).contains(&first_held),
+        "killed about 1.5 s in: held from frame {first_held}"
+    );
+    let head_held = rows
+        .iter()
+        .filter(|r| r.frame.camera_valid[0] < 0.5)
+        .count();
+    assert!(head_held < 18, "{head_held} of 90 head images held");
+    // The held frames of the video are the camera's last JPEG, repeated.
+    let wrist_video = dataset.join("videos/observation.images.left_wrist/chunk-000/file-000.mp4");
+    let sizes = packet_sizes(&wrist_video);
+    assert_eq!(sizes.len(), 180, "one frame per data frame, both episodes");
+    assert!(
+        sizes[first_held..90].windows(2).all(|w| w[0] == w[1]),
+        "the gap repeats one image: {:?}",
+        &sizes[first_held..90]
+    );
+    assert!(
+        sizes[..first_held].windows(2).any(|w| w[0] != w[1]),
+        "a live camera's images differ"
+    );
+    // Episode 1: the restarted camera is valid again once it streams.
+    let rows = reader.read_episode(1).unwrap();
+    assert!(
+        rows.iter()
+            .rev()
+            .take(30)
+            .all(|r| r.frame.camera_valid[1] > 0.5),
+        "the restarted wrist camera's last second is fresh"
+    );
+
+    if let Some(s) = lerobot_check(&dataset, &["--episodes", "2", "--closed"]) {
+        eprintln!("LeRobot check: {s}");
+        assert_eq!(
+            s["cameras"],
+            serde_json::json!(["observation.images.head", "observation.images.left_wrist"])
+        );
+        assert_eq!(s["lengths"], serde_json::json!([90, 90]));
+        let held_in_1 = rows
+            .iter()
+            .filter(|r| r.frame.camera_valid[1] < 0.5)
+            .count();
+        assert_eq!(
+            s["held_images_per_camera"][1].as_u64().unwrap() as usize,
+            90 - first_held + held_in_1,
+            "the independent reader sees the same mask"
+        );
+    }
+
+    // kill -9 mid-episode: what the data parts and both videos hold is recovered, and the
+    // dataset reads, videos included.
+    let mut extra = vec!["--episodes", "1", "--episode-s", "6"];
+    extra.extend(cameras);
+    let mut rec = Proc::spawn(
+        "nori record",
+        &binary("nori"),
+        &record_args(&stack.domain, &ds, &extra),
+        &stack.dir.join("record-video-kill.log"),
+    );
+    wait_for(
+        Duration::from_secs(30),
+        "two flushed parts of episode 2",
+        || (staged_parts(&dataset, 2) >= 4).then_some(()),
+    );
+    rec.kill();
+    let repaired = recover(&dataset);
+    eprintln!("after the kill: {repaired}");
+    let recovered = repaired["recovered"][0][1].as_u64().unwrap();
+    assert!(recovered >= 60, "at least the 4 flushed parts: {repaired}");
+    if let Some(s) = lerobot_check(&dataset, &["--episodes", "3", "--closed"]) {
+        assert_eq!(s["lengths"][2].as_u64().unwrap(), recovered);
+    }
+    drop((states, node));
+    for camera in [&mut head, &mut wrist] {
+        let (code, _) = camera.terminate(Duration::from_secs(5));
+        assert_eq!(code, Some(0));
+    }
+    stack.stop();
+}
