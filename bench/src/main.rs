@@ -9,6 +9,7 @@ mod fleet;
 mod lidar;
 mod model_lab;
 mod plane;
+mod record;
 mod video;
 
 use anyhow::Result;
@@ -38,6 +39,9 @@ enum Bench {
     /// Camera frames to a LeRobot video per codec (FFmpeg), against LeRobot's default encoder
     /// in the same run: CPU, size, fidelity, decoding cost.
     VideoEncode(video::VideoEncodeArgs),
+    /// Recording the cameras (`nori record --camera`): the recorder's and its FFmpegs' CPU and
+    /// memory, against the cameras streaming with nobody recording, in the same run.
+    RecordVideo(record::RecordVideoArgs),
     /// The model lab: accuracy per hidden effect, detection limits, analysis time (also `nori
     /// model bench`).
     ModelLab(model_lab::BenchArgs),
@@ -52,6 +56,7 @@ fn main() -> Result<()> {
         Bench::ActionLatency(a) => fleet::action_latency(a),
         Bench::FleetIngest(a) => fleet::fleet_ingest(a),
         Bench::VideoEncode(a) => video::run(a),
+        Bench::RecordVideo(a) => record::run(a),
         Bench::ModelLab(a) => model_lab::run_bench(a),
     }
 }

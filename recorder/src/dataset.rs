@@ -33,12 +33,13 @@
 //!
 //! # Video
 //!
-//! Each camera's frames of an episode are staged as a fragmented MP4
-//! (`.nori-staging/episode-NNNNNN/videos/<key>.mp4`, [`crate::video::VideoWriter`]: one JPEG
-//! per dataset frame, flushed frame by frame). The commit appends it to the camera's video file
+//! Each camera's frames of an episode are staged as the JPEGs back to back with an index
+//! (`.nori-staging/episode-NNNNNN/videos/<key>.mjpeg` and `.idx`, [`crate::video::StagedVideo`]:
+//! one JPEG per dataset frame, written as it comes). The commit samples them for the image
+//! statistics, muxes them into an MP4 and appends that to the camera's video file
 //! (`videos/<key>/chunk-NNN/file-NNN.mp4`, a new file once 200 MB would be passed) by stream
 //! copy into a temporary renamed over the file, after the data file and before the episode
-//! table, and samples it for the image statistics. Every piece is cut at a frame count, so a
+//! table. Every piece is cut at a frame count, so a
 //! video file is always exactly its committed episodes plus, after a crash between its rename and
 //! the episode table's, the one in flight: [`Dataset::open`] cuts that off (or removes a file no
 //! episode references), and recovering a staged episode takes the frames that its data parts
@@ -56,7 +57,7 @@ use crate::fsutil;
 use crate::pq::{self, DataRow, EpisodeRow, VideoSpan};
 use crate::sampler::Frame;
 use crate::stats::FeatureStats;
-use crate::video::{self, VideoWriter};
+use crate::video::{self, StagedVideo};
 use nix::fcntl::{Flock, FlockArg};
 use parquet::file::writer::SerializedFileWriter;
 use serde::{Deserialize, Serialize};
@@ -213,9 +214,9 @@ fn video_file(key: &str, chunk: i64, file: i64) -> String {
     format!("videos/{key}/chunk-{chunk:03}/file-{file:03}.mp4")
 }
 
-/// Where a staged episode's video of `camera` is.
+/// Where a staged episode's video stream of `camera` is.
 fn staged_video(dir: &Path, camera: &CameraMeta) -> PathBuf {
-    dir.join("videos").join(format!("{}.mp4", camera.key()))
+    dir.join("videos").join(format!("{}.mjpeg", camera.key()))
 }
 
 fn next_file(chunk: i64, file: i64) -> (i64, i64) {
@@ -707,8 +708,11 @@ impl Dataset {
     fn staged_video_frames(&self, dir: &Path) -> (usize, Option<String>) {
         let mut fewest = (usize::MAX, None);
         for camera in &self.features.cameras {
-            let (n, why) = match video::count_frames(&staged_video(dir, camera)) {
-                Ok(n) => (n as usize, format!(" (camera {}: {n} frames)", camera.name)),
+            let (n, why) = match video::staged_frames(&staged_video(dir, camera)) {
+                Ok(f) => (
+                    f.len(),
+                    format!(" (camera {}: {} frames)", camera.name, f.len()),
+                ),
                 Err(e) => (0, format!(" (camera {}: {e})", camera.name)),
             };
             if n < fewest.0 {
@@ -780,9 +784,9 @@ impl Dataset {
             fsutil::create_dir(&dir.join("videos"))?;
         }
         for camera in &self.features.cameras {
-            videos.push(VideoWriter::start(
+            videos.push(StagedVideo::start(
                 &staged_video(&dir, camera),
-                self.settings.fps,
+                u64::from(self.settings.fps),
             )?);
         }
         let (jobs, queue) = mpsc::channel();
@@ -931,13 +935,26 @@ impl Dataset {
         let mut stats = Vec::new();
         for (c, camera) in self.features.cameras.iter().enumerate() {
             let key = camera.key();
-            let episode = staged_video(staged, camera);
-            let (histograms, sampled) =
-                video::channel_histograms(&episode, frames, camera.width, camera.height)?;
+            let stream = staged_video(staged, camera);
+            let jpegs = video::staged_frames(&stream)?;
+            if (jpegs.len() as u64) < frames {
+                return Err(RecordError::invalid(
+                    &stream,
+                    format!(
+                        "holds {} whole JPEGs, the episode {frames} frames",
+                        jpegs.len()
+                    ),
+                ));
+            }
+            let (histograms, sampled) = video::image_histograms(frames, |k| {
+                video::read_staged(&stream, jpegs[k as usize])
+            })?;
             stats.push((
                 key.clone(),
                 FeatureStats::of_histograms(&histograms, sampled),
             ));
+            let episode = stream.with_extension("mp4");
+            video::mux(&stream, frames, self.settings.fps, &episode)?;
             let (mut chunk, mut file) = self
                 .episodes
                 .last()
@@ -1142,7 +1159,7 @@ pub struct EpisodeWriter<'a> {
     on_disk: usize,
     writer: Option<std::thread::JoinHandle<Result<(), RecordError>>>,
     /// Each camera's staged video, in [`Features::cameras`] order.
-    videos: Vec<VideoWriter>,
+    videos: Vec<StagedVideo>,
 }
 
 impl EpisodeWriter<'_> {

@@ -1,25 +1,25 @@
-//! A camera's video in a recording: one JPEG per dataset frame, kept as the camera sent it, muxed
-//! by FFmpeg into a fragmented MP4 (stream copy: no encoding on the robot; `nori bench
-//! video-encode` has the figures behind that choice).
+//! A camera's video in a recording: one JPEG per dataset frame, kept as the camera sent it
+//! (`nori bench video-encode` has the figures behind not encoding on the robot).
 //!
 //! * [`pick`] decides, at each frame tick, whether the camera's newest JPEG is fresh or whether
 //!   the last one is held (the camera died, stalled or fell behind): one video frame per dataset
 //!   frame whatever the camera does, so the video has a constant rate and frame `k` sits at
 //!   `k / fps`, where LeRobot's decoders look for it. Pure.
-//! * [`VideoWriter`] feeds FFmpeg from a thread of its own through a bounded queue: a slow disk
-//!   or a stalled FFmpeg never delays a frame tick; a frame it could not take is counted.
-//!   Fragmented MP4 (a fragment per keyframe, and every MJPEG frame is one), flushed packet by
-//!   packet, keeps all but the last frame or two readable after a `kill -9` (without the flush,
-//!   FFmpeg's output buffer held everything and the file read as nothing).
+//! * [`StagedVideo`] appends an episode's JPEGs, as they come, to a staged stream
+//!   (`<key>.mjpeg`, the JPEGs back to back) and an index of where each one is (`<key>.idx`),
+//!   from a thread of its own behind a bounded queue: a slow disk never delays a frame tick, and
+//!   no FFmpeg runs (nor holds its ~50 MB) while recording. A `kill -9` keeps every JPEG whose
+//!   index entry was written ([`staged_frames`] checks each against the stream).
+//! * At commit, [`mux`] makes an MP4 of the staged stream (FFmpeg, stream copy), [`concat`]
+//!   appends it to the dataset's video file (cut at frame counts), [`image_histograms`] samples
+//!   the JPEGs for the statistics LeRobot normalises images with, and [`count_frames`] counts a
+//!   video file's frames (ffprobe).
 //! * [`jpeg_format`] reads a JPEG's size and FFmpeg's name of its pixel format from its frame
 //!   header (`video.pix_fmt` in `info.json`, known before any video is written). Pure.
-//! * [`count_frames`], [`concat`] and [`channel_histograms`] are what a commit does with the
-//!   staged video: count it, append it to the dataset's video file (stream copy, cut at a frame
-//!   count), and sample it for the statistics LeRobot normalises images with.
 
-use std::io::Write;
+use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::mpsc::{sync_channel, SyncSender, TrySendError};
 use std::thread::JoinHandle;
 use thiserror::Error;
@@ -56,12 +56,12 @@ pub enum VideoError {
         /// Cause.
         source: std::io::Error,
     },
-    /// FFmpeg failed.
-    #[error("ffmpeg writing {path}: {reason}")]
-    Ffmpeg {
-        /// The video.
+    /// The staged stream of an episode could not be written.
+    #[error("staged video {path}: {reason}")]
+    Staged {
+        /// The stream.
         path: PathBuf,
-        /// Its exit status and error output.
+        /// What went wrong.
         reason: String,
     },
     /// FFmpeg or ffprobe could not read a video.
@@ -168,52 +168,6 @@ pub fn sample_count(len: u64) -> u64 {
     ((len as f64).powf(0.75) as u64).clamp(floor, 10_000)
 }
 
-/// Per colour channel (R, G, B), how many samples of each value 0..=255 the first `frames`
-/// frames of the video hold, sampled as LeRobot samples them for statistics: about
-/// [`sample_count`] frames evenly spread, each shrunk by an integer factor to about 150 px
-/// (`auto_downsample_height_width`). Returns the histograms and the frames sampled.
-pub fn channel_histograms(
-    path: &Path,
-    frames: u64,
-    width: u32,
-    height: u32,
-) -> Result<([[u64; 256]; 3], u64), VideoError> {
-    let step = (frames / sample_count(frames).max(1)).max(1);
-    let factor = if width.max(height) < 300 {
-        1
-    } else {
-        (width.max(height) / 150).max(1)
-    };
-    let (w, h) = (width.div_ceil(factor), height.div_ceil(factor));
-    let filter =
-        format!("select='lt(n\\,{frames})*not(mod(n\\,{step}))',scale={w}:{h}:flags=neighbor");
-    let rgb = run(
-        Command::new("ffmpeg")
-            .args(["-hide_banner", "-loglevel", "error", "-threads", "1", "-i"])
-            .arg(path)
-            .args(["-vf", &filter, "-fps_mode", "passthrough"])
-            .args(["-f", "rawvideo", "-pix_fmt", "rgb24", "-"]),
-        path,
-    )?;
-    let frame_len = (w * h * 3) as usize;
-    if rgb.is_empty() || rgb.len() % frame_len != 0 {
-        return Err(VideoError::Read {
-            path: path.into(),
-            reason: format!(
-                "{} bytes of samples is not a whole number of {w}x{h} frames",
-                rgb.len()
-            ),
-        });
-    }
-    let mut histograms = [[0u64; 256]; 3];
-    for px in rgb.chunks_exact(3) {
-        for (c, &v) in px.iter().enumerate() {
-            histograms[c][usize::from(v)] += 1;
-        }
-    }
-    Ok((histograms, (rgb.len() / frame_len) as u64))
-}
-
 /// A JPEG's size and pixel format.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct JpegFormat {
@@ -276,68 +230,81 @@ pub fn jpeg_format(jpeg: &[u8]) -> Option<JpegFormat> {
     }
 }
 
-/// Frames queued for FFmpeg at most (two seconds at 30 fps).
+/// Frames queued for the staged stream's writer at most (two seconds at 30 fps).
 const QUEUE: usize = 60;
 
-/// One camera's video being written.
-pub struct VideoWriter {
+/// Bytes of one index entry: the JPEG's offset and length in the stream, little-endian u64s.
+const INDEX_ENTRY: usize = 16;
+
+/// The staged stream of `video` (`<key>.mjpeg`) and its index (`<key>.idx`).
+fn index_path(stream: &Path) -> PathBuf {
+    stream.with_extension("idx")
+}
+
+/// One camera's JPEGs of the episode being recorded, appended to a staged stream.
+pub struct StagedVideo {
     path: PathBuf,
     queue: Option<SyncSender<Vec<u8>>>,
-    feeder: Option<JoinHandle<std::io::Result<()>>>,
-    child: Option<Child>,
+    writer: Option<JoinHandle<std::io::Result<u64>>>,
     frames: u64,
-    /// Frames dropped because FFmpeg had not taken the ones before (the queue was full).
+    /// Frames dropped because the writer had not taken the ones before (the queue was full).
     pub dropped: u64,
 }
 
-impl VideoWriter {
-    /// Starts FFmpeg muxing MJPEG frames at `fps` into the fragmented MP4 at `path`.
-    pub fn start(path: &Path, fps: u32) -> Result<Self, VideoError> {
-        let mut child = Command::new("ffmpeg")
-            .args(["-hide_banner", "-loglevel", "error", "-y"])
-            .args(["-f", "mjpeg", "-framerate", &fps.to_string(), "-i", "-"])
-            .args(["-c:v", "copy", "-f", "mp4"])
-            // A fragment per frame (each MJPEG frame is a keyframe), each written out at once:
-            // a killed FFmpeg (or recorder) leaves all but the last frame or two readable.
-            .args(["-movflags", "+frag_keyframe+empty_moov+default_base_moof"])
-            .args(["-flush_packets", "1"])
-            .arg(path)
-            .stdin(Stdio::piped())
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .map_err(|source| VideoError::Start {
-                path: path.into(),
-                source,
-            })?;
-        let mut stdin = child.stdin.take().ok_or_else(|| VideoError::Ffmpeg {
-            path: path.into(),
-            reason: "no stdin".into(),
-        })?;
-        let (queue, frames) = sync_channel::<Vec<u8>>(QUEUE);
-        let feeder = std::thread::Builder::new()
-            .name("video-writer".into())
+impl StagedVideo {
+    /// Starts the stream at `path` (and its index beside it), synced to disk every `sync_every`
+    /// frames (a power loss, not a crash, is what that bounds).
+    pub fn start(path: &Path, sync_every: u64) -> Result<Self, VideoError> {
+        let open = |p: &Path| {
+            std::fs::OpenOptions::new()
+                .create(true)
+                .truncate(true)
+                .write(true)
+                .open(p)
+                .map_err(|e| VideoError::Staged {
+                    path: p.into(),
+                    reason: e.to_string(),
+                })
+        };
+        let mut stream = open(path)?;
+        let mut index = open(&index_path(path))?;
+        let (queue, jpegs) = sync_channel::<Vec<u8>>(QUEUE);
+        let writer = std::thread::Builder::new()
+            .name("staged-video".into())
             .spawn(move || {
-                for jpeg in frames {
-                    stdin.write_all(&jpeg)?;
+                let (mut offset, mut written) = (0u64, 0u64);
+                for jpeg in jpegs {
+                    stream.write_all(&jpeg)?;
+                    // The entry after its JPEG: an entry on disk means its bytes are too.
+                    let mut entry = [0u8; INDEX_ENTRY];
+                    entry[..8].copy_from_slice(&offset.to_le_bytes());
+                    entry[8..].copy_from_slice(&(jpeg.len() as u64).to_le_bytes());
+                    index.write_all(&entry)?;
+                    offset += jpeg.len() as u64;
+                    written += 1;
+                    if written.is_multiple_of(sync_every.max(1)) {
+                        stream.sync_data()?;
+                        index.sync_data()?;
+                    }
                 }
-                Ok(())
+                stream.sync_all()?;
+                index.sync_all()?;
+                Ok(written)
             })
-            .map_err(|source| VideoError::Start {
+            .map_err(|e| VideoError::Staged {
                 path: path.into(),
-                source,
+                reason: e.to_string(),
             })?;
-        Ok(VideoWriter {
+        Ok(StagedVideo {
             path: path.into(),
             queue: Some(queue),
-            feeder: Some(feeder),
-            child: Some(child),
+            writer: Some(writer),
             frames: 0,
             dropped: 0,
         })
     }
 
-    /// Queues one frame's JPEG; false if it was dropped (the queue full, or FFmpeg gone).
+    /// Queues one frame's JPEG; false if it was dropped (the queue full, or the writer gone).
     pub fn push(&mut self, jpeg: Vec<u8>) -> bool {
         let Some(queue) = &self.queue else {
             return false;
@@ -359,54 +326,165 @@ impl VideoWriter {
         self.frames
     }
 
-    /// FFmpeg's process id, while it runs.
-    pub fn ffmpeg_pid(&self) -> Option<u32> {
-        self.child.as_ref().map(Child::id)
-    }
-
-    /// Ends the video: everything queued is written and FFmpeg finishes the file. Returns the
-    /// frames written.
+    /// Ends the stream: everything queued is written and synced. Returns the frames written.
     pub fn finish(mut self) -> Result<u64, VideoError> {
-        let failed = |reason: String| VideoError::Ffmpeg {
-            path: self.path.clone(),
-            reason,
-        };
         drop(self.queue.take());
-        let fed = self.feeder.take().map(JoinHandle::join);
-        let child = self
-            .child
-            .take()
-            .ok_or_else(|| failed("finished twice".into()))?;
-        let output = child
-            .wait_with_output()
-            .map_err(|e| failed(e.to_string()))?;
-        if !output.status.success() {
-            return Err(failed(format!(
-                "{}: {}",
-                output.status,
-                String::from_utf8_lossy(&output.stderr).trim()
-            )));
-        }
-        match fed {
-            Some(Ok(Err(e))) => Err(failed(format!("feeding it: {e}"))),
-            Some(Err(_)) => Err(failed("the feeding thread panicked".into())),
-            _ => Ok(self.frames),
+        match self.writer.take().map(JoinHandle::join) {
+            Some(Ok(Ok(n))) => Ok(n),
+            Some(Ok(Err(e))) => Err(VideoError::Staged {
+                path: self.path.clone(),
+                reason: e.to_string(),
+            }),
+            _ => Err(VideoError::Staged {
+                path: self.path.clone(),
+                reason: "its writer panicked".into(),
+            }),
         }
     }
 }
 
-impl Drop for VideoWriter {
-    /// An abandoned video is still closed properly: FFmpeg gets the end of its input and
-    /// finishes the file.
+impl Drop for StagedVideo {
+    /// An abandoned stream still gets what was queued (as a crash right after would keep).
     fn drop(&mut self) {
         drop(self.queue.take());
-        if let Some(f) = self.feeder.take() {
-            let _ = f.join();
-        }
-        if let Some(mut child) = self.child.take() {
-            let _ = child.wait();
+        if let Some(w) = self.writer.take() {
+            let _ = w.join();
         }
     }
+}
+
+/// Where the staged stream at `path` holds whole JPEGs, in order: the index's entries that are
+/// complete, follow each other without a gap, lie within the stream and start with a JPEG's
+/// start marker and end with its end marker. What a crash cut short is left out.
+pub fn staged_frames(path: &Path) -> Result<Vec<(u64, u64)>, VideoError> {
+    let read_err = |p: &Path, e: std::io::Error| VideoError::Read {
+        path: p.into(),
+        reason: e.to_string(),
+    };
+    let index = std::fs::read(index_path(path)).map_err(|e| read_err(path, e))?;
+    let mut stream = std::fs::File::open(path).map_err(|e| read_err(path, e))?;
+    let len = stream.metadata().map_err(|e| read_err(path, e))?.len();
+    let mut frames = Vec::new();
+    let mut expected = 0u64;
+    for entry in index.chunks_exact(INDEX_ENTRY) {
+        let word = |r: std::ops::Range<usize>| {
+            let mut b = [0u8; 8];
+            b.copy_from_slice(&entry[r]);
+            u64::from_le_bytes(b)
+        };
+        let (offset, size) = (word(0..8), word(8..16));
+        if offset != expected || size < 4 || offset.saturating_add(size) > len {
+            break;
+        }
+        let mut ends = [0u8; 4];
+        let whole = (|| -> std::io::Result<()> {
+            stream.seek(SeekFrom::Start(offset))?;
+            stream.read_exact(&mut ends[..2])?;
+            stream.seek(SeekFrom::Start(offset + size - 2))?;
+            stream.read_exact(&mut ends[2..])
+        })();
+        if whole.is_err() || ends != [0xFF, 0xD8, 0xFF, 0xD9] {
+            break;
+        }
+        frames.push((offset, size));
+        expected = offset + size;
+    }
+    Ok(frames)
+}
+
+/// Writes to `out` an MP4 of the first `frames` JPEGs of the staged stream at `stream` (FFmpeg,
+/// stream copy: frame `k` at `k / fps`).
+pub fn mux(stream: &Path, frames: u64, fps: u32, out: &Path) -> Result<(), VideoError> {
+    run(
+        Command::new("ffmpeg")
+            .args(["-hide_banner", "-loglevel", "error", "-y"])
+            .args(["-f", "mjpeg", "-framerate", &fps.to_string(), "-i"])
+            .arg(stream)
+            .args([
+                "-frames:v",
+                &frames.to_string(),
+                "-c:v",
+                "copy",
+                "-f",
+                "mp4",
+            ])
+            .arg(out),
+        out,
+    )
+    .map(|_| ())
+}
+
+/// Per colour channel (R, G, B), how many samples of each value 0..=255 the JPEGs `jpeg(k)`,
+/// `k < frames`, hold, sampled as LeRobot samples images for statistics (`compute_stats.py`):
+/// [`sample_count`] frames at `round(linspace(0, frames - 1, count))`, each strided by an
+/// integer factor to about 150 px (`auto_downsample_height_width`). Returns the histograms and
+/// the frames sampled. A JPEG that does not decode is an error naming its frame.
+pub fn image_histograms(
+    frames: u64,
+    mut jpeg: impl FnMut(u64) -> Result<Vec<u8>, VideoError>,
+) -> Result<([[u64; 256]; 3], u64), VideoError> {
+    let count = sample_count(frames);
+    let mut histograms = [[0u64; 256]; 3];
+    let mut rgb = Vec::new();
+    for i in 0..count {
+        let k = if count > 1 {
+            ((i as f64) * (frames - 1) as f64 / (count - 1) as f64).round() as u64
+        } else {
+            0
+        };
+        let data = jpeg(k)?;
+        let options = zune_core::options::DecoderOptions::default()
+            .jpeg_set_out_colorspace(zune_core::colorspace::ColorSpace::RGB);
+        let mut decoder = zune_jpeg::JpegDecoder::new_with_options(
+            zune_core::bytestream::ZCursor::new(&data),
+            options,
+        );
+        let bad = |e: String| VideoError::Read {
+            path: PathBuf::from(format!("frame {k}")),
+            reason: format!("its JPEG does not decode: {e}"),
+        };
+        decoder.decode_headers().map_err(|e| bad(e.to_string()))?;
+        let (w, h) = decoder
+            .info()
+            .map(|i| (usize::from(i.width), usize::from(i.height)))
+            .ok_or_else(|| bad("no header".into()))?;
+        rgb.resize(w * h * 3, 0);
+        decoder
+            .decode_into(&mut rgb)
+            .map_err(|e| bad(e.to_string()))?;
+        let factor = if w.max(h) < 300 {
+            1
+        } else if w > h {
+            w / 150
+        } else {
+            h / 150
+        };
+        for y in (0..h).step_by(factor) {
+            for x in (0..w).step_by(factor) {
+                let px = &rgb[(y * w + x) * 3..(y * w + x) * 3 + 3];
+                for (c, &v) in px.iter().enumerate() {
+                    histograms[c][usize::from(v)] += 1;
+                }
+            }
+        }
+    }
+    Ok((histograms, count))
+}
+
+/// The JPEG at `(offset, size)` of the staged stream at `path`.
+pub fn read_staged(path: &Path, (offset, size): (u64, u64)) -> Result<Vec<u8>, VideoError> {
+    let mut f = std::fs::File::open(path).map_err(|e| VideoError::Read {
+        path: path.into(),
+        reason: e.to_string(),
+    })?;
+    let mut out = vec![0u8; size as usize];
+    f.seek(SeekFrom::Start(offset))
+        .and_then(|_| f.read_exact(&mut out))
+        .map_err(|e| VideoError::Read {
+            path: path.into(),
+            reason: e.to_string(),
+        })?;
+    Ok(out)
 }
 
 #[cfg(test)]

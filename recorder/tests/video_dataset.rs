@@ -142,10 +142,12 @@ fn jpeg_headers_name_the_pixel_format_ffmpeg_decodes() {
     let f = jpeg_format(&j).unwrap();
     assert_eq!((f.width, f.height), (W, H));
     // Cross-checked with FFmpeg's own reading of the same JPEG, not with our parser.
-    let path = d.join("one.mp4");
-    let mut w = video::VideoWriter::start(&path, 30).unwrap();
+    let stream = d.join("one.mjpeg");
+    let mut w = video::StagedVideo::start(&stream, 30).unwrap();
     w.push(j.clone());
     w.finish().unwrap();
+    let path = d.join("one.mp4");
+    video::mux(&stream, 1, 30, &path).unwrap();
     assert_eq!(f.pix_fmt, probe_pix_fmt(&path));
     // Other layouts, by their frame headers.
     let with_sampling = |y: u8| {
@@ -302,28 +304,33 @@ fn a_killed_recorder_keeps_the_frames_both_the_data_and_every_video_hold() {
             .unwrap();
     }
     // 20 frames flushed as parts; the last 5 only in the videos (the recorder died before its
-    // next flush). FFmpeg finishes the staged videos when its input closes.
+    // next flush); the staged streams hold every JPEG handed over.
     w.sync().unwrap();
     w.abandon().unwrap();
     drop(ds);
     let staged = root.join(STAGING).join("episode-000001/videos");
     assert_eq!(
-        video::count_frames(&staged.join("observation.images.head.mp4")).unwrap(),
+        video::staged_frames(&staged.join("observation.images.head.mjpeg"))
+            .unwrap()
+            .len(),
         25
     );
-    // The wrist video lost its end (FFmpeg killed too): 17 frames left.
-    let wrist = staged.join("observation.images.wrist.mp4");
-    let cut = staged.join("cut.mp4");
-    video::concat(
-        &[video::Piece {
-            path: &wrist,
-            frames: 17,
-        }],
-        30,
-        &cut,
-    )
-    .unwrap();
-    std::fs::rename(&cut, &wrist).unwrap();
+    // The wrist stream was cut short by the crash: its 18th JPEG half written, its index entry
+    // there, the 19th's entry half written.
+    let wrist = staged.join("observation.images.wrist.mjpeg");
+    let index = staged.join("observation.images.wrist.idx");
+    let entries = video::staged_frames(&wrist).unwrap();
+    let (offset, size) = entries[17];
+    let f_stream = std::fs::OpenOptions::new()
+        .write(true)
+        .open(&wrist)
+        .unwrap();
+    f_stream.set_len(offset + size / 2).unwrap();
+    let f_index = std::fs::OpenOptions::new()
+        .write(true)
+        .open(&index)
+        .unwrap();
+    f_index.set_len(18 * 16 + 7).unwrap();
 
     let (ds, recovery) = Dataset::open(&root, settings(), features(), false).unwrap();
     assert_eq!(recovery.recovered, [(1, 17)], "{recovery:?}");
@@ -347,7 +354,7 @@ fn a_killed_recorder_keeps_the_frames_both_the_data_and_every_video_hold() {
     w.abandon().unwrap();
     drop(w_ds);
     let staged = root.join(STAGING).join("episode-000002/videos");
-    std::fs::write(staged.join("observation.images.wrist.mp4"), b"garbage").unwrap();
+    std::fs::write(staged.join("observation.images.wrist.mjpeg"), b"garbage").unwrap();
     let (ds, recovery) = Dataset::open(&root, settings(), features(), false).unwrap();
     assert_eq!(ds.episodes().len(), 2);
     let (e, n, why) = &recovery.dropped[0];

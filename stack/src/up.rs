@@ -37,14 +37,30 @@ pub struct UpArgs {
     /// Leave the lidar out.
     #[arg(long)]
     pub no_lidar: bool,
+    /// The simulated robot's description (TOML, `nori-sim --description`); the embedded Nori A3
+    /// when absent.
+    #[arg(long, value_name = "FILE")]
+    pub robot: Option<PathBuf>,
+    /// The cameras' configuration (TOML, `nori-camera --config`); the embedded default when
+    /// absent. Give it with `--robot` when that changes a camera's size or rate.
+    #[arg(long, value_name = "FILE")]
+    pub camera_config: Option<PathBuf>,
+    /// Make one simulated servo stop answering for a while (`BUS:ID@AT+FOR`, seconds from the
+    /// simulator's start, e.g. `left_arm:4@30+2`): try the stack's handling of a missing servo.
+    /// Repeatable.
+    #[arg(long, value_name = "BUS:ID@AT+FOR")]
+    pub silence: Vec<String>,
     /// Stop by itself after this many seconds.
     #[arg(long)]
     pub run_for: Option<f64>,
 }
 
 /// The cameras asked for, checked against the simulated robot's.
-fn cameras(asked: &[String]) -> Result<Vec<String>> {
-    let robot = sim::RobotDescription::nori_a3();
+fn cameras(asked: &[String], robot: Option<&std::path::Path>) -> Result<Vec<String>> {
+    let robot = match robot {
+        Some(path) => sim::RobotDescription::load(path)?,
+        None => sim::RobotDescription::nori_a3(),
+    };
     let have: Vec<String> = robot.camera.iter().map(|c| c.name.clone()).collect();
     if asked.iter().any(|a| a == "all") {
         return Ok(have);
@@ -75,6 +91,12 @@ pub fn run(args: &UpArgs) -> Result<()> {
         &sibling("nori-sim")?,
         &run.simulator(&[], &report),
     );
+    if let Some(robot) = &args.robot {
+        sim.add_args(&["--description".into(), robot.display().to_string()]);
+    }
+    for silence in &args.silence {
+        sim.add_args(&["--silence".into(), silence.clone()]);
+    }
     let mut bus_driver = Managed::new("bus-driver", &sibling("bus-driver")?, &run.driver(&[]));
     if let Some(c) = &args.driver_config {
         bus_driver.add_args(&["--config".into(), c.display().to_string()]);
@@ -94,12 +116,16 @@ pub fn run(args: &UpArgs) -> Result<()> {
             &run.lidar(),
         ));
     }
-    for name in cameras(&args.cameras)? {
-        sensors.push(Managed::new(
+    for name in cameras(&args.cameras, args.robot.as_deref())? {
+        let mut camera = Managed::new(
             &format!("nori-camera {name}"),
             &sibling("nori-camera")?,
             &run.camera(&name),
-        ));
+        );
+        if let Some(config) = &args.camera_config {
+            camera.add_args(&["--config".into(), config.display().to_string()]);
+        }
+        sensors.push(camera);
     }
     eprintln!("nori up: the Nori A3 stack on the simulated robot (no hardware)");
     sim.start()?;
