@@ -12,8 +12,8 @@ use crate::gate::{within, ActionGate, Range, REASONS};
 use crate::outbound::{self, Every};
 use crate::schedule::Scheduler;
 use crate::schema::{
-    encode, AgentCounters, BusStatus, CameraStatus, LidarStatus, StatusConfig, StatusHealth,
-    StatusMsg, SCHEMA_VERSION,
+    encode, AgentCounters, BusStatus, CameraStatus, ImageMsg, LidarStatus, StatusConfig,
+    StatusHealth, StatusMsg, SCHEMA_VERSION,
 };
 use crate::AgentConfig;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -47,6 +47,10 @@ pub trait AgentIo {
     fn bus_health(&mut self) -> Option<BusHealth>;
     /// The header of the newest frame of configured camera `index` (`sensors.cameras`).
     fn camera(&mut self, index: usize) -> Option<CameraFrameHeader>;
+    /// The newest JPEG of observation camera `index` (`observation.cameras`) published since
+    /// the last call: copied into `jpeg`, its header returned; `None` (and `jpeg` untouched)
+    /// if there is none newer.
+    fn image(&mut self, index: usize, jpeg: &mut Vec<u8>) -> Option<CameraFrameHeader>;
     /// The newest lidar scan.
     fn lidar(&mut self) -> Option<LidarScan>;
     /// The next supervisor event not yet taken.
@@ -70,6 +74,8 @@ struct Counters {
     goals_forwarded: u64,
     plans_dropped: u64,
     goals_withheld: u64,
+    images_sent: u64,
+    images_stale: u64,
     last_rejection: String,
 }
 
@@ -90,6 +96,9 @@ pub struct Agent {
     last_health: Option<BusHealth>,
     last_cameras: Vec<Option<CameraFrameHeader>>,
     last_lidar: Option<LidarStatusOf>,
+    /// Each observation camera's newest JPEG and its header.
+    images: Vec<(Option<CameraFrameHeader>, Vec<u8>)>,
+    observations: u64,
     goal_seq: u64,
 }
 
@@ -125,6 +134,8 @@ impl Agent {
             last_health: None,
             last_cameras: vec![None; config.sensors.cameras.len()],
             last_lidar: None,
+            images: vec![(None, Vec::new()); config.observation.cameras.len()],
+            observations: 0,
             goal_seq: 0,
             config: config.clone(),
         }
@@ -186,13 +197,19 @@ impl Agent {
             {
                 self.counters.state_sent += 1;
             }
-            if self.observation_every.due(now)
-                && io.publish(
+            for (i, (header, jpeg)) in self.images.iter_mut().enumerate() {
+                if let Some(h) = io.image(i, jpeg) {
+                    *header = Some(h);
+                }
+            }
+            if self.observation_every.due(now) {
+                let images = self.observation_images(&s);
+                if io.publish(
                     Outbound::Observation,
-                    encode(&outbound::observation_msg(&s)),
-                )
-            {
-                self.counters.observations_sent += 1;
+                    encode(&outbound::observation_msg(&s, images)),
+                ) {
+                    self.counters.observations_sent += 1;
+                }
             }
         }
         if let Some(h) = io.bus_health() {
@@ -221,6 +238,39 @@ impl Agent {
                 self.counters.events_sent += 1;
             }
         }
+    }
+
+    /// The images the observation of state `s` carries: on every `image-every`-th observation,
+    /// each observation camera's newest JPEG if it was captured within `image-max-age-ms` of
+    /// the state (a later capture is as good: the policy sees the newest picture), else none
+    /// for that camera, counted.
+    fn observation_images(&mut self, s: &JointState) -> Vec<ImageMsg> {
+        let o = &self.config.observation;
+        let carries = self.observations.is_multiple_of(u64::from(o.image_every));
+        self.observations += 1;
+        if !carries {
+            return Vec::new();
+        }
+        let max_age = o.image_max_age_ms * 1_000_000;
+        let mut out = Vec::with_capacity(self.images.len());
+        for (name, (header, jpeg)) in o.cameras.iter().zip(&self.images) {
+            match header {
+                Some(h) if s.timestamp_ns.saturating_sub(h.capture_ns) <= max_age => {
+                    out.push(ImageMsg {
+                        camera: name.clone(),
+                        seq: h.seq,
+                        capture_ns: h.capture_ns,
+                        width: h.width,
+                        height: h.height,
+                        encoding: "jpeg".into(),
+                        data: jpeg.clone(),
+                    });
+                    self.counters.images_sent += 1;
+                }
+                _ => self.counters.images_stale += 1,
+            }
+        }
+        out
     }
 
     /// Checks every chunk received; whether one was accepted (a new plan).
@@ -305,6 +355,8 @@ impl Agent {
                 goals_forwarded: c.goals_forwarded,
                 plans_dropped: c.plans_dropped,
                 goals_withheld: c.goals_withheld,
+                images_sent: c.images_sent,
+                images_stale: c.images_stale,
             },
             last_rejection: c.last_rejection.clone(),
             // Named from the driver's layout: the one source of names.

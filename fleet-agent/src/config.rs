@@ -66,6 +66,18 @@ pub struct SensorsConfig {
     pub lidar: bool,
 }
 
+/// What an observation carries beyond the joints.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct ObservationConfig {
+    /// Cameras whose newest JPEG rides in the observation (`nori/camera/<name>/mjpeg`).
+    pub cameras: Vec<String>,
+    /// Images go with every this-many-th observation.
+    pub image_every: u32,
+    /// An image captured longer than this before the observation's joint sample is left out, ms.
+    pub image_max_age_ms: u64,
+}
+
 /// The agent's configuration.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, rename_all = "kebab-case")]
@@ -80,6 +92,8 @@ pub struct AgentConfig {
     pub actions: ActionsConfig,
     /// Sensors watched.
     pub sensors: SensorsConfig,
+    /// What observations carry.
+    pub observation: ObservationConfig,
 }
 
 impl ProcessConfig for AgentConfig {
@@ -176,17 +190,35 @@ impl AgentConfig {
                 format!("{} is outside (0, 1]", a.blend_new),
             );
         }
-        for (i, name) in c.sensors.cameras.iter().enumerate() {
-            let ok = telemetry::sensors::valid_camera_name(name);
-            if !ok || c.sensors.cameras[..i].contains(name) {
-                return bad(
-                    "sensors.cameras",
-                    format!(
-                        "{name:?}: a camera named once, 1 to {} of a-z, 0-9 and _",
-                        telemetry::frames::NAME_LEN
-                    ),
-                );
+        for (key, cameras) in [
+            ("sensors.cameras", &c.sensors.cameras),
+            ("observation.cameras", &c.observation.cameras),
+        ] {
+            for (i, name) in cameras.iter().enumerate() {
+                let ok = telemetry::sensors::valid_camera_name(name);
+                if !ok || cameras[..i].contains(name) {
+                    return bad(
+                        key,
+                        format!(
+                            "{name:?}: a camera named once, 1 to {} of a-z, 0-9 and _",
+                            telemetry::frames::NAME_LEN
+                        ),
+                    );
+                }
             }
+        }
+        let o = &c.observation;
+        if !(1..=1000).contains(&o.image_every) {
+            return bad(
+                "observation.image-every",
+                format!("{} is outside 1..=1000", o.image_every),
+            );
+        }
+        if !(1..=5000).contains(&o.image_max_age_ms) {
+            return bad(
+                "observation.image-max-age-ms",
+                format!("{} is outside 1..=5000", o.image_max_age_ms),
+            );
         }
         Ok(c)
     }
@@ -237,6 +269,21 @@ mod tests {
             ("max-steps = 128", "max-steps = 100000", "actions.max-steps"),
             ("blend-new = 0.7", "blend-new = 0.0", "actions.blend-new"),
             ("blend-new = 0.7", "blend-now = 0.7", "blend-now"),
+            (
+                "image-every = 3",
+                "image-every = 0",
+                "observation.image-every",
+            ),
+            (
+                "image-max-age-ms = 150",
+                "image-max-age-ms = 0",
+                "observation.image-max-age-ms",
+            ),
+            (
+                "cameras = []",
+                "cameras = [\"left wrist\"]",
+                "observation.cameras",
+            ),
             ("max-steps = 128", "max-steps = -1", "max-steps"),
             ("max-span-ms = ", "max-span-ms = 0 #", "actions.max-span-ms"),
             ("forward-hz = ", "forward-hz = inf #", "actions.forward-hz"),

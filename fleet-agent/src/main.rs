@@ -5,7 +5,6 @@
 use anyhow::{Context, Result};
 use clap::Parser;
 use fleet_agent::agent::{Agent, AgentIo, Outbound};
-use fleet_agent::config::SensorsConfig;
 use fleet_agent::keys::robot_key;
 use fleet_agent::zenoh::handlers::FifoChannelHandler;
 use fleet_agent::zenoh::pubsub::{Publisher, Subscriber};
@@ -59,6 +58,8 @@ struct Wired {
     bus_health: Sub<BusHealth>,
     /// Per configured camera; `None` where the service could not be opened (logged).
     cameras: Vec<Option<FrameSub>>,
+    /// Per observation camera, its JPEG stream; `None` where it could not be opened (logged).
+    images: Vec<Option<FrameSub>>,
     lidar: Option<Sub<LidarScan>>,
     goals: Pub<GoalFrame>,
     state_pub: Publisher<'static>,
@@ -88,6 +89,18 @@ impl AgentIo for Wired {
             newest = Some(*sample.user_header());
         }
         newest
+    }
+    fn image(&mut self, index: usize, jpeg: &mut Vec<u8>) -> Option<CameraFrameHeader> {
+        let sub = self.images.get(index)?.as_ref()?;
+        // Only the newest is copied out of shared memory: the queue holds at most two.
+        let mut newest = None;
+        while let Ok(Some(sample)) = sub.receive() {
+            newest = Some(sample);
+        }
+        let sample = newest?;
+        jpeg.clear();
+        jpeg.extend_from_slice(sample.payload());
+        Some(*sample.user_header())
     }
     fn lidar(&mut self) -> Option<LidarScan> {
         newest(self.lidar.as_ref()?)
@@ -159,7 +172,7 @@ fn run(args: Args) -> Result<()> {
     let id = config.robot_id.clone();
     let session = net::open(&config.zenoh)
         .with_context(|| format!("joining the fleet as {id} via {:?}", config.zenoh.connect))?;
-    let mut io = wire(&node, &session, &id, &config.sensors)?;
+    let mut io = wire(&node, &session, &id, &config)?;
     let _alive = session
         .liveliness()
         .declare_token(robot_key(&id, "alive"))
@@ -185,8 +198,9 @@ fn wire(
     node: &Plane,
     session: &fleet_agent::zenoh::Session,
     id: &str,
-    sensors: &SensorsConfig,
+    config: &AgentConfig,
 ) -> Result<Wired> {
+    let sensors = &config.sensors;
     let z = |e: fleet_agent::zenoh::Error| anyhow::anyhow!("{e}");
     let publisher = |key: &str, congestion| {
         session
@@ -207,6 +221,16 @@ fn wire(
             .map(|name| {
                 node.camera_subscriber(name, CameraStream::Rgb)
                     .inspect_err(|e| tracing::warn!("camera {name}: {e}; not watched"))
+                    .ok()
+            })
+            .collect(),
+        images: config
+            .observation
+            .cameras
+            .iter()
+            .map(|name| {
+                node.camera_subscriber(name, CameraStream::Mjpeg)
+                    .inspect_err(|e| tracing::warn!("camera {name} (JPEG): {e}; no images of it"))
                     .ok()
             })
             .collect(),

@@ -3,7 +3,7 @@
 use crate::gate::Range;
 use crate::schedule::Target;
 use crate::schema::{
-    EventMsg, JointInfoMsg, JointMsg, LayoutMsg, ObservationMsg, StateMsg, SCHEMA_VERSION,
+    EventMsg, ImageMsg, JointInfoMsg, JointMsg, LayoutMsg, ObservationMsg, StateMsg, SCHEMA_VERSION,
 };
 use telemetry::frames::{
     GoalFrame, JointLayout, JointState, SupervisorEvent, STATE_FLAG_SAFE_STATE,
@@ -63,9 +63,9 @@ pub fn state_msg(s: &JointState, wall_ms: u64) -> StateMsg {
     }
 }
 
-/// A state frame as a policy's observation; a servo missing in that cycle reads NaN, never
-/// its old value.
-pub fn observation_msg(s: &JointState) -> ObservationMsg {
+/// A state frame as a policy's observation, with `images`; a servo missing in that cycle reads
+/// NaN, never its old value.
+pub fn observation_msg(s: &JointState, images: Vec<ImageMsg>) -> ObservationMsg {
     let pick = |f: fn(&telemetry::frames::JointSample) -> f32| {
         s.joints()
             .iter()
@@ -78,6 +78,7 @@ pub fn observation_msg(s: &JointState) -> ObservationMsg {
         timestamp_ns: s.timestamp_ns,
         position: pick(|j| j.position_rad),
         velocity: pick(|j| j.velocity_rad_s),
+        images,
     }
 }
 
@@ -164,7 +165,7 @@ mod tests {
             valid: 0,
             ..JointSample::default()
         };
-        let o = observation_msg(&s);
+        let o = observation_msg(&s, Vec::new());
         assert_eq!(o.position[0], 0.5);
         assert!(o.position[1].is_nan());
         let t = state_msg(&s, 0);

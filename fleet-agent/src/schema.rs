@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 /// The schema version this build speaks.
-pub const SCHEMA_VERSION: u16 = 2;
+pub const SCHEMA_VERSION: u16 = 3;
 
 /// Joint telemetry for dashboards, rate-limited (`nori/<robot>/state`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -110,6 +110,30 @@ pub struct ObservationMsg {
     pub position: Vec<f32>,
     /// Joint velocities, rad/s.
     pub velocity: Vec<f32>,
+    /// The configured cameras' newest images (`[observation] cameras`), on the observations
+    /// that carry images (every `image-every`-th), each captured at most `image-max-age-ms`
+    /// before `timestamp_ns`; a camera without such an image is absent, never a stale picture.
+    pub images: Vec<ImageMsg>,
+}
+
+/// One camera image of an observation.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ImageMsg {
+    /// The camera's name (`head`, `left_wrist`, ...): the dataset key is
+    /// `observation.images.<camera>`.
+    pub camera: String,
+    /// The camera process's frame number.
+    pub seq: u64,
+    /// Robot monotonic time of the capture, ns.
+    pub capture_ns: u64,
+    /// Pixels per row.
+    pub width: u32,
+    /// Rows.
+    pub height: u32,
+    /// `"jpeg"`: the camera's own JPEG, untouched (what a dataset's video holds too).
+    pub encoding: String,
+    /// The encoded image.
+    pub data: Vec<u8>,
 }
 
 /// An action chunk from a policy (`nori/<robot>/actions`): `steps` targets for every joint of
@@ -247,6 +271,11 @@ pub struct AgentCounters {
     pub plans_dropped: u64,
     /// Scheduled targets withheld at the last check (none, unless the scheduler is wrong).
     pub goals_withheld: u64,
+    /// Camera images sent in observations.
+    pub images_sent: u64,
+    /// Images left out of an observation: none captured within `image-max-age-ms` of it (a
+    /// camera stalled, dead or not started).
+    pub images_stale: u64,
 }
 
 /// One bus of the driver, in a [`StatusMsg`].

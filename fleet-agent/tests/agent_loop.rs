@@ -5,7 +5,9 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use fleet_agent::agent::{Agent, AgentIo, Outbound};
-use fleet_agent::schema::{decode, encode, ActionChunk, EventMsg, StatusMsg, SCHEMA_VERSION};
+use fleet_agent::schema::{
+    decode, encode, ActionChunk, EventMsg, ObservationMsg, StatusMsg, SCHEMA_VERSION,
+};
 use fleet_agent::AgentConfig;
 use std::collections::VecDeque;
 use telemetry::config::ProcessConfig;
@@ -23,6 +25,8 @@ struct Queues {
     states: VecDeque<JointState>,
     health: Option<BusHealth>,
     cameras: Vec<Option<CameraFrameHeader>>,
+    /// Per observation camera, the JPEG it publishes next.
+    images: Vec<Option<(CameraFrameHeader, Vec<u8>)>>,
     lidar: Option<LidarScan>,
     events: VecDeque<SupervisorEvent>,
     actions: VecDeque<Vec<u8>>,
@@ -44,6 +48,11 @@ impl AgentIo for Queues {
     }
     fn camera(&mut self, index: usize) -> Option<CameraFrameHeader> {
         self.cameras.get_mut(index)?.take()
+    }
+    fn image(&mut self, index: usize, jpeg: &mut Vec<u8>) -> Option<CameraFrameHeader> {
+        let (h, data) = self.images.get_mut(index)?.take()?;
+        *jpeg = data;
+        Some(h)
     }
     fn lidar(&mut self) -> Option<LidarScan> {
         self.lidar.take()
@@ -140,6 +149,103 @@ fn status(agent: &mut Agent, io: &mut Queues, now: u64) -> StatusMsg {
     agent.poll(io, now, 0);
     assert_eq!(io.status_replies.len(), 1, "one query, one answer");
     decode(&io.status_replies[0]).unwrap()
+}
+
+#[test]
+fn observations_carry_the_configured_cameras_fresh_jpegs_every_nth_time_never_a_stale_one() {
+    let mut config = AgentConfig::embedded().unwrap();
+    config.observation.cameras = vec!["left_wrist".into(), "head".into()];
+    config.observation.image_every = 2;
+    config.observation.image_max_age_ms = 50;
+    config.telemetry.observation_hz = 1000.0;
+    let mut agent = Agent::new(&config);
+    let mut io = Queues {
+        layout: Some(layout()),
+        images: vec![None, None],
+        ..Queues::default()
+    };
+    let t0 = 1_000_000 * MS;
+    let header = |seq: u64, capture_ns: u64| {
+        let mut h = CameraFrameHeader {
+            seq,
+            capture_ns,
+            width: 160,
+            height: 120,
+            ..CameraFrameHeader::default()
+        };
+        h.set_camera("left_wrist");
+        h
+    };
+    let mut observations = Vec::new();
+    // Observation k at t0 + k·10 ms. The wrist camera sends a JPEG before observations 0 and
+    // 4; the head camera never does.
+    for k in 0..6u64 {
+        let t = t0 + k * 10 * MS;
+        if k == 0 || k == 4 {
+            io.images[0] = Some((header(k, t - 5 * MS), vec![0xFF, 0xD8, k as u8, 0xFF, 0xD9]));
+        }
+        io.states.push_back(state(k + 1, t, false));
+        io.published.clear();
+        agent.poll(&mut io, t, 0);
+        let obs: Vec<ObservationMsg> = io
+            .published
+            .iter()
+            .filter(|(w, _)| *w == Outbound::Observation)
+            .map(|(_, b)| decode(b).unwrap())
+            .collect();
+        assert_eq!(obs.len(), 1, "one observation a turn at 1 kHz");
+        observations.push(obs[0].clone());
+    }
+    let images: Vec<Vec<(String, u64, Vec<u8>)>> = observations
+        .iter()
+        .map(|o| {
+            o.images
+                .iter()
+                .map(|i| (i.camera.clone(), i.seq, i.data.clone()))
+                .collect()
+        })
+        .collect();
+    let wrist = |seq: u64| {
+        (
+            "left_wrist".to_string(),
+            seq,
+            vec![0xFF, 0xD8, seq as u8, 0xFF, 0xD9],
+        )
+    };
+    // 0: fresh (5 ms). 1, 3, 5: no images (every 2nd). 2: the JPEG of t0 is 25 ms old: still
+    // within 50 ms. 4: the new one.
+    assert_eq!(images[0], [wrist(0)]);
+    assert!(images[1].is_empty() && images[3].is_empty() && images[5].is_empty());
+    assert_eq!(images[2], [wrist(0)]);
+    assert_eq!(images[4], [wrist(4)]);
+    let o = &observations[0].images[0];
+    assert_eq!((o.width, o.height, o.encoding.as_str()), (160, 120, "jpeg"));
+    assert_eq!(o.capture_ns, t0 - 5 * MS);
+    // No new JPEG after the one captured at 35 ms: it ages past the 50 ms bound.
+    for k in 6..13u64 {
+        io.states.push_back(state(k + 1, t0 + k * 10 * MS, false));
+        io.published.clear();
+        agent.poll(&mut io, t0 + k * 10 * MS, 0);
+    }
+    let last: ObservationMsg = decode(
+        &io.published
+            .iter()
+            .find(|(w, _)| *w == Outbound::Observation)
+            .unwrap()
+            .1,
+    )
+    .unwrap();
+    assert!(
+        last.images.is_empty(),
+        "a stale picture beside a fresh state"
+    );
+    let st = status(&mut agent, &mut io, t0 + 130 * MS);
+    // Wrist images sent on observations 0, 2, 4, 6 (25 ms old) and 8 (45 ms); at 10 (65 ms)
+    // and 12 (85 ms) stale.
+    assert_eq!(st.counters.images_sent, 5, "{:?}", st.counters);
+    // The head camera never sent anything: stale on each of the 7 image-bearing observations,
+    // plus the wrist's at 100 and 120 ms.
+    assert_eq!(st.counters.images_stale, 7 + 2, "{:?}", st.counters);
 }
 
 #[test]

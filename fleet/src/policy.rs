@@ -238,6 +238,7 @@ mod tests {
             timestamp_ns: 4_000_000_000,
             position: vec![-0.5, f32::NAN],
             velocity: vec![0.0, 0.0],
+            images: Vec::new(),
         };
         let c = policy.chunk(&obs, &layout, 1).unwrap();
         assert_eq!(c.joint_mask, 0b01);

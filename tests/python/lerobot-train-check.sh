@@ -31,7 +31,7 @@ install() {
     "$(find_python312)" -m venv "$venv"
   fi
   "$venv/bin/python" -m pip install --quiet --upgrade pip
-  "$venv/bin/python" -m pip install --quiet "lerobot[dataset,training]==$lerobot_version" av
+  "$venv/bin/python" -m pip install --quiet "lerobot[dataset,training,diffusion]==$lerobot_version" av
   "$venv/bin/python" -c "import lerobot, torch; print('lerobot', lerobot.__version__, 'torch', torch.__version__)"
 }
 

@@ -7,6 +7,7 @@
 //!   refused with their reason (counted in the agent's status) and move nothing.
 //! - A killed agent takes its queued plan with it: nothing of it runs after the restart, and
 //!   telemetry resumes.
+//! - Observations carry the configured camera's JPEGs, fresh, and none once the camera dies.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
@@ -335,4 +336,139 @@ fn bad_actions_are_refused_with_their_reason_and_a_killed_agent_leaves_nothing_q
     drop((states, layouts, node));
     let report = stack.stop();
     check_left_arm_report(&report, 60.0);
+}
+
+#[test]
+fn observations_carry_the_cameras_jpegs_and_none_once_the_camera_dies() {
+    let _turn = serial();
+    let endpoint = free_endpoint();
+    let files = scratch("fleet-images-files");
+    let (robot, camera_toml) = nori_tests::small_camera_files(&files);
+    let agent_toml = files.join("fleet-agent.toml");
+    std::fs::write(
+        &agent_toml,
+        fleet_agent::config::DEFAULT_CONFIG_TOML
+            .replace("cameras = []", "cameras = [\"left_wrist\"]"),
+    )
+    .unwrap();
+    let mut stack = ArmStack::start("fleet-images", &["--description", &robot]);
+    let dev = stack.dir.join("dev").display().to_string();
+    let mut camera = Proc::spawn(
+        "nori-camera",
+        &binary("nori-camera"),
+        &[
+            "--camera",
+            "left_wrist",
+            "--config",
+            &camera_toml,
+            "--device-dir",
+            &dev,
+            "--domain",
+            &stack.domain,
+        ],
+        &stack.dir.join("camera.log"),
+    );
+    let id = "test-robot-eyes";
+    let config = agent_toml.display().to_string();
+    stack.restart_agent_with(&[
+        "--robot-id",
+        id,
+        "--connect",
+        &endpoint,
+        "--config",
+        &config,
+    ]);
+    let session = session(&endpoint);
+    let observations = session
+        .declare_subscriber(robot_key(id, "observation"))
+        .wait()
+        .unwrap();
+    let take = |within: Duration| {
+        let until = Instant::now() + within;
+        let mut out = Vec::new();
+        while Instant::now() < until {
+            while let Ok(Some(s)) = observations.try_recv() {
+                out.push(
+                    decode::<fleet_agent::schema::ObservationMsg>(&s.payload().to_bytes()).unwrap(),
+                );
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        out
+    };
+    wait_for(
+        Duration::from_secs(30),
+        "an observation with an image",
+        || {
+            take(Duration::from_millis(200))
+                .iter()
+                .any(|o| !o.images.is_empty())
+                .then_some(())
+        },
+    );
+    let seen = take(Duration::from_secs(2));
+    let with: Vec<_> = seen.iter().filter(|o| !o.images.is_empty()).collect();
+    // Every third observation carries one (observation-hz 30, image-every 3): ~20 in 2 s.
+    assert!(
+        (10..=30).contains(&with.len()),
+        "{} of {} observations with an image",
+        with.len(),
+        seen.len()
+    );
+    for o in &with {
+        let img = &o.images[0];
+        assert_eq!(
+            (
+                img.camera.as_str(),
+                img.encoding.as_str(),
+                img.width,
+                img.height
+            ),
+            ("left_wrist", "jpeg", 160, 120)
+        );
+        assert!(
+            o.timestamp_ns.saturating_sub(img.capture_ns) <= 150_000_000,
+            "an image {} ms older than its observation",
+            (o.timestamp_ns - img.capture_ns) / 1_000_000
+        );
+        // A JPEG that decodes to the camera's picture size.
+        let mut rgb = vec![0u8; camera::convert::rgb_len(160, 120)];
+        camera::convert::to_rgb(
+            telemetry::sensors::PixelFormat::Mjpeg,
+            160,
+            120,
+            0,
+            &img.data,
+            &mut rgb,
+        )
+        .unwrap();
+    }
+    assert!(
+        with.windows(2)
+            .all(|w| w[0].images[0].seq < w[1].images[0].seq),
+        "each carries a newer frame"
+    );
+
+    // The camera dies: observations go on, without images, and the status counts them stale.
+    camera.kill();
+    // What was queued before, and the last picture's 150 ms of validity, pass.
+    take(Duration::from_millis(500));
+    let after = take(Duration::from_secs(1));
+    assert!(after.len() >= 15, "observations go on: {}", after.len());
+    assert!(
+        after.iter().all(|o| o.images.is_empty()),
+        "no picture older than 150 ms"
+    );
+    let st = status(&session, id);
+    assert!(
+        st["counters"]["images_stale"].as_u64().unwrap() >= 5,
+        "{st}"
+    );
+    assert!(
+        st["counters"]["images_sent"].as_u64().unwrap() >= 10,
+        "{st}"
+    );
+    drop(observations);
+    drop(session);
+    stack.stop();
 }
