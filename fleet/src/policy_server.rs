@@ -1,12 +1,14 @@
 //! `nori policy-server`: the reference off-board inference server. It serves every robot that
 //! publishes observations on `nori/*/observation`, answering each with an action chunk from a
-//! scripted wave or a replayed trajectory (`fleet::policy::ScriptedPolicy`) at most every
-//! `--chunk-every-ms`. A Python
+//! scripted wave or a replayed trajectory (`fleet::policy::ScriptedPolicy`), or, with
+//! `--seek-camera`, from what a camera sees (`fleet::seek::ColourSeek`: turn two joints until a
+//! coloured object is in the middle of the picture), at most every `--chunk-every-ms`. A Python
 //! VLA/ACT server speaks the same schema (docs/fleet-schema.md).
 
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use fleet::policy::{Motion, ScriptedPolicy, Trajectory};
+use fleet::seek::{ColourSeek, SeekState};
 use fleet_agent::keys::{all_robots, robot_key, robot_of};
 use fleet_agent::schema::{decode, encode, LayoutMsg, ObservationMsg};
 use fleet_agent::zenoh::qos::{CongestionControl, Priority};
@@ -41,6 +43,21 @@ pub struct PolicyServerArgs {
     /// on each robot's clock.
     #[arg(long, conflicts_with_all = ["joints", "centre", "amplitude", "period_s"])]
     pub replay: Option<PathBuf>,
+    /// See instead: centre the object of `--seek-colour` in this camera's picture (the robot's
+    /// agent must send it: `[observation] cameras` in fleet-agent.toml).
+    #[arg(long, conflicts_with_all = ["replay", "joints", "centre", "amplitude", "period_s"])]
+    pub seek_camera: Option<String>,
+    /// The object's colour, R,G,B (the simulated scene's red ball by default).
+    #[arg(long, value_delimiter = ',', num_args = 3, default_value = "210,30,30")]
+    pub seek_colour: Vec<u8>,
+    /// The two joints turned to centre it.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        num_args = 2,
+        default_value = "left_shoulder_roll,left_elbow"
+    )]
+    pub seek_joints: Vec<String>,
     /// Steps per chunk.
     #[arg(long, default_value_t = 25)]
     pub steps: usize,
@@ -61,6 +78,15 @@ struct Robot {
     last_chunk: Option<Instant>,
     seq: u64,
     observations: u64,
+    seek: SeekState,
+    /// Seeing: observations with the camera's image in which the object was not found.
+    not_seen: u64,
+}
+
+/// What the server plays.
+enum Serving {
+    Scripted(ScriptedPolicy),
+    Seeing(ColourSeek),
 }
 
 /// Serves until Ctrl-C (or `--run-for`).
@@ -80,10 +106,30 @@ pub fn run(args: &PolicyServerArgs) -> Result<()> {
             period_s: args.period_s,
         },
     };
-    let policy = ScriptedPolicy {
-        motion,
-        steps: args.steps,
-        step_ms: args.step_ms,
+    let policy = match &args.seek_camera {
+        Some(camera) => Serving::Seeing(ColourSeek {
+            camera: camera.clone(),
+            colour: [
+                args.seek_colour[0],
+                args.seek_colour[1],
+                args.seek_colour[2],
+            ],
+            tolerance: 60,
+            joints: [args.seek_joints[0].clone(), args.seek_joints[1].clone()],
+            // The picture lags the joints by a capture and up to three observations: a
+            // gentle gain keeps the loop from overshooting on old pictures.
+            gain: 0.3,
+            max_step_rad: 0.06,
+            probe_rad: 0.04,
+            deadband: 0.05,
+            steps: args.steps,
+            step_ms: args.step_ms,
+        }),
+        None => Serving::Scripted(ScriptedPolicy {
+            motion,
+            steps: args.steps,
+            step_ms: args.step_ms,
+        }),
     };
     let session = args
         .zenoh
@@ -131,10 +177,35 @@ pub fn run(args: &PolicyServerArgs) -> Result<()> {
             ) else {
                 continue;
             };
-            if robot.last_chunk.is_some_and(|t| t.elapsed() < every) {
-                continue;
-            }
-            if let Some(chunk) = policy.chunk(&obs, layout, robot.seq + 1) {
+            let chunk = match &policy {
+                Serving::Scripted(p) => {
+                    if robot.last_chunk.is_some_and(|t| t.elapsed() < every) {
+                        continue;
+                    }
+                    p.chunk(&obs, layout, robot.seq + 1)
+                }
+                // Every observation that carries the camera's picture: what is learnt from
+                // each move needs each picture.
+                Serving::Seeing(p) => {
+                    if !obs.images.iter().any(|i| i.camera == p.camera) {
+                        continue;
+                    }
+                    let chunk = p.chunk(&obs, layout, &mut robot.seek, robot.seq + 1);
+                    tracing::debug!(robot = id, state = ?robot.seek, "seeing");
+                    match chunk {
+                        Ok(None) => {
+                            robot.not_seen += 1;
+                            None
+                        }
+                        Ok(c) => c,
+                        Err(e) => {
+                            tracing::warn!(robot = id, "{e}");
+                            None
+                        }
+                    }
+                }
+            };
+            if let Some(chunk) = chunk {
                 session
                     .put(robot_key(id, "actions"), encode(&chunk))
                     .congestion_control(CongestionControl::Drop)
@@ -155,7 +226,8 @@ pub fn run(args: &PolicyServerArgs) -> Result<()> {
         .map(|(id, r)| {
             (
                 id.clone(),
-                serde_json::json!({"observations": r.observations, "chunks": r.seq}),
+                serde_json::json!({"observations": r.observations, "chunks": r.seq,
+                    "seek_calibrated": r.seek.calibrated(), "not_seen": r.not_seen}),
             )
         })
         .collect();

@@ -8,6 +8,8 @@
 //! - A killed agent takes its queued plan with it: nothing of it runs after the restart, and
 //!   telemetry resumes.
 //! - Observations carry the configured camera's JPEGs, fresh, and none once the camera dies.
+//! - A policy that sees (`nori policy-server --seek-camera`) centres the red ball in the wrist
+//!   camera's picture: camera → agent → server → action → arm, closed.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
@@ -470,5 +472,153 @@ fn observations_carry_the_cameras_jpegs_and_none_once_the_camera_dies() {
     );
     drop(observations);
     drop(session);
+    stack.stop();
+}
+
+/// The red ball's offset from the picture's centre in an RGB frame (normalised, −1..1), if seen.
+fn red_offset(rgb: &[u8], w: usize, h: usize) -> Option<f32> {
+    let (mut n, mut sx, mut sy) = (0usize, 0f64, 0f64);
+    for (i, p) in rgb.chunks_exact(3).enumerate() {
+        if p[0] > 150 && p[1] < 90 && p[2] < 90 {
+            n += 1;
+            sx += (i % w) as f64;
+            sy += (i / w) as f64;
+        }
+    }
+    (n >= 20).then(|| {
+        let x = 2.0 * (sx / n as f64 + 0.5) / w as f64 - 1.0;
+        let y = 2.0 * (sy / n as f64 + 0.5) / h as f64 - 1.0;
+        x.hypot(y) as f32
+    })
+}
+
+#[test]
+fn a_policy_that_sees_centres_the_red_ball_in_the_wrist_cameras_picture() {
+    let _turn = serial();
+    let endpoint = free_endpoint();
+    let files = scratch("fleet-seek-files");
+    let (robot, camera_toml) = nori_tests::small_camera_files(&files);
+    let agent_toml = files.join("fleet-agent.toml");
+    std::fs::write(
+        &agent_toml,
+        fleet_agent::config::DEFAULT_CONFIG_TOML
+            .replace("cameras = []", "cameras = [\"left_wrist\"]"),
+    )
+    .unwrap();
+    let mut stack = ArmStack::start("fleet-seek", &["--description", &robot]);
+    let dev = stack.dir.join("dev").display().to_string();
+    let mut camera = Proc::spawn(
+        "nori-camera",
+        &binary("nori-camera"),
+        &[
+            "--camera",
+            "left_wrist",
+            "--config",
+            &camera_toml,
+            "--device-dir",
+            &dev,
+            "--domain",
+            &stack.domain,
+        ],
+        &stack.dir.join("camera.log"),
+    );
+    let node = Plane::open(&stack.domain, "test").unwrap();
+    let states = node.subscriber(&plane::JOINT_STATE).unwrap();
+    let goals = node.publisher(&plane::GOALS).unwrap();
+    let frames = node
+        .camera_subscriber("left_wrist", telemetry::plane::CameraStream::Rgb)
+        .unwrap();
+    let offset_now = || {
+        let mut last = None;
+        while let Ok(Some(sample)) = frames.receive() {
+            last = Some(sample.payload().to_vec());
+        }
+        last.and_then(|rgb| red_offset(&rgb, 160, 120))
+    };
+    // The arm forward over the table, the ball off-centre in the wrist camera's picture.
+    wait_for(Duration::from_secs(20), "the driver driving", || {
+        newest(&states).filter(driving)
+    });
+    let mut goal = telemetry::frames::GoalFrame {
+        joint_count: 8,
+        mask: (1 << 0) | (1 << ELBOW),
+        ..Default::default()
+    };
+    goal.position_rad[0] = -0.6;
+    goal.position_rad[ELBOW] = -0.8;
+    wait_for(Duration::from_secs(15), "the arm over the table", || {
+        goal.seq += 1;
+        goal.timestamp_ns = monotonic_ns();
+        telemetry::plane::publish(&goals, &goal).unwrap();
+        std::thread::sleep(Duration::from_millis(20));
+        newest_read(&states, ELBOW).filter(|j| (j.position_rad + 0.8).abs() < 0.05)
+    });
+    std::thread::sleep(Duration::from_millis(1500));
+    let before = wait_for(
+        Duration::from_secs(5),
+        "the ball in the wrist camera",
+        offset_now,
+    );
+    assert!(before > 0.2, "the ball starts off-centre: {before}");
+
+    let id = "test-robot-seek";
+    let config = agent_toml.display().to_string();
+    stack.restart_agent_with(&[
+        "--robot-id",
+        id,
+        "--connect",
+        &endpoint,
+        "--config",
+        &config,
+    ]);
+    let mut server = Proc::spawn(
+        "policy-server",
+        &binary("nori"),
+        &[
+            "policy-server",
+            "--listen",
+            &endpoint,
+            "--seek-camera",
+            "left_wrist",
+            "--run-for",
+            "60",
+        ],
+        &stack.dir.join("policy-server.log"),
+    );
+    // Within 30 s the ball is near the centre, and stays there.
+    let session = session(&free_endpoint());
+    let mut trace = Vec::new();
+    let start = Instant::now();
+    let mut reached = None;
+    while start.elapsed() < Duration::from_secs(30) && reached.is_none() {
+        std::thread::sleep(Duration::from_millis(250));
+        let e = offset_now();
+        trace.push(e.map(|e| (e * 100.0).round() / 100.0));
+        reached = e.filter(|&e| e < 0.12);
+    }
+    let Some(reached) = reached else {
+        let st = session
+            .get(robot_key(id, "status"))
+            .timeout(Duration::from_secs(2))
+            .wait()
+            .ok()
+            .and_then(|r| r.recv().ok())
+            .and_then(|r| r.result().ok().map(|s| s.payload().to_bytes().into_owned()))
+            .and_then(|b| decode::<fleet_agent::schema::StatusMsg>(&b).ok());
+        panic!("the ball was not centred in 30 s: offsets {trace:?}; agent status {st:?}");
+    };
+    std::thread::sleep(Duration::from_secs(2));
+    let settled = wait_for(Duration::from_secs(5), "the ball in view", offset_now);
+    eprintln!(
+        "ball offset: {before:.2} at the start, {reached:.2} when reached, {settled:.2} 2 s later"
+    );
+    assert!(settled < 0.15, "it stays centred: {settled}");
+    let (code, out) = server.terminate(Duration::from_secs(5));
+    assert_eq!(code, Some(0));
+    let report: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
+    assert_eq!(report["robots"][id]["seek_calibrated"], true, "{report}");
+    let (code, _) = camera.terminate(Duration::from_secs(5));
+    assert_eq!(code, Some(0));
+    drop((frames, goals, states, node));
     stack.stop();
 }
