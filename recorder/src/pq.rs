@@ -54,19 +54,7 @@ fn optional(name: &str, physical: Physical, logical: Option<LogicalType>) -> PqR
 
 /// A nullable list of nullable `physical` (pyarrow's layout for `list<element: T>`).
 fn list(name: &str, physical: Physical, logical: Option<LogicalType>) -> PqResult<TypePtr> {
-    let element = optional("element", physical, logical)?;
-    let repeated = Type::group_type_builder("list")
-        .with_repetition(Repetition::REPEATED)
-        .with_fields(vec![element])
-        .build()?;
-    Ok(Arc::new(
-        Type::group_type_builder(name)
-            .with_repetition(Repetition::OPTIONAL)
-            .with_logical_type(Some(LogicalType::List))
-            .with_converted_type(ConvertedType::LIST)
-            .with_fields(vec![Arc::new(repeated)])
-            .build()?,
-    ))
+    list_of(name, optional("element", physical, logical)?)
 }
 
 /// `depth` nested nullable lists of nullable `physical` (`list<list<list<double>>>` for an
@@ -75,7 +63,11 @@ fn nested_list(name: &str, depth: usize, physical: Physical) -> PqResult<TypePtr
     if depth <= 1 {
         return list(name, physical, None);
     }
-    let element = nested_list("element", depth - 1, physical)?;
+    list_of(name, nested_list("element", depth - 1, physical)?)
+}
+
+/// A nullable `LIST` group named `name` of `element`s.
+fn list_of(name: &str, element: TypePtr) -> PqResult<TypePtr> {
     let repeated = Type::group_type_builder("list")
         .with_repetition(Repetition::REPEATED)
         .with_fields(vec![element])

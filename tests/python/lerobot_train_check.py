@@ -43,9 +43,8 @@ def train(venv, root, policy, steps, out):
         f"--steps={steps}", "--batch_size=4", "--log_freq=1", "--save_checkpoint=false",
         "--num_workers=0", "--wandb.enable=false", f"--output_dir={out}",
     ]
-    if policy == "act":
-        # The default downloads ImageNet weights for the ResNet: no hub here.
-        cmd.append("--policy.pretrained_backbone_weights=null")
+    # Both default to ImageNet weights for their ResNet, downloaded at start: no hub here.
+    cmd.append("--policy.pretrained_backbone_weights=null")
     t0 = time.monotonic()
     done = subprocess.run(cmd, capture_output=True, text=True, env={"HF_HUB_OFFLINE": "1", "PATH": "/usr/bin:/bin"})
     wall = time.monotonic() - t0

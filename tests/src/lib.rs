@@ -352,6 +352,27 @@ impl ArmStack {
         );
     }
 
+    /// Starts `nori-camera` for camera `name` (configuration `camera_toml`) on the simulator's
+    /// rendering of it; its log is `camera-<name>-<n>.log`.
+    pub fn camera(&self, name: &str, camera_toml: &str, n: u32) -> Proc {
+        let dev = self.dir.join("dev").display().to_string();
+        Proc::spawn(
+            "nori-camera",
+            &binary("nori-camera"),
+            &[
+                "--camera",
+                name,
+                "--config",
+                camera_toml,
+                "--device-dir",
+                &dev,
+                "--domain",
+                &self.domain,
+            ],
+            &self.dir.join(format!("camera-{name}-{n}.log")),
+        )
+    }
+
     /// Stops agent, driver (torque off), supervisor and simulator in that order, with SIGTERM, checks
     /// that nothing of the domain is left in shared memory (the test's own ports must be
     /// dropped before), and returns the simulator's final report.

@@ -340,11 +340,10 @@ fn bad_actions_are_refused_with_their_reason_and_a_killed_agent_leaves_nothing_q
     check_left_arm_report(&report, 60.0);
 }
 
-#[test]
-fn observations_carry_the_cameras_jpegs_and_none_once_the_camera_dies() {
-    let _turn = serial();
-    let endpoint = free_endpoint();
-    let files = scratch("fleet-images-files");
+/// A simulated robot whose agent sends the left wrist camera's JPEGs in its observations, on
+/// `endpoint`: the stack (cameras at 160×120), the camera, and the agent's configuration file.
+fn seeing_robot(tag: &str, id: &str, endpoint: &str) -> (ArmStack, Proc) {
+    let files = scratch(&format!("{tag}-files"));
     let (robot, camera_toml) = nori_tests::small_camera_files(&files);
     let agent_toml = files.join("fleet-agent.toml");
     std::fs::write(
@@ -353,33 +352,19 @@ fn observations_carry_the_cameras_jpegs_and_none_once_the_camera_dies() {
             .replace("cameras = []", "cameras = [\"left_wrist\"]"),
     )
     .unwrap();
-    let mut stack = ArmStack::start("fleet-images", &["--description", &robot]);
-    let dev = stack.dir.join("dev").display().to_string();
-    let mut camera = Proc::spawn(
-        "nori-camera",
-        &binary("nori-camera"),
-        &[
-            "--camera",
-            "left_wrist",
-            "--config",
-            &camera_toml,
-            "--device-dir",
-            &dev,
-            "--domain",
-            &stack.domain,
-        ],
-        &stack.dir.join("camera.log"),
-    );
-    let id = "test-robot-eyes";
+    let mut stack = ArmStack::start(tag, &["--description", &robot]);
+    let camera = stack.camera("left_wrist", &camera_toml, 1);
     let config = agent_toml.display().to_string();
-    stack.restart_agent_with(&[
-        "--robot-id",
-        id,
-        "--connect",
-        &endpoint,
-        "--config",
-        &config,
-    ]);
+    stack.restart_agent_with(&["--robot-id", id, "--connect", endpoint, "--config", &config]);
+    (stack, camera)
+}
+
+#[test]
+fn observations_carry_the_cameras_jpegs_and_none_once_the_camera_dies() {
+    let _turn = serial();
+    let endpoint = free_endpoint();
+    let id = "test-robot-eyes";
+    let (stack, mut camera) = seeing_robot("fleet-images", id, &endpoint);
     let session = session(&endpoint);
     let observations = session
         .declare_subscriber(robot_key(id, "observation"))
@@ -496,32 +481,8 @@ fn red_offset(rgb: &[u8], w: usize, h: usize) -> Option<f32> {
 fn a_policy_that_sees_centres_the_red_ball_in_the_wrist_cameras_picture() {
     let _turn = serial();
     let endpoint = free_endpoint();
-    let files = scratch("fleet-seek-files");
-    let (robot, camera_toml) = nori_tests::small_camera_files(&files);
-    let agent_toml = files.join("fleet-agent.toml");
-    std::fs::write(
-        &agent_toml,
-        fleet_agent::config::DEFAULT_CONFIG_TOML
-            .replace("cameras = []", "cameras = [\"left_wrist\"]"),
-    )
-    .unwrap();
-    let mut stack = ArmStack::start("fleet-seek", &["--description", &robot]);
-    let dev = stack.dir.join("dev").display().to_string();
-    let mut camera = Proc::spawn(
-        "nori-camera",
-        &binary("nori-camera"),
-        &[
-            "--camera",
-            "left_wrist",
-            "--config",
-            &camera_toml,
-            "--device-dir",
-            &dev,
-            "--domain",
-            &stack.domain,
-        ],
-        &stack.dir.join("camera.log"),
-    );
+    let id = "test-robot-seek";
+    let (stack, mut camera) = seeing_robot("fleet-seek", id, &endpoint);
     let node = Plane::open(&stack.domain, "test").unwrap();
     let states = node.subscriber(&plane::JOINT_STATE).unwrap();
     let goals = node.publisher(&plane::GOALS).unwrap();
@@ -561,16 +522,6 @@ fn a_policy_that_sees_centres_the_red_ball_in_the_wrist_cameras_picture() {
     );
     assert!(before > 0.2, "the ball starts off-centre: {before}");
 
-    let id = "test-robot-seek";
-    let config = agent_toml.display().to_string();
-    stack.restart_agent_with(&[
-        "--robot-id",
-        id,
-        "--connect",
-        &endpoint,
-        "--config",
-        &config,
-    ]);
     let mut server = Proc::spawn(
         "policy-server",
         &binary("nori"),

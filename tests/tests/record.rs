@@ -493,24 +493,7 @@ fn cameras_are_recorded_as_video_frame_for_frame_and_a_dead_camera_is_held_and_m
     let files = nori_tests::scratch("record-video-files");
     let (robot, camera_toml) = nori_tests::small_camera_files(&files);
     let stack = ArmStack::start("record-video", &["--description", &robot]);
-    let dev = stack.dir.join("dev").display().to_string();
-    let spawn_camera = |name: &str, n: u32| {
-        Proc::spawn(
-            "nori-camera",
-            &binary("nori-camera"),
-            &[
-                "--camera",
-                name,
-                "--config",
-                &camera_toml,
-                "--device-dir",
-                &dev,
-                "--domain",
-                &stack.domain,
-            ],
-            &stack.dir.join(format!("camera-{name}-{n}.log")),
-        )
-    };
+    let spawn_camera = |name: &str, n: u32| stack.camera(name, &camera_toml, n);
     let mut head = spawn_camera("head", 1);
     let mut wrist = spawn_camera("left_wrist", 1);
     wait_driving(&stack.domain);
