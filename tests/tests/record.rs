@@ -636,6 +636,32 @@ fn cameras_are_recorded_as_video_frame_for_frame_and_a_dead_camera_is_held_and_m
     if let Some(s) = lerobot_check(&dataset, &["--episodes", "3", "--closed"]) {
         assert_eq!(s["lengths"][2].as_u64().unwrap(), recovered);
     }
+
+    // A camera that publishes nothing (none runs for the neck) and a name that cannot be one:
+    // clear errors naming them, and the dataset untouched.
+    for (camera, says) in [
+        ("neck", "no JPEG from camera neck"),
+        ("Neck Cam", "camera name"),
+    ] {
+        let mut extra = vec!["--episodes", "1", "--episode-s", "1", "--wait-s", "2"];
+        extra.extend(["--camera", "head", "--camera", camera]);
+        let out = Command::new(binary("nori"))
+            .args(record_args(&stack.domain, &ds, &extra))
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success() && err.contains(says),
+            "{camera}: {err}"
+        );
+    }
+    let reader = recorder::dataset::DatasetReader::open(&dataset).unwrap();
+    assert_eq!(
+        reader.episodes.len(),
+        3,
+        "nothing recorded by the refused runs"
+    );
+    assert!(!dataset.join(".nori-staging").exists());
     drop((states, node));
     for camera in [&mut head, &mut wrist] {
         let (code, _) = camera.terminate(Duration::from_secs(5));
