@@ -52,28 +52,74 @@ pub fn state_msg(seq: u64) -> StateMsg {
     }
 }
 
-/// Peak resident set of a process, MB (VmHWM); `None` once it is gone.
-pub fn peak_rss_mb(pid: u32) -> Option<f64> {
+/// A `/proc/<pid>/status` memory line (`VmHWM`, `RssAnon`, ...) of a process, MB; `None` once
+/// it is gone.
+fn status_mb(pid: &str, key: &str) -> Option<f64> {
     let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let line = status
+        .lines()
+        .find(|l| l.strip_prefix(key).is_some_and(|r| r.starts_with(':')))?;
     let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
     Some(kb / 1024.0)
 }
 
-/// CPU time a process has used so far, s (user + system); `None` once it is gone.
+/// Peak resident set of a process, MB (VmHWM); `None` once it is gone.
+pub fn peak_rss_mb(pid: u32) -> Option<f64> {
+    status_mb(&pid.to_string(), "VmHWM")
+}
+
+/// Anonymous resident memory of a process now, MB (`RssAnon`); `None` once it is gone.
+pub fn rss_anon_mb(pid: u32) -> Option<f64> {
+    status_mb(&pid.to_string(), "RssAnon")
+}
+
+/// /proc counts CPU time in USER_HZ, which Linux fixes at 100 on every architecture.
+const USER_HZ: f64 = 100.0;
+
+/// Fields `numbers` (1-based, as `man 5 proc` numbers them) of `/proc/<pid>/stat`.
+fn stat_fields<const N: usize>(pid: &str, numbers: [usize; N]) -> Option<[u64; N]> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    stat_line_fields(&stat, numbers)
+}
+
+/// Fields of a `/proc/<pid>/stat` line, counted after the command name, which is in
+/// parentheses and may itself hold spaces and parentheses.
+fn stat_line_fields<const N: usize>(stat: &str, numbers: [usize; N]) -> Option<[u64; N]> {
+    let fields: Vec<&str> = stat.rsplit_once(')')?.1.split_whitespace().collect();
+    let mut out = [0u64; N];
+    for (o, n) in out.iter_mut().zip(numbers) {
+        *o = fields.get(n.checked_sub(3)?)?.parse().ok()?;
+    }
+    Some(out)
+}
+
+/// CPU time a process has used so far, s (utime + stime); `None` once it is gone.
 pub fn cpu_seconds(pid: u32) -> Option<f64> {
     let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
-    // /proc counts in USER_HZ, which Linux fixes at 100 on every architecture (x86-64, arm64).
-    const USER_HZ: f64 = 100.0;
     Some(cpu_ticks(&stat)? as f64 / USER_HZ)
 }
 
-/// utime + stime of a `/proc/<pid>/stat` line: its 14th and 15th fields, counted after the
-/// command name, which is in parentheses and may itself hold spaces and parentheses.
+/// utime + stime of a `/proc/<pid>/stat` line (its 14th and 15th fields).
 fn cpu_ticks(stat: &str) -> Option<u64> {
-    let fields: Vec<&str> = stat.rsplit_once(')')?.1.split_whitespace().collect();
-    let field = |n: usize| fields.get(n - 3)?.parse::<u64>().ok();
-    Some(field(14)? + field(15)?)
+    let [user, system] = stat_line_fields(stat, [14, 15])?;
+    Some(user + system)
+}
+
+/// CPU time of this process's waited-for children (and theirs), s (cutime + cstime).
+pub fn children_cpu_seconds() -> Option<f64> {
+    let [user, system] = stat_fields("self", [16, 17])?;
+    Some((user + system) as f64 / USER_HZ)
+}
+
+/// Process ids whose parent is `parent`.
+pub fn children_of(parent: u32) -> Vec<u32> {
+    let Ok(dir) = std::fs::read_dir("/proc") else {
+        return Vec::new();
+    };
+    dir.flatten()
+        .filter_map(|e| e.file_name().to_str()?.parse::<u32>().ok())
+        .filter(|pid| stat_fields(&pid.to_string(), [4]) == Some([u64::from(parent)]))
+        .collect()
 }
 
 #[cfg(test)]

@@ -116,51 +116,6 @@ fn stand_in_driver(domain: String, stop: Arc<AtomicBool>) -> std::thread::JoinHa
     })
 }
 
-/// CPU time of this process's waited-for children (and theirs), s: `cutime + cstime`.
-fn children_cpu_seconds() -> Result<f64> {
-    let stat = std::fs::read_to_string("/proc/self/stat")?;
-    let fields: Vec<&str> = stat
-        .rsplit_once(')')
-        .context("/proc/self/stat")?
-        .1
-        .split_whitespace()
-        .collect();
-    let field =
-        |n: usize| -> Result<f64> { Ok(fields.get(n - 3).context("field")?.parse::<f64>()?) };
-    Ok((field(16)? + field(17)?) / 100.0)
-}
-
-/// Anonymous resident memory of a process now, MB (`RssAnon`).
-fn rss_anon_mb(pid: u32) -> Option<f64> {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    let line = status.lines().find(|l| l.starts_with("RssAnon:"))?;
-    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kb / 1024.0)
-}
-
-/// Process ids whose parent is `parent`.
-fn children_of(parent: u32) -> Vec<u32> {
-    let Ok(dir) = std::fs::read_dir("/proc") else {
-        return Vec::new();
-    };
-    dir.flatten()
-        .filter_map(|e| e.file_name().to_str()?.parse::<u32>().ok())
-        .filter(|pid| {
-            std::fs::read_to_string(format!("/proc/{pid}/stat"))
-                .ok()
-                .and_then(|s| {
-                    s.rsplit_once(')')?
-                        .1
-                        .split_whitespace()
-                        .nth(1)?
-                        .parse::<u32>()
-                        .ok()
-                })
-                == Some(parent)
-        })
-        .collect()
-}
-
 fn dir_bytes(dir: &Path) -> u64 {
     std::fs::read_dir(dir)
         .map(|d| {
@@ -230,7 +185,7 @@ pub fn run(args: &RecordVideoArgs) -> Result<()> {
     for n in &names {
         cmd.args(["--camera", n]);
     }
-    let children_before = children_cpu_seconds()?;
+    let children_before = bench::children_cpu_seconds().context("/proc/self/stat")?;
     let (c1, t1) = (load.cpu_seconds(), Instant::now());
     let mut rec = cmd
         .stdout(Stdio::piped())
@@ -242,17 +197,17 @@ pub fn run(args: &RecordVideoArgs) -> Result<()> {
     let mut ffmpeg = std::collections::BTreeMap::<u32, (f64, f64)>::new();
     while rec.try_wait()?.is_none() {
         recorder_rss = recorder_rss.max(bench::peak_rss_mb(rec.id()).unwrap_or(0.0));
-        for pid in children_of(rec.id()) {
+        for pid in bench::children_of(rec.id()) {
             let e = ffmpeg.entry(pid).or_insert((0.0, 0.0));
             e.0 = e.0.max(bench::peak_rss_mb(pid).unwrap_or(0.0));
-            e.1 = e.1.max(rss_anon_mb(pid).unwrap_or(0.0));
+            e.1 = e.1.max(bench::rss_anon_mb(pid).unwrap_or(0.0));
         }
         std::thread::sleep(Duration::from_millis(20));
     }
     let wall = t1.elapsed().as_secs_f64();
     let capture_while_recording = (load.cpu_seconds() - c1) / wall;
     let output = rec.wait_with_output()?;
-    let recorder_cpu = children_cpu_seconds()? - children_before;
+    let recorder_cpu = bench::children_cpu_seconds().context("/proc/self/stat")? - children_before;
     stop.store(true, Ordering::Relaxed);
     driver
         .join()

@@ -121,6 +121,7 @@ pub fn dataset(cmd: &DatasetCommand) -> Result<()> {
                     "recovered": recovery.recovered,
                     "dropped": recovery.dropped.iter().map(|(e, n, why)| serde_json::json!({"episode": e, "frames": n, "why": why})).collect::<Vec<_>>(),
                     "orphan_rows_removed": recovery.orphan_rows_removed,
+                    "orphan_video_frames_removed": recovery.orphan_video_frames_removed,
                     "temporaries_removed": recovery.temporaries_removed,
                 })
             );
@@ -147,6 +148,12 @@ fn report_recovery(r: &Recovery) {
     }
     for (e, n, why) in &r.dropped {
         eprintln!("nori record: dropped the interrupted episode {e} ({n} frames): {why}");
+    }
+    if r.orphan_video_frames_removed > 0 {
+        eprintln!(
+            "nori record: cut {} video frames of an interrupted commit",
+            r.orphan_video_frames_removed
+        );
     }
     if r.orphan_rows_removed > 0 {
         eprintln!(

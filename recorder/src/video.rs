@@ -144,9 +144,9 @@ pub fn concat(pieces: &[Piece<'_>], fps: u32, out: &Path) -> Result<(), VideoErr
         );
     }
     let list_path = out.with_extension("ffconcat");
-    std::fs::write(&list_path, list).map_err(|source| VideoError::Start {
+    std::fs::write(&list_path, list).map_err(|e| VideoError::Staged {
         path: list_path.clone(),
-        source,
+        reason: e.to_string(),
     })?;
     let result = run(
         Command::new("ffmpeg")
