@@ -115,8 +115,8 @@ JSON
       { id: "inference-hears", permission: "allow", flows: ["egress"], messages: ["put"], key_exprs: ["nori/*/observation", "nori/*/layout"] },
       { id: "inference-acts", permission: "allow", flows: ["ingress"], messages: ["put"], key_exprs: ["nori/*/actions"] },
       { id: "inference-acts-interest", permission: "allow", flows: ["egress"], messages: ["declare_subscriber"], key_exprs: ["nori/*/actions"] },
-      { id: "dashboard-asks", permission: "allow", flows: ["ingress"], messages: ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"], key_exprs: ["nori/*/state", "nori/*/events", "nori/*/layout", "nori/*/alive", "nori/*/status"] },
-      { id: "dashboard-hears", permission: "allow", flows: ["egress"], messages: ["put", "reply", "liveliness_token", "declare_queryable"], key_exprs: ["nori/*/state", "nori/*/events", "nori/*/layout", "nori/*/alive", "nori/*/status"] },
+      { id: "dashboard-asks", permission: "allow", flows: ["ingress"], messages: ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"], key_exprs: ["nori/*/state", "nori/*/events", "nori/*/layout", "nori/*/alive", "nori/*/status", "nori/*/preview", "nori/*/scan"] },
+      { id: "dashboard-hears", permission: "allow", flows: ["egress"], messages: ["put", "reply", "liveliness_token", "declare_queryable"], key_exprs: ["nori/*/state", "nori/*/events", "nori/*/layout", "nori/*/alive", "nori/*/status", "nori/*/preview", "nori/*/scan"] },
       { id: "read-only", permission: "deny", flows: ["ingress"], messages: ["put", "delete", "declare_queryable", "liveliness_token"], key_exprs: ["nori/**"] },
     ],
     subjects: [

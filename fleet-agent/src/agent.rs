@@ -10,6 +10,7 @@
 
 use crate::gate::{within, ActionGate, Range, REASONS};
 use crate::outbound::{self, Every};
+use crate::preview::{preview_msg, scan_msg, Thumbnailer};
 use crate::schedule::Scheduler;
 use crate::schema::{
     encode, AgentCounters, BusStatus, CameraStatus, ImageMsg, LidarStatus, StatusConfig,
@@ -33,6 +34,10 @@ pub enum Outbound {
     Observation,
     /// `nori/<robot>/layout`.
     Layout,
+    /// `nori/<robot>/preview` (dropped on congestion).
+    Preview,
+    /// `nori/<robot>/scan` (dropped on congestion).
+    Scan,
     /// `nori/<robot>/events` (blocks on congestion: events are rare and matter).
     Event,
 }
@@ -45,8 +50,14 @@ pub trait AgentIo {
     fn next_state(&mut self) -> Option<JointState>;
     /// The newest bus health of the driver.
     fn bus_health(&mut self) -> Option<BusHealth>;
-    /// The header of the newest frame of configured camera `index` (`sensors.cameras`).
-    fn camera(&mut self, index: usize) -> Option<CameraFrameHeader>;
+    /// The header of the newest frame of configured camera `index` (`sensors.cameras`)
+    /// published since the last call, after `look` has seen it with its pixels (in place: a
+    /// thumbnail is made from shared memory).
+    fn camera(
+        &mut self,
+        index: usize,
+        look: &mut dyn FnMut(&CameraFrameHeader, &[u8]),
+    ) -> Option<CameraFrameHeader>;
     /// The newest JPEG of observation camera `index` (`observation.cameras`) published since
     /// the last call: copied into `jpeg`, its header returned; `None` (and `jpeg` untouched)
     /// if there is none newer.
@@ -76,6 +87,9 @@ struct Counters {
     goals_withheld: u64,
     images_sent: u64,
     images_stale: u64,
+    previews_sent: u64,
+    previews_failed: u64,
+    scans_sent: u64,
     last_rejection: String,
 }
 
@@ -100,6 +114,18 @@ pub struct Agent {
     images: Vec<(Option<CameraFrameHeader>, Vec<u8>)>,
     observations: u64,
     goal_seq: u64,
+    /// When every camera's next thumbnail is due, and which cameras still owe theirs.
+    preview_every: Every,
+    preview_pending: Vec<bool>,
+    thumbnailer: Thumbnailer,
+    /// When the next lidar revolution is due for the fleet, and whether it is owed.
+    scan_every: Every,
+    scan_pending: bool,
+}
+
+/// A rate from a period in seconds, 0 meaning never.
+fn every_s(period_s: f64) -> Every {
+    Every::hz(if period_s > 0.0 { 1.0 / period_s } else { 0.0 })
 }
 
 /// What the status says of the newest scan (a scan frame is 12 KB; this is what is kept).
@@ -137,6 +163,11 @@ impl Agent {
             images: vec![(None, Vec::new()); config.observation.cameras.len()],
             observations: 0,
             goal_seq: 0,
+            preview_every: every_s(config.preview.every_s),
+            preview_pending: vec![false; config.sensors.cameras.len()],
+            thumbnailer: Thumbnailer::new(config.preview.width, config.preview.quality),
+            scan_every: every_s(config.preview.scan_every_s),
+            scan_pending: false,
             config: config.clone(),
         }
     }
@@ -215,13 +246,63 @@ impl Agent {
         if let Some(h) = io.bus_health() {
             self.last_health = Some(h);
         }
-        for (i, slot) in self.last_cameras.iter_mut().enumerate() {
-            if let Some(h) = io.camera(i) {
-                *slot = Some(h);
+        self.watch_sensors(io, now, wall_ms);
+        while let Some(e) = io.next_event() {
+            let msg = outbound::event_msg(&e, &self.layout, wall_ms);
+            if io.publish(Outbound::Event, encode(&msg)) {
+                self.counters.events_sent += 1;
+            }
+        }
+    }
+
+    /// Takes each sensor's newest frame for the status and, when due, sends the fleet a
+    /// thumbnail of every camera (each from its first frame after the due time: a camera that
+    /// sends nothing owes its thumbnail until it does) and a lidar revolution. One thumbnail a
+    /// turn at most (~2 ms of a 720p frame here): four cameras due together never hold up the
+    /// goals forwarded in between.
+    fn watch_sensors(&mut self, io: &mut impl AgentIo, now: u64, wall_ms: u64) {
+        if self.preview_every.due(now) {
+            self.preview_pending.fill(true);
+        }
+        let mut thumbnail_made = false;
+        for i in 0..self.last_cameras.len() {
+            let (pending, thumbnailer) = (&mut self.preview_pending[i], &mut self.thumbnailer);
+            let mut made = None;
+            let header = io.camera(i, &mut |h, pixels| {
+                if *pending && !thumbnail_made {
+                    thumbnail_made = true;
+                    *pending = false;
+                    made = Some(
+                        thumbnailer
+                            .make(h, pixels)
+                            .map(|(jpeg, w, ht)| preview_msg(h, jpeg, w, ht, wall_ms)),
+                    );
+                }
+            });
+            if let Some(h) = header {
+                self.last_cameras[i] = Some(h);
+            }
+            match made {
+                Some(Ok(msg)) if io.publish(Outbound::Preview, encode(&msg)) => {
+                    self.counters.previews_sent += 1;
+                }
+                Some(Err(e)) => {
+                    self.counters.previews_failed += 1;
+                    if self.warn_every.due(now) {
+                        tracing::warn!("no thumbnail: {e}");
+                    }
+                }
+                Some(Ok(_)) | None => {}
             }
         }
         if self.config.sensors.lidar {
+            self.scan_pending |= self.scan_every.due(now);
             if let Some(scan) = io.lidar() {
+                if std::mem::take(&mut self.scan_pending)
+                    && io.publish(Outbound::Scan, encode(&scan_msg(&scan, wall_ms)))
+                {
+                    self.counters.scans_sent += 1;
+                }
                 self.last_lidar = Some(LidarStatusOf {
                     seq: scan.seq,
                     bad_points: scan.bad_points,
@@ -230,12 +311,6 @@ impl Agent {
                     end_ns: scan.end_ns,
                     rotation_hz: scan.rotation_hz(),
                 });
-            }
-        }
-        while let Some(e) = io.next_event() {
-            let msg = outbound::event_msg(&e, &self.layout, wall_ms);
-            if io.publish(Outbound::Event, encode(&msg)) {
-                self.counters.events_sent += 1;
             }
         }
     }
@@ -357,6 +432,9 @@ impl Agent {
                 goals_withheld: c.goals_withheld,
                 images_sent: c.images_sent,
                 images_stale: c.images_stale,
+                previews_sent: c.previews_sent,
+                previews_failed: c.previews_failed,
+                scans_sent: c.scans_sent,
             },
             last_rejection: c.last_rejection.clone(),
             // Named from the driver's layout: the one source of names.

@@ -78,6 +78,20 @@ pub struct ObservationConfig {
     pub image_max_age_ms: u64,
 }
 
+/// What the fleet's dashboard gets of the sensors (`sensors.cameras`, `sensors.lidar`).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct PreviewConfig {
+    /// A thumbnail of each camera this often, s (0: none).
+    pub every_s: f64,
+    /// Thumbnails at most this wide, pixels (the frame averaged down by an integer factor).
+    pub width: u32,
+    /// Their JPEG quality, 1-100.
+    pub quality: u8,
+    /// A lidar revolution this often, s (0: none).
+    pub scan_every_s: f64,
+}
+
 /// The agent's configuration.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, rename_all = "kebab-case")]
@@ -94,6 +108,8 @@ pub struct AgentConfig {
     pub sensors: SensorsConfig,
     /// What observations carry.
     pub observation: ObservationConfig,
+    /// What the fleet's dashboard sees.
+    pub preview: PreviewConfig,
 }
 
 impl ProcessConfig for AgentConfig {
@@ -220,6 +236,27 @@ impl AgentConfig {
                 format!("{} is outside 1..=5000", o.image_max_age_ms),
             );
         }
+        let p = &c.preview;
+        for (key, every) in [
+            ("preview.every-s", p.every_s),
+            ("preview.scan-every-s", p.scan_every_s),
+        ] {
+            if !(every == 0.0 || (0.1..=3600.0).contains(&every)) {
+                return bad(key, format!("{every} s: use 0 (none) or 0.1 to 3600"));
+            }
+        }
+        if !(16..=640).contains(&p.width) {
+            return bad(
+                "preview.width",
+                format!("{} is outside 16..=640 pixels", p.width),
+            );
+        }
+        if !(1..=100).contains(&p.quality) {
+            return bad(
+                "preview.quality",
+                format!("{} is outside 1..=100", p.quality),
+            );
+        }
         Ok(c)
     }
 
@@ -292,6 +329,14 @@ mod tests {
                 "layout-every-s = 0.0 #",
                 "telemetry.layout-every-s",
             ),
+            ("every-s = 2.0", "every-s = 0.01", "preview.every-s"),
+            (
+                "scan-every-s = 1.0",
+                "scan-every-s = -1.0",
+                "preview.scan-every-s",
+            ),
+            ("width = 160", "width = 4000", "preview.width"),
+            ("quality = 70", "quality = 0", "preview.quality"),
         ] {
             let text = DEFAULT_CONFIG_TOML.replace(from, to);
             assert_ne!(text, DEFAULT_CONFIG_TOML);

@@ -5,10 +5,12 @@
 //! | `nori/<id>/state` | robot → fleet | [`crate::schema::StateMsg`], rate-limited |
 //! | `nori/<id>/layout` | robot → fleet | [`crate::schema::LayoutMsg`], on change and every few seconds |
 //! | `nori/<id>/events` | robot → fleet | [`crate::schema::EventMsg`], every supervisor event |
+//! | `nori/<id>/preview` | robot → fleet | [`crate::schema::PreviewMsg`], a camera thumbnail now and then |
+//! | `nori/<id>/scan` | robot → fleet | [`crate::schema::ScanMsg`], a lidar revolution now and then |
 //! | `nori/<id>/observation` | robot → inference | [`crate::schema::ObservationMsg`] |
 //! | `nori/<id>/actions` | inference → robot | [`crate::schema::ActionChunk`] |
 //! | `nori/<id>/alive` | liveliness token | present while the agent runs |
-//! | `nori/<id>/status` | queryable | JSON: versions, config, health, counters, bus counts |
+//! | `nori/<id>/status` | queryable | [`crate::schema::StatusMsg`]: versions, config, health, counters, bus and sensor counts |
 
 use thiserror::Error;
 

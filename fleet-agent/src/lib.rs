@@ -12,6 +12,7 @@ pub mod gate;
 pub mod keys;
 pub mod net;
 pub mod outbound;
+pub mod preview;
 pub mod schedule;
 pub mod schema;
 

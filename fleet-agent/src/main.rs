@@ -65,6 +65,8 @@ struct Wired {
     state_pub: Publisher<'static>,
     observation_pub: Publisher<'static>,
     layout_pub: Publisher<'static>,
+    preview_pub: Publisher<'static>,
+    scan_pub: Publisher<'static>,
     event_pub: Publisher<'static>,
     actions: Subscriber<FifoChannelHandler<Sample>>,
     status_key: String,
@@ -81,14 +83,20 @@ impl AgentIo for Wired {
     fn bus_health(&mut self) -> Option<BusHealth> {
         newest(&self.bus_health)
     }
-    fn camera(&mut self, index: usize) -> Option<CameraFrameHeader> {
-        // The newest frame's header; the pixels stay in shared memory, untouched.
+    fn camera(
+        &mut self,
+        index: usize,
+        look: &mut dyn FnMut(&CameraFrameHeader, &[u8]),
+    ) -> Option<CameraFrameHeader> {
+        // The newest frame only; its pixels are looked at in shared memory, never copied.
         let sub = self.cameras.get(index)?.as_ref()?;
         let mut newest = None;
         while let Ok(Some(sample)) = sub.receive() {
-            newest = Some(*sample.user_header());
+            newest = Some(sample);
         }
-        newest
+        let sample = newest?;
+        look(sample.user_header(), sample.payload());
+        Some(*sample.user_header())
     }
     fn image(&mut self, index: usize, jpeg: &mut Vec<u8>) -> Option<CameraFrameHeader> {
         let sub = self.images.get(index)?.as_ref()?;
@@ -116,6 +124,8 @@ impl AgentIo for Wired {
             Outbound::State => &self.state_pub,
             Outbound::Observation => &self.observation_pub,
             Outbound::Layout => &self.layout_pub,
+            Outbound::Preview => &self.preview_pub,
+            Outbound::Scan => &self.scan_pub,
             Outbound::Event => &self.event_pub,
         };
         publisher.put(payload).wait().is_ok()
@@ -243,6 +253,8 @@ fn wire(
         state_pub: publisher("state", CongestionControl::Drop)?,
         observation_pub: publisher("observation", CongestionControl::Drop)?,
         layout_pub: publisher("layout", CongestionControl::Drop)?,
+        preview_pub: publisher("preview", CongestionControl::Drop)?,
+        scan_pub: publisher("scan", CongestionControl::Drop)?,
         // Events are rare and matter: block rather than drop them on congestion.
         event_pub: publisher("events", CongestionControl::Block)?,
         actions: session

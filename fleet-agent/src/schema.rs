@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 /// The schema version this build speaks.
-pub const SCHEMA_VERSION: u16 = 3;
+pub const SCHEMA_VERSION: u16 = 4;
 
 /// Joint telemetry for dashboards, rate-limited (`nori/<robot>/state`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -134,6 +134,57 @@ pub struct ImageMsg {
     pub encoding: String,
     /// The encoded image.
     pub data: Vec<u8>,
+}
+
+/// A thumbnail of one camera's picture for the fleet's dashboard (`nori/<robot>/preview`),
+/// every `preview.every-s` per camera: the RGB frame averaged down on the robot and encoded as
+/// a small JPEG (not for policies: their images ride in observations).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PreviewMsg {
+    /// [`SCHEMA_VERSION`].
+    pub version: u16,
+    /// The camera's name.
+    pub camera: String,
+    /// The camera process's frame number of the picture.
+    pub seq: u64,
+    /// Robot monotonic time of the capture, ns.
+    pub capture_ns: u64,
+    /// Wall-clock time when the agent sent it, ms since the Unix epoch.
+    pub wall_ms: u64,
+    /// Thumbnail pixels per row.
+    pub width: u32,
+    /// Thumbnail rows.
+    pub height: u32,
+    /// The camera's own width, pixels.
+    pub source_width: u32,
+    /// The camera's own height.
+    pub source_height: u32,
+    /// `"jpeg"`.
+    pub encoding: String,
+    /// The encoded thumbnail.
+    pub data: Vec<u8>,
+}
+
+/// One lidar revolution for the fleet's dashboard (`nori/<robot>/scan`), every
+/// `preview.scan-every-s`: each point measured, in order, in the lidar's frame.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ScanMsg {
+    /// [`SCHEMA_VERSION`].
+    pub version: u16,
+    /// The lidar process's revolution number.
+    pub seq: u64,
+    /// Robot monotonic time of the revolution's first point, ns.
+    pub start_ns: u64,
+    /// Robot monotonic time of its last point, ns.
+    pub end_ns: u64,
+    /// Wall-clock time when the agent sent it, ms since the Unix epoch.
+    pub wall_ms: u64,
+    /// Bearing of each point, rad, counter-clockwise from the lidar's forward axis.
+    pub angle_rad: Vec<f32>,
+    /// Range of each point, m (0: no return).
+    pub range_m: Vec<f32>,
+    /// The device's signal quality of each point, 0..63.
+    pub quality: Vec<u8>,
 }
 
 /// An action chunk from a policy (`nori/<robot>/actions`): `steps` targets for every joint of
@@ -276,6 +327,12 @@ pub struct AgentCounters {
     /// Images left out of an observation: none captured within `image-max-age-ms` of it (a
     /// camera stalled, dead or not started).
     pub images_stale: u64,
+    /// Camera thumbnails sent to the fleet (`nori/<robot>/preview`).
+    pub previews_sent: u64,
+    /// Frames that gave no thumbnail (not RGB24, shorter than their header says).
+    pub previews_failed: u64,
+    /// Lidar revolutions sent to the fleet (`nori/<robot>/scan`).
+    pub scans_sent: u64,
 }
 
 /// One bus of the driver, in a [`StatusMsg`].

@@ -6,7 +6,8 @@
 
 use fleet_agent::agent::{Agent, AgentIo, Outbound};
 use fleet_agent::schema::{
-    decode, encode, ActionChunk, EventMsg, ObservationMsg, StatusMsg, SCHEMA_VERSION,
+    decode, encode, ActionChunk, EventMsg, ObservationMsg, PreviewMsg, ScanMsg, StatusMsg,
+    SCHEMA_VERSION,
 };
 use fleet_agent::AgentConfig;
 use std::collections::VecDeque;
@@ -15,7 +16,7 @@ use telemetry::frames::{
     BusHealth, BusHealthEntry, EventKind, GoalFrame, JointInfo, JointLayout, JointSample,
     JointState, SupervisorEvent, BUS_HEALTH_CONNECTED, BUS_HEALTH_ENABLED, STATE_FLAG_SAFE_STATE,
 };
-use telemetry::sensors::{CameraFrameHeader, LidarScan};
+use telemetry::sensors::{CameraFrameHeader, LidarScan, PixelFormat};
 
 const MS: u64 = 1_000_000;
 
@@ -24,7 +25,8 @@ struct Queues {
     layout: Option<JointLayout>,
     states: VecDeque<JointState>,
     health: Option<BusHealth>,
-    cameras: Vec<Option<CameraFrameHeader>>,
+    /// Per configured camera, the frame it publishes next (header, RGB pixels).
+    cameras: Vec<Option<(CameraFrameHeader, Vec<u8>)>>,
     /// Per observation camera, the JPEG it publishes next.
     images: Vec<Option<(CameraFrameHeader, Vec<u8>)>>,
     lidar: Option<LidarScan>,
@@ -46,8 +48,14 @@ impl AgentIo for Queues {
     fn bus_health(&mut self) -> Option<BusHealth> {
         self.health
     }
-    fn camera(&mut self, index: usize) -> Option<CameraFrameHeader> {
-        self.cameras.get_mut(index)?.take()
+    fn camera(
+        &mut self,
+        index: usize,
+        look: &mut dyn FnMut(&CameraFrameHeader, &[u8]),
+    ) -> Option<CameraFrameHeader> {
+        let (h, pixels) = self.cameras.get_mut(index)?.take()?;
+        look(&h, &pixels);
+        Some(h)
     }
     fn image(&mut self, index: usize, jpeg: &mut Vec<u8>) -> Option<CameraFrameHeader> {
         let (h, data) = self.images.get_mut(index)?.take()?;
@@ -376,7 +384,7 @@ fn the_status_reports_each_configured_sensor_from_its_newest_frame() {
         ..CameraFrameHeader::default()
     };
     neck.set_camera("neck");
-    io.cameras = vec![None, Some(neck), None, None];
+    io.cameras = vec![None, Some((neck, Vec::new())), None, None];
     io.lidar = Some(LidarScan {
         seq: 99,
         start_ns: now - 120 * MS,
@@ -483,4 +491,146 @@ fn the_loop_turns_until_told_to_stop_or_its_time_is_up() {
     assert!(io.published.iter().any(|(k, _)| *k == Outbound::Layout));
     // Wall time for the fleet's plots is the Unix clock's.
     assert!(fleet_agent::agent::wall_ms() > 1_700_000_000_000);
+}
+
+/// A `w`×`h` RGB24 frame of camera `name`, every pixel `rgb`.
+fn rgb_frame(name: &str, seq: u64, w: u32, h: u32, rgb: [u8; 3]) -> (CameraFrameHeader, Vec<u8>) {
+    let mut hd = CameraFrameHeader {
+        seq,
+        capture_ns: seq * MS,
+        fourcc: PixelFormat::Rgb24.fourcc(),
+        width: w,
+        height: h,
+        stride: w * 3,
+        ..CameraFrameHeader::default()
+    };
+    hd.set_camera(name);
+    (hd, rgb.repeat((w * h) as usize))
+}
+
+/// What the agent published on `what` since the last look, decoded (and taken).
+fn sent<T: for<'de> serde::Deserialize<'de>>(io: &mut Queues, what: Outbound) -> Vec<T> {
+    let (mine, rest) = std::mem::take(&mut io.published)
+        .into_iter()
+        .partition::<Vec<_>, _>(|(w, _)| *w == what);
+    io.published = rest;
+    mine.iter().map(|(_, b)| decode(b).unwrap()).collect()
+}
+
+#[test]
+fn thumbnails_and_scans_go_to_the_fleet_at_their_rates_each_from_a_fresh_frame() {
+    let mut config = AgentConfig::embedded().unwrap();
+    config.sensors.cameras = vec!["head".into(), "neck".into()];
+    (config.preview.every_s, config.preview.width) = (2.0, 32);
+    config.preview.scan_every_s = 1.0;
+    let mut agent = Agent::new(&config);
+    let mut io = Queues {
+        cameras: vec![None, None],
+        ..Queues::default()
+    };
+    let t = 1_000_000 * MS;
+    let scan = |seq| LidarScan {
+        seq,
+        point_count: 2,
+        ..LidarScan::default()
+    };
+    let green = [10, 200, 30];
+
+    // Due at once: the head's frame gives its thumbnail (64×48 averaged by 2 to fit 32); the
+    // neck has sent nothing and owes its own. The lidar's revolution goes out.
+    io.cameras[0] = Some(rgb_frame("head", 10, 64, 48, green));
+    io.lidar = Some(scan(0));
+    agent.poll(&mut io, t, 77);
+    let scans: Vec<ScanMsg> = sent(&mut io, Outbound::Scan);
+    assert_eq!(scans.iter().map(|s| s.seq).collect::<Vec<_>>(), [0]);
+    assert_eq!(scans[0].range_m.len(), 2);
+    let previews: Vec<PreviewMsg> = sent(&mut io, Outbound::Preview);
+    assert_eq!(previews.len(), 1);
+    let p = &previews[0];
+    assert_eq!(
+        (
+            p.camera.as_str(),
+            p.seq,
+            p.width,
+            p.height,
+            p.source_width,
+            p.source_height
+        ),
+        ("head", 10, 32, 24, 64, 48)
+    );
+    assert_eq!(
+        (p.encoding.as_str(), p.wall_ms, p.capture_ns),
+        ("jpeg", 77, 10 * MS)
+    );
+    let mut d = zune_jpeg::JpegDecoder::new(zune_core::bytestream::ZCursor::new(&p.data));
+    let px = d.decode().unwrap();
+    assert_eq!(px.len(), 32 * 24 * 3);
+    assert!(
+        px.chunks_exact(3)
+            .all(|c| c.iter().zip(green).all(|(a, b)| a.abs_diff(b) <= 4)),
+        "the thumbnail is the picture"
+    );
+
+    // 100 ms later: the head's next frame is not due; the neck's first frame pays its debt,
+    // with that frame. The lidar's next revolution is not due.
+    io.cameras = vec![
+        Some(rgb_frame("head", 11, 64, 48, green)),
+        Some(rgb_frame("neck", 5, 64, 48, green)),
+    ];
+    io.lidar = Some(scan(1));
+    agent.poll(&mut io, t + 100 * MS, 78);
+    let previews: Vec<PreviewMsg> = sent(&mut io, Outbound::Preview);
+    assert_eq!(
+        previews
+            .iter()
+            .map(|p| (p.camera.as_str(), p.seq))
+            .collect::<Vec<_>>(),
+        [("neck", 5)]
+    );
+    io.published.clear();
+
+    // At 1 s the lidar is due but sends nothing: owed until its next revolution, at 1.1 s.
+    agent.poll(&mut io, t + 1000 * MS, 79);
+    io.lidar = Some(scan(2));
+    agent.poll(&mut io, t + 1100 * MS, 80);
+    let scans: Vec<ScanMsg> = sent(&mut io, Outbound::Scan);
+    assert_eq!(
+        scans.iter().map(|s| (s.seq, s.wall_ms)).collect::<Vec<_>>(),
+        [(2, 80)]
+    );
+
+    // At 2 s both cameras are due again, with a frame each: one thumbnail a turn, the head's
+    // first. The neck's next frame is YUYV (not what the plane carries): no thumbnail of it,
+    // counted.
+    let yuyv = |seq| {
+        let (mut h, pixels) = rgb_frame("neck", seq, 64, 48, green);
+        h.fourcc = PixelFormat::Yuyv.fourcc();
+        Some((h, pixels))
+    };
+    io.cameras = vec![Some(rgb_frame("head", 70, 64, 48, green)), yuyv(66)];
+    agent.poll(&mut io, t + 2000 * MS, 81);
+    let previews: Vec<PreviewMsg> = sent(&mut io, Outbound::Preview);
+    assert_eq!(
+        previews
+            .iter()
+            .map(|p| (p.camera.as_str(), p.seq))
+            .collect::<Vec<_>>(),
+        [("head", 70)]
+    );
+    io.cameras[1] = yuyv(67);
+    agent.poll(&mut io, t + 2001 * MS, 82);
+    assert!(sent::<PreviewMsg>(&mut io, Outbound::Preview).is_empty());
+    let st = status(&mut agent, &mut io, t + 2002 * MS);
+    assert_eq!(
+        (
+            st.counters.previews_sent,
+            st.counters.previews_failed,
+            st.counters.scans_sent
+        ),
+        (3, 1, 2)
+    );
+    assert_eq!(
+        st.cameras[1].frames, 68,
+        "the refused frame still counts for the status"
+    );
 }

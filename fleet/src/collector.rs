@@ -4,7 +4,9 @@
 //! zenoh subscriptions and the HTTP server live in the `nori` binary.
 
 use fleet_agent::keys::robot_of;
-use fleet_agent::schema::{decode, DecodeError, EventMsg, LayoutMsg, StateMsg, StatusMsg};
+use fleet_agent::schema::{
+    decode, DecodeError, EventMsg, LayoutMsg, PreviewMsg, ScanMsg, StateMsg, StatusMsg,
+};
 use prometheus_client::encoding::text::encode;
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
@@ -17,6 +19,13 @@ use thiserror::Error;
 
 /// Events kept per robot for the dashboard.
 const EVENTS_KEPT: usize = 50;
+
+/// Cameras whose thumbnail is kept per robot (the A3 has four): a robot naming more cannot
+/// grow the collector without bound.
+const PREVIEW_CAMERAS: usize = 8;
+
+/// The largest thumbnail kept, bytes (a 160×90 one is ~3 KB; this allows 640 px at quality 100).
+pub const MAX_PREVIEW_BYTES: usize = 256 * 1024;
 
 /// A message the collector could not use. Counted by kind, never fatal: one robot speaking
 /// another schema version must not blind the dashboard to the rest of the fleet.
@@ -32,6 +41,15 @@ pub enum IngestError {
         key: String,
         /// Why.
         error: DecodeError,
+    },
+    /// The payload decodes but cannot be what it claims (a thumbnail that is no JPEG, a scan
+    /// whose columns differ in length).
+    #[error("{key}: refused: {reason}")]
+    Refused {
+        /// The key it came on.
+        key: String,
+        /// Why.
+        reason: String,
     },
 }
 
@@ -57,6 +75,10 @@ struct Robot {
     event_counts: BTreeMap<String, u64>,
     states_received: u64,
     status: Option<StatusMsg>,
+    /// Each camera's newest thumbnail and when it arrived (collector's wall time).
+    previews: BTreeMap<String, (PreviewMsg, u64)>,
+    /// The lidar's newest revolution and when it arrived.
+    scan: Option<(ScanMsg, u64)>,
 }
 
 /// The fleet as the collector sees it.
@@ -66,6 +88,7 @@ pub struct Collector {
     history_len: usize,
     history_every_ms: u64,
     undecodable: BTreeMap<&'static str, u64>,
+    refused: BTreeMap<&'static str, u64>,
 }
 
 impl Collector {
@@ -76,6 +99,7 @@ impl Collector {
             history_len,
             history_every_ms,
             undecodable: BTreeMap::new(),
+            refused: BTreeMap::new(),
         }
     }
 
@@ -159,6 +183,98 @@ impl Collector {
         Ok(())
     }
 
+    /// A `nori/<id>/preview` message: kept as the camera's newest thumbnail if it is a
+    /// whole JPEG of a sane size from a camera with a valid name.
+    pub fn preview(&mut self, key: &str, payload: &[u8], now_ms: u64) -> Result<(), IngestError> {
+        let msg: PreviewMsg = self.decoded("preview", key, payload)?;
+        let d = &msg.data;
+        let problem = if !telemetry::sensors::valid_camera_name(&msg.camera) {
+            Some(format!("{:?} cannot name a camera", msg.camera))
+        } else if msg.encoding != "jpeg" {
+            Some(format!("encoding {:?}, not jpeg", msg.encoding))
+        } else if d.len() > MAX_PREVIEW_BYTES {
+            Some(format!("{} bytes, over {MAX_PREVIEW_BYTES}", d.len()))
+        } else if !(d.starts_with(&[0xFF, 0xD8]) && d.ends_with(&[0xFF, 0xD9])) {
+            Some("not a whole JPEG (no start or end of image marker)".into())
+        } else if !(1..=4096).contains(&msg.width) || !(1..=4096).contains(&msg.height) {
+            Some(format!("{}×{} pixels", msg.width, msg.height))
+        } else {
+            None
+        };
+        if let Some(reason) = problem {
+            return Err(self.refuse("preview", key, reason));
+        }
+        let robot = self
+            .robots
+            .get(robot_of(key).unwrap_or_default())
+            .map(|r| (r.previews.len(), r.previews.contains_key(&msg.camera)));
+        if let Some((n, known)) = robot {
+            if !known && n >= PREVIEW_CAMERAS {
+                let reason = format!("a {}th camera ({})", n + 1, msg.camera);
+                return Err(self.refuse("preview", key, reason));
+            }
+        }
+        let robot = self.robot(key, now_ms)?;
+        robot.previews.insert(msg.camera.clone(), (msg, now_ms));
+        Ok(())
+    }
+
+    /// A `nori/<id>/scan` message: kept as the lidar's newest revolution if its columns agree
+    /// and every value is a bearing and a range.
+    pub fn scan(&mut self, key: &str, payload: &[u8], now_ms: u64) -> Result<(), IngestError> {
+        let msg: ScanMsg = self.decoded("scan", key, payload)?;
+        let n = msg.angle_rad.len();
+        let problem = if msg.range_m.len() != n || msg.quality.len() != n {
+            Some(format!(
+                "{n} bearings, {} ranges, {} qualities",
+                msg.range_m.len(),
+                msg.quality.len()
+            ))
+        } else if n > telemetry::sensors::MAX_SCAN_POINTS {
+            Some(format!(
+                "{n} points, over {}",
+                telemetry::sensors::MAX_SCAN_POINTS
+            ))
+        } else if msg.angle_rad.iter().any(|a| !a.is_finite())
+            || msg.range_m.iter().any(|r| !(r.is_finite() && *r >= 0.0))
+        {
+            Some("a bearing or range that is not a finite number (or a negative range)".into())
+        } else {
+            None
+        };
+        if let Some(reason) = problem {
+            return Err(self.refuse("scan", key, reason));
+        }
+        self.robot(key, now_ms)?.scan = Some((msg, now_ms));
+        Ok(())
+    }
+
+    fn refuse(&mut self, kind: &'static str, key: &str, reason: String) -> IngestError {
+        *self.refused.entry(kind).or_default() += 1;
+        IngestError::Refused {
+            key: key.into(),
+            reason,
+        }
+    }
+
+    /// The newest thumbnail of `robot`'s `camera` (JPEG bytes).
+    pub fn preview_jpeg(&self, robot: &str, camera: &str) -> Option<&[u8]> {
+        let (msg, _) = self.robots.get(robot)?.previews.get(camera)?;
+        Some(&msg.data)
+    }
+
+    /// The newest lidar revolution of `robot` as JSON: its points' bearings and ranges.
+    pub fn scan_json(&self, robot: &str, now_ms: u64) -> Option<Value> {
+        let (msg, at) = self.robots.get(robot)?.scan.as_ref()?;
+        Some(json!({
+            "seq": msg.seq,
+            "age_ms": now_ms.saturating_sub(*at),
+            "rotation_hz": rotation_hz(msg),
+            "angle_rad": msg.angle_rad,
+            "range_m": msg.range_m,
+        }))
+    }
+
     /// State messages received from `robot` so far.
     pub fn states_received(&self, robot: &str) -> u64 {
         self.robots.get(robot).map_or(0, |r| r.states_received)
@@ -212,10 +328,12 @@ impl Collector {
                     "buses": r.status.as_ref().map(|s| s.buses.iter().map(|b| json!({
                         "bus": b.name, "connected": b.connected, "enabled": b.enabled, "counters": b.counters,
                     })).collect::<Vec<_>>()),
+                    "cameras": cameras_json(r, now_ms),
+                    "lidar": lidar_json(r, now_ms),
                 })
             })
             .collect();
-        json!({ "robots": robots, "undecodable": self.undecodable })
+        json!({ "robots": robots, "undecodable": self.undecodable, "refused": self.refused })
     }
 
     /// The Prometheus text exposition of the fleet.
@@ -225,7 +343,8 @@ impl Collector {
         let counter = || Family::<Labels, Counter>::default();
         let (online, safe, temperature, current, valid) =
             (gauge(), gauge(), gauge(), gauge(), gauge());
-        let (misses, states, events, accepted, rejected, undecodable) = (
+        let (misses, states, events, accepted, rejected, undecodable, refused) = (
+            counter(),
             counter(),
             counter(),
             counter(),
@@ -351,6 +470,9 @@ impl Collector {
                 .get_or_create(&label(&[("key", kind)]))
                 .inc_by(*n);
         }
+        for (kind, n) in &self.refused {
+            refused.get_or_create(&label(&[("key", kind)])).inc_by(*n);
+        }
         let mut registry = Registry::with_prefix("nori");
         registry.register(
             "robot_online",
@@ -441,6 +563,11 @@ impl Collector {
             "messages the collector could not decode, by key",
             undecodable,
         );
+        registry.register(
+            "fleet_refused_messages",
+            "messages that decoded but were refused (a thumbnail that is no JPEG, a broken scan), by key",
+            refused,
+        );
         let mut text = String::new();
         // Writing into a String cannot fail.
         let _ = encode(&mut text, &registry);
@@ -465,6 +592,62 @@ const BUS_ERROR_KINDS: [&str; 13] = [
     "safety_mismatches",
 ];
 
+/// The robot's cameras for the dashboard: each camera of its status (health) in the status's
+/// order, then any other that sent a thumbnail, with its newest thumbnail's figures.
+fn cameras_json(r: &Robot, now_ms: u64) -> Vec<Value> {
+    let status = r.status.iter().flat_map(|s| &s.cameras);
+    let extra = r
+        .previews
+        .keys()
+        .filter(|name| !status.clone().any(|c| &c.name == *name));
+    let preview = |name: &str| {
+        r.previews.get(name).map(|(p, at)| {
+            json!({
+                "seq": p.seq,
+                "width": p.width,
+                "height": p.height,
+                "bytes": p.data.len(),
+                "age_ms": now_ms.saturating_sub(*at),
+            })
+        })
+    };
+    status
+        .clone()
+        .map(|c| {
+            json!({
+                "name": c.name, "frames": c.frames, "dropped": c.dropped, "corrupt": c.corrupt,
+                "late": c.late, "age_ms": c.age_ms, "preview": preview(&c.name),
+            })
+        })
+        .chain(extra.map(|name| json!({ "name": name, "preview": preview(name) })))
+        .collect()
+}
+
+/// The robot's lidar for the dashboard: its health from the status and its newest revolution's
+/// figures (`None` when it has neither).
+fn lidar_json(r: &Robot, now_ms: u64) -> Option<Value> {
+    let health = r.status.as_ref().and_then(|s| s.lidar.as_ref());
+    if health.is_none() && r.scan.is_none() {
+        return None;
+    }
+    Some(json!({
+        "health": health,
+        "scan": r.scan.as_ref().map(|(m, at)| json!({
+            "seq": m.seq,
+            "points": m.range_m.len(),
+            "returns": m.range_m.iter().filter(|&&r| r > 0.0).count(),
+            "rotation_hz": rotation_hz(m),
+            "age_ms": now_ms.saturating_sub(*at),
+        })),
+    }))
+}
+
+/// Revolutions per second a scan implies.
+fn rotation_hz(m: &ScanMsg) -> Option<f64> {
+    let span = m.end_ns.checked_sub(m.start_ns).filter(|&s| s > 0)?;
+    Some(1e9 / span as f64)
+}
+
 fn joint_names(r: &Robot) -> Vec<String> {
     r.layout
         .as_ref()
@@ -484,6 +667,7 @@ mod tests {
         encode, AgentCounters, BusStatus, JointInfoMsg, JointMsg, StatusConfig, StatusHealth,
         SCHEMA_VERSION,
     };
+    use fleet_agent::schema::{PreviewMsg, ScanMsg};
 
     fn state(seq: u64, temps: &[f32]) -> Vec<u8> {
         encode(&StateMsg {
@@ -749,5 +933,136 @@ mod tests {
         }
         // A camera never seen has no age: no sample rather than a made-up one.
         assert!(!text.contains(r#"nori_camera_frame_age_seconds{robot="r4",camera="neck"}"#));
+    }
+
+    fn preview(camera: &str, seq: u64, data: Vec<u8>) -> PreviewMsg {
+        PreviewMsg {
+            version: SCHEMA_VERSION,
+            camera: camera.into(),
+            seq,
+            capture_ns: 0,
+            wall_ms: 0,
+            width: 160,
+            height: 90,
+            source_width: 1280,
+            source_height: 720,
+            encoding: "jpeg".into(),
+            data,
+        }
+    }
+
+    fn jpeg() -> Vec<u8> {
+        let mut out = Vec::new();
+        jpeg_encoder::Encoder::new(&mut out, 70)
+            .encode(&[50; 16 * 9 * 3], 16, 9, jpeg_encoder::ColorType::Rgb)
+            .unwrap();
+        out
+    }
+
+    #[test]
+    fn thumbnails_are_kept_per_camera_and_bad_ones_refused_by_reason() {
+        let mut c = Collector::new(1, 0);
+        let key = "nori/r5/preview";
+        c.preview(key, &encode(&preview("head", 3, jpeg())), 100)
+            .unwrap();
+        assert_eq!(c.preview_jpeg("r5", "head"), Some(jpeg().as_slice()));
+        let snap = c.snapshot(350);
+        let head = &snap["robots"][0]["cameras"][0];
+        assert_eq!(head["name"], "head");
+        assert_eq!(head["preview"]["seq"], 3);
+        assert_eq!(head["preview"]["age_ms"], 250);
+
+        let mut cut = jpeg();
+        cut.truncate(cut.len() - 10);
+        let mut png = preview("head", 4, jpeg());
+        png.encoding = "png".into();
+        let mut huge = jpeg();
+        huge.splice(2..2, vec![0; MAX_PREVIEW_BYTES]);
+        for (bad, why) in [
+            (preview("head", 4, cut), "not a whole JPEG"),
+            (preview("head", 4, b"hello".to_vec()), "not a whole JPEG"),
+            (png, "encoding \"png\""),
+            (preview("Head Cam", 4, jpeg()), "cannot name a camera"),
+            (preview("head", 4, huge), "bytes, over"),
+        ] {
+            let e = c.preview(key, &encode(&bad), 400).unwrap_err();
+            assert!(
+                matches!(&e, IngestError::Refused { reason, .. } if reason.contains(why)),
+                "{e}"
+            );
+        }
+        assert_eq!(
+            c.snapshot(400)["robots"][0]["cameras"][0]["preview"]["seq"],
+            3,
+            "kept"
+        );
+        // A robot cannot make the collector keep thumbnails of endless cameras.
+        for k in 1..8 {
+            c.preview(key, &encode(&preview(&format!("cam{k}"), 1, jpeg())), 500)
+                .unwrap();
+        }
+        assert!(c
+            .preview(key, &encode(&preview("cam9", 1, jpeg())), 500)
+            .is_err());
+        c.preview(key, &encode(&preview("head", 5, jpeg())), 500)
+            .unwrap();
+        assert!(c
+            .metrics()
+            .contains(r#"nori_fleet_refused_messages_total{key="preview"} 6"#));
+        assert!(c.preview(key, &[9, 9, 9], 500).is_err());
+        assert_eq!(c.snapshot(500)["undecodable"]["preview"], 1);
+        assert_eq!(c.preview_jpeg("r5", "neck"), None);
+        assert_eq!(c.preview_jpeg("r6", "head"), None);
+    }
+
+    #[test]
+    fn a_scan_is_kept_whole_or_refused() {
+        let mut c = Collector::new(1, 0);
+        let scan = |ranges: Vec<f32>| ScanMsg {
+            version: SCHEMA_VERSION,
+            seq: 9,
+            start_ns: 0,
+            end_ns: 100_000_000,
+            wall_ms: 0,
+            angle_rad: (0..ranges.len()).map(|i| i as f32 * 0.1).collect(),
+            quality: vec![30; ranges.len()],
+            range_m: ranges,
+        };
+        c.scan("nori/r7/scan", &encode(&scan(vec![1.5, 0.0, 2.5])), 10)
+            .unwrap();
+        let j = c.scan_json("r7", 30).unwrap();
+        assert_eq!(j["range_m"], json!([1.5, 0.0, 2.5]));
+        assert_eq!(
+            (j["seq"].clone(), j["age_ms"].clone()),
+            (json!(9), json!(20))
+        );
+        assert_eq!(j["rotation_hz"], 10.0);
+        let lidar = &c.snapshot(30)["robots"][0]["lidar"]["scan"];
+        assert_eq!(
+            (lidar["points"].clone(), lidar["returns"].clone()),
+            (json!(3), json!(2))
+        );
+
+        let mut uneven = scan(vec![1.0, 2.0]);
+        uneven.quality.pop();
+        for bad in [
+            uneven,
+            scan(vec![1.0, f32::NAN]),
+            scan(vec![-1.0]),
+            scan(vec![1.0; telemetry::sensors::MAX_SCAN_POINTS + 1]),
+        ] {
+            assert!(matches!(
+                c.scan("nori/r7/scan", &encode(&bad), 40),
+                Err(IngestError::Refused { .. })
+            ));
+        }
+        assert_eq!(
+            c.scan_json("r7", 40).unwrap()["range_m"],
+            json!([1.5, 0.0, 2.5])
+        );
+        assert!(c
+            .metrics()
+            .contains(r#"nori_fleet_refused_messages_total{key="scan"} 4"#));
+        assert!(c.scan_json("r8", 40).is_none());
     }
 }

@@ -1,6 +1,8 @@
-//! `nori fleet`: the fleet side. Subscribes to every robot's telemetry, events, layout and
-//! liveliness under `nori/**`, asks each robot's status (the gate's counters) every second, and
-//! serves a live dashboard (`/`, `/api/fleet`) and Prometheus metrics (`/metrics`) over HTTP.
+//! `nori fleet`: the fleet side. Subscribes to every robot's telemetry, events, layout, camera
+//! thumbnails, lidar revolutions and liveliness under `nori/**`, asks each robot's status (the
+//! gate's counters, the sensors' health) every second, and serves a live dashboard (`/`,
+//! `/api/fleet`, `/api/robots/<id>/preview/<camera>`, `/api/robots/<id>/scan`) and Prometheus
+//! metrics (`/metrics`) over HTTP.
 //! What it knows is `fleet::collector::Collector`; this file only wires zenoh and HTTP.
 
 use anyhow::{anyhow, Context, Result};
@@ -104,6 +106,8 @@ pub fn run(args: &FleetArgs) -> Result<()> {
         ("state", Collector::state as Ingest),
         ("layout", Collector::layout),
         ("events", Collector::event),
+        ("preview", Collector::preview),
+        ("scan", Collector::scan),
     ] {
         let c = collector.clone();
         subscribers.push(
@@ -184,30 +188,51 @@ fn serve_http(server: &tiny_http::Server, collector: &Mutex<Collector>, stop: &A
             continue;
         };
         let path = request.url().split('?').next().unwrap_or("/").to_string();
-        let (body, kind, code) = match path.as_str() {
-            "/" | "/index.html" => (DASHBOARD.to_string(), "text/html; charset=utf-8", 200),
-            "/api/fleet" => (
-                lock(collector).snapshot(wall_ms()).to_string(),
-                "application/json",
-                200,
-            ),
-            "/metrics" => (
-                lock(collector).metrics(),
-                "application/openmetrics-text; version=1.0.0; charset=utf-8",
-                200,
-            ),
-            _ => (
-                format!("no page {path}\n"),
-                "text/plain; charset=utf-8",
-                404,
-            ),
-        };
-        let mut response = tiny_http::Response::from_string(body).with_status_code(code);
-        if let Ok(header) = format!("Content-Type: {kind}").parse::<tiny_http::Header>() {
-            response = response.with_header(header);
+        let (body, kind, code) = page(&path, &lock(collector));
+        let mut response = tiny_http::Response::from_data(body).with_status_code(code);
+        // Every answer is the present: a browser must ask again, not show a cached thumbnail.
+        for header in [
+            format!("Content-Type: {kind}"),
+            "Cache-Control: no-store".into(),
+        ] {
+            if let Ok(h) = header.parse::<tiny_http::Header>() {
+                response = response.with_header(h);
+            }
         }
         if let Err(e) = request.respond(response) {
             tracing::debug!("HTTP client went away: {e}");
         }
+    }
+}
+
+/// The answer to a GET of `path`: body, content type, status code.
+fn page(path: &str, collector: &Collector) -> (Vec<u8>, &'static str, u16) {
+    const TEXT: &str = "text/plain; charset=utf-8";
+    let json = |v: serde_json::Value| (v.to_string().into_bytes(), "application/json", 200);
+    let missing = |what: String| (format!("{what}\n").into_bytes(), TEXT, 404);
+    let parts: Vec<&str> = path.trim_start_matches('/').split('/').collect();
+    match parts.as_slice() {
+        [""] | ["index.html"] => (
+            DASHBOARD.as_bytes().to_vec(),
+            "text/html; charset=utf-8",
+            200,
+        ),
+        ["api", "fleet"] => json(collector.snapshot(wall_ms())),
+        ["metrics"] => (
+            collector.metrics().into_bytes(),
+            "application/openmetrics-text; version=1.0.0; charset=utf-8",
+            200,
+        ),
+        ["api", "robots", robot, "preview", camera] => {
+            match collector.preview_jpeg(robot, camera) {
+                Some(jpeg) => (jpeg.to_vec(), "image/jpeg", 200),
+                None => missing(format!("no thumbnail of camera {camera} of robot {robot}")),
+            }
+        }
+        ["api", "robots", robot, "scan"] => match collector.scan_json(robot, wall_ms()) {
+            Some(scan) => json(scan),
+            None => missing(format!("no lidar scan of robot {robot}")),
+        },
+        _ => missing(format!("no page {path}")),
     }
 }

@@ -1,7 +1,8 @@
 //! `nori fleet` against a running robot: its `/metrics` text, parsed with an independent
 //! Prometheus parser, shows the robot online with per-joint temperature and current, the
 //! rejected actions by reason, and the robot going offline when its agent is killed; the
-//! dashboard page and its JSON are served.
+//! dashboard page and its JSON are served. A camera's thumbnail reaches the dashboard as the
+//! picture the camera is taking, with the cameras' health beside it.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
@@ -18,15 +19,23 @@ use telemetry::clock::monotonic_ns;
 const ROBOT: &str = "sim-dash";
 const ELBOW: usize = 3;
 
-/// A plain HTTP/1.0 GET: the body of a 200 answer, or None.
-fn get(addr: &str, path: &str) -> Option<String> {
+/// A plain HTTP/1.0 GET: the status code and the body.
+fn get_bytes(addr: &str, path: &str) -> Option<(u16, Vec<u8>)> {
     let mut stream = TcpStream::connect(addr).ok()?;
     stream.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
     write!(stream, "GET {path} HTTP/1.0\r\nHost: {addr}\r\n\r\n").ok()?;
-    let mut text = String::new();
-    stream.read_to_string(&mut text).ok()?;
-    let (head, body) = text.split_once("\r\n\r\n")?;
-    (head.split_whitespace().nth(1) == Some("200")).then(|| body.to_string())
+    let mut raw = Vec::new();
+    stream.read_to_end(&mut raw).ok()?;
+    let split = raw.windows(4).position(|w| w == b"\r\n\r\n")?;
+    let head = String::from_utf8_lossy(&raw[..split]);
+    let code = head.split_whitespace().nth(1)?.parse().ok()?;
+    Some((code, raw[split + 4..].to_vec()))
+}
+
+/// The body of a 200 answer as text, or None.
+fn get(addr: &str, path: &str) -> Option<String> {
+    let (code, body) = get_bytes(addr, path)?;
+    (code == 200).then(|| String::from_utf8_lossy(&body).into_owned())
 }
 
 fn scrape(addr: &str) -> Option<Scrape> {
@@ -195,5 +204,161 @@ fn metrics_show_the_robot_its_joints_and_its_rejections() {
     );
     drop(actions);
     drop(inference);
+    stack.stop();
+}
+
+/// The fleet sees what the robot sees: the wrist camera's thumbnail, served by `nori fleet`,
+/// is the picture on the state plane (the arm holds still), the camera that never ran is shown
+/// as never seen, and a killed camera's last thumbnail ages instead of being refreshed.
+#[test]
+fn the_dashboard_shows_each_cameras_picture_and_health() {
+    let files = scratch("fleet-eyes-files");
+    let (robot, camera_toml) = nori_tests::small_camera_files(&files);
+    let agent_toml = files.join("fleet-agent.toml");
+    std::fs::write(
+        &agent_toml,
+        fleet_agent::config::DEFAULT_CONFIG_TOML
+            .replace(
+                "cameras = [\"head\", \"neck\", \"left_wrist\", \"right_wrist\"]",
+                "cameras = [\"left_wrist\", \"head\"]",
+            )
+            .replace("lidar = true", "lidar = false")
+            .replace("every-s = 2.0", "every-s = 0.5"),
+    )
+    .unwrap();
+    let fleet_ep = free_endpoint();
+    let http = {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        l.local_addr().unwrap().to_string()
+    };
+    let _fleet = Proc::spawn(
+        "nori fleet",
+        &binary("nori"),
+        &[
+            "fleet",
+            "--listen",
+            &fleet_ep,
+            "--http",
+            &http,
+            "--status-every-ms",
+            "300",
+        ],
+        &files.join("fleet.log"),
+    );
+    let mut stack = ArmStack::start("fleet-eyes", &["--description", &robot]);
+    let mut camera = stack.camera("left_wrist", &camera_toml, 1);
+    let config = agent_toml.display().to_string();
+    let id = "sim-eyes";
+    stack.restart_agent_with(&[
+        "--robot-id",
+        id,
+        "--connect",
+        &fleet_ep,
+        "--config",
+        &config,
+    ]);
+    let node = telemetry::plane::Plane::open(&stack.domain, "test").unwrap();
+    let frames = node
+        .camera_subscriber("left_wrist", telemetry::plane::CameraStream::Rgb)
+        .unwrap();
+
+    let snapshot = || -> Option<serde_json::Value> {
+        let snap: serde_json::Value = serde_json::from_str(&get(&http, "/api/fleet")?).ok()?;
+        snap["robots"]
+            .as_array()?
+            .iter()
+            .find(|r| r["id"] == id)
+            .cloned()
+    };
+    let camera_of = |r: &serde_json::Value, name: &str| {
+        r["cameras"]
+            .as_array()
+            .and_then(|c| c.iter().find(|c| c["name"] == name).cloned())
+            .unwrap_or_default()
+    };
+    // A thumbnail taken once the arm has settled (two seconds of the camera's 15 fps).
+    wait_for(
+        Duration::from_secs(40),
+        "a thumbnail of frame 30 on",
+        || {
+            let r = snapshot()?;
+            (camera_of(&r, "left_wrist")["preview"]["seq"].as_u64()? >= 30).then_some(())
+        },
+    );
+    let picture = || {
+        let mut last = None;
+        while let Ok(Some(sample)) = frames.receive() {
+            last = Some(sample.payload().to_vec());
+        }
+        last
+    };
+    std::thread::sleep(Duration::from_millis(200));
+    let plane = wait_for(Duration::from_secs(5), "a frame on the plane", picture);
+    let (code, jpeg) = get_bytes(&http, &format!("/api/robots/{id}/preview/left_wrist")).unwrap();
+    assert_eq!(code, 200);
+    let mut thumb = vec![0u8; camera::convert::rgb_len(160, 120)];
+    camera::convert::to_rgb(
+        telemetry::sensors::PixelFormat::Mjpeg,
+        160,
+        120,
+        0,
+        &jpeg,
+        &mut thumb,
+    )
+    .expect("a 160×120 JPEG (the camera's width fits the thumbnail's: no averaging)");
+    let diff = thumb
+        .iter()
+        .zip(&plane)
+        .map(|(a, b)| f64::from(a.abs_diff(*b)))
+        .sum::<f64>()
+        / thumb.len() as f64;
+    let spread = plane.iter().map(|&v| f64::from(v)).fold(0.0, f64::max)
+        - plane.iter().map(|&v| f64::from(v)).fold(255.0, f64::min);
+    eprintln!("thumbnail against the plane: {diff:.2} per channel, picture spread {spread}");
+    assert!(
+        spread > 60.0,
+        "the wrist camera sees a picture, not a blank"
+    );
+    assert!(
+        diff < 8.0,
+        "the thumbnail differs from the camera's picture by {diff:.1} per channel"
+    );
+
+    let r = snapshot().unwrap();
+    let wrist = camera_of(&r, "left_wrist");
+    assert!(wrist["frames"].as_u64().unwrap() > 15, "{wrist}");
+    assert_eq!(wrist["preview"]["width"], 160);
+    let head = camera_of(&r, "head");
+    assert_eq!(head["frames"], 0, "{head}");
+    assert!(
+        head["age_ms"].is_null() && head["preview"].is_null(),
+        "{head}"
+    );
+    assert_eq!(r["lidar"], serde_json::Value::Null, "no lidar configured");
+    let (code, body) = get_bytes(&http, &format!("/api/robots/{id}/preview/head")).unwrap();
+    assert_eq!(code, 404);
+    assert!(String::from_utf8_lossy(&body).contains("no thumbnail of camera head"));
+    assert_eq!(
+        get_bytes(&http, &format!("/api/robots/{id}/scan"))
+            .unwrap()
+            .0,
+        404
+    );
+
+    // The camera dies: its last thumbnail stays, ageing; no newer one comes.
+    camera.kill();
+    std::thread::sleep(Duration::from_millis(700));
+    let seq = |w: &serde_json::Value| w["preview"]["seq"].as_u64();
+    let last = seq(&camera_of(&snapshot().unwrap(), "left_wrist"));
+    std::thread::sleep(Duration::from_millis(1500));
+    let wrist = camera_of(&snapshot().unwrap(), "left_wrist");
+    assert_eq!(seq(&wrist), last, "{wrist}");
+    assert!(
+        wrist["preview"]["age_ms"].as_u64().unwrap() >= 1500,
+        "{wrist}"
+    );
+    assert!(wrist["age_ms"].as_f64().unwrap() >= 1500.0, "{wrist}");
+    drop(frames);
+    drop(node);
     stack.stop();
 }
