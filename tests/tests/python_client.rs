@@ -201,3 +201,58 @@ fn a_python_policy_moves_the_simulated_arm_through_the_gate() {
     drop(node);
     check_left_arm_report(&stack.stop(), 60.0);
 }
+
+/// `nori-serve-lerobot` against a checkpoint trained on joints the robot does not have: refused
+/// at start (before any LeRobot code loads), the mismatch named, nothing sent.
+#[test]
+fn a_checkpoint_that_names_other_joints_is_refused_at_start() {
+    let Some(python) = client_python() else {
+        return;
+    };
+    let files = scratch("py-serve-files");
+    let checkpoint = files.join("pretrained_model");
+    let dataset = files.join("dataset");
+    std::fs::create_dir_all(&checkpoint).unwrap();
+    std::fs::create_dir_all(dataset.join("meta")).unwrap();
+    let feature = |kind: &str| serde_json::json!({"type": kind, "shape": [2]});
+    std::fs::write(
+        checkpoint.join("config.json"),
+        serde_json::json!({
+            "type": "act",
+            "input_features": {"observation.state": feature("STATE")},
+            "output_features": {"action": feature("ACTION")},
+        })
+        .to_string(),
+    )
+    .unwrap();
+    let names =
+        serde_json::json!({"dtype": "float32", "shape": [2], "names": ["left_elbow", "left_knee"]});
+    std::fs::write(
+        dataset.join("meta/info.json"),
+        serde_json::json!({"fps": 30, "features": {"observation.state": names, "action": names}})
+            .to_string(),
+    )
+    .unwrap();
+    let endpoint = free_endpoint();
+    let id = "sim-mismatch";
+    let mut stack = ArmStack::start("py-serve", &[]);
+    stack.restart_agent(id, &endpoint);
+
+    let server = python.with_file_name("nori-serve-lerobot");
+    let out = run_bounded(
+        Command::new(&server)
+            .arg(&checkpoint)
+            .args(["--robot", id, "--listen", &endpoint])
+            .arg("--dataset")
+            .arg(&dataset),
+        Duration::from_secs(90),
+    );
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(
+        stderr.contains("does not fit robot sim-mismatch")
+            && stderr.contains("joints ['left_knee'] are not the robot's"),
+        "{stderr}"
+    );
+    check_left_arm_report(&stack.stop(), 60.0);
+}
