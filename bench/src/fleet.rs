@@ -5,6 +5,9 @@
 //!   supervisor and bus-driver processes; interleaved with the baseline path that skips zenoh
 //!   and the agent (a goal frame published straight on the state plane). Also reports the peak
 //!   RSS of the three on-robot processes.
+//! - `policy-latency`: an observation until the goal computed from it is on the simulated wire,
+//!   through a policy server: the Rust reference (in the bench) against the Python client
+//!   (`python -m nori_client.flip`), the same flip policy.
 //! - `fleet-ingest`: how many robots streaming telemetry one collector (`nori fleet`'s
 //!   [`Collector`]) takes with no loss, against the offered load.
 
@@ -44,6 +47,20 @@ pub struct ActionLatencyArgs {
     json: bool,
 }
 
+/// Options of `nori bench policy-latency`.
+#[derive(Args, Debug)]
+pub struct PolicyLatencyArgs {
+    /// Target flips per server (one every half second of the robot's clock).
+    #[arg(long, default_value_t = 40)]
+    flips: usize,
+    /// The Python with `nori_client` (python/nori_client/install.sh makes it).
+    #[arg(long)]
+    python: Option<std::path::PathBuf>,
+    /// Print one JSON object.
+    #[arg(long)]
+    json: bool,
+}
+
 /// Options of `nori bench fleet-ingest`.
 #[derive(Args, Debug)]
 pub struct FleetIngestArgs {
@@ -66,84 +83,125 @@ fn free_endpoint() -> Result<String> {
     Ok(format!("tcp/127.0.0.1:{}", l.local_addr()?.port()))
 }
 
+/// The simulated left arm on a pseudo-terminal with the real supervisor, driver and fleet
+/// agent (robot [`ROBOT`], connecting to `connect`), the agent's layout seen on `session`.
+struct ArmOnFleet {
+    dir: std::path::PathBuf,
+    domain: String,
+    served: sim::pty::ServedRobot,
+    servo: usize,
+    processes: [Managed; 3],
+    joints: usize,
+    joint: usize,
+}
+
+impl ArmOnFleet {
+    fn start(tag: &str, connect: &[String], session: &fleet_agent::zenoh::Session) -> Result<Self> {
+        let pid = std::process::id();
+        let dir = std::env::temp_dir().join(format!("nori-bench-{tag}-{pid}"));
+        std::fs::create_dir_all(&dir)?;
+        let domain = format!("nori_bench_{tag}_{pid}").replace('-', "_");
+        let robot = RobotDescription::nori_a3();
+        let bus = robot.bus(BUS).context("no left_arm bus")?;
+        let served = sim::pty::serve(vec![(SimBus::new(&robot, bus), dir.join(BUS))], 0.001)?;
+        let servo = served
+            .with_bus(BUS, |b| {
+                b.report().servos.iter().position(|s| s.joint == JOINT)
+            })
+            .flatten()
+            .context("no left_elbow servo")?;
+        let trips = dir.join("trips");
+        let run = Run {
+            domain: &domain,
+            device_dir: &dir,
+            trips: Some(&trips),
+            quiet: true,
+        };
+        let [supervisor, driver] = supervisor_and_driver(&run, BUS)?;
+        let mut agent = Managed::new("fleet-agent", &sibling("fleet-agent")?, &run.agent());
+        agent.add_args(&["--robot-id".into(), ROBOT.into()]);
+        for endpoint in connect {
+            agent.add_args(&["--connect".into(), endpoint.clone()]);
+        }
+        let mut processes = [supervisor, driver, agent];
+        for (m, log) in processes
+            .iter_mut()
+            .zip(["supervisor.log", "driver.log", "agent.log"])
+        {
+            m.log_to(&dir.join(log))?;
+            m.start()?;
+        }
+        // The robot on the fleet: its layout arriving, every servo set up.
+        let layouts = session
+            .declare_subscriber(robot_key(ROBOT, "layout"))
+            .wait()
+            .map_err(|e| anyhow!("{e}"))?;
+        let deadline = Instant::now() + Duration::from_secs(30);
+        let (joints, joint) = loop {
+            if Instant::now() > deadline {
+                bail!("the robot did not come up (logs in {})", dir.display());
+            }
+            if let Ok(Some(sample)) = layouts.try_recv() {
+                let layout: LayoutMsg = decode(&sample.payload().to_bytes())?;
+                if let Some(j) = layout.joints.iter().position(|j| j.name == JOINT) {
+                    break (layout.joints.len(), j);
+                }
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        };
+        Ok(ArmOnFleet {
+            dir,
+            domain,
+            served,
+            servo,
+            processes,
+            joints,
+            joint,
+        })
+    }
+
+    /// The elbow servo's Goal_Position register, as the simulated wire last wrote it.
+    fn goal_register(&self) -> i32 {
+        self.served
+            .with_bus(BUS, |b| b.servos[self.servo].get(reg::GOAL_POSITION))
+            .unwrap_or(i32::MIN)
+    }
+
+    /// Stops everything; the peak RSS of the three processes.
+    fn stop(mut self) -> Vec<(String, Option<f64>)> {
+        let rss = self
+            .processes
+            .iter()
+            .map(|m| (m.name().to_string(), m.pid().and_then(bench::peak_rss_mb)))
+            .collect();
+        for m in &mut self.processes {
+            m.stop(Duration::from_secs(3));
+        }
+        drop(self.served.stop());
+        rss
+    }
+}
+
 /// Runs `nori bench action-latency`.
 pub fn action_latency(args: &ActionLatencyArgs) -> Result<()> {
-    let pid = std::process::id();
-    let dir = std::env::temp_dir().join(format!("nori-bench-fleet-{pid}"));
-    std::fs::create_dir_all(&dir)?;
-    let domain = format!("nori_bench_fleet_{pid}");
-    let robot = RobotDescription::nori_a3();
-    let bus = robot.bus(BUS).context("no left_arm bus")?;
-    let served = sim::pty::serve(vec![(SimBus::new(&robot, bus), dir.join(BUS))], 0.001)?;
-    let servo = served
-        .with_bus(BUS, |b| {
-            b.report().servos.iter().position(|s| s.joint == JOINT)
-        })
-        .flatten()
-        .context("no left_elbow servo")?;
-    let goal_register = || {
-        served
-            .with_bus(BUS, |b| b.servos[servo].get(reg::GOAL_POSITION))
-            .unwrap_or(i32::MIN)
-    };
-
     let endpoint = free_endpoint()?;
     let session =
         zenoh_session(vec![endpoint.clone()], vec![], "peer").context("opening a zenoh session")?;
-    let trips = dir.join("trips");
-    let run = Run {
-        domain: &domain,
-        device_dir: &dir,
-        trips: Some(&trips),
-        quiet: true,
-    };
-    let [supervisor, driver] = supervisor_and_driver(&run, BUS)?;
-    let mut agent = Managed::new("fleet-agent", &sibling("fleet-agent")?, &run.agent());
-    agent.add_args(&[
-        "--robot-id".into(),
-        ROBOT.into(),
-        "--connect".into(),
-        endpoint.clone(),
-    ]);
-    let mut processes = [supervisor, driver, agent];
-    for (m, log) in processes
-        .iter_mut()
-        .zip(["supervisor.log", "driver.log", "agent.log"])
-    {
-        m.log_to(&dir.join(log))?;
-        m.start()?;
-    }
-
+    let arm = ArmOnFleet::start("fleet", std::slice::from_ref(&endpoint), &session)?;
+    let (joints, joint) = (arm.joints, arm.joint);
+    let goal_register = || arm.goal_register();
     let z = |e: fleet_agent::zenoh::Error| anyhow!("{e}");
     let observations = session
         .declare_subscriber(robot_key(ROBOT, "observation"))
-        .wait()
-        .map_err(z)?;
-    let layouts = session
-        .declare_subscriber(robot_key(ROBOT, "layout"))
         .wait()
         .map_err(z)?;
     let actions = session
         .declare_publisher(robot_key(ROBOT, "actions"))
         .wait()
         .map_err(z)?;
-    let node = Plane::open(&domain, &format!("bench-fleet-{pid}"))?;
+    let node = Plane::open(&arm.domain, &format!("bench-fleet-{}", std::process::id()))?;
     let goals = node.publisher(&plane::GOALS)?;
 
-    // The robot on the fleet: layout and observations arriving, every servo set up.
-    let deadline = Instant::now() + Duration::from_secs(30);
-    let (joints, joint) = loop {
-        if Instant::now() > deadline {
-            bail!("the robot did not come up (logs in {})", dir.display());
-        }
-        if let Ok(Some(sample)) = layouts.try_recv() {
-            let layout: LayoutMsg = decode(&sample.payload().to_bytes())?;
-            if let Some(j) = layout.joints.iter().position(|j| j.name == JOINT) {
-                break (layout.joints.len(), j);
-            }
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    };
     let mut last_observation_ns = 0;
     let mut zenoh_ms = Vec::with_capacity(args.trials);
     let mut plane_ms = Vec::with_capacity(args.trials);
@@ -209,14 +267,9 @@ pub fn action_latency(args: &ActionLatencyArgs) -> Result<()> {
         // Let the chunk's plan run out (step + horizon) before the next trial.
         std::thread::sleep(Duration::from_millis(250));
     }
-    let rss: Vec<(String, Option<f64>)> = processes
-        .iter()
-        .map(|m| (m.name().to_string(), m.pid().and_then(bench::peak_rss_mb)))
-        .collect();
-    for m in &mut processes {
-        m.stop(Duration::from_secs(3));
-    }
-    drop(served.stop());
+    drop((goals, node));
+    let dir = arm.dir.clone();
+    let rss = arm.stop();
     zenoh_ms.sort_by(f64::total_cmp);
     plane_ms.sort_by(f64::total_cmp);
     let (z50, z99) = (
@@ -254,6 +307,234 @@ pub fn action_latency(args: &ActionLatencyArgs) -> Result<()> {
         bail!(
             "{missed} trials never reached the wire (logs in {})",
             dir.display()
+        );
+    }
+    Ok(())
+}
+
+/// The flip policy's target for an observation at `timestamp_ns` (the same rule as
+/// `python -m nori_client.flip`).
+fn flip_target(timestamp_ns: u64) -> f32 {
+    const TARGETS: [f32; 2] = [-0.9, -0.5];
+    TARGETS[((timestamp_ns / FLIP_NS) % 2) as usize]
+}
+
+const FLIP_NS: u64 = 500_000_000;
+
+/// The flip policy in Rust, on `session` (listening where the agent connects): answers each
+/// observation at once with a one-step chunk 20 ms after it, until `stop`.
+fn rust_flip(
+    session: fleet_agent::zenoh::Session,
+    joints: usize,
+    joint: usize,
+    stop: Arc<std::sync::atomic::AtomicBool>,
+) -> Result<std::thread::JoinHandle<()>> {
+    let z = |e: fleet_agent::zenoh::Error| anyhow!("{e}");
+    let observations = session
+        .declare_subscriber(robot_key(ROBOT, "observation"))
+        .wait()
+        .map_err(z)?;
+    let actions = session
+        .declare_publisher(robot_key(ROBOT, "actions"))
+        .wait()
+        .map_err(z)?;
+    Ok(std::thread::spawn(move || {
+        let mut seq = 0;
+        while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+            let Ok(Some(sample)) = observations.recv_timeout(Duration::from_millis(100)) else {
+                continue;
+            };
+            let Ok(o) = decode::<ObservationMsg>(&sample.payload().to_bytes()) else {
+                continue;
+            };
+            let mut targets = vec![0.0; joints];
+            targets[joint] = flip_target(o.timestamp_ns);
+            seq += 1;
+            let _ = actions
+                .put(encode(&ActionChunk {
+                    version: SCHEMA_VERSION,
+                    seq,
+                    observation_ns: o.timestamp_ns,
+                    step_offsets_ns: vec![20_000_000],
+                    joint_count: joints as u16,
+                    joint_mask: 1 << joint,
+                    targets,
+                }))
+                .wait();
+        }
+        drop(session);
+    }))
+}
+
+/// Observation → goal on the wire through one policy server: for each flip of the target, the
+/// time from the first observation after the flip (the one the server answers with the new
+/// target) to the Goal_Position register's change, ms.
+fn flips_through(arm: &ArmOnFleet, observations: &Mutex<Vec<u64>>, flips: usize) -> Vec<f64> {
+    let mut out = Vec::with_capacity(flips);
+    let first = monotonic_ns() / FLIP_NS + 2;
+    for k in first..first + flips as u64 {
+        let boundary = k * FLIP_NS;
+        // Wait for the boundary, then for the register to leave the value it held before.
+        while monotonic_ns() < boundary {
+            std::thread::sleep(Duration::from_micros(200));
+        }
+        let before = arm.goal_register();
+        let until = Instant::now() + Duration::from_millis(FLIP_NS / 1_000_000 - 20);
+        let changed = loop {
+            if arm.goal_register() != before {
+                break Some(monotonic_ns());
+            }
+            if Instant::now() > until {
+                break None;
+            }
+            std::thread::sleep(Duration::from_micros(100));
+        };
+        let answered = observations
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .iter()
+            .copied()
+            .filter(|&t| t >= boundary)
+            .min();
+        if let (Some(wire), Some(obs)) = (changed, answered) {
+            if wire > obs {
+                out.push((wire - obs) as f64 / 1e6);
+            }
+        }
+    }
+    out
+}
+
+/// Runs `nori bench policy-latency`.
+pub fn policy_latency(args: &PolicyLatencyArgs) -> Result<()> {
+    let python = match &args.python {
+        Some(p) => p.clone(),
+        None => std::path::PathBuf::from(std::env::var("HOME").unwrap_or_default())
+            .join(".cache/nori/client-venv/bin/python"),
+    };
+    let mut rows = serde_json::Map::new();
+    for server in ["rust", "python"] {
+        let (server_ep, bench_ep) = (free_endpoint()?, free_endpoint()?);
+        // The bench watches the observations on its own link to the agent.
+        let session = zenoh_session(vec![bench_ep.clone()], vec![], "peer")
+            .context("opening a zenoh session")?;
+        let arm = ArmOnFleet::start(
+            &format!("policy-{server}"),
+            &[server_ep.clone(), bench_ep.clone()],
+            &session,
+        )?;
+        let seen = Arc::new(Mutex::new(Vec::new()));
+        let s = seen.clone();
+        let _observations = session
+            .declare_subscriber(robot_key(ROBOT, "observation"))
+            .callback(move |sample: Sample| {
+                if let Ok(o) = decode::<ObservationMsg>(&sample.payload().to_bytes()) {
+                    s.lock()
+                        .unwrap_or_else(|p| p.into_inner())
+                        .push(o.timestamp_ns);
+                }
+            })
+            .wait()
+            .map_err(|e| anyhow!("{e}"))?;
+        let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        // Until killed after the flips (a generous bound, should the bench be stopped).
+        let run_for = args.flips as f64 * FLIP_NS as f64 / 1e9 + 60.0;
+        let (thread, mut child) = if server == "rust" {
+            let server_session = zenoh_session(vec![server_ep.clone()], vec![], "peer")?;
+            (
+                Some(rust_flip(
+                    server_session,
+                    arm.joints,
+                    arm.joint,
+                    stop.clone(),
+                )?),
+                None,
+            )
+        } else {
+            let child = Command::new(&python)
+                .args([
+                    "-m",
+                    "nori_client.flip",
+                    "--listen",
+                    &server_ep,
+                    "--robot",
+                    ROBOT,
+                ])
+                .args(["--joint", JOINT, "--run-for", &format!("{run_for:.0}")])
+                .stdout(Stdio::null())
+                .stderr(std::fs::File::create(arm.dir.join("python.log"))?)
+                .spawn()
+                .with_context(|| {
+                    format!(
+                        "running {} -m nori_client.flip (python/nori_client/install.sh)",
+                        python.display()
+                    )
+                })?;
+            (None, Some(child))
+        };
+        // The server answering (the register flipped twice: a Python server first waits for
+        // the agent's layout, sent every 5 s) before the trials count.
+        let warm = Instant::now() + Duration::from_secs(30);
+        let (mut last, mut flipped) = (arm.goal_register(), 0);
+        while flipped < 2 {
+            if Instant::now() > warm {
+                bail!(
+                    "{server}: the policy server never answered (logs in {})",
+                    arm.dir.display()
+                );
+            }
+            std::thread::sleep(Duration::from_millis(5));
+            let now = arm.goal_register();
+            if now != last {
+                (last, flipped) = (now, flipped + 1);
+            }
+        }
+        let mut ms = flips_through(&arm, &seen, args.flips);
+        stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        if let Some(t) = thread {
+            let _ = t.join();
+        }
+        if let Some(c) = child.as_mut() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+        let dir = arm.dir.clone();
+        arm.stop();
+        if ms.len() < args.flips / 2 {
+            bail!(
+                "{server}: {} of {} flips reached the wire (logs in {})",
+                ms.len(),
+                args.flips,
+                dir.display()
+            );
+        }
+        ms.sort_by(f64::total_cmp);
+        rows.insert(
+            server.into(),
+            serde_json::json!({
+                "flips": args.flips, "measured": ms.len(),
+                "p50_ms": quantile_sorted(&ms, 0.5), "p99_ms": quantile_sorted(&ms, 0.99),
+                "max_ms": ms.last(),
+            }),
+        );
+    }
+    let f = |k: &str, q: &str| rows[k][q].as_f64().unwrap_or(f64::NAN);
+    let out = serde_json::json!({
+        "servers": rows,
+        "ratio_p50": f("python", "p50_ms") / f("rust", "p50_ms"),
+        "ratio_p99": f("python", "p99_ms") / f("rust", "p99_ms"),
+        "path": "observation read by the driver → agent → zenoh → policy server → chunk → zenoh → agent gate and scheduler → state plane → driver → Goal_Position on the simulated wire",
+    });
+    if args.json {
+        println!("{out}");
+    } else {
+        println!(
+            "observation → goal on the simulated wire through a policy server ({} flips each):\n  Rust reference   p50 {:.2} ms  p99 {:.2} ms\n  Python (nori_client) p50 {:.2} ms  p99 {:.2} ms\n  ratio Python/Rust p50 {:.2}, p99 {:.2}",
+            args.flips,
+            f("rust", "p50_ms"), f("rust", "p99_ms"),
+            f("python", "p50_ms"), f("python", "p99_ms"),
+            out["ratio_p50"].as_f64().unwrap_or(f64::NAN),
+            out["ratio_p99"].as_f64().unwrap_or(f64::NAN),
         );
     }
     Ok(())

@@ -34,6 +34,9 @@ enum Bench {
     /// A policy's action on zenoh to the goal on the simulated wire, through the fleet agent,
     /// against a goal published straight on the state plane.
     ActionLatency(fleet::ActionLatencyArgs),
+    /// An observation to the goal computed from it on the simulated wire, through a policy
+    /// server: Python (`nori_client`) against the Rust reference in the same run.
+    PolicyLatency(fleet::PolicyLatencyArgs),
     /// Robots streaming telemetry that one fleet collector ingests with no loss.
     FleetIngest(fleet::FleetIngestArgs),
     /// Camera frames to a LeRobot video per codec (FFmpeg), against LeRobot's default encoder
@@ -54,6 +57,7 @@ fn main() -> Result<()> {
         Bench::StatePlane(a) => plane::run(a),
         Bench::CameraFrame(a) => plane::camera_frame(a),
         Bench::ActionLatency(a) => fleet::action_latency(a),
+        Bench::PolicyLatency(a) => fleet::policy_latency(a),
         Bench::FleetIngest(a) => fleet::fleet_ingest(a),
         Bench::VideoEncode(a) => video::run(a),
         Bench::RecordVideo(a) => record::run(a),

@@ -7,6 +7,7 @@
 //! |---|---|---|
 //! | `nori up`, `nori sim scenario` | `nori-stack up`, `nori-stack scenario` | `stack` |
 //! | `nori sim serve` | `nori-sim` | `sim` |
+//! | `nori sim aim` | `nori-sim-aim` | `sim` |
 //! | `nori fleet`, `nori policy-server`, `nori router` | `nori-fleet dashboard`, `… policy-server`, `… router` | `fleet` |
 //! | `nori bench …`, `nori model bench` | `nori-bench …`, `nori-bench model-lab` | `bench` |
 //! | `nori model analyze`, `nori model generate` | `nori-model …` | `model-lab` |
@@ -78,6 +79,10 @@ enum SimCommand {
     /// Run the whole stack into a protection scenario and print the outcome.
     #[command(disable_help_flag = true)]
     Scenario(Passed),
+    /// Where an object is in a simulated arm camera's picture, and the joint angles that
+    /// centre it (the simulated world's ground truth, for demonstrators and evaluations).
+    #[command(disable_help_flag = true)]
+    Aim(Passed),
 }
 
 /// Replaces this process with `program` (installed next to `nori`) run with `first` then
@@ -97,6 +102,7 @@ fn main() -> Result<()> {
         Command::Up(p) => run_instead("nori-stack", &["up"], p),
         Command::Sim(SimCommand::Serve(p)) => run_instead("nori-sim", &[], p),
         Command::Sim(SimCommand::Scenario(p)) => run_instead("nori-stack", &["scenario"], p),
+        Command::Sim(SimCommand::Aim(p)) => run_instead("nori-sim-aim", &[], p),
         Command::State(a) => plane_tools::state(a),
         Command::Goal(a) => plane_tools::goal(a),
         Command::Reenable(a) => plane_tools::reenable(a),

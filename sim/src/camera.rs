@@ -112,6 +112,24 @@ impl Scene {
             }
             view.tip_rotation = view.arm.chain(&view.q, &mut view.points);
         }
+        self.refresh_items();
+    }
+
+    /// Poses arm `bus` at `q` (its joints in the arm's order, the gripper as it was) without
+    /// redrawing: what a camera on it sees is [`Scene::view`]. Returns the tool point, world
+    /// frame (the origin for a bus without an arm).
+    pub fn pose_arm(&mut self, bus: &str, q: &[f64]) -> [f64; 3] {
+        let Some(view) = self.arms.iter_mut().find(|a| a.bus == bus) else {
+            return [0.0; 3];
+        };
+        view.q.clear();
+        view.q.extend_from_slice(q);
+        view.tip_rotation = view.arm.chain(&view.q, &mut view.points);
+        view.points.last().copied().unwrap_or([0.0; 3])
+    }
+
+    /// Rebuilds what is drawn from the arms as last posed.
+    pub fn refresh_items(&mut self) {
         self.items.clear();
         self.items.extend_from_slice(&self.fixed);
         for view in &self.arms {

@@ -15,6 +15,7 @@
 //!
 //! Batch mode is [`bus::SimBus::step`] in a loop: no wall clock, as fast as the CPU goes.
 
+pub mod aim;
 pub mod arm;
 pub mod bus;
 pub mod camera;
