@@ -182,14 +182,15 @@ impl ArmOnFleet {
     }
 }
 
-/// Runs `nori bench action-latency`.
-pub fn action_latency(args: &ActionLatencyArgs) -> Result<()> {
-    let endpoint = free_endpoint()?;
-    let session =
-        zenoh_session(vec![endpoint.clone()], vec![], "peer").context("opening a zenoh session")?;
-    let arm = ArmOnFleet::start("fleet", std::slice::from_ref(&endpoint), &session)?;
-    let (joints, joint) = (arm.joints, arm.joint);
-    let goal_register = || arm.goal_register();
+/// What a policy server declares for [`ROBOT`]: its observations and its action publisher.
+fn policy_keys(
+    session: &fleet_agent::zenoh::Session,
+) -> Result<(
+    fleet_agent::zenoh::pubsub::Subscriber<
+        fleet_agent::zenoh::handlers::FifoChannelHandler<Sample>,
+    >,
+    fleet_agent::zenoh::pubsub::Publisher<'static>,
+)> {
     let z = |e: fleet_agent::zenoh::Error| anyhow!("{e}");
     let observations = session
         .declare_subscriber(robot_key(ROBOT, "observation"))
@@ -199,6 +200,19 @@ pub fn action_latency(args: &ActionLatencyArgs) -> Result<()> {
         .declare_publisher(robot_key(ROBOT, "actions"))
         .wait()
         .map_err(z)?;
+    Ok((observations, actions))
+}
+
+/// Runs `nori bench action-latency`.
+pub fn action_latency(args: &ActionLatencyArgs) -> Result<()> {
+    let endpoint = free_endpoint()?;
+    let session =
+        zenoh_session(vec![endpoint.clone()], vec![], "peer").context("opening a zenoh session")?;
+    let arm = ArmOnFleet::start("fleet", std::slice::from_ref(&endpoint), &session)?;
+    let (joints, joint) = (arm.joints, arm.joint);
+    let goal_register = || arm.goal_register();
+    let z = |e: fleet_agent::zenoh::Error| anyhow!("{e}");
+    let (observations, actions) = policy_keys(&session)?;
     let node = Plane::open(&arm.domain, &format!("bench-fleet-{}", std::process::id()))?;
     let goals = node.publisher(&plane::GOALS)?;
 
@@ -329,15 +343,7 @@ fn rust_flip(
     joint: usize,
     stop: Arc<std::sync::atomic::AtomicBool>,
 ) -> Result<std::thread::JoinHandle<()>> {
-    let z = |e: fleet_agent::zenoh::Error| anyhow!("{e}");
-    let observations = session
-        .declare_subscriber(robot_key(ROBOT, "observation"))
-        .wait()
-        .map_err(z)?;
-    let actions = session
-        .declare_publisher(robot_key(ROBOT, "actions"))
-        .wait()
-        .map_err(z)?;
+    let (observations, actions) = policy_keys(&session)?;
     Ok(std::thread::spawn(move || {
         let mut seq = 0;
         while !stop.load(std::sync::atomic::Ordering::Relaxed) {

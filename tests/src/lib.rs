@@ -157,6 +157,27 @@ pub fn small_camera_files(dir: &Path) -> (String, String) {
     (robot.display().to_string(), cameras.display().to_string())
 }
 
+/// A simulated robot (the left arm, cameras at 160×120) whose fleet agent, robot `id`,
+/// connects to zenoh `endpoint` and sends the left wrist camera's JPEGs in its observations;
+/// the camera's process is the second value (the test kills it, or drops it before
+/// [`ArmStack::stop`]).
+pub fn seeing_robot(tag: &str, id: &str, endpoint: &str) -> (ArmStack, Proc) {
+    let files = scratch(&format!("{tag}-files"));
+    let (robot, camera_toml) = small_camera_files(&files);
+    let agent_toml = files.join("fleet-agent.toml");
+    std::fs::write(
+        &agent_toml,
+        fleet_agent::config::DEFAULT_CONFIG_TOML
+            .replace("cameras = []", "cameras = [\"left_wrist\"]"),
+    )
+    .expect("fleet-agent.toml");
+    let mut stack = ArmStack::start(tag, &["--description", &robot]);
+    let camera = stack.camera("left_wrist", &camera_toml, 1);
+    let config = agent_toml.display().to_string();
+    stack.restart_agent_with(&["--robot-id", id, "--connect", endpoint, "--config", &config]);
+    (stack, camera)
+}
+
 /// A fresh scratch directory for one test.
 pub fn scratch(tag: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("nori-it-{tag}-{}", std::process::id()));

@@ -18,7 +18,8 @@ use fleet_agent::keys::robot_key;
 use fleet_agent::schema::{decode, encode, ActionChunk, StateMsg, SCHEMA_VERSION};
 use fleet_agent::zenoh::{self, Wait};
 use nori_tests::{
-    binary, check_left_arm_report, free_endpoint, newest_read, scratch, wait_for, ArmStack, Proc,
+    binary, check_left_arm_report, free_endpoint, newest_read, scratch, seeing_robot, wait_for,
+    ArmStack, Proc,
 };
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
@@ -338,25 +339,6 @@ fn bad_actions_are_refused_with_their_reason_and_a_killed_agent_leaves_nothing_q
     drop((states, layouts, node));
     let report = stack.stop();
     check_left_arm_report(&report, 60.0);
-}
-
-/// A simulated robot whose agent sends the left wrist camera's JPEGs in its observations, on
-/// `endpoint`: the stack (cameras at 160×120), the camera, and the agent's configuration file.
-fn seeing_robot(tag: &str, id: &str, endpoint: &str) -> (ArmStack, Proc) {
-    let files = scratch(&format!("{tag}-files"));
-    let (robot, camera_toml) = nori_tests::small_camera_files(&files);
-    let agent_toml = files.join("fleet-agent.toml");
-    std::fs::write(
-        &agent_toml,
-        fleet_agent::config::DEFAULT_CONFIG_TOML
-            .replace("cameras = []", "cameras = [\"left_wrist\"]"),
-    )
-    .unwrap();
-    let mut stack = ArmStack::start(tag, &["--description", &robot]);
-    let camera = stack.camera("left_wrist", &camera_toml, 1);
-    let config = agent_toml.display().to_string();
-    stack.restart_agent_with(&["--robot-id", id, "--connect", endpoint, "--config", &config]);
-    (stack, camera)
 }
 
 #[test]

@@ -38,6 +38,31 @@ fn get(addr: &str, path: &str) -> Option<String> {
     (code == 200).then(|| String::from_utf8_lossy(&body).into_owned())
 }
 
+/// `nori fleet` on a free zenoh endpoint and HTTP port, asking the robots' status every 300 ms:
+/// the process, its zenoh endpoint, its HTTP address.
+fn start_fleet(dir: &std::path::Path) -> (Proc, String, String) {
+    let fleet_ep = free_endpoint();
+    let http = {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        l.local_addr().unwrap().to_string()
+    };
+    let fleet = Proc::spawn(
+        "nori fleet",
+        &binary("nori"),
+        &[
+            "fleet",
+            "--listen",
+            &fleet_ep,
+            "--http",
+            &http,
+            "--status-every-ms",
+            "300",
+        ],
+        &dir.join("fleet.log"),
+    );
+    (fleet, fleet_ep, http)
+}
+
 fn scrape(addr: &str) -> Option<Scrape> {
     let text = get(addr, "/metrics")?;
     Scrape::parse(text.lines().map(|l| Ok(l.to_string()))).ok()
@@ -71,26 +96,8 @@ fn out_of_range_chunk(seq: u64, joints: usize) -> Vec<u8> {
 
 #[test]
 fn metrics_show_the_robot_its_joints_and_its_rejections() {
-    let dir = scratch("fleet-dash");
-    let (fleet_ep, inference_ep) = (free_endpoint(), free_endpoint());
-    let http = {
-        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-        l.local_addr().unwrap().to_string()
-    };
-    let _fleet = Proc::spawn(
-        "nori fleet",
-        &binary("nori"),
-        &[
-            "fleet",
-            "--listen",
-            &fleet_ep,
-            "--http",
-            &http,
-            "--status-every-ms",
-            "300",
-        ],
-        &dir.join("fleet.log"),
-    );
+    let (_fleet, fleet_ep, http) = start_fleet(&scratch("fleet-dash"));
+    let inference_ep = free_endpoint();
     let mut stack = ArmStack::start("dash", &[]);
     stack.restart_agent_with(&[
         "--robot-id",
@@ -226,25 +233,7 @@ fn the_dashboard_shows_each_cameras_picture_and_health() {
             .replace("every-s = 2.0", "every-s = 0.5"),
     )
     .unwrap();
-    let fleet_ep = free_endpoint();
-    let http = {
-        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-        l.local_addr().unwrap().to_string()
-    };
-    let _fleet = Proc::spawn(
-        "nori fleet",
-        &binary("nori"),
-        &[
-            "fleet",
-            "--listen",
-            &fleet_ep,
-            "--http",
-            &http,
-            "--status-every-ms",
-            "300",
-        ],
-        &files.join("fleet.log"),
-    );
+    let (_fleet, fleet_ep, http) = start_fleet(&files);
     let mut stack = ArmStack::start("fleet-eyes", &["--description", &robot]);
     let mut camera = stack.camera("left_wrist", &camera_toml, 1);
     let config = agent_toml.display().to_string();

@@ -94,28 +94,9 @@ fn a_python_policy_moves_the_simulated_arm_through_the_gate() {
     let Some(python) = client_python() else {
         return;
     };
-    let files = scratch("py-client-files");
-    let (robot, camera_toml) = nori_tests::small_camera_files(&files);
-    let agent_toml = files.join("fleet-agent.toml");
-    std::fs::write(
-        &agent_toml,
-        fleet_agent::config::DEFAULT_CONFIG_TOML
-            .replace("cameras = []", "cameras = [\"left_wrist\"]"),
-    )
-    .unwrap();
     let endpoint = free_endpoint();
     let id = "sim-python";
-    let mut stack = ArmStack::start("py-client", &["--description", &robot]);
-    let mut camera = stack.camera("left_wrist", &camera_toml, 1);
-    let config = agent_toml.display().to_string();
-    stack.restart_agent_with(&[
-        "--robot-id",
-        id,
-        "--connect",
-        &endpoint,
-        "--config",
-        &config,
-    ]);
+    let (stack, mut camera) = nori_tests::seeing_robot("py-client", id, &endpoint);
     let node = Plane::open(&stack.domain, "test").unwrap();
     let states = node.subscriber(&plane::JOINT_STATE).unwrap();
 
