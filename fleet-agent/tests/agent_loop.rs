@@ -508,6 +508,14 @@ fn rgb_frame(name: &str, seq: u64, w: u32, h: u32, rgb: [u8; 3]) -> (CameraFrame
     (hd, rgb.repeat((w * h) as usize))
 }
 
+/// Each thumbnail's camera and frame number.
+fn cameras_and_frames(previews: &[PreviewMsg]) -> Vec<(&str, u64)> {
+    previews
+        .iter()
+        .map(|p| (p.camera.as_str(), p.seq))
+        .collect()
+}
+
 /// What the agent published on `what` since the last look, decoded (and taken).
 fn sent<T: for<'de> serde::Deserialize<'de>>(io: &mut Queues, what: Outbound) -> Vec<T> {
     let (mine, rest) = std::mem::take(&mut io.published)
@@ -580,13 +588,7 @@ fn thumbnails_and_scans_go_to_the_fleet_at_their_rates_each_from_a_fresh_frame()
     io.lidar = Some(scan(1));
     agent.poll(&mut io, t + 100 * MS, 78);
     let previews: Vec<PreviewMsg> = sent(&mut io, Outbound::Preview);
-    assert_eq!(
-        previews
-            .iter()
-            .map(|p| (p.camera.as_str(), p.seq))
-            .collect::<Vec<_>>(),
-        [("neck", 5)]
-    );
+    assert_eq!(cameras_and_frames(&previews), [("neck", 5)]);
     io.published.clear();
 
     // At 1 s the lidar is due but sends nothing: owed until its next revolution, at 1.1 s.
@@ -610,13 +612,7 @@ fn thumbnails_and_scans_go_to_the_fleet_at_their_rates_each_from_a_fresh_frame()
     io.cameras = vec![Some(rgb_frame("head", 70, 64, 48, green)), yuyv(66)];
     agent.poll(&mut io, t + 2000 * MS, 81);
     let previews: Vec<PreviewMsg> = sent(&mut io, Outbound::Preview);
-    assert_eq!(
-        previews
-            .iter()
-            .map(|p| (p.camera.as_str(), p.seq))
-            .collect::<Vec<_>>(),
-        [("head", 70)]
-    );
+    assert_eq!(cameras_and_frames(&previews), [("head", 70)]);
     io.cameras[1] = yuyv(67);
     agent.poll(&mut io, t + 2001 * MS, 82);
     assert!(sent::<PreviewMsg>(&mut io, Outbound::Preview).is_empty());

@@ -178,6 +178,35 @@ pub fn seeing_robot(tag: &str, id: &str, endpoint: &str) -> (ArmStack, Proc) {
     (stack, camera)
 }
 
+/// A zenoh peer listening on `endpoint` (where a robot's agent connects), as a policy server
+/// or a dashboard would be.
+pub fn listening_session(endpoint: &str) -> fleet_agent::zenoh::Session {
+    fleet_agent::net::open(&fleet_agent::config::ZenohConfig {
+        mode: "peer".into(),
+        connect: vec![],
+        listen: vec![endpoint.into()],
+        config_file: None,
+    })
+    .expect("a zenoh session on loopback")
+}
+
+/// Robot `robot`'s fleet agent's status, asked on `session` (retried for up to 10 s).
+pub fn agent_status(
+    session: &fleet_agent::zenoh::Session,
+    robot: &str,
+) -> fleet_agent::schema::StatusMsg {
+    use fleet_agent::zenoh::Wait;
+    wait_for(Duration::from_secs(10), "the agent's status", || {
+        let replies = session
+            .get(fleet_agent::keys::robot_key(robot, "status"))
+            .timeout(Duration::from_secs(2))
+            .wait()
+            .ok()?;
+        let sample = replies.recv().ok()?.into_result().ok()?;
+        fleet_agent::schema::decode(&sample.payload().to_bytes()).ok()
+    })
+}
+
 /// A fresh scratch directory for one test.
 pub fn scratch(tag: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("nori-it-{tag}-{}", std::process::id()));

@@ -343,13 +343,7 @@ fn a_seeded_chaos_run_keeps_every_invariant() {
     });
     // The fleet agent too: "back" is its telemetry arriving on zenoh again.
     let endpoint = free_endpoint();
-    let fleet = fleet_agent::net::open(&fleet_agent::config::ZenohConfig {
-        mode: "peer".into(),
-        connect: vec![],
-        listen: vec![endpoint.clone()],
-        config_file: None,
-    })
-    .unwrap();
+    let fleet = nori_tests::listening_session(&endpoint);
     let telemetry = fleet
         .declare_subscriber(robot_key(CHAOS_ROBOT, "state"))
         .wait()

@@ -36,29 +36,12 @@ fn serial() -> std::sync::MutexGuard<'static, ()> {
 }
 
 fn session(listen: &str) -> zenoh::Session {
-    fleet_agent::net::open(&fleet_agent::config::ZenohConfig {
-        mode: "peer".into(),
-        connect: vec![],
-        listen: vec![listen.into()],
-        config_file: None,
-    })
-    .unwrap()
+    nori_tests::listening_session(listen)
 }
 
 /// The agent's status, asked over zenoh.
 fn status(session: &zenoh::Session, robot: &str) -> serde_json::Value {
-    wait_for(Duration::from_secs(10), "the agent's status", || {
-        let replies = session
-            .get(robot_key(robot, "status"))
-            .timeout(Duration::from_secs(2))
-            .wait()
-            .ok()?;
-        let reply = replies.recv().ok()?;
-        let sample = reply.result().ok()?;
-        let msg: fleet_agent::schema::StatusMsg =
-            fleet_agent::schema::decode(&sample.payload().to_bytes()).ok()?;
-        serde_json::to_value(msg).ok()
-    })
+    serde_json::to_value(nori_tests::agent_status(session, robot)).unwrap()
 }
 
 /// Waits until the robot's telemetry arrives over zenoh: the agent is on the fleet.

@@ -128,13 +128,7 @@ fn metrics_show_the_robot_its_joints_and_its_rejections() {
     assert!(value(&first, "nori_robot_state_messages_total", &robot).unwrap() >= 1.0);
 
     // Two bad chunks from an inference session: each rejection shows under its reason.
-    let inference = fleet_agent::net::open(&fleet_agent::config::ZenohConfig {
-        mode: "peer".into(),
-        connect: vec![],
-        listen: vec![inference_ep.clone()],
-        config_file: None,
-    })
-    .unwrap();
+    let inference = nori_tests::listening_session(&inference_ep);
     let joints = wait_for(Duration::from_secs(10), "the layout in the JSON", || {
         let body = get(&http, "/api/fleet")?;
         let snap: serde_json::Value = serde_json::from_str(&body).ok()?;

@@ -9,8 +9,6 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use fleet_agent::keys::robot_key;
-use fleet_agent::zenoh::Wait;
 use nori_tests::{check_left_arm_report, free_endpoint, newest_read, scratch, wait_for, ArmStack};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
@@ -150,23 +148,8 @@ fn a_python_policy_moves_the_simulated_arm_through_the_gate() {
     );
 
     // The robot's own account: the chunks accepted, the nonsense refused by reason.
-    let session = fleet_agent::net::open(&fleet_agent::config::ZenohConfig {
-        mode: "peer".into(),
-        connect: vec![],
-        listen: vec![endpoint.clone()],
-        config_file: None,
-    })
-    .unwrap();
-    let status = wait_for(Duration::from_secs(10), "the agent's status", || {
-        let replies = session
-            .get(robot_key(id, "status"))
-            .timeout(Duration::from_secs(2))
-            .wait()
-            .ok()?;
-        let sample = replies.recv().ok()?.into_result().ok()?;
-        fleet_agent::schema::decode::<fleet_agent::schema::StatusMsg>(&sample.payload().to_bytes())
-            .ok()
-    });
+    let session = nori_tests::listening_session(&endpoint);
+    let status = nori_tests::agent_status(&session, id);
     let c = &status.counters;
     let sent = report["chunks_sent"].as_u64().unwrap();
     assert!(
