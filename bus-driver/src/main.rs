@@ -13,7 +13,7 @@ use telemetry::frames::{BusHealth, Directives, Heartbeat, JointLayout, Peer};
 use telemetry::latch;
 use telemetry::plane::{self, Plane, Pub, Sub};
 use telemetry::process::Exit;
-use telemetry::process::{start, ServiceManager, Started};
+use telemetry::process::{ProcessArgs, ServiceManager, Started};
 use telemetry::{GoalFrame, JointState};
 
 #[derive(Parser)]
@@ -22,30 +22,20 @@ use telemetry::{GoalFrame, JointState};
     about = "Nori A3 bus driver: the control loop on the servo buses"
 )]
 struct Args {
-    /// Configuration file (TOML); the embedded A3 default when absent.
-    #[arg(long)]
-    config: Option<PathBuf>,
+    #[command(flatten)]
+    process: ProcessArgs,
     /// Open every bus at DIR/<bus name> (where `nori sim serve` links its pseudo-terminals).
     #[arg(long, value_name = "DIR")]
     device_dir: Option<PathBuf>,
     /// Drive only these buses of the configuration (repeatable); all when absent.
     #[arg(long = "bus")]
     buses: Vec<String>,
-    /// State-plane domain (iceoryx2 prefix); processes of one robot share it.
-    #[arg(long, default_value = plane::DEFAULT_DOMAIN)]
-    domain: String,
     /// Wait this long for the bus devices to appear at start, s.
     #[arg(long, default_value_t = 10.0)]
     wait_for_devices: f64,
-    /// Stop after this many seconds (tests and benchmarks).
-    #[arg(long)]
-    run_for: Option<f64>,
     /// Seconds between status lines (0: none).
     #[arg(long, default_value_t = 5.0)]
     status_every: f64,
-    /// Print the default configuration and exit.
-    #[arg(long)]
-    print_default_config: bool,
     /// Print the default calibration and exit.
     #[arg(long)]
     print_default_calibration: bool,
@@ -176,13 +166,12 @@ fn run(args: Args) -> Result<()> {
         print!("{}", bus_driver::config::DEFAULT_CALIBRATION_TOML);
         return Ok(());
     }
-    let Some(Started { config, shutdown }) =
-        start::<LoadedConfig>(args.print_default_config, args.config.as_deref())?
-    else {
+    let Some(Started { config, shutdown }) = args.process.start::<LoadedConfig>()? else {
         return Ok(());
     };
+    let run_for = args.process.run_for()?;
     let config = select_buses(config, &args)?;
-    let node = Plane::open(&args.domain, "bus-driver")?;
+    let node = Plane::open(&args.process.domain, "bus-driver")?;
     node.cleanup_dead();
     let transports = open_transports(
         &config,
@@ -194,7 +183,7 @@ fn run(args: Args) -> Result<()> {
     let trip_file = args
         .trip_file
         .clone()
-        .unwrap_or_else(|| latch::default_path(&args.domain));
+        .unwrap_or_else(|| latch::default_path(&args.process.domain));
     apply_trip_record(&mut driver, &config, &trip_file);
     let mut io = Ipc {
         goals: node.subscriber(&plane::GOALS)?,
@@ -234,7 +223,7 @@ fn run(args: Args) -> Result<()> {
         ready = driver.ready().filter(|r| *r).count(),
         eeprom_writes = driver.counters.eeprom_writes,
         rate_hz = config.config.rate_hz,
-        domain = %args.domain,
+        domain = %args.process.domain,
         "driving; state on {}, goals from {}",
         plane::JOINT_STATE.name,
         plane::GOALS.name
@@ -245,9 +234,7 @@ fn run(args: Args) -> Result<()> {
         config.config.bus.len(),
         config.config.rate_hz
     ));
-    let max_cycles = args
-        .run_for
-        .map(|s| (s * config.config.rate_hz).round() as u64);
+    let max_cycles = run_for.map(|d| (d.as_secs_f64() * config.config.rate_hz).round() as u64);
     let summary = bus_driver::run(
         &mut driver,
         config.config.period(),

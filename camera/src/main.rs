@@ -8,8 +8,8 @@ use camera::process::{jpeg_max_len, run, Camera, RunError};
 use camera::source::{self, SourceError};
 use clap::Parser;
 use std::path::PathBuf;
-use telemetry::plane::{self, CameraStream, Plane};
-use telemetry::process::{finish, start, Exit, Started};
+use telemetry::plane::{CameraStream, Plane};
+use telemetry::process::{finish, Exit, ProcessArgs, Started};
 use telemetry::sensors::PixelFormat;
 
 #[derive(Parser)]
@@ -21,21 +21,11 @@ struct Args {
     /// The camera to serve, by its name in the configuration.
     #[arg(long, required_unless_present = "print_default_config")]
     camera: Option<String>,
-    /// Configuration file (TOML); the embedded default when absent.
-    #[arg(long)]
-    config: Option<PathBuf>,
     /// Read the camera at DIR/camera-<name> (the simulator's sockets) instead of its device.
     #[arg(long, value_name = "DIR")]
     device_dir: Option<PathBuf>,
-    /// State-plane domain.
-    #[arg(long, default_value = plane::DEFAULT_DOMAIN)]
-    domain: String,
-    /// Stop after this many seconds.
-    #[arg(long)]
-    run_for: Option<f64>,
-    /// Print the default configuration and exit.
-    #[arg(long)]
-    print_default_config: bool,
+    #[command(flatten)]
+    process: ProcessArgs,
 }
 
 fn main() -> std::process::ExitCode {
@@ -53,7 +43,7 @@ fn main() -> std::process::ExitCode {
 fn serve(args: &Args) -> Result<()> {
     let Some(Started {
         config, shutdown, ..
-    }) = start::<CamerasConfig>(args.print_default_config, args.config.as_deref())?
+    }) = args.process.start::<CamerasConfig>()?
     else {
         return Ok(());
     };
@@ -71,8 +61,8 @@ fn serve(args: &Args) -> Result<()> {
         )
         .into());
     };
-    let run_for = telemetry::process::run_for(args.run_for)?;
-    let node = Plane::open(&args.domain, &format!("camera_{name}"))?;
+    let run_for = args.process.run_for()?;
+    let node = Plane::open(&args.process.domain, &format!("camera_{name}"))?;
     let (width, height) = (cam.mode.width, cam.mode.height);
     let publisher = node.camera_publisher(name, CameraStream::Rgb, rgb_len(width, height))?;
     let jpegs = match cam.mode.format {

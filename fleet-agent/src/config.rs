@@ -7,7 +7,7 @@ use crate::schedule::MAX_PLAN_STEPS;
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
 pub use telemetry::config::ConfigError;
-use telemetry::config::{invalid, parse, ProcessConfig};
+use telemetry::config::{invalid, parse, within, ProcessConfig};
 
 /// The embedded default (also `deploy/config/fleet-agent.toml`).
 pub const DEFAULT_CONFIG_TOML: &str = include_str!("../../deploy/config/fleet-agent.toml");
@@ -92,6 +92,106 @@ pub struct PreviewConfig {
     pub scan_every_s: f64,
 }
 
+impl ZenohConfig {
+    fn check(&self, origin: &str) -> Result<(), ConfigError> {
+        if !matches!(self.mode.as_str(), "peer" | "client") {
+            return Err(invalid(
+                origin,
+                "zenoh.mode",
+                format!("{:?}: use \"peer\" or \"client\"", self.mode),
+            ));
+        }
+        for (key, list) in [
+            ("zenoh.connect", &self.connect),
+            ("zenoh.listen", &self.listen),
+        ] {
+            for e in list {
+                let ok = e.split_once('/').is_some_and(|(proto, addr)| {
+                    matches!(proto, "tcp" | "tls") && !addr.is_empty()
+                });
+                if !ok {
+                    return Err(invalid(
+                        origin,
+                        key,
+                        format!("{e:?}: an endpoint is tcp/<host>:<port> or tls/<host>:<port>"),
+                    ));
+                }
+            }
+        }
+        if self.mode == "client" && self.connect.is_empty() {
+            return Err(invalid(
+                origin,
+                "zenoh.connect",
+                "a client needs at least one router to connect to",
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl ActionsConfig {
+    fn check(&self, origin: &str) -> Result<(), ConfigError> {
+        within(
+            origin,
+            "actions.max-age-ms",
+            self.max_age_ms,
+            1..=10_000,
+            " ms",
+        )?;
+        if self.horizon_ms > 1000 {
+            return Err(invalid(
+                origin,
+                "actions.horizon-ms",
+                format!(
+                    "{} ms: holding a target longer than 1 s after its time is not a plan",
+                    self.horizon_ms
+                ),
+            ));
+        }
+        within(
+            origin,
+            "actions.max-steps",
+            self.max_steps,
+            1..=MAX_PLAN_STEPS,
+            "",
+        )?;
+        within(
+            origin,
+            "actions.max-span-ms",
+            self.max_span_ms,
+            1..=60_000,
+            " ms",
+        )?;
+        if !(self.blend_new > 0.0 && self.blend_new <= 1.0) {
+            return Err(invalid(
+                origin,
+                "actions.blend-new",
+                format!("{} is outside (0, 1]", self.blend_new),
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl PreviewConfig {
+    fn check(&self, origin: &str) -> Result<(), ConfigError> {
+        for (key, every) in [
+            ("preview.every-s", self.every_s),
+            ("preview.scan-every-s", self.scan_every_s),
+        ] {
+            if !(every == 0.0 || (0.1..=3600.0).contains(&every)) {
+                return Err(invalid(
+                    origin,
+                    key,
+                    format!("{every} s: use 0 (none) or 0.1 to 3600"),
+                ));
+            }
+        }
+        within(origin, "preview.width", self.width, 16..=640, " pixels")?;
+        within(origin, "preview.quality", self.quality, 1..=100, "")
+    }
+}
+
 /// The agent's configuration.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, rename_all = "kebab-case")]
@@ -125,139 +225,76 @@ impl AgentConfig {
     /// Parses and validates text; `origin` names it in errors.
     pub fn parse(text: &str, origin: &str) -> Result<Self, ConfigError> {
         let c: AgentConfig = parse(text, origin)?;
-        let bad = |key: &str, reason: String| Err(invalid(origin, key, reason));
         if let Err(e) = check_robot_id(&c.robot_id) {
-            return bad("robot-id", e.to_string());
+            return Err(invalid(origin, "robot-id", e.to_string()));
         }
-        if !matches!(c.zenoh.mode.as_str(), "peer" | "client") {
-            return bad(
-                "zenoh.mode",
-                format!("{:?}: use \"peer\" or \"client\"", c.zenoh.mode),
-            );
-        }
-        for (key, list) in [
-            ("zenoh.connect", &c.zenoh.connect),
-            ("zenoh.listen", &c.zenoh.listen),
-        ] {
-            for e in list {
-                let ok = e.split_once('/').is_some_and(|(proto, addr)| {
-                    matches!(proto, "tcp" | "tls") && !addr.is_empty()
-                });
-                if !ok {
-                    return bad(
-                        key,
-                        format!("{e:?}: an endpoint is tcp/<host>:<port> or tls/<host>:<port>"),
-                    );
-                }
-            }
-        }
-        if c.zenoh.mode == "client" && c.zenoh.connect.is_empty() {
-            return bad(
-                "zenoh.connect",
-                "a client needs at least one router to connect to".into(),
-            );
-        }
+        c.zenoh.check(origin)?;
+        c.check_rates(origin)?;
+        c.actions.check(origin)?;
+        c.check_cameras(origin)?;
+        c.preview.check(origin)?;
+        Ok(c)
+    }
+
+    fn check_rates(&self, origin: &str) -> Result<(), ConfigError> {
         for (key, hz) in [
-            ("telemetry.state-hz", c.telemetry.state_hz),
-            ("telemetry.observation-hz", c.telemetry.observation_hz),
-            ("actions.forward-hz", c.actions.forward_hz),
+            ("telemetry.state-hz", self.telemetry.state_hz),
+            ("telemetry.observation-hz", self.telemetry.observation_hz),
+            ("actions.forward-hz", self.actions.forward_hz),
         ] {
             if !(hz > 0.0 && hz <= 1000.0) {
-                return bad(key, format!("{hz} is outside (0, 1000] Hz"));
+                return Err(invalid(
+                    origin,
+                    key,
+                    format!("{hz} is outside (0, 1000] Hz"),
+                ));
             }
         }
-        if c.telemetry.layout_every_s.is_nan() || c.telemetry.layout_every_s < 0.1 {
-            return bad("telemetry.layout-every-s", "must be ≥ 0.1 s".into());
+        let every = self.telemetry.layout_every_s;
+        if !(every.is_finite() && every >= 0.1) {
+            return Err(invalid(
+                origin,
+                "telemetry.layout-every-s",
+                format!("{every}: must be finite and ≥ 0.1 s"),
+            ));
         }
-        if !c.telemetry.layout_every_s.is_finite() {
-            return bad("telemetry.layout-every-s", "must be finite".into());
-        }
-        let a = &c.actions;
-        if !(1..=10_000).contains(&a.max_age_ms) {
-            return bad(
-                "actions.max-age-ms",
-                format!("{} is outside 1..=10000", a.max_age_ms),
-            );
-        }
-        if a.horizon_ms > 1000 {
-            return bad(
-                "actions.horizon-ms",
-                format!(
-                    "{} ms: holding a target longer than 1 s after its time is not a plan",
-                    a.horizon_ms
-                ),
-            );
-        }
-        if !(1..=MAX_PLAN_STEPS).contains(&a.max_steps) {
-            return bad(
-                "actions.max-steps",
-                format!("{} is outside 1..={MAX_PLAN_STEPS}", a.max_steps),
-            );
-        }
-        if !(1..=60_000).contains(&a.max_span_ms) {
-            return bad(
-                "actions.max-span-ms",
-                format!("{} is outside 1..=60000", a.max_span_ms),
-            );
-        }
-        if !(a.blend_new > 0.0 && a.blend_new <= 1.0) {
-            return bad(
-                "actions.blend-new",
-                format!("{} is outside (0, 1]", a.blend_new),
-            );
-        }
+        Ok(())
+    }
+
+    fn check_cameras(&self, origin: &str) -> Result<(), ConfigError> {
         for (key, cameras) in [
-            ("sensors.cameras", &c.sensors.cameras),
-            ("observation.cameras", &c.observation.cameras),
+            ("sensors.cameras", &self.sensors.cameras),
+            ("observation.cameras", &self.observation.cameras),
         ] {
             for (i, name) in cameras.iter().enumerate() {
                 let ok = telemetry::sensors::valid_camera_name(name);
                 if !ok || cameras[..i].contains(name) {
-                    return bad(
+                    return Err(invalid(
+                        origin,
                         key,
                         format!(
                             "{name:?}: a camera named once, 1 to {} of a-z, 0-9 and _",
                             telemetry::frames::NAME_LEN
                         ),
-                    );
+                    ));
                 }
             }
         }
-        let o = &c.observation;
-        if !(1..=1000).contains(&o.image_every) {
-            return bad(
-                "observation.image-every",
-                format!("{} is outside 1..=1000", o.image_every),
-            );
-        }
-        if !(1..=5000).contains(&o.image_max_age_ms) {
-            return bad(
-                "observation.image-max-age-ms",
-                format!("{} is outside 1..=5000", o.image_max_age_ms),
-            );
-        }
-        let p = &c.preview;
-        for (key, every) in [
-            ("preview.every-s", p.every_s),
-            ("preview.scan-every-s", p.scan_every_s),
-        ] {
-            if !(every == 0.0 || (0.1..=3600.0).contains(&every)) {
-                return bad(key, format!("{every} s: use 0 (none) or 0.1 to 3600"));
-            }
-        }
-        if !(16..=640).contains(&p.width) {
-            return bad(
-                "preview.width",
-                format!("{} is outside 16..=640 pixels", p.width),
-            );
-        }
-        if !(1..=100).contains(&p.quality) {
-            return bad(
-                "preview.quality",
-                format!("{} is outside 1..=100", p.quality),
-            );
-        }
-        Ok(c)
+        let o = &self.observation;
+        within(
+            origin,
+            "observation.image-every",
+            o.image_every,
+            1..=1000,
+            "",
+        )?;
+        within(
+            origin,
+            "observation.image-max-age-ms",
+            o.image_max_age_ms,
+            1..=5000,
+            " ms",
+        )
     }
 
     /// The gate's limits.

@@ -13,12 +13,10 @@ use fleet_agent::zenoh::query::{Query, Queryable};
 use fleet_agent::zenoh::sample::Sample;
 use fleet_agent::zenoh::Wait;
 use fleet_agent::{net, AgentConfig};
-use std::path::PathBuf;
-use std::time::Duration;
 use telemetry::frames::{BusHealth, GoalFrame, JointLayout, JointState, SupervisorEvent};
 use telemetry::plane::{self, newest, next, publish, CameraStream, FrameSub, Plane, Pub, Sub};
 use telemetry::process::Exit;
-use telemetry::process::{start, ServiceManager, Started};
+use telemetry::process::{ProcessArgs, ServiceManager, Started};
 use telemetry::sensors::{CameraFrameHeader, LidarScan};
 
 #[derive(Parser)]
@@ -27,12 +25,8 @@ use telemetry::sensors::{CameraFrameHeader, LidarScan};
     about = "Nori A3 fleet agent: telemetry out, gated policy actions in (zenoh)"
 )]
 struct Args {
-    /// Configuration file (TOML); the embedded default when absent.
-    #[arg(long)]
-    config: Option<PathBuf>,
-    /// State-plane domain.
-    #[arg(long, default_value = plane::DEFAULT_DOMAIN)]
-    domain: String,
+    #[command(flatten)]
+    process: ProcessArgs,
     /// Overrides `robot-id`.
     #[arg(long)]
     robot_id: Option<String>,
@@ -42,12 +36,6 @@ struct Args {
     /// Overrides `zenoh.listen` (repeatable).
     #[arg(long)]
     listen: Vec<String>,
-    /// Stop after this many seconds.
-    #[arg(long)]
-    run_for: Option<f64>,
-    /// Print the default configuration and exit.
-    #[arg(long)]
-    print_default_config: bool,
 }
 
 /// The agent's two planes: iceoryx2 ports and zenoh declarations.
@@ -163,7 +151,7 @@ fn run(args: Args) -> Result<()> {
     let Some(Started {
         mut config,
         shutdown,
-    }) = start::<AgentConfig>(args.print_default_config, args.config.as_deref())?
+    }) = args.process.start::<AgentConfig>()?
     else {
         return Ok(());
     };
@@ -177,7 +165,7 @@ fn run(args: Args) -> Result<()> {
     if !args.listen.is_empty() {
         config.zenoh.listen = args.listen.clone();
     }
-    let node = Plane::open(&args.domain, "fleet-agent")?;
+    let node = Plane::open(&args.process.domain, "fleet-agent")?;
     node.cleanup_dead();
     let id = config.robot_id.clone();
     let session = net::open(&config.zenoh)
@@ -188,12 +176,12 @@ fn run(args: Args) -> Result<()> {
         .declare_token(robot_key(&id, "alive"))
         .wait()
         .map_err(|e| anyhow::anyhow!("{e}"))?;
-    tracing::info!(robot = %id, domain = %args.domain, connect = ?config.zenoh.connect,
+    tracing::info!(robot = %id, domain = %args.process.domain, connect = ?config.zenoh.connect,
         "on the fleet: telemetry on {}, actions from {}", robot_key(&id, "state"), robot_key(&id, "actions"));
     let mut service = ServiceManager::from_env();
     service.ready(&format!("robot {id} on the fleet"));
     let mut agent = Agent::new(&config);
-    let run_for = args.run_for.map(Duration::from_secs_f64);
+    let run_for = args.process.run_for()?;
     fleet_agent::agent::run(&mut agent, &mut io, &shutdown, run_for, &mut |t| {
         service.keepalive(t)
     });

@@ -6,8 +6,8 @@ use clap::Parser;
 use lidar::config::LidarConfig;
 use lidar::process::{run, Lidar, LidarError, LinkError, SerialLink};
 use std::path::PathBuf;
-use telemetry::plane::{self, Plane, LIDAR_SCAN};
-use telemetry::process::{finish, start, Exit, Started};
+use telemetry::plane::{Plane, LIDAR_SCAN};
+use telemetry::process::{finish, Exit, ProcessArgs, Started};
 
 #[derive(Parser)]
 #[command(
@@ -15,21 +15,11 @@ use telemetry::process::{finish, start, Exit, Started};
     about = "Nori A3 lidar: revolutions of an RPLIDAR C1 onto the state plane"
 )]
 struct Args {
-    /// Configuration file (TOML); the embedded default when absent.
-    #[arg(long)]
-    config: Option<PathBuf>,
     /// Read the lidar at DIR/lidar (the simulator's pseudo-terminal) instead of its device.
     #[arg(long, value_name = "DIR")]
     device_dir: Option<PathBuf>,
-    /// State-plane domain.
-    #[arg(long, default_value = plane::DEFAULT_DOMAIN)]
-    domain: String,
-    /// Stop after this many seconds.
-    #[arg(long)]
-    run_for: Option<f64>,
-    /// Print the default configuration and exit.
-    #[arg(long)]
-    print_default_config: bool,
+    #[command(flatten)]
+    process: ProcessArgs,
 }
 
 fn main() -> std::process::ExitCode {
@@ -45,7 +35,7 @@ fn main() -> std::process::ExitCode {
 fn serve(args: &Args) -> Result<()> {
     let Some(Started {
         config, shutdown, ..
-    }) = start::<LidarConfig>(args.print_default_config, args.config.as_deref())?
+    }) = args.process.start::<LidarConfig>()?
     else {
         return Ok(());
     };
@@ -53,8 +43,8 @@ fn serve(args: &Args) -> Result<()> {
         Some(dir) => config.with_device_dir(dir),
         None => config,
     };
-    let run_for = telemetry::process::run_for(args.run_for)?;
-    let node = Plane::open(&args.domain, "lidar")?;
+    let run_for = args.process.run_for()?;
+    let node = Plane::open(&args.process.domain, "lidar")?;
     let mut lidar = Lidar::new(config.limits, node.publisher(&LIDAR_SCAN)?);
     let baud = config.baud;
     let result = run(

@@ -16,7 +16,7 @@ use parquet::data_type::{ByteArray, ByteArrayType, DoubleType, FloatType, Int64T
 use parquet::file::metadata::KeyValue;
 use parquet::file::properties::WriterProperties;
 use parquet::file::reader::{FileReader, SerializedFileReader};
-use parquet::file::writer::SerializedFileWriter;
+use parquet::file::writer::{SerializedFileWriter, SerializedRowGroupWriter};
 use parquet::record::{Field, Row};
 use parquet::schema::types::{Type, TypePtr};
 use std::collections::HashMap;
@@ -249,12 +249,9 @@ pub fn write_data_rows<W: std::io::Write + Send>(
     }
     let def = vec![1i16; rows.len()];
     for (key, _) in SCALARS {
-        let mut col = rg.next_column()?.ok_or_else(|| {
-            parquet::errors::ParquetError::General("schema has fewer columns".into())
-        })?;
         if key == "timestamp" {
             let t: Vec<f32> = rows.iter().map(|r| r.timestamp).collect();
-            col.typed::<FloatType>().write_batch(&t, Some(&def), None)?;
+            write_column::<FloatType, W>(&mut rg, &t, &def, None)?;
         } else {
             let x: Vec<i64> = rows
                 .iter()
@@ -265,9 +262,8 @@ pub fn write_data_rows<W: std::io::Write + Send>(
                     _ => r.task_index,
                 })
                 .collect();
-            col.typed::<Int64Type>().write_batch(&x, Some(&def), None)?;
+            write_column::<Int64Type, W>(&mut rg, &x, &def, None)?;
         }
-        col.close()?;
     }
     rg.close()?;
     Ok(())
@@ -512,6 +508,21 @@ fn episodes_schema(features: &Features) -> PqResult<TypePtr> {
     message(fields)
 }
 
+/// Writes the next column of `rg`, of parquet type `T`, with its levels.
+fn write_column<T: parquet::data_type::DataType, W: std::io::Write + Send>(
+    rg: &mut SerializedRowGroupWriter<'_, W>,
+    values: &[T::T],
+    def: &[i16],
+    rep: Option<&[i16]>,
+) -> PqResult<()> {
+    let mut col = rg
+        .next_column()?
+        .ok_or_else(|| parquet::errors::ParquetError::General("schema has fewer columns".into()))?;
+    col.typed::<T>().write_batch(values, Some(def), rep)?;
+    col.close()?;
+    Ok(())
+}
+
 /// Writes the episode table `rows` (their stats in `features` order).
 pub fn write_episodes<W: std::io::Write + Send>(
     out: W,
@@ -521,121 +532,50 @@ pub fn write_episodes<W: std::io::Write + Send>(
     let schema = episodes_schema(features)?;
     let mut writer = SerializedFileWriter::new(out, schema, properties(Vec::new()))?;
     let mut rg = writer.next_row_group()?;
-    let n = rows.len();
-    let def1 = vec![1i16; n];
+    let def1 = vec![1i16; rows.len()];
     let ints = |f: fn(&EpisodeRow) -> i64| rows.iter().map(f).collect::<Vec<i64>>();
-    let int_column = |rg: &mut parquet::file::writer::SerializedRowGroupWriter<'_, W>,
-                      x: Vec<i64>|
-     -> PqResult<()> {
-        let mut col = rg
-            .next_column()?
-            .ok_or_else(|| parquet::errors::ParquetError::General("columns".into()))?;
-        col.typed::<Int64Type>()
-            .write_batch(&x, Some(&def1), None)?;
-        col.close()?;
-        Ok(())
+    let int_column = |rg: &mut SerializedRowGroupWriter<'_, W>, x: Vec<i64>| {
+        write_column::<Int64Type, W>(rg, &x, &def1, None)
     };
     int_column(&mut rg, ints(|r| r.episode_index))?;
-    {
-        let mut col = rg
-            .next_column()?
-            .ok_or_else(|| parquet::errors::ParquetError::General("columns".into()))?;
-        let mut values = Vec::new();
-        let (mut def, mut rep) = (Vec::new(), Vec::new());
-        for r in rows {
-            for (i, t) in r.tasks.iter().enumerate() {
-                values.push(ByteArray::from(t.as_str()));
-                def.push(3);
-                rep.push(i16::from(i > 0));
-            }
-            if r.tasks.is_empty() {
-                def.push(1);
-                rep.push(0);
-            }
+    let (mut tasks, mut def, mut rep) = (Vec::new(), Vec::new(), Vec::new());
+    for r in rows {
+        for (i, t) in r.tasks.iter().enumerate() {
+            tasks.push(ByteArray::from(t.as_str()));
+            def.push(3);
+            rep.push(i16::from(i > 0));
         }
-        col.typed::<ByteArrayType>()
-            .write_batch(&values, Some(&def), Some(&rep))?;
-        col.close()?;
+        if r.tasks.is_empty() {
+            def.push(1);
+            rep.push(0);
+        }
     }
+    write_column::<ByteArrayType, W>(&mut rg, &tasks, &def, Some(&rep))?;
     int_column(&mut rg, ints(|r| r.length))?;
     int_column(&mut rg, ints(|r| r.data_chunk_index))?;
     int_column(&mut rg, ints(|r| r.data_file_index))?;
     int_column(&mut rg, ints(|r| r.dataset_from_index))?;
     int_column(&mut rg, ints(|r| r.dataset_to_index))?;
-    for c in 0..features.cameras.len() {
+    for (c, camera) in features.cameras.iter().enumerate() {
         let span = |r: &EpisodeRow| {
             r.videos.get(c).cloned().ok_or_else(|| {
                 parquet::errors::ParquetError::General(format!(
                     "episode {} has no video of {}",
-                    r.episode_index, features.cameras[c].name
+                    r.episode_index, camera.name
                 ))
             })
         };
         let spans = rows.iter().map(span).collect::<PqResult<Vec<_>>>()?;
         int_column(&mut rg, spans.iter().map(|s| s.chunk_index).collect())?;
         int_column(&mut rg, spans.iter().map(|s| s.file_index).collect())?;
-        for time in [
-            spans.iter().map(|s| s.from_timestamp).collect::<Vec<_>>(),
-            spans.iter().map(|s| s.to_timestamp).collect(),
-        ] {
-            let mut col = rg
-                .next_column()?
-                .ok_or_else(|| parquet::errors::ParquetError::General("columns".into()))?;
-            col.typed::<DoubleType>()
-                .write_batch(&time, Some(&def1), None)?;
-            col.close()?;
-        }
+        let from: Vec<f64> = spans.iter().map(|s| s.from_timestamp).collect();
+        let to: Vec<f64> = spans.iter().map(|s| s.to_timestamp).collect();
+        write_column::<DoubleType, W>(&mut rg, &from, &def1, None)?;
+        write_column::<DoubleType, W>(&mut rg, &to, &def1, None)?;
     }
     for key in features.keys() {
-        let image = features.is_video(&key);
         for stat in STAT_NAMES {
-            let mut values = Vec::new();
-            let mut width = None;
-            for r in rows {
-                let s = r
-                    .stats
-                    .iter()
-                    .find(|(k, _)| *k == key)
-                    .map(|(_, s)| s)
-                    .ok_or_else(|| {
-                        parquet::errors::ParquetError::General(format!(
-                            "episode {} has no stats for {key}",
-                            r.episode_index
-                        ))
-                    })?;
-                let x = s.get(stat).unwrap_or_default();
-                if *width.get_or_insert(x.len()) != x.len() {
-                    return Err(parquet::errors::ParquetError::General(format!(
-                        "stats/{key}/{stat}: widths differ"
-                    )));
-                }
-                values.extend(x);
-            }
-            let w = width.unwrap_or(0);
-            let (def, rep) = if image && stat != "count" {
-                // `[[v]]` per channel: a new channel repeats at the outer level (1), every
-                // value is fully defined (7: three optional lists, three repeated levels and
-                // the optional element).
-                let mut rep = vec![1i16; n * w];
-                for r in 0..n {
-                    rep[r * w] = 0;
-                }
-                (vec![7i16; n * w], rep)
-            } else {
-                list_levels(n, w)
-            };
-            let mut col = rg
-                .next_column()?
-                .ok_or_else(|| parquet::errors::ParquetError::General("columns".into()))?;
-            if stat == "count" {
-                let v: Vec<i64> = values.iter().map(|x| *x as i64).collect();
-                col.typed::<Int64Type>()
-                    .write_batch(&v, Some(&def), Some(&rep))?;
-            } else {
-                col.typed::<DoubleType>()
-                    .write_batch(&values, Some(&def), Some(&rep))?;
-            }
-            col.close()?;
+            write_stat_column(&mut rg, rows, &key, stat, features.is_video(&key))?;
         }
     }
     int_column(&mut rg, ints(|r| r.meta_chunk_index))?;
@@ -643,6 +583,58 @@ pub fn write_episodes<W: std::io::Write + Send>(
     rg.close()?;
     writer.close()?;
     Ok(())
+}
+
+/// The column `stats/<key>/<stat>` of the episode table: one list per episode (a list of
+/// one-element lists per channel for an image's statistics other than the count).
+fn write_stat_column<W: std::io::Write + Send>(
+    rg: &mut SerializedRowGroupWriter<'_, W>,
+    rows: &[EpisodeRow],
+    key: &str,
+    stat: &str,
+    image: bool,
+) -> PqResult<()> {
+    let mut values = Vec::new();
+    let mut width = None;
+    for r in rows {
+        let s = r
+            .stats
+            .iter()
+            .find(|(k, _)| k == key)
+            .map(|(_, s)| s)
+            .ok_or_else(|| {
+                parquet::errors::ParquetError::General(format!(
+                    "episode {} has no stats for {key}",
+                    r.episode_index
+                ))
+            })?;
+        let x = s.get(stat).unwrap_or_default();
+        if *width.get_or_insert(x.len()) != x.len() {
+            return Err(parquet::errors::ParquetError::General(format!(
+                "stats/{key}/{stat}: widths differ"
+            )));
+        }
+        values.extend(x);
+    }
+    let (n, w) = (rows.len(), width.unwrap_or(0));
+    let (def, rep) = if image && stat != "count" {
+        // `[[v]]` per channel: a new channel repeats at the outer level (1), every value is
+        // fully defined (7: three optional lists, three repeated levels and the optional
+        // element).
+        let mut rep = vec![1i16; n * w];
+        for r in 0..n {
+            rep[r * w] = 0;
+        }
+        (vec![7i16; n * w], rep)
+    } else {
+        list_levels(n, w)
+    };
+    if stat == "count" {
+        let v: Vec<i64> = values.iter().map(|x| *x as i64).collect();
+        write_column::<Int64Type, W>(rg, &v, &def, Some(&rep))
+    } else {
+        write_column::<DoubleType, W>(rg, &values, &def, Some(&rep))
+    }
 }
 
 /// Reads an episode table written for `features`.
@@ -750,19 +742,8 @@ pub fn write_tasks<W: std::io::Write + Send>(out: W, tasks: &[String]) -> PqResu
     let def = vec![1i16; tasks.len()];
     let idx: Vec<i64> = (0..tasks.len() as i64).collect();
     let text: Vec<ByteArray> = tasks.iter().map(|t| ByteArray::from(t.as_str())).collect();
-    for i in 0..2 {
-        let mut col = rg
-            .next_column()?
-            .ok_or_else(|| parquet::errors::ParquetError::General("columns".into()))?;
-        if i == 0 {
-            col.typed::<Int64Type>()
-                .write_batch(&idx, Some(&def), None)?;
-        } else {
-            col.typed::<ByteArrayType>()
-                .write_batch(&text, Some(&def), None)?;
-        }
-        col.close()?;
-    }
+    write_column::<Int64Type, W>(&mut rg, &idx, &def, None)?;
+    write_column::<ByteArrayType, W>(&mut rg, &text, &def, None)?;
     rg.close()?;
     writer.close()?;
     Ok(())

@@ -5,7 +5,7 @@
 use anyhow::Result;
 use clap::Parser;
 use std::path::PathBuf;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 use supervisor::process::{Change, Process, SupervisorIo};
 use supervisor::SupervisorConfig;
 use telemetry::frames::{
@@ -14,7 +14,7 @@ use telemetry::frames::{
 use telemetry::latch::{self, LatchError};
 use telemetry::plane::{self, newest, next, publish, Plane, Pub, Sub};
 use telemetry::process::Exit;
-use telemetry::process::{start, ServiceManager, Started};
+use telemetry::process::{ProcessArgs, ServiceManager, Started};
 
 #[derive(Parser)]
 #[command(
@@ -22,21 +22,11 @@ use telemetry::process::{start, ServiceManager, Started};
     about = "Nori A3 supervisor: stall detection, thermal interlock, grip force"
 )]
 struct Args {
-    /// Configuration file (TOML); the embedded default when absent.
-    #[arg(long)]
-    config: Option<PathBuf>,
-    /// State-plane domain.
-    #[arg(long, default_value = plane::DEFAULT_DOMAIN)]
-    domain: String,
-    /// Stop after this many seconds.
-    #[arg(long)]
-    run_for: Option<f64>,
+    #[command(flatten)]
+    process: ProcessArgs,
     /// Seconds between status lines (0: none).
     #[arg(long, default_value_t = 5.0)]
     status_every: f64,
-    /// Print the default configuration and exit.
-    #[arg(long)]
-    print_default_config: bool,
     /// Where latched trips are kept across restarts (one joint name per line; the bus-driver
     /// reads the same record); `<temp dir>/nori-<domain>-trips` when absent. Production:
     /// /var/lib/nori/trips.
@@ -97,17 +87,16 @@ fn main() -> std::process::ExitCode {
 /// The process; an error ends it with its fault class's exit code (ARCHITECTURE.md, "Exit
 /// codes").
 fn run(args: Args) -> Result<()> {
-    let Some(Started { config, shutdown }) =
-        start::<SupervisorConfig>(args.print_default_config, args.config.as_deref())?
-    else {
+    let Some(Started { config, shutdown }) = args.process.start::<SupervisorConfig>()? else {
         return Ok(());
     };
+    let run_for = args.process.run_for()?;
     let trip_file = args
         .trip_file
         .clone()
-        .unwrap_or_else(|| latch::default_path(&args.domain));
+        .unwrap_or_else(|| latch::default_path(&args.process.domain));
     let trips = latch::load(&trip_file)?;
-    let node = Plane::open(&args.domain, "supervisor")?;
+    let node = Plane::open(&args.process.domain, "supervisor")?;
     node.cleanup_dead();
     let mut io = Wired {
         layouts: node.subscriber(&plane::LAYOUT)?,
@@ -120,14 +109,13 @@ fn run(args: Args) -> Result<()> {
         grip: node.publisher(&plane::GRIP)?,
         trip_file: trip_file.clone(),
     };
-    tracing::info!(domain = %args.domain, "waiting for the driver's joint layout on {}", plane::LAYOUT.name);
+    tracing::info!(domain = %args.process.domain, "waiting for the driver's joint layout on {}", plane::LAYOUT.name);
     let mut service = ServiceManager::from_env();
     // Ready as soon as the plane is open: systemd starts the driver after this, and only the
     // driver's layout lets the supervisor supervise.
     service.ready("waiting for the driver's joint layout");
     let mut process = Process::new(config, trips, std::process::id());
     let mut last_status = Instant::now();
-    let run_for = args.run_for.map(Duration::from_secs_f64);
     supervisor::process::run(
         &mut process,
         &mut io,

@@ -89,6 +89,26 @@ pub fn parse<T: DeserializeOwned>(text: &str, origin: &str) -> Result<T, ConfigE
     })
 }
 
+/// `Ok` when `value` lies in `range`, else an [`ConfigError::Invalid`] for `key` of `origin`
+/// that says so (`unit` follows the range: `" ms"`, `" pixels"`, or `""`).
+pub fn within<T: PartialOrd + std::fmt::Display>(
+    origin: &str,
+    key: &str,
+    value: T,
+    range: std::ops::RangeInclusive<T>,
+    unit: &str,
+) -> Result<(), ConfigError> {
+    if range.contains(&value) {
+        return Ok(());
+    }
+    let (lo, hi) = range.into_inner();
+    Err(invalid(
+        origin,
+        key,
+        format!("{value} is outside {lo}..={hi}{unit}"),
+    ))
+}
+
 /// An [`ConfigError::Invalid`] for `key` of `origin`.
 pub fn invalid(origin: &str, key: impl Into<String>, reason: impl Into<String>) -> ConfigError {
     ConfigError::Invalid {

@@ -110,6 +110,36 @@ pub fn sibling(name: &str) -> Result<PathBuf, SiblingError> {
     Ok(path)
 }
 
+/// The options every process of the stack takes (flattened into each binary's own arguments,
+/// so the five spell them once).
+#[derive(Debug, Clone, clap::Args)]
+pub struct ProcessArgs {
+    /// Configuration file (TOML); the embedded default when absent.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// State-plane domain (iceoryx2 prefix); the processes of one robot share it.
+    #[arg(long, default_value = crate::plane::DEFAULT_DOMAIN)]
+    pub domain: String,
+    /// Stop after this many seconds (tests and benchmarks).
+    #[arg(long)]
+    pub run_for: Option<f64>,
+    /// Print the default configuration and exit.
+    #[arg(long)]
+    pub print_default_config: bool,
+}
+
+impl ProcessArgs {
+    /// [`start`] with these options.
+    pub fn start<C: crate::config::ProcessConfig>(&self) -> Result<Option<Started<C>>, StartError> {
+        start(self.print_default_config, self.config.as_deref())
+    }
+
+    /// `--run-for` as a duration ([`run_for`]: refused unless positive and finite).
+    pub fn run_for(&self) -> Result<Option<std::time::Duration>, crate::config::ConfigError> {
+        run_for(self.run_for)
+    }
+}
+
 /// A process that started: its configuration and its stop flag.
 #[derive(Debug)]
 pub struct Started<C> {

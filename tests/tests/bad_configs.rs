@@ -218,3 +218,31 @@ fn the_driver_exits_with_the_class_of_its_fault() {
         "{stderr}"
     );
 }
+
+/// Every robot process takes the same `--run-for` and refuses one that is no positive number
+/// of seconds as a configuration fault, naming the option; before the options were shared,
+/// the supervisor and the fleet agent panicked on it (a crash, restarted by systemd for ever).
+#[test]
+fn every_robot_process_refuses_a_run_time_that_is_no_positive_number() {
+    let dir = scratch("run-for");
+    let domain = format!("nori_runfor_{}", std::process::id());
+    for program in [
+        "bus-driver",
+        "supervisor",
+        "fleet-agent",
+        "nori-lidar",
+        "nori-camera",
+    ] {
+        for bad in ["-1", "nan", "inf", "0"] {
+            let run_for = format!("--run-for={bad}");
+            let mut args = vec!["--domain", &domain, &run_for];
+            if program == "nori-camera" {
+                args.extend(["--camera", "head"]);
+            }
+            let err = dir.join(format!("{program}{bad}.stderr"));
+            let (code, stderr) = run(&binary(program), &args, &err);
+            assert_eq!(code, Some(78), "{program} {run_for}: {stderr}");
+            assert!(stderr.contains("--run-for"), "{program}: {stderr}");
+        }
+    }
+}
