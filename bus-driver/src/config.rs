@@ -118,6 +118,10 @@ pub struct DriverConfig {
     /// Largest wheel speed sent, rad/s.
     #[serde(default = "default_wheel_speed")]
     pub max_wheel_speed_rad_s: f64,
+    /// A wheel whose speed command is older than this (by the command's timestamp) is
+    /// stopped, ms.
+    #[serde(default = "default_wheel_command_timeout")]
+    pub wheel_command_timeout_ms: u64,
     /// The supervisor is missing after this long without its heartbeat, ms; the driver then
     /// applies its safe state. 0 runs without a supervisor (development only: it warns).
     #[serde(default = "default_supervisor_timeout")]
@@ -153,6 +157,9 @@ fn default_goal_age() -> u64 {
 }
 fn default_wheel_speed() -> f64 {
     6.0
+}
+fn default_wheel_command_timeout() -> u64 {
+    200
 }
 fn default_supervisor_timeout() -> u64 {
     50
@@ -315,6 +322,16 @@ impl DriverConfig {
                 origin,
                 "goal-max-age-ms",
                 format!("{} is outside 1..=10000 ms", self.goal_max_age_ms),
+            ));
+        }
+        if !(10..=2000).contains(&self.wheel_command_timeout_ms) {
+            return Err(invalid(
+                origin,
+                "wheel-command-timeout-ms",
+                format!(
+                    "{} is outside 10..=2000 ms: a base must stop soon after its commands stop",
+                    self.wheel_command_timeout_ms
+                ),
             ));
         }
         if self.supervisor_timeout_ms > 10_000 {
@@ -632,6 +649,16 @@ mod tests {
                 "safe-hold-torque-percent = 20",
                 "safe-hold-torque-percent = 100",
                 "safe-hold-torque-percent",
+            ),
+            (
+                "wheel-command-timeout-ms = 200",
+                "wheel-command-timeout-ms = 5000",
+                "wheel-command-timeout-ms",
+            ),
+            (
+                "wheel-command-timeout-ms = 200",
+                "wheel-command-timeout-ms = 0",
+                "wheel-command-timeout-ms",
             ),
             ("rate-hz = 200", "rate-hz = nan", "rate-hz"),
             ("rate-hz = 200", "rate-hz = 5000", "rate-hz"),

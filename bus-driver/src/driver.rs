@@ -127,6 +127,8 @@ pub struct DriverCounters {
     pub outputs_lost: u64,
     /// Buses turned off by the driver's last-resort thermal tier (no supervisor heard).
     pub last_resort_trips: u64,
+    /// Wheels stopped because their speed command was not renewed in time.
+    pub wheel_stops: u64,
     /// Supervisor heartbeats and directives ignored for their own timestamp (too old or from
     /// the future).
     pub stale_supervisor_frames: u64,
@@ -143,6 +145,8 @@ struct Joint {
     ready: bool,
     /// Goal in register units (steps, or steps/s in speed mode).
     goal: i32,
+    /// The timestamp of the goal frame that set `goal` (a wheel's speed expires with it).
+    goal_at_ns: u64,
     /// Torque limit the supervisor asks for, 0.1 % (0: the configured maximum).
     torque_wanted: u16,
     /// Torque limit last written to the servo, 0.1 %.
@@ -232,6 +236,8 @@ pub struct Driver<T: Transport> {
     state: JointState,
     goal_max_age_ns: u64,
     max_wheel_speed: f64,
+    /// A wheel's speed is set to 0 once its command is this old.
+    wheel_timeout_ns: u64,
     safe_kind: SafeState,
     hold_permille: u16,
     /// In the safe state (supervisor missing or never seen).
@@ -306,6 +312,7 @@ impl<T: Transport> Driver<T> {
                     },
                     ready: false,
                     goal: 0,
+                    goal_at_ns: 0,
                     torque_wanted: 0,
                     torque_written: 0,
                     cutoff: CutoffWatch::default(),
@@ -343,6 +350,7 @@ impl<T: Transport> Driver<T> {
             state,
             goal_max_age_ns: c.goal_max_age_ms * 1_000_000,
             max_wheel_speed: c.max_wheel_speed_rad_s,
+            wheel_timeout_ns: c.wheel_command_timeout_ms * 1_000_000,
             safe_kind: c.safe_state,
             hold_permille: (c.safe_hold_torque_percent * 10.0).round() as u16,
             safe: c.supervisor_timeout_ms > 0,
@@ -690,6 +698,7 @@ impl<T: Transport> Driver<T> {
         for (i, joint) in self.joints.iter_mut().enumerate() {
             if frame.mask & (1 << i) != 0 {
                 joint.goal = goals[i];
+                joint.goal_at_ns = frame.timestamp_ns;
             }
         }
         self.counters.goals_clamped += clamped;
@@ -902,6 +911,7 @@ impl<T: Transport> Driver<T> {
         }
         self.state.timestamp_ns = telemetry::clock::monotonic_ns();
         self.last_resort_tier();
+        self.stop_stale_wheels(self.state.timestamp_ns);
         for bi in 0..self.buses.len() {
             if self.buses[bi].connected {
                 self.write_goals(bi);
@@ -1157,6 +1167,21 @@ impl<T: Transport> Driver<T> {
                 // set it up again from where it is, like a servo that came back.
                 tracing::warn!(joint = %self.joints[j].name, "servo found with torque off: set up again");
                 self.joints[j].set_up_again();
+            }
+        }
+    }
+
+    /// A wheel whose speed command is older than the timeout is stopped (its goal, and so the
+    /// state frame's `goal_rad`, becomes 0): the base never drives on at a command nobody
+    /// renews. Position joints hold their goals as they always do.
+    fn stop_stale_wheels(&mut self, now_ns: u64) {
+        for joint in &mut self.joints {
+            if joint.calibration.is_none()
+                && joint.goal != 0
+                && now_ns.saturating_sub(joint.goal_at_ns) > self.wheel_timeout_ns
+            {
+                joint.goal = 0;
+                self.counters.wheel_stops += 1;
             }
         }
     }

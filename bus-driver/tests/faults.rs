@@ -19,7 +19,7 @@ use sim::{RobotDescription, SimBus};
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
 use telemetry::config::ProcessConfig;
 use telemetry::frames::{
@@ -1147,4 +1147,75 @@ fn the_background_read_back_finds_a_limit_changed_behind_the_drivers_back() {
     }
     assert!(rig.torque_on(0)[2], "the reset servo is driven again");
     assert!(rig.driver.ready().all(|r| r));
+}
+
+/// A wheel whose speed command is not renewed stops. Whatever commands the base may die (a
+/// policy server, the fleet agent, a base controller) or send once (`nori goal`): a base must
+/// never drive on at the last speed it was told. Renewed commands keep it turning; the arm's
+/// goals are not touched.
+#[test]
+fn a_wheel_whose_command_is_not_renewed_stops() {
+    let mut rig = rig(None, SafeState::Hold);
+    let timeout = Duration::from_millis(rig.config.config.wheel_command_timeout_ms);
+    for _ in 0..5 {
+        rig.cycle();
+    }
+    let wheel_speed = |rig: &Rig| rig.buses[2].lock().unwrap().servos[0].get(reg::GOAL_VELOCITY);
+    let elbow_goal = |rig: &Rig| rig.buses[0].lock().unwrap().servos[3].get(reg::GOAL_POSITION);
+    let command = |speed: f32, elbow: Option<f32>| {
+        let now = monotonic_ns();
+        let mut f = GoalFrame {
+            joint_count: 18,
+            timestamp_ns: now,
+            mask: 1 << 16,
+            ..GoalFrame::default()
+        };
+        f.position_rad[16] = speed;
+        if let Some(q) = elbow {
+            f.mask |= 1 << 3;
+            f.position_rad[3] = q;
+        }
+        (f, now)
+    };
+    let (f, now) = command(2.0, Some(-0.5));
+    rig.driver.apply_goals(&f, now).unwrap();
+    rig.cycle();
+    assert_ne!(wheel_speed(&rig), 0, "the command reaches the wheel");
+    let elbow = elbow_goal(&rig);
+
+    // Renewed every 50 ms for three timeouts: it keeps turning.
+    let renewing = Instant::now();
+    while renewing.elapsed() < 3 * timeout {
+        let (f, now) = command(2.0, None);
+        rig.driver.apply_goals(&f, now).unwrap();
+        let until = Instant::now() + Duration::from_millis(50);
+        while Instant::now() < until {
+            rig.cycle();
+            assert_ne!(
+                wheel_speed(&rig),
+                0,
+                "stopped while its command was renewed"
+            );
+            std::thread::sleep(Duration::from_millis(2));
+        }
+    }
+
+    // Not renewed: stopped once the last command is the timeout old, the arm left alone.
+    let last = Instant::now();
+    let (f, now) = command(2.0, None);
+    rig.driver.apply_goals(&f, now).unwrap();
+    while last.elapsed() < timeout + Duration::from_millis(20) {
+        rig.cycle();
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    rig.cycle();
+    assert_eq!(
+        wheel_speed(&rig),
+        0,
+        "the wheel runs on at its last command"
+    );
+    assert_eq!(elbow_goal(&rig), elbow, "the arm's goal was touched");
+    assert_eq!(rig.driver.counters.wheel_stops, 1);
+    // The state frame says what was sent: 0.
+    assert_eq!(rig.cycle().joints[16].goal_rad, 0.0);
 }
