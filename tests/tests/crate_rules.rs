@@ -14,6 +14,7 @@ use std::process::Command;
 /// Each workspace crate and the workspace crates it may depend on (normal dependencies).
 const ALLOWED: &[(&str, &[&str])] = &[
     ("feetech", &[]),
+    ("base", &[]),
     ("telemetry", &[]),
     ("bus-driver", &["feetech", "telemetry"]),
     ("supervisor", &["telemetry"]),

@@ -1,0 +1,19 @@
+//! The A3's differential base, sans-IO: what turns "go 0.3 m/s, turn 0.5 rad/s" into the two
+//! wheel servos' speeds, and their positions back into where the base went.
+//!
+//! Nothing here reads a clock or a device: times come in as nanoseconds on the caller's clock,
+//! wheel readings as radians, so the same code serves the robot's process, the simulator's
+//! judge and the tests.
+//!
+//! * [`drive`]: the geometry (wheel radius, track, how each wheel is mounted), twist ↔ wheel
+//!   speeds, and saturation that keeps a turn a turn.
+//! * [`ramp`]: speed and acceleration limits applied to the commanded twist, cycle by cycle.
+//! * [`odometry`]: pose and twist integrated from the wheels' positions, which wrap at one turn.
+
+pub mod drive;
+pub mod odometry;
+pub mod ramp;
+
+pub use drive::{Geometry, GeometryError, Twist, WheelSpeeds};
+pub use odometry::{Odometry, Pose2};
+pub use ramp::{Limits, Ramp};
