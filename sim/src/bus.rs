@@ -95,6 +95,8 @@ pub struct BusReport {
     /// Every change of a servo's Torque_Limit, in order (at most
     /// [`MAX_TORQUE_LIMIT_CHANGES`]).
     pub torque_limit_changes: Vec<TorqueLimitChange>,
+    /// The base these wheels move: where it really is (the truth odometry is judged by).
+    pub base: Option<crate::base::BaseReport>,
 }
 
 /// Broadcast torque-off writes a bus keeps for its report (the newest).
@@ -131,6 +133,9 @@ pub struct SimBus {
     arm: Option<Arm>,
     arm_servos: Vec<usize>,
     wheel_load: (f64, f64),
+    /// The base the wheels move (when the description gives its geometry), and the positions
+    /// of its left and right wheel servos in `servos`.
+    base: Option<(crate::base::BaseMotion, [usize; 2])>,
     /// Ambient temperature, °C.
     pub ambient: f64,
     /// Thermal integration speed-up (1 = physical).
@@ -188,11 +193,18 @@ impl SimBus {
             }
         }
         let mut wheel_load = (0.0, 0.0);
+        let mut base = None;
         if let Some(w) = &d.wheels {
             for &id in &w.servos {
                 roles[pos(id)] = Role::Wheel;
             }
             wheel_load = (w.inertia_kgm2, w.viscous_nms);
+            // Validated: a moving base has two wheel servos.
+            if let (Some(motion), [left, right]) =
+                (crate::base::BaseMotion::new(robot, w), w.servos.as_slice())
+            {
+                base = Some((motion, [pos(*left), pos(*right)]));
+            }
         }
         let n_arm = arm_servos.len();
         SimBus {
@@ -208,6 +220,7 @@ impl SimBus {
             arm: d.arm.as_ref().map(|a| Arm::new(a, robot.gravity)),
             arm_servos,
             wheel_load,
+            base,
             ambient: robot.ambient_c,
             thermal_speedup: 1.0,
             neighbor_coupling: 0.0,
@@ -255,6 +268,11 @@ impl SimBus {
     pub fn feedback_truth(&self, id: u8) -> Option<&[u8]> {
         let i = usize::from(self.index[id as usize]?);
         self.truth.get(i)?.as_ref().map(|b| &b[..])
+    }
+
+    /// The pose of the base these wheels move (x, y in m, heading in rad), if they move one.
+    pub fn base_pose(&self) -> Option<[f64; 3]> {
+        self.base.as_ref().map(|(motion, _)| motion.pose())
     }
 
     /// Simulated time, s.
@@ -317,6 +335,19 @@ impl SimBus {
         }
         self.ambient += self.ambient_drift_k_per_s * dt * self.thermal_speedup;
         let (ambient, speedup) = (self.ambient, self.thermal_speedup);
+        // An obstacle the base is pressed against loads its wheels.
+        let contact = self.base.as_ref().map(|(motion, wheels)| {
+            let angle = wheels.map(|w| self.servos[w].angle);
+            let speed = wheels.map(|w| self.servos[w].speed);
+            (*wheels, motion.contact_torque(angle, speed))
+        });
+        let contact_on = |i: usize| match contact {
+            Some((wheels, torque)) => wheels
+                .iter()
+                .position(|&w| w == i)
+                .map_or(0.0, |k| torque[k]),
+            None => 0.0,
+        };
         for (i, servo) in self.servos.iter_mut().enumerate() {
             servo.supply = supply;
             let (torque, inertia) = match self.roles[i] {
@@ -325,10 +356,18 @@ impl SimBus {
                     Some(g) => (gripper_load(g, servo.angle, servo.speed), 0.0),
                     None => (0.0, 0.0),
                 },
-                Role::Wheel => (self.wheel_load.1 * servo.speed, self.wheel_load.0),
+                Role::Wheel => (
+                    self.wheel_load.1 * servo.speed + contact_on(i),
+                    self.wheel_load.0,
+                ),
                 Role::Free => (0.0, 0.0),
             };
             servo.step(dt, torque, inertia, ambient, speedup);
+        }
+        if let Some((motion, wheels)) = &mut self.base {
+            let angle = wheels.map(|w| self.servos[w].angle);
+            let speed = wheels.map(|w| self.servos[w].speed);
+            motion.step(dt, angle, speed);
         }
         self.time += dt;
     }
@@ -383,6 +422,7 @@ impl SimBus {
             epoch_monotonic_ns: self.epoch_monotonic_ns,
             torque_off_broadcasts_s: self.torque_off_broadcasts.iter().copied().collect(),
             torque_limit_changes: self.torque_limit_changes.clone(),
+            base: self.base.as_ref().map(|(motion, _)| motion.report()),
             line: self.stats,
             servos: self
                 .servos

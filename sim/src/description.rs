@@ -188,6 +188,26 @@ pub struct WheelsDescription {
     pub inertia_kgm2: f64,
     /// Rolling resistance, N·m·s/rad.
     pub viscous_nms: f64,
+    /// Wheel radius, m (the base moves in the room when given, with `track-m`).
+    #[serde(default)]
+    pub wheel_radius_m: Option<f64>,
+    /// Distance between the two wheels' contact points, m.
+    #[serde(default)]
+    pub track_m: Option<f64>,
+    /// The right wheel's servo is mounted mirrored: its positive speed drives the base
+    /// backwards (the left one's drives it forwards).
+    #[serde(default)]
+    pub right_inverted: bool,
+    /// Radius of the circle around the base's centre that bumps into walls and objects, m.
+    #[serde(default = "default_footprint_radius")]
+    pub footprint_radius_m: f64,
+    /// Where the base starts in the room: x, y (m), heading (rad, counter-clockwise from +x).
+    #[serde(default)]
+    pub start: [f64; 3],
+}
+
+fn default_footprint_radius() -> f64 {
+    0.3
 }
 
 /// One serial bus.
@@ -465,6 +485,32 @@ impl RobotDescription {
                         format!("servo {id} is not on this bus"),
                     ));
                 }
+                let geometry = [("wheel-radius-m", w.wheel_radius_m), ("track-m", w.track_m)];
+                if let Some((key, value)) = geometry
+                    .iter()
+                    .find(|(_, v)| v.is_some_and(|v| !(v.is_finite() && v > 0.0)))
+                {
+                    return Err(invalid(
+                        at(&format!("wheels.{key}")),
+                        format!("{value:?} m: a positive length"),
+                    ));
+                }
+                if w.wheel_radius_m.is_some() && (w.servos.len() != 2 || w.track_m.is_none()) {
+                    return Err(invalid(
+                        at("wheels"),
+                        "a moving base has two wheel servos (left, right) and a track-m".into(),
+                    ));
+                }
+                let footprint = w.footprint_radius_m;
+                if !(footprint.is_finite() && footprint > 0.0) {
+                    return Err(invalid(
+                        at("wheels.footprint-radius-m"),
+                        format!("{footprint} m: a positive radius"),
+                    ));
+                }
+                if !w.start.iter().all(|v| v.is_finite()) {
+                    return Err(invalid(at("wheels.start"), "a finite pose".into()));
+                }
             }
         }
         if let Some(l) = &self.lidar {
@@ -539,5 +585,30 @@ mod tests {
         );
         let text = NORI_A3_TOML.replacen("baud = 1000000", "baud = 9600", 1);
         assert!(RobotDescription::parse(&text, "x.toml").is_err());
+        for (from, to, key) in [
+            (
+                "wheel-radius-m = 0.05",
+                "wheel-radius-m = -0.05",
+                "wheels.wheel-radius-m",
+            ),
+            ("track-m = 0.36", "track-m = nan", "wheels.track-m"),
+            ("track-m = 0.36", "", "wheels"),
+            (
+                "footprint-radius-m = 0.32",
+                "footprint-radius-m = 0",
+                "wheels.footprint",
+            ),
+            (
+                "start = [0.0, 0.0, 0.0]",
+                "start = [inf, 0.0, 0.0]",
+                "wheels.start",
+            ),
+        ] {
+            let text = NORI_A3_TOML.replacen(from, to, 1);
+            let err = RobotDescription::parse(&text, "x.toml")
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains(key), "{to:?}: {err}");
+        }
     }
 }

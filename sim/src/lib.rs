@@ -17,6 +17,7 @@
 
 pub mod aim;
 pub mod arm;
+pub mod base;
 pub mod bus;
 pub mod camera;
 pub mod description;
@@ -26,6 +27,7 @@ pub mod lidar;
 pub mod pty;
 pub mod render;
 pub mod rng;
+pub mod room;
 pub mod scenario;
 pub mod servo;
 

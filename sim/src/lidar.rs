@@ -14,11 +14,13 @@
 //!   other requests are ignored while scanning (STOP, RESET and SCAN are not);
 //! * faults: a node whose check bits are broken, a turn cut short, a burst of line noise.
 //!
-//! The base does not move yet (the whole-body work adds it): the pose is the world's origin.
+//! The lidar rides on the base: its beams leave from where the base is ([`LidarDevice::set_base_pose`],
+//! updated by the simulator as the wheels move it).
 
-use crate::description::{LidarDescription, RobotDescription, SceneObject};
+use crate::description::{LidarDescription, RobotDescription};
 use crate::pty::open_pty;
 use crate::rng::Rng;
+pub use crate::room::Room;
 use nix::poll::{ppoll, PollFd, PollFlags};
 use nix::sys::time::TimeSpec;
 use std::os::fd::{AsFd, OwnedFd};
@@ -87,95 +89,6 @@ pub struct LidarReport {
     pub scanning: bool,
 }
 
-/// The room as the lidar's scan plane cuts it.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct Room {
-    walls: Vec<([f64; 2], [f64; 2])>,
-    boxes: Vec<([f64; 2], [f64; 2])>,
-    circles: Vec<([f64; 2], f64)>,
-}
-
-impl Room {
-    /// The walls of `robot`'s room and the objects crossing the plane at height `z`.
-    pub fn new(robot: &RobotDescription, z: f64) -> Self {
-        let mut room = Room::default();
-        if let Some(r) = &robot.room {
-            let n = r.walls.len();
-            room.walls = (0..n).map(|i| (r.walls[i], r.walls[(i + 1) % n])).collect();
-        }
-        for o in &robot.object {
-            room.add(o, z);
-        }
-        room
-    }
-
-    fn add(&mut self, o: &SceneObject, z: f64) {
-        match (o.center, o.radius_m, o.min, o.max) {
-            (Some(c), Some(r), _, _) if (c[2] - z).abs() < r => {
-                self.circles
-                    .push(([c[0], c[1]], (r * r - (c[2] - z).powi(2)).sqrt()));
-            }
-            (_, _, Some(min), Some(max)) if min[2] <= z && z <= max[2] => {
-                self.boxes.push(([min[0], min[1]], [max[0], max[1]]));
-            }
-            _ => {}
-        }
-    }
-
-    /// Distance from `o` along the unit direction `d` to the nearest surface, if any.
-    pub fn cast(&self, o: [f64; 2], d: [f64; 2]) -> Option<f64> {
-        let walls = self
-            .walls
-            .iter()
-            .filter_map(|&(a, b)| segment_hit(o, d, a, b));
-        let boxes = self
-            .boxes
-            .iter()
-            .filter_map(|&(lo, hi)| box_hit(o, d, lo, hi));
-        let circles = self
-            .circles
-            .iter()
-            .filter_map(|&(c, r)| circle_hit(o, d, c, r));
-        walls.chain(boxes).chain(circles).reduce(f64::min)
-    }
-}
-
-fn segment_hit(o: [f64; 2], d: [f64; 2], a: [f64; 2], b: [f64; 2]) -> Option<f64> {
-    let e = [b[0] - a[0], b[1] - a[1]];
-    let denom = d[0] * e[1] - d[1] * e[0];
-    if denom.abs() < 1e-12 {
-        return None;
-    }
-    let w = [a[0] - o[0], a[1] - o[1]];
-    let t = (w[0] * e[1] - w[1] * e[0]) / denom;
-    let s = (w[0] * d[1] - w[1] * d[0]) / denom;
-    (t > 1e-9 && (0.0..=1.0).contains(&s)).then_some(t)
-}
-
-fn box_hit(o: [f64; 2], d: [f64; 2], lo: [f64; 2], hi: [f64; 2]) -> Option<f64> {
-    let (mut near, mut far) = (0.0f64, f64::INFINITY);
-    for k in 0..2 {
-        if d[k].abs() < 1e-12 {
-            if o[k] < lo[k] || o[k] > hi[k] {
-                return None;
-            }
-            continue;
-        }
-        let (a, b) = ((lo[k] - o[k]) / d[k], (hi[k] - o[k]) / d[k]);
-        near = near.max(a.min(b));
-        far = far.min(a.max(b));
-    }
-    (near <= far && near > 1e-9).then_some(near)
-}
-
-fn circle_hit(o: [f64; 2], d: [f64; 2], c: [f64; 2], r: f64) -> Option<f64> {
-    let oc = [o[0] - c[0], o[1] - c[1]];
-    let b = oc[0] * d[0] + oc[1] * d[1];
-    let disc = b * b - (oc[0] * oc[0] + oc[1] * oc[1] - r * r);
-    let t = -b - disc.sqrt();
-    (disc >= 0.0 && t > 1e-9).then_some(t)
-}
-
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Mode {
     Idle,
@@ -202,6 +115,8 @@ pub struct LidarDevice {
     /// Index within the turn before which a burst of noise goes out.
     noise_at: Option<u64>,
     report: LidarReport,
+    /// The base's pose in the room: x, y (m), heading (rad).
+    base_pose: [f64; 3],
 }
 
 impl LidarDevice {
@@ -220,7 +135,13 @@ impl LidarDevice {
             cut_at: None,
             noise_at: None,
             report: LidarReport::default(),
+            base_pose: [0.0; 3],
         })
+    }
+
+    /// The base moved: x, y (m), heading (rad) in the room.
+    pub fn set_base_pose(&mut self, pose: [f64; 3]) {
+        self.base_pose = pose;
     }
 
     /// What it did so far.
@@ -353,8 +274,13 @@ impl LidarDevice {
         let d = &self.description;
         let cw_deg = index as f64 * 360.0 / per_turn as f64;
         // The device turns clockwise seen from above; the world's angles run counter-clockwise.
-        let world = (d.yaw_deg - cw_deg).to_radians();
-        let origin = [d.position[0], d.position[1]];
+        let [bx, by, heading] = self.base_pose;
+        let world = heading + (d.yaw_deg - cw_deg).to_radians();
+        let (s, c) = heading.sin_cos();
+        let origin = [
+            bx + c * d.position[0] - s * d.position[1],
+            by + s * d.position[0] + c * d.position[1],
+        ];
         let range = self
             .room
             .cast(origin, [world.cos(), world.sin()])
@@ -554,7 +480,7 @@ mod tests {
         // A ball cut by the plane is a circle of the cut's radius.
         let mut balls = Room::default();
         balls.add(
-            &SceneObject {
+            &crate::description::SceneObject {
                 name: "ball".into(),
                 colour: [0; 3],
                 center: Some([1.0, 0.0, 0.3]),
@@ -622,6 +548,25 @@ mod tests {
         // GET_INFO while scanning is ignored.
         d.receive(1.0, &[0xA5, 0x20, 0xA5, 0x50]);
         assert_eq!(out(&mut d, 1.0).len(), 7);
+    }
+
+    #[test]
+    fn the_beams_leave_from_where_the_base_is_and_turn_with_it() {
+        let mut d = device(LidarFaults::default());
+        // A metre forward and turned a quarter left: the lidar (0.15 m ahead of the centre)
+        // at (1.0, 0.15), its 0° facing +y, the left wall (y = 1.9) 1.75 m ahead; its 90°
+        // (clockwise) faces +x, the far wall (x = 3.2) 2.2 m away.
+        d.set_base_pose([1.0, 0.0, std::f64::consts::FRAC_PI_2]);
+        d.receive(0.0, &[0xA5, 0x20]);
+        let bytes = out(&mut d, 0.05 + 0.1);
+        let nodes: Vec<&[u8]> = bytes[7..].chunks(5).collect();
+        let range = |n: &[u8]| f64::from(u16::from_le_bytes([n[3], n[4]])) / 4000.0;
+        assert!((range(nodes[0]) - 1.75).abs() < 0.03, "{}", range(nodes[0]));
+        assert!(
+            (range(nodes[125]) - 2.2).abs() < 0.03,
+            "{}",
+            range(nodes[125])
+        );
     }
 
     #[test]

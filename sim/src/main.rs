@@ -311,6 +311,17 @@ fn run(args: &ServeArgs) -> Result<()> {
     {
         std::thread::sleep(Duration::from_millis(20));
         let t = start.elapsed().as_secs_f64();
+        // The lidar rides on the base (every 20 ms: 6 mm at the base's 0.3 m/s).
+        if let Some(l) = &lidar {
+            let pose = served
+                .shared_buses()
+                .lock()
+                .ok()
+                .and_then(|b| b.iter().find_map(SimBus::base_pose));
+            if let Some(pose) = pose {
+                l.with_device(|d| d.set_base_pose(pose));
+            }
+        }
         for (s, active) in schedule.advance(t) {
             if is_lidar(s) {
                 if let Some(l) = &lidar {
