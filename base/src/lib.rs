@@ -9,11 +9,20 @@
 //!   speeds, and saturation that keeps a turn a turn.
 //! * [`ramp`]: speed and acceleration limits applied to the commanded twist, cycle by cycle.
 //! * [`odometry`]: pose and twist integrated from the wheels' positions, which wrap at one turn.
+//! * [`controller`]: all of it in one period: command in force, field, ramp, wheel goals, the
+//!   base's state.
+//! * [`field`]: the protective field: the speed from which the base still stops short of what
+//!   the lidar sees in its path.
 
+#[cfg(feature = "process")]
+pub mod config;
+pub mod controller;
 pub mod drive;
+pub mod field;
 pub mod odometry;
 pub mod ramp;
 
 pub use drive::{Geometry, GeometryError, Twist, WheelSpeeds};
+pub use field::{FieldConfig, Verdict};
 pub use odometry::{Odometry, Pose2};
 pub use ramp::{Limits, Ramp};

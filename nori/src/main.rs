@@ -12,6 +12,7 @@
 //! | `nori bench …`, `nori model bench` | `nori-bench …`, `nori-bench model-lab` | `bench` |
 //! | `nori model analyze`, `nori model generate` | `nori-model …` | `model-lab` |
 
+mod base_tool;
 mod plane_tools;
 mod record;
 
@@ -46,6 +47,8 @@ enum Command {
     State(plane_tools::StateArgs),
     /// Send joint goals to the driver (JOINT=RAD ...).
     Goal(plane_tools::GoalArgs),
+    /// Drive the base at a velocity (LINEAR m/s, ANGULAR rad/s) for a while.
+    Base(base_tool::BaseArgs),
     /// Ask the supervisor to re-enable a bus it tripped (granted once the bus has cooled).
     Reenable(plane_tools::ReenableArgs),
     /// The reference inference server: a scripted policy for every robot on the fleet.
@@ -106,6 +109,7 @@ fn main() -> Result<()> {
         Command::State(a) => plane_tools::state(a),
         Command::Goal(a) => plane_tools::goal(a),
         Command::Reenable(a) => plane_tools::reenable(a),
+        Command::Base(a) => base_tool::base(a),
         Command::PolicyServer(p) => run_instead("nori-fleet", &["policy-server"], p),
         Command::Fleet(p) => run_instead("nori-fleet", &["dashboard"], p),
         Command::Router(p) => run_instead("nori-fleet", &["router"], p),

@@ -27,7 +27,7 @@ pub struct PlaneArgs {
 impl PlaneArgs {
     /// Opens the plane as `tool` and waits up to `timeout` for the running driver's layout: the
     /// one source of joint and bus names.
-    fn open(&self, tool: &str, timeout: Duration) -> Result<(Plane, JointLayout)> {
+    pub fn open(&self, tool: &str, timeout: Duration) -> Result<(Plane, JointLayout)> {
         if self.driver_config.is_some() {
             eprintln!(
                 "nori {tool}: --driver-config is ignored: names come from the running driver's layout"
@@ -159,19 +159,7 @@ pub fn state(args: &StateArgs) -> Result<()> {
     let mut out = std::io::stdout().lock();
     quiet_pipe(print_table(&mut out, &frame, &names).and_then(|()| {
         for (name, b) in &buses {
-            use telemetry::frames::{
-                BUS_HEALTH_CONNECTED, BUS_HEALTH_DRIVER_TRIP, BUS_HEALTH_ENABLED, BUS_HEALTH_LATCHED,
-            };
-            let c = &b.counters;
-            writeln!(
-                out,
-                "bus {name}: {}{}; {} cycles, missing {}, checksum {}, framing {}, unexpected {}, implausible {}, status {}, transport {}, disconnects {}, reconnects {}, silences {}, servos lost {}, safety read-backs {} (missing {}), safety mismatches {}",
-                if b.flags & BUS_HEALTH_CONNECTED != 0 { "connected" } else { "LOST" },
-                if b.flags & BUS_HEALTH_ENABLED != 0 { "" } else if b.flags & BUS_HEALTH_LATCHED != 0 { ", OFF: latched by a trip" } else if b.flags & BUS_HEALTH_DRIVER_TRIP != 0 { ", OFF: the driver's last-resort trip" } else { ", OFF: disabled by the supervisor" },
-                c.cycles, c.missing, c.checksum_errors, c.framing_errors, c.unexpected_replies,
-                c.implausible, c.status_errors, c.transport_errors, c.disconnects, c.reconnects, c.silences, c.servos_lost,
-                c.read_backs, c.read_back_missing, c.safety_mismatches
-            )?;
+            writeln!(out, "bus {name}: {b}")?;
         }
         Ok(())
     }))

@@ -198,16 +198,17 @@ pub struct WheelsDescription {
     /// backwards (the left one's drives it forwards).
     #[serde(default)]
     pub right_inverted: bool,
-    /// Radius of the circle around the base's centre that bumps into walls and objects, m.
-    #[serde(default = "default_footprint_radius")]
-    pub footprint_radius_m: f64,
+    /// The base's footprint, a rectangle centred on it: length along its heading and width, m.
+    /// What bumps into walls and objects.
+    #[serde(default = "default_footprint")]
+    pub footprint_m: [f64; 2],
     /// Where the base starts in the room: x, y (m), heading (rad, counter-clockwise from +x).
     #[serde(default)]
     pub start: [f64; 3],
 }
 
-fn default_footprint_radius() -> f64 {
-    0.3
+fn default_footprint() -> [f64; 2] {
+    [0.45, 0.45]
 }
 
 /// One serial bus.
@@ -501,11 +502,14 @@ impl RobotDescription {
                         "a moving base has two wheel servos (left, right) and a track-m".into(),
                     ));
                 }
-                let footprint = w.footprint_radius_m;
-                if !(footprint.is_finite() && footprint > 0.0) {
+                let footprint = w.footprint_m;
+                if !footprint
+                    .iter()
+                    .all(|v| v.is_finite() && *v > 0.0 && *v < 5.0)
+                {
                     return Err(invalid(
-                        at("wheels.footprint-radius-m"),
-                        format!("{footprint} m: a positive radius"),
+                        at("wheels.footprint-m"),
+                        format!("{footprint:?} m: two lengths above 0 and below 5 m"),
                     ));
                 }
                 if !w.start.iter().all(|v| v.is_finite()) {
@@ -587,15 +591,15 @@ mod tests {
         assert!(RobotDescription::parse(&text, "x.toml").is_err());
         for (from, to, key) in [
             (
-                "wheel-radius-m = 0.05",
+                "wheel-radius-m = 0.075",
                 "wheel-radius-m = -0.05",
                 "wheels.wheel-radius-m",
             ),
             ("track-m = 0.36", "track-m = nan", "wheels.track-m"),
             ("track-m = 0.36", "", "wheels"),
             (
-                "footprint-radius-m = 0.32",
-                "footprint-radius-m = 0",
+                "footprint-m = [0.45, 0.45]",
+                "footprint-m = [0.45, 0.0]",
                 "wheels.footprint",
             ),
             (

@@ -68,6 +68,11 @@ impl Run<'_> {
         vec![s("--domain"), s(self.domain)]
     }
 
+    /// `nori-base`, the base's controller.
+    pub fn base(&self) -> Vec<String> {
+        vec![s("--domain"), s(self.domain)]
+    }
+
     /// `nori-lidar` reading the simulator's lidar.
     pub fn lidar(&self) -> Vec<String> {
         vec![

@@ -1,6 +1,7 @@
 //! `nori up`: the whole stack on the simulated robot, for development. Starts the simulator, the
-//! supervisor, the driver, the fleet agent, the lidar and (on request) cameras as separate
-//! processes, restarts a process that dies (with backoff), and on Ctrl-C stops the driver first
+//! supervisor, the driver, the fleet agent, the base controller, the lidar and (on request)
+//! cameras as separate processes, restarts a process that dies (with backoff), and on Ctrl-C
+//! stops the driver first
 //! (it turns torque off while the buses are still there), then the rest. Production uses systemd
 //! (deploy/systemd) instead.
 
@@ -103,6 +104,8 @@ pub fn run(args: &UpArgs) -> Result<()> {
     }
     let mut supervising = Managed::new("supervisor", &sibling("supervisor")?, &run.supervisor());
     let mut fleet_agent = Managed::new("fleet-agent", &sibling("fleet-agent")?, &run.agent());
+    // The base's controller: velocity commands to the wheels, odometry, the protective field.
+    let mut base = Managed::new("nori-base", &sibling("nori-base")?, &run.base());
     if let Some(c) = &args.agent_config {
         fleet_agent.add_args(&["--config".into(), c.display().to_string()]);
     }
@@ -133,6 +136,7 @@ pub fn run(args: &UpArgs) -> Result<()> {
     supervising.start()?;
     bus_driver.start()?;
     fleet_agent.start()?;
+    base.start()?;
     for s in &mut sensors {
         s.start()?;
     }
@@ -153,6 +157,7 @@ pub fn run(args: &UpArgs) -> Result<()> {
         supervising.supervise()?;
         bus_driver.supervise()?;
         fleet_agent.supervise()?;
+        base.supervise()?;
         for s in &mut sensors {
             s.supervise()?;
         }
@@ -162,6 +167,7 @@ pub fn run(args: &UpArgs) -> Result<()> {
     // The agent first: no new goals while the driver turns torque off. The sensors with it (the
     // lidar stops its motor on the way out).
     fleet_agent.stop(Duration::from_secs(5));
+    base.stop(Duration::from_secs(5));
     for s in &mut sensors {
         s.stop(Duration::from_secs(5));
     }

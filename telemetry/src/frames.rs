@@ -541,6 +541,47 @@ pub struct BusHealthEntry {
     pub reserved: u32,
 }
 
+/// One line for operators (`nori state`): connected or lost, why it is off if it is, and the
+/// counts.
+impl std::fmt::Display for BusHealthEntry {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let on = self.flags & BUS_HEALTH_ENABLED != 0;
+        let why_off = if on {
+            ""
+        } else if self.flags & BUS_HEALTH_LATCHED != 0 {
+            ", OFF: latched by a trip"
+        } else if self.flags & BUS_HEALTH_DRIVER_TRIP != 0 {
+            ", OFF: the driver's last-resort trip"
+        } else {
+            ", OFF: disabled by the supervisor"
+        };
+        let connected = self.flags & BUS_HEALTH_CONNECTED != 0;
+        let c = &self.counters;
+        write!(
+            f,
+            "{}{why_off}; {} cycles, missing {}, checksum {}, framing {}, unexpected {}, \
+             implausible {}, status {}, transport {}, disconnects {}, reconnects {}, silences {}, \
+             servos lost {}, safety read-backs {} (missing {}), safety mismatches {}",
+            if connected { "connected" } else { "LOST" },
+            c.cycles,
+            c.missing,
+            c.checksum_errors,
+            c.framing_errors,
+            c.unexpected_replies,
+            c.implausible,
+            c.status_errors,
+            c.transport_errors,
+            c.disconnects,
+            c.reconnects,
+            c.silences,
+            c.servos_lost,
+            c.read_backs,
+            c.read_back_missing,
+            c.safety_mismatches
+        )
+    }
+}
+
 /// [`BusHealthEntry::flags`]: the bus's device is open.
 pub const BUS_HEALTH_CONNECTED: u32 = 1;
 /// [`BusHealthEntry::flags`]: nothing holds the bus off (supervisor, trip record, driver).

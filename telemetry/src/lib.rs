@@ -12,6 +12,7 @@ pub mod config;
 pub mod frames;
 #[cfg(feature = "ipc")]
 pub mod latch;
+pub mod motion;
 #[cfg(feature = "ipc")]
 pub mod plane;
 #[cfg(feature = "ipc")]

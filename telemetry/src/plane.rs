@@ -8,6 +8,7 @@ use crate::frames::{
     Directives, GoalFrame, GripFrame, Heartbeat, JointLayout, JointState, SupervisorCommand,
     SupervisorEvent,
 };
+use crate::motion::{BaseCommand, BaseState};
 use crate::sensors::{CameraFrameHeader, LidarScan};
 use iceoryx2::node::{NodeCreationFailure, NodeListFailure};
 use iceoryx2::port::publisher::{Publisher, PublisherCreateError};
@@ -77,7 +78,7 @@ const fn topic<T>(
 /// supervisor needs every frame of its stall window, so the buffer spans a few cycles.
 pub const JOINT_STATE: Topic<JointState> = topic("nori/joint-state", 1, 16, 2, 8);
 /// Goals into the driver. Not replayed: a restarted driver starts from present positions.
-pub const GOALS: Topic<GoalFrame> = topic("nori/goals", 0, 4, 4, 4);
+pub const GOALS: Topic<GoalFrame> = topic("nori/goals", 0, 4, 8, 4);
 /// Driver → all: the joint layout, published at start (history 1).
 pub const LAYOUT: Topic<JointLayout> = topic("nori/layout", 1, 2, 2, 8);
 /// Supervisor → driver: torque limits and bus enables; newest wins.
@@ -94,6 +95,12 @@ pub const GRIP: Topic<GripFrame> = topic("nori/grip", 1, 16, 2, 8);
 pub const COMMANDS: Topic<SupervisorCommand> = topic("nori/supervisor-commands", 0, 8, 4, 2);
 /// Driver → all: error counts by kind per bus, every 100 ms (history 1: the newest at once).
 pub const BUS_HEALTH: Topic<crate::frames::BusHealth> = topic("nori/bus-health", 1, 4, 2, 8);
+
+/// Tools, the fleet agent → the base controller: velocity commands (a queue: none is lost
+/// between two of the controller's periods; the newest wins).
+pub const BASE_COMMAND: Topic<BaseCommand> = topic("nori/base/command", 0, 8, 4, 2);
+/// Base controller → all: odometry, what it commanded and why, every control period.
+pub const BASE_STATE: Topic<BaseState> = topic("nori/base/state", 1, 4, 1, 8);
 
 /// Lidar → all: one frame per revolution (8–12 Hz). A late subscriber gets the newest at once.
 pub const LIDAR_SCAN: Topic<LidarScan> = topic("nori/lidar/scan", 1, 4, 1, 8);

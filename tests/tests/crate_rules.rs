@@ -14,7 +14,7 @@ use std::process::Command;
 /// Each workspace crate and the workspace crates it may depend on (normal dependencies).
 const ALLOWED: &[(&str, &[&str])] = &[
     ("feetech", &[]),
-    ("base", &[]),
+    ("base", &["telemetry"]),
     ("telemetry", &[]),
     ("bus-driver", &["feetech", "telemetry"]),
     ("supervisor", &["telemetry"]),
@@ -56,6 +56,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
             "camera",
             "lidar",
             "recorder",
+            "base",
         ],
     ),
 ];

@@ -35,6 +35,7 @@ fn the_shipped_configuration_files_are_what_the_binaries_print_and_load() {
         ("fleet-agent", "--print-default-config", "fleet-agent.toml"),
         ("nori-camera", "--print-default-config", "camera.toml"),
         ("nori-lidar", "--print-default-config", "lidar.toml"),
+        ("nori-base", "--print-default-config", "base.toml"),
     ] {
         let shipped = std::fs::read_to_string(deploy().join("config").join(file)).unwrap();
         assert_eq!(
@@ -52,6 +53,7 @@ fn the_shipped_configuration_files_are_what_the_binaries_print_and_load() {
     fleet_agent::AgentConfig::load(&deploy().join("config/fleet-agent.toml")).unwrap();
     camera::config::CamerasConfig::load(&deploy().join("config/camera.toml")).unwrap();
     lidar::config::LidarConfig::load(&deploy().join("config/lidar.toml")).unwrap();
+    base::config::BaseConfig::load(&deploy().join("config/base.toml")).unwrap();
 }
 
 #[test]
@@ -82,6 +84,7 @@ fn the_systemd_units_verify() {
         "nori-fleet-agent.service",
         "nori-camera@head.service",
         "nori-lidar.service",
+        "nori-base.service",
         "nori.target",
     ] {
         let out = Command::new("systemd-analyze")
@@ -151,6 +154,7 @@ fn the_processes_notify_readiness_and_keep_the_watchdog_fed() {
                 "0",
             ],
         ),
+        ("nori-base", vec!["--domain", &domain]),
     ] {
         let path = dir.join(format!("{name}.notify"));
         let socket = UnixDatagram::bind(&path).unwrap();

@@ -1,0 +1,582 @@
+//! The base controller, sans-IO: velocity commands in, the wheels' speed goals and the base's
+//! state out, time passed in. `nori-base` moves its frames; the tests drive it directly.
+//!
+//! Each period: the command in force (none, or one older than the timeout, is a stop), the
+//! protective field's limit along the path (or no motion along it when the lidar's newest
+//! revolution is too old), the ramp's speed and acceleration limits, the wheel speeds scaled
+//! together to the wheels' limit. The odometry takes every joint-state frame that read both
+//! wheels. While the driver drives nothing (its safe state, the wheels' bus off or lost) the
+//! controller sends nothing and starts again from rest.
+
+use crate::drive::{Geometry, Twist};
+use crate::field::FieldConfig;
+use crate::odometry::Odometry;
+use crate::ramp::{Limits, Ramp};
+use telemetry::frames::{
+    JointLayout, JOINT_FLAG_BUS_DISABLED, JOINT_FLAG_BUS_LOST, STATE_FLAG_SAFE_STATE,
+};
+use telemetry::motion::{
+    BaseCommand, BaseState, BASE_FLAG_COMMAND_STALE, BASE_FLAG_FIELD_BLIND,
+    BASE_FLAG_FIELD_SLOWING, BASE_FLAG_FIELD_STOPPED, BASE_FLAG_NOT_DRIVEN, BASE_FLAG_NO_LIDAR,
+    BASE_FLAG_WHEELS_UNREAD,
+};
+use telemetry::sensors::LidarScan;
+use telemetry::{GoalFrame, JointState};
+
+/// A command ahead of the controller's clock by more than this is from the future.
+const FUTURE_NS: u64 = 1_000_000;
+/// Longest interval a period integrates (a stalled process must not ramp in one leap).
+const MAX_DT_S: f64 = 0.1;
+
+/// The controller's settings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ControllerConfig {
+    /// The base's geometry.
+    pub geometry: Geometry,
+    /// Speed and acceleration limits.
+    pub limits: Limits,
+    /// The largest wheel speed sent, rad/s (both wheels scaled together to it).
+    pub max_wheel_speed_rad_s: f64,
+    /// A command older than this is no longer in force: the base stops, ns.
+    pub command_timeout_ns: u64,
+    /// The wheels' joint names (left, right) in the driver's layout.
+    pub wheels: [String; 2],
+    /// The protective field and the oldest revolution it acts on (ns), when the robot has a
+    /// lidar.
+    pub field: Option<(FieldConfig, u64)>,
+}
+
+/// Why a command was not taken.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+pub enum CommandRefusal {
+    /// A speed that is NaN or infinite.
+    #[error("a speed is not a finite number")]
+    NotFinite,
+    /// Stamped ahead of the controller's clock.
+    #[error("stamped {ahead_ms} ms in the future")]
+    FromTheFuture {
+        /// How far ahead.
+        ahead_ms: u64,
+    },
+    /// Older than the command timeout when it arrived.
+    #[error("{age_ms} ms old, beyond the {limit_ms} ms timeout")]
+    Stale {
+        /// Its age.
+        age_ms: u64,
+        /// The timeout.
+        limit_ms: u64,
+    },
+}
+
+/// The layout lacks a wheel.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("the driver's layout has no joint {0:?} (base.wheels names the wheels)")]
+pub struct MissingWheel(pub String);
+
+/// The controller.
+#[derive(Debug, Clone)]
+pub struct Controller {
+    config: ControllerConfig,
+    ramp: Ramp,
+    odometry: Odometry,
+    /// Indices of the wheels in the layout, and the layout's joint count.
+    wheels: Option<([usize; 2], u32)>,
+    command: Option<(Twist, u64)>,
+    refused: u32,
+    seq: u64,
+    last_tick_ns: Option<u64>,
+    /// Whether the newest joint-state frame has the wheels driven, and read.
+    driven: bool,
+    read: bool,
+    wheels_read_ns: u64,
+}
+
+impl Controller {
+    /// A controller at rest at the origin, without a layout yet.
+    pub fn new(config: ControllerConfig) -> Controller {
+        Controller {
+            odometry: Odometry::new(config.geometry),
+            config,
+            ramp: Ramp::new(),
+            wheels: None,
+            command: None,
+            refused: 0,
+            seq: 0,
+            last_tick_ns: None,
+            driven: false,
+            read: false,
+            wheels_read_ns: 0,
+        }
+    }
+
+    /// Takes the driver's layout: finds the wheels by name. Without them (a driver started on
+    /// other buses) the controller drives nothing until a layout has them.
+    pub fn set_layout(&mut self, layout: &JointLayout) -> Result<(), MissingWheel> {
+        self.wheels = None;
+        let find = |name: &str| {
+            layout
+                .joints()
+                .iter()
+                .position(|j| j.name() == name)
+                .ok_or_else(|| MissingWheel(name.to_string()))
+        };
+        let [left, right] = &self.config.wheels;
+        self.wheels = Some(([find(left)?, find(right)?], layout.joint_count));
+        Ok(())
+    }
+
+    /// A velocity command arrived at `now_ns`: in force from now on, unless refused (then
+    /// the one in force stays, until it times out).
+    pub fn on_command(&mut self, c: &BaseCommand, now_ns: u64) -> Result<(), CommandRefusal> {
+        let result = self.check(c, now_ns);
+        match result {
+            Ok(()) => {
+                let twist = Twist::new(f64::from(c.linear_m_s), f64::from(c.angular_rad_s));
+                self.command = Some((twist, c.timestamp_ns));
+            }
+            Err(_) => self.refused = self.refused.saturating_add(1),
+        }
+        result
+    }
+
+    fn check(&self, c: &BaseCommand, now_ns: u64) -> Result<(), CommandRefusal> {
+        if !(c.linear_m_s.is_finite() && c.angular_rad_s.is_finite()) {
+            return Err(CommandRefusal::NotFinite);
+        }
+        if c.timestamp_ns > now_ns + FUTURE_NS {
+            return Err(CommandRefusal::FromTheFuture {
+                ahead_ms: (c.timestamp_ns - now_ns) / 1_000_000,
+            });
+        }
+        let age = now_ns.saturating_sub(c.timestamp_ns);
+        if age > self.config.command_timeout_ns {
+            return Err(CommandRefusal::Stale {
+                age_ms: age / 1_000_000,
+                limit_ms: self.config.command_timeout_ns / 1_000_000,
+            });
+        }
+        Ok(())
+    }
+
+    /// A joint-state frame (every one, in order): the odometry and whether the wheels are
+    /// driven.
+    pub fn on_state(&mut self, s: &JointState) {
+        let Some(([l, r], count)) = self.wheels else {
+            return;
+        };
+        if s.joint_count != count {
+            self.read = false;
+            self.driven = false;
+            return;
+        }
+        let (left, right) = (&s.joints[l], &s.joints[r]);
+        let off = JOINT_FLAG_BUS_DISABLED | JOINT_FLAG_BUS_LOST;
+        self.driven = s.flags & STATE_FLAG_SAFE_STATE == 0
+            && (left.flags | right.flags) & off == 0
+            && left.torque_enabled == 1
+            && right.torque_enabled == 1;
+        self.read = left.is_valid() && right.is_valid();
+        if self.read {
+            self.wheels_read_ns = s.timestamp_ns;
+            self.odometry.update(
+                s.timestamp_ns,
+                [f64::from(left.position_rad), f64::from(right.position_rad)],
+                [
+                    f64::from(left.velocity_rad_s),
+                    f64::from(right.velocity_rad_s),
+                ],
+            );
+        }
+    }
+
+    /// One control period at `now_ns` with the lidar's newest revolution (if any): fills
+    /// `goal` with the wheels' speeds and returns whether to send it, and the base's state.
+    pub fn tick(
+        &mut self,
+        now_ns: u64,
+        scan: Option<&LidarScan>,
+        goal: &mut GoalFrame,
+    ) -> (bool, BaseState) {
+        let dt = self
+            .last_tick_ns
+            .map_or(0.0, |t| now_ns.saturating_sub(t) as f64 * 1e-9)
+            .min(MAX_DT_S);
+        self.last_tick_ns = Some(now_ns);
+        let mut flags = 0;
+        let requested = match self.command {
+            Some((twist, t)) if now_ns.saturating_sub(t) <= self.config.command_timeout_ns => twist,
+            _ => {
+                flags |= BASE_FLAG_COMMAND_STALE;
+                Twist::default()
+            }
+        };
+        let (target, field_free, field_flags) = self.field(requested, now_ns, scan);
+        flags |= field_flags;
+        if !self.read {
+            flags |= BASE_FLAG_WHEELS_UNREAD;
+        }
+        let send = self.driven && self.wheels.is_some();
+        let commanded = if send {
+            self.ramp.step(target, dt, &self.config.limits)
+        } else {
+            flags |= BASE_FLAG_NOT_DRIVEN;
+            self.ramp.reset_to(Twist::default());
+            Twist::default()
+        };
+        if let Some(([l, r], count)) = self.wheels {
+            let g = &self.config.geometry;
+            let w = g
+                .wheel_speeds(commanded)
+                .limited(self.config.max_wheel_speed_rad_s);
+            let [sl, sr] = g.servo_frame([w.left_rad_s, w.right_rad_s]);
+            *goal = GoalFrame {
+                seq: goal.seq + u64::from(send),
+                timestamp_ns: now_ns,
+                joint_count: count,
+                mask: (1 << l) | (1 << r),
+                ..GoalFrame::default()
+            };
+            goal.position_rad[l] = sl as f32;
+            goal.position_rad[r] = sr as f32;
+        }
+        self.seq += 1;
+        let pose = self.odometry.pose();
+        let measured = self.odometry.twist();
+        let state = BaseState {
+            seq: self.seq,
+            timestamp_ns: self.wheels_read_ns,
+            x_m: pose.x_m,
+            y_m: pose.y_m,
+            theta_rad: pose.theta_rad,
+            travelled_m: self.odometry.travelled_m(),
+            linear_m_s: measured.linear_m_s as f32,
+            angular_rad_s: measured.angular_rad_s as f32,
+            requested_linear_m_s: requested.linear_m_s as f32,
+            requested_angular_rad_s: requested.angular_rad_s as f32,
+            commanded_linear_m_s: commanded.linear_m_s as f32,
+            commanded_angular_rad_s: commanded.angular_rad_s as f32,
+            field_distance_m: field_free.map_or(-1.0, |f| f.min(f64::from(f32::MAX)) as f32),
+            flags,
+            commands_refused: self.refused,
+            reserved: 0,
+        };
+        (send, state)
+    }
+
+    /// The target after the protective field, the free distance it saw and its flags.
+    fn field(
+        &self,
+        requested: Twist,
+        now_ns: u64,
+        scan: Option<&LidarScan>,
+    ) -> (Twist, Option<f64>, u32) {
+        let Some((field, max_age_ns)) = &self.config.field else {
+            return (requested, None, BASE_FLAG_NO_LIDAR);
+        };
+        let fresh =
+            scan.filter(|s| s.point_count > 0 && now_ns.saturating_sub(s.end_ns) <= *max_age_ns);
+        let Some(scan) = fresh else {
+            // A lidar that should be there and says nothing: no motion along the path.
+            let turn = Twist::new(0.0, requested.angular_rad_s);
+            return (turn, None, BASE_FLAG_FIELD_BLIND);
+        };
+        // The direction of travel: the one asked for, or while stopping the one still moving.
+        let v = requested.linear_m_s;
+        let forward = if v != 0.0 {
+            v > 0.0
+        } else {
+            self.ramp.twist().linear_m_s >= 0.0
+        };
+        let points = scan
+            .points()
+            .iter()
+            .map(|p| (f64::from(p.angle_rad), f64::from(p.range_m)));
+        let verdict = field.verdict(points, forward, self.config.limits.linear_brake_m_s2);
+        let mut flags = 0;
+        let mut target = requested;
+        if v.abs() > verdict.max_speed_m_s {
+            target.linear_m_s = v.signum() * verdict.max_speed_m_s;
+            flags |= if verdict.max_speed_m_s == 0.0 {
+                BASE_FLAG_FIELD_STOPPED
+            } else {
+                BASE_FLAG_FIELD_SLOWING
+            };
+        }
+        (target, Some(verdict.free_m), flags)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use telemetry::sensors::ScanPoint;
+
+    const MS: u64 = 1_000_000;
+
+    fn config(field: bool) -> ControllerConfig {
+        ControllerConfig {
+            geometry: Geometry::new(0.05, 0.36, false, true).unwrap(),
+            limits: Limits {
+                max_linear_m_s: 0.3,
+                max_angular_rad_s: 1.0,
+                linear_acc_m_s2: 0.5,
+                linear_brake_m_s2: 1.0,
+                angular_acc_rad_s2: 2.0,
+            },
+            max_wheel_speed_rad_s: 6.0,
+            command_timeout_ns: 250 * MS,
+            wheels: ["left_wheel".into(), "right_wheel".into()],
+            field: field.then_some((
+                FieldConfig {
+                    lidar_x_m: 0.15,
+                    lidar_y_m: 0.0,
+                    lidar_yaw_rad: 0.0,
+                    half_width_m: 0.25,
+                    front_m: 0.25,
+                    back_m: 0.25,
+                    stop_margin_m: 0.1,
+                    reaction_s: 0.2,
+                    min_range_m: 0.05,
+                },
+                300 * MS,
+            )),
+        }
+    }
+
+    /// Three joints: an elbow, then the two wheels.
+    fn layout() -> JointLayout {
+        let mut l = JointLayout {
+            joint_count: 3,
+            ..JointLayout::default()
+        };
+        for (i, name) in ["left_elbow", "left_wheel", "right_wheel"]
+            .iter()
+            .enumerate()
+        {
+            l.joints[i].name[..name.len()].copy_from_slice(name.as_bytes());
+        }
+        l
+    }
+
+    fn state(t_ns: u64, wheels: [f32; 2], speeds: [f32; 2]) -> JointState {
+        let mut s = JointState {
+            timestamp_ns: t_ns,
+            joint_count: 3,
+            ..JointState::default()
+        };
+        for (k, j) in [1, 2].into_iter().enumerate() {
+            s.joints[j].valid = 1;
+            s.joints[j].torque_enabled = 1;
+            s.joints[j].position_rad = wheels[k];
+            s.joints[j].velocity_rad_s = speeds[k];
+        }
+        s
+    }
+
+    fn command(t_ns: u64, v: f32, w: f32) -> BaseCommand {
+        BaseCommand {
+            seq: 1,
+            timestamp_ns: t_ns,
+            linear_m_s: v,
+            angular_rad_s: w,
+        }
+    }
+
+    fn ready(field: bool) -> Controller {
+        let mut c = Controller::new(config(field));
+        c.set_layout(&layout()).unwrap();
+        c.on_state(&state(0, [0.0; 2], [0.0; 2]));
+        c
+    }
+
+    /// A wall `at` metres ahead of the lidar, seen at `t_ns`.
+    fn wall(at: f32, t_ns: u64) -> LidarScan {
+        let mut s = LidarScan {
+            end_ns: t_ns,
+            point_count: 360,
+            ..LidarScan::default()
+        };
+        for k in 0..360 {
+            let b = (k as f32).to_radians();
+            let r = if b.cos() > 1e-3 { at / b.cos() } else { 10.0 };
+            s.points[k] = ScanPoint {
+                angle_rad: b,
+                range_m: r.min(10.0),
+                quality: 40,
+                reserved: [0; 3],
+            };
+        }
+        s
+    }
+
+    #[test]
+    fn a_command_ramps_the_wheels_up_and_a_silence_brings_them_to_rest() {
+        let mut c = ready(false);
+        let mut goal = GoalFrame::default();
+        c.on_command(&command(0, 0.3, 0.0), 0).unwrap();
+        let mut t = 0;
+        let mut last = 0.0;
+        // 0.3 m/s at 0.5 m/s²: 0.6 s; the command renewed every 100 ms.
+        for i in 0..=80u64 {
+            t = i * 10 * MS;
+            if i % 10 == 0 {
+                c.on_command(&command(t, 0.3, 0.0), t).unwrap();
+            }
+            let (send, s) = c.tick(t, None, &mut goal);
+            assert!(send && s.flags & BASE_FLAG_NO_LIDAR != 0);
+            assert!(s.commanded_linear_m_s >= last, "{s:?}");
+            last = s.commanded_linear_m_s;
+        }
+        assert!((last - 0.3).abs() < 1e-6);
+        // Wheel goals in each servo's direction: the right one mirrored, the elbow untouched.
+        assert_eq!(goal.mask, 0b110);
+        assert!(
+            (goal.position_rad[1] - 6.0).abs() < 1e-4 && (goal.position_rad[2] + 6.0).abs() < 1e-4
+        );
+        // No command for longer than the timeout: braked to rest at the braking rate.
+        let mut stale_at = None;
+        for i in 1..=60u64 {
+            let now = t + i * 10 * MS;
+            let (_, s) = c.tick(now, None, &mut goal);
+            if s.flags & BASE_FLAG_COMMAND_STALE != 0 && stale_at.is_none() {
+                stale_at = Some(now - t);
+            }
+            if s.commanded_linear_m_s == 0.0 {
+                // The timeout (250 ms) and 0.3 s of braking at 1 m/s².
+                assert!(
+                    now - t <= 250 * MS + 310 * MS,
+                    "stopped after {} ms",
+                    (now - t) / MS
+                );
+                assert_eq!(goal.position_rad[1], 0.0);
+                assert_eq!(stale_at, Some(260 * MS));
+                return;
+            }
+        }
+        panic!("never stopped");
+    }
+
+    #[test]
+    fn bad_commands_are_refused_counted_and_change_nothing() {
+        let mut c = ready(false);
+        let mut goal = GoalFrame::default();
+        c.on_command(&command(0, 0.2, 0.0), 0).unwrap();
+        assert_eq!(
+            c.on_command(&command(0, f32::NAN, 0.0), 0),
+            Err(CommandRefusal::NotFinite)
+        );
+        assert_eq!(
+            c.on_command(&command(0, 0.0, f32::INFINITY), 0),
+            Err(CommandRefusal::NotFinite)
+        );
+        assert!(matches!(
+            c.on_command(&command(500 * MS, 0.0, 0.0), 0),
+            Err(CommandRefusal::FromTheFuture { ahead_ms: 500 })
+        ));
+        assert!(matches!(
+            c.on_command(&command(0, -0.2, 0.0), 300 * MS),
+            Err(CommandRefusal::Stale {
+                age_ms: 300,
+                limit_ms: 250
+            })
+        ));
+        let (_, s) = c.tick(100 * MS, None, &mut goal);
+        assert_eq!(s.requested_linear_m_s, 0.2, "the command in force stays");
+        assert_eq!(s.commands_refused, 4);
+    }
+
+    #[test]
+    fn nothing_is_sent_while_the_driver_drives_nothing_and_it_starts_again_from_rest() {
+        let mut c = ready(false);
+        let mut goal = GoalFrame::default();
+        for i in 0..50u64 {
+            let t = i * 10 * MS;
+            c.on_command(&command(t, 0.3, 0.0), t).unwrap();
+            c.tick(t, None, &mut goal);
+        }
+        let mut safe = state(500 * MS, [0.0; 2], [0.0; 2]);
+        safe.flags = STATE_FLAG_SAFE_STATE;
+        c.on_state(&safe);
+        c.on_command(&command(510 * MS, 0.3, 0.0), 510 * MS)
+            .unwrap();
+        let (send, s) = c.tick(510 * MS, None, &mut goal);
+        assert!(!send && s.flags & BASE_FLAG_NOT_DRIVEN != 0);
+        c.on_state(&state(520 * MS, [0.0; 2], [0.0; 2]));
+        let (send, s) = c.tick(520 * MS, None, &mut goal);
+        assert!(send);
+        assert!(s.commanded_linear_m_s <= 0.5 * 0.01 + 1e-6, "{s:?}");
+        // The wheels' bus off: not driven either.
+        let mut off = state(530 * MS, [0.0; 2], [0.0; 2]);
+        off.joints[2].flags = JOINT_FLAG_BUS_DISABLED;
+        c.on_state(&off);
+        assert!(!c.tick(530 * MS, None, &mut goal).0);
+    }
+
+    #[test]
+    fn the_field_slows_then_stops_the_base_short_of_a_wall_and_a_blind_lidar_stops_it() {
+        let mut c = ready(true);
+        let mut goal = GoalFrame::default();
+        let at = |c: &mut Controller, t: u64, wall_at: f32, goal: &mut GoalFrame| {
+            c.on_command(&command(t, 0.3, 0.4), t).unwrap();
+            c.tick(t, Some(&wall(wall_at, t)), goal).1
+        };
+        at(&mut c, 0, 5.0, &mut goal);
+        let far = at(&mut c, 10 * MS, 5.0, &mut goal);
+        assert_eq!(
+            far.flags & (BASE_FLAG_FIELD_SLOWING | BASE_FLAG_FIELD_STOPPED),
+            0
+        );
+        assert!((far.field_distance_m - 4.9).abs() < 1e-3, "{far:?}");
+        let near = at(&mut c, 20 * MS, 0.28, &mut goal);
+        assert!(near.flags & BASE_FLAG_FIELD_SLOWING != 0, "{near:?}");
+        let touching = at(&mut c, 30 * MS, 0.19, &mut goal);
+        assert!(
+            touching.flags & BASE_FLAG_FIELD_STOPPED != 0,
+            "{touching:?}"
+        );
+        assert_eq!(touching.requested_linear_m_s, 0.3);
+        // Turning stays allowed.
+        assert!(touching.commanded_angular_rad_s > 0.0);
+        // Backing away from the wall is free.
+        c.on_command(&command(40 * MS, -0.2, 0.0), 40 * MS).unwrap();
+        let (_, back) = c.tick(40 * MS, Some(&wall(0.19, 40 * MS)), &mut goal);
+        assert_eq!(back.flags & BASE_FLAG_FIELD_STOPPED, 0, "{back:?}");
+        // A revolution older than 300 ms, or none: no motion along the path.
+        c.on_command(&command(400 * MS, 0.3, 0.5), 400 * MS)
+            .unwrap();
+        let (_, blind) = c.tick(400 * MS, Some(&wall(5.0, 40 * MS)), &mut goal);
+        assert!(blind.flags & BASE_FLAG_FIELD_BLIND != 0);
+        c.on_command(&command(410 * MS, 0.3, 0.5), 410 * MS)
+            .unwrap();
+        let (_, none) = c.tick(410 * MS, None, &mut goal);
+        assert!(none.flags & BASE_FLAG_FIELD_BLIND != 0 && none.requested_linear_m_s == 0.3);
+        assert!(none.commanded_angular_rad_s > 0.0);
+    }
+
+    #[test]
+    fn the_odometry_follows_the_wheels_and_a_layout_without_them_is_refused() {
+        let mut c = ready(false);
+        let mut goal = GoalFrame::default();
+        // Both wheels forward 0.2 rad (the right servo mirrored: −0.2): 1 cm.
+        c.on_state(&state(10 * MS, [0.2, -0.2], [20.0, -20.0]));
+        let (_, s) = c.tick(10 * MS, None, &mut goal);
+        assert!((s.x_m - 0.01).abs() < 1e-6 && s.y_m.abs() < 1e-9, "{s:?}");
+        assert_eq!(s.timestamp_ns, 10 * MS);
+        // A frame that missed a wheel: the pose holds, flagged.
+        let mut missed = state(20 * MS, [0.4, -0.4], [20.0, -20.0]);
+        missed.joints[1].valid = 0;
+        c.on_state(&missed);
+        let (_, s) = c.tick(20 * MS, None, &mut goal);
+        assert!((s.x_m - 0.01).abs() < 1e-6 && s.flags & BASE_FLAG_WHEELS_UNREAD != 0);
+        let mut armless = layout();
+        armless.joint_count = 2;
+        let err = c.set_layout(&armless).unwrap_err();
+        assert_eq!(err, MissingWheel("right_wheel".into()));
+        // Without its wheels it drives nothing (and says so), until a layout has them again.
+        let (send, s) = c.tick(30 * MS, None, &mut goal);
+        assert!(!send && s.flags & BASE_FLAG_NOT_DRIVEN != 0);
+        c.set_layout(&layout()).unwrap();
+        c.on_state(&state(40 * MS, [0.4, -0.4], [0.0, 0.0]));
+        assert!(c.tick(40 * MS, None, &mut goal).0);
+    }
+}

@@ -1,0 +1,131 @@
+//! `nori-base`: the differential base's controller on the state plane. The controller is
+//! `base::controller` (pure); this binary moves its frames each period and reports what it
+//! did at exit (JSON on stdout).
+
+use anyhow::Result;
+use base::config::BaseConfig;
+use base::controller::Controller;
+use clap::Parser;
+use std::time::{Duration, Instant};
+use telemetry::clock::monotonic_ns;
+use telemetry::frames::JointLayout;
+use telemetry::motion::BaseState;
+use telemetry::plane::{self, newest, next, publish, Plane};
+use telemetry::process::{finish, ProcessArgs, ServiceManager, Started};
+use telemetry::sensors::LidarScan;
+use telemetry::GoalFrame;
+
+#[derive(Parser)]
+#[command(
+    version,
+    about = "Nori A3 base controller: velocity commands to the wheels, odometry, the lidar's protective field"
+)]
+struct Args {
+    #[command(flatten)]
+    process: ProcessArgs,
+}
+
+fn main() -> std::process::ExitCode {
+    finish(serve(&Args::parse()), |_| None)
+}
+
+/// What the loop counted.
+#[derive(Debug, Default, serde::Serialize)]
+struct Counters {
+    periods: u64,
+    goals_sent: u64,
+    commands: u64,
+    commands_refused: u64,
+    state_frames: u64,
+    scans: u64,
+    publish_errors: u64,
+}
+
+fn serve(args: &Args) -> Result<()> {
+    let Some(Started { config, shutdown }) = args.process.start::<BaseConfig>()? else {
+        return Ok(());
+    };
+    let run_for = args.process.run_for()?;
+    let node = Plane::open(&args.process.domain, "base")?;
+    node.cleanup_dead();
+    let layouts = node.subscriber(&plane::LAYOUT)?;
+    let states = node.subscriber(&plane::JOINT_STATE)?;
+    let commands = node.subscriber(&plane::BASE_COMMAND)?;
+    let scans = node.subscriber(&plane::LIDAR_SCAN)?;
+    let goals = node.publisher(&plane::GOALS)?;
+    let base_state = node.publisher(&plane::BASE_STATE)?;
+    if config.controller.field.is_none() {
+        tracing::warn!(
+            "no lidar configured ([field] lidar = false): the base moves without a protective field"
+        );
+    }
+    let period = Duration::from_secs_f64(1.0 / config.rate_hz);
+    let mut controller = Controller::new(config.controller);
+    let mut service = ServiceManager::from_env();
+    service.ready("waiting for the driver's layout");
+    let (mut layout, mut scan) = (None::<JointLayout>, None::<LidarScan>);
+    let mut goal = GoalFrame::default();
+    let mut counters = Counters::default();
+    let mut last_refusal_log = None::<Instant>;
+    let started = Instant::now();
+    let mut next_period = Instant::now();
+    while !shutdown.load(std::sync::atomic::Ordering::Relaxed)
+        && run_for.is_none_or(|d| started.elapsed() < d)
+    {
+        service.keepalive(Instant::now());
+        if let Some(l) = newest(&layouts) {
+            if layout.as_ref() != Some(&l) {
+                // A driver on other buses (a test, a bench) has no wheels: wait for one that has.
+                match controller.set_layout(&l) {
+                    Ok(()) => tracing::info!(
+                        "driving the base's wheels; commands on {}",
+                        plane::BASE_COMMAND.name
+                    ),
+                    Err(e) => tracing::warn!("{e}: not driving until it has them"),
+                }
+                layout = Some(l);
+            }
+        }
+        while let Some(s) = next(&states) {
+            controller.on_state(&s);
+            counters.state_frames += 1;
+        }
+        let now = monotonic_ns();
+        while let Some(c) = next(&commands) {
+            counters.commands += 1;
+            if let Err(why) = controller.on_command(&c, now) {
+                counters.commands_refused += 1;
+                // Counted always, logged at most once a second.
+                if last_refusal_log.is_none_or(|t: Instant| t.elapsed() > Duration::from_secs(1)) {
+                    tracing::warn!(seq = c.seq, "base command refused: {why}");
+                    last_refusal_log = Some(Instant::now());
+                }
+            }
+        }
+        if let Some(s) = newest(&scans) {
+            scan = Some(s);
+            counters.scans += 1;
+        }
+        let (send, state): (bool, BaseState) = controller.tick(now, scan.as_ref(), &mut goal);
+        if send {
+            counters.goals_sent += 1;
+            if publish(&goals, &goal).is_err() {
+                counters.publish_errors += 1;
+            }
+        }
+        if publish(&base_state, &state).is_err() {
+            counters.publish_errors += 1;
+        }
+        counters.periods += 1;
+        next_period += period;
+        let now = Instant::now();
+        if next_period > now {
+            std::thread::sleep(next_period - now);
+        } else {
+            next_period = now;
+        }
+    }
+    service.stopping();
+    println!("{}", serde_json::json!({ "counters": counters }));
+    Ok(())
+}

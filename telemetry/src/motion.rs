@@ -1,0 +1,154 @@
+//! Frames of the base's motion: the velocity a tool or a policy asks of the differential base,
+//! and what the base controller (`nori-base`) did with it and measured.
+
+use iceoryx2::prelude::ZeroCopySend;
+
+/// A velocity command for the base, in its own frame. It is in force until a newer one
+/// arrives or it is older than the controller's command timeout (then the base stops).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
+#[type_name("nori::BaseCommand/1")]
+pub struct BaseCommand {
+    /// Sender's sequence number.
+    pub seq: u64,
+    /// When it was made, CLOCK_MONOTONIC ns: its age is judged from this.
+    pub timestamp_ns: u64,
+    /// Forward speed, m/s.
+    pub linear_m_s: f32,
+    /// Turn rate, rad/s, counter-clockwise seen from above.
+    pub angular_rad_s: f32,
+}
+
+/// [`BaseState::flags`]: no command in force (none yet, or the last one is older than the
+/// command timeout): the base is brought to a stop.
+pub const BASE_FLAG_COMMAND_STALE: u32 = 1 << 0;
+/// The protective field lowers the forward (or backward) speed: something is in the base's path.
+pub const BASE_FLAG_FIELD_SLOWING: u32 = 1 << 1;
+/// The protective field allows no motion along the path: the base stops short of an obstacle.
+pub const BASE_FLAG_FIELD_STOPPED: u32 = 1 << 2;
+/// A lidar is configured but its newest revolution is too old (or none came): the base does
+/// not move along its path blind.
+pub const BASE_FLAG_FIELD_BLIND: u32 = 1 << 3;
+/// No lidar on this robot: no protective field (warned at start).
+pub const BASE_FLAG_NO_LIDAR: u32 = 1 << 4;
+/// The wheels were not read in the newest joint-state frame: the odometry holds.
+pub const BASE_FLAG_WHEELS_UNREAD: u32 = 1 << 5;
+/// The driver is in its safe state (or has the wheels' bus off): nothing is driven, the
+/// controller starts again from rest.
+pub const BASE_FLAG_NOT_DRIVEN: u32 = 1 << 6;
+
+/// Each `BASE_FLAG_*` with what it means to an operator.
+pub const BASE_FLAG_NAMES: [(u32, &str); 7] = [
+    (BASE_FLAG_COMMAND_STALE, "no command"),
+    (BASE_FLAG_FIELD_SLOWING, "field: slowing"),
+    (
+        BASE_FLAG_FIELD_STOPPED,
+        "field: stopped short of an obstacle",
+    ),
+    (
+        BASE_FLAG_FIELD_BLIND,
+        "field: lidar silent, no motion along the path",
+    ),
+    (BASE_FLAG_NO_LIDAR, "no lidar"),
+    (BASE_FLAG_WHEELS_UNREAD, "wheels not read"),
+    (
+        BASE_FLAG_NOT_DRIVEN,
+        "not driven (safe state or wheels off)",
+    ),
+];
+
+/// What the base controller did and measured, once per control period.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
+#[type_name("nori::BaseState/1")]
+pub struct BaseState {
+    /// Frames published by this controller, from 1.
+    pub seq: u64,
+    /// When the wheels were last read (the joint-state frame the pose is from), ns.
+    pub timestamp_ns: u64,
+    /// Odometry: position, m, and heading, rad, in the frame the controller started in.
+    pub x_m: f64,
+    /// m.
+    pub y_m: f64,
+    /// rad, within (−π, π].
+    pub theta_rad: f64,
+    /// Path length covered, m.
+    pub travelled_m: f64,
+    /// Measured forward speed, m/s.
+    pub linear_m_s: f32,
+    /// Measured turn rate, rad/s.
+    pub angular_rad_s: f32,
+    /// The command in force (0 when stale), m/s.
+    pub requested_linear_m_s: f32,
+    /// rad/s.
+    pub requested_angular_rad_s: f32,
+    /// Sent to the wheels after the limits and the protective field, m/s.
+    pub commanded_linear_m_s: f32,
+    /// rad/s.
+    pub commanded_angular_rad_s: f32,
+    /// Free distance along the direction of travel (from the body's edge to the nearest point
+    /// the lidar sees in its path), m; negative when none is known.
+    pub field_distance_m: f32,
+    /// `BASE_FLAG_*`.
+    pub flags: u32,
+    /// Commands refused so far (non-finite, from the future, or older than the timeout).
+    pub commands_refused: u32,
+    /// Padding.
+    pub reserved: u32,
+}
+
+impl BaseState {
+    /// What its flags say, for operators.
+    pub fn flag_names(&self) -> impl Iterator<Item = &'static str> + '_ {
+        BASE_FLAG_NAMES
+            .iter()
+            .filter(|(f, _)| self.flags & f != 0)
+            .map(|(_, name)| *name)
+    }
+}
+
+/// One line for operators: pose, measured and sent speeds, flags.
+impl std::fmt::Display for BaseState {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "x {:+.3} m  y {:+.3} m  heading {:+.3} rad  speed {:+.3} m/s {:+.3} rad/s  \
+             sent {:+.3} m/s {:+.3} rad/s",
+            self.x_m,
+            self.y_m,
+            self.theta_rad,
+            self.linear_m_s,
+            self.angular_rad_s,
+            self.commanded_linear_m_s,
+            self.commanded_angular_rad_s,
+        )?;
+        for name in self.flag_names() {
+            write!(f, "  [{name}]")?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A layout change must bump the type name's version.
+    #[test]
+    fn motion_layouts_are_stable() {
+        assert_eq!(std::mem::size_of::<BaseCommand>(), 24);
+        assert_eq!(std::mem::size_of::<BaseState>(), 88);
+    }
+
+    #[test]
+    fn a_state_reads_as_one_line_with_its_flags() {
+        let s = BaseState {
+            x_m: 1.5,
+            flags: BASE_FLAG_COMMAND_STALE | BASE_FLAG_FIELD_BLIND,
+            ..BaseState::default()
+        };
+        let line = s.to_string();
+        assert!(line.starts_with("x +1.500 m"), "{line}");
+        assert!(line.ends_with("[no command]  [field: lidar silent, no motion along the path]"));
+    }
+}

@@ -1,0 +1,230 @@
+//! The base on the simulated robot, as on the robot: the simulator's wheels carry the base
+//! through its room (the truth), the driver drives the two wheel servos, `nori-lidar` scans the
+//! room from the moving base and `nori-base` turns velocity commands into wheel goals. The base
+//! follows a velocity profile and its odometry agrees with where the simulator says it went;
+//! commands that stop stop the wheels within the command timeout and the braking time; a
+//! killed controller leaves no wheel turning beyond the driver's own timeout; driven at a wall,
+//! the protective field stops it short of it.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use nori_tests::{binary, wait_for, ArmStack, Proc};
+use std::time::{Duration, Instant};
+use telemetry::clock::monotonic_ns;
+use telemetry::motion::{
+    BaseCommand, BaseState, BASE_FLAG_FIELD_BLIND, BASE_FLAG_FIELD_STOPPED, BASE_FLAG_NOT_DRIVEN,
+};
+use telemetry::plane::{self, newest, Plane, Pub, Sub};
+use telemetry::JointState;
+
+/// The embedded base.toml's command timeout and braking, and the driver's wheel timeout.
+const COMMAND_TIMEOUT: Duration = Duration::from_millis(250);
+const BRAKE_M_S2: f64 = 1.0;
+const WHEEL_TIMEOUT: Duration = Duration::from_millis(200);
+
+struct Base {
+    stack: ArmStack,
+    lidar: Proc,
+    controller: Proc,
+    starts: u32,
+    commands: Pub<BaseCommand>,
+    states: Sub<BaseState>,
+    joints: Sub<JointState>,
+    seq: u64,
+    _node: Plane,
+}
+
+impl Base {
+    fn start() -> Base {
+        // The base's bus alone (the driver calls its wheels joints 0 and 1), and the lidar.
+        let mut stack = ArmStack::simulator_only_on("base", "base", &[]);
+        stack.restart_supervisor();
+        stack.restart_driver();
+        let dev = stack.dir.join("dev").display().to_string();
+        let lidar = Proc::spawn(
+            "nori-lidar",
+            &binary("nori-lidar"),
+            &["--device-dir", &dev, "--domain", &stack.domain],
+            &stack.dir.join("lidar.log"),
+        );
+        let node = Plane::open(&stack.domain, "test").unwrap();
+        let mut base = Base {
+            commands: node.publisher(&plane::BASE_COMMAND).unwrap(),
+            states: node.subscriber(&plane::BASE_STATE).unwrap(),
+            joints: node.subscriber(&plane::JOINT_STATE).unwrap(),
+            _node: node,
+            stack,
+            lidar,
+            controller: Proc::none("nori-base"),
+            starts: 0,
+            seq: 0,
+        };
+        base.restart_controller();
+        base
+    }
+
+    fn restart_controller(&mut self) {
+        self.controller.kill();
+        self.starts += 1;
+        self.controller = Proc::spawn(
+            "nori-base",
+            &binary("nori-base"),
+            &["--domain", &self.stack.domain],
+            &self.stack.dir.join(format!("base-{}.log", self.starts)),
+        );
+        // Driven (the driver out of its safe state) and seeing (the lidar's revolutions).
+        let states = &self.states;
+        wait_for(
+            Duration::from_secs(30),
+            "the base driven and seeing",
+            || {
+                newest(states)
+                    .filter(|s| s.flags & (BASE_FLAG_NOT_DRIVEN | BASE_FLAG_FIELD_BLIND) == 0)
+            },
+        );
+    }
+
+    fn command(&mut self, v: f32, w: f32) {
+        self.seq += 1;
+        let c = BaseCommand {
+            seq: self.seq,
+            timestamp_ns: monotonic_ns(),
+            linear_m_s: v,
+            angular_rad_s: w,
+        };
+        plane::publish(&self.commands, &c).unwrap();
+    }
+
+    /// Commands (v, w) every 50 ms for `seconds`; returns the controller's states meanwhile.
+    fn drive(&mut self, v: f32, w: f32, seconds: f64) -> Vec<BaseState> {
+        let until = Instant::now() + Duration::from_secs_f64(seconds);
+        let mut seen = Vec::new();
+        while Instant::now() < until {
+            self.command(v, w);
+            std::thread::sleep(Duration::from_millis(50));
+            seen.extend(newest(&self.states));
+        }
+        seen
+    }
+
+    /// How long after `since` (monotonic ns) the wheels first read still (both under 0.05
+    /// rad/s in a frame that read both).
+    fn wheels_still_after(&self, since: u64, within: Duration) -> Duration {
+        wait_for(within, "the wheels still", || {
+            let s = newest(&self.joints)?;
+            let (l, r) = (&s.joints[0], &s.joints[1]);
+            let still = l.is_valid()
+                && r.is_valid()
+                && l.velocity_rad_s.abs() < 0.05
+                && r.velocity_rad_s.abs() < 0.05;
+            (still && s.timestamp_ns > since).then(|| Duration::from_nanos(s.timestamp_ns - since))
+        })
+    }
+
+    /// The simulator's truth: the base's pose (its report, written every second).
+    fn truth(&self) -> serde_json::Value {
+        let text = std::fs::read_to_string(self.stack.dir.join("sim-report.json")).unwrap();
+        let report: serde_json::Value = serde_json::from_str(&text).unwrap();
+        report["buses"][0]["base"].clone()
+    }
+}
+
+#[test]
+fn the_base_follows_knows_where_it_went_stops_when_told_nothing_and_short_of_a_wall() {
+    let mut base = Base::start();
+
+    // From where it starts (facing +x, between the legs of the table in front), straight at
+    // the far wall (x = 3.2 m in the room): the protective field stops the base short of it.
+    let toward = base.drive(0.2, 0.0, 20.0);
+    let stopped_by_field = toward
+        .iter()
+        .any(|s| s.flags & BASE_FLAG_FIELD_STOPPED != 0 && s.commanded_linear_m_s == 0.0);
+    assert!(stopped_by_field, "the field never stopped the base");
+    std::thread::sleep(Duration::from_millis(1500));
+    let truth = base.truth();
+    assert_eq!(truth["bumps"], 0, "the base ran into something: {truth}");
+    let front = truth["x_m"].as_f64().unwrap() + 0.225;
+    assert!(
+        front < 3.2 - 0.05,
+        "its front {front} m, the wall at 3.2 m: {truth}"
+    );
+    assert!(front > 3.2 - 0.5, "stopped far short: front at {front} m");
+    eprintln!("stopped by the field with its front at {front:.3} m, the wall at 3.2 m");
+
+    // A velocity profile from there: back, a turn on the spot and back, an arc.
+    let back = base.drive(-0.15, 0.0, 2.5);
+    base.drive(0.0, 0.8, 1.5);
+    base.drive(0.0, -0.8, 1.5);
+    let arc = base.drive(0.12, 0.3, 2.0);
+    // Followed: once ramped up (0.3 s at 0.5 m/s²), the measured speed is the command's.
+    for (states, v) in [(&back[10..], -0.15), (&arc[10..], 0.12)] {
+        let mean = states.iter().map(|s| s.linear_m_s).sum::<f32>() / states.len() as f32;
+        assert!(
+            (mean - v).abs() < 0.1 * v.abs(),
+            "measured {mean} m/s for {v} m/s"
+        );
+    }
+    let arc_turn = arc[10..].iter().map(|s| s.angular_rad_s).sum::<f32>() / (arc.len() - 10) as f32;
+    assert!(
+        (arc_turn - 0.3).abs() < 0.05,
+        "measured {arc_turn} rad/s for 0.3"
+    );
+
+    // Commands stop: still within the command timeout and the braking from 0.12 m/s (plus a
+    // control period, a driver cycle and the wheels' own deceleration: 150 ms).
+    let last = monotonic_ns();
+    let stopped = base.wheels_still_after(last, Duration::from_secs(3));
+    let bound =
+        COMMAND_TIMEOUT + Duration::from_secs_f64(0.12 / BRAKE_M_S2) + Duration::from_millis(150);
+    assert!(
+        stopped <= bound,
+        "wheels still {stopped:?} after the last command (bound {bound:?})"
+    );
+    assert!(
+        stopped >= COMMAND_TIMEOUT,
+        "stopped before the command had timed out: {stopped:?}"
+    );
+
+    // Where it went: the odometry against the simulator's truth, once the report is fresh.
+    std::thread::sleep(Duration::from_millis(1500));
+    let odometry = newest(&base.states).unwrap();
+    let truth = base.truth();
+    let (tx, ty, tt) = (
+        truth["x_m"].as_f64().unwrap(),
+        truth["y_m"].as_f64().unwrap(),
+        truth["theta_rad"].as_f64().unwrap(),
+    );
+    let travelled = truth["travelled_m"].as_f64().unwrap();
+    assert!(travelled > 0.5, "{truth}");
+    let error = (odometry.x_m - tx).hypot(odometry.y_m - ty);
+    assert!(
+        error < 0.01 + 0.01 * travelled,
+        "odometry {odometry} vs truth {truth}: {error} m off"
+    );
+    assert!(
+        (odometry.theta_rad - tt).abs() < 0.02,
+        "odometry {odometry} vs truth {truth}"
+    );
+    eprintln!("odometry {odometry}; truth {truth}; {error:.4} m off after {travelled:.2} m");
+
+    // The controller killed while driving: the driver stops the wheels on its own timeout.
+    base.drive(0.12, 0.0, 1.0);
+    base.controller.kill();
+    let killed = monotonic_ns();
+    let stopped = base.wheels_still_after(killed, Duration::from_secs(3));
+    assert!(
+        stopped <= WHEEL_TIMEOUT + Duration::from_millis(200),
+        "wheels still only {stopped:?} after the controller died"
+    );
+    base.restart_controller();
+
+    let (code, out) = base.controller.terminate(Duration::from_secs(5));
+    assert_eq!(code, Some(0), "{out}");
+    assert!(out.contains("\"commands_refused\":0"), "{out}");
+    base.lidar.terminate(Duration::from_secs(5));
+    drop(base.commands);
+    drop(base.states);
+    drop(base.joints);
+    drop(base._node);
+    base.stack.stop();
+}
