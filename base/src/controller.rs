@@ -5,8 +5,8 @@
 //! protective field's limit along the path (or no motion along it when the lidar's newest
 //! revolution is too old), the ramp's speed and acceleration limits, the wheel speeds scaled
 //! together to the wheels' limit. The odometry takes every joint-state frame that read both
-//! wheels. While the driver drives nothing (its safe state, the wheels' bus off or lost) the
-//! controller sends nothing and starts again from rest.
+//! wheels. While the driver drives nothing (not heard from for 100 ms, its safe state, the
+//! wheels' bus off or lost) the controller sends nothing and starts again from rest.
 
 use crate::drive::{Geometry, Twist};
 use crate::field::FieldConfig;
@@ -25,6 +25,8 @@ use telemetry::{GoalFrame, JointState};
 
 /// A command ahead of the controller's clock by more than this is from the future.
 const FUTURE_NS: u64 = 1_000_000;
+/// A driver heard from longer ago than this drives nothing (dead, or restarting).
+const STATE_MAX_AGE_NS: u64 = 100_000_000;
 /// Longest interval a period integrates (a stalled process must not ramp in one leap).
 const MAX_DT_S: f64 = 0.1;
 
@@ -89,6 +91,8 @@ pub struct Controller {
     driven: bool,
     read: bool,
     wheels_read_ns: u64,
+    /// The newest joint-state frame's timestamp.
+    state_ns: u64,
 }
 
 impl Controller {
@@ -106,6 +110,7 @@ impl Controller {
             driven: false,
             read: false,
             wheels_read_ns: 0,
+            state_ns: 0,
         }
     }
 
@@ -169,6 +174,7 @@ impl Controller {
             self.driven = false;
             return;
         }
+        self.state_ns = s.timestamp_ns;
         let (left, right) = (&s.joints[l], &s.joints[r]);
         let off = JOINT_FLAG_BUS_DISABLED | JOINT_FLAG_BUS_LOST;
         self.driven = s.flags & STATE_FLAG_SAFE_STATE == 0
@@ -215,7 +221,8 @@ impl Controller {
         if !self.read {
             flags |= BASE_FLAG_WHEELS_UNREAD;
         }
-        let send = self.driven && self.wheels.is_some();
+        let heard = now_ns.saturating_sub(self.state_ns) <= STATE_MAX_AGE_NS;
+        let send = self.driven && heard && self.wheels.is_some();
         let commanded = if send {
             self.ramp.step(target, dt, &self.config.limits)
         } else {
@@ -389,6 +396,17 @@ mod tests {
         c
     }
 
+    /// One period at `t`, the driver heard from just before (its wheels at rest).
+    fn period(
+        c: &mut Controller,
+        t: u64,
+        scan: Option<&LidarScan>,
+        goal: &mut GoalFrame,
+    ) -> (bool, BaseState) {
+        c.on_state(&state(t, [0.0; 2], [0.0; 2]));
+        c.tick(t, scan, goal)
+    }
+
     /// A wall `at` metres ahead of the lidar, seen at `t_ns`.
     fn wall(at: f32, t_ns: u64) -> LidarScan {
         let mut s = LidarScan {
@@ -422,7 +440,7 @@ mod tests {
             if i % 10 == 0 {
                 c.on_command(&command(t, 0.3, 0.0), t).unwrap();
             }
-            let (send, s) = c.tick(t, None, &mut goal);
+            let (send, s) = period(&mut c, t, None, &mut goal);
             assert!(send && s.flags & BASE_FLAG_NO_LIDAR != 0);
             assert!(s.commanded_linear_m_s >= last, "{s:?}");
             last = s.commanded_linear_m_s;
@@ -437,7 +455,7 @@ mod tests {
         let mut stale_at = None;
         for i in 1..=60u64 {
             let now = t + i * 10 * MS;
-            let (_, s) = c.tick(now, None, &mut goal);
+            let (_, s) = period(&mut c, now, None, &mut goal);
             if s.flags & BASE_FLAG_COMMAND_STALE != 0 && stale_at.is_none() {
                 stale_at = Some(now - t);
             }
@@ -480,7 +498,7 @@ mod tests {
                 limit_ms: 250
             })
         ));
-        let (_, s) = c.tick(100 * MS, None, &mut goal);
+        let (_, s) = period(&mut c, 100 * MS, None, &mut goal);
         assert_eq!(s.requested_linear_m_s, 0.2, "the command in force stays");
         assert_eq!(s.commands_refused, 4);
     }
@@ -492,7 +510,7 @@ mod tests {
         for i in 0..50u64 {
             let t = i * 10 * MS;
             c.on_command(&command(t, 0.3, 0.0), t).unwrap();
-            c.tick(t, None, &mut goal);
+            period(&mut c, t, None, &mut goal);
         }
         let mut safe = state(500 * MS, [0.0; 2], [0.0; 2]);
         safe.flags = STATE_FLAG_SAFE_STATE;
@@ -501,8 +519,7 @@ mod tests {
             .unwrap();
         let (send, s) = c.tick(510 * MS, None, &mut goal);
         assert!(!send && s.flags & BASE_FLAG_NOT_DRIVEN != 0);
-        c.on_state(&state(520 * MS, [0.0; 2], [0.0; 2]));
-        let (send, s) = c.tick(520 * MS, None, &mut goal);
+        let (send, s) = period(&mut c, 520 * MS, None, &mut goal);
         assert!(send);
         assert!(s.commanded_linear_m_s <= 0.5 * 0.01 + 1e-6, "{s:?}");
         // The wheels' bus off: not driven either.
@@ -510,6 +527,12 @@ mod tests {
         off.joints[2].flags = JOINT_FLAG_BUS_DISABLED;
         c.on_state(&off);
         assert!(!c.tick(530 * MS, None, &mut goal).0);
+        // A driver not heard from for 100 ms (dead, restarting): not driven either.
+        c.on_state(&state(540 * MS, [0.0; 2], [0.0; 2]));
+        assert!(c.tick(540 * MS, None, &mut goal).0);
+        c.on_command(&command(700 * MS, 0.3, 0.0), 700 * MS)
+            .unwrap();
+        assert!(!c.tick(700 * MS, None, &mut goal).0);
     }
 
     #[test]
@@ -518,7 +541,7 @@ mod tests {
         let mut goal = GoalFrame::default();
         let at = |c: &mut Controller, t: u64, wall_at: f32, goal: &mut GoalFrame| {
             c.on_command(&command(t, 0.3, 0.4), t).unwrap();
-            c.tick(t, Some(&wall(wall_at, t)), goal).1
+            period(c, t, Some(&wall(wall_at, t)), goal).1
         };
         at(&mut c, 0, 5.0, &mut goal);
         let far = at(&mut c, 10 * MS, 5.0, &mut goal);
@@ -539,16 +562,16 @@ mod tests {
         assert!(touching.commanded_angular_rad_s > 0.0);
         // Backing away from the wall is free.
         c.on_command(&command(40 * MS, -0.2, 0.0), 40 * MS).unwrap();
-        let (_, back) = c.tick(40 * MS, Some(&wall(0.19, 40 * MS)), &mut goal);
+        let (_, back) = period(&mut c, 40 * MS, Some(&wall(0.19, 40 * MS)), &mut goal);
         assert_eq!(back.flags & BASE_FLAG_FIELD_STOPPED, 0, "{back:?}");
         // A revolution older than 300 ms, or none: no motion along the path.
         c.on_command(&command(400 * MS, 0.3, 0.5), 400 * MS)
             .unwrap();
-        let (_, blind) = c.tick(400 * MS, Some(&wall(5.0, 40 * MS)), &mut goal);
+        let (_, blind) = period(&mut c, 400 * MS, Some(&wall(5.0, 40 * MS)), &mut goal);
         assert!(blind.flags & BASE_FLAG_FIELD_BLIND != 0);
         c.on_command(&command(410 * MS, 0.3, 0.5), 410 * MS)
             .unwrap();
-        let (_, none) = c.tick(410 * MS, None, &mut goal);
+        let (_, none) = period(&mut c, 410 * MS, None, &mut goal);
         assert!(none.flags & BASE_FLAG_FIELD_BLIND != 0 && none.requested_linear_m_s == 0.3);
         assert!(none.commanded_angular_rad_s > 0.0);
     }

@@ -1,6 +1,7 @@
 //! `driver-rate` (the driver's loop against the wire-timed simulator) and `sim-speed` (batch
 //! simulation against real time).
 
+use crate::base::BaseLoad;
 use crate::cameras::CameraLoad;
 use crate::lidar::LidarLoad;
 use anyhow::{Context, Result};
@@ -47,6 +48,11 @@ pub struct DriverRateArgs {
     /// other one and is unplugged in the rest.
     #[arg(long)]
     lidar: bool,
+    /// Compare against the base controller (`nori-base`, as deployed) driving: fed a stand-in
+    /// driver's wheel readings at 200 Hz, revolutions at 10 Hz and commands at 20 Hz in every
+    /// other half, idle (no layout) in the rest.
+    #[arg(long)]
+    base: bool,
     /// Print one JSON object.
     #[arg(long)]
     json: bool,
@@ -168,7 +174,12 @@ pub fn driver_rate(args: &DriverRateArgs) -> Result<()> {
     // (the stack as deployed), or with --cameras the cameras streaming (both halves as deployed).
     let half = args.seconds / 2.0;
     let domain = format!("nori_bench_sensors_{}", std::process::id());
-    let sensors = args.cameras > 0 || args.lidar;
+    let sensors = args.cameras > 0 || args.lidar || args.base;
+    let base = if args.base {
+        Some(BaseLoad::start(&domain)?)
+    } else {
+        None
+    };
     let lidar = if args.lidar {
         Some(LidarLoad::start(&domain)?)
     } else {
@@ -186,12 +197,16 @@ pub fn driver_rate(args: &DriverRateArgs) -> Result<()> {
     };
     let mut runs: [Vec<RateRun>; 2] = [Vec::new(), Vec::new()];
     let (mut camera_cpu_s, mut lidar_cpu_s, mut streaming_s) = (0.0, 0.0, 0.0);
+    let mut base_cpu_s = 0.0;
     for variant in [false, true, false, true] {
         let read_back = variant || sensors;
         if let Some(load) = &cameras {
             load.feed(variant);
         }
         if let Some(load) = &lidar {
+            load.feed(variant);
+        }
+        if let Some(load) = &base {
             load.feed(variant);
         }
         if sensors {
@@ -205,10 +220,12 @@ pub fn driver_rate(args: &DriverRateArgs) -> Result<()> {
         }
         let camera_before = cameras.as_ref().map_or(0.0, CameraLoad::cpu_seconds);
         let lidar_before = lidar.as_ref().map_or(0.0, LidarLoad::cpu_seconds);
+        let base_before = base.as_ref().map_or(0.0, BaseLoad::cpu_seconds);
         let run = rate_run(&args.buses, args.rate_hz, half, read_back)?;
         if variant {
             camera_cpu_s += cameras.as_ref().map_or(0.0, CameraLoad::cpu_seconds) - camera_before;
             lidar_cpu_s += lidar.as_ref().map_or(0.0, LidarLoad::cpu_seconds) - lidar_before;
+            base_cpu_s += base.as_ref().map_or(0.0, BaseLoad::cpu_seconds) - base_before;
             streaming_s += run.summary.elapsed_s;
         }
         runs[usize::from(variant)].push(run);
@@ -237,6 +254,15 @@ pub fn driver_rate(args: &DriverRateArgs) -> Result<()> {
         })
     });
     drop(lidar);
+    let base_figures = base.as_ref().map(|load| {
+        serde_json::json!({
+            "goals_sent": load.goals_sent(),
+            "driving_seconds": streaming_s,
+            "cpu_percent_of_a_core": 100.0 * base_cpu_s / streaming_s.max(1e-9),
+            "peak_rss_mb": load.peak_rss_mb(),
+        })
+    });
+    drop(base);
     let figures = |r: &[RateRun]| {
         let cycles: u64 = r.iter().map(|x| x.summary.counters.cycles).sum();
         let elapsed: f64 = r.iter().map(|x| x.summary.elapsed_s).sum();
@@ -268,6 +294,7 @@ pub fn driver_rate(args: &DriverRateArgs) -> Result<()> {
         "variant_figures": with,
         "camera_load": camera_figures,
         "lidar_load": lidar_figures,
+        "base_load": base_figures,
         "rate_ratio_variant_to_baseline": hz(&with) / hz(&without).max(1e-9),
         "machine_wakeup_overshoot_p99_us": jitter.0,
         "machine_wakeup_overshoot_max_us": jitter.1,
@@ -300,6 +327,13 @@ pub fn driver_rate(args: &DriverRateArgs) -> Result<()> {
                 "  cameras: {} × {}×{} MJPEG at {} fps into nori-camera (JPEG {} bytes): {} frames published, {:.1} % of a core per camera while streaming, peak RSS {} MB",
                 c["cameras"], c["width"], c["height"], c["fps"], c["jpeg_bytes"], c["frames_published"],
                 c["cpu_per_camera_percent_of_a_core"].as_f64().unwrap_or(f64::NAN), c["peak_rss_mb"]
+            );
+        }
+        if let Some(b) = out["base_load"].as_object() {
+            println!(
+                "  base: nori-base driving (wheel readings at 200 Hz, commands at 20 Hz): {} wheel goal frames sent, {:.1} % of a core while driving, peak RSS {} MB",
+                b["goals_sent"],
+                b["cpu_percent_of_a_core"].as_f64().unwrap_or(f64::NAN), b["peak_rss_mb"]
             );
         }
         if let Some(l) = out["lidar_load"].as_object() {

@@ -3,6 +3,7 @@
 //! absolute times). No timing threshold lives in a test; these are run by hand and recorded in
 //! BENCHMARKS.md with the command that gave each figure.
 
+mod base;
 mod cameras;
 mod driver;
 mod fleet;
