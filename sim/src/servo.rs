@@ -470,13 +470,22 @@ impl Servo {
         let duty = match self.fw.mode {
             1 => {
                 // Speed mode: feed-forward of the back-EMF, proportional and integral action
-                // on the speed error (the integral bounded to what full duty can use).
+                // on the speed error. The integral does not wind up: it stops growing while
+                // the output is at its torque limit (a wheel held by a wall), and a goal of 0
+                // stops the motor (no residue of the last push).
                 let (goal, ke, supply) = (self.fw.speed_goal, self.plant.ke, self.supply.max(1.0));
                 let error = goal - self.speed;
                 let ki = SPEED_KI_PER_S * ke;
-                let bound = supply / ki;
-                self.speed_integral = (self.speed_integral + error * dt).clamp(-bound, bound);
-                (goal * ke + 2.0 * ke * error + ki * self.speed_integral) / supply
+                if goal == 0.0 {
+                    self.speed_integral = 0.0;
+                }
+                let duty = |integral: f64| (goal * ke + 2.0 * ke * error + ki * integral) / supply;
+                let grown = self.speed_integral + error * dt;
+                let cap = self.fw.torque_cap;
+                if duty(grown).abs() <= cap || grown.abs() < self.speed_integral.abs() {
+                    self.speed_integral = grown;
+                }
+                duty(self.speed_integral)
             }
             2 => self.fw.pwm_goal,
             _ => {
@@ -684,12 +693,19 @@ mod tests {
             s.step(0.001, load, 0.05, 25.0, 1.0);
         }
         assert!((s.speed - goal).abs() < 0.02 * goal, "{} rad/s", s.speed);
-        // Held against nearly its stall torque: the speed is what the torque gives (the
-        // integral bounded to full duty; the firmware's overload protection then acts).
-        for _ in 0..2000 {
+        // Held against nearly its stall torque for a while: the speed is what the torque
+        // gives, the integral does not wind up, and a goal of 0 leaves no push behind.
+        for _ in 0..500 {
             s.step(0.001, 2.5, 0.05, 25.0, 1.0);
         }
         assert!(s.speed < goal / 2.0, "{} rad/s", s.speed);
+        write_u16(&mut s, reg::GOAL_VELOCITY, 0);
+        for _ in 0..200 {
+            let load = 0.2 * s.speed;
+            s.step(0.001, load, 0.05, 25.0, 1.0);
+        }
+        assert!(s.speed.abs() < 0.05, "{} rad/s after a goal of 0", s.speed);
+        assert!(s.duty.abs() < 0.05, "still pushing at duty {}", s.duty);
     }
 
     #[test]

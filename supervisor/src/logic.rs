@@ -4,7 +4,7 @@
 use crate::config::{GripCalibration, SupervisorConfig};
 use crate::event::{Event, TripCause};
 use crate::grip::grip_force;
-use crate::stall::{StallAction, StallDetector};
+use crate::stall::{StallAction, StallDetector, StallKind};
 use crate::thermal::{BusThermal, ThermalEvent};
 use std::time::Duration;
 use telemetry::frames::{
@@ -55,7 +55,7 @@ pub use crate::event::NONE;
 pub struct Supervisor {
     config: SupervisorConfig,
     layout: JointLayout,
-    stall: Vec<Option<StallDetector>>,
+    stall: Vec<StallDetector>,
     buses: Vec<BusThermal>,
     grippers: Vec<(usize, GripCalibration)>,
     directives: Directives,
@@ -101,13 +101,13 @@ impl Supervisor {
         }
         let stall = joints
             .iter()
-            .map(|j| match j.role() {
-                JointRole::Wheel => None,
-                role => Some(StallDetector::new(
-                    role == JointRole::Gripper,
-                    config.stall_current(j.model),
-                    &config.stall,
-                )),
+            .map(|j| {
+                let kind = match j.role() {
+                    JointRole::Wheel => StallKind::Wheel,
+                    JointRole::Gripper => StallKind::Gripper,
+                    _ => StallKind::Joint,
+                };
+                StallDetector::new(kind, config.stall_current(j.model), &config.stall)
             })
             .collect();
         let buses = (0..layout.bus_count as usize)
@@ -314,14 +314,17 @@ impl Supervisor {
     fn stall_tier(&mut self, now: u64, joints: &[JointSample]) {
         // Stall detection and reaction.
         for (j, sample) in joints.iter().enumerate() {
-            let Some(detector) = self.stall[j].as_mut() else {
-                continue;
+            let detector = &mut self.stall[j];
+            // A wheel's is its speed (its position wraps; its goal is a speed).
+            let wheel = self.layout.joints[j].role() == JointRole::Wheel;
+            let motion = if wheel {
+                sample.velocity_rad_s
+            } else {
+                sample.position_rad
             };
-            let reading = sample.is_valid().then_some((
-                sample.position_rad,
-                sample.current_a,
-                sample.goal_rad,
-            ));
+            let reading = sample
+                .is_valid()
+                .then_some((motion, sample.current_a, sample.goal_rad));
             let action = detector.update(reading, &self.config.stall);
             let limit = detector.torque_limit_permille(&self.config.stall);
             self.directives.torque_limit_permille[j] = limit;

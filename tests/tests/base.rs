@@ -8,13 +8,14 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use nori_tests::{binary, wait_for, ArmStack, Proc};
+use nori_tests::{binary, scratch, wait_for, ArmStack, Proc};
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
+use telemetry::frames::{EventKind, SupervisorEvent};
 use telemetry::motion::{
     BaseCommand, BaseState, BASE_FLAG_FIELD_BLIND, BASE_FLAG_FIELD_STOPPED, BASE_FLAG_NOT_DRIVEN,
 };
-use telemetry::plane::{self, newest, Plane, Pub, Sub};
+use telemetry::plane::{self, newest, next, Plane, Pub, Sub};
 use telemetry::JointState;
 
 /// The embedded base.toml's command timeout and braking, and the driver's wheel timeout.
@@ -26,6 +27,7 @@ struct Base {
     stack: ArmStack,
     lidar: Proc,
     controller: Proc,
+    base_args: Vec<String>,
     starts: u32,
     commands: Pub<BaseCommand>,
     states: Sub<BaseState>,
@@ -35,9 +37,10 @@ struct Base {
 }
 
 impl Base {
-    fn start() -> Base {
-        // The base's bus alone (the driver calls its wheels joints 0 and 1), and the lidar.
-        let mut stack = ArmStack::simulator_only_on("base", "base", &[]);
+    /// The base's bus alone (the driver calls its wheels joints 0 and 1), the lidar and the
+    /// controller (with `base_args`, e.g. a `--config`), the simulator given `sim_args`.
+    fn start(tag: &str, sim_args: &[&str], base_args: &[&str]) -> Base {
+        let mut stack = ArmStack::simulator_only_on(tag, "base", sim_args);
         stack.restart_supervisor();
         stack.restart_driver();
         let dev = stack.dir.join("dev").display().to_string();
@@ -56,6 +59,7 @@ impl Base {
             stack,
             lidar,
             controller: Proc::none("nori-base"),
+            base_args: base_args.iter().map(|a| a.to_string()).collect(),
             starts: 0,
             seq: 0,
         };
@@ -66,10 +70,12 @@ impl Base {
     fn restart_controller(&mut self) {
         self.controller.kill();
         self.starts += 1;
-        self.controller = Proc::spawn(
+        let mut args = vec!["--domain".to_string(), self.stack.domain.clone()];
+        args.extend(self.base_args.iter().cloned());
+        self.controller = Proc::spawn_owned(
             "nori-base",
             &binary("nori-base"),
-            &["--domain", &self.stack.domain],
+            &args,
             &self.stack.dir.join(format!("base-{}.log", self.starts)),
         );
         // Driven (the driver out of its safe state) and seeing (the lidar's revolutions).
@@ -131,7 +137,7 @@ impl Base {
 
 #[test]
 fn the_base_follows_knows_where_it_went_stops_when_told_nothing_and_short_of_a_wall() {
-    let mut base = Base::start();
+    let mut base = Base::start("base", &[], &[]);
 
     // From where it starts (facing +x, between the legs of the table in front), straight at
     // the far wall (x = 3.2 m in the room): the protective field stops the base short of it.
@@ -221,10 +227,107 @@ fn the_base_follows_knows_where_it_went_stops_when_told_nothing_and_short_of_a_w
     let (code, out) = base.controller.terminate(Duration::from_secs(5));
     assert_eq!(code, Some(0), "{out}");
     assert!(out.contains("\"commands_refused\":0"), "{out}");
-    base.lidar.terminate(Duration::from_secs(5));
-    drop(base.commands);
-    drop(base.states);
-    drop(base.joints);
-    drop(base._node);
-    base.stack.stop();
+    base.stop();
+}
+
+impl Base {
+    fn stop(mut self) -> serde_json::Value {
+        if self.controller.running() {
+            self.controller.terminate(Duration::from_secs(5));
+        }
+        self.lidar.terminate(Duration::from_secs(5));
+        drop(self.commands);
+        drop(self.states);
+        drop(self.joints);
+        drop(self._node);
+        self.stack.stop()
+    }
+}
+
+/// A base with no protective field (a robot without a lidar: `[field] lidar = false`) driven
+/// into a wall: its wheels stall, the supervisor retries once and then reduces their torque, as
+/// for an arm joint, so the motors do not cook pushing; a new command (backing off) restores it.
+#[test]
+fn a_wheel_pushing_a_wall_stalls_and_its_torque_is_reduced_until_the_command_changes() {
+    let files = scratch("base-wall-files");
+    // Started 0.5 m from the far wall (x = 3.2 m), facing it.
+    let robot = files.join("robot.toml");
+    let text = sim::description::NORI_A3_TOML.replacen(
+        "start = [0.0, 0.0, 0.0]",
+        "start = [2.5, 0.0, 0.0]",
+        1,
+    );
+    assert_ne!(text, sim::description::NORI_A3_TOML);
+    std::fs::write(&robot, text).unwrap();
+    let config = files.join("base.toml");
+    let text = base::config::DEFAULT_CONFIG_TOML.replacen("lidar = true", "lidar = false", 1);
+    std::fs::write(&config, text).unwrap();
+    let (robot, config) = (robot.display().to_string(), config.display().to_string());
+    let mut base = Base::start(
+        "base-wall",
+        &["--description", &robot],
+        &["--config", &config],
+    );
+    let events = base._node.subscriber(&plane::EVENTS).unwrap();
+
+    base.drive(0.15, 0.0, 6.0);
+    let seen: Vec<SupervisorEvent> = std::iter::from_fn(|| next(&events)).collect();
+    let of = |kind: EventKind, joint: u8| {
+        seen.iter()
+            .any(|e| e.kind() == Some(kind) && e.joint == joint)
+    };
+    for wheel in [0, 1] {
+        for kind in [
+            EventKind::Stall,
+            EventKind::StallRetry,
+            EventKind::TorqueReduced,
+        ] {
+            assert!(of(kind, wheel), "no {kind:?} of wheel {wheel}: {seen:?}");
+        }
+    }
+    // The reduction reached the servos: Torque_Limit 30 % on each while it pushed.
+    std::thread::sleep(Duration::from_millis(1500));
+    let text = std::fs::read_to_string(base.stack.dir.join("sim-report.json")).unwrap();
+    let report: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let bus = &report["buses"][0];
+    assert!(
+        bus["base"]["bumps"].as_u64().unwrap() >= 1,
+        "it never met the wall: {}",
+        bus["base"]
+    );
+    let changes = bus["torque_limit_changes"].as_array().unwrap();
+    for id in [1, 2] {
+        assert!(
+            changes
+                .iter()
+                .any(|c| c["id"] == id && c["permille"] == 300),
+            "servo {id}'s torque limit never went to 30 %: {changes:?}"
+        );
+    }
+
+    // Backing off is a new command: full torque again, and the base leaves the wall.
+    base.drive(-0.1, 0.0, 2.0);
+    let later: Vec<SupervisorEvent> = std::iter::from_fn(|| next(&events)).collect();
+    for wheel in [0, 1] {
+        assert!(
+            later
+                .iter()
+                .any(|e| e.kind() == Some(EventKind::TorqueRestored) && e.joint == wheel),
+            "wheel {wheel} not restored: {later:?}"
+        );
+    }
+    std::thread::sleep(Duration::from_millis(1500));
+    let truth = base.truth();
+    assert_eq!(truth["blocked"], false, "{truth}");
+    // The stall tier acted before the firmware's own protections (over-current after 1 s):
+    // none fired, so the base's bus was never latched off.
+    let all: Vec<&SupervisorEvent> = seen.iter().chain(&later).collect();
+    assert!(
+        !all.iter()
+            .any(|e| e.kind() == Some(EventKind::FirmwareProtection)),
+        "a firmware protection fired: {all:?}"
+    );
+    drop(events);
+    let report = base.stop();
+    eprintln!("base after the wall: {}", report["buses"][0]["base"]);
 }
