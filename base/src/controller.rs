@@ -333,20 +333,7 @@ mod tests {
             max_wheel_speed_rad_s: 6.0,
             command_timeout_ns: 250 * MS,
             wheels: ["left_wheel".into(), "right_wheel".into()],
-            field: field.then_some((
-                FieldConfig {
-                    lidar_x_m: 0.15,
-                    lidar_y_m: 0.0,
-                    lidar_yaw_rad: 0.0,
-                    half_width_m: 0.25,
-                    front_m: 0.25,
-                    back_m: 0.25,
-                    stop_margin_m: 0.1,
-                    reaction_s: 0.2,
-                    min_range_m: 0.05,
-                },
-                300 * MS,
-            )),
+            field: field.then_some((crate::field::tests::A3, 300 * MS)),
         }
     }
 

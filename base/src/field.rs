@@ -94,10 +94,12 @@ impl FieldConfig {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    const A3: FieldConfig = FieldConfig {
+    /// The A3's field as `base.toml` sets it (a shorter reaction time), for the tests here and
+    /// the controller's.
+    pub(crate) const A3: FieldConfig = FieldConfig {
         lidar_x_m: 0.15,
         lidar_y_m: 0.0,
         lidar_yaw_rad: 0.0,
