@@ -6,6 +6,8 @@
 //! * [`thermal`]: the software tier of the two-tier thermal interlock: warnings from the
 //!   temperature trajectory, the whole bus disabled at 59 °C, latched until cooled and commanded.
 //! * [`grip`]: sensorless grip force from the same current read.
+//! * [`duty`]: the lift motor's duty-cycle budget (its rating as a thermal budget); not yet
+//!   fed by a lift (the column's controller is the `lift` crate).
 //! * [`event`]: what it reports, typed; a state-plane frame only at the edge.
 //! * [`logic`]: all of it as one pure state machine over joint-state frames; the frames'
 //!   timestamps are its clock, so tests drive it with a mock clock.
@@ -15,6 +17,7 @@
 //! It depends only on `telemetry`: it must outlive a crashed driver.
 
 pub mod config;
+pub mod duty;
 pub mod event;
 pub mod grip;
 pub mod logic;

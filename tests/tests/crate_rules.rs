@@ -15,6 +15,7 @@ use std::process::Command;
 const ALLOWED: &[(&str, &[&str])] = &[
     ("feetech", &[]),
     ("base", &["telemetry"]),
+    ("lift", &[]),
     ("telemetry", &[]),
     ("bus-driver", &["feetech", "telemetry"]),
     ("supervisor", &["telemetry"]),

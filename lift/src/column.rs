@@ -1,0 +1,476 @@
+//! The column's controller, sans-IO.
+
+/// The motor-controller board as the controller sees it.
+pub trait LiftActuator {
+    /// A failure of the link to the board.
+    type Error;
+    /// Drives the motor at `velocity_m_s` (up positive) until the next command; the board
+    /// stops it by itself when no command follows within its watchdog time.
+    fn command(&mut self, velocity_m_s: f64) -> Result<(), Self::Error>;
+    /// The board's newest reading.
+    fn read(&mut self) -> Result<LiftReading, Self::Error>;
+}
+
+/// One reading of the board.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct LiftReading {
+    /// When it was taken, s (the caller's monotonic clock).
+    pub t_s: f64,
+    /// Hall counts since the board started (up positive).
+    pub counts: i64,
+    /// Motor current, A.
+    pub current_a: f64,
+    /// The lower limit switch is pressed (the column fully down).
+    pub at_lower: bool,
+    /// The upper limit switch is pressed.
+    pub at_upper: bool,
+}
+
+/// The column and how it is driven.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ColumnConfig {
+    /// Travel between the limit switches, m.
+    pub travel_m: f64,
+    /// Hall counts per metre of travel.
+    pub counts_per_m: f64,
+    /// The soft limits' distance inside each switch, m.
+    pub soft_margin_m: f64,
+    /// Rated speed, m/s.
+    pub max_speed_m_s: f64,
+    /// Acceleration and braking, m/s².
+    pub accel_m_s2: f64,
+    /// Speed while homing (down to the lower switch), m/s.
+    pub homing_speed_m_s: f64,
+    /// A current this high is the motor stalling, A.
+    pub obstruction_current_a: f64,
+    /// Moving at less than this fraction of the commanded speed is not getting anywhere.
+    pub obstruction_speed_fraction: f64,
+    /// Either for this long is an obstruction, s.
+    pub obstruction_time_s: f64,
+    /// How far it backs off an obstruction, m.
+    pub back_off_m: f64,
+    /// A goal this close is reached, m.
+    pub tolerance_m: f64,
+}
+
+impl ColumnConfig {
+    /// The A3's column: 76 cm at 30 mm/s; halls giving 0.1 mm a count.
+    pub const A3: ColumnConfig = ColumnConfig {
+        travel_m: 0.76,
+        counts_per_m: 10_000.0,
+        soft_margin_m: 0.01,
+        max_speed_m_s: 0.03,
+        accel_m_s2: 0.1,
+        homing_speed_m_s: 0.015,
+        obstruction_current_a: 6.0,
+        obstruction_speed_fraction: 0.3,
+        obstruction_time_s: 0.15,
+        back_off_m: 0.01,
+        tolerance_m: 0.001,
+    };
+
+    /// The soft limits: heights a goal is clamped into, m above the lower switch.
+    pub fn soft_limits(&self) -> (f64, f64) {
+        (self.soft_margin_m, self.travel_m - self.soft_margin_m)
+    }
+}
+
+/// Where the controller is.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum LiftState {
+    /// Not homed: no position is trusted, no goal taken.
+    Unhomed,
+    /// Going down to the lower switch.
+    Homing,
+    /// Homed: following goals.
+    Ready,
+    /// Stopped on an obstruction at `at_m` and backing off; a new goal releases it.
+    Obstructed {
+        /// Where it met it, m.
+        at_m: f64,
+    },
+}
+
+/// What happened in a step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum LiftEvent {
+    /// Homed: the lower switch is height 0.
+    Homed,
+    /// Stopped on an obstruction at this height, going up (`true`) or down.
+    Obstruction {
+        /// Height, m.
+        at_m: f64,
+        /// Direction it was going.
+        up: bool,
+    },
+    /// A goal was reached, m.
+    Reached(f64),
+}
+
+/// A goal the controller cannot take.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+pub enum LiftError {
+    /// Not homed yet.
+    #[error("the lift is not homed yet")]
+    NotHomed,
+    /// NaN or infinite.
+    #[error("the height {0} is not a finite number")]
+    NotFinite(f64),
+}
+
+/// The column's controller.
+#[derive(Debug, Clone)]
+pub struct LiftController {
+    config: ColumnConfig,
+    state: LiftState,
+    zero: i64,
+    goal_m: Option<f64>,
+    velocity: f64,
+    last: Option<LiftReading>,
+    /// Since when it has been pushing without getting anywhere, s.
+    stuck_since: Option<f64>,
+}
+
+impl LiftController {
+    /// A controller that knows nothing of where the column is.
+    pub fn new(config: ColumnConfig) -> LiftController {
+        LiftController {
+            config,
+            state: LiftState::Unhomed,
+            zero: 0,
+            goal_m: None,
+            velocity: 0.0,
+            last: None,
+            stuck_since: None,
+        }
+    }
+
+    /// Where it is.
+    pub fn state(&self) -> LiftState {
+        self.state
+    }
+
+    /// The height of `r`, m above the lower switch (`None` before homing).
+    pub fn height_m(&self, r: &LiftReading) -> Option<f64> {
+        match self.state {
+            LiftState::Unhomed | LiftState::Homing => None,
+            _ => Some((r.counts - self.zero) as f64 / self.config.counts_per_m),
+        }
+    }
+
+    /// Starts homing.
+    pub fn home(&mut self) {
+        self.state = LiftState::Homing;
+        self.goal_m = None;
+    }
+
+    /// A new goal height, clamped into the soft limits (returned); it also releases an
+    /// obstruction stop.
+    pub fn set_goal(&mut self, height_m: f64) -> Result<f64, LiftError> {
+        if !height_m.is_finite() {
+            return Err(LiftError::NotFinite(height_m));
+        }
+        if matches!(self.state, LiftState::Unhomed | LiftState::Homing) {
+            return Err(LiftError::NotHomed);
+        }
+        let (lo, hi) = self.config.soft_limits();
+        let goal = height_m.clamp(lo, hi);
+        self.goal_m = Some(goal);
+        self.state = LiftState::Ready;
+        self.stuck_since = None;
+        Ok(goal)
+    }
+
+    /// One step with the board's reading `r`; `allowed` is the duty-cycle budget's word.
+    /// Returns the velocity to command (m/s, up positive) and what happened.
+    pub fn step(&mut self, r: &LiftReading, allowed: bool) -> (f64, Option<LiftEvent>) {
+        let c = self.config;
+        let dt = self.last.map_or(0.0, |l| (r.t_s - l.t_s).clamp(0.0, 0.1));
+        let measured = match self.last {
+            Some(l) if dt > 0.0 => (r.counts - l.counts) as f64 / c.counts_per_m / dt,
+            _ => 0.0,
+        };
+        self.last = Some(*r);
+        let mut event = None;
+        let want = match self.state {
+            LiftState::Unhomed => 0.0,
+            LiftState::Homing if r.at_lower => {
+                self.zero = r.counts;
+                self.state = LiftState::Ready;
+                event = Some(LiftEvent::Homed);
+                0.0
+            }
+            LiftState::Homing => -c.homing_speed_m_s,
+            LiftState::Ready | LiftState::Obstructed { .. } => {
+                let h = (r.counts - self.zero) as f64 / c.counts_per_m;
+                match self.goal_m {
+                    Some(goal) if (goal - h).abs() > c.tolerance_m => {
+                        let distance = goal - h;
+                        distance.signum()
+                            * c.max_speed_m_s
+                                .min((2.0 * c.accel_m_s2 * distance.abs()).sqrt())
+                    }
+                    Some(goal) => {
+                        self.goal_m = None;
+                        if self.state == LiftState::Ready {
+                            event = Some(LiftEvent::Reached(goal));
+                        }
+                        0.0
+                    }
+                    None => 0.0,
+                }
+            }
+        };
+        // Acceleration limit, then the switches, then the duty budget.
+        let step = c.accel_m_s2 * dt;
+        let mut v = self.velocity + (want - self.velocity).clamp(-step, step);
+        if (r.at_upper && v > 0.0) || (r.at_lower && v < 0.0 && self.state != LiftState::Homing) {
+            v = 0.0;
+        }
+        if !allowed {
+            v = 0.0;
+        }
+        if let Some(e) = self.watch_obstruction(r, v, measured) {
+            event = Some(e);
+            v = 0.0;
+        }
+        self.velocity = v;
+        (v, event)
+    }
+
+    /// Pushing without getting anywhere, or at a stall's current, for the obstruction time:
+    /// stop and back off.
+    fn watch_obstruction(&mut self, r: &LiftReading, v: f64, measured: f64) -> Option<LiftEvent> {
+        let c = self.config;
+        let pushing = v.abs() >= 0.5 * c.homing_speed_m_s;
+        let stuck = pushing
+            && (measured.abs() < c.obstruction_speed_fraction * v.abs()
+                || r.current_a.abs() >= c.obstruction_current_a);
+        if !stuck || matches!(self.state, LiftState::Obstructed { .. }) {
+            self.stuck_since = None;
+            return None;
+        }
+        let since = *self.stuck_since.get_or_insert(r.t_s);
+        if r.t_s - since < c.obstruction_time_s {
+            return None;
+        }
+        self.stuck_since = None;
+        if self.state == LiftState::Homing {
+            // Homing stopped short of the switch: something is under the column. Stay unhomed.
+            self.state = LiftState::Unhomed;
+            return Some(LiftEvent::Obstruction {
+                at_m: f64::NAN,
+                up: false,
+            });
+        }
+        let h = (r.counts - self.zero) as f64 / c.counts_per_m;
+        let up = v > 0.0;
+        let (lo, hi) = c.soft_limits();
+        let back = if up {
+            h - c.back_off_m
+        } else {
+            h + c.back_off_m
+        };
+        self.goal_m = Some(back.clamp(lo, hi));
+        self.state = LiftState::Obstructed { at_m: h };
+        Some(LiftEvent::Obstruction { at_m: h, up })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A simulated column, written for these tests: the motor follows its command with a
+    /// 50 ms lag, the switches at the ends, something solid under it at `obstacle_m` (when
+    /// set): driven onto it, it stops and its current rises to a stall's.
+    struct Column {
+        h: f64,
+        v: f64,
+        t: f64,
+        counts_at_start: f64,
+        obstacle_m: Option<f64>,
+    }
+
+    impl Column {
+        fn new(h: f64) -> Column {
+            Column {
+                h,
+                v: 0.0,
+                t: 0.0,
+                counts_at_start: h,
+                obstacle_m: None,
+            }
+        }
+
+        fn step(&mut self, command: f64, dt: f64) -> LiftReading {
+            let c = ColumnConfig::A3;
+            self.v += (command - self.v) * (dt / 0.05).min(1.0);
+            let mut blocked = false;
+            let next = (self.h + self.v * dt).clamp(0.0, c.travel_m);
+            match self.obstacle_m {
+                Some(o) if self.v < 0.0 && next < o => {
+                    blocked = true;
+                    self.h = o;
+                    self.v = 0.0;
+                }
+                _ => self.h = next,
+            }
+            self.t += dt;
+            LiftReading {
+                t_s: self.t,
+                counts: ((self.h - self.counts_at_start) * c.counts_per_m).round() as i64,
+                current_a: if blocked {
+                    8.0
+                } else if command != 0.0 {
+                    1.5
+                } else {
+                    0.0
+                },
+                at_lower: self.h <= 0.0005,
+                at_upper: self.h >= c.travel_m - 0.0005,
+            }
+        }
+    }
+
+    /// Runs `seconds` at 100 Hz; returns the events and the largest speed commanded.
+    fn run(
+        lift: &mut LiftController,
+        col: &mut Column,
+        seconds: f64,
+        allowed: bool,
+    ) -> (Vec<LiftEvent>, f64) {
+        let mut events = Vec::new();
+        let mut fastest: f64 = 0.0;
+        let mut command = 0.0;
+        for _ in 0..(seconds * 100.0).round() as usize {
+            let r = col.step(command, 0.01);
+            let (v, e) = lift.step(&r, allowed);
+            command = v;
+            fastest = fastest.max(v.abs());
+            events.extend(e);
+        }
+        (events, fastest)
+    }
+
+    fn homed() -> (LiftController, Column) {
+        let mut lift = LiftController::new(ColumnConfig::A3);
+        let mut col = Column::new(0.3);
+        assert_eq!(lift.set_goal(0.4), Err(LiftError::NotHomed));
+        lift.home();
+        // 0.3 m at 15 mm/s: 20 s.
+        let (events, _) = run(&mut lift, &mut col, 22.0, true);
+        assert_eq!(events, [LiftEvent::Homed]);
+        (lift, col)
+    }
+
+    #[test]
+    fn it_homes_moves_to_a_height_at_the_rated_speed_and_holds_it() {
+        let (mut lift, mut col) = homed();
+        assert_eq!(lift.set_goal(0.4), Ok(0.4));
+        // 0.4 m at 30 mm/s: about 14 s.
+        let (events, fastest) = run(&mut lift, &mut col, 16.0, true);
+        assert_eq!(events, [LiftEvent::Reached(0.4)]);
+        assert!(fastest <= 0.03 + 1e-9, "{fastest} m/s");
+        assert!((col.h - 0.4).abs() < 0.002, "{} m", col.h);
+        // And holds it.
+        run(&mut lift, &mut col, 5.0, true);
+        assert!((col.h - 0.4).abs() < 0.002, "{} m", col.h);
+    }
+
+    #[test]
+    fn goals_are_clamped_into_the_soft_limits_and_bad_ones_refused() {
+        let (mut lift, mut col) = homed();
+        assert_eq!(lift.set_goal(1.0), Ok(0.75));
+        assert_eq!(lift.set_goal(-3.0), Ok(0.01));
+        assert!(matches!(
+            lift.set_goal(f64::NAN),
+            Err(LiftError::NotFinite(_))
+        ));
+        assert!(matches!(
+            lift.set_goal(f64::INFINITY),
+            Err(LiftError::NotFinite(_))
+        ));
+        lift.set_goal(1.0).unwrap();
+        run(&mut lift, &mut col, 30.0, true);
+        assert!(
+            (col.h - 0.75).abs() < 0.002,
+            "stopped at {} m, not the soft limit",
+            col.h
+        );
+    }
+
+    #[test]
+    fn an_obstruction_under_the_column_stops_it_and_it_backs_off() {
+        let (mut lift, mut col) = homed();
+        lift.set_goal(0.5).unwrap();
+        run(&mut lift, &mut col, 20.0, true);
+        // A hand under it at 0.3 m: coming down onto it.
+        col.obstacle_m = Some(0.3);
+        lift.set_goal(0.1).unwrap();
+        let (events, _) = run(&mut lift, &mut col, 12.0, true);
+        assert!(
+            matches!(events.as_slice(), [LiftEvent::Obstruction { at_m, up: false }] if (at_m - 0.3).abs() < 0.002),
+            "{events:?}"
+        );
+        // Backed off a centimetre and stays there until told otherwise.
+        assert!((col.h - 0.31).abs() < 0.002, "{} m", col.h);
+        assert!(matches!(lift.state(), LiftState::Obstructed { .. }));
+        // The hand gone, a new goal releases it.
+        col.obstacle_m = None;
+        lift.set_goal(0.1).unwrap();
+        let (events, _) = run(&mut lift, &mut col, 12.0, true);
+        assert_eq!(events, [LiftEvent::Reached(0.1)]);
+    }
+
+    #[test]
+    fn the_obstruction_stop_comes_within_its_time_and_the_push_is_short() {
+        let (mut lift, mut col) = homed();
+        lift.set_goal(0.2).unwrap();
+        run(&mut lift, &mut col, 10.0, true);
+        col.obstacle_m = Some(0.1);
+        lift.set_goal(0.01).unwrap();
+        // From the moment it meets the obstacle to the command 0: at most the obstruction
+        // time and a step.
+        let mut met = None;
+        let mut command = 0.0;
+        for _ in 0..1500 {
+            let r = col.step(command, 0.01);
+            if r.current_a >= 8.0 && met.is_none() {
+                met = Some(r.t_s);
+            }
+            let (v, e) = lift.step(&r, true);
+            command = v;
+            if matches!(e, Some(LiftEvent::Obstruction { .. })) {
+                let pushed = r.t_s - met.expect("stopped before meeting it");
+                assert!(pushed <= 0.15 + 0.011, "pushed for {pushed} s");
+                assert_eq!(v, 0.0);
+                return;
+            }
+        }
+        panic!("never stopped");
+    }
+
+    #[test]
+    fn no_travel_when_the_duty_budget_refuses_and_homing_onto_something_stays_unhomed() {
+        let (mut lift, mut col) = homed();
+        lift.set_goal(0.4).unwrap();
+        let (_, fastest) = run(&mut lift, &mut col, 3.0, false);
+        assert_eq!(fastest, 0.0);
+        assert!(col.h < 0.011);
+        let mut lift = LiftController::new(ColumnConfig::A3);
+        let mut col = Column::new(0.3);
+        col.obstacle_m = Some(0.2);
+        lift.home();
+        let (events, _) = run(&mut lift, &mut col, 10.0, true);
+        assert!(
+            matches!(
+                events.as_slice(),
+                [LiftEvent::Obstruction { up: false, .. }]
+            ),
+            "{events:?}"
+        );
+        assert_eq!(lift.state(), LiftState::Unhomed);
+        assert_eq!(lift.set_goal(0.4), Err(LiftError::NotHomed));
+    }
+}
