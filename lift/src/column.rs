@@ -129,6 +129,8 @@ pub struct LiftController {
     last: Option<LiftReading>,
     /// Since when it has been pushing without getting anywhere, s.
     stuck_since: Option<f64>,
+    /// At its goal (within the tolerance) since it last got there.
+    arrived: bool,
 }
 
 impl LiftController {
@@ -142,6 +144,7 @@ impl LiftController {
             velocity: 0.0,
             last: None,
             stuck_since: None,
+            arrived: false,
         }
     }
 
@@ -178,6 +181,7 @@ impl LiftController {
         self.goal_m = Some(goal);
         self.state = LiftState::Ready;
         self.stuck_since = None;
+        self.arrived = false;
         Ok(goal)
     }
 
@@ -203,18 +207,26 @@ impl LiftController {
             LiftState::Homing => -c.homing_speed_m_s,
             LiftState::Ready | LiftState::Obstructed { .. } => {
                 let h = (r.counts - self.zero) as f64 / c.counts_per_m;
+                // Held at the goal: moving again only if it drifts past twice the tolerance
+                // (a sag under load, an overshoot), so it does not hunt around it.
+                let band = if self.arrived {
+                    2.0 * c.tolerance_m
+                } else {
+                    c.tolerance_m
+                };
                 match self.goal_m {
-                    Some(goal) if (goal - h).abs() > c.tolerance_m => {
+                    Some(goal) if (goal - h).abs() > band => {
+                        self.arrived = false;
                         let distance = goal - h;
                         distance.signum()
                             * c.max_speed_m_s
                                 .min((2.0 * c.accel_m_s2 * distance.abs()).sqrt())
                     }
                     Some(goal) => {
-                        self.goal_m = None;
-                        if self.state == LiftState::Ready {
+                        if !self.arrived && self.state == LiftState::Ready {
                             event = Some(LiftEvent::Reached(goal));
                         }
+                        self.arrived = true;
                         0.0
                     }
                     None => 0.0,
@@ -272,6 +284,7 @@ impl LiftController {
             h + c.back_off_m
         };
         self.goal_m = Some(back.clamp(lo, hi));
+        self.arrived = false;
         self.state = LiftState::Obstructed { at_m: h };
         Some(LiftEvent::Obstruction { at_m: h, up })
     }
@@ -373,9 +386,13 @@ mod tests {
         assert_eq!(events, [LiftEvent::Reached(0.4)]);
         assert!(fastest <= 0.03 + 1e-9, "{fastest} m/s");
         assert!((col.h - 0.4).abs() < 0.002, "{} m", col.h);
-        // And holds it.
+        // And holds it: sagged 4 mm under a load, it comes back (once, no hunting).
         run(&mut lift, &mut col, 5.0, true);
         assert!((col.h - 0.4).abs() < 0.002, "{} m", col.h);
+        col.h -= 0.004;
+        let (events, _) = run(&mut lift, &mut col, 3.0, true);
+        assert!((col.h - 0.4).abs() < 0.002, "{} m after a sag", col.h);
+        assert_eq!(events, [LiftEvent::Reached(0.4)]);
     }
 
     #[test]

@@ -18,7 +18,10 @@
 //! a hand). The motor's duty-cycle limit is the supervisor's (`supervisor::duty`): the
 //! controller is told whether travel is allowed.
 
+pub mod board;
 pub mod column;
+#[cfg(feature = "process")]
+pub mod config;
 
 pub use column::{
     ColumnConfig, LiftActuator, LiftController, LiftError, LiftEvent, LiftReading, LiftState,

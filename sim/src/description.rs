@@ -261,6 +261,25 @@ pub struct RobotDescription {
     /// The room's walls (what the lidar sees; the cameras do not draw them).
     #[serde(default)]
     pub room: Option<RoomDescription>,
+    /// The lift column the simulator serves (its board at `<device dir>/lift`).
+    #[serde(default)]
+    pub lift: Option<LiftDescription>,
+}
+
+/// The lift: a telescoping column, its DC motor and the board that drives it.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct LiftDescription {
+    /// Travel between the limit switches, m.
+    pub travel_m: f64,
+    /// Where it stands at start, m above the lower switch (the board counts from there).
+    pub start_m: f64,
+    /// Hall counts per metre.
+    pub counts_per_m: f64,
+    /// The motor's top speed under the load, m/s.
+    pub max_speed_m_s: f64,
+    /// What it carries (head and arms), kg.
+    pub load_kg: f64,
 }
 
 /// The lidar: an RPLIDAR C1 on the base.

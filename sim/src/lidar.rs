@@ -14,21 +14,14 @@
 //!   other requests are ignored while scanning (STOP, RESET and SCAN are not);
 //! * faults: a node whose check bits are broken, a turn cut short, a burst of line noise.
 //!
-//! The lidar rides on the base: its beams leave from where the base is ([`LidarDevice::set_base_pose`],
-//! updated by the simulator as the wheels move it).
+//! The lidar rides on the base: its beams leave from where the base is
+//! ([`LidarDevice::set_base_pose`], updated by the simulator as the wheels move it).
 
 use crate::description::{LidarDescription, RobotDescription};
-use crate::pty::open_pty;
+use crate::device::{SerialDevice, Served};
 use crate::rng::Rng;
 pub use crate::room::Room;
-use nix::poll::{ppoll, PollFd, PollFlags};
-use nix::sys::time::TimeSpec;
-use std::os::fd::{AsFd, OwnedFd};
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
-use std::thread::JoinHandle;
-use std::time::{Duration, Instant};
 
 /// Time from SCAN to the first measurement (the rotor reaching speed).
 const SPIN_UP_S: f64 = 0.05;
@@ -318,126 +311,28 @@ impl LidarDevice {
 }
 
 /// The lidar being served; dropping it stops it.
-pub struct ServedLidar {
-    /// Its device link.
-    pub device: PathBuf,
-    state: Arc<Mutex<LidarDevice>>,
-    plugged: Arc<AtomicBool>,
-    stop: Arc<AtomicBool>,
-    thread: Option<JoinHandle<()>>,
+pub type ServedLidar = Served<LidarDevice>;
+
+impl SerialDevice for LidarDevice {
+    fn receive(&mut self, now: f64, bytes: &[u8]) {
+        LidarDevice::receive(self, now, bytes);
+    }
+
+    fn advance(&mut self, now: f64, write: &mut dyn FnMut(&[u8])) {
+        LidarDevice::advance(self, now, write);
+    }
 }
 
 impl ServedLidar {
     /// What it did so far.
     pub fn report(&self) -> LidarReport {
-        self.state.lock().map(|d| d.report()).unwrap_or_default()
-    }
-
-    /// Unplugs it (its pseudo-terminal closed, its link removed) or plugs it back in.
-    pub fn set_plugged(&self, plugged: bool) {
-        self.plugged.store(plugged, Ordering::SeqCst);
-    }
-
-    /// Runs `f` on the device (to raise a protection stop).
-    pub fn with_device<R>(&self, f: impl FnOnce(&mut LidarDevice) -> R) -> Option<R> {
-        self.state.lock().ok().map(|mut d| f(&mut d))
-    }
-}
-
-impl Drop for ServedLidar {
-    fn drop(&mut self) {
-        self.stop.store(true, Ordering::SeqCst);
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
-        }
-        let _ = std::fs::remove_file(&self.device);
+        self.with_device(|d| d.report()).unwrap_or_default()
     }
 }
 
 /// Serves `device` on a pseudo-terminal linked at `link`, in real time.
 pub fn serve(device: LidarDevice, link: PathBuf) -> Result<ServedLidar, crate::pty::ServeError> {
-    let master = open_pty("lidar", &link)?;
-    let state = Arc::new(Mutex::new(device));
-    let plugged = Arc::new(AtomicBool::new(true));
-    let stop = Arc::new(AtomicBool::new(false));
-    let thread = {
-        let (state, plugged, stop, link) =
-            (state.clone(), plugged.clone(), stop.clone(), link.clone());
-        std::thread::Builder::new()
-            .name("sim-lidar".into())
-            .spawn(move || run(master, &link, &state, &plugged, &stop))
-            .ok()
-    };
-    Ok(ServedLidar {
-        device: link,
-        state,
-        plugged,
-        stop,
-        thread,
-    })
-}
-
-fn run(
-    master: OwnedFd,
-    link: &std::path::Path,
-    state: &Mutex<LidarDevice>,
-    plugged: &AtomicBool,
-    stop: &AtomicBool,
-) {
-    let start = Instant::now();
-    let mut master = Some(master);
-    let mut buf = [0u8; 256];
-    while !stop.load(Ordering::Relaxed) {
-        match (&master, plugged.load(Ordering::SeqCst)) {
-            (Some(_), false) => {
-                master = None;
-                let _ = std::fs::remove_file(link);
-            }
-            (None, true) => match open_pty("lidar", link) {
-                Ok(m) => master = Some(m),
-                Err(e) => tracing::warn!("cannot plug the lidar in again: {e}"),
-            },
-            _ => {}
-        }
-        let now = start.elapsed().as_secs_f64();
-        if let Ok(mut device) = state.lock() {
-            device.advance(now, |bytes| {
-                // Nobody listening, or a full buffer: lost, as on a real line.
-                if let Some(m) = &master {
-                    let _ = nix::unistd::write(m, bytes);
-                }
-            });
-        }
-        // Wake every 2 ms: ten measurements a wake-up at 5 kHz.
-        let Some(m) = &master else {
-            std::thread::sleep(Duration::from_millis(2));
-            continue;
-        };
-        let mut fds = [PollFd::new(m.as_fd(), PollFlags::POLLIN)];
-        let ready = ppoll(
-            &mut fds,
-            Some(TimeSpec::from_duration(Duration::from_millis(2))),
-            None,
-        )
-        .is_ok_and(|n| n > 0);
-        let readable = fds[0]
-            .revents()
-            .is_some_and(|r| r.contains(PollFlags::POLLIN));
-        if ready && readable {
-            match nix::unistd::read(m, &mut buf) {
-                Ok(n) if n > 0 => {
-                    let now = start.elapsed().as_secs_f64();
-                    if let Ok(mut device) = state.lock() {
-                        device.receive(now, &buf[..n]);
-                    }
-                }
-                _ => std::thread::sleep(Duration::from_millis(2)),
-            }
-        } else if ready {
-            // A hang-up (no driver has the line open).
-            std::thread::sleep(Duration::from_millis(2));
-        }
-    }
+    crate::device::serve("lidar", device, link)
 }
 
 #[cfg(test)]

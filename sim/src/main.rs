@@ -93,26 +93,39 @@ struct ServeArgs {
     /// Make the lidar report a protection stop (until a RESET clears it).
     #[arg(long)]
     pub lidar_protection_stop: bool,
+    /// Something solid under the lift column at this height, m (a hand): the column coming
+    /// down stops there, its motor stalled.
+    #[arg(long, value_name = "M")]
+    pub lift_obstacle_at: Option<f64>,
+    /// The obstacle under the lift appears this many seconds after start.
+    #[arg(long, value_name = "S", default_value_t = 0.0)]
+    pub lift_obstacle_from: f64,
 }
 
-/// The simulator's report: one entry per bus, and the lidar's.
+/// The simulator's report: one entry per bus, the lidar's and the lift's.
 #[derive(serde::Serialize)]
 struct SimReport {
     /// Buses.
     buses: Vec<BusReport>,
     /// The lidar, if served.
     lidar: Option<sim::lidar::LidarReport>,
+    /// The lift, if served.
+    lift: Option<sim::lift::LiftReport>,
 }
 
 fn write_report(
     path: &Path,
     buses: &[BusReport],
-    lidar: Option<sim::lidar::LidarReport>,
+    (lidar, lift): (
+        Option<sim::lidar::LidarReport>,
+        Option<sim::lift::LiftReport>,
+    ),
 ) -> Result<()> {
     let tmp = path.with_extension("tmp");
     let report = SimReport {
         buses: buses.to_vec(),
         lidar,
+        lift,
     };
     std::fs::write(&tmp, serde_json::to_vec_pretty(&report)?)
         .with_context(|| format!("writing {}", tmp.display()))?;
@@ -246,7 +259,30 @@ fn run(args: &ServeArgs) -> Result<()> {
         }
         None => None,
     };
-    let lidar_report = || lidar.as_ref().map(sim::lidar::ServedLidar::report);
+    let lift = match &robot.lift {
+        Some(d) => {
+            let mut board = sim::lift::LiftBoard::new(d);
+            if args.lift_obstacle_from <= 0.0 {
+                board.obstacle_m = args.lift_obstacle_at;
+            }
+            let served = sim::device::serve("lift", board, args.dir.join("lift"))?;
+            eprintln!(
+                "nori sim: serving the lift's board (column at {} m of {} m) on {}",
+                d.start_m,
+                d.travel_m,
+                served.device.display()
+            );
+            Some(served)
+        }
+        None => None,
+    };
+    let device_reports = || {
+        (
+            lidar.as_ref().map(sim::lidar::ServedLidar::report),
+            lift.as_ref()
+                .and_then(|l| l.with_device(|b: &mut sim::lift::LiftBoard| b.report())),
+        )
+    };
     // Cameras render only while a reader is connected: a run without nori-camera pays nothing.
     let cameras = sim::camera::serve(
         &robot,
@@ -311,6 +347,11 @@ fn run(args: &ServeArgs) -> Result<()> {
     {
         std::thread::sleep(Duration::from_millis(20));
         let t = start.elapsed().as_secs_f64();
+        if let (Some(l), Some(m)) = (&lift, args.lift_obstacle_at) {
+            if args.lift_obstacle_from > 0.0 && t >= args.lift_obstacle_from {
+                l.with_device(|b: &mut sim::lift::LiftBoard| b.obstacle_m = Some(m));
+            }
+        }
         // The lidar rides on the base (every 20 ms: 6 mm at the base's 0.3 m/s).
         if let Some(l) = &lidar {
             let pose = served
@@ -357,14 +398,15 @@ fn run(args: &ServeArgs) -> Result<()> {
         }
         if let Some(path) = &args.report {
             if last_report.elapsed() >= Duration::from_secs(1) {
-                write_report(path, &served.reports(), lidar_report())?;
+                write_report(path, &served.reports(), device_reports())?;
                 last_report = Instant::now();
             }
         }
     }
     drop(cameras);
-    let final_lidar = lidar_report();
+    let final_lidar = device_reports();
     drop(lidar);
+    drop(lift);
     let reports = served.stop();
     if let Some(path) = &args.report {
         write_report(path, &reports, final_lidar)?;

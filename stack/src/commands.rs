@@ -73,6 +73,11 @@ impl Run<'_> {
         vec![s("--domain"), s(self.domain)]
     }
 
+    /// `nori-lift` driving the simulator's lift.
+    pub fn lift(&self) -> Vec<String> {
+        self.lidar()
+    }
+
     /// `nori-lidar` reading the simulator's lidar.
     pub fn lidar(&self) -> Vec<String> {
         vec![

@@ -106,6 +106,8 @@ pub fn run(args: &UpArgs) -> Result<()> {
     let mut fleet_agent = Managed::new("fleet-agent", &sibling("fleet-agent")?, &run.agent());
     // The base's controller: velocity commands to the wheels, odometry, the protective field.
     let mut base = Managed::new("nori-base", &sibling("nori-base")?, &run.base());
+    // The lift: homes at start, then takes heights (nori/lift/command).
+    let mut lift = Managed::new("nori-lift", &sibling("nori-lift")?, &run.lift());
     if let Some(c) = &args.agent_config {
         fleet_agent.add_args(&["--config".into(), c.display().to_string()]);
     }
@@ -137,6 +139,7 @@ pub fn run(args: &UpArgs) -> Result<()> {
     bus_driver.start()?;
     fleet_agent.start()?;
     base.start()?;
+    lift.start()?;
     for s in &mut sensors {
         s.start()?;
     }
@@ -158,6 +161,7 @@ pub fn run(args: &UpArgs) -> Result<()> {
         bus_driver.supervise()?;
         fleet_agent.supervise()?;
         base.supervise()?;
+        lift.supervise()?;
         for s in &mut sensors {
             s.supervise()?;
         }
@@ -168,6 +172,7 @@ pub fn run(args: &UpArgs) -> Result<()> {
     // lidar stops its motor on the way out).
     fleet_agent.stop(Duration::from_secs(5));
     base.stop(Duration::from_secs(5));
+    lift.stop(Duration::from_secs(5));
     for s in &mut sensors {
         s.stop(Duration::from_secs(5));
     }

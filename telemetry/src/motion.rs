@@ -1,5 +1,6 @@
-//! Frames of the base's motion: the velocity a tool or a policy asks of the differential base,
-//! and what the base controller (`nori-base`) did with it and measured.
+//! Frames of the body's motion: the velocity a tool or a policy asks of the differential base
+//! and what the base controller (`nori-base`) did with it and measured; the height asked of the
+//! lift and where the lift's controller (`nori-lift`) has it.
 
 use iceoryx2::prelude::ZeroCopySend;
 
@@ -129,6 +130,64 @@ impl std::fmt::Display for BaseState {
     }
 }
 
+/// A height for the lift, m above its lowest (the lower switch): clamped into the soft limits
+/// by the lift's controller; refused when older than its timeout on arrival.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
+#[type_name("nori::LiftCommand/1")]
+pub struct LiftCommand {
+    /// Sender's sequence number.
+    pub seq: u64,
+    /// When it was made, CLOCK_MONOTONIC ns.
+    pub timestamp_ns: u64,
+    /// Height, m.
+    pub height_m: f32,
+    /// Padding.
+    pub reserved: u32,
+}
+
+/// [`LiftState::state`]: not homed (no height is known).
+pub const LIFT_UNHOMED: u8 = 0;
+/// Homing: going down to the lower switch.
+pub const LIFT_HOMING: u8 = 1;
+/// Homed, following goals.
+pub const LIFT_READY: u8 = 2;
+/// Stopped on an obstruction (and backed off); a new command releases it.
+pub const LIFT_OBSTRUCTED: u8 = 3;
+/// The board does not answer (unplugged, or its link broken): the board's watchdog holds it.
+pub const LIFT_LINK_LOST: u8 = 4;
+
+/// Where the lift is, every control period of `nori-lift`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
+#[type_name("nori::LiftState/1")]
+pub struct LiftState {
+    /// Frames published, from 1.
+    pub seq: u64,
+    /// When the board's reading was taken, ns.
+    pub timestamp_ns: u64,
+    /// Height, m above the lower switch (NaN before homing).
+    pub height_m: f32,
+    /// The goal in force (clamped), m; NaN when none.
+    pub goal_m: f32,
+    /// Velocity commanded, m/s.
+    pub velocity_m_s: f32,
+    /// Motor current, A.
+    pub current_a: f32,
+    /// `LIFT_*`.
+    pub state: u8,
+    /// Bit 0: lower switch, bit 1: upper switch.
+    pub switches: u8,
+    /// Padding.
+    pub reserved: [u8; 2],
+    /// Obstructions met so far.
+    pub obstructions: u32,
+    /// Commands refused so far (non-finite, stale, before homing).
+    pub commands_refused: u32,
+    /// Frames from the board refused so far (CRC, length).
+    pub bad_frames: u32,
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -138,6 +197,8 @@ mod tests {
     fn motion_layouts_are_stable() {
         assert_eq!(std::mem::size_of::<BaseCommand>(), 24);
         assert_eq!(std::mem::size_of::<BaseState>(), 88);
+        assert_eq!(std::mem::size_of::<LiftCommand>(), 24);
+        assert_eq!(std::mem::size_of::<LiftState>(), 48);
     }
 
     #[test]

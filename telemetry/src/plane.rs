@@ -8,7 +8,7 @@ use crate::frames::{
     Directives, GoalFrame, GripFrame, Heartbeat, JointLayout, JointState, SupervisorCommand,
     SupervisorEvent,
 };
-use crate::motion::{BaseCommand, BaseState};
+use crate::motion::{BaseCommand, BaseState, LiftCommand, LiftState};
 use crate::sensors::{CameraFrameHeader, LidarScan};
 use iceoryx2::node::{NodeCreationFailure, NodeListFailure};
 use iceoryx2::port::publisher::{Publisher, PublisherCreateError};
@@ -101,6 +101,11 @@ pub const BUS_HEALTH: Topic<crate::frames::BusHealth> = topic("nori/bus-health",
 pub const BASE_COMMAND: Topic<BaseCommand> = topic("nori/base/command", 0, 8, 4, 2);
 /// Base controller → all: odometry, what it commanded and why, every control period.
 pub const BASE_STATE: Topic<BaseState> = topic("nori/base/state", 1, 4, 1, 8);
+
+/// Tools, the fleet agent → the lift's controller: heights (a queue; the newest wins).
+pub const LIFT_COMMAND: Topic<LiftCommand> = topic("nori/lift/command", 0, 8, 4, 2);
+/// Lift controller → all: where the lift is, every control period.
+pub const LIFT_STATE: Topic<LiftState> = topic("nori/lift/state", 1, 4, 1, 8);
 
 /// Lidar → all: one frame per revolution (8–12 Hz). A late subscriber gets the newest at once.
 pub const LIDAR_SCAN: Topic<LidarScan> = topic("nori/lidar/scan", 1, 4, 1, 8);

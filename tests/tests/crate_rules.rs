@@ -15,7 +15,7 @@ use std::process::Command;
 const ALLOWED: &[(&str, &[&str])] = &[
     ("feetech", &[]),
     ("base", &["telemetry"]),
-    ("lift", &[]),
+    ("lift", &["telemetry"]),
     ("telemetry", &[]),
     ("bus-driver", &["feetech", "telemetry"]),
     ("supervisor", &["telemetry"]),
@@ -58,6 +58,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
             "lidar",
             "recorder",
             "base",
+            "lift",
         ],
     ),
 ];
@@ -67,7 +68,7 @@ const CONFINED: &[(&str, &[&str])] = &[
     ("zenoh", &["fleet-agent"]),
     ("iceoryx2", &["telemetry"]),
     ("parquet", &["recorder"]),
-    ("serialport", &["bus-driver", "lidar"]),
+    ("serialport", &["bus-driver", "lidar", "lift"]),
     ("v4l", &["camera"]),
     ("tiny_http", &["fleet"]),
     ("prometheus-client", &["fleet"]),
@@ -85,6 +86,8 @@ const ROBOT: &[&str] = &[
     "recorder",
     "camera",
     "lidar",
+    "base",
+    "lift",
     "nori",
 ];
 const OFF_ROBOT: &[&str] = &["fleet", "stack", "bench", "nori-tests", "model-lab", "sim"];

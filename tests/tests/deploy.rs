@@ -36,6 +36,7 @@ fn the_shipped_configuration_files_are_what_the_binaries_print_and_load() {
         ("nori-camera", "--print-default-config", "camera.toml"),
         ("nori-lidar", "--print-default-config", "lidar.toml"),
         ("nori-base", "--print-default-config", "base.toml"),
+        ("nori-lift", "--print-default-config", "lift.toml"),
     ] {
         let shipped = std::fs::read_to_string(deploy().join("config").join(file)).unwrap();
         assert_eq!(
@@ -54,6 +55,7 @@ fn the_shipped_configuration_files_are_what_the_binaries_print_and_load() {
     camera::config::CamerasConfig::load(&deploy().join("config/camera.toml")).unwrap();
     lidar::config::LidarConfig::load(&deploy().join("config/lidar.toml")).unwrap();
     base::config::BaseConfig::load(&deploy().join("config/base.toml")).unwrap();
+    lift::config::LiftConfig::load(&deploy().join("config/lift.toml")).unwrap();
 }
 
 #[test]
@@ -85,6 +87,7 @@ fn the_systemd_units_verify() {
         "nori-camera@head.service",
         "nori-lidar.service",
         "nori-base.service",
+        "nori-lift.service",
         "nori.target",
     ] {
         let out = Command::new("systemd-analyze")

@@ -1,0 +1,202 @@
+//! `nori-lift`: the lift column on the state plane. The board's protocol and the column's
+//! controller are the `lift` library (pure); this binary opens the board's serial line, homes
+//! the column at start, takes heights from `nori/lift/command` and reports on
+//! `nori/lift/state` every period, and what it did at exit (JSON on stdout).
+
+use anyhow::{Context, Result};
+use clap::Parser;
+use lift::board::{self, Decoder, Message};
+use lift::column::{LiftController, LiftEvent, LiftReading, LiftState as Controller};
+use lift::config::LiftConfig;
+use serialport::SerialPort;
+use std::io::{Read, Write};
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+use telemetry::clock::monotonic_ns;
+use telemetry::motion::{
+    LiftState, LIFT_HOMING, LIFT_LINK_LOST, LIFT_OBSTRUCTED, LIFT_READY, LIFT_UNHOMED,
+};
+use telemetry::plane::{self, next, publish, Plane};
+use telemetry::process::{finish, Exit, ProcessArgs, ServiceManager, Started};
+
+#[derive(Parser)]
+#[command(
+    version,
+    about = "Nori A3 lift: the column's board onto the state plane (homing, heights, obstruction stop)"
+)]
+struct Args {
+    #[command(flatten)]
+    process: ProcessArgs,
+    /// Open the board at DIR/lift (the simulator's pseudo-terminal) instead of its device.
+    #[arg(long, value_name = "DIR")]
+    device_dir: Option<PathBuf>,
+}
+
+fn main() -> std::process::ExitCode {
+    finish(serve(&Args::parse()), |e| {
+        // The board not plugged in: restarting helps once it is.
+        e.downcast_ref::<serialport::Error>()
+            .map(|_| Exit::Unavailable)
+    })
+}
+
+/// What the loop counted.
+#[derive(Debug, Default, serde::Serialize)]
+struct Counters {
+    periods: u64,
+    statuses: u64,
+    drives: u64,
+    commands: u64,
+    commands_refused: u32,
+    obstructions: u32,
+    link_losses: u64,
+}
+
+fn serve(args: &Args) -> Result<()> {
+    let Some(Started { config, shutdown }) = args.process.start::<LiftConfig>()? else {
+        return Ok(());
+    };
+    let config = match &args.device_dir {
+        Some(dir) => config.with_device_dir(dir),
+        None => config,
+    };
+    let run_for = args.process.run_for()?;
+    let mut port = serialport::new(config.device.to_string_lossy(), config.baud)
+        .timeout(Duration::from_millis(1))
+        .open_native()
+        .with_context(|| format!("the lift's board at {}", config.device.display()))?;
+    let node = Plane::open(&args.process.domain, "lift")?;
+    node.cleanup_dead();
+    let commands = node.subscriber(&plane::LIFT_COMMAND)?;
+    let states = node.publisher(&plane::LIFT_STATE)?;
+    let mut service = ServiceManager::from_env();
+    service.ready("homing the lift");
+    let period = Duration::from_secs_f64(1.0 / config.rate_hz);
+    let max_age_ns = config.command_max_age.as_nanos() as u64;
+    let mut controller = LiftController::new(config.column);
+    controller.home();
+    let mut decoder = Decoder::new();
+    let (mut reading, mut heard) = (None::<LiftReading>, Instant::now());
+    let (mut velocity, mut goal) = (0.0, f32::NAN);
+    let mut counters = Counters::default();
+    let mut out = [0u8; 21];
+    let mut buf = [0u8; 256];
+    let started = Instant::now();
+    let mut next_period = Instant::now();
+    while !shutdown.load(std::sync::atomic::Ordering::Relaxed)
+        && run_for.is_none_or(|d| started.elapsed() < d)
+    {
+        service.keepalive(Instant::now());
+        let now_ns = monotonic_ns();
+        let t_s = now_ns as f64 * 1e-9;
+        let mut fresh = None;
+        while port.bytes_to_read().unwrap_or(0) > 0 {
+            let Ok(n) = port.read(&mut buf) else { break };
+            decoder.push(&buf[..n], |m| {
+                if let Message::Status(s) = m {
+                    fresh = Some(s);
+                }
+            });
+        }
+        if let Some(s) = fresh {
+            counters.statuses += 1;
+            heard = Instant::now();
+            reading = Some(LiftReading {
+                t_s,
+                counts: i64::from(s.counts),
+                current_a: f64::from(s.current_ma) * 1e-3,
+                at_lower: s.switches & 1 != 0,
+                at_upper: s.switches & 2 != 0,
+            });
+        }
+        let lost = heard.elapsed() > config.silence;
+        if lost && reading.is_some() {
+            // The board may have restarted (its counts with it): home again once it is back.
+            tracing::warn!("the lift's board went silent: homing again when it answers");
+            counters.link_losses += 1;
+            reading = None;
+            controller.home();
+        }
+        while let Some(c) = next(&commands) {
+            counters.commands += 1;
+            let age = now_ns.saturating_sub(c.timestamp_ns);
+            let taken = if age > max_age_ns || c.timestamp_ns > now_ns + 1_000_000 {
+                Err(format!("{} ms old", age / 1_000_000))
+            } else {
+                controller
+                    .set_goal(f64::from(c.height_m))
+                    .map_err(|e| e.to_string())
+            };
+            match taken {
+                Ok(g) => goal = g as f32,
+                Err(why) => {
+                    counters.commands_refused += 1;
+                    tracing::warn!(seq = c.seq, "lift command refused: {why}");
+                }
+            }
+        }
+        if let (Some(r), Some(_)) = (reading, fresh) {
+            let (v, event) = controller.step(&r, true);
+            velocity = v;
+            match event {
+                Some(LiftEvent::Obstruction { at_m, up }) => {
+                    counters.obstructions += 1;
+                    tracing::warn!(
+                        at_m,
+                        up,
+                        "the lift met an obstruction: stopped, backing off"
+                    );
+                }
+                Some(LiftEvent::Homed) => tracing::info!("the lift is homed"),
+                Some(LiftEvent::Reached(h)) => tracing::info!(height_m = h, "the lift is there"),
+                None => {}
+            }
+        }
+        if !lost {
+            let n = board::drive(velocity, &mut out);
+            if port.write_all(&out[..n]).is_ok() {
+                counters.drives += 1;
+            }
+        }
+        let state = LiftState {
+            seq: counters.periods + 1,
+            timestamp_ns: now_ns,
+            height_m: reading
+                .and_then(|r| controller.height_m(&r))
+                .map_or(f32::NAN, |h| h as f32),
+            goal_m: goal,
+            velocity_m_s: velocity as f32,
+            current_a: reading.map_or(0.0, |r| r.current_a as f32),
+            state: if lost {
+                LIFT_LINK_LOST
+            } else {
+                match controller.state() {
+                    Controller::Unhomed => LIFT_UNHOMED,
+                    Controller::Homing => LIFT_HOMING,
+                    Controller::Ready => LIFT_READY,
+                    Controller::Obstructed { .. } => LIFT_OBSTRUCTED,
+                }
+            },
+            switches: reading.map_or(0, |r| u8::from(r.at_lower) | (u8::from(r.at_upper) << 1)),
+            reserved: [0; 2],
+            obstructions: counters.obstructions,
+            commands_refused: counters.commands_refused,
+            bad_frames: decoder.bad_frames as u32,
+        };
+        let _ = publish(&states, &state);
+        counters.periods += 1;
+        next_period += period;
+        let now = Instant::now();
+        if next_period > now {
+            std::thread::sleep(next_period - now);
+        } else {
+            next_period = now;
+        }
+    }
+    // Stop the motor on the way out (the board's watchdog would, 100 ms later).
+    let n = board::drive(0.0, &mut out);
+    let _ = port.write_all(&out[..n]);
+    service.stopping();
+    println!("{}", serde_json::json!({ "counters": counters }));
+    Ok(())
+}

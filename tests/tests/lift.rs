@@ -1,0 +1,156 @@
+//! The lift on the simulated robot, as on the robot: the simulator serves the column's board on
+//! a pseudo-terminal (its motor, halls, switches and watchdog), `nori-lift` drives it. The lift
+//! homes, goes to a height at its rated speed and holds it (the simulator's truth agrees), a
+//! stale command is refused, and coming down onto a hand it stops within its obstruction time
+//! and backs off.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use nori_tests::{binary, scratch, wait_for, ArmStack, Proc};
+use std::time::{Duration, Instant};
+use telemetry::clock::monotonic_ns;
+use telemetry::motion::{LiftCommand, LiftState, LIFT_OBSTRUCTED, LIFT_READY};
+use telemetry::plane::{self, newest, Plane};
+
+/// The column's obstruction time (lift.toml) and a control period and a status period of slack.
+const PRESS_BOUND_S: f64 = 0.15 + 0.02 + 0.02;
+
+#[test]
+fn the_lift_homes_goes_to_a_height_holds_it_and_stops_on_a_hand() {
+    let files = scratch("lift-files");
+    // Standing 5 cm up at start (homing takes seconds, not twenty), a hand appearing under it
+    // at 0.25 m after 24 s.
+    let robot = files.join("robot.toml");
+    let text = sim::description::NORI_A3_TOML.replacen("start-m = 0.3", "start-m = 0.05", 1);
+    assert_ne!(text, sim::description::NORI_A3_TOML);
+    std::fs::write(&robot, text).unwrap();
+    let robot = robot.display().to_string();
+    let started = Instant::now();
+    let stack = ArmStack::simulator_only_on(
+        "lift",
+        "base",
+        &[
+            "--description",
+            &robot,
+            "--lift-obstacle-at",
+            "0.25",
+            "--lift-obstacle-from",
+            "24",
+        ],
+    );
+    let dev = stack.dir.join("dev").display().to_string();
+    // (Started before the simulator links the board, nori-lift exits 69 as it should without
+    // its board; systemd would start it again.)
+    let link = stack.dir.join("dev").join("lift");
+    wait_for(Duration::from_secs(10), "the lift's board", || {
+        link.exists().then_some(())
+    });
+    let mut lift = Proc::spawn(
+        "nori-lift",
+        &binary("nori-lift"),
+        &["--device-dir", &dev, "--domain", &stack.domain],
+        &stack.dir.join("lift.log"),
+    );
+    let node = Plane::open(&stack.domain, "test").unwrap();
+    let commands = node.publisher(&plane::LIFT_COMMAND).unwrap();
+    let states = node.subscriber(&plane::LIFT_STATE).unwrap();
+    let truth = || -> f64 {
+        let text = std::fs::read_to_string(stack.dir.join("sim-report.json")).unwrap();
+        let report: serde_json::Value = serde_json::from_str(&text).unwrap();
+        report["lift"]["height_m"].as_f64().unwrap()
+    };
+    let mut seq = 0;
+    let mut command = |h: f32, age_ms: u64| {
+        seq += 1;
+        let c = LiftCommand {
+            seq,
+            timestamp_ns: monotonic_ns() - age_ms * 1_000_000,
+            height_m: h,
+            reserved: 0,
+        };
+        plane::publish(&commands, &c).unwrap();
+    };
+
+    // Homed at its lower switch.
+    let homed = wait_for(Duration::from_secs(15), "the lift homed", || {
+        newest(&states).filter(|s: &LiftState| s.state == LIFT_READY)
+    });
+    assert!(
+        homed.height_m.abs() < 0.002 && homed.switches & 1 == 1,
+        "{homed:?}"
+    );
+
+    // To 0.4 m: 0.4 m at the rated 30 mm/s is about 14 s.
+    command(0.4, 0);
+    let sent = Instant::now();
+    let there = wait_for(Duration::from_secs(20), "the lift at 0.4 m", || {
+        newest(&states).filter(|s| (s.height_m - 0.4).abs() < 0.002 && s.velocity_m_s == 0.0)
+    });
+    let took = sent.elapsed().as_secs_f64();
+    assert!(
+        took > 0.4 / 0.032,
+        "0.4 m in {took} s: faster than the column can go"
+    );
+    assert_eq!(there.goal_m, 0.4);
+    // Held: the simulator's column where nori-lift says, and staying there.
+    std::thread::sleep(Duration::from_millis(2000));
+    let held = newest(&states).unwrap();
+    assert!((held.height_m - 0.4).abs() < 0.002, "{held:?}");
+    std::thread::sleep(Duration::from_millis(1100));
+    let h = truth();
+    // The simulator's column where nori-lift has it: within the switch's width at homing
+    // (0.5 mm) and the halls' resolution.
+    let now = newest(&states).unwrap();
+    assert!(
+        (h - f64::from(now.height_m)).abs() < 0.0007,
+        "the simulator has the column at {h} m, nori-lift at {} m",
+        now.height_m
+    );
+
+    // A command 500 ms old is refused; the lift stays.
+    command(0.1, 500);
+    std::thread::sleep(Duration::from_millis(300));
+    let s = newest(&states).unwrap();
+    assert_eq!(s.commands_refused, 1, "{s:?}");
+    assert!((s.height_m - 0.4).abs() < 0.002, "{s:?}");
+
+    // A hand under it at 0.25 m (from 24 s after start): coming down, it stops on it and backs
+    // off a centimetre.
+    let hand_from = Duration::from_secs(25);
+    if let Some(wait) = hand_from.checked_sub(started.elapsed()) {
+        std::thread::sleep(wait);
+    }
+    command(0.1, 0);
+    let stopped = wait_for(
+        Duration::from_secs(15),
+        "the lift stopped on the hand",
+        || newest(&states).filter(|s| s.state == LIFT_OBSTRUCTED && s.velocity_m_s == 0.0),
+    );
+    assert_eq!(stopped.obstructions, 1);
+    std::thread::sleep(Duration::from_millis(1500));
+    let s = newest(&states).unwrap();
+    assert!(
+        (s.height_m - 0.26).abs() < 0.003,
+        "backed off to {} m",
+        s.height_m
+    );
+    let text = std::fs::read_to_string(stack.dir.join("sim-report.json")).unwrap();
+    let report: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let pressed = report["lift"]["longest_press_s"].as_f64().unwrap();
+    assert!(
+        pressed > 0.0 && pressed <= PRESS_BOUND_S,
+        "the column pressed on the hand for {pressed} s (bound {PRESS_BOUND_S} s)"
+    );
+    eprintln!(
+        "lift: pressed on the hand {:.0} ms, backed off to {:.3} m",
+        pressed * 1000.0,
+        s.height_m
+    );
+
+    let (code, out) = lift.terminate(Duration::from_secs(5));
+    assert_eq!(code, Some(0), "{out}");
+    drop(commands);
+    drop(states);
+    drop(node);
+    stack.stop();
+}
