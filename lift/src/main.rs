@@ -14,9 +14,10 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
 use telemetry::motion::{
-    LiftState, LIFT_HOMING, LIFT_LINK_LOST, LIFT_OBSTRUCTED, LIFT_READY, LIFT_UNHOMED,
+    LiftAllowance, LiftState, LIFT_HOMING, LIFT_LINK_LOST, LIFT_OBSTRUCTED, LIFT_READY,
+    LIFT_UNHOMED,
 };
-use telemetry::plane::{self, next, publish, Plane};
+use telemetry::plane::{self, newest, next, publish, Plane};
 use telemetry::process::{finish, Exit, ProcessArgs, ServiceManager, Started};
 
 #[derive(Parser)]
@@ -68,6 +69,8 @@ fn serve(args: &Args) -> Result<()> {
     let node = Plane::open(&args.process.domain, "lift")?;
     node.cleanup_dead();
     let commands = node.subscriber(&plane::LIFT_COMMAND)?;
+    let allowances = node.subscriber(&plane::LIFT_ALLOWANCE)?;
+    let mut allowance = None::<LiftAllowance>;
     let states = node.publisher(&plane::LIFT_STATE)?;
     let mut service = ServiceManager::from_env();
     service.ready("homing the lift");
@@ -135,8 +138,19 @@ fn serve(args: &Args) -> Result<()> {
                 }
             }
         }
+        // Travel only on a live allowance of the supervisor's duty-cycle budget (none heard for
+        // 200 ms: no supervisor, no travel, as the driver holds without one).
+        if let Some(a) = newest(&allowances) {
+            allowance = Some(a);
+        }
+        let live = allowance.filter(|a| now_ns.saturating_sub(a.timestamp_ns) <= 200_000_000);
+        let held = match live {
+            Some(a) if a.allowed == 1 => 0,
+            Some(_) => 1,
+            None => 2,
+        };
         if let (Some(r), Some(_)) = (reading, fresh) {
-            let (v, event) = controller.step(&r, true);
+            let (v, event) = controller.step(&r, held == 0);
             velocity = v;
             match event {
                 Some(LiftEvent::Obstruction { at_m, up }) => {
@@ -178,7 +192,9 @@ fn serve(args: &Args) -> Result<()> {
                 }
             },
             switches: reading.map_or(0, |r| u8::from(r.at_lower) | (u8::from(r.at_upper) << 1)),
-            reserved: [0; 2],
+            held,
+            reserved: 0,
+            duty_wait_s: live.filter(|a| a.allowed == 0).map_or(0.0, |a| a.seconds),
             obstructions: counters.obstructions,
             commands_refused: counters.commands_refused,
             bad_frames: decoder.bad_frames as u32,

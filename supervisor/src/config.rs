@@ -80,6 +80,31 @@ pub struct SupervisorConfig {
     pub thermal: ThermalConfig,
     /// Grip calibration by gripper joint name.
     pub grip: BTreeMap<String, GripCalibration>,
+    /// The lift motor's duty-cycle rating.
+    pub lift: LiftDutyConfig,
+}
+
+/// The lift motor's duty-cycle rating (`[lift]`).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct LiftDutyConfig {
+    /// Longest running from cold, s.
+    pub on_s: f64,
+    /// Rest that running needs, s.
+    pub off_s: f64,
+    /// Running regained before a spent budget allows travel again, s.
+    pub resume_s: f64,
+}
+
+impl LiftDutyConfig {
+    /// As the budget's rating.
+    pub fn rating(&self) -> crate::duty::DutyRating {
+        crate::duty::DutyRating {
+            on_s: self.on_s,
+            off_s: self.off_s,
+            resume_s: self.resume_s,
+        }
+    }
 }
 
 impl ProcessConfig for SupervisorConfig {
@@ -96,6 +121,12 @@ impl SupervisorConfig {
     pub fn parse(text: &str, origin: &str) -> Result<Self, ConfigError> {
         let c: SupervisorConfig = parse(text, origin)?;
         let invalid = |key: &str, reason: String| telemetry::config::invalid(origin, key, reason);
+        if let Some(key) = c.lift.rating().invalid() {
+            return Err(invalid(
+                &format!("lift.{key}"),
+                "a positive number of seconds (resume-s at most on-s)".into(),
+            ));
+        }
         if !(5..=10_000).contains(&c.driver_timeout_ms) {
             return Err(invalid(
                 "driver-timeout-ms",

@@ -12,6 +12,7 @@ use telemetry::frames::{
     Directives, GripFrame, Heartbeat, JointLayout, JointState, SupervisorCommand, SupervisorEvent,
 };
 use telemetry::latch::{self, LatchError};
+use telemetry::motion::{LiftAllowance, LiftState};
 use telemetry::plane::{self, newest, next, publish, Plane, Pub, Sub};
 use telemetry::process::Exit;
 use telemetry::process::{ProcessArgs, ServiceManager, Started};
@@ -44,6 +45,8 @@ struct Wired {
     events: Pub<SupervisorEvent>,
     heartbeat: Pub<Heartbeat>,
     grip: Pub<GripFrame>,
+    lift_states: Sub<LiftState>,
+    lift_allowance: Pub<LiftAllowance>,
     trip_file: PathBuf,
 }
 
@@ -74,6 +77,12 @@ impl SupervisorIo for Wired {
     }
     fn save_trips(&mut self, joints: &[String]) -> Result<(), LatchError> {
         latch::save(&self.trip_file, joints)
+    }
+    fn next_lift_state(&mut self) -> Option<LiftState> {
+        next(&self.lift_states)
+    }
+    fn lift_allowance(&mut self, a: &LiftAllowance) {
+        let _ = publish(&self.lift_allowance, a);
     }
 }
 
@@ -107,6 +116,8 @@ fn run(args: Args) -> Result<()> {
         events: node.publisher(&plane::EVENTS)?,
         heartbeat: node.publisher(&plane::SUPERVISOR_HEARTBEAT)?,
         grip: node.publisher(&plane::GRIP)?,
+        lift_states: node.subscriber(&plane::LIFT_STATE)?,
+        lift_allowance: node.publisher(&plane::LIFT_ALLOWANCE)?,
         trip_file: trip_file.clone(),
     };
     tracing::info!(domain = %args.process.domain, "waiting for the driver's joint layout on {}", plane::LAYOUT.name);

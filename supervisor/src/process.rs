@@ -9,6 +9,7 @@
 //! saved to the record before the directives that announce it are published, so no restart
 //! can come between a bus turned off and the latch that keeps it off.
 
+use crate::duty::{Allowance, DutyBudget};
 use crate::logic::{LayoutError, Supervisor};
 use crate::SupervisorConfig;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -18,6 +19,7 @@ use telemetry::frames::{
     SupervisorEvent,
 };
 use telemetry::latch::LatchError;
+use telemetry::motion::{LiftAllowance, LiftState};
 use telemetry::watchdog::Liveness;
 
 /// Directives and heartbeat period.
@@ -46,6 +48,12 @@ pub trait SupervisorIo {
     fn grip(&mut self, g: &GripFrame);
     /// Saves the trip record: the joints of every latched bus, by name.
     fn save_trips(&mut self, joints: &[String]) -> Result<(), LatchError>;
+    /// The next lift state not yet taken (none on a robot without a lift).
+    fn next_lift_state(&mut self) -> Option<LiftState> {
+        None
+    }
+    /// Publishes the lift's allowance (its duty-cycle budget's word).
+    fn lift_allowance(&mut self, _a: &LiftAllowance) {}
 }
 
 /// What a turn of the loop changed, for the binary's status line and log.
@@ -73,6 +81,10 @@ pub struct Process {
     last_publish_ns: Option<u64>,
     frames: u64,
     last_state: Option<JointState>,
+    /// The lift motor's duty-cycle budget, and the lift's last state (when, moving).
+    lift_duty: DutyBudget,
+    last_lift: Option<(u64, bool)>,
+    allowance: LiftAllowance,
 }
 
 impl Process {
@@ -80,7 +92,6 @@ impl Process {
     /// carries `pid`.
     pub fn new(config: SupervisorConfig, trips: Vec<String>, pid: u32) -> Process {
         Process {
-            config,
             supervisor: None,
             trips,
             recorded_mask: 0,
@@ -92,6 +103,10 @@ impl Process {
             last_publish_ns: None,
             frames: 0,
             last_state: None,
+            lift_duty: DutyBudget::new(config.lift.rating()),
+            last_lift: None,
+            allowance: LiftAllowance::default(),
+            config,
         }
     }
 
@@ -112,6 +127,8 @@ impl Process {
         io: &mut impl SupervisorIo,
         now: u64,
     ) -> Result<Option<Change>, LayoutError> {
+        // The lift's budget does not wait for the driver's layout: the lift is not on its buses.
+        self.lift_duty_tier(io, now);
         let change = self.take_layout(io, now)?;
         let Some(s) = self.supervisor.as_mut() else {
             return Ok(change);
@@ -162,6 +179,42 @@ impl Process {
             io.heartbeat(&self.heartbeat);
         }
         Ok(change)
+    }
+
+    /// The lift motor's duty-cycle budget: filled while the lift's states say it moves, its
+    /// allowance published with the heartbeat's period (and at once when it changes).
+    fn lift_duty_tier(&mut self, io: &mut impl SupervisorIo, now: u64) {
+        while let Some(s) = io.next_lift_state() {
+            if let Some((t, moving)) = self.last_lift {
+                let dt = s.timestamp_ns.saturating_sub(t) as f64 * 1e-9;
+                self.lift_duty.update(moving, dt);
+            }
+            self.last_lift = Some((s.timestamp_ns, s.velocity_m_s != 0.0));
+        }
+        let (allowed, seconds) = match self.lift_duty.allowance() {
+            Allowance::Allowed { left_s } => (1, left_s),
+            Allowance::Refused { wait_s } => (0, wait_s),
+        };
+        let changed = allowed != self.allowance.allowed;
+        let due =
+            now.saturating_sub(self.allowance.timestamp_ns) >= PUBLISH_EVERY.as_nanos() as u64;
+        if changed || due {
+            if changed && allowed == 0 {
+                tracing::warn!(
+                    wait_s = seconds,
+                    "the lift's duty-cycle budget is spent: no travel for {seconds:.0} s"
+                );
+            }
+            self.allowance = LiftAllowance {
+                seq: self.allowance.seq + 1,
+                timestamp_ns: now,
+                allowed,
+                seconds: seconds as f32,
+                used_s: self.lift_duty.used_s() as f32,
+                ..LiftAllowance::default()
+            };
+            io.lift_allowance(&self.allowance);
+        }
     }
 
     /// Takes a new layout: a fresh supervisor, the recorded trips latched again.

@@ -13,6 +13,7 @@ use telemetry::frames::{
     JointState, SupervisorCommand, SupervisorEvent, COMMAND_REENABLE_BUS,
 };
 use telemetry::latch::LatchError;
+use telemetry::motion::{LiftAllowance, LiftState};
 
 const MS: u64 = 1_000_000;
 
@@ -34,6 +35,8 @@ struct Queues {
     beats: VecDeque<Heartbeat>,
     calls: Vec<Call>,
     beat_seqs: Vec<u64>,
+    lift_states: VecDeque<LiftState>,
+    allowances: Vec<LiftAllowance>,
 }
 
 impl SupervisorIo for Queues {
@@ -67,6 +70,12 @@ impl SupervisorIo for Queues {
     fn save_trips(&mut self, joints: &[String]) -> Result<(), LatchError> {
         self.calls.push(Call::Save(joints.to_vec()));
         Ok(())
+    }
+    fn next_lift_state(&mut self) -> Option<LiftState> {
+        self.lift_states.pop_front()
+    }
+    fn lift_allowance(&mut self, a: &LiftAllowance) {
+        self.allowances.push(*a);
     }
 }
 
@@ -327,4 +336,54 @@ fn a_layout_without_room_for_the_software_tier_is_an_error() {
     let e = p.poll(&mut io, 0).unwrap_err().to_string();
     assert!(e.contains("right_elbow"), "{e}");
     assert!(io.calls.is_empty());
+}
+
+/// The lift's duty-cycle budget runs with or without the driver's layout (the lift is not on
+/// its buses): moving for the rated time spends it, the allowance turns to a refusal at once
+/// with the rest it needs, and comes back once the resume time is regained.
+#[test]
+fn the_lift_moving_past_its_rating_is_refused_travel_and_told_for_how_long() {
+    let text = SupervisorConfig::DEFAULT_TOML.replacen("on-s = 120", "on-s = 4", 1);
+    let text = text.replacen("off-s = 1080", "off-s = 36", 1);
+    let text = text.replacen("resume-s = 30", "resume-s = 2", 1);
+    let config = SupervisorConfig::parse(&text, "test").unwrap();
+    let mut p = Process::new(config, Vec::new(), 1);
+    let mut io = Queues::default();
+    let state = |t_ms: u64, moving: bool| LiftState {
+        timestamp_ns: t_ms * MS,
+        velocity_m_s: if moving { 0.03 } else { 0.0 },
+        ..LiftState::default()
+    };
+    // 10 ms states of a moving lift for 3.99 s: still allowed, the rest of the budget said.
+    let mut t = 0;
+    while t < 3990 {
+        io.lift_states.push_back(state(t, true));
+        p.poll(&mut io, t * MS).unwrap();
+        t += 10;
+    }
+    let a = *io.allowances.last().unwrap();
+    assert_eq!(a.allowed, 1);
+    assert!((a.seconds - 0.01).abs() < 0.02, "{a:?}");
+    // At 4 s: refused, 2 s of running to regain at 4/36 s per s of rest: 18 s.
+    io.lift_states.push_back(state(t, true));
+    io.lift_states.push_back(state(t + 10, false));
+    p.poll(&mut io, (t + 10) * MS).unwrap();
+    let a = *io.allowances.last().unwrap();
+    assert_eq!(a.allowed, 0, "{a:?}");
+    assert!((a.seconds - 18.0).abs() < 0.2, "{a:?}");
+    // Resting 17 s: still refused; 18 s: allowed again, with 2 s of running.
+    let rest_from = t + 10;
+    for k in 1..=1800u64 {
+        io.lift_states.push_back(state(rest_from + 10 * k, false));
+        p.poll(&mut io, (rest_from + 10 * k) * MS).unwrap();
+        let a = *io.allowances.last().unwrap();
+        if k == 1700 {
+            assert_eq!(a.allowed, 0, "allowed after 17 s of rest");
+        }
+    }
+    let a = *io.allowances.last().unwrap();
+    assert_eq!(a.allowed, 1, "{a:?}");
+    assert!((a.seconds - 2.0).abs() < 0.05, "{a:?}");
+    // Published with the heartbeat's period, each newer than the last.
+    assert!(io.allowances.windows(2).all(|w| w[1].seq == w[0].seq + 1));
 }

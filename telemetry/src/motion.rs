@@ -146,6 +146,28 @@ pub struct LiftCommand {
     pub reserved: u32,
 }
 
+/// The supervisor's word on the lift's travel (its duty-cycle budget), every 5 ms: the lift
+/// moves only while the newest one is fresh and allows it.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
+#[type_name("nori::LiftAllowance/1")]
+pub struct LiftAllowance {
+    /// The supervisor's sequence number.
+    pub seq: u64,
+    /// When it was decided, CLOCK_MONOTONIC ns.
+    pub timestamp_ns: u64,
+    /// 1: travel allowed.
+    pub allowed: u8,
+    /// Padding.
+    pub reserved: [u8; 3],
+    /// Allowed: running left, s; refused: rest still needed, s.
+    pub seconds: f32,
+    /// The budget used (heat as running time), s.
+    pub used_s: f32,
+    /// Padding.
+    pub reserved2: u32,
+}
+
 /// [`LiftState::state`]: not homed (no height is known).
 pub const LIFT_UNHOMED: u8 = 0;
 /// Homing: going down to the lower switch.
@@ -178,8 +200,13 @@ pub struct LiftState {
     pub state: u8,
     /// Bit 0: lower switch, bit 1: upper switch.
     pub switches: u8,
+    /// Travel held back: 0 allowed, 1 the duty-cycle budget is spent, 2 no live allowance
+    /// from the supervisor.
+    pub held: u8,
     /// Padding.
-    pub reserved: [u8; 2],
+    pub reserved: u8,
+    /// With the budget spent: rest still needed, s.
+    pub duty_wait_s: f32,
     /// Obstructions met so far.
     pub obstructions: u32,
     /// Commands refused so far (non-finite, stale, before homing).
@@ -198,7 +225,8 @@ mod tests {
         assert_eq!(std::mem::size_of::<BaseCommand>(), 24);
         assert_eq!(std::mem::size_of::<BaseState>(), 88);
         assert_eq!(std::mem::size_of::<LiftCommand>(), 24);
-        assert_eq!(std::mem::size_of::<LiftState>(), 48);
+        assert_eq!(std::mem::size_of::<LiftState>(), 56);
+        assert_eq!(std::mem::size_of::<LiftAllowance>(), 32);
     }
 
     #[test]

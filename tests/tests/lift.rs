@@ -9,7 +9,8 @@
 use nori_tests::{binary, scratch, wait_for, ArmStack, Proc};
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
-use telemetry::motion::{LiftCommand, LiftState, LIFT_OBSTRUCTED, LIFT_READY};
+use telemetry::config::ProcessConfig;
+use telemetry::motion::{LiftCommand, LiftState, LIFT_HOMING, LIFT_OBSTRUCTED, LIFT_READY};
 use telemetry::plane::{self, newest, Plane};
 
 /// The column's obstruction time (lift.toml) and a control period and a status period of slack.
@@ -26,7 +27,7 @@ fn the_lift_homes_goes_to_a_height_holds_it_and_stops_on_a_hand() {
     std::fs::write(&robot, text).unwrap();
     let robot = robot.display().to_string();
     let started = Instant::now();
-    let stack = ArmStack::simulator_only_on(
+    let mut stack = ArmStack::simulator_only_on(
         "lift",
         "base",
         &[
@@ -38,6 +39,8 @@ fn the_lift_homes_goes_to_a_height_holds_it_and_stops_on_a_hand() {
             "24",
         ],
     );
+    // The supervisor's allowance (the lift's duty-cycle budget): no travel without it.
+    stack.restart_supervisor();
     let dev = stack.dir.join("dev").display().to_string();
     // (Started before the simulator links the board, nori-lift exits 69 as it should without
     // its board; systemd would start it again.)
@@ -149,6 +152,115 @@ fn the_lift_homes_goes_to_a_height_holds_it_and_stops_on_a_hand() {
 
     let (code, out) = lift.terminate(Duration::from_secs(5));
     assert_eq!(code, Some(0), "{out}");
+    drop(commands);
+    drop(states);
+    drop(node);
+    stack.stop();
+}
+
+/// The motor's duty-cycle rating (here 6 s on per 54 s off, 2 s to regain, so that a test
+/// spends it): the supervisor refuses travel once it is spent and says for how long; the lift
+/// stops and holds, then goes on when allowed. Without a live supervisor the lift holds too.
+#[test]
+fn the_duty_budget_stops_travel_when_spent_and_no_supervisor_means_no_travel() {
+    let files = scratch("lift-duty-files");
+    let robot = files.join("robot.toml");
+    let text = sim::description::NORI_A3_TOML.replacen("start-m = 0.3", "start-m = 0.05", 1);
+    std::fs::write(&robot, text).unwrap();
+    let config = files.join("supervisor.toml");
+    let text = supervisor::SupervisorConfig::DEFAULT_TOML
+        .replacen("on-s = 120", "on-s = 6", 1)
+        .replacen("off-s = 1080", "off-s = 54", 1)
+        .replacen("resume-s = 30", "resume-s = 2", 1);
+    std::fs::write(&config, text).unwrap();
+    let robot = robot.display().to_string();
+    let stack = ArmStack::simulator_only_on("lift-duty", "base", &["--description", &robot]);
+    let link = stack.dir.join("dev").join("lift");
+    wait_for(Duration::from_secs(10), "the lift's board", || {
+        link.exists().then_some(())
+    });
+    let dev = stack.dir.join("dev").display().to_string();
+    let mut lift = Proc::spawn(
+        "nori-lift",
+        &binary("nori-lift"),
+        &["--device-dir", &dev, "--domain", &stack.domain],
+        &stack.dir.join("lift.log"),
+    );
+    let node = Plane::open(&stack.domain, "test").unwrap();
+    let commands = node.publisher(&plane::LIFT_COMMAND).unwrap();
+    let states = node.subscriber(&plane::LIFT_STATE).unwrap();
+
+    // No supervisor yet: not even homing moves it.
+    std::thread::sleep(Duration::from_millis(1500));
+    let s = newest(&states).unwrap();
+    assert!(
+        s.held == 2 && s.velocity_m_s == 0.0 && s.state == LIFT_HOMING,
+        "{s:?}"
+    );
+    let mut supervisor = Proc::spawn(
+        "supervisor",
+        &binary("supervisor"),
+        &[
+            "--domain",
+            &stack.domain,
+            "--config",
+            config.to_str().unwrap(),
+            "--trip-file",
+            stack.dir.join("trips").to_str().unwrap(),
+        ],
+        &stack.dir.join("supervisor.log"),
+    );
+    wait_for(Duration::from_secs(15), "the lift homed", || {
+        newest(&states).filter(|s| s.state == LIFT_READY)
+    });
+    // Homing ran about 3.3 s of the 6 s: the rest of the budget spent going up.
+    let c = LiftCommand {
+        seq: 1,
+        timestamp_ns: monotonic_ns(),
+        height_m: 0.4,
+        reserved: 0,
+    };
+    plane::publish(&commands, &c).unwrap();
+    let refused = wait_for(Duration::from_secs(10), "the budget spent", || {
+        newest(&states).filter(|s| s.held == 1)
+    });
+    // 2 s of running to regain at 6/54 s per s of rest: 18 s.
+    assert!((refused.duty_wait_s - 18.0).abs() < 1.0, "{refused:?}");
+    std::thread::sleep(Duration::from_millis(500));
+    let stopped = newest(&states).unwrap();
+    assert_eq!(stopped.velocity_m_s, 0.0, "{stopped:?}");
+    assert!(stopped.height_m < 0.2, "{stopped:?}");
+    std::thread::sleep(Duration::from_millis(3000));
+    let still = newest(&states).unwrap();
+    assert!(
+        (still.height_m - stopped.height_m).abs() < 0.001,
+        "moved while refused: {still:?}"
+    );
+    // Allowed again after the rest: it goes on up.
+    let going = wait_for(Duration::from_secs(25), "travel allowed again", || {
+        newest(&states).filter(|s| s.held == 0 && s.height_m > stopped.height_m + 0.01)
+    });
+    eprintln!(
+        "lift duty: refused at {:.3} m for {:.1} s, going on at {:?}",
+        stopped.height_m, refused.duty_wait_s, going.height_m
+    );
+
+    // The supervisor killed: no live allowance within 200 ms, the lift holds.
+    supervisor.kill();
+    let killed = Instant::now();
+    let held = wait_for(
+        Duration::from_secs(2),
+        "the lift held without a supervisor",
+        || newest(&states).filter(|s| s.held == 2 && s.velocity_m_s == 0.0),
+    );
+    assert!(
+        killed.elapsed() < Duration::from_millis(400),
+        "held only after {:?}",
+        killed.elapsed()
+    );
+    let _ = held;
+    let (code, _) = lift.terminate(Duration::from_secs(5));
+    assert_eq!(code, Some(0));
     drop(commands);
     drop(states);
     drop(node);
