@@ -11,7 +11,7 @@ use telemetry::clock::monotonic_ns;
 use telemetry::frames::JointLayout;
 use telemetry::motion::BaseState;
 use telemetry::plane::{self, newest, next, publish, Plane};
-use telemetry::process::{finish, ProcessArgs, ServiceManager, Started};
+use telemetry::process::{finish, ProcessArgs, ServiceManager, Started, Ticker};
 use telemetry::sensors::LidarScan;
 use telemetry::GoalFrame;
 
@@ -68,7 +68,7 @@ fn serve(args: &Args) -> Result<()> {
     let mut counters = Counters::default();
     let mut last_refusal_log = None::<Instant>;
     let started = Instant::now();
-    let mut next_period = Instant::now();
+    let mut ticker = Ticker::new(period);
     while !shutdown.load(std::sync::atomic::Ordering::Relaxed)
         && run_for.is_none_or(|d| started.elapsed() < d)
     {
@@ -117,13 +117,7 @@ fn serve(args: &Args) -> Result<()> {
             counters.publish_errors += 1;
         }
         counters.periods += 1;
-        next_period += period;
-        let now = Instant::now();
-        if next_period > now {
-            std::thread::sleep(next_period - now);
-        } else {
-            next_period = now;
-        }
+        ticker.wait();
     }
     service.stopping();
     println!("{}", serde_json::json!({ "counters": counters }));

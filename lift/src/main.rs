@@ -18,7 +18,7 @@ use telemetry::motion::{
     LIFT_UNHOMED,
 };
 use telemetry::plane::{self, newest, next, publish, Plane};
-use telemetry::process::{finish, Exit, ProcessArgs, ServiceManager, Started};
+use telemetry::process::{finish, Exit, ProcessArgs, ServiceManager, Started, Ticker};
 
 #[derive(Parser)]
 #[command(
@@ -85,7 +85,7 @@ fn serve(args: &Args) -> Result<()> {
     let mut out = [0u8; 21];
     let mut buf = [0u8; 256];
     let started = Instant::now();
-    let mut next_period = Instant::now();
+    let mut ticker = Ticker::new(period);
     while !shutdown.load(std::sync::atomic::Ordering::Relaxed)
         && run_for.is_none_or(|d| started.elapsed() < d)
     {
@@ -201,13 +201,7 @@ fn serve(args: &Args) -> Result<()> {
         };
         let _ = publish(&states, &state);
         counters.periods += 1;
-        next_period += period;
-        let now = Instant::now();
-        if next_period > now {
-            std::thread::sleep(next_period - now);
-        } else {
-            next_period = now;
-        }
+        ticker.wait();
     }
     // Stop the motor on the way out (the board's watchdog would, 100 ms later).
     let n = board::drive(0.0, &mut out);

@@ -140,6 +140,36 @@ impl ProcessArgs {
     }
 }
 
+/// A loop's period: [`Ticker::wait`] sleeps until the next tick of an absolute schedule (no
+/// drift); after a turn that ran past its tick it returns at once and the schedule starts again
+/// from there (no burst of catch-up turns).
+#[derive(Debug, Clone)]
+pub struct Ticker {
+    period: std::time::Duration,
+    next: std::time::Instant,
+}
+
+impl Ticker {
+    /// Ticks every `period`, the first one `period` from now.
+    pub fn new(period: std::time::Duration) -> Ticker {
+        Ticker {
+            period,
+            next: std::time::Instant::now() + period,
+        }
+    }
+
+    /// Sleeps until the next tick.
+    pub fn wait(&mut self) {
+        let now = std::time::Instant::now();
+        if self.next > now {
+            std::thread::sleep(self.next - now);
+            self.next += self.period;
+        } else {
+            self.next = now + self.period;
+        }
+    }
+}
+
 /// A process that started: its configuration and its stop flag.
 #[derive(Debug)]
 pub struct Started<C> {
@@ -341,6 +371,24 @@ pub fn watchdog_ping_interval(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_ticker_keeps_its_schedule_and_does_not_catch_up_after_a_long_turn() {
+        let mut t = Ticker::new(std::time::Duration::from_millis(5));
+        let start = std::time::Instant::now();
+        for _ in 0..4 {
+            t.wait();
+        }
+        // Four ticks of an absolute schedule: at least 20 ms (never early).
+        assert!(start.elapsed() >= std::time::Duration::from_millis(20));
+        // A turn three periods long: the late tick is taken at once, and the schedule starts
+        // again from there (the next one a whole period later, not three at once).
+        std::thread::sleep(std::time::Duration::from_millis(15));
+        t.wait();
+        let resumed = std::time::Instant::now();
+        t.wait();
+        assert!(resumed.elapsed() >= std::time::Duration::from_millis(5));
+    }
 
     #[test]
     fn run_for_takes_positive_seconds_and_names_the_option_otherwise() {

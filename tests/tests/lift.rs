@@ -16,44 +16,43 @@ use telemetry::plane::{self, newest, Plane};
 /// The column's obstruction time (lift.toml) and a control period and a status period of slack.
 const PRESS_BOUND_S: f64 = 0.15 + 0.02 + 0.02;
 
-#[test]
-fn the_lift_homes_goes_to_a_height_holds_it_and_stops_on_a_hand() {
-    let files = scratch("lift-files");
-    // Standing 5 cm up at start (homing takes seconds, not twenty), a hand appearing under it
-    // at 0.25 m after 24 s.
+/// The simulator with the lift standing 5 cm up at start (homing takes seconds, not twenty)
+/// and `sim_args`, and `nori-lift` on its board (started once the simulator has linked it:
+/// before, nori-lift exits 69 as it should without its board, and systemd would start it again).
+fn lift_on_sim(tag: &str, sim_args: &[&str]) -> (ArmStack, Proc) {
+    let files = scratch(&format!("{tag}-files"));
     let robot = files.join("robot.toml");
     let text = sim::description::NORI_A3_TOML.replacen("start-m = 0.3", "start-m = 0.05", 1);
     assert_ne!(text, sim::description::NORI_A3_TOML);
     std::fs::write(&robot, text).unwrap();
     let robot = robot.display().to_string();
-    let started = Instant::now();
-    let mut stack = ArmStack::simulator_only_on(
-        "lift",
-        "base",
-        &[
-            "--description",
-            &robot,
-            "--lift-obstacle-at",
-            "0.25",
-            "--lift-obstacle-from",
-            "24",
-        ],
-    );
-    // The supervisor's allowance (the lift's duty-cycle budget): no travel without it.
-    stack.restart_supervisor();
-    let dev = stack.dir.join("dev").display().to_string();
-    // (Started before the simulator links the board, nori-lift exits 69 as it should without
-    // its board; systemd would start it again.)
+    let mut args = vec!["--description", robot.as_str()];
+    args.extend(sim_args);
+    let stack = ArmStack::simulator_only_on(tag, "base", &args);
     let link = stack.dir.join("dev").join("lift");
     wait_for(Duration::from_secs(10), "the lift's board", || {
         link.exists().then_some(())
     });
-    let mut lift = Proc::spawn(
+    let dev = stack.dir.join("dev").display().to_string();
+    let lift = Proc::spawn(
         "nori-lift",
         &binary("nori-lift"),
         &["--device-dir", &dev, "--domain", &stack.domain],
         &stack.dir.join("lift.log"),
     );
+    (stack, lift)
+}
+
+#[test]
+fn the_lift_homes_goes_to_a_height_holds_it_and_stops_on_a_hand() {
+    // A hand appearing under it at 0.25 m after 24 s.
+    let started = Instant::now();
+    let (mut stack, mut lift) = lift_on_sim(
+        "lift",
+        &["--lift-obstacle-at", "0.25", "--lift-obstacle-from", "24"],
+    );
+    // The supervisor's allowance (the lift's duty-cycle budget): no travel without it.
+    stack.restart_supervisor();
     let node = Plane::open(&stack.domain, "test").unwrap();
     let commands = node.publisher(&plane::LIFT_COMMAND).unwrap();
     let states = node.subscriber(&plane::LIFT_STATE).unwrap();
@@ -163,29 +162,14 @@ fn the_lift_homes_goes_to_a_height_holds_it_and_stops_on_a_hand() {
 /// stops and holds, then goes on when allowed. Without a live supervisor the lift holds too.
 #[test]
 fn the_duty_budget_stops_travel_when_spent_and_no_supervisor_means_no_travel() {
-    let files = scratch("lift-duty-files");
-    let robot = files.join("robot.toml");
-    let text = sim::description::NORI_A3_TOML.replacen("start-m = 0.3", "start-m = 0.05", 1);
-    std::fs::write(&robot, text).unwrap();
+    let files = scratch("lift-duty-config");
     let config = files.join("supervisor.toml");
     let text = supervisor::SupervisorConfig::DEFAULT_TOML
         .replacen("on-s = 120", "on-s = 6", 1)
         .replacen("off-s = 1080", "off-s = 54", 1)
         .replacen("resume-s = 30", "resume-s = 2", 1);
     std::fs::write(&config, text).unwrap();
-    let robot = robot.display().to_string();
-    let stack = ArmStack::simulator_only_on("lift-duty", "base", &["--description", &robot]);
-    let link = stack.dir.join("dev").join("lift");
-    wait_for(Duration::from_secs(10), "the lift's board", || {
-        link.exists().then_some(())
-    });
-    let dev = stack.dir.join("dev").display().to_string();
-    let mut lift = Proc::spawn(
-        "nori-lift",
-        &binary("nori-lift"),
-        &["--device-dir", &dev, "--domain", &stack.domain],
-        &stack.dir.join("lift.log"),
-    );
+    let (stack, mut lift) = lift_on_sim("lift-duty", &[]);
     let node = Plane::open(&stack.domain, "test").unwrap();
     let commands = node.publisher(&plane::LIFT_COMMAND).unwrap();
     let states = node.subscriber(&plane::LIFT_STATE).unwrap();
