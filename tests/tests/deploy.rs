@@ -138,7 +138,8 @@ fn the_processes_notify_readiness_and_keep_the_watchdog_fed() {
         &dir.join("sim.log"),
     );
     let mut socks = Vec::new();
-    let mut procs = Vec::new();
+    // Killed if the test fails half-way (they would outlive it otherwise).
+    let mut procs = KillOnDrop(Vec::new());
     for (name, args) in [
         (
             "supervisor",
@@ -174,7 +175,7 @@ fn the_processes_notify_readiness_and_keep_the_watchdog_fed() {
             .stdout(std::process::Stdio::null())
             .spawn()
             .unwrap();
-        procs.push(child);
+        procs.0.push(child);
         socks.push((name, socket));
     }
     for (name, socket) in &socks {
@@ -195,7 +196,7 @@ fn the_processes_notify_readiness_and_keep_the_watchdog_fed() {
             "{name}: {pings} keep-alives in a second"
         );
     }
-    for mut p in procs {
+    for mut p in procs.0.drain(..) {
         nix::sys::signal::kill(
             nix::unistd::Pid::from_raw(p.id() as i32),
             nix::sys::signal::Signal::SIGTERM,
@@ -217,5 +218,17 @@ fn the_fleet_router_configurations_load() {
             acl.contains("\"default_permission\":\"deny\""),
             "{file}: {acl}"
         );
+    }
+}
+
+/// Children of a test that are killed and reaped when it ends, however it ends.
+struct KillOnDrop(Vec<std::process::Child>);
+
+impl Drop for KillOnDrop {
+    fn drop(&mut self) {
+        for c in &mut self.0 {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
     }
 }
