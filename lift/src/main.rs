@@ -62,10 +62,7 @@ fn serve(args: &Args) -> Result<()> {
         None => config,
     };
     let run_for = args.process.run_for()?;
-    let mut port = serialport::new(config.device.to_string_lossy(), config.baud)
-        .timeout(Duration::from_millis(1))
-        .open_native()
-        .with_context(|| format!("the lift's board at {}", config.device.display()))?;
+    let mut port = open_board(&config)?;
     let node = Plane::open(&args.process.domain, "lift")?;
     node.cleanup_dead();
     let commands = node.subscriber(&plane::LIFT_COMMAND)?;
@@ -92,15 +89,7 @@ fn serve(args: &Args) -> Result<()> {
         service.keepalive(Instant::now());
         let now_ns = monotonic_ns();
         let t_s = now_ns as f64 * 1e-9;
-        let mut fresh = None;
-        while port.bytes_to_read().unwrap_or(0) > 0 {
-            let Ok(n) = port.read(&mut buf) else { break };
-            decoder.push(&buf[..n], |m| {
-                if let Message::Status(s) = m {
-                    fresh = Some(s);
-                }
-            });
-        }
+        let fresh = newest_status(&mut port, &mut decoder, &mut buf);
         if let Some(s) = fresh {
             counters.statuses += 1;
             heard = Instant::now();
@@ -113,24 +102,15 @@ fn serve(args: &Args) -> Result<()> {
             });
         }
         let lost = heard.elapsed() > config.silence;
-        if lost && reading.is_some() {
+        if lost && reading.take().is_some() {
             // The board may have restarted (its counts with it): home again once it is back.
             tracing::warn!("the lift's board went silent: homing again when it answers");
             counters.link_losses += 1;
-            reading = None;
             controller.home();
         }
         while let Some(c) = next(&commands) {
             counters.commands += 1;
-            let age = now_ns.saturating_sub(c.timestamp_ns);
-            let taken = if age > max_age_ns || c.timestamp_ns > now_ns + 1_000_000 {
-                Err(format!("{} ms old", age / 1_000_000))
-            } else {
-                controller
-                    .set_goal(f64::from(c.height_m))
-                    .map_err(|e| e.to_string())
-            };
-            match taken {
+            match take_command(&mut controller, &c, now_ns, max_age_ns) {
                 Ok(g) => goal = g as f32,
                 Err(why) => {
                     counters.commands_refused += 1;
@@ -138,32 +118,17 @@ fn serve(args: &Args) -> Result<()> {
                 }
             }
         }
-        // Travel only on a live allowance of the supervisor's duty-cycle budget (none heard for
-        // 200 ms: no supervisor, no travel, as the driver holds without one).
+        // Travel only on a live allowance of the supervisor's duty-cycle budget.
         if let Some(a) = newest(&allowances) {
             allowance = Some(a);
         }
-        let live = allowance.filter(|a| now_ns.saturating_sub(a.timestamp_ns) <= 200_000_000);
-        let held = match live {
-            Some(a) if a.allowed == 1 => 0,
-            Some(_) => 1,
-            None => 2,
-        };
+        let (held, duty_wait_s) = held_back(allowance, now_ns);
         if let (Some(r), Some(_)) = (reading, fresh) {
             let (v, event) = controller.step(&r, held == 0);
             velocity = v;
-            match event {
-                Some(LiftEvent::Obstruction { at_m, up }) => {
-                    counters.obstructions += 1;
-                    tracing::warn!(
-                        at_m,
-                        up,
-                        "the lift met an obstruction: stopped, backing off"
-                    );
-                }
-                Some(LiftEvent::Homed) => tracing::info!("the lift is homed"),
-                Some(LiftEvent::Reached(h)) => tracing::info!(height_m = h, "the lift is there"),
-                None => {}
+            if let Some(e) = event {
+                counters.obstructions += u32::from(matches!(e, LiftEvent::Obstruction { .. }));
+                log_event(e);
             }
         }
         if !lost {
@@ -184,17 +149,12 @@ fn serve(args: &Args) -> Result<()> {
             state: if lost {
                 LIFT_LINK_LOST
             } else {
-                match controller.state() {
-                    Controller::Unhomed => LIFT_UNHOMED,
-                    Controller::Homing => LIFT_HOMING,
-                    Controller::Ready => LIFT_READY,
-                    Controller::Obstructed { .. } => LIFT_OBSTRUCTED,
-                }
+                state_code(controller.state())
             },
             switches: reading.map_or(0, |r| u8::from(r.at_lower) | (u8::from(r.at_upper) << 1)),
             held,
             reserved: 0,
-            duty_wait_s: live.filter(|a| a.allowed == 0).map_or(0.0, |a| a.seconds),
+            duty_wait_s,
             obstructions: counters.obstructions,
             commands_refused: counters.commands_refused,
             bad_frames: decoder.bad_frames as u32,
@@ -209,4 +169,80 @@ fn serve(args: &Args) -> Result<()> {
     service.stopping();
     println!("{}", serde_json::json!({ "counters": counters }));
     Ok(())
+}
+
+/// The newest status the board sent since the last call (older ones are superseded).
+fn newest_status(
+    port: &mut serialport::TTYPort,
+    decoder: &mut Decoder,
+    buf: &mut [u8],
+) -> Option<board::Status> {
+    let mut fresh = None;
+    while port.bytes_to_read().unwrap_or(0) > 0 {
+        let Ok(n) = port.read(buf) else { break };
+        decoder.push(&buf[..n], |m| {
+            if let Message::Status(s) = m {
+                fresh = Some(s);
+            }
+        });
+    }
+    fresh
+}
+
+/// A height command, unless it is stale or from the future (then why not).
+fn take_command(
+    controller: &mut LiftController,
+    c: &telemetry::motion::LiftCommand,
+    now_ns: u64,
+    max_age_ns: u64,
+) -> Result<f64, String> {
+    let age = now_ns.saturating_sub(c.timestamp_ns);
+    if age > max_age_ns || c.timestamp_ns > now_ns + 1_000_000 {
+        return Err(format!("{} ms old", age / 1_000_000));
+    }
+    controller
+        .set_goal(f64::from(c.height_m))
+        .map_err(|e| e.to_string())
+}
+
+fn log_event(e: LiftEvent) {
+    match e {
+        LiftEvent::Obstruction { at_m, up } => {
+            tracing::warn!(
+                at_m,
+                up,
+                "the lift met an obstruction: stopped, backing off"
+            )
+        }
+        LiftEvent::Homed => tracing::info!("the lift is homed"),
+        LiftEvent::Reached(h) => tracing::info!(height_m = h, "the lift is there"),
+    }
+}
+
+fn state_code(s: Controller) -> u8 {
+    match s {
+        Controller::Unhomed => LIFT_UNHOMED,
+        Controller::Homing => LIFT_HOMING,
+        Controller::Ready => LIFT_READY,
+        Controller::Obstructed { .. } => LIFT_OBSTRUCTED,
+    }
+}
+
+/// Whether travel is held back (0 no, 1 the duty budget is spent, 2 no live allowance: none
+/// for 200 ms, no supervisor, no travel, as the driver holds without one), and the rest the
+/// budget still needs, s.
+fn held_back(allowance: Option<LiftAllowance>, now_ns: u64) -> (u8, f32) {
+    match allowance.filter(|a| now_ns.saturating_sub(a.timestamp_ns) <= 200_000_000) {
+        Some(a) if a.allowed == 1 => (0, 0.0),
+        Some(a) => (1, a.seconds),
+        None => (2, 0.0),
+    }
+}
+
+/// The board's serial line, read without waiting.
+fn open_board(config: &LiftConfig) -> Result<serialport::TTYPort> {
+    serialport::new(config.device.to_string_lossy(), config.baud)
+        .timeout(Duration::from_millis(1))
+        .open_native()
+        .with_context(|| format!("the lift's board at {}", config.device.display()))
 }
