@@ -1,4 +1,5 @@
-//! `nori state` and `nori goal`: look at and move the robot through the state plane.
+//! `nori state` and `nori goal`: look at and move the robot through the state plane, its arms'
+//! joints and wheels (from the driver), the lift and the base (from their controllers).
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
@@ -6,6 +7,7 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 use telemetry::frames::JointLayout;
+use telemetry::motion::{BaseState, LiftCommand, LiftState};
 use telemetry::plane::{self, Plane};
 use telemetry::GoalFrame;
 
@@ -82,7 +84,9 @@ pub struct StateArgs {
 pub struct GoalArgs {
     #[command(flatten)]
     plane: PlaneArgs,
-    /// Goals as JOINT=RAD (rad/s for wheels), e.g. left_elbow=-1.0.
+    /// Goals as JOINT=RAD (rad/s for wheels), e.g. left_elbow=-1.0, and `lift=M` for the lift's
+    /// height above its lowest (clamped into its soft limits by `nori-lift`). The base takes a
+    /// velocity that must be renewed: `nori base`.
     #[arg(required = true)]
     goals: Vec<String>,
 }
@@ -123,6 +127,7 @@ pub fn state(args: &StateArgs) -> Result<()> {
         }
         std::thread::sleep(Duration::from_millis(10));
     };
+    let (lift, base) = body_states(&node)?;
     let buses: Vec<(String, telemetry::frames::BusHealthEntry)> = health
         .iter()
         .flat_map(|h| h.buses().iter().copied().enumerate())
@@ -153,7 +158,8 @@ pub fn state(args: &StateArgs) -> Result<()> {
             .iter()
             .map(|(name, b)| serde_json::json!({"bus": name, "health": b}))
             .collect();
-        let json = serde_json::json!({"seq": frame.seq, "deadline_misses": frame.deadline_misses, "joints": joints, "buses": buses});
+        let json = serde_json::json!({"seq": frame.seq, "deadline_misses": frame.deadline_misses, "joints": joints, "buses": buses,
+            "lift": lift.as_ref().map(lift_json), "base": base.as_ref().map(base_json)});
         return quiet_pipe(writeln!(std::io::stdout(), "{json}"));
     }
     let mut out = std::io::stdout().lock();
@@ -161,8 +167,85 @@ pub fn state(args: &StateArgs) -> Result<()> {
         for (name, b) in &buses {
             writeln!(out, "bus {name}: {b}")?;
         }
+        match &lift {
+            Some(l) => writeln!(out, "lift: {}", lift_line(l))?,
+            None => writeln!(out, "lift: no state (nori-lift not running)")?,
+        }
+        match &base {
+            Some(b) => writeln!(out, "base: {b}")?,
+            None => writeln!(out, "base: no state (nori-base not running)")?,
+        }
         Ok(())
     }))
+}
+
+/// The lift's and the base's newest states, if their controllers publish (each does at 50 Hz or
+/// more: a tenth of a second says whether it runs).
+fn body_states(node: &Plane) -> Result<(Option<LiftState>, Option<BaseState>)> {
+    let lifts = node.subscriber(&plane::LIFT_STATE)?;
+    let bases = node.subscriber(&plane::BASE_STATE)?;
+    let until = Instant::now() + Duration::from_millis(100);
+    let (mut lift, mut base) = (None, None);
+    while Instant::now() < until && (lift.is_none() || base.is_none()) {
+        lift = plane::newest(&lifts).or(lift);
+        base = plane::newest(&bases).or(base);
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    Ok((lift, base))
+}
+
+/// What the lift's state code says, for operators.
+fn lift_state_name(l: &LiftState) -> &'static str {
+    use telemetry::motion::{LIFT_HOMING, LIFT_LINK_LOST, LIFT_OBSTRUCTED, LIFT_READY};
+    match l.state {
+        LIFT_HOMING => "homing",
+        LIFT_READY => "ready",
+        LIFT_OBSTRUCTED => "stopped on an obstruction",
+        LIFT_LINK_LOST => "board not answering",
+        _ => "not homed",
+    }
+}
+
+/// Why the lift's travel is held back, if it is.
+fn lift_held(l: &LiftState) -> Option<String> {
+    match l.held {
+        0 => None,
+        1 => Some(format!(
+            "duty-cycle budget spent: travel again in {:.0} s",
+            l.duty_wait_s
+        )),
+        _ => Some("no allowance from the supervisor".into()),
+    }
+}
+
+fn lift_line(l: &LiftState) -> String {
+    let mut line = format!(
+        "{}  height {:.3} m  goal {:.3} m  speed {:+.3} m/s  current {:.2} A",
+        lift_state_name(l),
+        l.height_m,
+        l.goal_m,
+        l.velocity_m_s,
+        l.current_a
+    );
+    if let Some(why) = lift_held(l) {
+        line.push_str(&format!("  [held: {why}]"));
+    }
+    line
+}
+
+fn lift_json(l: &LiftState) -> serde_json::Value {
+    let finite = |x: f32| x.is_finite().then_some(x);
+    serde_json::json!({"state": lift_state_name(l), "height_m": finite(l.height_m), "goal_m": finite(l.goal_m),
+        "velocity_m_s": l.velocity_m_s, "current_a": l.current_a, "held": lift_held(l),
+        "obstructions": l.obstructions, "commands_refused": l.commands_refused})
+}
+
+fn base_json(b: &BaseState) -> serde_json::Value {
+    serde_json::json!({"x_m": b.x_m, "y_m": b.y_m, "heading_rad": b.theta_rad, "linear_m_s": b.linear_m_s,
+        "angular_rad_s": b.angular_rad_s, "sent_linear_m_s": b.commanded_linear_m_s,
+        "sent_angular_rad_s": b.commanded_angular_rad_s, "travelled_m": b.travelled_m,
+        "field_distance_m": (b.field_distance_m >= 0.0).then_some(b.field_distance_m),
+        "flags": b.flag_names().collect::<Vec<_>>(), "commands_refused": b.commands_refused})
 }
 
 /// A closed pipe (`nori state | head`) ends the output quietly.
@@ -208,18 +291,43 @@ fn print_table(
     Ok(())
 }
 
-/// The goal frame for `goals` (`JOINT=RAD` each) over the driver's joints `names`: refused,
+/// What `nori goal` sends: joint goals to the driver, a height to the lift.
+#[derive(Debug)]
+pub struct Goals {
+    /// The joints' goals (mask 0: none).
+    pub joints: GoalFrame,
+    /// The lift's height, m.
+    pub lift_m: Option<f32>,
+}
+
+/// The goals `goals` (`JOINT=RAD` or `lift=M` each) over the driver's joints `names`: refused,
 /// with the reason, for an unknown joint, a joint named twice, or a value that is not a finite
 /// number (the driver would refuse the whole frame; better said here, before it is sent).
-pub fn parse_goals(names: &[String], goals: &[String]) -> Result<GoalFrame> {
+pub fn parse_goals(names: &[String], goals: &[String]) -> Result<Goals> {
     let mut frame = GoalFrame {
         joint_count: names.len() as u32,
         ..GoalFrame::default()
     };
+    let mut lift_m = None;
     for g in goals {
         let (joint, value) = g
             .split_once('=')
             .with_context(|| format!("{g:?}: expected JOINT=RAD"))?;
+        if joint == "base" {
+            bail!("{g:?}: the base takes a velocity that must be renewed, not a goal: nori base LINEAR ANGULAR --for SECONDS");
+        }
+        if joint == "lift" {
+            let h: f32 = value
+                .parse()
+                .with_context(|| format!("{g:?}: {value:?} is not a number"))?;
+            if !h.is_finite() {
+                bail!("{g:?}: {value:?} is not a finite number");
+            }
+            if lift_m.replace(h).is_some() {
+                bail!("{g:?}: the lift is given twice");
+            }
+            continue;
+        }
         let i = names
             .iter()
             .position(|n| n == joint)
@@ -236,23 +344,56 @@ pub fn parse_goals(names: &[String], goals: &[String]) -> Result<GoalFrame> {
         frame.mask |= 1 << i;
         frame.position_rad[i] = v;
     }
-    Ok(frame)
+    Ok(Goals {
+        joints: frame,
+        lift_m,
+    })
 }
 
 /// Publishes one goal frame.
 pub fn goal(args: &GoalArgs) -> Result<()> {
     let (node, layout) = args.plane.open("goal", LAYOUT_TIMEOUT)?;
     let names: Vec<String> = layout.joint_names().map(str::to_string).collect();
-    let mut frame = parse_goals(&names, &args.goals)?;
+    let Goals { mut joints, lift_m } = parse_goals(&names, &args.goals)?;
     let publisher = node.publisher(&plane::GOALS)?;
-    // Give the driver's subscriber a moment to connect to a fresh publisher.
+    let lift_commands = node.publisher(&plane::LIFT_COMMAND)?;
+    let lift_states = node.subscriber(&plane::LIFT_STATE)?;
+    // Give the driver's and the lift's subscribers a moment to connect to fresh publishers.
     std::thread::sleep(Duration::from_millis(100));
-    frame.timestamp_ns = telemetry::clock::monotonic_ns();
-    frame.seq = 1;
-    plane::publish(&publisher, &frame)?;
-    // Keep the publisher alive until the driver's next cycles have taken the frame.
+    let now = telemetry::clock::monotonic_ns();
+    if joints.mask != 0 {
+        joints.timestamp_ns = now;
+        joints.seq = 1;
+        plane::publish(&publisher, &joints)?;
+        eprintln!("nori goal: sent {} joint goal(s)", joints.mask.count_ones());
+    }
+    if let Some(height_m) = lift_m {
+        let command = LiftCommand {
+            seq: 1,
+            timestamp_ns: now,
+            height_m,
+            reserved: 0,
+        };
+        plane::publish(&lift_commands, &command)?;
+    }
+    // Keep the publishers alive until the driver's and the lift's next cycles took the frames.
     std::thread::sleep(Duration::from_millis(50));
-    eprintln!("nori goal: sent {} goal(s)", args.goals.len());
+    if let Some(h) = lift_m {
+        // The lift's controller says what it made of it (its goal in force, clamped).
+        let until = Instant::now() + Duration::from_millis(300);
+        let mut answer = None;
+        while Instant::now() < until {
+            answer = plane::newest(&lift_states).or(answer);
+            if answer.is_some_and(|l: LiftState| l.timestamp_ns > now) {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        match answer {
+            Some(l) => eprintln!("nori goal: lift {h} m sent; the lift: {}", lift_line(&l)),
+            None => bail!("lift {h} m sent, but no lift state on the plane: is nori-lift running?"),
+        }
+    }
     Ok(())
 }
 
@@ -330,8 +471,12 @@ mod goal_tests {
     fn bad_goals_are_refused_before_anything_is_sent() {
         let names: Vec<String> = ["a", "b"].iter().map(|s| s.to_string()).collect();
         let goals = |g: &[&str]| g.iter().map(|s| s.to_string()).collect::<Vec<_>>();
-        let f = parse_goals(&names, &goals(&["b=-1.5"])).unwrap();
+        let g = parse_goals(&names, &goals(&["b=-1.5"])).unwrap();
+        let f = g.joints;
         assert_eq!((f.mask, f.position_rad[1], f.joint_count), (0b10, -1.5, 2));
+        assert_eq!(g.lift_m, None);
+        let g = parse_goals(&names, &goals(&["lift=0.4", "a=1"])).unwrap();
+        assert_eq!((g.lift_m, g.joints.mask), (Some(0.4), 0b01));
         for (bad, why) in [
             ("a=nan", "not a finite number"),
             ("a=inf", "not a finite number"),
@@ -339,11 +484,16 @@ mod goal_tests {
             ("a=x", "not a number"),
             ("c=1", "no joint \"c\""),
             ("a", "expected JOINT=RAD"),
+            ("lift=nan", "not a finite number"),
+            ("lift=up", "not a number"),
+            ("base=0.2", "nori base LINEAR ANGULAR"),
         ] {
             let e = format!("{:#}", parse_goals(&names, &goals(&[bad])).unwrap_err());
             assert!(e.contains(why), "{bad}: {e}");
         }
         let e = parse_goals(&names, &goals(&["a=1", "a=2"])).unwrap_err();
         assert!(e.to_string().contains("twice"), "{e}");
+        let e = parse_goals(&names, &goals(&["lift=0.1", "lift=0.2"])).unwrap_err();
+        assert!(e.to_string().contains("lift is given twice"), "{e}");
     }
 }

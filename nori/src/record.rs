@@ -5,8 +5,9 @@
 //! frame at every tick of the recording rate into a `recorder::EpisodeWriter`, which stages them
 //! every flush interval and commits each episode at its end. With `--camera`, each tick also
 //! takes each camera's newest JPEG (from its `mjpeg` stream, stored as the camera sent it), or
-//! holds the last one when none is fresh. Everything about files and crash safety lives in the
-//! `recorder` crate.
+//! holds the last one when none is fresh. With `--lift` and `--base`, the lift's height and the
+//! base's twist widen `observation.state` and `action` (19 wide on the A3) and the base's odometry
+//! is recorded. Everything about files and crash safety lives in the `recorder` crate.
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
@@ -64,6 +65,13 @@ pub struct RecordArgs {
     /// one is held and `observation.camera_valid` is 0 for the frame, ms.
     #[arg(long, default_value_t = 100)]
     camera_stale_ms: u32,
+    /// Record the lift's height (state) and goal (action) after the joints (from `nori-lift`).
+    #[arg(long)]
+    lift: bool,
+    /// Record the base's measured and driven twist after the joints, and its odometry as
+    /// `observation.odometry` (from `nori-base`).
+    #[arg(long)]
+    base: bool,
 }
 
 /// `nori dataset ...`.
@@ -284,6 +292,8 @@ pub fn record(args: &RecordArgs) -> Result<()> {
     let states = node.subscriber(&plane::JOINT_STATE)?;
     let layouts = node.subscriber(&plane::LAYOUT)?;
     let grips = node.subscriber(&plane::GRIP)?;
+    let lifts = node.subscriber(&plane::LIFT_STATE)?;
+    let bases = node.subscriber(&plane::BASE_STATE)?;
 
     let mut feeds = args
         .cameras
@@ -301,7 +311,9 @@ pub fn record(args: &RecordArgs) -> Result<()> {
     let wait = Duration::from_secs_f64(args.wait_s);
     let layout = crate::plane_tools::wait_for_layout(&layouts, &args.domain, wait, Some(&stop))?;
     let cameras = first_images(&mut feeds, wait, &stop)?;
-    let features = Features::from_layout(&layout).with_cameras(cameras);
+    let features = Features::from_layout(&layout)
+        .with_cameras(cameras)
+        .with_body(args.lift, args.base);
     let settings = Settings {
         fps: args.fps,
         robot_type: args.robot_type.clone(),
@@ -322,9 +334,14 @@ pub fn record(args: &RecordArgs) -> Result<()> {
     let flush_every = ((u64::from(args.fps) * u64::from(args.flush_ms)) / 1000).max(1) as usize;
     let frames_per_episode = (args.episode_s * f64::from(args.fps)).round().max(1.0) as usize;
     eprintln!(
-        "nori record: {} joints ({}), {} camera(s) ({}), {} fps, {} episode(s) of {} frames into {} (staged every {} frames, in the background)",
+        "nori record: {} joints ({}){}, {} camera(s) ({}), {} fps, {} episode(s) of {} frames into {} (staged every {} frames, in the background)",
         features.joints.len(),
         features.joint_names().join(", "),
+        features
+            .body
+            .iter()
+            .map(|a| format!(" + {}", a.name()))
+            .collect::<String>(),
         features.cameras.len(),
         features
             .cameras
@@ -344,6 +361,12 @@ pub fn record(args: &RecordArgs) -> Result<()> {
         }
         while let Some(g) = plane::next(&grips) {
             sampler.on_grip(&g);
+        }
+        while let Some(l) = plane::next(&lifts) {
+            sampler.on_lift(&l);
+        }
+        while let Some(b) = plane::next(&bases) {
+            sampler.on_base(&b);
         }
         for (i, (feed, meta)) in feeds.iter_mut().zip(&features.cameras).enumerate() {
             if let Some(captured) = feed.drain(Some(meta)) {
@@ -375,7 +398,7 @@ pub fn record(args: &RecordArgs) -> Result<()> {
             }
             if Instant::now() >= deadline {
                 bail!(
-                    "never read within --wait-s {} s: {} (a servo not answering, no supervisor publishing grip force, or a camera silent); nothing recorded for episode {episode}",
+                    "never read within --wait-s {} s: {} (a servo not answering, no supervisor publishing grip force, a camera silent, or the lift or base not running); nothing recorded for episode {episode}",
                     args.wait_s,
                     unread.join(", ")
                 );

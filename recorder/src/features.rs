@@ -61,6 +61,9 @@ pub enum Vector {
     /// stalled or died). Not named `...images...`: LeRobot treats every key containing "image"
     /// as a picture.
     CameraValid,
+    /// `observation.odometry`: the base's pose from its wheels, x and y (m) and heading (rad),
+    /// in the frame its controller started in (recorded with the base).
+    Odometry,
 }
 
 impl Vector {
@@ -76,6 +79,7 @@ impl Vector {
             Vector::GripForce => "observation.grip_force",
             Vector::Valid => "observation.joint_valid",
             Vector::CameraValid => "observation.camera_valid",
+            Vector::Odometry => "observation.odometry",
         }
     }
 }
@@ -109,6 +113,35 @@ impl CameraMeta {
     }
 }
 
+/// One axis of the body beyond the arms, appended to `action`, `observation.state` and
+/// `observation.joint_valid` after the joints (the other per-servo features stay the joints').
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BodyAxis {
+    /// The lift's height above its lowest, m: measured in the state, the goal in force in the
+    /// action (the height held when there is none).
+    LiftHeight,
+    /// The base's forward speed, m/s: measured in the state; in the action what the wheels were
+    /// driven with (after the acceleration limits and the protective field).
+    BaseLinear,
+    /// The base's turn rate, rad/s, the same way.
+    BaseAngular,
+}
+
+impl BodyAxis {
+    /// The dimension's name in the vector features.
+    pub fn name(self) -> &'static str {
+        match self {
+            BodyAxis::LiftHeight => "lift.height_m",
+            BodyAxis::BaseLinear => "base.linear_m_s",
+            BodyAxis::BaseAngular => "base.angular_rad_s",
+        }
+    }
+}
+
+/// The names of `observation.odometry`.
+pub const ODOMETRY_NAMES: [&str; 3] = ["base.x_m", "base.y_m", "base.heading_rad"];
+
 /// The codec of the recorded videos: the cameras' own JPEGs, stored without encoding again
 /// (`nori bench video-encode` has the figures behind that choice).
 pub const VIDEO_CODEC: &str = "mjpeg";
@@ -122,6 +155,9 @@ pub struct Features {
     /// Cameras recorded as videos, in feature order (none in a joints-only dataset).
     #[serde(default)]
     pub cameras: Vec<CameraMeta>,
+    /// The lift and base axes recorded after the joints (none in an arms-only dataset).
+    #[serde(default)]
+    pub body: Vec<BodyAxis>,
 }
 
 impl Features {
@@ -148,7 +184,31 @@ impl Features {
         Features {
             joints,
             cameras: Vec::new(),
+            body: Vec::new(),
         }
+    }
+
+    /// The same with the lift's height and/or the base's twist (and odometry) recorded.
+    pub fn with_body(mut self, lift: bool, base: bool) -> Features {
+        self.body.clear();
+        if lift {
+            self.body.push(BodyAxis::LiftHeight);
+        }
+        if base {
+            self.body
+                .extend([BodyAxis::BaseLinear, BodyAxis::BaseAngular]);
+        }
+        self
+    }
+
+    /// Whether the base is recorded (its twist and odometry).
+    pub fn has_base(&self) -> bool {
+        self.body.contains(&BodyAxis::BaseLinear)
+    }
+
+    /// Whether the lift is recorded.
+    pub fn has_lift(&self) -> bool {
+        self.body.contains(&BodyAxis::LiftHeight)
     }
 
     /// The same joints with `cameras` recorded as videos.
@@ -187,6 +247,9 @@ impl Features {
         if !self.cameras.is_empty() {
             v.push(Vector::CameraValid);
         }
+        if self.has_base() {
+            v.push(Vector::Odometry);
+        }
         v
     }
 
@@ -195,7 +258,11 @@ impl Features {
         match v {
             Vector::GripForce => self.grippers().len(),
             Vector::CameraValid => self.cameras.len(),
-            _ => self.joints.len(),
+            Vector::Odometry => ODOMETRY_NAMES.len(),
+            Vector::Action | Vector::State | Vector::Valid => self.joints.len() + self.body.len(),
+            Vector::Velocity | Vector::Current | Vector::Temperature | Vector::Voltage => {
+                self.joints.len()
+            }
         }
     }
 
@@ -208,7 +275,15 @@ impl Features {
                 .map(|i| self.joints[i].name.clone())
                 .collect(),
             Vector::CameraValid => self.cameras.iter().map(|c| c.name.clone()).collect(),
-            _ => self.joint_names(),
+            Vector::Odometry => ODOMETRY_NAMES.iter().map(|n| n.to_string()).collect(),
+            Vector::Action | Vector::State | Vector::Valid => self
+                .joint_names()
+                .into_iter()
+                .chain(self.body.iter().map(|a| a.name().to_string()))
+                .collect(),
+            Vector::Velocity | Vector::Current | Vector::Temperature | Vector::Voltage => {
+                self.joint_names()
+            }
         }
     }
 
@@ -403,5 +478,33 @@ mod tests {
 
         let no_gripper = Features::from_layout(&layout(&[("elbow", JointRole::Joint)]));
         assert!(!no_gripper.vectors().contains(&Vector::GripForce));
+        assert!(!no_gripper.vectors().contains(&Vector::Odometry));
+    }
+
+    #[test]
+    fn the_lift_and_base_widen_action_state_and_validity_but_not_the_servo_features() {
+        let f = Features::from_layout(&layout(&[
+            ("elbow", JointRole::Joint),
+            ("gripper", JointRole::Gripper),
+        ]))
+        .with_body(true, true);
+        let body = ["lift.height_m", "base.linear_m_s", "base.angular_rad_s"];
+        for v in [Vector::Action, Vector::State, Vector::Valid] {
+            assert_eq!(f.width(v), 5, "{v:?}");
+            assert_eq!(f.names(v)[..2], ["elbow", "gripper"]);
+            assert_eq!(f.names(v)[2..], body);
+        }
+        for v in [Vector::Velocity, Vector::Current, Vector::Temperature] {
+            assert_eq!(f.names(v), ["elbow", "gripper"], "{v:?}");
+        }
+        assert_eq!(f.names(Vector::Odometry), ODOMETRY_NAMES);
+        assert_eq!(f.keys().last().unwrap(), "task_index");
+        assert!(f.keys().contains(&"observation.odometry".to_string()));
+        let lift_only = f.clone().with_body(true, false);
+        assert_eq!(lift_only.width(Vector::State), 3);
+        assert!(!lift_only.vectors().contains(&Vector::Odometry));
+        // A dataset written before the body was recorded reads as arms only.
+        let old: Features = serde_json::from_str(r#"{"joints": []}"#).unwrap();
+        assert!(old.body.is_empty());
     }
 }

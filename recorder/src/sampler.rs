@@ -16,10 +16,15 @@
 //! `observation.camera_valid` says whether it was captured within the staleness bound of the
 //! tick ([`crate::video::pick`]) or is the last one, held (the camera stalled or died: the
 //! video keeps one frame per dataset frame, so the gap is marked, not skipped).
+//!
+//! The lift and the base are sampled from their controllers' state frames the same way: the
+//! newest one that says something true (the lift homed, the base's wheels read) is taken, held
+//! and marked invalid when older than the frame period.
 
-use crate::features::{Features, Vector};
+use crate::features::{BodyAxis, Features, Vector};
 use crate::video::{pick, Pick};
 use telemetry::frames::{GripFrame, JointSample, JointState};
+use telemetry::motion::{BaseState, LiftState, BASE_FLAG_WHEELS_UNREAD, LIFT_READY};
 
 /// One dataset frame: the vector features, each in [`Features`] order.
 #[derive(Debug, Clone, PartialEq)]
@@ -42,23 +47,29 @@ pub struct Frame {
     pub valid: Vec<f32>,
     /// Per camera: 1 if its image is fresh, 0 if its last image is held.
     pub camera_valid: Vec<f32>,
+    /// The base's pose (x, y, heading) when the base is recorded.
+    pub odometry: Vec<f32>,
 }
 
 impl Frame {
     /// A frame of NaN for `features`, every joint invalid (what a reader fills).
     pub fn missing(features: &Features) -> Frame {
-        let n = features.joints.len();
-        let g = features.grippers().len();
+        let nan = |v| vec![f32::NAN; features.width(v)];
         Frame {
-            action: vec![f32::NAN; n],
-            state: vec![f32::NAN; n],
-            velocity: vec![f32::NAN; n],
-            current: vec![f32::NAN; n],
-            temperature: vec![f32::NAN; n],
-            voltage: vec![f32::NAN; n],
-            grip_force: vec![f32::NAN; g],
-            valid: vec![0.0; n],
-            camera_valid: vec![0.0; features.cameras.len()],
+            action: nan(Vector::Action),
+            state: nan(Vector::State),
+            velocity: nan(Vector::Velocity),
+            current: nan(Vector::Current),
+            temperature: nan(Vector::Temperature),
+            voltage: nan(Vector::Voltage),
+            grip_force: nan(Vector::GripForce),
+            valid: vec![0.0; features.width(Vector::Valid)],
+            camera_valid: vec![0.0; features.width(Vector::CameraValid)],
+            odometry: if features.has_base() {
+                nan(Vector::Odometry)
+            } else {
+                Vec::new()
+            },
         }
     }
 
@@ -74,6 +85,7 @@ impl Frame {
             Vector::GripForce => &self.grip_force,
             Vector::Valid => &self.valid,
             Vector::CameraValid => &self.camera_valid,
+            Vector::Odometry => &self.odometry,
         }
     }
 
@@ -89,10 +101,11 @@ impl Frame {
             Vector::GripForce => &mut self.grip_force,
             Vector::Valid => &mut self.valid,
             Vector::CameraValid => &mut self.camera_valid,
+            Vector::Odometry => &mut self.odometry,
         }
     }
 
-    /// Count of joints whose last read is held in this frame.
+    /// Count of joints (and body axes) whose last read is held in this frame.
     pub fn missing_joints(&self) -> usize {
         self.valid.iter().filter(|&&v| v < 0.5).count()
     }
@@ -119,6 +132,10 @@ pub struct Sampler {
     /// Capture time of each camera's newest image.
     cameras: Vec<Option<u64>>,
     camera_stale_ns: u64,
+    /// Newest state of the homed lift (when recorded).
+    lift: Option<LiftState>,
+    /// Newest state of the base with its wheels read (when recorded).
+    base: Option<BaseState>,
 }
 
 impl Sampler {
@@ -140,6 +157,8 @@ impl Sampler {
             camera_stale_ns: max_age_ns,
             features,
             max_age_ns,
+            lift: None,
+            base: None,
         }
     }
 
@@ -190,6 +209,20 @@ impl Sampler {
         }
     }
 
+    /// Takes in one lift state frame: kept when the lift is homed and its height known.
+    pub fn on_lift(&mut self, s: &LiftState) {
+        if s.state == LIFT_READY && s.height_m.is_finite() {
+            self.lift = Some(*s);
+        }
+    }
+
+    /// Takes in one base state frame: kept when it is from a read of the wheels.
+    pub fn on_base(&mut self, s: &BaseState) {
+        if s.flags & BASE_FLAG_WHEELS_UNREAD == 0 && s.timestamp_ns > 0 {
+            self.base = Some(*s);
+        }
+    }
+
     /// What has never been read (joint names, `<gripper> grip force`): a frame is taken only
     /// once this is empty.
     pub fn unread(&self) -> Vec<String> {
@@ -204,9 +237,15 @@ impl Sampler {
         let unseen_cameras = (self.cameras.iter().zip(&self.features.cameras))
             .filter(|(slot, _)| slot.is_none())
             .map(|(_, c)| format!("camera {}", c.name));
+        let unread_lift = (self.features.has_lift() && self.lift.is_none())
+            .then(|| "lift height (is nori-lift running and homed?)".to_string());
+        let unread_base = (self.features.has_base() && self.base.is_none())
+            .then(|| "base (is nori-base running with the wheels read?)".to_string());
         unread_joints
             .chain(unread_grips)
             .chain(unseen_cameras)
+            .chain(unread_lift)
+            .chain(unread_base)
             .collect()
     }
 
@@ -214,16 +253,18 @@ impl Sampler {
     /// never read ([`Sampler::unread`]).
     pub fn frame(&self, now_ns: u64) -> Option<Frame> {
         let n = self.features.joints.len();
+        let wide = self.features.width(Vector::State);
         let mut f = Frame {
-            action: Vec::with_capacity(n),
-            state: Vec::with_capacity(n),
+            action: Vec::with_capacity(wide),
+            state: Vec::with_capacity(wide),
             velocity: Vec::with_capacity(n),
             current: Vec::with_capacity(n),
             temperature: Vec::with_capacity(n),
             voltage: Vec::with_capacity(n),
             grip_force: Vec::with_capacity(self.grips.len()),
-            valid: Vec::with_capacity(n),
+            valid: Vec::with_capacity(wide),
             camera_valid: Vec::with_capacity(self.cameras.len()),
+            odometry: Vec::new(),
         };
         for &newest in &self.cameras {
             f.camera_valid
@@ -250,6 +291,35 @@ impl Sampler {
             if !fresh(t) {
                 f.valid[gripper] = 0.0;
             }
+        }
+        for &axis in &self.features.body {
+            let (t, state, action) = match axis {
+                BodyAxis::LiftHeight => {
+                    let l = self.lift?;
+                    let goal = if l.goal_m.is_finite() {
+                        l.goal_m
+                    } else {
+                        l.height_m
+                    };
+                    (l.timestamp_ns, l.height_m, goal)
+                }
+                BodyAxis::BaseLinear => {
+                    let b = self.base?;
+                    (b.timestamp_ns, b.linear_m_s, b.commanded_linear_m_s)
+                }
+                BodyAxis::BaseAngular => {
+                    let b = self.base?;
+                    (b.timestamp_ns, b.angular_rad_s, b.commanded_angular_rad_s)
+                }
+            };
+            f.state.push(state);
+            f.action.push(action);
+            f.valid.push(if fresh(t) { 1.0 } else { 0.0 });
+        }
+        if self.features.has_base() {
+            let b = self.base?;
+            f.odometry
+                .extend([b.x_m as f32, b.y_m as f32, b.theta_rad as f32]);
         }
         Some(f)
     }
@@ -410,6 +480,79 @@ mod tests {
         assert_eq!(f.grip_force, [0.4]);
         assert_eq!(f.valid, [1.0, 0.0], "grip force 41 ns old");
         assert_eq!(s.frame(189).unwrap().valid, [1.0, 1.0]);
+    }
+
+    #[test]
+    fn the_lift_and_base_follow_the_joints_once_homed_and_read_and_are_marked_when_stale() {
+        let mut s = Sampler::new(features().with_body(true, true), 40);
+        s.on_state(&state(100, [true, true, true], 1.0));
+        s.on_grip(&grip(100, 0.2));
+        let unhomed = LiftState {
+            timestamp_ns: 100,
+            height_m: f32::NAN,
+            state: telemetry::motion::LIFT_HOMING,
+            ..LiftState::default()
+        };
+        s.on_lift(&unhomed);
+        let unread_wheels = BaseState {
+            timestamp_ns: 100,
+            flags: BASE_FLAG_WHEELS_UNREAD,
+            ..BaseState::default()
+        };
+        s.on_base(&unread_wheels);
+        assert_eq!(s.unread().len(), 2, "{:?}", s.unread());
+        assert_eq!(
+            s.frame(100),
+            None,
+            "nothing invented for the lift or the base"
+        );
+        s.on_lift(&LiftState {
+            timestamp_ns: 100,
+            height_m: 0.4,
+            goal_m: f32::NAN,
+            state: LIFT_READY,
+            ..LiftState::default()
+        });
+        s.on_base(&BaseState {
+            timestamp_ns: 100,
+            x_m: 1.5,
+            y_m: -0.25,
+            theta_rad: 0.5,
+            linear_m_s: 0.18,
+            angular_rad_s: -0.1,
+            commanded_linear_m_s: 0.2,
+            commanded_angular_rad_s: -0.125,
+            ..BaseState::default()
+        });
+        let f = s.frame(120).unwrap();
+        assert_eq!(f.state, [1.0, 3.0, 0.4, 0.18, -0.1]);
+        assert_eq!(
+            f.action,
+            [11.0, 13.0, 0.4, 0.2, -0.125],
+            "the lift holds its height with no goal; the base's action is what drove the wheels"
+        );
+        assert_eq!(f.odometry, [1.5, -0.25, 0.5]);
+        assert_eq!(f.valid, [1.0; 5]);
+        s.on_lift(&LiftState {
+            timestamp_ns: 130,
+            height_m: 0.41,
+            goal_m: 0.5,
+            state: LIFT_READY,
+            ..LiftState::default()
+        });
+        // The lift losing its link keeps its last good height, held.
+        s.on_lift(&LiftState {
+            timestamp_ns: 160,
+            height_m: 0.0,
+            state: telemetry::motion::LIFT_LINK_LOST,
+            ..LiftState::default()
+        });
+        s.on_state(&state(160, [true, true, true], 1.0));
+        s.on_grip(&grip(160, 0.2));
+        let f = s.frame(160).unwrap();
+        assert_eq!((f.state[2], f.action[2]), (0.41, 0.5));
+        assert_eq!(f.valid, [1.0, 1.0, 1.0, 0.0, 0.0], "base 60 ns old");
+        assert_eq!(f.missing_joints(), 2);
     }
 
     #[test]

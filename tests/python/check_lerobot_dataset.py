@@ -177,6 +177,8 @@ def main():
             check(spec["dtype"] == "float32" and len(spec["shape"]) == 1, f"feature {k}: {spec}")
             check(isinstance(spec["names"], list) and len(spec["names"]) == spec["shape"][0], f"feature {k}: names vs shape")
     check(features["observation.state"]["names"] == features["action"]["names"], "state and action name different joints")
+    check(features["observation.joint_valid"]["names"] == features["observation.state"]["names"],
+          "observation.joint_valid does not mark the state's dimensions")
     if expect_episodes is not None:
         check(info["total_episodes"] == expect_episodes, f"total_episodes {info['total_episodes']}, expected {expect_episodes}")
     check(info["splits"] == ({"train": f"0:{info['total_episodes']}"} if info["total_episodes"] else {}), f"splits {info['splits']}")

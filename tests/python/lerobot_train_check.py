@@ -105,6 +105,19 @@ def main():
     check(valid_zero > 0, "no joint was ever missing: record with a silenced servo (record-sim-dataset.sh does)")
     report["missing_joint_samples"] = valid_zero
 
+    # 4b. The whole body (`nori record --lift --base`): the lift's height and the base's twist
+    # after the joints in the state and the action, named, and moving.
+    names = ds.meta.features["observation.state"]["names"]
+    report["state_width"] = len(names)
+    body = ["lift.height_m", "base.linear_m_s", "base.angular_rad_s"]
+    if names[-3:] == body:
+        check(ds.meta.features["action"]["names"] == names, "action and state name different dimensions")
+        state = torch.stack([ds[i]["observation.state"] for i in range(0, ds.num_frames, 5)])
+        spans = (state.max(dim=0).values - state.min(dim=0).values)[-3:].tolist()
+        check(spans[0] > 0.05 and spans[1] > 0.05, f"the lift and base do not move in the data: spans {spans}")
+        report["body_spans"] = [round(x, 3) for x in spans]
+        report["odometry_shape"] = list(ds[0]["observation.odometry"].shape)
+
     # 3. Action chunks by delta_timestamps.
     fps, chunk = ds.meta.fps, 20
     deltas = {"action": [k / fps for k in range(chunk)], cams[0]: [-1 / fps, 0.0]}

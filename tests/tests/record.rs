@@ -669,3 +669,160 @@ fn cameras_are_recorded_as_video_frame_for_frame_and_a_dead_camera_is_held_and_m
     }
     stack.stop();
 }
+
+/// The whole body recorded: `nori up` (both arms, the wheels, the lift, the base), the lift
+/// rising and the base backing along a curve while `nori record --lift --base` records. The state and
+/// the action are 19 wide (16 arm joints, the lift's height, the base's twist) and named; the
+/// motion is in them; the odometry follows the base; LeRobot's layout checks out.
+#[test]
+fn the_whole_body_is_recorded_nineteen_wide_with_the_lift_rising_and_the_base_driving() {
+    use telemetry::motion::{BaseCommand, LiftCommand, LIFT_READY};
+    let _turn = serial();
+    let dir = nori_tests::scratch("record-body");
+    let domain = format!("nori_record_body_{}", std::process::id());
+    // The lift standing 5 cm up at start: homing takes two seconds, not ten.
+    let robot = dir.join("robot.toml");
+    let text = sim::description::NORI_A3_TOML.replacen("start-m = 0.3", "start-m = 0.05", 1);
+    assert_ne!(text, sim::description::NORI_A3_TOML);
+    std::fs::write(&robot, text).unwrap();
+    let mut up = Proc::spawn(
+        "nori up",
+        &binary("nori"),
+        &[
+            "up",
+            "--dir",
+            dir.join("dev").to_str().unwrap(),
+            "--domain",
+            &domain,
+            "--robot",
+            robot.to_str().unwrap(),
+        ],
+        &dir.join("up.log"),
+    );
+    let node = Plane::open(&domain, "test").unwrap();
+    let lifts = node.subscriber(&plane::LIFT_STATE).unwrap();
+    let states = node.subscriber(&plane::JOINT_STATE).unwrap();
+    wait_for(Duration::from_secs(40), "18 joints driven", || {
+        newest(&states).filter(|s| {
+            s.joint_count == 18
+                && s.flags & STATE_FLAG_SAFE_STATE == 0
+                && s.joints().iter().all(|j| j.is_valid())
+        })
+    });
+    let homed = wait_for(Duration::from_secs(20), "the lift homed", || {
+        newest(&lifts).filter(|l| l.state == LIFT_READY)
+    });
+    assert!(homed.height_m.abs() < 0.01, "{homed:?}");
+
+    // The operator: the lift to 20 cm, the base backing away from the table and turning left
+    // (a 0.5 m radius, clear of everything in the room), until told to stop.
+    let stop = Arc::new(AtomicBool::new(false));
+    let operator = {
+        let (domain, stop) = (domain.clone(), stop.clone());
+        std::thread::spawn(move || {
+            let node = Plane::open(&domain, "test-operator").unwrap();
+            let base = node.publisher(&plane::BASE_COMMAND).unwrap();
+            let lift = node.publisher(&plane::LIFT_COMMAND).unwrap();
+            std::thread::sleep(Duration::from_millis(100));
+            let mut seq = 0;
+            while !stop.load(Ordering::Relaxed) {
+                seq += 1;
+                let now = monotonic_ns();
+                let twist = BaseCommand {
+                    seq,
+                    timestamp_ns: now,
+                    linear_m_s: -0.15,
+                    angular_rad_s: 0.3,
+                };
+                publish(&base, &twist).unwrap();
+                let height = LiftCommand {
+                    seq,
+                    timestamp_ns: now,
+                    height_m: 0.2,
+                    reserved: 0,
+                };
+                publish(&lift, &height).unwrap();
+                std::thread::sleep(Duration::from_millis(50));
+            }
+        })
+    };
+    let dataset = dir.join("dataset");
+    let out = Command::new(binary("nori"))
+        .args(record_args(
+            &domain,
+            dataset.to_str().unwrap(),
+            &["--lift", "--base", "--episode-s", "4"],
+        ))
+        .output()
+        .unwrap();
+    stop.store(true, Ordering::Relaxed);
+    operator.join().unwrap();
+    let (_, log) = up.terminate(Duration::from_secs(20));
+    assert!(
+        out.status.success(),
+        "nori record: {}\n{log}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+
+    let body = ["lift.height_m", "base.linear_m_s", "base.angular_rad_s"];
+    if let Some(summary) = lerobot_check(&dataset, &["--episodes", "1", "--closed"]) {
+        eprintln!("LeRobot check: {summary}");
+        let names = summary["joints"].as_array().unwrap();
+        assert_eq!(names.len(), 19, "{summary}");
+        assert_eq!(names[16..], body.map(serde_json::Value::from));
+    }
+    let reader = recorder::dataset::DatasetReader::open(&dataset).unwrap();
+    let f = &reader.features;
+    assert_eq!(f.width(recorder::features::Vector::State), 19);
+    assert_eq!(f.width(recorder::features::Vector::Action), 19);
+    assert_eq!(f.names(recorder::features::Vector::State)[16..], body);
+    let rows = reader.read_episode(0).unwrap();
+    assert_eq!(rows.len(), 4 * FPS as usize);
+    let (first, last) = (&rows[0].frame, &rows[rows.len() - 1].frame);
+    let column = |i: usize| rows.iter().map(move |r| r.frame.state[i]);
+    // The lift from its lowest toward 0.2 m at about 30 mm/s: 4 s cover 0.1 m or more.
+    assert!(first.state[16] < 0.03, "lift at {}", first.state[16]);
+    assert!(last.state[16] > 0.09, "lift at {}", last.state[16]);
+    assert!(
+        column(16)
+            .zip(column(16).skip(1))
+            .all(|(a, b)| b >= a - 1e-3),
+        "the lift only rises"
+    );
+    assert!(rows.iter().all(|r| r.frame.action[16] == 0.2), "its goal");
+    // The base at its commanded twist once the ramp is through, measured by the wheels: over
+    // the last second on average (one frame's twist is from one control period of the wheels'
+    // positions, a few encoder counts: ±0.07 rad/s of turn rate).
+    let cruising = &rows[rows.len() - FPS as usize..];
+    let mean = |i: usize| cruising.iter().map(|r| r.frame.state[i]).sum::<f32>() / FPS as f32;
+    let (v, w) = (mean(17), mean(18));
+    assert!(
+        (v + 0.15).abs() < 0.02 && (w - 0.3).abs() < 0.05,
+        "{v} m/s {w} rad/s"
+    );
+    for r in cruising {
+        assert!(
+            (r.frame.state[18] - 0.3).abs() < 0.15,
+            "{:?}",
+            &r.frame.state[16..]
+        );
+        assert_eq!((r.frame.action[17], r.frame.action[18]), (-0.15, 0.3));
+    }
+    // The odometry: backwards, to the right, and turned left by about the twist's integral.
+    let (x0, y0, h0) = (first.odometry[0], first.odometry[1], first.odometry[2]);
+    let (x1, y1, h1) = (last.odometry[0], last.odometry[1], last.odometry[2]);
+    assert!(
+        x1 - x0 < -0.2 && y1 < y0,
+        "odometry {:?} -> {:?}",
+        first.odometry,
+        last.odometry
+    );
+    assert!(h1 - h0 > 0.6, "heading {h0} -> {h1}");
+    let held = rows
+        .iter()
+        .flat_map(|r| &r.frame.valid[16..])
+        .filter(|v| **v < 0.5)
+        .count();
+    assert!(held < rows.len() / 20, "{held} body samples held");
+    let _ = std::fs::remove_dir_all(&dir);
+}
