@@ -173,6 +173,14 @@ pub fn wire_messages(data: &[u8]) {
         max_age_ns: 250_000_000,
         max_steps: 128,
         max_span_ns: 3_000_000_000,
+        body: fleet_agent::gate::BodyLimits {
+            lift_m: fleet_agent::gate::Range {
+                min: 0.01,
+                max: 0.75,
+            },
+            max_linear_m_s: 0.2,
+            max_angular_rad_s: 1.0,
+        },
     };
     let mut gate = ActionGate::new(config);
     let now = 10_000_000_000u64;

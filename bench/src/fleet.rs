@@ -248,6 +248,8 @@ pub fn action_latency(args: &ActionLatencyArgs) -> Result<()> {
                     joint_count: joints as u16,
                     joint_mask: 1 << joint,
                     targets,
+                    lift_m: Vec::new(),
+                    base_twist: Vec::new(),
                 }))
                 .wait()
                 .map_err(z)?;
@@ -365,6 +367,8 @@ fn rust_flip(
                     joint_count: joints as u16,
                     joint_mask: 1 << joint,
                     targets,
+                    lift_m: Vec::new(),
+                    base_twist: Vec::new(),
                 }))
                 .wait();
         }

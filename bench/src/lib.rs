@@ -28,7 +28,8 @@ pub fn zenoh_session(
     })
 }
 
-/// An 18-joint state message (the A3's bus joints) as a robot's agent sends it.
+/// An 18-joint state message (the A3's bus joints, the lift and the base) as a robot's agent
+/// sends it.
 pub fn state_msg(seq: u64) -> StateMsg {
     StateMsg {
         version: SCHEMA_VERSION,
@@ -49,6 +50,22 @@ pub fn state_msg(seq: u64) -> StateMsg {
                 flags: 0,
             })
             .collect(),
+        lift: Some(fleet_agent::schema::LiftMsg {
+            height_m: 0.4,
+            goal_m: 0.4,
+            state: 2,
+            held: 0,
+            duty_wait_s: 0.0,
+        }),
+        base: Some(fleet_agent::schema::BaseMsg {
+            x_m: 1.0,
+            y_m: -0.5,
+            heading_rad: 0.3,
+            linear_m_s: 0.1,
+            angular_rad_s: 0.0,
+            field_distance_m: 2.0,
+            flags: 0,
+        }),
     }
 }
 

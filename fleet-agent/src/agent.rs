@@ -8,7 +8,7 @@
 //! plan with it, the driver stops getting goals and holds, and a restarted agent starts with
 //! none.
 
-use crate::gate::{within, ActionGate, Range, REASONS};
+use crate::gate::{within, ActionGate, BodyLimits, Range, REASONS};
 use crate::outbound::{self, Every};
 use crate::preview::{preview_msg, scan_msg, Thumbnailer};
 use crate::schedule::Scheduler;
@@ -23,7 +23,12 @@ use telemetry::frames::{
     BusHealth, GoalFrame, JointLayout, JointState, SupervisorEvent, BUS_HEALTH_CONNECTED,
     BUS_HEALTH_ENABLED, STATE_FLAG_SAFE_STATE,
 };
+use telemetry::motion::{BaseCommand, BaseState, LiftCommand, LiftState};
 use telemetry::sensors::{CameraFrameHeader, LidarScan};
+
+/// The lift's or the base's state is shown and observed while at most this old (their
+/// controllers publish every 10 and 20 ms): older, its controller is not running.
+const BODY_FRESH_NS: u64 = 500_000_000;
 
 /// What the agent sends to the fleet, each on its own key expression of the robot.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -68,6 +73,14 @@ pub trait AgentIo {
     fn next_event(&mut self) -> Option<SupervisorEvent>;
     /// Publishes a goal frame to the driver; whether it went out.
     fn send_goal(&mut self, goal: &GoalFrame) -> bool;
+    /// The lift controller's newest state, if one was published since the last call.
+    fn lift(&mut self) -> Option<LiftState>;
+    /// The base controller's newest state, if one was published since the last call.
+    fn base(&mut self) -> Option<BaseState>;
+    /// Publishes a height to the lift's controller; whether it went out.
+    fn send_lift(&mut self, command: &LiftCommand) -> bool;
+    /// Publishes a velocity to the base's controller; whether it went out.
+    fn send_base(&mut self, command: &BaseCommand) -> bool;
     /// Publishes `payload` to the fleet; whether it went out.
     fn publish(&mut self, what: Outbound, payload: Vec<u8>) -> bool;
     /// The next action chunk received from the fleet (its bytes, undecoded).
@@ -83,6 +96,8 @@ struct Counters {
     observations_sent: u64,
     events_sent: u64,
     goals_forwarded: u64,
+    lift_commands_forwarded: u64,
+    base_commands_forwarded: u64,
     plans_dropped: u64,
     goals_withheld: u64,
     images_sent: u64,
@@ -100,6 +115,7 @@ pub struct Agent {
     scheduler: Scheduler,
     layout: JointLayout,
     ranges: Vec<Range>,
+    body_limits: BodyLimits,
     state_every: Every,
     observation_every: Every,
     layout_every: Every,
@@ -110,6 +126,8 @@ pub struct Agent {
     last_health: Option<BusHealth>,
     last_cameras: Vec<Option<CameraFrameHeader>>,
     last_lidar: Option<LidarStatusOf>,
+    last_lift: Option<LiftState>,
+    last_base: Option<BaseState>,
     /// Each observation camera's newest JPEG and its header.
     images: Vec<(Option<CameraFrameHeader>, Vec<u8>)>,
     observations: u64,
@@ -150,6 +168,7 @@ impl Agent {
             ),
             layout: JointLayout::default(),
             ranges: Vec::new(),
+            body_limits: config.gate().body,
             state_every: Every::hz(config.telemetry.state_hz),
             observation_every: Every::hz(config.telemetry.observation_hz),
             layout_every: Every::hz(1.0 / config.telemetry.layout_every_s),
@@ -160,6 +179,8 @@ impl Agent {
             last_health: None,
             last_cameras: vec![None; config.sensors.cameras.len()],
             last_lidar: None,
+            last_lift: None,
+            last_base: None,
             images: vec![(None, Vec::new()); config.observation.cameras.len()],
             observations: 0,
             goal_seq: 0,
@@ -221,10 +242,16 @@ impl Agent {
             }
             newest = Some(s);
         }
+        self.last_lift = io.lift().or(self.last_lift);
+        self.last_base = io.base().or(self.last_base);
+        let body = self.body(now);
         if let Some(s) = newest {
             self.last_state = Some(s);
             if self.state_every.due(now)
-                && io.publish(Outbound::State, encode(&outbound::state_msg(&s, wall_ms)))
+                && io.publish(
+                    Outbound::State,
+                    encode(&outbound::state_msg(&s, body, wall_ms)),
+                )
             {
                 self.counters.state_sent += 1;
             }
@@ -237,7 +264,7 @@ impl Agent {
                 let images = self.observation_images(&s);
                 if io.publish(
                     Outbound::Observation,
-                    encode(&outbound::observation_msg(&s, images)),
+                    encode(&outbound::observation_msg(&s, images, body)),
                 ) {
                     self.counters.observations_sent += 1;
                 }
@@ -252,6 +279,19 @@ impl Agent {
             if io.publish(Outbound::Event, encode(&msg)) {
                 self.counters.events_sent += 1;
             }
+        }
+    }
+
+    /// The lift and the base as their controllers last said, when that is fresh.
+    fn body(&self, now: u64) -> outbound::Body {
+        let fresh = |t: u64| now.saturating_sub(t) <= BODY_FRESH_NS;
+        outbound::Body {
+            lift: (self.last_lift)
+                .filter(|l| fresh(l.timestamp_ns))
+                .map(|l| outbound::lift_msg(&l)),
+            base: (self.last_base)
+                .filter(|b| fresh(b.timestamp_ns))
+                .map(|b| outbound::base_msg(&b)),
         }
     }
 
@@ -370,9 +410,12 @@ impl Agent {
 
     fn forward_goal(&mut self, io: &mut impl AgentIo, now: u64) {
         match self.scheduler.target(now) {
-            // The last door: a value outside a calibrated range never leaves the agent,
-            // whatever the scheduler made of the chunks.
-            Some(target) if !within(&self.ranges, &target.position, target.mask) => {
+            // The last door: a value outside a calibrated range (or the lift's and the base's
+            // limits) never leaves the agent, whatever the scheduler made of the chunks.
+            Some(target)
+                if !within(&self.ranges, &target.position, target.mask)
+                    || !self.body_limits.within(target.lift_m, target.base_twist) =>
+            {
                 self.counters.goals_withheld += 1;
                 self.scheduler.clear();
                 tracing::error!(
@@ -381,10 +424,17 @@ impl Agent {
             }
             Some(target) => {
                 self.goal_seq += 1;
-                let frame =
-                    outbound::goal_frame(&target, self.layout.joint_count, self.goal_seq, now);
-                if io.send_goal(&frame) {
-                    self.counters.goals_forwarded += 1;
+                let seq = self.goal_seq;
+                let c = &mut self.counters;
+                if target.mask != 0 {
+                    let frame = outbound::goal_frame(&target, self.layout.joint_count, seq, now);
+                    c.goals_forwarded += u64::from(io.send_goal(&frame));
+                }
+                if let Some(lift) = outbound::lift_command(&target, seq, now) {
+                    c.lift_commands_forwarded += u64::from(io.send_lift(&lift));
+                }
+                if let Some(base) = outbound::base_command(&target, seq, now) {
+                    c.base_commands_forwarded += u64::from(io.send_base(&base));
                 }
             }
             None => {}
@@ -428,6 +478,8 @@ impl Agent {
                 steps_dropped_past: self.scheduler.dropped_past_steps(),
                 plans_expired: self.scheduler.expired(),
                 goals_forwarded: c.goals_forwarded,
+                lift_commands_forwarded: c.lift_commands_forwarded,
+                base_commands_forwarded: c.base_commands_forwarded,
                 plans_dropped: c.plans_dropped,
                 goals_withheld: c.goals_withheld,
                 images_sent: c.images_sent,

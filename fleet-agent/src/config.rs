@@ -1,7 +1,7 @@
 //! The agent's configuration. Kebab-case TOML; unknown keys and impossible values are refused
 //! with the file and key named.
 
-use crate::gate::GateConfig;
+use crate::gate::{BodyLimits, GateConfig, Range};
 use crate::keys::check_robot_id;
 use crate::schedule::MAX_PLAN_STEPS;
 use serde::Deserialize;
@@ -54,6 +54,12 @@ pub struct ActionsConfig {
     pub blend_new: f32,
     /// Goals per second to the driver.
     pub forward_hz: f64,
+    /// The lift's heights a policy may ask, m above its lowest.
+    pub lift_range_m: [f32; 2],
+    /// The base's fastest speed a policy may ask, either way, m/s.
+    pub base_max_linear_m_s: f32,
+    /// The base's fastest turn rate a policy may ask, either way, rad/s.
+    pub base_max_angular_rad_s: f32,
 }
 
 /// Which sensors the agent watches (their health goes into its status).
@@ -168,6 +174,26 @@ impl ActionsConfig {
                 "actions.blend-new",
                 format!("{} is outside (0, 1]", self.blend_new),
             ));
+        }
+        let [low, high] = self.lift_range_m;
+        if !(low >= 0.0 && low < high && high <= 2.0) {
+            return Err(invalid(
+                origin,
+                "actions.lift-range-m",
+                format!("[{low}, {high}]: 0 <= low < high <= 2 m"),
+            ));
+        }
+        for (key, v, most) in [
+            ("actions.base-max-linear-m-s", self.base_max_linear_m_s, 2.0),
+            (
+                "actions.base-max-angular-rad-s",
+                self.base_max_angular_rad_s,
+                6.0,
+            ),
+        ] {
+            if !(v >= 0.0 && v <= most) {
+                return Err(invalid(origin, key, format!("{v}: 0 to {most}")));
+            }
         }
         Ok(())
     }
@@ -303,6 +329,14 @@ impl AgentConfig {
             max_age_ns: self.actions.max_age_ms * 1_000_000,
             max_steps: self.actions.max_steps,
             max_span_ns: self.actions.max_span_ms * 1_000_000,
+            body: BodyLimits {
+                lift_m: Range {
+                    min: self.actions.lift_range_m[0],
+                    max: self.actions.lift_range_m[1],
+                },
+                max_linear_m_s: self.actions.base_max_linear_m_s,
+                max_angular_rad_s: self.actions.base_max_angular_rad_s,
+            },
         }
     }
 }
@@ -342,6 +376,16 @@ mod tests {
             ),
             ("max-steps = 128", "max-steps = 100000", "actions.max-steps"),
             ("blend-new = 0.7", "blend-new = 0.0", "actions.blend-new"),
+            (
+                "lift-range-m = [0.01, 0.75]",
+                "lift-range-m = [0.5, 0.2]",
+                "actions.lift-range-m",
+            ),
+            (
+                "base-max-linear-m-s = 0.2",
+                "base-max-linear-m-s = nan",
+                "actions.base-max-linear-m-s",
+            ),
             ("blend-new = 0.7", "blend-now = 0.7", "blend-now"),
             (
                 "image-every = 3",

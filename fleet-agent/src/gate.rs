@@ -2,7 +2,8 @@
 //! it can reach the driver. Pure: bytes and the robot's time in, a chunk or a reason out.
 //!
 //! A chunk is refused whole, with a reason, when it is malformed or of another schema version,
-//! has the wrong shape, carries a non-finite or out-of-range target, was computed from an
+//! has the wrong shape, carries a non-finite or out-of-range target (a joint outside its
+//! calibrated range, the lift outside its travel, the base faster than its limits), was computed from an
 //! observation older than `max-age-ms` (or one the robot has not made yet), does not come
 //! after the last accepted chunk (a replay or a reordering), or was computed from an
 //! observation made before the driver last recovered (a driver restart or a safe state: the
@@ -30,7 +31,50 @@ pub struct GateConfig {
     pub max_steps: usize,
     /// The last step may be at most this far after the observation, ns.
     pub max_span_ns: u64,
+    /// The limits of the lift's and the base's targets.
+    pub body: BodyLimits,
 }
+
+/// What a policy may ask of the lift and the base.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BodyLimits {
+    /// The lift's heights, m above its lowest.
+    pub lift_m: Range,
+    /// The fastest forward or backward speed, m/s.
+    pub max_linear_m_s: f32,
+    /// The fastest turn rate either way, rad/s.
+    pub max_angular_rad_s: f32,
+}
+
+impl BodyLimits {
+    /// The range of body axis `axis` ([`BODY_AXES`] order).
+    fn range(&self, axis: usize) -> Range {
+        match axis {
+            0 => self.lift_m,
+            1 => Range {
+                min: -self.max_linear_m_s,
+                max: self.max_linear_m_s,
+            },
+            _ => Range {
+                min: -self.max_angular_rad_s,
+                max: self.max_angular_rad_s,
+            },
+        }
+    }
+
+    /// Whether the lift's and the base's values of `target` are within the limits: the check
+    /// they pass once more before they leave the agent.
+    pub fn within(&self, lift_m: Option<f32>, base_twist: Option<[f32; 2]>) -> bool {
+        let ok = |axis: usize, v: f32| {
+            let r = self.range(axis);
+            (r.min..=r.max).contains(&v)
+        };
+        lift_m.is_none_or(|h| ok(0, h)) && base_twist.is_none_or(|[v, w]| ok(1, v) && ok(2, w))
+    }
+}
+
+/// The body's axes in a chunk, by name, in the order of [`BodyLimits::range`].
+pub const BODY_AXES: [&str; 3] = ["lift_m", "base_linear_m_s", "base_angular_rad_s"];
 
 /// Why a chunk was refused.
 #[derive(Debug, Error, Clone, PartialEq)]
@@ -51,6 +95,28 @@ pub enum Rejection {
         step: usize,
         /// Joint index.
         joint: usize,
+    },
+    /// A lift or base target that is NaN or infinite.
+    #[error("step {step} {axis}: target is not finite")]
+    BodyNotFinite {
+        /// Step index.
+        step: usize,
+        /// [`BODY_AXES`] name.
+        axis: &'static str,
+    },
+    /// A lift or base target beyond its limits.
+    #[error("step {step} {axis}: {value} is outside [{min}, {max}]")]
+    BodyOutOfRange {
+        /// Step index.
+        step: usize,
+        /// [`BODY_AXES`] name.
+        axis: &'static str,
+        /// Target.
+        value: f32,
+        /// Limit.
+        min: f32,
+        /// Limit.
+        max: f32,
     },
     /// Outside the calibrated range.
     #[error("step {step} joint {joint}: {value} rad is outside the calibrated [{min}, {max}]")]
@@ -130,8 +196,8 @@ impl Rejection {
             Rejection::Malformed(_) => 0,
             Rejection::Version(_) => 1,
             Rejection::Shape(_) => 2,
-            Rejection::NotFinite { .. } => 3,
-            Rejection::OutOfRange { .. } => 4,
+            Rejection::NotFinite { .. } | Rejection::BodyNotFinite { .. } => 3,
+            Rejection::OutOfRange { .. } | Rejection::BodyOutOfRange { .. } => 4,
             Rejection::Stale { .. } => 5,
             Rejection::Future { .. } => 6,
             Rejection::Replayed { .. } => 7,
@@ -251,6 +317,7 @@ impl ActionGate {
                 });
             }
         }
+        check_body(&chunk, &self.config.body)?;
         if chunk.observation_ns > now_ns {
             return Err(Rejection::Future {
                 ahead_ms: (chunk.observation_ns - now_ns) as f64 / 1e6,
@@ -294,6 +361,29 @@ pub fn within(ranges: &[Range], position: &[f32], mask: u32) -> bool {
     })
 }
 
+/// The lift's and the base's targets: finite and within their limits.
+fn check_body(chunk: &ActionChunk, limits: &BodyLimits) -> Result<(), Rejection> {
+    let lift = chunk.lift_m.iter().enumerate().map(|(k, &v)| (k, 0, v));
+    let base = (chunk.base_twist.iter().enumerate()).map(|(i, &v)| (i / 2, 1 + i % 2, v));
+    for (step, axis, value) in lift.chain(base) {
+        let name = BODY_AXES[axis];
+        if !value.is_finite() {
+            return Err(Rejection::BodyNotFinite { step, axis: name });
+        }
+        let Range { min, max } = limits.range(axis);
+        if !(min..=max).contains(&value) {
+            return Err(Rejection::BodyOutOfRange {
+                step,
+                axis: name,
+                value,
+                min,
+                max,
+            });
+        }
+    }
+    Ok(())
+}
+
 fn check_shape(chunk: &ActionChunk, joints: usize, config: &GateConfig) -> Result<(), Rejection> {
     let shape = |m: String| Err(Rejection::Shape(m));
     let steps = chunk.step_offsets_ns.len();
@@ -327,8 +417,23 @@ fn check_shape(chunk: &ActionChunk, joints: usize, config: &GateConfig) -> Resul
     } else {
         (1u32 << joints) - 1
     };
-    if chunk.joint_mask == 0 || chunk.joint_mask & !all != 0 {
+    if chunk.joint_mask & !all != 0 {
         return shape(format!("joint mask {:#x}", chunk.joint_mask));
+    }
+    if !chunk.lift_m.is_empty() && chunk.lift_m.len() != steps {
+        return shape(format!(
+            "{} lift heights for {steps} steps (none, or one per step)",
+            chunk.lift_m.len()
+        ));
+    }
+    if !chunk.base_twist.is_empty() && chunk.base_twist.len() != 2 * steps {
+        return shape(format!(
+            "{} base values for {steps} steps (none, or a speed and a turn rate per step)",
+            chunk.base_twist.len()
+        ));
+    }
+    if chunk.joint_mask == 0 && chunk.lift_m.is_empty() && chunk.base_twist.is_empty() {
+        return shape("commands nothing: joint mask 0, no lift, no base".into());
     }
     Ok(())
 }
@@ -347,12 +452,19 @@ mod tests {
         Range { min: 0.0, max: 2.0 },
     ];
 
+    const BODY: BodyLimits = BodyLimits {
+        lift_m: Range { min: 0.0, max: 0.7 },
+        max_linear_m_s: 0.2,
+        max_angular_rad_s: 1.0,
+    };
+
     /// A gate whose driver has been driving since robot time 0.
     fn gate() -> ActionGate {
         let mut g = ActionGate::new(GateConfig {
             max_age_ns: 200 * MS,
             max_steps: 64,
             max_span_ns: 2000 * MS,
+            body: BODY,
         });
         assert!(!g.observe_driver(1, 0, false));
         g
@@ -367,6 +479,8 @@ mod tests {
             joint_count: 2,
             joint_mask: 0b11,
             targets: vec![0.0, 0.5, 0.1, 0.6, 0.2, 0.7],
+            lift_m: Vec::new(),
+            base_twist: Vec::new(),
         }
     }
 
@@ -443,6 +557,107 @@ mod tests {
                 .reason(),
             "malformed"
         );
+    }
+
+    #[test]
+    fn the_lift_and_base_are_checked_like_joints() {
+        let now = 1050 * MS;
+        let mut body = chunk(1, 1000 * MS);
+        body.lift_m = vec![0.0, 0.35, 0.7];
+        body.base_twist = vec![-0.2, 1.0, 0.0, -1.0, 0.2, 0.0];
+        assert!(gate().check(&encode(&body), now, &RANGES).is_ok());
+        // The base alone, no joint: a chunk that commands something.
+        let mut base_only = body.clone();
+        base_only.joint_mask = 0;
+        base_only.lift_m.clear();
+        assert!(gate().check(&encode(&base_only), now, &RANGES).is_ok());
+        let mut nothing = base_only.clone();
+        nothing.base_twist.clear();
+        assert_eq!(refused(&nothing, now).reason(), "shape");
+        for (lift, twist, want) in [
+            (
+                Some((1, 0.71)),
+                None,
+                Rejection::BodyOutOfRange {
+                    step: 1,
+                    axis: "lift_m",
+                    value: 0.71,
+                    min: 0.0,
+                    max: 0.7,
+                },
+            ),
+            (
+                Some((0, -0.01)),
+                None,
+                Rejection::BodyOutOfRange {
+                    step: 0,
+                    axis: "lift_m",
+                    value: -0.01,
+                    min: 0.0,
+                    max: 0.7,
+                },
+            ),
+            (
+                None,
+                Some((4, 0.25)),
+                Rejection::BodyOutOfRange {
+                    step: 2,
+                    axis: "base_linear_m_s",
+                    value: 0.25,
+                    min: -0.2,
+                    max: 0.2,
+                },
+            ),
+            (
+                None,
+                Some((3, -1.5)),
+                Rejection::BodyOutOfRange {
+                    step: 1,
+                    axis: "base_angular_rad_s",
+                    value: -1.5,
+                    min: -1.0,
+                    max: 1.0,
+                },
+            ),
+            (
+                Some((2, f32::NAN)),
+                None,
+                Rejection::BodyNotFinite {
+                    step: 2,
+                    axis: "lift_m",
+                },
+            ),
+            (
+                None,
+                Some((1, f32::INFINITY)),
+                Rejection::BodyNotFinite {
+                    step: 0,
+                    axis: "base_angular_rad_s",
+                },
+            ),
+        ] {
+            let mut c = body.clone();
+            if let Some((i, v)) = lift {
+                c.lift_m[i] = v;
+            }
+            if let Some((i, v)) = twist {
+                c.base_twist[i] = v;
+            }
+            assert_eq!(refused(&c, now), want);
+        }
+        // One value per step (the base: two), or none.
+        let mut c = body.clone();
+        c.lift_m.pop();
+        assert_eq!(refused(&c, now).reason(), "shape");
+        let mut c = body.clone();
+        c.base_twist.pop();
+        assert_eq!(refused(&c, now).reason(), "shape");
+        // The last door: what leaves the agent is within the limits.
+        assert!(BODY.within(Some(0.7), Some([-0.2, 1.0])));
+        assert!(BODY.within(None, None));
+        assert!(!BODY.within(Some(0.71), None));
+        assert!(!BODY.within(None, Some([0.0, f32::NAN])));
+        assert!(!BODY.within(None, Some([0.21, 0.0])));
     }
 
     #[test]

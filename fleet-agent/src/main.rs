@@ -14,6 +14,7 @@ use fleet_agent::zenoh::sample::Sample;
 use fleet_agent::zenoh::Wait;
 use fleet_agent::{net, AgentConfig};
 use telemetry::frames::{BusHealth, GoalFrame, JointLayout, JointState, SupervisorEvent};
+use telemetry::motion::{BaseCommand, BaseState, LiftCommand, LiftState};
 use telemetry::plane::{self, newest, next, publish, CameraStream, FrameSub, Plane, Pub, Sub};
 use telemetry::process::Exit;
 use telemetry::process::{ProcessArgs, ServiceManager, Started};
@@ -50,6 +51,10 @@ struct Wired {
     images: Vec<Option<FrameSub>>,
     lidar: Option<Sub<LidarScan>>,
     goals: Pub<GoalFrame>,
+    lift_states: Sub<LiftState>,
+    base_states: Sub<BaseState>,
+    lift_commands: Pub<LiftCommand>,
+    base_commands: Pub<BaseCommand>,
     state_pub: Publisher<'static>,
     observation_pub: Publisher<'static>,
     layout_pub: Publisher<'static>,
@@ -106,6 +111,18 @@ impl AgentIo for Wired {
     }
     fn send_goal(&mut self, goal: &GoalFrame) -> bool {
         publish(&self.goals, goal).is_ok()
+    }
+    fn lift(&mut self) -> Option<LiftState> {
+        newest(&self.lift_states)
+    }
+    fn base(&mut self) -> Option<BaseState> {
+        newest(&self.base_states)
+    }
+    fn send_lift(&mut self, command: &LiftCommand) -> bool {
+        publish(&self.lift_commands, command).is_ok()
+    }
+    fn send_base(&mut self, command: &BaseCommand) -> bool {
+        publish(&self.base_commands, command).is_ok()
     }
     fn publish(&mut self, what: Outbound, payload: Vec<u8>) -> bool {
         let publisher = match what {
@@ -238,6 +255,10 @@ fn wire(
             None
         },
         goals: node.publisher(&plane::GOALS)?,
+        lift_states: node.subscriber(&plane::LIFT_STATE)?,
+        base_states: node.subscriber(&plane::BASE_STATE)?,
+        lift_commands: node.publisher(&plane::LIFT_COMMAND)?,
+        base_commands: node.publisher(&plane::BASE_COMMAND)?,
         state_pub: publisher("state", CongestionControl::Drop)?,
         observation_pub: publisher("observation", CongestionControl::Drop)?,
         layout_pub: publisher("layout", CongestionControl::Drop)?,

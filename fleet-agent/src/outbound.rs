@@ -3,11 +3,47 @@
 use crate::gate::Range;
 use crate::schedule::Target;
 use crate::schema::{
-    EventMsg, ImageMsg, JointInfoMsg, JointMsg, LayoutMsg, ObservationMsg, StateMsg, SCHEMA_VERSION,
+    BaseMsg, EventMsg, ImageMsg, JointInfoMsg, JointMsg, LayoutMsg, LiftMsg, ObservationMsg,
+    StateMsg, SCHEMA_VERSION,
 };
 use telemetry::frames::{
     GoalFrame, JointLayout, JointState, SupervisorEvent, STATE_FLAG_SAFE_STATE,
 };
+use telemetry::motion::{BaseCommand, BaseState, LiftCommand, LiftState};
+
+/// The lift and the base as the fleet sees them (each absent when its controller publishes
+/// nothing fresh).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Body {
+    /// The lift.
+    pub lift: Option<LiftMsg>,
+    /// The base.
+    pub base: Option<BaseMsg>,
+}
+
+/// The lift's state as a fleet message.
+pub fn lift_msg(l: &LiftState) -> LiftMsg {
+    LiftMsg {
+        height_m: l.height_m,
+        goal_m: l.goal_m,
+        state: l.state,
+        held: l.held,
+        duty_wait_s: l.duty_wait_s,
+    }
+}
+
+/// The base's state as a fleet message.
+pub fn base_msg(b: &BaseState) -> BaseMsg {
+    BaseMsg {
+        x_m: b.x_m as f32,
+        y_m: b.y_m as f32,
+        heading_rad: b.theta_rad as f32,
+        linear_m_s: b.linear_m_s,
+        angular_rad_s: b.angular_rad_s,
+        field_distance_m: b.field_distance_m,
+        flags: b.flags,
+    }
+}
 
 /// The layout as a fleet message.
 pub fn layout_msg(layout: &JointLayout) -> LayoutMsg {
@@ -38,7 +74,7 @@ pub fn ranges(layout: &JointLayout) -> Vec<Range> {
 }
 
 /// A state frame as telemetry.
-pub fn state_msg(s: &JointState, wall_ms: u64) -> StateMsg {
+pub fn state_msg(s: &JointState, body: Body, wall_ms: u64) -> StateMsg {
     StateMsg {
         version: SCHEMA_VERSION,
         seq: s.seq,
@@ -60,12 +96,14 @@ pub fn state_msg(s: &JointState, wall_ms: u64) -> StateMsg {
                 flags: j.flags,
             })
             .collect(),
+        lift: body.lift,
+        base: body.base,
     }
 }
 
-/// A state frame as a policy's observation, with `images`; a servo missing in that cycle reads
-/// NaN, never its old value.
-pub fn observation_msg(s: &JointState, images: Vec<ImageMsg>) -> ObservationMsg {
+/// A state frame as a policy's observation, with `images` and the body; a servo missing in that
+/// cycle reads NaN, never its old value.
+pub fn observation_msg(s: &JointState, images: Vec<ImageMsg>, body: Body) -> ObservationMsg {
     let pick = |f: fn(&telemetry::frames::JointSample) -> f32| {
         s.joints()
             .iter()
@@ -79,6 +117,8 @@ pub fn observation_msg(s: &JointState, images: Vec<ImageMsg>) -> ObservationMsg 
         position: pick(|j| j.position_rad),
         velocity: pick(|j| j.velocity_rad_s),
         images,
+        lift: body.lift,
+        base: body.base,
     }
 }
 
@@ -112,6 +152,28 @@ pub fn goal_frame(target: &Target, joint_count: u32, seq: u64, now_ns: u64) -> G
         mask: target.mask,
         position_rad: target.position,
     }
+}
+
+/// The lift's command for one tick of the plan (when it commands the lift).
+pub fn lift_command(target: &Target, seq: u64, now_ns: u64) -> Option<LiftCommand> {
+    target.lift_m.map(|height_m| LiftCommand {
+        seq,
+        timestamp_ns: now_ns,
+        height_m,
+        reserved: 0,
+    })
+}
+
+/// The base's command for one tick of the plan (when it commands the base).
+pub fn base_command(target: &Target, seq: u64, now_ns: u64) -> Option<BaseCommand> {
+    target
+        .base_twist
+        .map(|[linear_m_s, angular_rad_s]| BaseCommand {
+            seq,
+            timestamp_ns: now_ns,
+            linear_m_s,
+            angular_rad_s,
+        })
 }
 
 /// "Every `period`": true at most once per period, on the robot's clock.
@@ -165,10 +227,10 @@ mod tests {
             valid: 0,
             ..JointSample::default()
         };
-        let o = observation_msg(&s, Vec::new());
+        let o = observation_msg(&s, Vec::new(), Body::default());
         assert_eq!(o.position[0], 0.5);
         assert!(o.position[1].is_nan());
-        let t = state_msg(&s, 0);
+        let t = state_msg(&s, Body::default(), 0);
         assert!(t.joints[0].valid && !t.joints[1].valid);
     }
 

@@ -11,7 +11,8 @@
 //! - Every step keeps the joint mask of the chunk it came from, and only masked joints carry a
 //!   value (the others are zero and never forwarded): every value that leaves the scheduler
 //!   was range-checked by the gate, or is a blend or interpolation of such values. Between two
-//!   steps only the joints both command are forwarded.
+//!   steps only the joints both command are forwarded. The lift's height and the base's twist
+//!   are two more such axes, present only in the steps of chunks that command them.
 //!
 //! Fixed capacity: inserting and ticking never allocate.
 
@@ -24,9 +25,8 @@ pub const MAX_PLAN_STEPS: usize = 256;
 #[derive(Debug, Clone, Copy)]
 struct Step {
     t_ns: u64,
-    target: [f32; MAX_JOINTS],
-    /// Joints this step commands (its chunk's mask).
-    mask: u32,
+    /// What the step commands (its chunk's mask and body axes).
+    goal: Target,
 }
 
 /// The plan in force.
@@ -47,6 +47,17 @@ pub struct Target {
     pub position: [f32; MAX_JOINTS],
     /// Joints commanded.
     pub mask: u32,
+    /// The lift's height, m, when commanded.
+    pub lift_m: Option<f32>,
+    /// The base's forward speed (m/s) and turn rate (rad/s), when commanded.
+    pub base_twist: Option<[f32; 2]>,
+}
+
+impl Target {
+    /// Whether it commands anything.
+    pub fn commands_anything(&self) -> bool {
+        self.mask != 0 || self.lift_m.is_some() || self.base_twist.is_some()
+    }
 }
 
 impl Scheduler {
@@ -85,7 +96,6 @@ impl Scheduler {
 
     /// Adds an accepted chunk (see [`crate::gate`]) at robot time `now_ns`.
     pub fn insert(&mut self, chunk: &ActionChunk, now_ns: u64) {
-        let joints = usize::from(chunk.joint_count).min(MAX_JOINTS);
         let first_new = chunk
             .step_offsets_ns
             .iter()
@@ -108,31 +118,29 @@ impl Scheduler {
                 break;
             }
             let t_ns = chunk.observation_ns + offset;
-            let mut target = [0f32; MAX_JOINTS];
-            let values = &chunk.targets[k * joints..(k + 1) * joints];
-            for (j, (t, &v)) in target.iter_mut().zip(values).enumerate() {
-                if chunk.joint_mask & (1 << j) != 0 {
-                    *t = v;
-                }
-            }
-            if let Some((old, old_mask)) = interpolate(&self.plan, t_ns, false) {
-                for (j, value) in target.iter_mut().enumerate().take(joints) {
-                    if old_mask & chunk.joint_mask & (1 << j) != 0 {
-                        *value = self.blend_new * *value + (1.0 - self.blend_new) * old[j];
+            let mut goal = step_of(chunk, k);
+            if let Some(old) = interpolate(&self.plan, t_ns, false) {
+                let w = self.blend_new;
+                let blend = |new: f32, old: f32| w * new + (1.0 - w) * old;
+                for (j, value) in goal.position.iter_mut().enumerate() {
+                    if old.mask & goal.mask & (1 << j) != 0 {
+                        *value = blend(*value, old.position[j]);
                     }
                 }
+                if let (Some(new), Some(old)) = (&mut goal.lift_m, old.lift_m) {
+                    *new = blend(*new, old);
+                }
+                if let (Some(new), Some(old)) = (&mut goal.base_twist, old.base_twist) {
+                    *new = [blend(new[0], old[0]), blend(new[1], old[1])];
+                }
             }
-            self.scratch.push(Step {
-                t_ns,
-                target,
-                mask: chunk.joint_mask,
-            });
+            self.scratch.push(Step { t_ns, goal });
         }
         std::mem::swap(&mut self.plan, &mut self.scratch);
     }
 
-    /// The goal for robot time `now_ns`, or `None`: nothing planned, or the plan's last step
-    /// is more than the horizon old.
+    /// The goal at robot time `now_ns`, or `None` when there is no plan or it expired. Steps
+    /// behind `now_ns` (but the one just passed, which interpolation needs) are dropped.
     pub fn target(&mut self, now_ns: u64) -> Option<Target> {
         let last = self.plan.last()?;
         if now_ns > last.t_ns.saturating_add(self.horizon_ns) {
@@ -140,46 +148,74 @@ impl Scheduler {
             self.expired += 1;
             return None;
         }
-        // Keep one step at or before now: the start of the segment being interpolated.
         let behind = self.plan.iter().take_while(|s| s.t_ns <= now_ns).count();
         if behind > 1 {
             self.plan.drain(..behind - 1);
         }
-        interpolate(&self.plan, now_ns, true)
-            .filter(|(_, mask)| *mask != 0)
-            .map(|(position, mask)| Target { position, mask })
+        interpolate(&self.plan, now_ns, true).filter(Target::commands_anything)
     }
 }
 
-/// The plan's target and the joints it commands at `t_ns`: a step's own at its time, linear
-/// between steps for the joints both command; outside the plan, the nearest end if `extend`,
-/// else nothing.
-fn interpolate(plan: &[Step], t_ns: u64, extend: bool) -> Option<([f32; MAX_JOINTS], u32)> {
+/// Step `k` of `chunk`: only the masked joints carry a value (the others are zero), the lift
+/// and the base when the chunk commands them.
+fn step_of(chunk: &ActionChunk, k: usize) -> Target {
+    let joints = usize::from(chunk.joint_count).min(MAX_JOINTS);
+    let mut position = [0f32; MAX_JOINTS];
+    let values = chunk
+        .targets
+        .get(k * joints..(k + 1) * joints)
+        .unwrap_or(&[]);
+    for (j, (t, &v)) in position.iter_mut().zip(values).enumerate() {
+        if chunk.joint_mask & (1 << j) != 0 {
+            *t = v;
+        }
+    }
+    Target {
+        position,
+        mask: chunk.joint_mask,
+        lift_m: chunk.lift_m.get(k).copied(),
+        base_twist: chunk.base_twist.get(2 * k..2 * k + 2).map(|t| [t[0], t[1]]),
+    }
+}
+
+/// The plan's goal at `t_ns`: a step's own at its time, linear between steps for what both
+/// command; outside the plan, the nearest end if `extend`, else nothing.
+fn interpolate(plan: &[Step], t_ns: u64, extend: bool) -> Option<Target> {
     let (first, last) = (plan.first()?, plan.last()?);
     if t_ns <= first.t_ns {
-        return (extend || t_ns == first.t_ns).then_some((first.target, first.mask));
+        return (extend || t_ns == first.t_ns).then_some(first.goal);
     }
     if t_ns >= last.t_ns {
-        return (extend || t_ns == last.t_ns).then_some((last.target, last.mask));
+        return (extend || t_ns == last.t_ns).then_some(last.goal);
     }
     let i = plan.iter().position(|s| s.t_ns > t_ns)?;
     let (a, b) = (&plan[i - 1], &plan[i]);
     if t_ns == a.t_ns {
-        return Some((a.target, a.mask));
+        return Some(a.goal);
     }
     let f = (t_ns - a.t_ns) as f32 / (b.t_ns - a.t_ns) as f32;
+    let lerp = |x: f32, y: f32| x + f * (y - x);
+    let (a, b) = (&a.goal, &b.goal);
     let mask = a.mask & b.mask;
-    let mut out = [0f32; MAX_JOINTS];
-    for (j, (o, (x, y))) in out
+    let mut position = [0f32; MAX_JOINTS];
+    for (j, (o, (x, y))) in position
         .iter_mut()
-        .zip(a.target.iter().zip(&b.target))
+        .zip(a.position.iter().zip(&b.position))
         .enumerate()
     {
         if mask & (1 << j) != 0 {
-            *o = x + f * (y - x);
+            *o = lerp(*x, *y);
         }
     }
-    Some((out, mask))
+    Some(Target {
+        position,
+        mask,
+        lift_m: a.lift_m.zip(b.lift_m).map(|(x, y)| lerp(x, y)),
+        base_twist: a
+            .base_twist
+            .zip(b.base_twist)
+            .map(|(x, y)| [lerp(x[0], y[0]), lerp(x[1], y[1])]),
+    })
 }
 
 #[cfg(test)]
@@ -201,6 +237,8 @@ mod tests {
             joint_count: 1,
             joint_mask: 1,
             targets: targets.to_vec(),
+            lift_m: Vec::new(),
+            base_twist: Vec::new(),
         }
     }
 
@@ -252,6 +290,39 @@ mod tests {
             at(&mut s, 1120),
             Some(1.0),
             "beyond the old plan: the new one alone"
+        );
+    }
+
+    #[test]
+    fn the_lift_and_base_are_interpolated_blended_and_end_with_the_plan() {
+        let close = |a: f32, b: f32| (a - b).abs() < 1e-6;
+        let mut s = Scheduler::new(0.5, 100 * MS);
+        // Body only (no joint): steps at 1020 and 1040.
+        let mut c = chunk(1, 1000, 20, &[0.0, 0.0]);
+        c.joint_mask = 0;
+        c.lift_m = vec![0.2, 0.4];
+        c.base_twist = vec![0.1, 0.0, 0.2, 1.0];
+        s.insert(&c, 1000 * MS);
+        let t = s.target(1030 * MS).unwrap();
+        assert_eq!(t.mask, 0, "no joint commanded");
+        assert!(close(t.lift_m.unwrap(), 0.3), "{t:?}");
+        let [v, w] = t.base_twist.unwrap();
+        assert!(close(v, 0.15) && close(w, 0.5), "{t:?}");
+        // A chunk for the base alone from 1040: blended with the old plan there; the lift is
+        // not commanded where the new plan runs (it holds its last height by itself).
+        let mut d = chunk(2, 1030, 10, &[0.0]);
+        d.joint_mask = 0;
+        d.base_twist = vec![0.4, 0.0];
+        s.insert(&d, 1035 * MS);
+        let t = s.target(1040 * MS).unwrap();
+        let [v, w] = t.base_twist.unwrap();
+        assert!(close(v, 0.3) && close(w, 0.5), "0.5·new + 0.5·old: {t:?}");
+        assert_eq!(t.lift_m, None);
+        assert!(s.target(1140 * MS).is_some());
+        assert_eq!(
+            s.target(1141 * MS),
+            None,
+            "past the horizon nothing: the base's commands stop and it brakes"
         );
     }
 

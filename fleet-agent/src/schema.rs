@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 /// The schema version this build speaks.
-pub const SCHEMA_VERSION: u16 = 4;
+pub const SCHEMA_VERSION: u16 = 5;
 
 /// Joint telemetry for dashboards, rate-limited (`nori/<robot>/state`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -29,6 +29,45 @@ pub struct StateMsg {
     pub deadline_misses: u64,
     /// Per joint, in the layout's order.
     pub joints: Vec<JointMsg>,
+    /// The lift (absent when its controller publishes nothing fresh).
+    pub lift: Option<LiftMsg>,
+    /// The base (absent when its controller publishes nothing fresh).
+    pub base: Option<BaseMsg>,
+}
+
+/// The lift, from its controller's newest state.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LiftMsg {
+    /// Height above its lowest, m (NaN before homing).
+    pub height_m: f32,
+    /// The goal in force, m (NaN when none).
+    pub goal_m: f32,
+    /// `0` not homed, `1` homing, `2` ready, `3` stopped on an obstruction, `4` board silent.
+    pub state: u8,
+    /// Travel held back: `0` no, `1` the duty-cycle budget is spent, `2` no allowance.
+    pub held: u8,
+    /// With the budget spent: rest still needed, s.
+    pub duty_wait_s: f32,
+}
+
+/// The base, from its controller's newest state.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct BaseMsg {
+    /// Odometry, m, in the frame its controller started in.
+    pub x_m: f32,
+    /// m.
+    pub y_m: f32,
+    /// rad.
+    pub heading_rad: f32,
+    /// Measured forward speed, m/s.
+    pub linear_m_s: f32,
+    /// Measured turn rate, rad/s.
+    pub angular_rad_s: f32,
+    /// Free distance along the path the lidar sees, m (negative: none known).
+    pub field_distance_m: f32,
+    /// The controller's flags (`nori::BaseState` flags: no command, field slowing or
+    /// stopped, lidar silent, no lidar, wheels not read, not driven).
+    pub flags: u32,
 }
 
 /// One joint of a [`StateMsg`].
@@ -114,6 +153,10 @@ pub struct ObservationMsg {
     /// that carry images (every `image-every`-th), each captured at most `image-max-age-ms`
     /// before `timestamp_ns`; a camera without such an image is absent, never a stale picture.
     pub images: Vec<ImageMsg>,
+    /// The lift, when its controller is running and homed.
+    pub lift: Option<LiftMsg>,
+    /// The base, when its controller is running.
+    pub base: Option<BaseMsg>,
 }
 
 /// One camera image of an observation.
@@ -188,7 +231,8 @@ pub struct ScanMsg {
 }
 
 /// An action chunk from a policy (`nori/<robot>/actions`): `steps` targets for every joint of
-/// the layout, the k-th to be reached at `observation_ns + step_offsets_ns[k]`.
+/// the layout, the k-th to be reached at `observation_ns + step_offsets_ns[k]`, and, when the
+/// policy commands them, the lift's height and the base's twist at the same steps.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ActionChunk {
     /// [`SCHEMA_VERSION`].
@@ -205,6 +249,11 @@ pub struct ActionChunk {
     pub joint_mask: u32,
     /// Row-major, `step_offsets_ns.len() × joint_count`, rad.
     pub targets: Vec<f32>,
+    /// Per step, the lift's height above its lowest, m; empty: the chunk leaves the lift alone.
+    pub lift_m: Vec<f32>,
+    /// Per step, the base's forward speed (m/s) then turn rate (rad/s); empty: the chunk leaves
+    /// the base alone. The base stops when the plan ends (its commands are no longer renewed).
+    pub base_twist: Vec<f32>,
 }
 
 /// The agent's answer to `nori/<robot>/status`: what it is, how it is configured, how the
@@ -318,6 +367,10 @@ pub struct AgentCounters {
     pub plans_expired: u64,
     /// Goal frames forwarded to the driver.
     pub goals_forwarded: u64,
+    /// Heights forwarded to the lift's controller.
+    pub lift_commands_forwarded: u64,
+    /// Velocities forwarded to the base's controller.
+    pub base_commands_forwarded: u64,
     /// Plans dropped because the driver restarted or entered its safe state.
     pub plans_dropped: u64,
     /// Scheduled targets withheld at the last check (none, unless the scheduler is wrong).
@@ -400,6 +453,8 @@ mod tests {
             joint_count: 2,
             joint_mask: 0b11,
             targets: vec![0.1, -0.2, 0.3, -0.4],
+            lift_m: vec![0.25, 0.26],
+            base_twist: vec![0.1, 0.0, 0.15, -0.5],
         }
     }
 

@@ -6,8 +6,8 @@
 
 use fleet_agent::agent::{Agent, AgentIo, Outbound};
 use fleet_agent::schema::{
-    decode, encode, ActionChunk, EventMsg, ObservationMsg, PreviewMsg, ScanMsg, StatusMsg,
-    SCHEMA_VERSION,
+    decode, encode, ActionChunk, EventMsg, ObservationMsg, PreviewMsg, ScanMsg, StateMsg,
+    StatusMsg, SCHEMA_VERSION,
 };
 use fleet_agent::AgentConfig;
 use std::collections::VecDeque;
@@ -16,6 +16,7 @@ use telemetry::frames::{
     BusHealth, BusHealthEntry, EventKind, GoalFrame, JointInfo, JointLayout, JointSample,
     JointState, SupervisorEvent, BUS_HEALTH_CONNECTED, BUS_HEALTH_ENABLED, STATE_FLAG_SAFE_STATE,
 };
+use telemetry::motion::{BaseCommand, BaseState, LiftCommand, LiftState, LIFT_READY};
 use telemetry::sensors::{CameraFrameHeader, LidarScan, PixelFormat};
 
 const MS: u64 = 1_000_000;
@@ -34,6 +35,10 @@ struct Queues {
     actions: VecDeque<Vec<u8>>,
     status_queries: usize,
     goals: Vec<GoalFrame>,
+    lift: Option<LiftState>,
+    base: Option<BaseState>,
+    lift_sent: Vec<LiftCommand>,
+    base_sent: Vec<BaseCommand>,
     published: Vec<(Outbound, Vec<u8>)>,
     status_replies: Vec<Vec<u8>>,
 }
@@ -70,6 +75,20 @@ impl AgentIo for Queues {
     }
     fn send_goal(&mut self, goal: &GoalFrame) -> bool {
         self.goals.push(*goal);
+        true
+    }
+    fn lift(&mut self) -> Option<LiftState> {
+        self.lift.take()
+    }
+    fn base(&mut self) -> Option<BaseState> {
+        self.base.take()
+    }
+    fn send_lift(&mut self, command: &LiftCommand) -> bool {
+        self.lift_sent.push(*command);
+        true
+    }
+    fn send_base(&mut self, command: &BaseCommand) -> bool {
+        self.base_sent.push(*command);
         true
     }
     fn publish(&mut self, what: Outbound, payload: Vec<u8>) -> bool {
@@ -132,6 +151,25 @@ fn chunk(seq: u64, obs: u64, target: f32) -> Vec<u8> {
         joint_count: 2,
         joint_mask: 0b01,
         targets: (0..10).flat_map(|_| [target, 0.0]).collect(),
+        lift_m: Vec::new(),
+        base_twist: Vec::new(),
+    })
+}
+
+/// A chunk for the body alone: the lift from 0.2 m to 0.38 m and the base from 0.02 m/s to
+/// `top` m/s (turning at 0.5 rad/s) over 10 steps 20 ms apart.
+fn body_chunk(seq: u64, obs: u64, top: f32) -> Vec<u8> {
+    let steps = 1..=10u64;
+    encode(&ActionChunk {
+        version: SCHEMA_VERSION,
+        seq,
+        observation_ns: obs,
+        step_offsets_ns: steps.clone().map(|k| k * 20 * MS).collect(),
+        joint_count: 2,
+        joint_mask: 0,
+        targets: vec![0.0; 20],
+        lift_m: steps.clone().map(|k| 0.18 + 0.02 * k as f32).collect(),
+        base_twist: steps.flat_map(|k| [top * k as f32 / 10.0, 0.5]).collect(),
     })
 }
 
@@ -287,6 +325,104 @@ fn a_checked_chunk_is_forwarded_and_an_out_of_range_one_never_is() {
             .actions_accepted,
         1
     );
+}
+
+#[test]
+fn the_lift_and_base_follow_a_checked_plan_and_are_no_longer_commanded_when_it_ends() {
+    let (mut agent, mut io, now) = running();
+    // 0.25 m/s is beyond the configured 0.2: refused whole, nothing moves.
+    io.actions.push_back(body_chunk(1, now, 0.25));
+    agent.poll(&mut io, now + MS, 0);
+    assert!(io.base_sent.is_empty() && io.lift_sent.is_empty());
+    let st = status(&mut agent, &mut io, now + MS);
+    assert_eq!(st.counters.actions_rejected["out_of_range"], 1);
+    assert!(st.last_rejection.contains("base_linear_m_s"), "{st:?}");
+
+    io.actions.push_back(body_chunk(2, now, 0.2));
+    for k in 2..=400 {
+        agent.poll(&mut io, now + k * MS, 0);
+    }
+    assert!(io.goals.is_empty(), "no joint commanded, no goal frame");
+    // Interpolated along the plan: at 100 ms after the observation, step 5 exactly.
+    let at = |t: u64| io.base_sent.iter().find(|c| c.timestamp_ns == t).unwrap();
+    let mid = at(now + 100 * MS);
+    assert!(
+        (mid.linear_m_s - 0.1).abs() < 1e-6 && mid.angular_rad_s == 0.5,
+        "{mid:?}"
+    );
+    let lift = io
+        .lift_sent
+        .iter()
+        .find(|c| c.timestamp_ns == now + 100 * MS);
+    assert!((lift.unwrap().height_m - 0.28).abs() < 1e-6);
+    assert!(io.base_sent.iter().all(|c| c.linear_m_s <= 0.2));
+    // The plan's last step is at 200 ms, held for the horizon (100 ms): the base's last
+    // command is no later, and its timestamp is when it was sent (the base controller stops
+    // once it is older than its timeout).
+    let last = io.base_sent.last().unwrap();
+    assert!(last.timestamp_ns <= now + 300 * MS, "{last:?}");
+    assert!(
+        last.timestamp_ns >= now + 290 * MS,
+        "held to the horizon: {last:?}"
+    );
+    assert!(io.lift_sent.last().unwrap().timestamp_ns <= now + 300 * MS);
+    let st = status(&mut agent, &mut io, now + 400 * MS);
+    assert_eq!(
+        st.counters.base_commands_forwarded,
+        io.base_sent.len() as u64
+    );
+    assert_eq!(st.counters.plans_expired, 1);
+}
+
+#[test]
+fn the_lift_and_base_go_out_in_telemetry_and_observations_while_fresh() {
+    let mut config = AgentConfig::embedded().unwrap();
+    config.telemetry.state_hz = 1000.0;
+    config.telemetry.observation_hz = 1000.0;
+    let mut agent = Agent::new(&config);
+    let mut io = Queues {
+        layout: Some(layout()),
+        ..Queues::default()
+    };
+    let t0 = 1_000_000 * MS;
+    io.lift = Some(LiftState {
+        timestamp_ns: t0,
+        height_m: 0.4,
+        goal_m: 0.5,
+        state: LIFT_READY,
+        ..LiftState::default()
+    });
+    io.base = Some(BaseState {
+        timestamp_ns: t0,
+        x_m: 1.5,
+        linear_m_s: 0.125,
+        ..BaseState::default()
+    });
+    let turn = |agent: &mut Agent, io: &mut Queues, k: u64, t: u64| {
+        io.states.push_back(state(k, t, false));
+        io.published.clear();
+        agent.poll(io, t, 0);
+        let state: Vec<StateMsg> = sent(io, Outbound::State);
+        let obs: Vec<ObservationMsg> = sent(io, Outbound::Observation);
+        (state[0].clone(), obs[0].clone())
+    };
+    let (s, o) = turn(&mut agent, &mut io, 1, t0 + 10 * MS);
+    let lift = s.lift.unwrap();
+    assert_eq!(
+        (lift.height_m, lift.goal_m, lift.state),
+        (0.4, 0.5, LIFT_READY)
+    );
+    assert_eq!(
+        (s.base.unwrap().x_m, s.base.unwrap().linear_m_s),
+        (1.5, 0.125)
+    );
+    assert_eq!((o.lift, o.base), (s.lift, s.base), "a policy sees the same");
+    // Its controllers stopped publishing: half a second on, the lift and base are not shown.
+    let (s, o) = turn(&mut agent, &mut io, 2, t0 + 500 * MS);
+    assert!(s.lift.is_some(), "500 ms old: still fresh");
+    let (s, o2) = turn(&mut agent, &mut io, 3, t0 + 501 * MS);
+    assert_eq!((s.lift, s.base, o2.lift, o2.base), (None, None, None, None));
+    assert!(o.base.is_some());
 }
 
 #[test]

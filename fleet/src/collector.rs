@@ -312,6 +312,16 @@ impl Collector {
                     "deadline_misses": r.last_state.as_ref().map(|s| s.deadline_misses),
                     "states_received": r.states_received,
                     "joints": joints,
+                    "lift": r.last_state.as_ref().and_then(|s| s.lift).map(|l| json!({
+                        "height_m": finite(l.height_m), "goal_m": finite(l.goal_m),
+                        "state": telemetry::motion::lift_state_name(l.state),
+                        "held": l.held, "duty_wait_s": l.duty_wait_s,
+                    })),
+                    "base": r.last_state.as_ref().and_then(|s| s.base).map(|b| json!({
+                        "x_m": b.x_m, "y_m": b.y_m, "heading_rad": b.heading_rad, "linear_m_s": b.linear_m_s,
+                        "angular_rad_s": b.angular_rad_s, "field_distance_m": (b.field_distance_m >= 0.0).then_some(b.field_distance_m),
+                        "flags": telemetry::motion::base_flag_names(b.flags).collect::<Vec<_>>(),
+                    })),
                     "history": {
                         "ms_ago": r.history.iter().map(|s| now_ms.saturating_sub(s.wall_ms)).collect::<Vec<_>>(),
                         "temperature_c": r.history.iter().map(|s| s.temperature_c.iter().map(|&v| finite(v)).collect::<Vec<_>>()).collect::<Vec<_>>(),
@@ -690,6 +700,8 @@ mod tests {
                     flags: 0,
                 })
                 .collect(),
+            lift: None,
+            base: None,
         })
     }
 

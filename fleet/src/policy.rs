@@ -195,6 +195,8 @@ impl ScriptedPolicy {
             joint_count: n as u16,
             joint_mask: mask,
             targets,
+            lift_m: Vec::new(),
+            base_twist: Vec::new(),
         })
     }
 }
@@ -239,6 +241,8 @@ mod tests {
             position: vec![-0.5, f32::NAN],
             velocity: vec![0.0, 0.0],
             images: Vec::new(),
+            lift: None,
+            base: None,
         };
         let c = policy.chunk(&obs, &layout, 1).unwrap();
         assert_eq!(c.joint_mask, 0b01);
@@ -259,6 +263,14 @@ mod tests {
             max_age_ns: 250_000_000,
             max_steps: 128,
             max_span_ns: 3_000_000_000,
+            body: fleet_agent::gate::BodyLimits {
+                lift_m: fleet_agent::gate::Range {
+                    min: 0.01,
+                    max: 0.75,
+                },
+                max_linear_m_s: 0.2,
+                max_angular_rad_s: 1.0,
+            },
         });
         // The driver has been driving since before the observation.
         gate.observe_driver(1, 0, false);

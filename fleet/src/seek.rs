@@ -334,6 +334,8 @@ impl ColourSeek {
             joint_count: n as u16,
             joint_mask: (1 << i0) | (1 << i1),
             targets,
+            lift_m: Vec::new(),
+            base_twist: Vec::new(),
         }))
     }
 }

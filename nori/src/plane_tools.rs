@@ -7,7 +7,7 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 use telemetry::frames::JointLayout;
-use telemetry::motion::{BaseState, LiftCommand, LiftState};
+use telemetry::motion::{lift_state_name, BaseState, LiftCommand, LiftState};
 use telemetry::plane::{self, Plane};
 use telemetry::GoalFrame;
 
@@ -194,18 +194,6 @@ fn body_states(node: &Plane) -> Result<(Option<LiftState>, Option<BaseState>)> {
     Ok((lift, base))
 }
 
-/// What the lift's state code says, for operators.
-fn lift_state_name(l: &LiftState) -> &'static str {
-    use telemetry::motion::{LIFT_HOMING, LIFT_LINK_LOST, LIFT_OBSTRUCTED, LIFT_READY};
-    match l.state {
-        LIFT_HOMING => "homing",
-        LIFT_READY => "ready",
-        LIFT_OBSTRUCTED => "stopped on an obstruction",
-        LIFT_LINK_LOST => "board not answering",
-        _ => "not homed",
-    }
-}
-
 /// Why the lift's travel is held back, if it is.
 fn lift_held(l: &LiftState) -> Option<String> {
     match l.held {
@@ -221,7 +209,7 @@ fn lift_held(l: &LiftState) -> Option<String> {
 fn lift_line(l: &LiftState) -> String {
     let mut line = format!(
         "{}  height {:.3} m  goal {:.3} m  speed {:+.3} m/s  current {:.2} A",
-        lift_state_name(l),
+        lift_state_name(l.state),
         l.height_m,
         l.goal_m,
         l.velocity_m_s,
@@ -235,7 +223,7 @@ fn lift_line(l: &LiftState) -> String {
 
 fn lift_json(l: &LiftState) -> serde_json::Value {
     let finite = |x: f32| x.is_finite().then_some(x);
-    serde_json::json!({"state": lift_state_name(l), "height_m": finite(l.height_m), "goal_m": finite(l.goal_m),
+    serde_json::json!({"state": lift_state_name(l.state), "height_m": finite(l.height_m), "goal_m": finite(l.goal_m),
         "velocity_m_s": l.velocity_m_s, "current_a": l.current_a, "held": lift_held(l),
         "obstructions": l.obstructions, "commands_refused": l.commands_refused})
 }

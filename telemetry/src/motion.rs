@@ -100,11 +100,27 @@ pub struct BaseState {
 
 impl BaseState {
     /// What its flags say, for operators.
-    pub fn flag_names(&self) -> impl Iterator<Item = &'static str> + '_ {
-        BASE_FLAG_NAMES
-            .iter()
-            .filter(|(f, _)| self.flags & f != 0)
-            .map(|(_, name)| *name)
+    pub fn flag_names(&self) -> impl Iterator<Item = &'static str> {
+        base_flag_names(self.flags)
+    }
+}
+
+/// What `BASE_FLAG_*` bits say, for operators.
+pub fn base_flag_names(flags: u32) -> impl Iterator<Item = &'static str> {
+    BASE_FLAG_NAMES
+        .iter()
+        .filter(move |(f, _)| flags & f != 0)
+        .map(|(_, name)| *name)
+}
+
+/// What a `LIFT_*` state code says, for operators.
+pub fn lift_state_name(state: u8) -> &'static str {
+    match state {
+        LIFT_HOMING => "homing",
+        LIFT_READY => "ready",
+        LIFT_OBSTRUCTED => "stopped on an obstruction",
+        LIFT_LINK_LOST => "board not answering",
+        _ => "not homed",
     }
 }
 

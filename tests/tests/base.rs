@@ -331,3 +331,94 @@ fn a_wheel_pushing_a_wall_stalls_and_its_torque_is_reduced_until_the_command_cha
     let report = base.stop();
     eprintln!("base after the wall: {}", report["buses"][0]["base"]);
 }
+
+/// A policy off the robot drives the base through the fleet agent: its chunks' twists pass the
+/// gate (one beyond the base's limits is refused whole and moves nothing), the agent renews the
+/// base's command along the plan, and when the policy falls silent the wheels stop within the
+/// plan's last step, the agent's horizon, the base's command timeout and its braking.
+#[test]
+fn a_policy_drives_the_base_through_the_gate_and_the_base_stops_when_it_falls_silent() {
+    use fleet_agent::keys::robot_key;
+    use fleet_agent::schema::{encode, ActionChunk, SCHEMA_VERSION};
+    use fleet_agent::zenoh::Wait;
+    let mut base = Base::start("base-policy", &[], &[]);
+    let endpoint = nori_tests::free_endpoint();
+    let id = "sim-base";
+    base.stack
+        .restart_agent_with(&["--robot-id", id, "--connect", &endpoint]);
+    let fleet = nori_tests::listening_session(&endpoint);
+    // The agent has the driver's layout: the base's bus alone, its two wheels.
+    wait_for(Duration::from_secs(10), "the agent's layout", || {
+        Some(nori_tests::agent_status(&fleet, id)).filter(|s| s.health.joints == 2)
+    });
+    let actions = robot_key(id, "actions");
+    let mut seq = 0;
+    // Ten steps 20 ms apart of (v, w), computed "now" (the robot's clock: same machine).
+    let mut chunk = |v: f32, w: f32| {
+        seq += 1;
+        let c = ActionChunk {
+            version: SCHEMA_VERSION,
+            seq,
+            observation_ns: monotonic_ns(),
+            step_offsets_ns: (1..=10).map(|k| k * 20_000_000).collect(),
+            joint_count: 2,
+            joint_mask: 0,
+            targets: vec![0.0; 20],
+            lift_m: Vec::new(),
+            base_twist: (0..10).flat_map(|_| [v, w]).collect(),
+        };
+        fleet.put(&actions, encode(&c)).wait().unwrap();
+    };
+
+    // Beyond the configured 0.2 m/s: refused, the base stays put.
+    chunk(0.3, 0.0);
+    std::thread::sleep(Duration::from_millis(500));
+    let status = nori_tests::agent_status(&fleet, id);
+    assert_eq!(
+        status.counters.actions_rejected["out_of_range"], 1,
+        "{status:?}"
+    );
+    assert!(status.last_rejection.contains("base_linear_m_s"));
+    assert_eq!(status.counters.base_commands_forwarded, 0);
+    assert!(newest(&base.states).unwrap().linear_m_s.abs() < 0.01);
+
+    // The policy: a chunk every 100 ms for 2 s, backing away from the table at 0.12 m/s.
+    let mut seen = Vec::new();
+    for _ in 0..20 {
+        chunk(-0.12, 0.0);
+        std::thread::sleep(Duration::from_millis(100));
+        seen.extend(newest(&base.states));
+    }
+    let silent = monotonic_ns();
+    let cruising = &seen[10..];
+    let mean = cruising.iter().map(|s| s.linear_m_s).sum::<f32>() / cruising.len() as f32;
+    assert!((mean + 0.12).abs() < 0.012, "measured {mean} m/s for -0.12");
+    assert!(
+        cruising
+            .iter()
+            .all(|s| (s.requested_linear_m_s + 0.12).abs() < 1e-4
+                && s.flags & BASE_FLAG_NOT_DRIVEN == 0),
+        "the agent kept the command in force along the plan: {cruising:?}"
+    );
+    // Silent: the last chunk's last step is 200 ms after it was sent (at most 100 ms before
+    // `silent`), held 100 ms (the horizon); then the base's command times out and it brakes.
+    let stopped = base.wheels_still_after(silent, Duration::from_secs(3));
+    let bound = Duration::from_millis(200 + 100)
+        + COMMAND_TIMEOUT
+        + Duration::from_secs_f64(0.12 / BRAKE_M_S2)
+        + Duration::from_millis(150);
+    assert!(
+        stopped <= bound,
+        "wheels still {stopped:?} after the policy fell silent (bound {bound:?})"
+    );
+    assert!(
+        stopped >= Duration::from_millis(100 + 100) + COMMAND_TIMEOUT - Duration::from_millis(50),
+        "stopped {stopped:?} after: before the plan had run out and the command timed out"
+    );
+    let status = nori_tests::agent_status(&fleet, id);
+    assert_eq!(status.counters.actions_accepted, 20, "{status:?}");
+    assert!(status.counters.base_commands_forwarded > 100, "{status:?}");
+    assert_eq!(status.counters.goals_forwarded, 0, "no joint was commanded");
+    drop(fleet);
+    base.stop();
+}

@@ -186,6 +186,8 @@ fn elbow_chunk(
         joint_count: n as u16,
         joint_mask: 1 << ELBOW,
         targets,
+        lift_m: Vec::new(),
+        base_twist: Vec::new(),
     }
 }
 

@@ -91,6 +91,8 @@ fn out_of_range_chunk(seq: u64, joints: usize) -> Vec<u8> {
         joint_count: joints as u16,
         joint_mask: 1 << ELBOW,
         targets,
+        lift_m: Vec::new(),
+        base_twist: Vec::new(),
     })
 }
 

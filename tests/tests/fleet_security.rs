@@ -66,6 +66,8 @@ fn valid_chunk(layout: &JointLayout, seq: u64, target: f32) -> Vec<u8> {
         joint_count: n as u16,
         joint_mask: 1 << ELBOW,
         targets,
+        lift_m: Vec::new(),
+        base_twist: Vec::new(),
     })
 }
 

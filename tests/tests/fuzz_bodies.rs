@@ -196,6 +196,8 @@ fn messages() -> Vec<Vec<u8>> {
         joint_count: 3,
         joint_mask: 0b111,
         targets: vec![0.1, -0.5, 1.0, 0.2, -1.0, 2.0],
+        lift_m: Vec::new(),
+        base_twist: Vec::new(),
     };
     let mut out_of_range = good.clone();
     out_of_range.targets[2] = 9.0;

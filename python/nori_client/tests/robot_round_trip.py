@@ -55,7 +55,8 @@ def run(args: argparse.Namespace, fleet: Fleet) -> None:
     obs = fleet.observations(timeout=5.0)[args.robot]
     nan_targets = np.zeros(n, dtype=np.float32)
     nan_targets[j] = np.nan
-    bad = dict(seq=1, observation_ns=obs.timestamp_ns, step_offsets_ns=[20_000_000], joint_count=n, joint_mask=1 << j)
+    bad = dict(seq=1, observation_ns=obs.timestamp_ns, step_offsets_ns=[20_000_000], joint_count=n, joint_mask=1 << j,
+               lift_m=[], base_twist=[])
     fleet.send(args.robot, encode("ActionChunk", {**bad, "targets": nan_targets}))
     far = np.zeros(n, dtype=np.float32)
     far[j] = 50.0

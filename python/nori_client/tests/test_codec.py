@@ -77,7 +77,8 @@ def test_bad_bools_overlong_integers_and_bad_text_are_malformed():
 
 
 def test_encoding_refuses_what_the_type_cannot_hold():
-    ok = {"seq": 1, "observation_ns": 2, "step_offsets_ns": [3], "joint_count": 1, "joint_mask": 1, "targets": [0.5]}
+    ok = {"seq": 1, "observation_ns": 2, "step_offsets_ns": [3], "joint_count": 1, "joint_mask": 1, "targets": [0.5],
+          "lift_m": [], "base_twist": []}
     encode("ActionChunk", ok)
     with pytest.raises(SchemaError, match="needs 'targets'"):
         encode("ActionChunk", {k: v for k, v in ok.items() if k != "targets"})
@@ -98,7 +99,8 @@ def test_an_observation_decodes_to_numpy_with_its_images():
 
 
 def test_a_missing_servo_is_nan_and_survives_the_round_trip():
-    data = encode("ObservationMsg", {"seq": 1, "timestamp_ns": 2, "position": [np.nan, 0.5], "velocity": [0.0, 0.0], "images": []})
+    data = encode("ObservationMsg", {"seq": 1, "timestamp_ns": 2, "position": [np.nan, 0.5], "velocity": [0.0, 0.0], "images": [],
+                                        "lift": None, "base": None})
     assert np.isnan(decode("ObservationMsg", data)["position"][0])
 
 
@@ -117,7 +119,10 @@ def test_an_image_decodes_to_its_pixels_and_a_lying_size_is_refused():
 
 
 def test_an_action_chunk_is_what_the_gate_reads():
-    data = action_chunk(7, 1_000_000_000, [20_000_000, 40_000_000], np.array([[0.5, -0.25], [1.5, -1.0]]))
+    data = action_chunk(
+        7, 1_000_000_000, [20_000_000, 40_000_000], np.array([[0.5, -0.25], [1.5, -1.0]]),
+        lift_m=[0.25, 0.375], base_twist=[[0.125, -0.5], [0.125, -0.5]],
+    )
     golden = next(m for m in GOLDEN if m["type"] == "ActionChunk")
     assert data.hex() == golden["hex"]
     for bad, why in [
@@ -125,6 +130,13 @@ def test_an_action_chunk_is_what_the_gate_reads():
         (dict(targets=np.zeros((2, 2)), offsets=[1]), "shape"),
         (dict(targets=np.zeros((2, 2)), offsets=[5, 5]), "rise"),
         (dict(targets=np.zeros((1, 2)), offsets=[1], mask=0b100), "mask"),
+        (dict(targets=np.zeros((1, 2)), offsets=[1], mask=0), "mask"),
+        (dict(targets=np.zeros((1, 2)), offsets=[1], lift=[0.1, 0.2]), "lift heights"),
+        (dict(targets=np.zeros((1, 2)), offsets=[1], twist=[0.1]), "base twist"),
+        (dict(targets=np.zeros((1, 2)), offsets=[1], twist=[[0.1, np.inf]]), "finite"),
     ]:
         with pytest.raises(ChunkError, match=why):
-            action_chunk(1, 0, bad["offsets"], bad["targets"], bad.get("mask"))
+            action_chunk(1, 0, bad["offsets"], bad["targets"], bad.get("mask"), bad.get("lift"), bad.get("twist"))
+    # The base alone, no joint.
+    m = decode("ActionChunk", action_chunk(1, 0, [1], np.zeros((1, 2)), 0, None, [[0.1, 0.5]]))
+    assert (m["joint_mask"], list(m["lift_m"]), list(m["base_twist"])) == (0, [], pytest.approx([0.1, 0.5]))

@@ -122,3 +122,38 @@ def test_the_chunk_goes_to_the_policys_joints_on_the_robots_clock():
     assert targets[:, [0, 3]].tolist() == [[0, 0], [0, 0]]
     with pytest.raises(MismatchError, match="chunk of shape"):
         chunk_message(p, layout, obs([0, 0, 0, 0]), np.zeros((3, 5), np.float32), 1, None)
+
+
+def body_obs(position, lift=0.4, t=1):
+    o = obs(position, t=t)
+    o.lift = None if lift is None else {"height_m": lift, "goal_m": 0.5, "state": 2, "held": 0, "duty_wait_s": 0.0}
+    o.base = {"x_m": 0.0, "y_m": 0.0, "heading_rad": 0.0, "linear_m_s": 0.1, "angular_rad_s": -0.25,
+              "field_distance_m": -1.0, "flags": 0}
+    return o
+
+
+def test_the_lift_and_base_after_the_joints_are_observed_and_commanded():
+    body = ("lift.height_m", "base.linear_m_s", "base.angular_rad_s")
+    names = ("left_elbow", "left_gripper") + body
+    p = plan(config(state=5, action=5), info(state=names, action=names), ROBOT)
+    assert (p.state_index, p.state_body, p.action_index, p.action_body) == ([1, 2], [0, 1, 2], [1, 2], [0, 1, 2])
+    inputs = Inputs(p, 4)
+    assert inputs.take(body_obs([0, -0.5, 0.5, 0], lift=None)) is None, "the lift not homed: nothing to act on"
+    assert inputs.take(body_obs([0, -0.5, 0.5, 0], lift=np.nan)) is None
+    x = inputs.take(body_obs([0, -0.5, 0.5, 0]))
+    assert x["observation.state"].tolist() == pytest.approx([-0.5, 0.5, 0.4, 0.1, -0.25])
+    layout = Layout(ROBOT, np.full(4, -3, np.float32), np.full(4, 3, np.float32))
+    chunk = np.array([[0.1, 0.2, 0.3, 0.05, 0.5], [0.1, 0.2, 0.35, 0.1, 0.25]], np.float32)
+    m = decode("ActionChunk", chunk_message(p, layout, body_obs([0, 0, 0, 0]), chunk, seq=1, steps=None))
+    assert m["joint_mask"] == 0b0110
+    assert list(m["lift_m"]) == pytest.approx([0.3, 0.35])
+    assert list(m["base_twist"]) == pytest.approx([0.05, 0.5, 0.1, 0.25])
+    # The base alone commanded (the state still sees everything): no joint in the mask.
+    only_base = plan(config(state=5, action=2), info(state=names, action=body[1:]), ROBOT)
+    m = decode("ActionChunk", chunk_message(only_base, layout, body_obs([0, 0, 0, 0]), chunk[:, 3:], 2, None))
+    assert (m["joint_mask"], list(m["lift_m"])) == (0, [])
+    # The body before a joint, or half the base: named.
+    with pytest.raises(MismatchError, match="after the joints"):
+        plan(config(state=3), info(state=("lift.height_m", "left_elbow", "left_gripper")), ROBOT)
+    with pytest.raises(MismatchError, match="speed and turn rate together"):
+        plan(config(action=3), info(action=("left_elbow", "left_gripper", "base.linear_m_s")), ROBOT)

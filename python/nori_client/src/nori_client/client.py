@@ -99,6 +99,18 @@ class Observation:
     position: np.ndarray
     velocity: np.ndarray
     images: dict[str, Image] = field(default_factory=dict)
+    # The lift (``LiftMsg``: height_m, goal_m, state, held, duty_wait_s) and the base
+    # (``BaseMsg``: x_m, y_m, heading_rad, linear_m_s, angular_rad_s, ...), when running.
+    lift: dict | None = None
+    base: dict | None = None
+
+    def body_state(self) -> np.ndarray | None:
+        """The lift's height and the base's measured twist, the three dimensions a dataset
+        recorded with ``nori record --lift --base`` puts after the joints; ``None`` unless the
+        lift is homed and the base is running."""
+        if self.lift is None or self.base is None or not np.isfinite(self.lift["height_m"]):
+            return None
+        return np.array([self.lift["height_m"], self.base["linear_m_s"], self.base["angular_rad_s"]], dtype=np.float32)
 
     @classmethod
     def from_bytes(cls, robot: str, data: bytes) -> "Observation":
@@ -110,7 +122,7 @@ class Observation:
         for i in m["images"]:
             if i["encoding"] != "jpeg":
                 raise schema.SchemaError(f"camera {i['camera']}: encoding {i['encoding']!r}, not jpeg")
-        return cls(robot, m["seq"], m["timestamp_ns"], m["position"], m["velocity"], images)
+        return cls(robot, m["seq"], m["timestamp_ns"], m["position"], m["velocity"], images, m["lift"], m["base"])
 
 
 @dataclass
@@ -142,12 +154,16 @@ def action_chunk(
     step_offsets_ns: Iterable[int],
     targets: np.ndarray,
     joint_mask: int | None = None,
+    lift_m: np.ndarray | None = None,
+    base_twist: np.ndarray | None = None,
 ) -> bytes:
     """An ``ActionChunk``: ``targets[k, j]`` (rad) to be reached by joint ``j`` at
     ``observation_ns + step_offsets_ns[k]`` on the robot's clock. ``joint_mask`` bit ``j``
-    set: joint ``j`` is commanded (default: all); the others keep their goal. Checked here as
-    the robot's gate checks it (shape, finite, offsets rising); the calibrated ranges and the
-    chunk's age are the robot's to judge."""
+    set: joint ``j`` is commanded (default: all); the others keep their goal. ``lift_m[k]``
+    (m) and ``base_twist[k] = (m/s, rad/s)`` command the lift and the base at the same steps
+    (absent: left alone). Checked here as the robot's gate checks it (shape, finite, offsets
+    rising); the calibrated ranges, the body's limits and the chunk's age are the robot's to
+    judge."""
     targets = np.asarray(targets, dtype=np.float32)
     offsets = [int(o) for o in step_offsets_ns]
     if targets.ndim != 2 or targets.shape[0] != len(offsets) or not offsets:
@@ -160,7 +176,15 @@ def action_chunk(
     if any(b <= a for a, b in zip(offsets, offsets[1:])) or offsets[0] < 0:
         raise ChunkError(f"step offsets must rise from 0: {offsets[:5]}...")
     mask = (1 << joints) - 1 if joint_mask is None else joint_mask
-    if mask <= 0 or mask >> joints:
+    lift = np.zeros(0, np.float32) if lift_m is None else np.asarray(lift_m, dtype=np.float32).ravel()
+    twist = np.zeros((0, 2), np.float32) if base_twist is None else np.asarray(base_twist, dtype=np.float32)
+    if lift.size and lift.shape != (len(offsets),):
+        raise ChunkError(f"{lift.size} lift heights for {len(offsets)} steps")
+    if twist.size and twist.shape != (len(offsets), 2):
+        raise ChunkError(f"base twist of shape {twist.shape} for {len(offsets)} steps: (steps, 2) needed")
+    if not (np.isfinite(lift).all() and np.isfinite(twist).all()):
+        raise ChunkError("a lift or base target that is not a finite number")
+    if mask < 0 or mask >> joints or (mask == 0 and not lift.size and not twist.size):
         raise ChunkError(f"joint mask {mask:#x} for {joints} joints")
     return schema.encode(
         "ActionChunk",
@@ -171,6 +195,8 @@ def action_chunk(
             "joint_count": joints,
             "joint_mask": mask,
             "targets": targets.ravel(),
+            "lift_m": lift,
+            "base_twist": twist.ravel(),
         },
     )
 

@@ -17,6 +17,11 @@ every camera the policy needs, the policy's whole action chunk goes to the robot
 dataset), only the policy's joints commanded. The robot's gate checks every chunk as it checks
 any other (ranges, age); what it refuses is counted in its status, never executed.
 
+A dataset recorded with `nori record --lift --base` names the lift's height and the base's twist
+after the joints (`lift.height_m`, `base.linear_m_s`, `base.angular_rad_s`): the state takes them
+from the observation, and the chunk's columns for them command the lift and the base (the gate
+checks them against the body's limits).
+
 A servo that missed its reply in a cycle reads NaN: the policy gets that joint's last valid
 position (what `nori record` writes for it too), and nothing until every joint was read once.
 
@@ -42,6 +47,9 @@ STATE = "observation.state"
 IMAGES = "observation.images."
 ACTION = "action"
 
+#: The body's dimensions after the joints, in the order `nori record` writes them.
+BODY = ["lift.height_m", "base.linear_m_s", "base.angular_rad_s"]
+
 #: Input features the robot's observations can fill, beside `observation.state` and the images.
 SERVED = {"observation.velocity", "observation.joint_valid", "observation.camera_valid"}
 
@@ -58,12 +66,16 @@ class Plan:
     state_index: list[int]
     #: For each name of the dataset's `action`, its index in the robot's layout.
     action_index: list[int]
+    #: The body's dimensions after the joints of `observation.state` (indices into BODY).
+    state_body: list[int] = field(default_factory=list)
+    #: The body's dimensions after the joints of `action` (indices into BODY).
+    action_body: list[int] = field(default_factory=list)
     #: Policy image key -> (camera name, (height, width)).
-    cameras: dict[str, tuple[str, tuple[int, int]]]
+    cameras: dict[str, tuple[str, tuple[int, int]]] = field(default_factory=dict)
     #: The dataset's frame rate: the chunk's step spacing.
-    fps: float
+    fps: float = 30.0
     #: Other input features filled from the observation (velocity, validity masks).
-    extras: list[str]
+    extras: list[str] = field(default_factory=list)
     #: Input features the robot's observations cannot fill (ACT and Diffusion read only the
     #: state and the images; a policy that reads one of these fails its first inference).
     unserved: list[str] = field(default_factory=list)
@@ -89,21 +101,27 @@ def plan(config: dict[str, Any], info: dict[str, Any], layout: list[str]) -> Pla
     outputs = config.get("output_features", {})
     problems = []
 
-    def indices(key: str, features: dict[str, Any]) -> list[int]:
+    def indices(key: str, features: dict[str, Any]) -> tuple[list[int], list[int]]:
         if key not in features:
             problems.append(f"the policy has no {key!r} feature")
-            return []
+            return [], []
         names = names_of(info, key)
         shape = features[key].get("shape")
         if shape != [len(names)]:
             problems.append(f"{key}: the policy's shape {shape} is not the dataset's {len(names)} names")
-        unknown = [n for n in names if n not in layout]
+        joints = [n for n in names if n not in BODY]
+        body = [n for n in names if n in BODY]
+        if names != joints + body:
+            problems.append(f"{key}: the lift and base come after the joints, as nori record writes them: {names}")
+        unknown = [n for n in joints if n not in layout]
         if unknown:
             problems.append(f"{key}: joints {unknown} are not the robot's (it has {layout})")
-        return [layout.index(n) for n in names if n in layout]
+        if key == ACTION and ("base.linear_m_s" in body) != ("base.angular_rad_s" in body):
+            problems.append(f"{key}: the base is commanded by its speed and turn rate together: {body}")
+        return [layout.index(n) for n in joints if n in layout], [BODY.index(n) for n in body]
 
-    state_index = indices(STATE, inputs)
-    action_index = indices(ACTION, outputs)
+    state_index, state_body = indices(STATE, inputs)
+    action_index, action_body = indices(ACTION, outputs)
     cameras = {}
     for key, feature in inputs.items():
         if key.startswith(IMAGES):
@@ -119,7 +137,7 @@ def plan(config: dict[str, Any], info: dict[str, Any], layout: list[str]) -> Pla
         problems.append(f"the dataset's fps {fps!r} is not a frame rate")
     if problems:
         raise MismatchError("; ".join(problems))
-    return Plan(state_index, action_index, cameras, float(fps), extras, unserved)
+    return Plan(state_index, action_index, state_body, action_body, cameras, float(fps), extras, unserved)
 
 
 def check_cameras(plan: Plan, obs: Observation) -> None:
@@ -153,7 +171,13 @@ class Inputs:
             return None
         if any(camera not in obs.images for camera, _ in self.plan.cameras.values()):
             return None
-        out = {STATE: self.last[self.plan.state_index]}
+        state = self.last[self.plan.state_index]
+        if self.plan.state_body:
+            body = obs.body_state()
+            if body is None:  # the lift not homed or the base not running: nothing to act on
+                return None
+            state = np.concatenate([state, body[self.plan.state_body]]).astype(np.float32)
+        out = {STATE: state}
         for key in self.plan.extras:
             if key == "observation.velocity":
                 out[key] = np.nan_to_num(obs.velocity[self.plan.state_index]).astype(np.float32)
@@ -235,12 +259,17 @@ def chunk_message(plan: Plan, layout: Layout, obs: Observation, chunk: np.ndarra
     """The robot's ActionChunk of the policy's ``chunk`` (steps, action_dim) computed from ``obs``."""
     if steps:
         chunk = chunk[:steps]
-    if chunk.ndim != 2 or chunk.shape[1] != len(plan.action_index):
-        raise MismatchError(f"the policy returned a chunk of shape {chunk.shape}, not (steps, {len(plan.action_index)})")
+    width = len(plan.action_index) + len(plan.action_body)
+    if chunk.ndim != 2 or chunk.shape[1] != width:
+        raise MismatchError(f"the policy returned a chunk of shape {chunk.shape}, not (steps, {width})")
+    joints = len(plan.action_index)
     targets = np.zeros((chunk.shape[0], len(layout.names)), dtype=np.float32)
-    targets[:, plan.action_index] = chunk
+    targets[:, plan.action_index] = chunk[:, :joints]
+    body = {BODY[axis]: chunk[:, joints + i] for i, axis in enumerate(plan.action_body)}
+    lift = body.get("lift.height_m")
+    twist = np.stack([body["base.linear_m_s"], body["base.angular_rad_s"]], axis=1) if "base.linear_m_s" in body else None
     offsets = [int(round(k * 1e9 / plan.fps)) for k in range(chunk.shape[0])]
-    return action_chunk(seq, obs.timestamp_ns, offsets, targets, plan.joint_mask)
+    return action_chunk(seq, obs.timestamp_ns, offsets, targets, plan.joint_mask, lift, twist)
 
 
 def main(argv: list[str] | None = None) -> int:
