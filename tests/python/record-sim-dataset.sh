@@ -19,14 +19,15 @@ small "$repo/sim/robots/nori-a3.toml" >"$work/robot.toml"
 small "$repo/deploy/config/camera.toml" >"$work/camera.toml"
 domain="lrcheck$$"
 "$bin/nori" up --dir "$work/dev" --domain "$domain" --robot "$work/robot.toml" \
-  --camera-config "$work/camera.toml" --camera head --camera left_wrist --no-lidar \
+  --camera-config "$work/camera.toml" --camera head --camera left_wrist \
   --silence left_arm:4@18+2 2>"$work/up.log" &
 up=$!
 "$bin/nori" policy-server --joints left_shoulder_pitch,left_elbow --centre -0.7 --amplitude 0.35 \
   --period-s 3 2>"$work/policy.log" >/dev/null &
 policy=$!
 # The body: the lift between 0.1 and 0.35 m, the base 0.4 m back and forth (clear of the table
-# ahead of it), while the recording lasts.
+# ahead of it), while the recording lasts. The lidar runs: without it the base's protective field
+# is blind and lets it move nowhere.
 (
   while true; do
     "$bin/nori" goal --domain "$domain" lift=0.35 2>/dev/null || true
