@@ -13,12 +13,15 @@
 //!   base's state.
 //! * [`field`]: the protective field: the speed from which the base still stops short of what
 //!   the lidar sees in its path.
+//! * [`frames`]: the whole body's frames for tools: each arm's shoulder and tool in the room,
+//!   from its joints, the lift's height and the base's odometry.
 
 #[cfg(feature = "process")]
 pub mod config;
 pub mod controller;
 pub mod drive;
 pub mod field;
+pub mod frames;
 pub mod odometry;
 pub mod ramp;
 

@@ -1,10 +1,13 @@
-//! `nori-base`: the differential base's controller on the state plane. The controller is
-//! `base::controller` (pure); this binary moves its frames each period and reports what it
-//! did at exit (JSON on stdout).
+//! `nori-base`: the differential base's controller on the state plane, and the whole body's
+//! frames for tools. The controller is `base::controller` and the frames `base::frames` (pure);
+//! this binary moves their frames each period and reports what it did at exit (JSON on stdout).
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use base::config::BaseConfig;
 use base::controller::Controller;
+use base::frames::BodyFramer;
+use body::kinematics::Body;
+use body::RobotDescription;
 use clap::Parser;
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
@@ -13,7 +16,7 @@ use telemetry::motion::BaseState;
 use telemetry::plane::{self, newest, next, publish, Plane};
 use telemetry::process::{finish, ProcessArgs, ServiceManager, Started, Ticker};
 use telemetry::sensors::LidarScan;
-use telemetry::GoalFrame;
+use telemetry::{GoalFrame, JointState};
 
 #[derive(Parser)]
 #[command(
@@ -23,6 +26,10 @@ use telemetry::GoalFrame;
 struct Args {
     #[command(flatten)]
     process: ProcessArgs,
+    /// The robot description whose arm chains and lift place the body's frames
+    /// (`nori/body/frames`); the embedded Nori A3 when absent.
+    #[arg(long, value_name = "FILE")]
+    robot: Option<std::path::PathBuf>,
 }
 
 fn main() -> std::process::ExitCode {
@@ -38,6 +45,7 @@ struct Counters {
     commands_refused: u64,
     state_frames: u64,
     scans: u64,
+    body_frames: u64,
     publish_errors: u64,
 }
 
@@ -45,6 +53,13 @@ fn serve(args: &Args) -> Result<()> {
     let Some(Started { config, shutdown }) = args.process.start::<BaseConfig>()? else {
         return Ok(());
     };
+    let description = match &args.robot {
+        Some(path) => RobotDescription::load(path)?,
+        None => RobotDescription::nori_a3(),
+    };
+    let mut framer = BodyFramer::new(
+        Body::from_description(&description).context("the robot description's arm chains")?,
+    );
     let run_for = args.process.run_for()?;
     let node = Plane::open(&args.process.domain, "base")?;
     node.cleanup_dead();
@@ -52,6 +67,8 @@ fn serve(args: &Args) -> Result<()> {
     let states = node.subscriber(&plane::JOINT_STATE)?;
     let commands = node.subscriber(&plane::BASE_COMMAND)?;
     let scans = node.subscriber(&plane::LIDAR_SCAN)?;
+    let lifts = node.subscriber(&plane::LIFT_STATE)?;
+    let body_frames = node.publisher(&plane::BODY_FRAMES)?;
     let goals = node.publisher(&plane::GOALS)?;
     let base_state = node.publisher(&plane::BASE_STATE)?;
     if config.controller.field.is_none() {
@@ -64,6 +81,7 @@ fn serve(args: &Args) -> Result<()> {
     let mut service = ServiceManager::from_env();
     service.ready("waiting for the driver's layout");
     let (mut layout, mut scan) = (None::<JointLayout>, None::<LidarScan>);
+    let mut joints = None::<JointState>;
     let mut goal = GoalFrame::default();
     let mut counters = Counters::default();
     let mut last_refusal_log = None::<Instant>;
@@ -83,12 +101,17 @@ fn serve(args: &Args) -> Result<()> {
                     ),
                     Err(e) => tracing::warn!("{e}: not driving until it has them"),
                 }
+                framer.set_layout(&l);
                 layout = Some(l);
             }
         }
         while let Some(s) = next(&states) {
             controller.on_state(&s);
             counters.state_frames += 1;
+            joints = Some(s);
+        }
+        if let Some(l) = newest(&lifts) {
+            framer.on_lift(&l);
         }
         let now = monotonic_ns();
         while let Some(c) = next(&commands) {
@@ -115,6 +138,13 @@ fn serve(args: &Args) -> Result<()> {
         }
         if publish(&base_state, &state).is_err() {
             counters.publish_errors += 1;
+        }
+        if let Some(j) = &joints {
+            let frames = framer.frame(j, &state, now);
+            counters.body_frames += 1;
+            if publish(&body_frames, &frames).is_err() {
+                counters.publish_errors += 1;
+            }
         }
         counters.periods += 1;
         ticker.wait();

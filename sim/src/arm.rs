@@ -294,6 +294,40 @@ mod tests {
         Arm::new(d.bus("left_arm").unwrap().arm.as_ref().unwrap(), d.gravity)
     }
 
+    /// The robot's kinematics (`body::kinematics`, what `nori-base` publishes) and the
+    /// simulator's own chain (fast paths for coordinate axes, written separately) agree on
+    /// every arm at random configurations, with the lift at the description's height and the
+    /// base at the origin (the simulator's world frame).
+    #[test]
+    fn the_robots_kinematics_agree_with_the_simulators_arms() {
+        let d = RobotDescription::nori_a3();
+        let body = body::kinematics::Body::from_description(&d).unwrap();
+        let lift = d.lift.as_ref().unwrap().start_m;
+        let mut rng = crate::rng::Rng::new(7);
+        for (k, chain) in body.arms().iter().enumerate() {
+            let arm_d = d.bus(&chain.bus).unwrap().arm.as_ref().unwrap();
+            let mut arm = Arm::new(arm_d, d.gravity);
+            for _ in 0..200 {
+                let q: Vec<f64> = arm_d
+                    .joint
+                    .iter()
+                    .map(|j| rng.range(j.lower_rad, j.upper_rad))
+                    .collect();
+                let sim = arm.tip_position(&q);
+                let robot = body.arm_pose(k, &q, lift, Default::default()).unwrap();
+                let err = (0..3)
+                    .map(|i| (sim[i] - robot.tool[i]).abs())
+                    .fold(0.0, f64::max);
+                assert!(
+                    err < 1e-9,
+                    "{}: {q:?}: {sim:?} vs {:?}",
+                    chain.bus,
+                    robot.tool
+                );
+            }
+        }
+    }
+
     #[test]
     fn hanging_arm_has_no_gravity_torque_and_reaches_55_cm() {
         let mut arm = left_arm();

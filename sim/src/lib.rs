@@ -20,7 +20,9 @@ pub mod arm;
 pub mod base;
 pub mod bus;
 pub mod camera;
-pub mod description;
+/// The robot description (the `body` crate's, re-exported: the one description the simulator and
+/// the robot's processes read).
+pub use body::description;
 pub mod device;
 pub mod extension;
 pub mod faults;

@@ -104,8 +104,12 @@ pub fn run(args: &UpArgs) -> Result<()> {
     }
     let mut supervising = Managed::new("supervisor", &sibling("supervisor")?, &run.supervisor());
     let mut fleet_agent = Managed::new("fleet-agent", &sibling("fleet-agent")?, &run.agent());
-    // The base's controller: velocity commands to the wheels, odometry, the protective field.
+    // The base's controller: velocity commands to the wheels, odometry, the protective field,
+    // and the body's frames from the same robot description as the simulator's.
     let mut base = Managed::new("nori-base", &sibling("nori-base")?, &run.base());
+    if let Some(robot) = &args.robot {
+        base.add_args(&["--robot".into(), robot.display().to_string()]);
+    }
     // The lift: homes at start, then takes heights (nori/lift/command).
     let mut lift = Managed::new("nori-lift", &sibling("nori-lift")?, &run.lift());
     if let Some(c) = &args.agent_config {

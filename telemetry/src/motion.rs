@@ -1,6 +1,7 @@
 //! Frames of the body's motion: the velocity a tool or a policy asks of the differential base
 //! and what the base controller (`nori-base`) did with it and measured; the height asked of the
-//! lift and where the lift's controller (`nori-lift`) has it.
+//! lift and where the lift's controller (`nori-lift`) has it; where the whole body is (the arms'
+//! shoulders and tools in the room, from the joints, the lift and the base's odometry).
 
 use iceoryx2::prelude::ZeroCopySend;
 
@@ -231,6 +232,51 @@ pub struct LiftState {
     pub bad_frames: u32,
 }
 
+/// Where one arm is, in a [`BodyFrames`].
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
+pub struct ArmFrame {
+    /// The shoulder, m, in the odometry's frame (z up from the floor).
+    pub shoulder: [f32; 3],
+    /// The tool point, m.
+    pub tool: [f32; 3],
+    /// The tool frame's orientation, a unit quaternion `[w, x, y, z]`.
+    pub tool_rotation: [f32; 4],
+    /// 1: every joint of the arm was read in the frame and the lift's height is known; 0: the
+    /// values are not to be used.
+    pub valid: u8,
+    /// Padding.
+    pub reserved: [u8; 3],
+}
+
+/// The whole body's forward kinematics for tools (`nori/body/frames`): each arm's shoulder and
+/// tool in the frame the base's odometry started in, from the joint-state frame's positions,
+/// the lift's height and the base's pose; computed from the robot description the simulator
+/// uses (`body::kinematics`).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
+#[type_name("nori::BodyFrames/1")]
+pub struct BodyFrames {
+    /// Frames published, from 1.
+    pub seq: u64,
+    /// The joint-state frame the arms are from, ns.
+    pub timestamp_ns: u64,
+    /// The base's pose (its odometry), m.
+    pub x_m: f64,
+    /// m.
+    pub y_m: f64,
+    /// rad.
+    pub theta_rad: f64,
+    /// The lift's height, m (NaN when not known: not homed, or no lift state).
+    pub lift_m: f64,
+    /// The arms, in the description's order (left, right).
+    pub arms: [ArmFrame; 2],
+    /// Arms in `arms`.
+    pub arm_count: u32,
+    /// Padding.
+    pub reserved: u32,
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -243,6 +289,7 @@ mod tests {
         assert_eq!(std::mem::size_of::<LiftCommand>(), 24);
         assert_eq!(std::mem::size_of::<LiftState>(), 56);
         assert_eq!(std::mem::size_of::<LiftAllowance>(), 32);
+        assert_eq!(std::mem::size_of::<BodyFrames>(), 144);
     }
 
     #[test]

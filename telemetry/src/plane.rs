@@ -8,7 +8,7 @@ use crate::frames::{
     Directives, GoalFrame, GripFrame, Heartbeat, JointLayout, JointState, SupervisorCommand,
     SupervisorEvent,
 };
-use crate::motion::{BaseCommand, BaseState, LiftAllowance, LiftCommand, LiftState};
+use crate::motion::{BaseCommand, BaseState, BodyFrames, LiftAllowance, LiftCommand, LiftState};
 use crate::sensors::{CameraFrameHeader, LidarScan};
 use iceoryx2::node::{NodeCreationFailure, NodeListFailure};
 use iceoryx2::port::publisher::{Publisher, PublisherCreateError};
@@ -106,6 +106,9 @@ pub const BASE_STATE: Topic<BaseState> = topic("nori/base/state", 1, 4, 1, 8);
 pub const LIFT_COMMAND: Topic<LiftCommand> = topic("nori/lift/command", 0, 8, 4, 2);
 /// Lift controller → all: where the lift is, every control period.
 pub const LIFT_STATE: Topic<LiftState> = topic("nori/lift/state", 1, 4, 1, 8);
+
+/// Base controller → tools: where the whole body is, every control period.
+pub const BODY_FRAMES: Topic<BodyFrames> = topic("nori/body/frames", 1, 4, 1, 8);
 
 /// Supervisor → the lift's controller: whether the duty-cycle budget allows travel.
 pub const LIFT_ALLOWANCE: Topic<LiftAllowance> = topic("nori/lift/allowance", 1, 4, 2, 4);

@@ -70,7 +70,7 @@ def small(text: str) -> str:
 
 
 def robot_with_ball(repo: Repo, x: float, y: float, out: Path) -> Path:
-    text = small((repo.root / "sim/robots/nori-a3.toml").read_text())
+    text = small((repo.root / "body/robots/nori-a3.toml").read_text())
     text, n = re.subn(r'(name = "red ball"\ncolour = \[[^\]]*\]\ncenter = )\[[^\]]*\]',
                       lambda m: f"{m.group(1)}[{x:.4f}, {y:.4f}, 0.74]", text)
     assert n == 1, "the red ball's centre in the description"

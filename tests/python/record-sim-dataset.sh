@@ -15,7 +15,7 @@ bin="$repo/target/release"
 (cd "$repo" && cargo build --release --workspace --bins)
 work="$(mktemp -d)"
 small() { perl -0pe 's/width = 1280\nheight = 720\nfps = 30/width = 320\nheight = 240\nfps = 30/g' "$1"; }
-small "$repo/sim/robots/nori-a3.toml" >"$work/robot.toml"
+small "$repo/body/robots/nori-a3.toml" >"$work/robot.toml"
 small "$repo/deploy/config/camera.toml" >"$work/camera.toml"
 domain="lrcheck$$"
 "$bin/nori" up --dir "$work/dev" --domain "$domain" --robot "$work/robot.toml" \

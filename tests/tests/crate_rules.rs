@@ -14,7 +14,8 @@ use std::process::Command;
 /// Each workspace crate and the workspace crates it may depend on (normal dependencies).
 const ALLOWED: &[(&str, &[&str])] = &[
     ("feetech", &[]),
-    ("base", &["telemetry"]),
+    ("body", &["feetech"]),
+    ("base", &["telemetry", "body"]),
     ("lift", &["telemetry"]),
     ("telemetry", &[]),
     ("bus-driver", &["feetech", "telemetry"]),
@@ -22,7 +23,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
     ("fleet-agent", &["telemetry"]),
     ("camera", &["telemetry"]),
     ("lidar", &["telemetry"]),
-    ("sim", &["feetech", "telemetry", "camera"]),
+    ("sim", &["feetech", "body", "telemetry", "camera"]),
     ("recorder", &["telemetry"]),
     ("model-lab", &["sim"]),
     ("fleet", &["fleet-agent", "telemetry"]),
@@ -79,6 +80,7 @@ const CONFINED: &[(&str, &[&str])] = &[
 /// orchestration, the simulator, the model lab, the benchmarks.
 const ROBOT: &[&str] = &[
     "feetech",
+    "body",
     "telemetry",
     "bus-driver",
     "supervisor",

@@ -1,0 +1,218 @@
+//! Whole-body forward kinematics from the robot description: where each arm's shoulder and
+//! tool are on the floor of the room, given its joint angles, the lift's height and the base's
+//! pose (its odometry, or the simulator's truth).
+//!
+//! Frames: the description gives each arm's shoulder (`base`) in the base's frame (x forward,
+//! y left, z up from the floor, the base's centre at the origin) with the lift standing at its
+//! start height (`lift.start-m`: the height the description was drawn at); the lift carries both
+//! arms on one cross-member, so a height `h` raises every shoulder by `h − start-m`. A joint's
+//! origin is in its parent's frame, its axis in its own frame, as in the simulator's arm. The
+//! base's pose `(x, y, θ)` places the base's frame in the room (a rotation `θ` about the
+//! vertical). Pure; [`Body::tool`] allocates nothing.
+
+use crate::description::RobotDescription;
+use nalgebra::{Matrix3, Rotation3, Unit, UnitQuaternion, Vector3};
+use thiserror::Error;
+
+/// A description the kinematics cannot use.
+#[derive(Debug, Error, PartialEq)]
+pub enum KinematicsError {
+    /// An arm joint names a servo its bus does not have.
+    #[error("bus {bus}: arm joint driven by servo {servo}, which the bus does not have")]
+    UnknownServo {
+        /// The bus.
+        bus: String,
+        /// The servo id.
+        servo: u8,
+    },
+}
+
+/// The base on the floor: position, m, and heading, rad (counter-clockwise from +x).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Pose2 {
+    /// m.
+    pub x: f64,
+    /// m.
+    pub y: f64,
+    /// rad.
+    pub theta: f64,
+}
+
+#[derive(Debug, Clone)]
+struct ChainJoint {
+    axis: Unit<Vector3<f64>>,
+    origin: Vector3<f64>,
+}
+
+/// One arm's kinematic chain.
+#[derive(Debug, Clone)]
+pub struct ArmChain {
+    /// The bus that drives it (`left_arm`, `right_arm`).
+    pub bus: String,
+    /// Its joints' names, base outward (the names of the driver's layout).
+    pub joint_names: Vec<String>,
+    joints: Vec<ChainJoint>,
+    shoulder: Vector3<f64>,
+    tip: Vector3<f64>,
+}
+
+/// Where an arm is.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ArmPose {
+    /// The shoulder (the chain's first joint's parent frame), m, in the room.
+    pub shoulder: [f64; 3],
+    /// The tool point, m, in the room.
+    pub tool: [f64; 3],
+    /// The tool frame's orientation in the room, a unit quaternion `[w, x, y, z]`.
+    pub tool_rotation: [f64; 4],
+}
+
+/// The body's chains and the lift's reference height.
+#[derive(Debug, Clone)]
+pub struct Body {
+    arms: Vec<ArmChain>,
+    lift_start_m: f64,
+}
+
+impl Body {
+    /// The arms of `d` (each bus with an arm, in description order).
+    pub fn from_description(d: &RobotDescription) -> Result<Body, KinematicsError> {
+        let mut arms = Vec::new();
+        for bus in &d.bus {
+            let Some(arm) = &bus.arm else { continue };
+            let mut joint_names = Vec::with_capacity(arm.joint.len());
+            for j in &arm.joint {
+                let servo = bus.servo.iter().find(|s| s.id == j.servo).ok_or_else(|| {
+                    KinematicsError::UnknownServo {
+                        bus: bus.name.clone(),
+                        servo: j.servo,
+                    }
+                })?;
+                joint_names.push(servo.joint.clone());
+            }
+            arms.push(ArmChain {
+                bus: bus.name.clone(),
+                joint_names,
+                joints: arm
+                    .joint
+                    .iter()
+                    .map(|j| ChainJoint {
+                        axis: Unit::new_normalize(Vector3::from(j.axis)),
+                        origin: Vector3::from(j.origin),
+                    })
+                    .collect(),
+                shoulder: Vector3::from(arm.base),
+                tip: Vector3::from(arm.tip),
+            });
+        }
+        Ok(Body {
+            arms,
+            lift_start_m: d.lift.as_ref().map_or(0.0, |l| l.start_m),
+        })
+    }
+
+    /// The arms, in description order.
+    pub fn arms(&self) -> &[ArmChain] {
+        &self.arms
+    }
+
+    /// Arm `arm` at joint angles `q` (rad, base outward; missing angles count as 0), the lift at
+    /// `lift_m` and the base at `base`; `None` for an arm the body does not have.
+    pub fn arm_pose(&self, arm: usize, q: &[f64], lift_m: f64, base: Pose2) -> Option<ArmPose> {
+        let chain = self.arms.get(arm)?;
+        let heading = Rotation3::from_axis_angle(&Vector3::z_axis(), base.theta);
+        let place = |p: Vector3<f64>| heading * p + Vector3::new(base.x, base.y, 0.0);
+        let shoulder = chain.shoulder + Vector3::new(0.0, 0.0, lift_m - self.lift_start_m);
+        let mut rot = Matrix3::identity();
+        let mut p = shoulder;
+        for (k, j) in chain.joints.iter().enumerate() {
+            p += rot * j.origin;
+            let angle = q.get(k).copied().unwrap_or(0.0);
+            rot *= *Rotation3::from_axis_angle(&j.axis, angle).matrix();
+        }
+        let tool = p + rot * chain.tip;
+        let tool_rotation = UnitQuaternion::from_rotation_matrix(
+            &Rotation3::from_matrix_unchecked(*heading.matrix() * rot),
+        );
+        let (s, t) = (place(shoulder), place(tool));
+        let q = tool_rotation.quaternion();
+        Some(ArmPose {
+            shoulder: [s.x, s.y, s.z],
+            tool: [t.x, t.y, t.z],
+            tool_rotation: [q.w, q.i, q.j, q.k],
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn a3() -> Body {
+        Body::from_description(&RobotDescription::nori_a3()).unwrap()
+    }
+
+    fn close(a: [f64; 3], b: [f64; 3], tol: f64) -> bool {
+        a.iter().zip(&b).all(|(x, y)| (x - y).abs() < tol)
+    }
+
+    #[test]
+    fn the_a3_has_two_arms_named_as_the_driver_names_their_joints() {
+        let body = a3();
+        let names: Vec<&str> = body.arms().iter().map(|a| a.bus.as_str()).collect();
+        assert_eq!(names, ["left_arm", "right_arm"]);
+        assert_eq!(body.arms()[0].joint_names.len(), 7);
+        assert_eq!(body.arms()[0].joint_names[3], "left_elbow");
+        assert_eq!(body.arms()[1].joint_names[0], "right_shoulder_pitch");
+    }
+
+    #[test]
+    fn the_lift_raises_both_shoulders_and_the_base_carries_them() {
+        let body = a3();
+        let q = [0.0; 7];
+        let home = body.arm_pose(0, &q, 0.3, Pose2::default()).unwrap();
+        assert!(close(home.shoulder, [0.0, 0.18, 1.0], 1e-12), "{home:?}");
+        let up = body.arm_pose(0, &q, 0.5, Pose2::default()).unwrap();
+        assert!(close(up.shoulder, [0.0, 0.18, 1.2], 1e-12));
+        assert!(
+            (up.tool[2] - home.tool[2] - 0.2).abs() < 1e-12,
+            "the tool rises with it"
+        );
+        // The base 1 m ahead, turned a quarter left: the left shoulder is now behind the centre
+        // (its +y becomes −x) and the tool turns with the base.
+        let base = Pose2 {
+            x: 1.0,
+            y: 0.0,
+            theta: std::f64::consts::FRAC_PI_2,
+        };
+        let moved = body.arm_pose(0, &q, 0.3, base).unwrap();
+        assert!(
+            close(moved.shoulder, [1.0 - 0.18, 0.0, 1.0], 1e-12),
+            "{moved:?}"
+        );
+        let (t, h) = (moved.tool, home.tool);
+        assert!(
+            close(t, [1.0 - h[1], h[0], h[2]], 1e-12),
+            "{moved:?} vs {home:?}"
+        );
+        let [w, _, _, z] = moved.tool_rotation;
+        let [w0, _, _, z0] = home.tool_rotation;
+        // Hanging straight down with q = 0, the tool frame is the base's: a yaw of 90°.
+        assert!((w0 - 1.0).abs() < 1e-12 && z0.abs() < 1e-12, "{home:?}");
+        assert!((w - 0.5f64.sqrt()).abs() < 1e-12 && (z - 0.5f64.sqrt()).abs() < 1e-12);
+        assert_eq!(body.arm_pose(2, &q, 0.3, base), None);
+    }
+
+    #[test]
+    fn a_chain_naming_a_servo_its_bus_lacks_is_refused() {
+        let mut d = RobotDescription::nori_a3();
+        d.bus[0].arm.as_mut().unwrap().joint[2].servo = 99;
+        assert_eq!(
+            Body::from_description(&d).unwrap_err(),
+            KinematicsError::UnknownServo {
+                bus: "left_arm".into(),
+                servo: 99
+            }
+        );
+    }
+}

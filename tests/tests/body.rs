@@ -1,0 +1,164 @@
+//! The whole body's frames (`nori/body/frames`) on the simulated robot: with the lift raised,
+//! the base driven to a new pose and an elbow bent, `nori-base` places both arms' shoulders and
+//! tools in the room where the simulator's own truth puts them (its base pose, its lift's
+//! height, its servos' angles through its own arm chain, written separately from the robot's).
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use nori_tests::{binary, scratch, wait_for, Proc};
+use std::time::Duration;
+use telemetry::clock::monotonic_ns;
+use telemetry::frames::STATE_FLAG_SAFE_STATE;
+use telemetry::motion::{BaseCommand, LiftCommand, LIFT_READY};
+use telemetry::plane::{self, newest, publish, Plane};
+use telemetry::GoalFrame;
+
+/// Where the simulator says arm `bus`'s shoulder and tool are, in the room (m), from its report:
+/// its arm chain at its servos' angles, raised by the lift's height above the description's,
+/// carried by the base's true pose.
+fn truth(report: &serde_json::Value, d: &sim::RobotDescription, bus: &str) -> [[f64; 3]; 2] {
+    let buses = report["buses"].as_array().unwrap();
+    let arm_bus = buses.iter().find(|b| b["name"] == bus).unwrap();
+    let base = buses.iter().find_map(|b| b["base"].as_object()).unwrap();
+    let (x, y, theta) = (
+        base["x_m"].as_f64().unwrap(),
+        base["y_m"].as_f64().unwrap(),
+        base["theta_rad"].as_f64().unwrap(),
+    );
+    let lift = report["lift"]["height_m"].as_f64().unwrap() - d.lift.as_ref().unwrap().start_m;
+    let description = d.bus(bus).unwrap();
+    let arm_d = description.arm.as_ref().unwrap();
+    let q: Vec<f64> = arm_d
+        .joint
+        .iter()
+        .map(|j| {
+            let servo = arm_bus["servos"].as_array().unwrap();
+            let s = servo.iter().find(|s| s["id"] == j.servo).unwrap();
+            s["angle_rad"].as_f64().unwrap()
+        })
+        .collect();
+    let mut arm = sim::arm::Arm::new(arm_d, d.gravity);
+    let tool = arm.tip_position(&q);
+    let place = |p: [f64; 3]| {
+        let (s, c) = theta.sin_cos();
+        [
+            x + c * p[0] - s * p[1],
+            y + s * p[0] + c * p[1],
+            p[2] + lift,
+        ]
+    };
+    [place(arm_d.base), place(tool)]
+}
+
+#[test]
+fn the_bodys_frames_place_both_arms_where_the_simulator_has_them() {
+    let dir = scratch("body");
+    let domain = format!("nori_body_{}", std::process::id());
+    let robot = dir.join("robot.toml");
+    let text = sim::description::NORI_A3_TOML.replacen("start-m = 0.3", "start-m = 0.05", 1);
+    std::fs::write(&robot, &text).unwrap();
+    let d = sim::RobotDescription::parse(&text, "robot.toml").unwrap();
+    let mut up = Proc::spawn(
+        "nori up",
+        &binary("nori"),
+        &[
+            "up",
+            "--dir",
+            dir.join("dev").to_str().unwrap(),
+            "--domain",
+            &domain,
+            "--robot",
+            robot.to_str().unwrap(),
+        ],
+        &dir.join("up.log"),
+    );
+    let node = Plane::open(&domain, "test").unwrap();
+    let states = node.subscriber(&plane::JOINT_STATE).unwrap();
+    let lifts = node.subscriber(&plane::LIFT_STATE).unwrap();
+    let frames = node.subscriber(&plane::BODY_FRAMES).unwrap();
+    let goals = node.publisher(&plane::GOALS).unwrap();
+    let lift_commands = node.publisher(&plane::LIFT_COMMAND).unwrap();
+    let base_commands = node.publisher(&plane::BASE_COMMAND).unwrap();
+    wait_for(Duration::from_secs(40), "18 joints driven", || {
+        newest(&states).filter(|s| {
+            s.joint_count == 18
+                && s.flags & STATE_FLAG_SAFE_STATE == 0
+                && s.joints().iter().all(|j| j.is_valid())
+        })
+    });
+    wait_for(Duration::from_secs(20), "the lift homed", || {
+        newest(&lifts).filter(|l| l.state == LIFT_READY)
+    });
+    // Before homing no arm is placed; now both are.
+    let first = wait_for(Duration::from_secs(5), "the body's frames", || {
+        newest(&frames).filter(|f| f.arms[0].valid == 1 && f.arms[1].valid == 1)
+    });
+    assert_eq!(first.arm_count, 2);
+
+    // The lift to 0.12 m, the left elbow bent, the base forward and turning for 2 s.
+    let now = monotonic_ns();
+    let lift = LiftCommand {
+        seq: 1,
+        timestamp_ns: now,
+        height_m: 0.12,
+        reserved: 0,
+    };
+    publish(&lift_commands, &lift).unwrap();
+    let mut goal = GoalFrame {
+        seq: 1,
+        timestamp_ns: now,
+        joint_count: 18,
+        mask: 1 << 3,
+        ..GoalFrame::default()
+    };
+    goal.position_rad[3] = -1.2;
+    publish(&goals, &goal).unwrap();
+    for seq in 1..=40 {
+        let c = BaseCommand {
+            seq,
+            timestamp_ns: monotonic_ns(),
+            linear_m_s: -0.1,
+            angular_rad_s: 0.4,
+        };
+        publish(&base_commands, &c).unwrap();
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    // At rest (the lift travels 7 cm at 30 mm/s), then the simulator's next report.
+    wait_for(Duration::from_secs(10), "the lift at 0.12 m", || {
+        newest(&lifts).filter(|l| (l.height_m - 0.12).abs() < 0.002 && l.velocity_m_s == 0.0)
+    });
+    std::thread::sleep(Duration::from_millis(2500));
+    let published = newest(&frames).unwrap();
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("dev/sim-report.json")).unwrap())
+            .unwrap();
+    assert!(published.theta_rad > 0.5, "the base turned: {published:?}");
+    for (k, bus) in ["left_arm", "right_arm"].iter().enumerate() {
+        let [shoulder, tool] = truth(&report, &d, bus);
+        let arm = published.arms[k];
+        assert_eq!(arm.valid, 1, "{bus}");
+        let off = |a: [f32; 3], b: [f64; 3]| {
+            (0..3)
+                .map(|i| (f64::from(a[i]) - b[i]).powi(2))
+                .sum::<f64>()
+                .sqrt()
+        };
+        // The odometry's drift over ~0.2 m of travel and a turn (the base test bounds it at 1 cm
+        // + 1 %), the lift's halls (0.1 mm) and the servos' steps (0.0015 rad at 0.5 m).
+        let (s, t) = (off(arm.shoulder, shoulder), off(arm.tool, tool));
+        eprintln!(
+            "{bus}: shoulder {:?} off by {s:.4} m, tool {:?} off by {t:.4} m",
+            arm.shoulder, arm.tool
+        );
+        assert!(
+            s < 0.015 && t < 0.02,
+            "{bus}: {arm:?} vs truth {shoulder:?} {tool:?}"
+        );
+    }
+    // The bent elbow is in the frames: the left tool is not where the right one's mirror is.
+    let (l, r) = (published.arms[0].tool, published.arms[1].tool);
+    assert!((l[2] - r[2]).abs() > 0.1, "left {l:?} right {r:?}");
+    let (code, log) = up.terminate(Duration::from_secs(20));
+    assert_eq!(code, Some(0), "{log}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
