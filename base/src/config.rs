@@ -58,6 +58,7 @@ struct Field {
     stop_margin_m: f64,
     scan_max_age_ms: u64,
     min_range_m: f64,
+    driver_restart_ms: u64,
 }
 
 /// The base controller's process settings.
@@ -157,7 +158,16 @@ impl BaseConfig {
                 format!("{}: 100 to 1000 ms", d.scan_max_age_ms),
             ));
         }
+        // The servos keep their last speed while no driver runs (they have no watchdog): a
+        // crashed driver's restart is time the base moves blind. Over 5 s is no restart.
+        if d.driver_restart_ms > 5000 {
+            return Err((
+                "field.driver-restart-ms",
+                format!("{}: 0 to 5000 ms", d.driver_restart_ms),
+            ));
+        }
         let max_age_s = d.scan_max_age_ms as f64 * 1e-3;
+        let blind_s = d.driver_restart_ms as f64 * 1e-3;
         Ok(Some((
             FieldConfig {
                 lidar_x_m: d.lidar_position[0],
@@ -167,8 +177,9 @@ impl BaseConfig {
                 front_m: d.front_m,
                 back_m: d.back_m,
                 stop_margin_m: d.stop_margin_m,
-                // The oldest revolution acted on, a control period and the driver's cycle.
-                reaction_s: max_age_s + period_s + 0.01,
+                // The oldest revolution acted on, a control period, the driver's cycle and the
+                // wheels' blind time through a driver restart.
+                reaction_s: max_age_s + period_s + 0.01 + blind_s,
                 min_range_m: d.min_range_m,
             },
             d.scan_max_age_ms * 1_000_000,
@@ -187,7 +198,7 @@ mod tests {
         assert_eq!(c.controller.wheels, ["left_wheel", "right_wheel"]);
         let (field, age) = c.controller.field.unwrap();
         assert_eq!(age, 300_000_000);
-        assert!((field.reaction_s - 0.33).abs() < 1e-9);
+        assert!((field.reaction_s - 1.03).abs() < 1e-9, "{field:?}");
     }
 
     #[test]
@@ -224,6 +235,11 @@ mod tests {
                 "scan-max-age-ms = 300",
                 "scan-max-age-ms = 5000",
                 "field.scan-max-age-ms",
+            ),
+            (
+                "driver-restart-ms = 700",
+                "driver-restart-ms = 60000",
+                "field.driver-restart-ms",
             ),
             (
                 "lidar-yaw-deg = 0.0",

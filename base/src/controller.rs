@@ -294,20 +294,35 @@ impl Controller {
         } else {
             self.ramp.twist().linear_m_s >= 0.0
         };
-        let points = scan
-            .points()
-            .iter()
-            .map(|p| (f64::from(p.angle_rad), f64::from(p.range_m)));
-        let verdict = field.verdict(points, forward, self.config.limits.linear_brake_m_s2);
+        let points = || {
+            scan.points()
+                .iter()
+                .map(|p| (f64::from(p.angle_rad), f64::from(p.range_m)))
+        };
+        let limits = &self.config.limits;
+        let verdict = field.verdict(points(), forward, limits.linear_brake_m_s2);
+        // The turn likewise: the one asked for, or while stopping the one still turning.
+        let w = requested.angular_rad_s;
+        let left = if w != 0.0 {
+            w > 0.0
+        } else {
+            self.ramp.twist().angular_rad_s >= 0.0
+        };
+        let turn = field.turn_verdict(points(), left, limits.angular_acc_rad_s2);
         let mut flags = 0;
         let mut target = requested;
-        if v.abs() > verdict.max_speed_m_s {
-            target.linear_m_s = v.signum() * verdict.max_speed_m_s;
-            flags |= if verdict.max_speed_m_s == 0.0 {
-                BASE_FLAG_FIELD_STOPPED
-            } else {
-                BASE_FLAG_FIELD_SLOWING
-            };
+        for (value, most) in [
+            (&mut target.linear_m_s, verdict.max_speed_m_s),
+            (&mut target.angular_rad_s, turn.max_rate_rad_s),
+        ] {
+            if value.abs() > most {
+                *value = value.signum() * most;
+                flags |= if most == 0.0 {
+                    BASE_FLAG_FIELD_STOPPED
+                } else {
+                    BASE_FLAG_FIELD_SLOWING
+                };
+            }
         }
         (target, Some(verdict.free_m), flags)
     }
@@ -545,11 +560,18 @@ mod tests {
             "{touching:?}"
         );
         assert_eq!(touching.requested_linear_m_s, 0.3);
-        // Turning stays allowed.
-        assert!(touching.commanded_angular_rad_s > 0.0);
+        // Turning there would swing a front corner into the wall: the turn brakes to a stop
+        // too (2 rad/s² from 0.4 rad/s: 0.2 s).
+        let mut turning = touching;
+        for k in 4..=30 {
+            turning = at(&mut c, k * 10 * MS, 0.19, &mut goal);
+        }
+        assert_eq!(turning.requested_angular_rad_s, 0.4);
+        assert_eq!(turning.commanded_angular_rad_s, 0.0, "{turning:?}");
         // Backing away from the wall is free.
-        c.on_command(&command(40 * MS, -0.2, 0.0), 40 * MS).unwrap();
-        let (_, back) = period(&mut c, 40 * MS, Some(&wall(0.19, 40 * MS)), &mut goal);
+        c.on_command(&command(310 * MS, -0.2, 0.0), 310 * MS)
+            .unwrap();
+        let (_, back) = period(&mut c, 310 * MS, Some(&wall(0.19, 310 * MS)), &mut goal);
         assert_eq!(back.flags & BASE_FLAG_FIELD_STOPPED, 0, "{back:?}");
         // A revolution older than 300 ms, or none: no motion along the path.
         c.on_command(&command(400 * MS, 0.3, 0.5), 400 * MS)

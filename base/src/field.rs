@@ -6,9 +6,17 @@
 //! wide as the body, from its front (or back) edge on. The free distance is how far the
 //! nearest return in that corridor lies beyond the edge. The speed allowed is the largest from
 //! which the base, after the reaction time (the age of a revolution and a control period)
-//! and braking at its limit, stops `stop-margin` short of that return. Turning in place is not
-//! limited (the footprint's corners sweep a circle the corridor test does not cover: a square
-//! base turning beside a wall is left to the operator, said in ARCHITECTURE.md).
+//! and braking at its limit, stops `stop-margin` short of that return.
+//!
+//! Turning is guarded too: a square body's corners sweep a circle wider than the body, so a
+//! turn beside a wall or a table leg would strike it with no obstacle ahead. For each return
+//! within that circle, the angle the body can turn (either way) before the return comes within
+//! `stop-margin` of it is found by turning the return back around the base in steps of a
+//! degree; the turn rate allowed stops within the smallest such angle after the reaction time.
+//!
+//! The reaction time includes the wheels' blind time: the servos keep their last speed when
+//! nobody commands them (they have no watchdog), so a crashed driver leaves the base moving
+//! until the restarted one sets the wheels up again (`driver-restart-ms`).
 
 /// What the field guards and how the lidar sits on the base.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -44,6 +52,19 @@ pub struct Verdict {
     pub max_speed_m_s: f64,
 }
 
+/// The turning field's verdict for one direction of turn.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TurnVerdict {
+    /// The angle the body can turn before a return comes within the stop margin, rad
+    /// (infinite when none can).
+    pub free_rad: f64,
+    /// The largest turn rate that still stops within it, rad/s.
+    pub max_rate_rad_s: f64,
+}
+
+/// The turning field's angular resolution, rad (a degree: 1.7 mm at the A3's corners' 0.35 m).
+const TURN_STEP_RAD: f64 = std::f64::consts::PI / 180.0;
+
 impl FieldConfig {
     /// The verdict for travel forward (`forward`) or backward, from one revolution's points
     /// (bearing in the lidar's frame, rad counter-clockwise; range, m, 0 for no return), with
@@ -77,6 +98,51 @@ impl FieldConfig {
         Verdict {
             free_m: free,
             max_speed_m_s: self.stopping_speed(free - self.stop_margin_m, brake_m_s2),
+        }
+    }
+
+    /// The verdict for turning counter-clockwise (`left`) or clockwise, from one revolution's
+    /// points, the base braking its turn at `brake_rad_s2`.
+    pub fn turn_verdict(
+        &self,
+        points: impl IntoIterator<Item = (f64, f64)>,
+        left: bool,
+        brake_rad_s2: f64,
+    ) -> TurnVerdict {
+        let m = self.stop_margin_m;
+        let (front, back, half) = (self.front_m + m, self.back_m + m, self.half_width_m + m);
+        let reach = front.max(back).hypot(half);
+        let within = |x: f64, y: f64, f: f64, b: f64, h: f64| x <= f && x >= -b && y.abs() <= h;
+        let mut free = f64::INFINITY;
+        for (bearing, range) in points {
+            if !(range.is_finite() && range >= self.min_range_m && bearing.is_finite()) {
+                continue;
+            }
+            let a = self.lidar_yaw_rad + bearing;
+            let (x, y) = (
+                self.lidar_x_m + range * a.cos(),
+                self.lidar_y_m + range * a.sin(),
+            );
+            // Beyond the corners' circle, or inside the body itself (its own parts): nothing
+            // a turn can strike.
+            if x.hypot(y) > reach || within(x, y, self.front_m, self.back_m, self.half_width_m) {
+                continue;
+            }
+            // Turning the body by φ turns the return by −φ around the base, as the base sees it.
+            let sign = if left { -1.0 } else { 1.0 };
+            let mut phi = 0.0;
+            while phi < free && phi <= std::f64::consts::PI {
+                let (s, c) = (sign * phi).sin_cos();
+                if within(c * x - s * y, s * x + c * y, front, back, half) {
+                    free = free.min((phi - TURN_STEP_RAD).max(0.0));
+                    break;
+                }
+                phi += TURN_STEP_RAD;
+            }
+        }
+        TurnVerdict {
+            free_rad: free,
+            max_rate_rad_s: self.stopping_speed(free, brake_rad_s2),
         }
     }
 
@@ -153,6 +219,57 @@ pub(crate) mod tests {
             (0.0, f64::INFINITY),
         ];
         assert_eq!(A3.verdict(junk, true, 1.0).max_speed_m_s, f64::INFINITY);
+    }
+
+    /// Returns along a line `x = at` (a wall across the front) from y = −1 to 1 m, in the
+    /// lidar's frame.
+    fn wall_points(at: f64) -> Vec<(f64, f64)> {
+        (-100..=100)
+            .map(|k| {
+                let (x, y) = (at - A3.lidar_x_m, f64::from(k) * 0.01);
+                (y.atan2(x), x.hypot(y))
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_turn_beside_an_obstacle_is_slowed_and_stopped_before_a_corner_strikes_it() {
+        // Far from everything: turning is free.
+        let open = A3.turn_verdict(wall_points(2.0), true, 2.0);
+        assert_eq!(open.max_rate_rad_s, f64::INFINITY);
+        // A wall 0.1 m beyond the front (where the linear field stops the base): either turn
+        // swings a front corner into the margin at once.
+        for left in [true, false] {
+            let v = A3.turn_verdict(wall_points(0.35), left, 2.0);
+            assert_eq!(v.max_rate_rad_s, 0.0, "left {left}: {v:?}");
+        }
+        // 0.2 m beyond the front: the corner of the body grown by the margin (0.35, 0.35),
+        // 0.495 m out, reaches the wall (x = 0.45) after 45° − acos(0.45 / 0.495) = 20.4° of
+        // turn: slowed, not stopped.
+        let near = A3.turn_verdict(wall_points(0.45), true, 2.0);
+        let exact = std::f64::consts::FRAC_PI_4 - (0.45 / 0.35f64.hypot(0.35)).acos();
+        assert!(
+            near.free_rad <= exact && near.free_rad > exact - 2.0 * TURN_STEP_RAD,
+            "{near:?} vs {exact}"
+        );
+        let rate = near.max_rate_rad_s;
+        assert!(rate > 0.0 && rate < 1.0, "{near:?}");
+        // The rate allowed stops within the free angle after the reaction time.
+        assert!((rate * A3.reaction_s + rate * rate / 4.0 - near.free_rad).abs() < 1e-9);
+        // A table leg off the front-left corner, ahead of it: turning left sweeps the front
+        // edge into it at once; turning right, the left side comes round to it only later.
+        let (lx, ly): (f64, f64) = (0.2 - A3.lidar_x_m, 0.38);
+        let leg = [(ly.atan2(lx), lx.hypot(ly))];
+        let (l, r) = (
+            A3.turn_verdict(leg, true, 2.0),
+            A3.turn_verdict(leg, false, 2.0),
+        );
+        // Left: in at 54.7° of bearing (y = 0.35), 7.6° of turn; right: round to 125.3°, 63.1°.
+        assert!((l.free_rad.to_degrees() - 7.0).abs() <= 1.0, "left {l:?}");
+        assert!((r.free_rad.to_degrees() - 62.5).abs() <= 1.0, "right {r:?}");
+        // Returns inside the body (its own parts) and beyond the corners' circle do not count.
+        let own = [(0.0, 0.05), (std::f64::consts::PI, 0.2), (0.0, 1.0)];
+        assert_eq!(A3.turn_verdict(own, true, 2.0).free_rad, f64::INFINITY);
     }
 
     #[test]

@@ -454,10 +454,15 @@ impl<T: Transport> Driver<T> {
     /// that just powered up may miss the first requests); returns the last failures. Those
     /// joints stay off and are retried every second by the loop. In the torque-off safe state
     /// nothing is brought up: that happens when the safe state is left.
+    ///
+    /// Wheels first: a wheel servo keeps turning at its last speed while no driver runs (it has
+    /// no watchdog), and its set-up (torque off, then a speed of 0) is what stops it after a
+    /// driver crash; an arm servo holds its last goal meanwhile.
     pub fn setup(&mut self) -> Vec<(String, SetupError)> {
         let mut pending: Vec<usize> = (0..self.joints.len())
             .filter(|&j| self.may_drive(j))
             .collect();
+        pending.sort_by_key(|&j| self.buses[self.bus_of(j)].mode != Mode::Speed);
         let mut failures = Vec::new();
         for _ in 0..SETUP_PASSES {
             failures.clear();

@@ -28,12 +28,17 @@ use telemetry::frames::{
 };
 use telemetry::GoalFrame;
 
+/// Every packet the driver sent, in order, with its bus's index.
+type Sent = Arc<Mutex<Vec<(usize, Vec<u8>)>>>;
+
 /// One simulated bus behind an in-memory link that can be pulled out.
 struct SimLink {
     bus: Arc<Mutex<SimBus>>,
     inbox: VecDeque<u8>,
     gone: Arc<AtomicBool>,
     baud: u32,
+    index: usize,
+    sent: Sent,
 }
 
 fn gone_error() -> TransportError {
@@ -51,6 +56,7 @@ impl Transport for SimLink {
         if self.gone.load(Ordering::SeqCst) {
             return Err(gone_error());
         }
+        self.sent.lock().unwrap().push((self.index, bytes.to_vec()));
         let mut bus = self.bus.lock().unwrap();
         let t = bus.time();
         bus.receive(t, bytes);
@@ -94,6 +100,7 @@ impl Transport for SimLink {
 
 struct Rig {
     buses: Vec<Arc<Mutex<SimBus>>>,
+    sent: Sent,
     gone: Vec<Arc<AtomicBool>>,
     config: LoadedConfig,
     driver: Driver<SimLink>,
@@ -115,6 +122,7 @@ fn rig_with(faults: Option<LineFaults>, safe_state: SafeState, supervisor_timeou
     let mut buses = Vec::new();
     let mut gone = Vec::new();
     let mut links = Vec::new();
+    let sent = Sent::default();
     for (i, b) in config.config.bus.iter().enumerate() {
         let d = robot.bus(&b.name).unwrap();
         let mut bus = SimBus::new(&robot, d);
@@ -129,6 +137,8 @@ fn rig_with(faults: Option<LineFaults>, safe_state: SafeState, supervisor_timeou
             inbox: VecDeque::new(),
             gone: g.clone(),
             baud: b.baud,
+            index: i,
+            sent: sent.clone(),
         });
         buses.push(bus);
         gone.push(g);
@@ -138,6 +148,7 @@ fn rig_with(faults: Option<LineFaults>, safe_state: SafeState, supervisor_timeou
     assert!(failures.is_empty(), "setup failed: {failures:?}");
     Rig {
         buses,
+        sent,
         gone,
         config,
         driver,
@@ -234,6 +245,46 @@ impl Rig {
         }
         checked
     }
+}
+
+/// The wheels are set up before any arm servo: a wheel keeps turning at its last speed while
+/// no driver runs (the servo has no watchdog), and its set-up (torque off, a speed of 0) is what
+/// stops it after a driver crash, so a restarted driver stops the base before it spends the
+/// time the arms' set-up takes. (The old driver set them up last: after 16 arm servos.)
+#[test]
+fn a_starting_driver_stops_the_wheels_before_it_sets_up_the_arms() {
+    let rig = rig(None, SafeState::Hold);
+    let wheels = rig
+        .config
+        .config
+        .bus
+        .iter()
+        .position(|b| b.mode == bus_driver::config::Mode::Speed)
+        .unwrap();
+    // WRITE (3) of Torque_Enable: [FF FF id len 3 addr value ...].
+    let torque = |p: &[u8], on: u8| {
+        p.len() > 6 && p[4] == 3 && p[5] == reg::TORQUE_ENABLE.addr as u8 && p[6] == on
+    };
+    let sent = rig.sent.lock().unwrap().clone();
+    let wheels_off = (sent.iter())
+        .filter(|(b, p)| *b == wheels && torque(p, 0))
+        .count();
+    assert_eq!(
+        wheels_off, 2,
+        "each wheel's torque turned off in its set-up"
+    );
+    let last_wheel_setup = sent
+        .iter()
+        .rposition(|(b, p)| *b == wheels && torque(p, 1))
+        .unwrap();
+    let first_arm_on = sent
+        .iter()
+        .position(|(b, p)| *b != wheels && torque(p, 1))
+        .unwrap();
+    assert!(
+        last_wheel_setup < first_arm_on,
+        "wheels up at packet {last_wheel_setup}, the first arm servo at {first_arm_on}"
+    );
 }
 
 /// Soak: 1 % of replies corrupted (flipped bit, dropped or truncated; seeded) for 3000 cycles.

@@ -69,6 +69,7 @@ pub struct Managed {
     child: Option<Child>,
     quiet: bool,
     backoff: Duration,
+    max_backoff: Duration,
     restart_at: Option<Instant>,
     /// Restarts so far.
     pub restarts: u32,
@@ -86,9 +87,17 @@ impl Managed {
             child: None,
             quiet: false,
             backoff: Duration::from_millis(500),
+            max_backoff: Duration::from_secs(8),
             restart_at: None,
             restarts: 0,
         }
+    }
+
+    /// Restarts it after `delay` every time, however often it exits (systemd's `RestartSec`),
+    /// instead of backing off: for a process whose absence costs more than a crash loop.
+    pub fn restart_after(&mut self, delay: Duration) {
+        self.backoff = delay;
+        self.max_backoff = delay;
     }
 
     /// Adds arguments (before it is started).
@@ -150,7 +159,8 @@ impl Managed {
             .is_some_and(|c| c.try_wait().ok().flatten().is_none())
     }
 
-    /// Restarts a process that exited, with exponential backoff (0.5 s to 8 s).
+    /// Restarts a process that exited, with exponential backoff (0.5 s to 8 s, or the fixed
+    /// delay of [`Managed::restart_after`]).
     pub fn supervise(&mut self) -> Result<(), ChildError> {
         if let Some(child) = &mut self.child {
             let exited = child.try_wait().map_err(|source| ChildError::Wait {
@@ -165,7 +175,7 @@ impl Managed {
                 );
                 self.child = None;
                 self.restart_at = Some(Instant::now() + self.backoff);
-                self.backoff = (self.backoff * 2).min(Duration::from_secs(8));
+                self.backoff = (self.backoff * 2).min(self.max_backoff);
             }
         } else if self.restart_at.is_some_and(|t| Instant::now() >= t) {
             self.restart_at = None;
@@ -269,5 +279,13 @@ mod tests {
         }
         assert_eq!(m.restarts, 1);
         assert!(m.backoff >= Duration::from_secs(1), "backoff doubled");
+        // A fixed delay: exits again and again, restarted after the same delay each time.
+        m.restart_after(Duration::from_millis(100));
+        while m.restarts < 3 && Instant::now() < until + Duration::from_secs(5) {
+            m.supervise().unwrap();
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        assert_eq!(m.restarts, 3);
+        assert_eq!(m.backoff, Duration::from_millis(100), "fixed: no doubling");
     }
 }

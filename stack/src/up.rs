@@ -99,6 +99,10 @@ pub fn run(args: &UpArgs) -> Result<()> {
         sim.add_args(&["--silence".into(), silence.clone()]);
     }
     let mut bus_driver = Managed::new("bus-driver", &sibling("bus-driver")?, &run.driver(&[]));
+    // Restarted as systemd restarts it on the robot (RestartSec=500ms), never backing off: the
+    // wheel servos keep their last speed while no driver runs, and the base's protective field
+    // counts that time (base.toml, driver-restart-ms).
+    bus_driver.restart_after(std::time::Duration::from_millis(500));
     if let Some(c) = &args.driver_config {
         bus_driver.add_args(&["--config".into(), c.display().to_string()]);
     }

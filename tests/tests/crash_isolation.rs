@@ -552,3 +552,264 @@ fn a_seeded_chaos_run_keeps_every_invariant() {
         "reductions not holding within 100 ms: {late:?}"
     );
 }
+
+/// The pid of `nori up`'s child `binary` on `domain` (its command line names both).
+fn child_pid(binary: &str, domain: &str) -> Option<i32> {
+    std::fs::read_dir("/proc")
+        .ok()?
+        .flatten()
+        .find_map(|entry| {
+            let cmdline = std::fs::read(entry.path().join("cmdline")).ok()?;
+            let args: Vec<String> = cmdline
+                .split(|&b| b == 0)
+                .map(|a| String::from_utf8_lossy(a).into_owned())
+                .collect();
+            let ours =
+                args.first()?.ends_with(&format!("/{binary}")) && args.iter().any(|a| a == domain);
+            ours.then(|| entry.file_name().to_str()?.parse().ok())
+                .flatten()
+        })
+}
+
+/// A wild operator of the body until `stop`: twists renewed every 50 ms for a while, within
+/// and beyond the base's limits, now and then NaN, stale or from the future, with silences
+/// longer than the command timeout; lift heights within and beyond its travel, or NaN.
+fn wild_body(domain: String, seed: u64, stop: Arc<AtomicBool>) -> std::thread::JoinHandle<u64> {
+    std::thread::spawn(move || {
+        use telemetry::motion::{BaseCommand, LiftCommand};
+        let node = Plane::open(&domain, "test-wild-body").unwrap();
+        let base = node.publisher(&plane::BASE_COMMAND).unwrap();
+        let lift = node.publisher(&plane::LIFT_COMMAND).unwrap();
+        let mut rng = Rng::new(seed);
+        let (mut seq, mut sent) = (0, 0);
+        while !stop.load(Ordering::Relaxed) {
+            let (mut v, mut w) = (rng.range(-0.3, 0.3) as f32, rng.range(-1.5, 1.5) as f32);
+            let mut skew_ns: i64 = 0;
+            match rng.below(10) {
+                0 => v = f32::NAN,
+                1 => w = f32::INFINITY,
+                2 => skew_ns = -1_000_000_000,
+                3 => skew_ns = 1_000_000_000,
+                4 => {
+                    std::thread::sleep(Duration::from_secs_f64(rng.range(0.3, 1.0)));
+                    continue;
+                }
+                _ => {}
+            }
+            if rng.chance(0.3) {
+                let height = match rng.below(5) {
+                    0 => f32::NAN,
+                    1 => rng.range(-0.2, 1.0) as f32,
+                    _ => rng.range(0.0, 0.6) as f32,
+                };
+                seq += 1;
+                let c = LiftCommand {
+                    seq,
+                    timestamp_ns: monotonic_ns(),
+                    height_m: height,
+                    reserved: 0,
+                };
+                let _ = publish(&lift, &c);
+            }
+            let until = Instant::now() + Duration::from_secs_f64(rng.range(0.2, 2.0));
+            while Instant::now() < until && !stop.load(Ordering::Relaxed) {
+                seq += 1;
+                let c = BaseCommand {
+                    seq,
+                    timestamp_ns: monotonic_ns().saturating_add_signed(skew_ns),
+                    linear_m_s: v,
+                    angular_rad_s: w,
+                };
+                if publish(&base, &c).is_ok() {
+                    sent += 1;
+                }
+                std::thread::sleep(Duration::from_millis(50));
+            }
+        }
+        sent
+    })
+}
+
+/// Seeded chaos on the whole body for `NORI_BODY_CHAOS_SECONDS` (default 60 s): `nori up` (both
+/// arms, the wheels, the lift, the base and its lidar), a wild operator of the base and the
+/// lift, and SIGKILLs of nori-base, nori-lift, the driver and the supervisor at random moments
+/// (`nori up` starts each again, as systemd would). Whatever happens: the base never runs into
+/// anything (the simulator counts bumps); it is never driven beyond its limits, nor the lift's
+/// goal outside its soft limits (every state frame seen); after every nori-base kill the
+/// wheels are still within the driver's wheel timeout and a wheel's stopping. A killed driver
+/// leaves the wheels at their last speed until a driver sets them up again (the servos have no
+/// command watchdog): that time is measured and bounded by the restart (500 ms, as systemd's)
+/// and the wheels' set-up coming first, and the protective field counts it in its reaction,
+/// turns included, so the blind travel still ends short of what the lidar saw. (The first run
+/// of this test, before the field counted it and guarded turns, ran the base into a table leg
+/// twice in 40 s, and a dead driver left the wheels turning for up to 2.2 s.)
+#[test]
+fn a_seeded_body_chaos_run_keeps_the_base_and_the_lift_safe() {
+    use telemetry::motion::LIFT_READY;
+    let _turn = serial();
+    let seed = std::env::var("NORI_CHAOS_SEED")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(0xB0D1_C4A0_u64);
+    let seconds: f64 = std::env::var("NORI_BODY_CHAOS_SECONDS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(60.0);
+    let dir = scratch("body-chaos");
+    let domain = format!("nori_body_chaos_{}", std::process::id());
+    let robot = dir.join("robot.toml");
+    let text = sim::description::NORI_A3_TOML.replacen("start-m = 0.3", "start-m = 0.05", 1);
+    std::fs::write(&robot, text).unwrap();
+    let mut up = nori_tests::Proc::spawn(
+        "nori up",
+        &nori_tests::binary("nori"),
+        &[
+            "up",
+            "--dir",
+            dir.join("dev").to_str().unwrap(),
+            "--domain",
+            &domain,
+            "--robot",
+            robot.to_str().unwrap(),
+        ],
+        &dir.join("up.log"),
+    );
+    let node = Plane::open(&domain, "test").unwrap();
+    let states = node.subscriber(&plane::JOINT_STATE).unwrap();
+    let bases = node.subscriber(&plane::BASE_STATE).unwrap();
+    let lifts = node.subscriber(&plane::LIFT_STATE).unwrap();
+    wait_for(Duration::from_secs(40), "18 joints driven", || {
+        newest(&states).filter(|s| s.joint_count == 18 && s.flags & STATE_FLAG_SAFE_STATE == 0)
+    });
+    wait_for(Duration::from_secs(20), "the lift homed", || {
+        newest(&lifts).filter(|l| l.state == LIFT_READY)
+    });
+    let stop = Arc::new(AtomicBool::new(false));
+    let operator = wild_body(domain.clone(), seed ^ 1, stop.clone());
+    const VICTIMS: [&str; 4] = ["nori-base", "nori-lift", "bus-driver", "supervisor"];
+    let mut rng = Rng::new(seed);
+    let mut kills = [0u32; 4];
+    // Per kill of nori-base (or the driver): when, the driver's cycle then, and when the wheels
+    // were first seen still (after a driver kill: when the new driver, which stops the wheels
+    // in its set-up before its first cycle, published its first frame; the base is driven
+    // again from then on).
+    let mut wheel_stops: Vec<(usize, u64, u64, Option<u64>)> = Vec::new();
+    let mut driver_seq = 0;
+    let (mut base_frames, mut lift_frames, mut overdriven, mut bad_lift_goals) = (0u64, 0u64, 0, 0);
+    let (mut most_v, mut most_w) = (0f32, 0f32);
+    let start = Instant::now();
+    let mut next_kill = start + Duration::from_secs_f64(rng.range(2.0, 5.0));
+    while start.elapsed().as_secs_f64() < seconds {
+        std::thread::sleep(Duration::from_millis(5));
+        while let Some(b) = next(&bases) {
+            base_frames += 1;
+            let (v, w) = (b.commanded_linear_m_s, b.commanded_angular_rad_s);
+            most_v = most_v.max(v.abs());
+            most_w = most_w.max(w.abs());
+            if !(v.abs() <= 0.2 + 1e-4 && w.abs() <= 1.0 + 1e-4) {
+                overdriven += 1;
+            }
+        }
+        while let Some(l) = next(&lifts) {
+            lift_frames += 1;
+            if !(l.goal_m.is_nan() || (0.01 - 1e-4..=0.75 + 1e-4).contains(&l.goal_m)) {
+                bad_lift_goals += 1;
+            }
+        }
+        if let Some(s) = newest(&states) {
+            driver_seq = s.seq;
+            let still = s.joint_count == 18
+                && s.joints[16].is_valid()
+                && s.joints[17].is_valid()
+                && s.joints[16].velocity_rad_s.abs() < 0.05
+                && s.joints[17].velocity_rad_s.abs() < 0.05;
+            for (victim, at, seq, done) in wheel_stops.iter_mut().filter(|w| w.3.is_none()) {
+                let restarted = *victim == 2 && s.seq < *seq;
+                if s.timestamp_ns > *at && (restarted || (*victim == 0 && still)) {
+                    *done = Some(s.timestamp_ns);
+                }
+            }
+        }
+        // No kill in the last 3 s: every one's aftermath is seen.
+        if Instant::now() >= next_kill && start.elapsed().as_secs_f64() < seconds - 3.0 {
+            let victim = rng.below(4) as usize;
+            if let Some(pid) = child_pid(VICTIMS[victim], &domain) {
+                let _ = nix::sys::signal::kill(
+                    nix::unistd::Pid::from_raw(pid),
+                    nix::sys::signal::Signal::SIGKILL,
+                );
+                kills[victim] += 1;
+                if victim == 0 || victim == 2 {
+                    wheel_stops.push((victim, monotonic_ns(), driver_seq, None));
+                }
+            }
+            next_kill = Instant::now() + Duration::from_secs_f64(rng.range(1.0, 4.0));
+        }
+    }
+    stop.store(true, Ordering::Relaxed);
+    let sent = operator.join().unwrap();
+    drop((states, bases, lifts, node));
+    let (code, log) = up.terminate(Duration::from_secs(30));
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("dev/sim-report.json")).unwrap())
+            .unwrap();
+    let base = report["buses"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find_map(|b| b["base"].as_object())
+        .unwrap()
+        .clone();
+    let ms =
+        |(_, at, _, done): &(usize, u64, u64, Option<u64>)| done.map(|t| (t - at) as f64 * 1e-6);
+    let after = |who: usize| -> Vec<f64> {
+        wheel_stops
+            .iter()
+            .filter(|w| w.0 == who)
+            .map(|w| ms(w).unwrap_or(f64::INFINITY))
+            .collect()
+    };
+    let (after_base, after_driver) = (after(0), after(2));
+    eprintln!(
+        "body chaos seed {seed:#x}, {seconds} s: kills {:?} of {VICTIMS:?}; {sent} base commands sent; \
+         {base_frames} base and {lift_frames} lift states seen, most driven {most_v:.3} m/s {most_w:.3} rad/s, \
+         {overdriven} beyond the limits, {bad_lift_goals} lift goals outside the soft limits; base travelled \
+         {:.2} m, bumps {}; wheels still after a nori-base kill (ms) {after_base:?}, stopped by the new driver after a driver kill {after_driver:?}; \
+         lift {}",
+        kills,
+        base["travelled_m"].as_f64().unwrap(),
+        base["bumps"],
+        report["lift"],
+    );
+    assert_eq!(code, Some(0), "nori up: {log}");
+    assert!(
+        kills.iter().all(|&k| k >= 1),
+        "every victim killed: {kills:?}"
+    );
+    assert!(
+        base["travelled_m"].as_f64().unwrap() > 1.0,
+        "the base was driven"
+    );
+    assert_eq!(base["bumps"], 0, "the base ran into something: {base:?}");
+    assert_eq!(overdriven, 0);
+    assert_eq!(bad_lift_goals, 0);
+    assert!(most_v > 0.15, "the operator drove the base near its limit");
+    // The driver's wheel timeout (200 ms), a wheel's stop from 3 rad/s and the feedback's
+    // period: 500 ms. A frame from before the kill does not count (the test saw them after).
+    for t in &after_base {
+        assert!(
+            *t <= 500.0,
+            "wheels still {t} ms after nori-base died: {after_base:?}"
+        );
+    }
+    // A dead driver: the restart's 500 ms, the new driver's start and the wheels' set-up, first
+    // of all (measured about 0.65 s; the field counts 0.7 s, `driver-restart-ms`), with a loaded
+    // machine's slack. Bounded by nothing but the restart: the servos have no watchdog.
+    for t in &after_driver {
+        assert!(
+            *t <= 1200.0,
+            "wheels stopped only {t} ms after the driver died: {after_driver:?}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
