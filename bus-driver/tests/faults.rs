@@ -263,7 +263,7 @@ fn a_starting_driver_stops_the_wheels_before_it_sets_up_the_arms() {
         .unwrap();
     // WRITE (3) of Torque_Enable: [FF FF id len 3 addr value ...].
     let torque = |p: &[u8], on: u8| {
-        p.len() > 6 && p[4] == 3 && p[5] == reg::TORQUE_ENABLE.addr as u8 && p[6] == on
+        p.len() > 6 && p[4] == 3 && p[5] == reg::TORQUE_ENABLE.addr && p[6] == on
     };
     let sent = rig.sent.lock().unwrap().clone();
     let wheels_off = (sent.iter())
