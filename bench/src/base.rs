@@ -121,7 +121,11 @@ fn feed(domain: &str, driving: &AtomicBool, stop: &AtomicBool, goals: &AtomicU64
     for (k, p) in scan.points.iter_mut().take(500).enumerate() {
         p.angle_rad = k as f32 * std::f32::consts::TAU / 500.0;
         let ahead = p.angle_rad.cos();
-        p.range_m = if ahead > 0.5 { (0.3 / ahead).min(3.0) } else { 3.0 };
+        p.range_m = if ahead > 0.5 {
+            (0.3 / ahead).min(3.0)
+        } else {
+            3.0
+        };
         p.quality = 40;
     }
     let mut tick = 0u64;

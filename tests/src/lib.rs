@@ -506,3 +506,83 @@ pub fn assert_left_off(servo: &serde_json::Value, what: &str) {
         "{what}: {joint} left energised"
     );
 }
+
+/// The whole robot on the simulator as a developer runs it (`nori up`: both arms, the wheels,
+/// the lift, the base and its lidar), its lift standing 5 cm up at start (homing takes two
+/// seconds, not ten).
+pub struct WholeRobot {
+    /// Scratch directory (`up.log`, the devices and `dev/sim-report.json`).
+    pub dir: PathBuf,
+    /// State-plane domain.
+    pub domain: String,
+    /// `nori up`.
+    pub up: Proc,
+    /// The robot description the simulator runs.
+    pub description: sim::RobotDescription,
+}
+
+impl WholeRobot {
+    /// Starts `nori up` and waits until the driver drives all 18 joints, each read, and the
+    /// lift is homed.
+    pub fn start(tag: &str) -> WholeRobot {
+        use telemetry::plane::{self, newest, Plane};
+        let dir = scratch(tag);
+        let domain = format!("nori_{tag}_{}", std::process::id()).replace('-', "_");
+        let robot = dir.join("robot.toml");
+        let text = sim::description::NORI_A3_TOML.replacen("start-m = 0.3", "start-m = 0.05", 1);
+        assert_ne!(text, sim::description::NORI_A3_TOML);
+        std::fs::write(&robot, &text).expect("robot.toml");
+        let description = sim::RobotDescription::parse(&text, "robot.toml").expect("description");
+        let (dev, robot) = (dir.join("dev"), robot.display().to_string());
+        let up = Proc::spawn(
+            "nori up",
+            &binary("nori"),
+            &[
+                "up",
+                "--dir",
+                &dev.display().to_string(),
+                "--domain",
+                &domain,
+                "--robot",
+                &robot,
+            ],
+            &dir.join("up.log"),
+        );
+        let node = Plane::open(&domain, "test-whole-robot").expect("the plane");
+        let states = node.subscriber(&plane::JOINT_STATE).expect("joint state");
+        let lifts = node.subscriber(&plane::LIFT_STATE).expect("lift state");
+        wait_for(Duration::from_secs(40), "18 joints driven", || {
+            newest(&states).filter(|s| {
+                s.joint_count == 18
+                    && s.flags & telemetry::frames::STATE_FLAG_SAFE_STATE == 0
+                    && s.joints().iter().all(|j| j.is_valid())
+            })
+        });
+        wait_for(Duration::from_secs(20), "the lift homed", || {
+            newest(&lifts).filter(|l| l.state == telemetry::motion::LIFT_READY)
+        });
+        WholeRobot {
+            dir,
+            domain,
+            up,
+            description,
+        }
+    }
+
+    /// The simulator's newest report (written every second).
+    pub fn report(&self) -> serde_json::Value {
+        let path = self.dir.join("dev/sim-report.json");
+        serde_json::from_str(&std::fs::read_to_string(path).expect("the report"))
+            .expect("a JSON report")
+    }
+
+    /// Stops `nori up` (Ctrl-C's SIGTERM path), asserts it exited cleanly, and removes the
+    /// scratch directory; returns the simulator's last report.
+    pub fn stop(mut self) -> serde_json::Value {
+        let (code, log) = self.up.terminate(Duration::from_secs(30));
+        assert_eq!(code, Some(0), "nori up: {log}");
+        let report = self.report();
+        let _ = std::fs::remove_dir_all(&self.dir);
+        report
+    }
+}

@@ -5,11 +5,10 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use nori_tests::{binary, scratch, wait_for, Proc};
+use nori_tests::{wait_for, WholeRobot};
 use std::time::Duration;
 use telemetry::clock::monotonic_ns;
-use telemetry::frames::STATE_FLAG_SAFE_STATE;
-use telemetry::motion::{BaseCommand, LiftCommand, LIFT_READY};
+use telemetry::motion::{BaseCommand, LiftCommand};
 use telemetry::plane::{self, newest, publish, Plane};
 use telemetry::GoalFrame;
 
@@ -52,44 +51,15 @@ fn truth(report: &serde_json::Value, d: &sim::RobotDescription, bus: &str) -> [[
 
 #[test]
 fn the_bodys_frames_place_both_arms_where_the_simulator_has_them() {
-    let dir = scratch("body");
-    let domain = format!("nori_body_{}", std::process::id());
-    let robot = dir.join("robot.toml");
-    let text = sim::description::NORI_A3_TOML.replacen("start-m = 0.3", "start-m = 0.05", 1);
-    std::fs::write(&robot, &text).unwrap();
-    let d = sim::RobotDescription::parse(&text, "robot.toml").unwrap();
-    let mut up = Proc::spawn(
-        "nori up",
-        &binary("nori"),
-        &[
-            "up",
-            "--dir",
-            dir.join("dev").to_str().unwrap(),
-            "--domain",
-            &domain,
-            "--robot",
-            robot.to_str().unwrap(),
-        ],
-        &dir.join("up.log"),
-    );
-    let node = Plane::open(&domain, "test").unwrap();
-    let states = node.subscriber(&plane::JOINT_STATE).unwrap();
+    let robot = WholeRobot::start("body");
+    let d = &robot.description;
+    let node = Plane::open(&robot.domain, "test").unwrap();
     let lifts = node.subscriber(&plane::LIFT_STATE).unwrap();
     let frames = node.subscriber(&plane::BODY_FRAMES).unwrap();
     let goals = node.publisher(&plane::GOALS).unwrap();
     let lift_commands = node.publisher(&plane::LIFT_COMMAND).unwrap();
     let base_commands = node.publisher(&plane::BASE_COMMAND).unwrap();
-    wait_for(Duration::from_secs(40), "18 joints driven", || {
-        newest(&states).filter(|s| {
-            s.joint_count == 18
-                && s.flags & STATE_FLAG_SAFE_STATE == 0
-                && s.joints().iter().all(|j| j.is_valid())
-        })
-    });
-    wait_for(Duration::from_secs(20), "the lift homed", || {
-        newest(&lifts).filter(|l| l.state == LIFT_READY)
-    });
-    // Before homing no arm is placed; now both are.
+    // Homed: both arms are placed.
     let first = wait_for(Duration::from_secs(5), "the body's frames", || {
         newest(&frames).filter(|f| f.arms[0].valid == 1 && f.arms[1].valid == 1)
     });
@@ -129,12 +99,10 @@ fn the_bodys_frames_place_both_arms_where_the_simulator_has_them() {
     });
     std::thread::sleep(Duration::from_millis(2500));
     let published = newest(&frames).unwrap();
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.join("dev/sim-report.json")).unwrap())
-            .unwrap();
+    let report = robot.report();
     assert!(published.theta_rad > 0.5, "the base turned: {published:?}");
     for (k, bus) in ["left_arm", "right_arm"].iter().enumerate() {
-        let [shoulder, tool] = truth(&report, &d, bus);
+        let [shoulder, tool] = truth(&report, d, bus);
         let arm = published.arms[k];
         assert_eq!(arm.valid, 1, "{bus}");
         let off = |a: [f32; 3], b: [f64; 3]| {
@@ -158,7 +126,6 @@ fn the_bodys_frames_place_both_arms_where_the_simulator_has_them() {
     // The bent elbow is in the frames: the left tool is not where the right one's mirror is.
     let (l, r) = (published.arms[0].tool, published.arms[1].tool);
     assert!((l[2] - r[2]).abs() > 0.1, "left {l:?} right {r:?}");
-    let (code, log) = up.terminate(Duration::from_secs(20));
-    assert_eq!(code, Some(0), "{log}");
-    let _ = std::fs::remove_dir_all(&dir);
+    drop((lifts, frames, goals, lift_commands, base_commands, node));
+    robot.stop();
 }

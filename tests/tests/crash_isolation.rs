@@ -645,7 +645,6 @@ fn wild_body(domain: String, seed: u64, stop: Arc<AtomicBool>) -> std::thread::J
 /// twice in 40 s, and a dead driver left the wheels turning for up to 2.2 s.)
 #[test]
 fn a_seeded_body_chaos_run_keeps_the_base_and_the_lift_safe() {
-    use telemetry::motion::LIFT_READY;
     let _turn = serial();
     let seed = std::env::var("NORI_CHAOS_SEED")
         .ok()
@@ -655,35 +654,12 @@ fn a_seeded_body_chaos_run_keeps_the_base_and_the_lift_safe() {
         .ok()
         .and_then(|s| s.parse().ok())
         .unwrap_or(60.0);
-    let dir = scratch("body-chaos");
-    let domain = format!("nori_body_chaos_{}", std::process::id());
-    let robot = dir.join("robot.toml");
-    let text = sim::description::NORI_A3_TOML.replacen("start-m = 0.3", "start-m = 0.05", 1);
-    std::fs::write(&robot, text).unwrap();
-    let mut up = nori_tests::Proc::spawn(
-        "nori up",
-        &nori_tests::binary("nori"),
-        &[
-            "up",
-            "--dir",
-            dir.join("dev").to_str().unwrap(),
-            "--domain",
-            &domain,
-            "--robot",
-            robot.to_str().unwrap(),
-        ],
-        &dir.join("up.log"),
-    );
+    let robot = nori_tests::WholeRobot::start("body-chaos");
+    let domain = robot.domain.clone();
     let node = Plane::open(&domain, "test").unwrap();
     let states = node.subscriber(&plane::JOINT_STATE).unwrap();
     let bases = node.subscriber(&plane::BASE_STATE).unwrap();
     let lifts = node.subscriber(&plane::LIFT_STATE).unwrap();
-    wait_for(Duration::from_secs(40), "18 joints driven", || {
-        newest(&states).filter(|s| s.joint_count == 18 && s.flags & STATE_FLAG_SAFE_STATE == 0)
-    });
-    wait_for(Duration::from_secs(20), "the lift homed", || {
-        newest(&lifts).filter(|l| l.state == LIFT_READY)
-    });
     let stop = Arc::new(AtomicBool::new(false));
     let operator = wild_body(domain.clone(), seed ^ 1, stop.clone());
     const VICTIMS: [&str; 4] = ["nori-base", "nori-lift", "bus-driver", "supervisor"];
@@ -749,10 +725,7 @@ fn a_seeded_body_chaos_run_keeps_the_base_and_the_lift_safe() {
     stop.store(true, Ordering::Relaxed);
     let sent = operator.join().unwrap();
     drop((states, bases, lifts, node));
-    let (code, log) = up.terminate(Duration::from_secs(30));
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.join("dev/sim-report.json")).unwrap())
-            .unwrap();
+    let report = robot.stop();
     let base = report["buses"]
         .as_array()
         .unwrap()
@@ -781,7 +754,6 @@ fn a_seeded_body_chaos_run_keeps_the_base_and_the_lift_safe() {
         base["bumps"],
         report["lift"],
     );
-    assert_eq!(code, Some(0), "nori up: {log}");
     assert!(
         kills.iter().all(|&k| k >= 1),
         "every victim killed: {kills:?}"
@@ -811,5 +783,4 @@ fn a_seeded_body_chaos_run_keeps_the_base_and_the_lift_safe() {
             "wheels stopped only {t} ms after the driver died: {after_driver:?}"
         );
     }
-    let _ = std::fs::remove_dir_all(&dir);
 }

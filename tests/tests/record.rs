@@ -676,44 +676,10 @@ fn cameras_are_recorded_as_video_frame_for_frame_and_a_dead_camera_is_held_and_m
 /// motion is in them; the odometry follows the base; LeRobot's layout checks out.
 #[test]
 fn the_whole_body_is_recorded_nineteen_wide_with_the_lift_rising_and_the_base_driving() {
-    use telemetry::motion::{BaseCommand, LiftCommand, LIFT_READY};
+    use telemetry::motion::{BaseCommand, LiftCommand};
     let _turn = serial();
-    let dir = nori_tests::scratch("record-body");
-    let domain = format!("nori_record_body_{}", std::process::id());
-    // The lift standing 5 cm up at start: homing takes two seconds, not ten.
-    let robot = dir.join("robot.toml");
-    let text = sim::description::NORI_A3_TOML.replacen("start-m = 0.3", "start-m = 0.05", 1);
-    assert_ne!(text, sim::description::NORI_A3_TOML);
-    std::fs::write(&robot, text).unwrap();
-    let mut up = Proc::spawn(
-        "nori up",
-        &binary("nori"),
-        &[
-            "up",
-            "--dir",
-            dir.join("dev").to_str().unwrap(),
-            "--domain",
-            &domain,
-            "--robot",
-            robot.to_str().unwrap(),
-        ],
-        &dir.join("up.log"),
-    );
-    let node = Plane::open(&domain, "test").unwrap();
-    let lifts = node.subscriber(&plane::LIFT_STATE).unwrap();
-    let states = node.subscriber(&plane::JOINT_STATE).unwrap();
-    wait_for(Duration::from_secs(40), "18 joints driven", || {
-        newest(&states).filter(|s| {
-            s.joint_count == 18
-                && s.flags & STATE_FLAG_SAFE_STATE == 0
-                && s.joints().iter().all(|j| j.is_valid())
-        })
-    });
-    let homed = wait_for(Duration::from_secs(20), "the lift homed", || {
-        newest(&lifts).filter(|l| l.state == LIFT_READY)
-    });
-    assert!(homed.height_m.abs() < 0.01, "{homed:?}");
-
+    let robot = nori_tests::WholeRobot::start("record-body");
+    let domain = robot.domain.clone();
     // The operator: the lift to 20 cm, the base backing away from the table and turning left
     // (a 0.5 m radius, clear of everything in the room), until told to stop.
     let stop = Arc::new(AtomicBool::new(false));
@@ -746,7 +712,7 @@ fn the_whole_body_is_recorded_nineteen_wide_with_the_lift_rising_and_the_base_dr
             }
         })
     };
-    let dataset = dir.join("dataset");
+    let dataset = robot.dir.join("dataset");
     let out = Command::new(binary("nori"))
         .args(record_args(
             &domain,
@@ -757,10 +723,9 @@ fn the_whole_body_is_recorded_nineteen_wide_with_the_lift_rising_and_the_base_dr
         .unwrap();
     stop.store(true, Ordering::Relaxed);
     operator.join().unwrap();
-    let (_, log) = up.terminate(Duration::from_secs(20));
     assert!(
         out.status.success(),
-        "nori record: {}\n{log}",
+        "nori record: {}",
         String::from_utf8_lossy(&out.stderr)
     );
 
@@ -824,5 +789,5 @@ fn the_whole_body_is_recorded_nineteen_wide_with_the_lift_rising_and_the_base_dr
         .filter(|v| **v < 0.5)
         .count();
     assert!(held < rows.len() / 20, "{held} body samples held");
-    let _ = std::fs::remove_dir_all(&dir);
+    robot.stop();
 }
