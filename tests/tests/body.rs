@@ -5,10 +5,11 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use nori_tests::{wait_for, WholeRobot};
+use nori_tests::{binary, wait_for, WholeRobot};
+use std::process::Command;
 use std::time::Duration;
 use telemetry::clock::monotonic_ns;
-use telemetry::motion::{BaseCommand, LiftCommand};
+use telemetry::motion::BaseCommand;
 use telemetry::plane::{self, newest, publish, Plane};
 use telemetry::GoalFrame;
 
@@ -57,7 +58,6 @@ fn the_bodys_frames_place_both_arms_where_the_simulator_has_them() {
     let lifts = node.subscriber(&plane::LIFT_STATE).unwrap();
     let frames = node.subscriber(&plane::BODY_FRAMES).unwrap();
     let goals = node.publisher(&plane::GOALS).unwrap();
-    let lift_commands = node.publisher(&plane::LIFT_COMMAND).unwrap();
     let base_commands = node.publisher(&plane::BASE_COMMAND).unwrap();
     // Homed: both arms are placed.
     let first = wait_for(Duration::from_secs(5), "the body's frames", || {
@@ -65,15 +65,16 @@ fn the_bodys_frames_place_both_arms_where_the_simulator_has_them() {
     });
     assert_eq!(first.arm_count, 2);
 
-    // The lift to 0.12 m, the left elbow bent, the base forward and turning for 2 s.
+    // The lift to 0.12 m (as an operator does: `nori goal lift=0.12`, which reports what the
+    // lift made of it), the left elbow bent, the base backing and turning for 2 s.
+    let out = Command::new(binary("nori"))
+        .args(["goal", "--domain", &robot.domain, "lift=0.12"])
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "nori goal: {said}");
+    assert!(said.contains("goal 0.120 m"), "nori goal: {said}");
     let now = monotonic_ns();
-    let lift = LiftCommand {
-        seq: 1,
-        timestamp_ns: now,
-        height_m: 0.12,
-        reserved: 0,
-    };
-    publish(&lift_commands, &lift).unwrap();
     let mut goal = GoalFrame {
         seq: 1,
         timestamp_ns: now,
@@ -126,6 +127,21 @@ fn the_bodys_frames_place_both_arms_where_the_simulator_has_them() {
     // The bent elbow is in the frames: the left tool is not where the right one's mirror is.
     let (l, r) = (published.arms[0].tool, published.arms[1].tool);
     assert!((l[2] - r[2]).abs() > 0.1, "left {l:?} right {r:?}");
-    drop((lifts, frames, goals, lift_commands, base_commands, node));
+    // `nori state` shows the lift and the base as their controllers publish them.
+    let out = Command::new(binary("nori"))
+        .args(["state", "--json", "--domain", &robot.domain])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let state: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(state["lift"]["state"], "ready", "{state}");
+    assert!((state["lift"]["height_m"].as_f64().unwrap() - 0.12).abs() < 0.002);
+    let x = state["base"]["x_m"].as_f64().unwrap();
+    assert!((x - published.x_m).abs() < 0.01, "{state}");
+    drop((lifts, frames, goals, base_commands, node));
     robot.stop();
 }
