@@ -1,6 +1,7 @@
 //! The fleet agent: the robot's only door to the outside, over zenoh. It forwards telemetry,
 //! events and observations from the state plane, and lets policy actions in only through the
-//! gate ([`gate`]) and the scheduler ([`schedule`]). Everything but [`net`] is pure.
+//! gate ([`gate`]) and the scheduler ([`schedule`]). Everything but [`net`] and the event
+//! journal's files ([`journal`]) is pure.
 //!
 //! Only what runs on the robot is here; the fleet's side (collector, dashboard, reference
 //! policies, router) is the `fleet` crate. The two are the only crates that use zenoh, through
@@ -9,6 +10,7 @@
 pub mod agent;
 pub mod config;
 pub mod gate;
+pub mod journal;
 pub mod keys;
 pub mod net;
 pub mod outbound;
