@@ -8,7 +8,7 @@
 //! plan with it, the driver stops getting goals and holds, and a restarted agent starts with
 //! none.
 
-use crate::gate::{within, ActionGate, BodyLimits, Range, REASONS};
+use crate::gate::{within, ActionGate, Range, REASONS};
 use crate::outbound::{self, Every};
 use crate::preview::{preview_msg, scan_msg, Thumbnailer};
 use crate::schedule::Scheduler;
@@ -115,7 +115,6 @@ pub struct Agent {
     scheduler: Scheduler,
     layout: JointLayout,
     ranges: Vec<Range>,
-    body_limits: BodyLimits,
     state_every: Every,
     observation_every: Every,
     layout_every: Every,
@@ -168,7 +167,6 @@ impl Agent {
             ),
             layout: JointLayout::default(),
             ranges: Vec::new(),
-            body_limits: config.gate().body,
             state_every: Every::hz(config.telemetry.state_hz),
             observation_every: Every::hz(config.telemetry.observation_hz),
             layout_every: Every::hz(1.0 / config.telemetry.layout_every_s),
@@ -414,7 +412,7 @@ impl Agent {
             // limits) never leaves the agent, whatever the scheduler made of the chunks.
             Some(target)
                 if !within(&self.ranges, &target.position, target.mask)
-                    || !self.body_limits.within(target.lift_m, target.base_twist) =>
+                    || !(self.gate.body_limits()).within(target.lift_m, target.base_twist) =>
             {
                 self.counters.goals_withheld += 1;
                 self.scheduler.clear();

@@ -249,6 +249,11 @@ impl ActionGate {
         }
     }
 
+    /// What a policy may ask of the lift and the base.
+    pub fn body_limits(&self) -> &BodyLimits {
+        &self.config.body
+    }
+
     /// Chunks accepted so far.
     pub fn accepted(&self) -> u64 {
         self.accepted

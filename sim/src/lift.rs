@@ -230,6 +230,13 @@ mod tests {
         out
     }
 
+    /// The device's CRC, written apart from the host's (`lift::board`), pinned to the
+    /// published check value of CRC-16/CCITT-FALSE as the host's is.
+    #[test]
+    fn the_boards_crc_is_ccitt_false() {
+        assert_eq!(crc16(b"123456789"), 0x29B1);
+    }
+
     #[test]
     fn it_moves_at_the_commanded_speed_reports_every_10_ms_and_stops_without_commands() {
         let mut b = board();

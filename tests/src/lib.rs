@@ -586,3 +586,24 @@ impl WholeRobot {
         report
     }
 }
+
+/// The running processes whose arguments (the program first) `matching` accepts: pid and
+/// arguments.
+pub fn processes(matching: impl Fn(&[String]) -> bool) -> Vec<(u32, Vec<String>)> {
+    let Ok(entries) = std::fs::read_dir("/proc") else {
+        return Vec::new();
+    };
+    entries
+        .flatten()
+        .filter_map(|entry| {
+            let pid = entry.file_name().to_str()?.parse().ok()?;
+            let cmdline = std::fs::read(entry.path().join("cmdline")).ok()?;
+            let args: Vec<String> = cmdline
+                .split(|&b| b == 0)
+                .filter(|a| !a.is_empty())
+                .map(|a| String::from_utf8_lossy(a).into_owned())
+                .collect();
+            matching(&args).then_some((pid, args))
+        })
+        .collect()
+}

@@ -555,20 +555,13 @@ fn a_seeded_chaos_run_keeps_every_invariant() {
 
 /// The pid of `nori up`'s child `binary` on `domain` (its command line names both).
 fn child_pid(binary: &str, domain: &str) -> Option<i32> {
-    std::fs::read_dir("/proc")
-        .ok()?
-        .flatten()
-        .find_map(|entry| {
-            let cmdline = std::fs::read(entry.path().join("cmdline")).ok()?;
-            let args: Vec<String> = cmdline
-                .split(|&b| b == 0)
-                .map(|a| String::from_utf8_lossy(a).into_owned())
-                .collect();
-            let ours =
-                args.first()?.ends_with(&format!("/{binary}")) && args.iter().any(|a| a == domain);
-            ours.then(|| entry.file_name().to_str()?.parse().ok())
-                .flatten()
-        })
+    let program = format!("/{binary}");
+    let ours = |args: &[String]| {
+        args.first().is_some_and(|a| a.ends_with(&program)) && args.iter().any(|a| a == domain)
+    };
+    nori_tests::processes(ours)
+        .first()
+        .map(|(pid, _)| *pid as i32)
 }
 
 /// A wild operator of the body until `stop`: twists renewed every 50 ms for a while, within

@@ -12,20 +12,10 @@ use telemetry::plane::{self, newest, Plane};
 
 /// Processes whose command line mentions `needle`.
 fn processes_with(needle: &str) -> Vec<String> {
-    let mut found = Vec::new();
-    for entry in std::fs::read_dir("/proc").unwrap().flatten() {
-        let Ok(cmdline) = std::fs::read(entry.path().join("cmdline")) else {
-            continue;
-        };
-        let cmdline = String::from_utf8_lossy(&cmdline).replace('\0', " ");
-        if cmdline.contains(needle) {
-            found.push(format!(
-                "{}: {cmdline}",
-                entry.file_name().to_string_lossy()
-            ));
-        }
-    }
-    found
+    nori_tests::processes(|args| args.iter().any(|a| a.contains(needle)))
+        .into_iter()
+        .map(|(pid, args)| format!("{pid}: {}", args.join(" ")))
+        .collect()
 }
 
 #[test]

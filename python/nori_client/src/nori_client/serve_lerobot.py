@@ -66,16 +66,16 @@ class Plan:
     state_index: list[int]
     #: For each name of the dataset's `action`, its index in the robot's layout.
     action_index: list[int]
+    #: Policy image key -> (camera name, (height, width)).
+    cameras: dict[str, tuple[str, tuple[int, int]]]
+    #: The dataset's frame rate: the chunk's step spacing.
+    fps: float
+    #: Other input features filled from the observation (velocity, validity masks).
+    extras: list[str]
     #: The body's dimensions after the joints of `observation.state` (indices into BODY).
     state_body: list[int] = field(default_factory=list)
     #: The body's dimensions after the joints of `action` (indices into BODY).
     action_body: list[int] = field(default_factory=list)
-    #: Policy image key -> (camera name, (height, width)).
-    cameras: dict[str, tuple[str, tuple[int, int]]] = field(default_factory=dict)
-    #: The dataset's frame rate: the chunk's step spacing.
-    fps: float = 30.0
-    #: Other input features filled from the observation (velocity, validity masks).
-    extras: list[str] = field(default_factory=list)
     #: Input features the robot's observations cannot fill (ACT and Diffusion read only the
     #: state and the images; a policy that reads one of these fails its first inference).
     unserved: list[str] = field(default_factory=list)
@@ -137,7 +137,7 @@ def plan(config: dict[str, Any], info: dict[str, Any], layout: list[str]) -> Pla
         problems.append(f"the dataset's fps {fps!r} is not a frame rate")
     if problems:
         raise MismatchError("; ".join(problems))
-    return Plan(state_index, action_index, state_body, action_body, cameras, float(fps), extras, unserved)
+    return Plan(state_index, action_index, cameras, float(fps), extras, state_body, action_body, unserved)
 
 
 def check_cameras(plan: Plan, obs: Observation) -> None:
