@@ -4,24 +4,30 @@
 //! passed in. The binary wires iceoryx2 and zenoh into an `AgentIo` and calls [`run`]; the
 //! tests wire queues and call `poll` with the clock they choose.
 //!
-//! The agent's state is its plan of accepted actions and nothing else: killed, it takes the
-//! plan with it, the driver stops getting goals and holds, and a restarted agent starts with
-//! none.
+//! The agent's state is its plan of accepted actions and the events it holds for the fleet.
+//! Killed, it takes the plan with it, the driver stops getting goals and holds, and a restarted
+//! agent starts with none; the events are in the robot's journal ([`crate::journal`], through
+//! [`AgentIo::journal`]) before they are sent, and a restarted agent sends again what the fleet
+//! has not acknowledged ([`crate::delivery`]).
 
+use crate::delivery::{
+    Delivery, ACTIONS_REFUSED, AGENT_STARTED, DRIVER_STARTED, SUPERVISOR_STARTED,
+};
 use crate::gate::{within, ActionGate, Range, REASONS};
+use crate::journal::{JournalError, Record, Recovery};
 use crate::outbound::{self, Every};
 use crate::preview::{preview_msg, scan_msg, Thumbnailer};
 use crate::schedule::Scheduler;
 use crate::schema::{
-    encode, AgentCounters, BusStatus, CameraStatus, ImageMsg, LidarStatus, StatusConfig,
-    StatusHealth, StatusMsg, SCHEMA_VERSION,
+    decode, encode, AckMsg, AgentCounters, BusStatus, CameraStatus, EventRecord, ImageMsg,
+    LidarStatus, StatusConfig, StatusHealth, StatusMsg, SCHEMA_VERSION,
 };
 use crate::AgentConfig;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 use telemetry::frames::{
-    BusHealth, GoalFrame, JointLayout, JointState, SupervisorEvent, BUS_HEALTH_CONNECTED,
-    BUS_HEALTH_ENABLED, STATE_FLAG_SAFE_STATE,
+    BusHealth, GoalFrame, Heartbeat, JointLayout, JointState, Peer, SupervisorEvent,
+    BUS_HEALTH_CONNECTED, BUS_HEALTH_ENABLED, STATE_FLAG_SAFE_STATE,
 };
 use telemetry::motion::{BaseCommand, BaseState, LiftCommand, LiftState};
 use telemetry::sensors::{CameraFrameHeader, LidarScan};
@@ -45,6 +51,21 @@ pub enum Outbound {
     Scan,
     /// `nori/<robot>/events` (blocks on congestion: events are rare and matter).
     Event,
+}
+
+/// Action refusals are journaled as one event per reason at most this often (a policy sending
+/// bad chunks at 30 Hz must not fill the journal), ns.
+const REFUSALS_EVERY_NS: u64 = 10_000_000_000;
+
+/// What the journal held when the agent started: the delivery picks up from it.
+#[derive(Debug, Clone, Default)]
+pub struct JournalStart {
+    /// The journal's identity.
+    pub id: u64,
+    /// Every record it keeps, oldest first.
+    pub kept: Vec<Record>,
+    /// What opening it found (a torn tail cut, how far the fleet had acknowledged).
+    pub recovery: Recovery,
 }
 
 /// The agent's two planes, as its loop uses them. Every call returns at once.
@@ -71,6 +92,14 @@ pub trait AgentIo {
     fn lidar(&mut self) -> Option<LidarScan>;
     /// The next supervisor event not yet taken.
     fn next_event(&mut self) -> Option<SupervisorEvent>;
+    /// The newest heartbeat of the driver or the supervisor.
+    fn heartbeat(&mut self, peer: Peer) -> Option<Heartbeat>;
+    /// Appends an event's record to the robot's journal; its number, once on the storage.
+    fn journal(&mut self, record: &[u8]) -> Result<u64, JournalError>;
+    /// Keeps (across restarts) that the fleet has stored the journal's events through `seq`.
+    fn acknowledged(&mut self, seq: u64);
+    /// The next acknowledgement of the fleet's store (its bytes, undecoded).
+    fn next_ack(&mut self) -> Option<Vec<u8>>;
     /// Publishes a goal frame to the driver; whether it went out.
     fn send_goal(&mut self, goal: &GoalFrame) -> bool;
     /// The lift controller's newest state, if one was published since the last call.
@@ -94,7 +123,7 @@ pub trait AgentIo {
 struct Counters {
     state_sent: u64,
     observations_sent: u64,
-    events_sent: u64,
+    events_unjournaled: u64,
     goals_forwarded: u64,
     lift_commands_forwarded: u64,
     base_commands_forwarded: u64,
@@ -138,6 +167,14 @@ pub struct Agent {
     /// When the next lidar revolution is due for the fleet, and whether it is owed.
     scan_every: Every,
     scan_pending: bool,
+    /// The journal's events on their way to the fleet.
+    delivery: Delivery,
+    /// Bytes of a torn tail cut when the journal opened (journaled with the agent's start),
+    /// `None` once the start is journaled.
+    starting: Option<u64>,
+    /// Refusals per reason since they were last journaled.
+    refusals: Vec<u64>,
+    refusals_every: Every,
 }
 
 /// A rate from a period in seconds, 0 meaning never.
@@ -157,9 +194,28 @@ struct LidarStatusOf {
 }
 
 impl Agent {
-    /// An agent with `config`, no layout and no plan yet.
+    /// An agent with `config`, no layout and no plan yet, on a journal that was empty.
     pub fn new(config: &AgentConfig) -> Agent {
+        Agent::resuming(config, JournalStart::default())
+    }
+
+    /// An agent with `config` on the journal `journal` found at its start: what the fleet has
+    /// not acknowledged is sent again.
+    pub fn resuming(config: &AgentConfig, journal: JournalStart) -> Agent {
+        let (delivery, unreadable) = Delivery::new(
+            journal.id,
+            &journal.kept,
+            journal.recovery.acked_through,
+            config.delivery(),
+        );
+        if unreadable > 0 {
+            tracing::warn!("{unreadable} journal records of another format could not be read");
+        }
         Agent {
+            delivery,
+            starting: Some(journal.recovery.cut_bytes),
+            refusals: vec![0; REASONS.len()],
+            refusals_every: Every::hz(1e9 / REFUSALS_EVERY_NS as f64),
             gate: ActionGate::new(config.gate()),
             scheduler: Scheduler::new(
                 config.actions.blend_new,
@@ -194,6 +250,12 @@ impl Agent {
     /// One turn of the loop at robot time `now` (CLOCK_MONOTONIC ns) and wall time `wall_ms`
     /// (for the fleet's plots only).
     pub fn poll(&mut self, io: &mut impl AgentIo, now: u64, wall_ms: u64) {
+        if let Some(cut_bytes) = self.starting.take() {
+            self.journal(
+                io,
+                agent_record(now, wall_ms, AGENT_STARTED, "", cut_bytes as f32),
+            );
+        }
         self.take_layout(io, now);
         self.forward_telemetry(io, now, wall_ms);
         let new_plan = self.take_actions(io, now);
@@ -202,7 +264,75 @@ impl Agent {
         if new_plan || due {
             self.forward_goal(io, now);
         }
+        self.journal_refusals(io, now, wall_ms);
+        self.deliver(io, now);
         io.answer_status(&mut || encode(&self.status(now)));
+    }
+
+    /// Keeps `record` in the journal and holds it for the fleet; if the journal cannot keep it,
+    /// it goes out once, live and unnumbered, and is counted.
+    fn journal(&mut self, io: &mut impl AgentIo, record: EventRecord) {
+        let bytes = Delivery::journal_bytes(&record);
+        match io.journal(&bytes) {
+            Ok(seq) => self.delivery.journaled(seq, record, bytes.len()),
+            Err(e) => {
+                self.counters.events_unjournaled += 1;
+                tracing::error!("event {} not journaled: {e}", record.kind);
+                io.publish(Outbound::Event, encode(&self.delivery.unnumbered(record)));
+            }
+        }
+    }
+
+    /// Sends what is due of the journal and takes the fleet's acknowledgements.
+    fn deliver(&mut self, io: &mut impl AgentIo, now: u64) {
+        while let Some(bytes) = io.next_ack() {
+            let through = decode::<AckMsg>(&bytes)
+                .map_err(|e| e.to_string())
+                .and_then(|a| self.delivery.acknowledged(&a).map_err(|e| e.to_string()));
+            match through {
+                Ok(Some(seq)) => io.acknowledged(seq),
+                Ok(None) => {}
+                Err(e) => {
+                    if self.warn_every.due(now) {
+                        tracing::warn!("acknowledgement refused: {e}");
+                    }
+                }
+            }
+        }
+        while let Some(msg) = self.delivery.next_to_send(now) {
+            io.publish(Outbound::Event, encode(&msg));
+        }
+    }
+
+    /// Journals the supervisor's and the driver's starts: a heartbeat from a process id the
+    /// journal does not know yet.
+    fn watch_starts(&mut self, io: &mut impl AgentIo, now: u64, wall_ms: u64) {
+        for (peer, kind) in [
+            (Peer::Supervisor, SUPERVISOR_STARTED),
+            (Peer::Driver, DRIVER_STARTED),
+        ] {
+            if let Some(h) = io.heartbeat(peer) {
+                if self.delivery.started_pid(kind) != Some(h.pid) {
+                    self.journal(io, agent_record(now, wall_ms, kind, "", h.pid as f32));
+                }
+            }
+        }
+    }
+
+    /// Journals the refusals counted since the last time, one event per reason, when due.
+    fn journal_refusals(&mut self, io: &mut impl AgentIo, now: u64, wall_ms: u64) {
+        if self.refusals.iter().all(|&n| n == 0) || !self.refusals_every.due(now) {
+            return;
+        }
+        for (i, reason) in REASONS.iter().enumerate() {
+            let n = std::mem::take(&mut self.refusals[i]);
+            if n > 0 {
+                self.journal(
+                    io,
+                    agent_record(now, wall_ms, ACTIONS_REFUSED, reason, n as f32),
+                );
+            }
+        }
     }
 
     fn take_layout(&mut self, io: &mut impl AgentIo, now: u64) {
@@ -272,10 +402,11 @@ impl Agent {
             self.last_health = Some(h);
         }
         self.watch_sensors(io, now, wall_ms);
+        self.watch_starts(io, now, wall_ms);
         while let Some(e) = io.next_event() {
-            let msg = outbound::event_msg(&e, &self.layout, wall_ms);
-            if io.publish(Outbound::Event, encode(&msg)) {
-                self.counters.events_sent += 1;
+            // The state plane replays its recent events to a restarted agent: journaled once.
+            if !self.delivery.seen(e.seq, e.timestamp_ns) {
+                self.journal(io, outbound::event_record(&e, &self.layout, wall_ms));
             }
         }
     }
@@ -396,6 +527,7 @@ impl Agent {
                     new_plan = true;
                 }
                 Err(r) => {
+                    self.refusals[r.reason_index()] += 1;
                     self.counters.last_rejection = r.to_string();
                     if self.warn_every.due(now) {
                         tracing::warn!(reason = r.reason(), "action refused: {r}");
@@ -466,7 +598,13 @@ impl Agent {
             counters: AgentCounters {
                 state_sent: c.state_sent,
                 observations_sent: c.observations_sent,
-                events_sent: c.events_sent,
+                events_sent: self.delivery.sent(),
+                events_resent: self.delivery.resent(),
+                events_unacknowledged: self.delivery.held() as u64,
+                events_stored_through: self.delivery.stored_through(),
+                events_lost: self.delivery.lost(),
+                events_unjournaled: c.events_unjournaled,
+                acks_refused: self.delivery.acks_refused(),
                 actions_accepted: self.gate.accepted(),
                 actions_rejected: REASONS
                     .iter()
@@ -571,4 +709,19 @@ pub fn wall_ms() -> u64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(0, |d| d.as_millis() as u64)
+}
+
+/// One of the agent's own events.
+fn agent_record(now: u64, wall_ms: u64, kind: &str, detail: &str, value: f32) -> EventRecord {
+    EventRecord {
+        timestamp_ns: now,
+        wall_ms,
+        origin_seq: 0,
+        kind: kind.into(),
+        joint: String::new(),
+        detail: detail.into(),
+        bus: u8::MAX,
+        level: 0,
+        value,
+    }
 }

@@ -98,6 +98,18 @@ pub struct PreviewConfig {
     pub scan_every_s: f64,
 }
 
+/// The event journal and its delivery to the fleet.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct JournalConfig {
+    /// The journal's files at most, bytes (also the events held for the fleet at most).
+    pub bound_bytes: u64,
+    /// The first wait for the fleet's acknowledgement before events are sent again, ms.
+    pub resend_after_ms: u64,
+    /// Events sent and not yet acknowledged, at most.
+    pub window: usize,
+}
+
 impl ZenohConfig {
     fn check(&self, origin: &str) -> Result<(), ConfigError> {
         if !matches!(self.mode.as_str(), "peer" | "client") {
@@ -236,6 +248,8 @@ pub struct AgentConfig {
     pub observation: ObservationConfig,
     /// What the fleet's dashboard sees.
     pub preview: PreviewConfig,
+    /// The event journal.
+    pub journal: JournalConfig,
 }
 
 impl ProcessConfig for AgentConfig {
@@ -259,6 +273,7 @@ impl AgentConfig {
         c.actions.check(origin)?;
         c.check_cameras(origin)?;
         c.preview.check(origin)?;
+        c.check_journal(origin)?;
         Ok(c)
     }
 
@@ -321,6 +336,34 @@ impl AgentConfig {
             1..=5000,
             " ms",
         )
+    }
+
+    fn check_journal(&self, origin: &str) -> Result<(), ConfigError> {
+        let j = &self.journal;
+        within(
+            origin,
+            "journal.bound-bytes",
+            j.bound_bytes,
+            crate::journal::MIN_BOUND..=1 << 30,
+            " bytes",
+        )?;
+        within(
+            origin,
+            "journal.resend-after-ms",
+            j.resend_after_ms,
+            100..=crate::delivery::MAX_RESEND_AFTER_NS / 1_000_000,
+            " ms",
+        )?;
+        within(origin, "journal.window", j.window, 1..=65_536, "")
+    }
+
+    /// How the journal's events are delivered.
+    pub fn delivery(&self) -> crate::delivery::DeliveryConfig {
+        crate::delivery::DeliveryConfig {
+            bound_bytes: usize::try_from(self.journal.bound_bytes).unwrap_or(usize::MAX),
+            resend_after_ns: self.journal.resend_after_ms * 1_000_000,
+            window: self.journal.window,
+        }
     }
 
     /// The gate's limits.

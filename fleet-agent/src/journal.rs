@@ -1,8 +1,7 @@
 //! The robot's event journal: an append-only, bounded, crash-safe file of the events the agent
 //! sends to the fleet, each under a sequence number that rises across restarts, so that what an
 //! outage or a crash of the agent kept from the fleet can be sent again and de-duplicated there.
-//! (This is the journal itself; its delivery with acknowledgements is the next part of the
-//! fleet-at-scale work.)
+//! Its delivery, with the fleet's acknowledgements, is [`crate::delivery`].
 //!
 //! Format: records back to back, each `"NJ"`, the payload's length (u16 LE), a CRC-32 (u32 LE)
 //! over the sequence number and the payload, the sequence number (u64 LE), the payload. A record
@@ -14,6 +13,11 @@
 //! Bounded: records go into segment files of at most half the bound each, at most two of them;
 //! when the newer one is full, the older is deleted. When full, the oldest events are dropped
 //! first, and counted ([`Journal::dropped`]).
+//!
+//! Beside the segments, two small files: `journal-id`, the journal's identity (random, made
+//! when the journal starts empty, so a wiped journal never reuses the numbers of the old one
+//! under its name), and `acked`, how far the fleet has acknowledged it (written by rename;
+//! lost, the agent only sends again what the fleet will de-duplicate).
 //!
 //! [`encode`] and [`scan`] are the format, sans-IO; [`Journal`] puts it in files.
 
@@ -47,6 +51,13 @@ pub enum JournalError {
     TooLarge {
         /// Its length.
         len: usize,
+    },
+    /// The journal has records but its identity file is missing or unreadable: its events
+    /// cannot be named to the fleet.
+    #[error("event journal {path}: no readable identity beside its records (restore it, or move the journal aside to start a new one)")]
+    Identity {
+        /// The identity file.
+        path: String,
     },
     /// A bound under [`MIN_BOUND`].
     #[error("a journal bound of {bytes} bytes is under {MIN_BOUND}")]
@@ -121,12 +132,15 @@ pub struct Recovery {
     pub records: usize,
     /// Bytes of a torn or damaged tail cut off.
     pub cut_bytes: u64,
+    /// The fleet had acknowledged the records through this number (0: none).
+    pub acked_through: u64,
 }
 
 /// The journal in a directory of its own.
 #[derive(Debug)]
 pub struct Journal {
     dir: PathBuf,
+    id: u64,
     segment_bound: u64,
     /// Segment files, oldest first (at most two), and the newest's length.
     segments: Vec<PathBuf>,
@@ -141,6 +155,58 @@ fn io(path: &Path) -> impl FnOnce(std::io::Error) -> JournalError + '_ {
     move |source| JournalError::Io {
         path: path.display().to_string(),
         source,
+    }
+}
+
+const IDENTITY: &str = "journal-id";
+const ACKED: &str = "acked";
+
+/// A new identity for a journal that starts empty, on the storage before any record.
+fn new_identity(dir: &Path) -> Result<u64, JournalError> {
+    let mut bytes = [0u8; 8];
+    let random = File::open("/dev/urandom").and_then(|mut f| {
+        use std::io::Read;
+        f.read_exact(&mut bytes)
+    });
+    let id = match random {
+        Ok(()) => u64::from_le_bytes(bytes),
+        // No /dev/urandom: the wall clock's nanoseconds and the process id are unique enough.
+        Err(_) => {
+            let t = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_nanos() as u64);
+            t ^ u64::from(std::process::id()).rotate_left(48)
+        }
+    }
+    .max(1);
+    let path = dir.join(IDENTITY);
+    let mut f = File::create(&path).map_err(io(&path))?;
+    f.write_all(format!("{id:016x}\n").as_bytes())
+        .and_then(|()| f.sync_all())
+        .map_err(io(&path))?;
+    File::open(dir)
+        .and_then(|d| d.sync_all())
+        .map_err(io(dir))?;
+    Ok(id)
+}
+
+fn read_identity(dir: &Path) -> Result<u64, JournalError> {
+    let path = dir.join(IDENTITY);
+    std::fs::read_to_string(&path)
+        .ok()
+        .and_then(|t| u64::from_str_radix(t.trim(), 16).ok())
+        .ok_or_else(|| JournalError::Identity {
+            path: path.display().to_string(),
+        })
+}
+
+/// How far the fleet acknowledged journal `id` (0 when unknown, or for another journal).
+fn read_acked(dir: &Path, id: u64) -> u64 {
+    let text = std::fs::read_to_string(dir.join(ACKED)).unwrap_or_default();
+    let mut parts = text.split_whitespace();
+    match (parts.next(), parts.next().and_then(|s| s.parse().ok())) {
+        (Some(of), Some(seq)) if u64::from_str_radix(of, 16).ok() == Some(id) => seq,
+        _ => 0,
     }
 }
 
@@ -192,13 +258,22 @@ impl Journal {
             }
             len = valid as u64;
         }
+        let id = if segments.is_empty() {
+            new_identity(dir)?
+        } else {
+            read_identity(dir)?
+        };
+        // A number the fleet acknowledged is never given again, even if its record was cut
+        // (it is stored; a new event under its number would be taken for a copy of it).
+        recovery.acked_through = read_acked(dir, id);
         let mut journal = Journal {
+            id,
             dir: dir.to_path_buf(),
             segment_bound: bound_bytes / 2,
             file: None,
             segments,
             len,
-            next_seq: last_seq + 1,
+            next_seq: last_seq.max(recovery.acked_through) + 1,
             dropped: 0,
             scratch: Vec::with_capacity(HEADER + MAX_PAYLOAD),
         };
@@ -210,6 +285,19 @@ impl Journal {
             journal.file = Some(f);
         }
         Ok((journal, recovery))
+    }
+
+    /// The journal's identity.
+    pub fn id(&self) -> u64 {
+        self.id
+    }
+
+    /// Keeps, across restarts, that the fleet has stored every record through `seq`. Written by
+    /// rename, not synced: lost in a power cut, the fleet is only sent again what it has.
+    pub fn acknowledge(&self, seq: u64) -> Result<(), JournalError> {
+        let (path, tmp) = (self.dir.join(ACKED), self.dir.join("acked.tmp"));
+        std::fs::write(&tmp, format!("{:016x} {seq}\n", self.id)).map_err(io(&tmp))?;
+        std::fs::rename(&tmp, &path).map_err(io(&path))
     }
 
     /// The sequence number the next record gets.
@@ -337,16 +425,12 @@ mod tests {
         let dir = scratch("cut");
         let (mut j, rec) = Journal::open(&dir, 64 * 1024).unwrap();
         assert_eq!((rec, j.next_seq()), (Recovery::default(), 1));
+        let id = j.id();
         for k in 0..5u8 {
             assert_eq!(j.append(&[k; 10]).unwrap(), u64::from(k) + 1);
         }
         drop(j);
-        let segment = std::fs::read_dir(&dir)
-            .unwrap()
-            .next()
-            .unwrap()
-            .unwrap()
-            .path();
+        let segment = dir.join(segment_name(1));
         let full = std::fs::read(&segment).unwrap();
         let record = HEADER + 10;
         for cut in 0..full.len() {
@@ -362,6 +446,7 @@ mod tests {
             // What comes next follows the last whole record, and reads back.
             let seq = j.append(b"after").unwrap();
             assert_eq!(seq, whole as u64 + 1);
+            assert_eq!(j.id(), id, "the same journal, under its name");
             let back = j.records_after(0).unwrap();
             assert_eq!(back.len(), whole + 1);
             assert_eq!(back.last().unwrap().payload, b"after");
@@ -389,7 +474,9 @@ mod tests {
         assert!(j.dropped() > 0);
         let on_disk: u64 = std::fs::read_dir(&dir)
             .unwrap()
-            .map(|e| e.unwrap().metadata().unwrap().len())
+            .map(|e| e.unwrap())
+            .filter(|e| e.file_name().to_string_lossy().ends_with(".nj"))
+            .map(|e| e.metadata().unwrap().len())
             .sum();
         assert!(on_disk <= MIN_BOUND, "{on_disk} bytes on disk");
         assert_eq!(j.records_after(38).unwrap().len(), 2);
@@ -400,6 +487,70 @@ mod tests {
         assert!(matches!(
             Journal::open(&dir, 100),
             Err(JournalError::Bound { bytes: 100 })
+        ));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
+
+#[cfg(test)]
+mod identity {
+    use super::*;
+
+    fn scratch(tag: &str) -> PathBuf {
+        let dir =
+            std::env::temp_dir().join(format!("nori-journal-id-{tag}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        dir
+    }
+
+    #[test]
+    fn the_acknowledgement_survives_a_restart_for_its_own_journal_only() {
+        let dir = scratch("ack");
+        let (mut j, _) = Journal::open(&dir, MIN_BOUND).unwrap();
+        for _ in 0..5 {
+            j.append(b"e").unwrap();
+        }
+        j.acknowledge(3).unwrap();
+        let id = j.id();
+        drop(j);
+        let (j, rec) = Journal::open(&dir, MIN_BOUND).unwrap();
+        assert_eq!((j.id(), rec.acked_through, rec.records), (id, 3, 5));
+        // Records cut after the fleet acknowledged them (a damaged disk): their numbers are
+        // not given again.
+        j.acknowledge(9).unwrap();
+        drop(j);
+        let (j, rec) = Journal::open(&dir, MIN_BOUND).unwrap();
+        assert_eq!((rec.acked_through, j.next_seq()), (9, 10));
+        drop(j);
+        // Another journal's acknowledgement is not this one's.
+        std::fs::write(dir.join(ACKED), format!("{:016x} 4\n", id ^ 1)).unwrap();
+        assert_eq!(Journal::open(&dir, MIN_BOUND).unwrap().1.acked_through, 0);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_wiped_journal_starts_under_a_new_name_and_records_without_one_are_refused() {
+        let dir = scratch("wipe");
+        let (mut j, _) = Journal::open(&dir, MIN_BOUND).unwrap();
+        j.append(b"e").unwrap();
+        let id = j.id();
+        drop(j);
+        for e in std::fs::read_dir(&dir).unwrap() {
+            let p = e.unwrap().path();
+            if p.extension().is_some_and(|x| x == "nj") {
+                std::fs::remove_file(p).unwrap();
+            }
+        }
+        let (j, _) = Journal::open(&dir, MIN_BOUND).unwrap();
+        assert_ne!(j.id(), id, "numbers from 1 again, under a new name");
+        assert_eq!(j.next_seq(), 1);
+        let mut j = j;
+        j.append(b"e").unwrap();
+        drop(j);
+        std::fs::write(dir.join(IDENTITY), "not hex").unwrap();
+        assert!(matches!(
+            Journal::open(&dir, MIN_BOUND),
+            Err(JournalError::Identity { .. })
         ));
         let _ = std::fs::remove_dir_all(&dir);
     }

@@ -4,7 +4,8 @@
 //! |---|---|---|
 //! | `nori/<id>/state` | robot → fleet | [`crate::schema::StateMsg`], rate-limited |
 //! | `nori/<id>/layout` | robot → fleet | [`crate::schema::LayoutMsg`], on change and every few seconds |
-//! | `nori/<id>/events` | robot → fleet | [`crate::schema::EventMsg`], every supervisor event |
+//! | `nori/<id>/events` | robot → fleet | [`crate::schema::EventMsg`], every journaled event, again until acknowledged |
+//! | `nori/<id>/acks` | fleet store → robot | [`crate::schema::AckMsg`]: the journal is stored through an event |
 //! | `nori/<id>/preview` | robot → fleet | [`crate::schema::PreviewMsg`], a camera thumbnail now and then |
 //! | `nori/<id>/scan` | robot → fleet | [`crate::schema::ScanMsg`], a lidar revolution now and then |
 //! | `nori/<id>/observation` | robot → inference | [`crate::schema::ObservationMsg`] |

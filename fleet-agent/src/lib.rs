@@ -1,7 +1,8 @@
 //! The fleet agent: the robot's only door to the outside, over zenoh. It forwards telemetry,
 //! events and observations from the state plane, and lets policy actions in only through the
-//! gate ([`gate`]) and the scheduler ([`schedule`]). Everything but [`net`] and the event
-//! journal's files ([`journal`]) is pure.
+//! gate ([`gate`]) and the scheduler ([`schedule`]). Every event goes into the robot's journal
+//! ([`journal`]) and reaches the fleet at least once ([`delivery`]). Everything but [`net`] and
+//! the journal's files is pure.
 //!
 //! Only what runs on the robot is here; the fleet's side (collector, dashboard, reference
 //! policies, router) is the `fleet` crate. The two are the only crates that use zenoh, through
@@ -9,6 +10,7 @@
 
 pub mod agent;
 pub mod config;
+pub mod delivery;
 pub mod gate;
 pub mod journal;
 pub mod keys;

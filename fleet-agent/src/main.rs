@@ -4,7 +4,8 @@
 
 use anyhow::{Context, Result};
 use clap::Parser;
-use fleet_agent::agent::{Agent, AgentIo, Outbound};
+use fleet_agent::agent::{Agent, AgentIo, JournalStart, Outbound};
+use fleet_agent::journal::{Journal, JournalError};
 use fleet_agent::keys::robot_key;
 use fleet_agent::zenoh::handlers::FifoChannelHandler;
 use fleet_agent::zenoh::pubsub::{Publisher, Subscriber};
@@ -13,7 +14,10 @@ use fleet_agent::zenoh::query::{Query, Queryable};
 use fleet_agent::zenoh::sample::Sample;
 use fleet_agent::zenoh::Wait;
 use fleet_agent::{net, AgentConfig};
-use telemetry::frames::{BusHealth, GoalFrame, JointLayout, JointState, SupervisorEvent};
+use std::path::PathBuf;
+use telemetry::frames::{
+    BusHealth, GoalFrame, Heartbeat, JointLayout, JointState, Peer, SupervisorEvent,
+};
 use telemetry::motion::{BaseCommand, BaseState, LiftCommand, LiftState};
 use telemetry::plane::{self, newest, next, publish, CameraStream, FrameSub, Plane, Pub, Sub};
 use telemetry::process::Exit;
@@ -37,6 +41,10 @@ struct Args {
     /// Overrides `zenoh.listen` (repeatable).
     #[arg(long)]
     listen: Vec<String>,
+    /// The event journal's directory (default: `<temp dir>/nori-<domain>-journal`; the robot's
+    /// unit passes /var/lib/nori/journal).
+    #[arg(long)]
+    journal_dir: Option<PathBuf>,
 }
 
 /// The agent's two planes: iceoryx2 ports and zenoh declarations.
@@ -44,6 +52,12 @@ struct Wired {
     layouts: Sub<JointLayout>,
     states: Sub<JointState>,
     events: Sub<SupervisorEvent>,
+    driver_beats: Sub<Heartbeat>,
+    supervisor_beats: Sub<Heartbeat>,
+    /// `None` when it could not be opened (logged): events then go out live, unnumbered.
+    journal: Option<Journal>,
+    journal_dir: PathBuf,
+    acks: Subscriber<FifoChannelHandler<Sample>>,
     bus_health: Sub<BusHealth>,
     /// Per configured camera; `None` where the service could not be opened (logged).
     cameras: Vec<Option<FrameSub>>,
@@ -108,6 +122,30 @@ impl AgentIo for Wired {
     }
     fn next_event(&mut self) -> Option<SupervisorEvent> {
         next(&self.events)
+    }
+    fn heartbeat(&mut self, peer: Peer) -> Option<Heartbeat> {
+        newest(match peer {
+            Peer::Driver => &self.driver_beats,
+            Peer::Supervisor => &self.supervisor_beats,
+        })
+    }
+    fn journal(&mut self, record: &[u8]) -> Result<u64, JournalError> {
+        match &mut self.journal {
+            Some(j) => j.append(record),
+            None => Err(JournalError::Io {
+                path: self.journal_dir.display().to_string(),
+                source: std::io::Error::other("the journal did not open at start"),
+            }),
+        }
+    }
+    fn acknowledged(&mut self, seq: u64) {
+        if let Some(Err(e)) = self.journal.as_ref().map(|j| j.acknowledge(seq)) {
+            tracing::warn!("{e}: the fleet may be sent again what it has");
+        }
+    }
+    fn next_ack(&mut self) -> Option<Vec<u8>> {
+        let sample = self.acks.try_recv().ok().flatten()?;
+        Some(sample.payload().to_bytes().into_owned())
     }
     fn send_goal(&mut self, goal: &GoalFrame) -> bool {
         publish(&self.goals, goal).is_ok()
@@ -187,7 +225,11 @@ fn run(args: Args) -> Result<()> {
     let id = config.robot_id.clone();
     let session = net::open(&config.zenoh)
         .with_context(|| format!("joining the fleet as {id} via {:?}", config.zenoh.connect))?;
-    let mut io = wire(&node, &session, &id, &config)?;
+    let journal_dir = args.journal_dir.clone().unwrap_or_else(|| {
+        std::env::temp_dir().join(format!("nori-{}-journal", args.process.domain))
+    });
+    let (journal, start) = open_journal(&journal_dir, config.journal.bound_bytes);
+    let mut io = wire(&node, &session, &id, &config, journal, journal_dir)?;
     let _alive = session
         .liveliness()
         .declare_token(robot_key(&id, "alive"))
@@ -197,7 +239,7 @@ fn run(args: Args) -> Result<()> {
         "on the fleet: telemetry on {}, actions from {}", robot_key(&id, "state"), robot_key(&id, "actions"));
     let mut service = ServiceManager::from_env();
     service.ready(&format!("robot {id} on the fleet"));
-    let mut agent = Agent::new(&config);
+    let mut agent = Agent::resuming(&config, start);
     let run_for = args.process.run_for()?;
     fleet_agent::agent::run(&mut agent, &mut io, &shutdown, run_for, &mut |t| {
         service.keepalive(t)
@@ -208,12 +250,40 @@ fn run(args: Args) -> Result<()> {
     Ok(())
 }
 
+/// Opens the event journal and reads what it keeps. A journal that cannot be opened (its
+/// storage gone, its identity lost) leaves the agent running without it: events then go out
+/// live, unnumbered, each counted in the status (`events_unjournaled`).
+fn open_journal(dir: &std::path::Path, bound: u64) -> (Option<Journal>, JournalStart) {
+    let opened = Journal::open(dir, bound).and_then(|(j, recovery)| {
+        let kept = j.records_after(0)?;
+        Ok((j, recovery, kept))
+    });
+    match opened {
+        Ok((j, recovery, kept)) => {
+            tracing::info!(dir = %dir.display(), records = recovery.records, cut_bytes = recovery.cut_bytes,
+                acked_through = recovery.acked_through, next = j.next_seq(), "event journal open");
+            let start = JournalStart {
+                id: j.id(),
+                kept,
+                recovery,
+            };
+            (Some(j), start)
+        }
+        Err(e) => {
+            tracing::error!("{e}: running without the event journal (events are sent once, live)");
+            (None, JournalStart::default())
+        }
+    }
+}
+
 /// Opens the agent's ports on the state plane and its declarations on zenoh.
 fn wire(
     node: &Plane,
     session: &fleet_agent::zenoh::Session,
     id: &str,
     config: &AgentConfig,
+    journal: Option<Journal>,
+    journal_dir: PathBuf,
 ) -> Result<Wired> {
     let sensors = &config.sensors;
     let z = |e: fleet_agent::zenoh::Error| anyhow::anyhow!("{e}");
@@ -229,6 +299,14 @@ fn wire(
         layouts: node.subscriber(&plane::LAYOUT)?,
         states: node.subscriber(&plane::JOINT_STATE)?,
         events: node.subscriber(&plane::EVENTS)?,
+        driver_beats: node.subscriber(&plane::DRIVER_HEARTBEAT)?,
+        supervisor_beats: node.subscriber(&plane::SUPERVISOR_HEARTBEAT)?,
+        journal,
+        journal_dir,
+        acks: session
+            .declare_subscriber(robot_key(id, "acks"))
+            .wait()
+            .map_err(z)?,
         bus_health: node.subscriber(&plane::BUS_HEALTH)?,
         cameras: sensors
             .cameras

@@ -3,7 +3,7 @@
 use crate::gate::Range;
 use crate::schedule::Target;
 use crate::schema::{
-    BaseMsg, EventMsg, ImageMsg, JointInfoMsg, JointMsg, LayoutMsg, LiftMsg, ObservationMsg,
+    BaseMsg, EventRecord, ImageMsg, JointInfoMsg, JointMsg, LayoutMsg, LiftMsg, ObservationMsg,
     StateMsg, SCHEMA_VERSION,
 };
 use telemetry::frames::{
@@ -122,13 +122,12 @@ pub fn observation_msg(s: &JointState, images: Vec<ImageMsg>, body: Body) -> Obs
     }
 }
 
-/// A supervisor event as telemetry, with the joint named.
-pub fn event_msg(e: &SupervisorEvent, layout: &JointLayout, wall_ms: u64) -> EventMsg {
-    EventMsg {
-        version: SCHEMA_VERSION,
-        seq: e.seq,
+/// A supervisor event as the journal keeps it, with the joint named.
+pub fn event_record(e: &SupervisorEvent, layout: &JointLayout, wall_ms: u64) -> EventRecord {
+    EventRecord {
         timestamp_ns: e.timestamp_ns,
         wall_ms,
+        origin_seq: e.seq,
         kind: e
             .kind()
             .map_or_else(|| format!("Unknown{}", e.kind), |k| format!("{k:?}")),
@@ -137,6 +136,7 @@ pub fn event_msg(e: &SupervisorEvent, layout: &JointLayout, wall_ms: u64) -> Eve
             .get(usize::from(e.joint))
             .map(|j| j.name().to_string())
             .unwrap_or_default(),
+        detail: String::new(),
         bus: e.bus,
         level: e.level,
         value: e.value,

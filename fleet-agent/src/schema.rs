@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 /// The schema version this build speaks.
-pub const SCHEMA_VERSION: u16 = 5;
+pub const SCHEMA_VERSION: u16 = 6;
 
 /// Joint telemetry for dashboards, rate-limited (`nori/<robot>/state`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -112,27 +112,60 @@ pub struct JointInfoMsg {
     pub max: f32,
 }
 
-/// A supervisor event (`nori/<robot>/events`).
+/// Something that happened on the robot, as its event journal keeps it: a supervisor event
+/// (a trip, a stall, a torque reduction, a driver lost and back ...) or one of the agent's own
+/// (`AgentStarted`, `SupervisorStarted`, `DriverStarted`, `ActionsRefused`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct EventMsg {
-    /// [`SCHEMA_VERSION`].
-    pub version: u16,
-    /// The supervisor's event number.
-    pub seq: u64,
+pub struct EventRecord {
     /// Robot monotonic time, ns.
     pub timestamp_ns: u64,
-    /// Wall-clock time when the agent sent it, ms since the Unix epoch.
+    /// Wall-clock time when it happened, ms since the Unix epoch (for plots across robots).
     pub wall_ms: u64,
-    /// Kind (`ThermalTrip`, `Stall`, ...).
+    /// The supervisor's own event number (0 for the agent's events).
+    pub origin_seq: u64,
+    /// Kind (`ThermalTrip`, `Stall`, `ActionsRefused` ...).
     pub kind: String,
     /// Joint name, empty when the event concerns no joint.
     pub joint: String,
+    /// What the kind needs beyond the figures (the reason of `ActionsRefused`), else empty.
+    pub detail: String,
     /// Bus index.
     pub bus: u8,
     /// Level (thermal warnings 1..3).
     pub level: u8,
-    /// The figure the event is about (°C, s, A ...).
+    /// The figure the event is about (°C, s, A, a count, a process id ...).
     pub value: f32,
+}
+
+/// One event of the robot's journal (`nori/<robot>/events`): sent when it happens, and again
+/// until the fleet acknowledges it stored ([`AckMsg`]); `journal` and `seq` name it, so a
+/// receiver keeps it once however often it comes.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EventMsg {
+    /// [`SCHEMA_VERSION`].
+    pub version: u16,
+    /// The journal's identity (random, made with it; a robot whose journal was wiped starts a
+    /// new one).
+    pub journal: u64,
+    /// The event's number in that journal, from 1, rising across restarts of the agent.
+    pub seq: u64,
+    /// The oldest event the robot still holds unacknowledged: one below it that the fleet does
+    /// not have was dropped at the journal's bound and is lost for good.
+    pub held_from: u64,
+    /// What happened.
+    pub event: EventRecord,
+}
+
+/// The fleet's acknowledgement (`nori/<robot>/acks`): every event of `journal` up to and
+/// including `stored_through` is stored; the robot need not send them again.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct AckMsg {
+    /// [`SCHEMA_VERSION`].
+    pub version: u16,
+    /// The journal acknowledged.
+    pub journal: u64,
+    /// Its events are stored through this number.
+    pub stored_through: u64,
 }
 
 /// What a policy sees (`nori/<robot>/observation`).
@@ -355,8 +388,21 @@ pub struct AgentCounters {
     pub state_sent: u64,
     /// Observations sent.
     pub observations_sent: u64,
-    /// Events sent.
+    /// Events sent (first sendings).
     pub events_sent: u64,
+    /// Events sent again (not acknowledged in time: an outage, a fleet store restarting).
+    pub events_resent: u64,
+    /// Events held in the journal not yet acknowledged by the fleet.
+    pub events_unacknowledged: u64,
+    /// Events the fleet has acknowledged stored: the journal's number up to which.
+    pub events_stored_through: u64,
+    /// Events dropped at the journal's bound before the fleet acknowledged them.
+    pub events_lost: u64,
+    /// Events the journal could not keep (its storage failed): sent once, live, unnumbered.
+    pub events_unjournaled: u64,
+    /// Acknowledgements that could not be used (malformed, another journal, beyond what was
+    /// sent).
+    pub acks_refused: u64,
     /// Action chunks accepted by the gate.
     pub actions_accepted: u64,
     /// Action chunks refused, by reason (every reason listed, zeros included).

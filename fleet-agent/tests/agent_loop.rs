@@ -4,17 +4,20 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use fleet_agent::agent::{Agent, AgentIo, Outbound};
+use fleet_agent::agent::{Agent, AgentIo, JournalStart, Outbound};
+use fleet_agent::delivery::Delivery;
+use fleet_agent::journal::{JournalError, Record, Recovery};
 use fleet_agent::schema::{
-    decode, encode, ActionChunk, EventMsg, ObservationMsg, PreviewMsg, ScanMsg, StateMsg,
-    StatusMsg, SCHEMA_VERSION,
+    decode, encode, AckMsg, ActionChunk, EventMsg, EventRecord, ObservationMsg, PreviewMsg,
+    ScanMsg, StateMsg, StatusMsg, SCHEMA_VERSION,
 };
 use fleet_agent::AgentConfig;
 use std::collections::VecDeque;
 use telemetry::config::ProcessConfig;
 use telemetry::frames::{
-    BusHealth, BusHealthEntry, EventKind, GoalFrame, JointInfo, JointLayout, JointSample,
-    JointState, SupervisorEvent, BUS_HEALTH_CONNECTED, BUS_HEALTH_ENABLED, STATE_FLAG_SAFE_STATE,
+    BusHealth, BusHealthEntry, EventKind, GoalFrame, Heartbeat, JointInfo, JointLayout,
+    JointSample, JointState, Peer, SupervisorEvent, BUS_HEALTH_CONNECTED, BUS_HEALTH_ENABLED,
+    STATE_FLAG_SAFE_STATE,
 };
 use telemetry::motion::{BaseCommand, BaseState, LiftCommand, LiftState, LIFT_READY};
 use telemetry::sensors::{CameraFrameHeader, LidarScan, PixelFormat};
@@ -41,6 +44,14 @@ struct Queues {
     base_sent: Vec<BaseCommand>,
     published: Vec<(Outbound, Vec<u8>)>,
     status_replies: Vec<Vec<u8>>,
+    /// The journal: its records in order (numbered from 1), whether its storage fails, and
+    /// every acknowledgement kept.
+    journal: Vec<Vec<u8>>,
+    journal_broken: bool,
+    acked: Vec<u64>,
+    acks: VecDeque<Vec<u8>>,
+    driver_beat: Option<Heartbeat>,
+    supervisor_beat: Option<Heartbeat>,
 }
 
 impl AgentIo for Queues {
@@ -72,6 +83,28 @@ impl AgentIo for Queues {
     }
     fn next_event(&mut self) -> Option<SupervisorEvent> {
         self.events.pop_front()
+    }
+    fn heartbeat(&mut self, peer: Peer) -> Option<Heartbeat> {
+        match peer {
+            Peer::Driver => self.driver_beat.take(),
+            Peer::Supervisor => self.supervisor_beat.take(),
+        }
+    }
+    fn journal(&mut self, record: &[u8]) -> Result<u64, JournalError> {
+        if self.journal_broken {
+            return Err(JournalError::Io {
+                path: "/x".into(),
+                source: std::io::Error::other("disk full"),
+            });
+        }
+        self.journal.push(record.to_vec());
+        Ok(self.journal.len() as u64)
+    }
+    fn acknowledged(&mut self, seq: u64) {
+        self.acked.push(seq);
+    }
+    fn next_ack(&mut self) -> Option<Vec<u8>> {
+        self.acks.pop_front()
     }
     fn send_goal(&mut self, goal: &GoalFrame) -> bool {
         self.goals.push(*goal);
@@ -476,12 +509,8 @@ fn telemetry_events_and_status_go_out_named_from_the_layout() {
         ..SupervisorEvent::default()
     });
     agent.poll(&mut io, now + MS, 0);
-    let event = io
-        .published
-        .iter()
-        .find(|(k, _)| *k == Outbound::Event)
-        .expect("the event went out");
-    let event: EventMsg = decode(&event.1).unwrap();
+    let events: Vec<EventMsg> = sent(&mut io, Outbound::Event);
+    let event = &events.last().expect("the event went out").event;
     assert_eq!(
         (event.kind.as_str(), event.joint.as_str()),
         ("ThermalTrip", "right_wrist")
@@ -494,7 +523,7 @@ fn telemetry_events_and_status_go_out_named_from_the_layout() {
     assert!(st.buses[0].connected && st.buses[0].enabled);
     assert_eq!(st.buses[0].counters.checksum_errors, 3);
     assert_eq!(st.health.joints, 2);
-    assert_eq!(st.counters.events_sent, 1);
+    assert_eq!(st.counters.events_sent, 2, "the agent's start, the trip");
 }
 
 #[test]
@@ -578,7 +607,7 @@ fn the_status_reports_what_the_agent_did_and_saw() {
     assert_eq!(st.health.safe_state, Some(true));
     assert_eq!(st.health.deadline_misses, Some(3));
     assert_eq!(st.health.state_age_ms, Some(5.0));
-    assert_eq!(st.counters.events_sent, 2);
+    assert_eq!(st.counters.events_sent, 3, "the agent's start, two stalls");
     let sent = |k| io.published.iter().filter(|(o, _)| *o == k).count() as u64;
     assert_eq!(st.counters.state_sent, sent(Outbound::State));
     assert_eq!(st.counters.observations_sent, sent(Outbound::Observation));
@@ -765,4 +794,225 @@ fn thumbnails_and_scans_go_to_the_fleet_at_their_rates_each_from_a_fresh_frame()
         st.cameras[1].frames, 68,
         "the refused frame still counts for the status"
     );
+}
+
+fn trip(seq: u64, t: u64) -> SupervisorEvent {
+    SupervisorEvent {
+        seq,
+        timestamp_ns: t,
+        kind: EventKind::ThermalTrip as u8,
+        joint: 1,
+        value: 59.5,
+        ..SupervisorEvent::default()
+    }
+}
+
+fn ack(journal: u64, through: u64) -> Vec<u8> {
+    encode(&AckMsg {
+        version: SCHEMA_VERSION,
+        journal,
+        stored_through: through,
+    })
+}
+
+fn journaled(io: &Queues) -> Vec<EventRecord> {
+    io.journal
+        .iter()
+        .map(|b| postcard::from_bytes(b).unwrap())
+        .collect()
+}
+
+#[test]
+fn every_event_is_journaled_before_it_is_sent_and_sent_again_until_acknowledged() {
+    let (mut agent, mut io, now) = running();
+    io.events.push_back(trip(1, now));
+    io.published.clear();
+    agent.poll(&mut io, now + MS, 1_700_000_000_000);
+    let kinds: Vec<String> = journaled(&io).into_iter().map(|r| r.kind).collect();
+    assert_eq!(kinds, ["AgentStarted", "ThermalTrip"]);
+    let out: Vec<EventMsg> = sent(&mut io, Outbound::Event);
+    assert_eq!(out.len(), 1, "the start went out in the first turn");
+    assert_eq!(
+        (out[0].seq, out[0].held_from),
+        (2, 1),
+        "numbered as journaled"
+    );
+    assert_eq!(out[0].event, journaled(&io)[1]);
+    assert_eq!(out[0].event.wall_ms, 1_700_000_000_000, "when it happened");
+    // No acknowledgement within resend-after (2 s): both go again, the oldest first.
+    agent.poll(&mut io, now + 1_999 * MS, 0);
+    assert!(sent::<EventMsg>(&mut io, Outbound::Event).is_empty());
+    agent.poll(&mut io, now + 2_100 * MS, 0);
+    let again: Vec<u64> = sent::<EventMsg>(&mut io, Outbound::Event)
+        .iter()
+        .map(|m| m.seq)
+        .collect();
+    assert_eq!(again, [1, 2]);
+    // Acknowledged: kept across restarts, and nothing goes again.
+    io.acks.push_back(ack(0, 2));
+    agent.poll(&mut io, now + 2_200 * MS, 0);
+    assert_eq!(io.acked, [2]);
+    agent.poll(&mut io, now + 60_000 * MS, 0);
+    assert!(sent::<EventMsg>(&mut io, Outbound::Event).is_empty());
+    let st = status(&mut agent, &mut io, now + 60_001 * MS);
+    let c = &st.counters;
+    assert_eq!(
+        (
+            c.events_sent,
+            c.events_resent,
+            c.events_unacknowledged,
+            c.events_stored_through
+        ),
+        (2, 2, 0, 2)
+    );
+}
+
+#[test]
+fn a_restarted_agent_sends_what_was_not_acknowledged_and_journals_nothing_twice() {
+    // The journal as a killed agent left it: its start, the supervisor's, a trip; the fleet
+    // had acknowledged the first.
+    let rec = |kind: &str, origin_seq, t, value| EventRecord {
+        timestamp_ns: t,
+        wall_ms: 0,
+        origin_seq,
+        kind: kind.into(),
+        joint: String::new(),
+        detail: String::new(),
+        bus: 0,
+        level: 0,
+        value,
+    };
+    let kept: Vec<Record> = [
+        rec("AgentStarted", 0, 1, 0.0),
+        rec("SupervisorStarted", 0, 2, 4242.0),
+        rec("ThermalTrip", 1, 3 * MS, 59.5),
+    ]
+    .iter()
+    .enumerate()
+    .map(|(i, r)| Record {
+        seq: i as u64 + 1,
+        payload: Delivery::journal_bytes(r),
+    })
+    .collect();
+    let start = JournalStart {
+        id: 77,
+        kept: kept.clone(),
+        recovery: Recovery {
+            records: 3,
+            cut_bytes: 5,
+            acked_through: 1,
+        },
+    };
+    let mut agent = Agent::resuming(&AgentConfig::embedded().unwrap(), start);
+    let mut io = Queues {
+        layout: Some(layout()),
+        journal: kept.iter().map(|r| r.payload.clone()).collect(),
+        ..Queues::default()
+    };
+    // The state plane replays the trip; the supervisor is the same process; the driver is new.
+    io.events.push_back(trip(1, 3 * MS));
+    io.supervisor_beat = Some(Heartbeat {
+        pid: 4242,
+        ..Heartbeat::default()
+    });
+    io.driver_beat = Some(Heartbeat {
+        pid: 99,
+        ..Heartbeat::default()
+    });
+    agent.poll(&mut io, 10 * MS, 0);
+    let new: Vec<(String, f32)> = journaled(&io)[3..]
+        .iter()
+        .map(|r| (r.kind.clone(), r.value))
+        .collect();
+    assert_eq!(
+        new,
+        [("AgentStarted".into(), 5.0), ("DriverStarted".into(), 99.0)],
+        "its start (5 torn bytes cut), the driver's; not the replayed trip nor the known supervisor"
+    );
+    let out: Vec<EventMsg> = sent(&mut io, Outbound::Event);
+    assert!(out.iter().all(|m| m.journal == 77));
+    assert_eq!(
+        out.iter().map(|m| m.seq).collect::<Vec<_>>(),
+        [2, 3, 4, 5],
+        "the unacknowledged, then the new, in order"
+    );
+    // A supervisor restarted: journaled once, however many heartbeats.
+    for k in 0..3 {
+        io.supervisor_beat = Some(Heartbeat {
+            pid: 5000,
+            ..Heartbeat::default()
+        });
+        agent.poll(&mut io, (11 + k) * MS, 0);
+    }
+    let starts = journaled(&io)
+        .iter()
+        .filter(|r| r.kind == "SupervisorStarted")
+        .count();
+    assert_eq!(starts, 2);
+    // An acknowledgement of another journal, or of events never journaled, is refused.
+    io.acks.push_back(ack(78, 2));
+    io.acks.push_back(ack(77, 99));
+    io.acks.push_back(b"\x06garbage".to_vec());
+    let st = status(&mut agent, &mut io, 20 * MS);
+    assert_eq!(
+        st.counters.acks_refused, 2,
+        "the malformed one is no acknowledgement either"
+    );
+    assert!(io.acked.is_empty());
+}
+
+#[test]
+fn refusals_are_journaled_per_reason_at_most_every_ten_seconds() {
+    let (mut agent, mut io, now) = running();
+    for k in 0..50 {
+        io.actions.push_back(chunk(k, now - 5_000 * MS, 0.5)); // stale
+    }
+    io.actions.push_back(chunk(99, now, 7.0)); // out of range
+    agent.poll(&mut io, now + MS, 0);
+    for k in 0..50 {
+        io.actions.push_back(chunk(100 + k, now, 0.5 + k as f32));
+        agent.poll(&mut io, now + (2 + k) * MS, 0);
+    }
+    let refused = |io: &Queues| -> Vec<(String, f32)> {
+        journaled(io)
+            .into_iter()
+            .filter(|r| r.kind == "ActionsRefused")
+            .map(|r| (r.detail, r.value))
+            .collect()
+    };
+    assert_eq!(
+        refused(&io).len(),
+        2,
+        "one per reason at the first refusals"
+    );
+    let first: f32 = refused(&io).iter().map(|r| r.1).sum();
+    agent.poll(&mut io, now + 9_000 * MS, 0);
+    assert_eq!(refused(&io).len(), 2, "not yet ten seconds");
+    agent.poll(&mut io, now + 10_100 * MS, 0);
+    let all = refused(&io);
+    let total: f32 = all.iter().map(|r| r.1).sum();
+    let st = status(&mut agent, &mut io, now + 10_200 * MS);
+    let counted: u64 = st.counters.actions_rejected.values().sum();
+    assert_eq!(
+        total as u64, counted,
+        "every refusal in the journal: {all:?} after {first}"
+    );
+    assert!(all.len() <= 4);
+}
+
+#[test]
+fn an_event_the_journal_cannot_keep_still_goes_out_once_unnumbered_and_counted() {
+    let (mut agent, mut io, now) = running();
+    io.journal_broken = true;
+    io.events.push_back(trip(1, now));
+    io.published.clear();
+    agent.poll(&mut io, now + MS, 0);
+    let out: Vec<EventMsg> = sent(&mut io, Outbound::Event);
+    assert_eq!(out.len(), 1);
+    assert_eq!((out[0].seq, out[0].event.kind.as_str()), (0, "ThermalTrip"));
+    agent.poll(&mut io, now + 60_000 * MS, 0);
+    let again = sent::<EventMsg>(&mut io, Outbound::Event);
+    assert!(again.iter().all(|m| m.event.kind == "AgentStarted"), "once");
+    let st = status(&mut agent, &mut io, now + 60_001 * MS);
+    assert_eq!(st.counters.events_unjournaled, 1);
 }

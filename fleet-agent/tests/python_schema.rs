@@ -7,7 +7,7 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use fleet_agent::schema::{
-    decode, encode, ActionChunk, EventMsg, LayoutMsg, ObservationMsg, PreviewMsg, ScanMsg,
+    decode, encode, AckMsg, ActionChunk, EventMsg, LayoutMsg, ObservationMsg, PreviewMsg, ScanMsg,
     StateMsg, StatusMsg, SCHEMA_VERSION,
 };
 use serde::{de::DeserializeOwned, Serialize};
@@ -24,7 +24,7 @@ fn bless() -> bool {
 }
 
 /// Every message that crosses zenoh, by its Rust name.
-const MESSAGES: [&str; 8] = [
+const MESSAGES: [&str; 9] = [
     "StateMsg",
     "LayoutMsg",
     "EventMsg",
@@ -33,6 +33,7 @@ const MESSAGES: [&str; 8] = [
     "StatusMsg",
     "PreviewMsg",
     "ScanMsg",
+    "AckMsg",
 ];
 
 fn traced() -> Value {
@@ -45,6 +46,7 @@ fn traced() -> Value {
     tracer.trace_simple_type::<StatusMsg>().unwrap();
     tracer.trace_simple_type::<PreviewMsg>().unwrap();
     tracer.trace_simple_type::<ScanMsg>().unwrap();
+    tracer.trace_simple_type::<AckMsg>().unwrap();
     let registry = tracer.registry().unwrap();
     json!({
         "about": "The fleet messages' formats traced from fleet_agent::schema by serde-reflection (fleet-agent/tests/python_schema.rs); do not edit.",
@@ -106,6 +108,7 @@ fn golden_bytes_are_what_the_rust_side_writes_and_reads() {
             "StatusMsg" => golden::<StatusMsg>(&entry["value"]),
             "PreviewMsg" => golden::<PreviewMsg>(&entry["value"]),
             "ScanMsg" => golden::<ScanMsg>(&entry["value"]),
+            "AckMsg" => golden::<AckMsg>(&entry["value"]),
             other => panic!("golden.json names {other}, not a fleet message"),
         };
         // Values are chosen exact in f32, so reading back gives the very same JSON.

@@ -3,9 +3,10 @@
 //! Prometheus text (`/metrics`). Pure: bytes and the collector's wall time in, views out; the
 //! zenoh subscriptions and the HTTP server live in the `nori` binary.
 
+use crate::journal_seen::{FleetJournals, Taken};
 use fleet_agent::keys::robot_of;
 use fleet_agent::schema::{
-    decode, DecodeError, EventMsg, LayoutMsg, PreviewMsg, ScanMsg, StateMsg, StatusMsg,
+    decode, DecodeError, EventMsg, EventRecord, LayoutMsg, PreviewMsg, ScanMsg, StateMsg, StatusMsg,
 };
 use prometheus_client::encoding::text::encode;
 use prometheus_client::metrics::counter::Counter;
@@ -71,7 +72,7 @@ struct Robot {
     layout: Option<LayoutMsg>,
     last_state: Option<StateMsg>,
     history: VecDeque<Sample>,
-    events: VecDeque<EventMsg>,
+    events: VecDeque<EventRecord>,
     event_counts: BTreeMap<String, u64>,
     states_received: u64,
     status: Option<StatusMsg>,
@@ -89,6 +90,9 @@ pub struct Collector {
     history_every_ms: u64,
     undecodable: BTreeMap<&'static str, u64>,
     refused: BTreeMap<&'static str, u64>,
+    journals: FleetJournals,
+    /// Events that came again (sent again by a robot not yet acknowledged) and were not counted.
+    event_copies: u64,
 }
 
 impl Collector {
@@ -100,6 +104,8 @@ impl Collector {
             history_every_ms,
             undecodable: BTreeMap::new(),
             refused: BTreeMap::new(),
+            journals: FleetJournals::default(),
+            event_copies: 0,
         }
     }
 
@@ -156,15 +162,29 @@ impl Collector {
         Ok(())
     }
 
-    /// A `nori/<id>/events` message.
+    /// A `nori/<id>/events` message: kept and counted once, however often the robot sends it
+    /// (it does until the fleet's store acknowledges it).
     pub fn event(&mut self, key: &str, payload: &[u8], now_ms: u64) -> Result<(), IngestError> {
         let msg: EventMsg = self.decoded("events", key, payload)?;
+        let id = robot_of(key).ok_or_else(|| IngestError::Key(key.into()))?;
+        if self
+            .journals
+            .of(id, msg.journal)
+            .take(msg.seq, msg.held_from)
+            == Taken::Copy
+        {
+            self.event_copies += 1;
+            return Ok(());
+        }
         let robot = self.robot(key, now_ms)?;
-        *robot.event_counts.entry(msg.kind.clone()).or_default() += 1;
+        *robot
+            .event_counts
+            .entry(msg.event.kind.clone())
+            .or_default() += 1;
         if robot.events.len() == EVENTS_KEPT {
             robot.events.pop_front();
         }
-        robot.events.push_back(msg);
+        robot.events.push_back(msg.event);
         Ok(())
     }
 
@@ -504,7 +524,11 @@ impl Collector {
             "telemetry messages received from the robot",
             states,
         );
-        registry.register("robot_events", "supervisor events by kind", events);
+        registry.register(
+            "robot_events",
+            "journaled events by kind (supervisor and agent), each counted once",
+            events,
+        );
         registry.register(
             "robot_actions_accepted",
             "action chunks the robot's gate accepted",
@@ -572,6 +596,13 @@ impl Collector {
             "fleet_undecodable_messages",
             "messages the collector could not decode, by key",
             undecodable,
+        );
+        let copies = Counter::<u64, AtomicU64>::default();
+        copies.inc_by(self.event_copies);
+        registry.register(
+            "fleet_event_copies",
+            "events that came again (resent by a robot awaiting the store's acknowledgement) and were counted once",
+            copies,
         );
         registry.register(
             "fleet_refused_messages",
@@ -754,6 +785,48 @@ mod tests {
         let text = c.metrics();
         assert!(text.contains(r#"nori_fleet_undecodable_messages_total{key="state"} 2"#));
         assert!(text.contains(r#"nori_joint_temperature_celsius{robot="r1",joint="joint0"} 30.0"#));
+    }
+
+    #[test]
+    fn an_event_sent_again_is_counted_once_per_journal() {
+        use fleet_agent::schema::{encode, EventMsg, EventRecord};
+        let event = |journal, seq, kind: &str| {
+            encode(&EventMsg {
+                version: SCHEMA_VERSION,
+                journal,
+                seq,
+                held_from: 1,
+                event: EventRecord {
+                    timestamp_ns: seq,
+                    wall_ms: 0,
+                    origin_seq: seq,
+                    kind: kind.into(),
+                    joint: "elbow".into(),
+                    detail: String::new(),
+                    bus: 0,
+                    level: 0,
+                    value: 0.0,
+                },
+            })
+        };
+        let mut c = Collector::new(10, 0);
+        for bytes in [
+            event(5, 1, "Stall"),
+            event(5, 2, "ThermalTrip"),
+            event(5, 1, "Stall"),
+            event(5, 2, "ThermalTrip"),
+            event(6, 1, "Stall"), // a new journal of the same robot: another event
+        ] {
+            c.event("nori/r1/events", &bytes, 0).unwrap();
+        }
+        let snap = c.snapshot(0);
+        let counts = &snap["robots"][0]["event_counts"];
+        assert_eq!(
+            (counts["Stall"].as_u64(), counts["ThermalTrip"].as_u64()),
+            (Some(2), Some(1))
+        );
+        assert_eq!(snap["robots"][0]["events"].as_array().unwrap().len(), 3);
+        assert!(c.metrics().contains("nori_fleet_event_copies_total 2"));
     }
 
     #[test]

@@ -4,5 +4,7 @@
 //! re-export; nothing here runs on the robot.
 
 pub mod collector;
+pub mod history;
+pub mod journal_seen;
 pub mod policy;
 pub mod seek;

@@ -4,6 +4,7 @@
 mod dashboard;
 mod policy_server;
 mod router;
+mod store;
 
 use anyhow::Result;
 use clap::Parser;
@@ -12,7 +13,7 @@ use clap::Parser;
 #[command(
     name = "nori-fleet",
     version,
-    about = "The fleet side of the Nori A3 stack: dashboard, reference inference server, zenoh router"
+    about = "The fleet side of the Nori A3 stack: dashboard, history store, reference inference server, zenoh router"
 )]
 enum Command {
     /// The live dashboard and Prometheus /metrics of every robot on zenoh (`nori fleet`).
@@ -23,6 +24,9 @@ enum Command {
     /// A zenoh router for a site or a test fleet, TLS and access control from its JSON5 file
     /// (`nori router`).
     Router(router::RouterArgs),
+    /// The fleet's history: every robot's events (once each, acknowledged to the robot when
+    /// committed) and its telemetry rolled up, in PostgreSQL (`nori fleet store`).
+    Store(store::StoreArgs),
 }
 
 fn main() -> Result<()> {
@@ -30,5 +34,6 @@ fn main() -> Result<()> {
         Command::Dashboard(a) => dashboard::run(&a),
         Command::PolicyServer(a) => policy_server::run(&a),
         Command::Router(a) => router::run(&a),
+        Command::Store(a) => store::run(&a),
     }
 }

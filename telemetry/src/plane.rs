@@ -460,6 +460,17 @@ pub fn publish<T: std::fmt::Debug + ZeroCopySend + Copy + 'static>(
         .map_err(PlaneError::Send)
 }
 
+/// Hands the history of `publisher`'s service to the subscribers that joined since its last
+/// sample (iceoryx2 delivers it only when a publisher updates its connections, which a send
+/// does): for a publisher that sends rarely, such as the events'. A failure is only logged
+/// (the next call or send tries again).
+pub fn offer_history<T: std::fmt::Debug + ZeroCopySend + 'static>(publisher: &Pub<T>) {
+    use iceoryx2::port::update_connections::UpdateConnections;
+    if let Err(e) = publisher.update_connections() {
+        tracing::debug!("updating a publisher's connections: {e:?}");
+    }
+}
+
 /// The newest sample waiting on `subscriber`, older ones dropped; `None` if nothing new.
 pub fn newest<T: std::fmt::Debug + ZeroCopySend + Copy + 'static>(
     subscriber: &Sub<T>,

@@ -607,3 +607,70 @@ pub fn processes(matching: impl Fn(&[String]) -> bool) -> Vec<(u32, Vec<String>)
         })
         .collect()
 }
+
+/// A scratch PostgreSQL server on loopback (`deploy/fleet-db/scratch-postgres.sh`), stopped when
+/// dropped.
+pub struct ScratchPostgres {
+    /// Its directory (cluster, logs, socket).
+    pub dir: PathBuf,
+    /// Its connection string.
+    pub url: String,
+    port: u16,
+}
+
+impl ScratchPostgres {
+    fn script() -> PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/fleet-db/scratch-postgres.sh")
+    }
+
+    /// Creates and starts one in `dir` on a free port.
+    pub fn start(dir: &Path) -> ScratchPostgres {
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .expect("a free port")
+            .port();
+        let mut db = ScratchPostgres {
+            dir: dir.to_path_buf(),
+            url: String::new(),
+            port,
+        };
+        db.resume();
+        db
+    }
+
+    /// Starts it again after [`ScratchPostgres::stop`] (same data, same port).
+    pub fn resume(&mut self) {
+        let out = std::process::Command::new(ScratchPostgres::script())
+            .args([
+                "start",
+                &self.dir.display().to_string(),
+                &self.port.to_string(),
+            ])
+            .output()
+            .expect("running scratch-postgres.sh");
+        assert!(
+            out.status.success(),
+            "starting PostgreSQL failed (deploy/fleet-db/install-postgres.sh installs it): {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        self.url = String::from_utf8_lossy(&out.stdout).trim().to_string();
+    }
+
+    /// Stops it (fast shutdown: its clients are cut off).
+    pub fn stop(&self) {
+        let _ = std::process::Command::new(ScratchPostgres::script())
+            .args(["stop", &self.dir.display().to_string()])
+            .status();
+    }
+
+    /// A client of it.
+    pub fn client(&self) -> postgres::Client {
+        postgres::Client::connect(&self.url, postgres::NoTls).expect("connecting to PostgreSQL")
+    }
+}
+
+impl Drop for ScratchPostgres {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}

@@ -1,0 +1,266 @@
+//! The fleet's history on a real PostgreSQL server (started by the project's own script,
+//! `deploy/fleet-db/scratch-postgres.sh`): the robot's event journal reaches `nori fleet store`
+//! at least once and is stored exactly once, through SIGKILLs of the agent, the database down,
+//! the store killed, and the journal torn by a power cut.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use nori_tests::{binary, free_endpoint, wait_for, ArmStack, Proc, ScratchPostgres};
+use std::time::Duration;
+use telemetry::frames::{SupervisorCommand, COMMAND_REENABLE_BUS};
+use telemetry::plane::{self, Plane};
+
+const ROBOT: &str = "store-r1";
+
+/// Asks the supervisor to re-enable the left arm, which is not tripped, `n` times: each gives
+/// one `CommandRefused` event.
+struct Refuser {
+    commands: telemetry::plane::Pub<SupervisorCommand>,
+    seq: u64,
+    _node: Plane,
+}
+
+impl Refuser {
+    fn refuse(&mut self, n: u64) {
+        for _ in 0..n {
+            self.seq += 1;
+            let cmd = SupervisorCommand {
+                seq: self.seq,
+                timestamp_ns: telemetry::clock::monotonic_ns(),
+                kind: COMMAND_REENABLE_BUS,
+                bus: 0,
+                ..SupervisorCommand::default()
+            };
+            plane::publish(&self.commands, &cmd).unwrap();
+            std::thread::sleep(Duration::from_millis(30));
+        }
+    }
+}
+
+fn count(db: &mut postgres::Client, sql: &str) -> i64 {
+    db.query_one(sql, &[]).unwrap().get(0)
+}
+
+fn wait_stored(db: &ScratchPostgres, kind: &str, n: i64, what: &str) {
+    let sql = format!("SELECT count(*) FROM events WHERE robot = '{ROBOT}' AND kind = '{kind}'");
+    let mut last = 0;
+    wait_for(Duration::from_secs(30), what, || {
+        let mut c = postgres::Client::connect(&db.url, postgres::NoTls).ok()?;
+        last = count(&mut c, &sql);
+        assert!(
+            last <= n,
+            "{last} {kind} events stored, {n} happened: {what}"
+        );
+        (last == n).then_some(())
+    });
+}
+
+fn start_store(dir: &std::path::Path, url: &str, endpoint: &str, n: u32) -> Proc {
+    Proc::spawn(
+        "nori-fleet store",
+        &binary("nori-fleet"),
+        &[
+            "store",
+            "--database",
+            url,
+            "--listen",
+            endpoint,
+            "--rollup-s",
+            "1",
+        ],
+        &dir.join(format!("store-{n}.log")),
+    )
+}
+
+#[test]
+fn every_event_is_stored_once_through_agent_kills_a_database_outage_a_store_kill_and_a_power_cut() {
+    let mut stack = ArmStack::start("fleet-store", &[]);
+    let mut db = ScratchPostgres::start(&stack.dir.join("postgres"));
+    let (store_at, watch_at) = (free_endpoint(), free_endpoint());
+    let mut store = start_store(&stack.dir, &db.url, &store_at, 1);
+    let watcher = nori_tests::listening_session(&watch_at);
+    let journal = stack.dir.join("journal");
+    let agent_args = [
+        "--robot-id",
+        ROBOT,
+        "--connect",
+        &store_at,
+        "--connect",
+        &watch_at,
+        "--journal-dir",
+        &journal.display().to_string(),
+    ];
+    stack.restart_agent_with(&agent_args);
+    let node = Plane::open(&stack.domain, "test-fleet-store").unwrap();
+    let mut refuser = Refuser {
+        commands: node.publisher(&plane::COMMANDS).unwrap(),
+        seq: 0,
+        _node: node,
+    };
+    // The supervisor answers commands once the driver's layout is out.
+    std::thread::sleep(Duration::from_secs(2));
+    let mut happened = 0;
+
+    // Live.
+    refuser.refuse(5);
+    happened += 5;
+    wait_stored(&db, "CommandRefused", happened, "the first events stored");
+
+    // The agent killed; events while it is away are replayed to its successor by the plane.
+    stack.agent.kill();
+    refuser.refuse(4);
+    happened += 4;
+    stack.restart_agent_with(&agent_args);
+    wait_stored(
+        &db,
+        "CommandRefused",
+        happened,
+        "the events of the agent's absence",
+    );
+
+    // The database down: nothing is acknowledged, the robot holds them; the agent killed again
+    // meanwhile sends them from its journal after its restart.
+    db.stop();
+    refuser.refuse(5);
+    std::thread::sleep(Duration::from_secs(1));
+    stack.agent.kill();
+    stack.restart_agent_with(&agent_args);
+    refuser.refuse(5);
+    happened += 10;
+    std::thread::sleep(Duration::from_secs(3));
+    let held = nori_tests::agent_status(&watcher, ROBOT).counters;
+    assert!(
+        held.events_unacknowledged >= 10,
+        "the robot holds what the fleet has not stored: {held:?}"
+    );
+    db.resume();
+    wait_stored(
+        &db,
+        "CommandRefused",
+        happened,
+        "the outage's events, once the database is back",
+    );
+
+    // The store killed mid-stream and restarted.
+    store.kill();
+    refuser.refuse(3);
+    happened += 3;
+    store = start_store(&stack.dir, &db.url, &store_at, 2);
+    wait_stored(
+        &db,
+        "CommandRefused",
+        happened,
+        "the events of the store's absence",
+    );
+    let st = wait_for(Duration::from_secs(20), "everything acknowledged", || {
+        let st = nori_tests::agent_status(&watcher, ROBOT).counters;
+        (st.events_unacknowledged == 0).then_some(st)
+    });
+    assert!(
+        st.events_resent > 0,
+        "the outages made the robot send again: {st:?}"
+    );
+    assert_eq!(
+        (st.events_lost, st.events_unjournaled, st.acks_refused),
+        (0, 0, 0)
+    );
+
+    // A power cut tears the journal's last record (already acknowledged: it is stored). The
+    // agent cuts it off at its start, says so, and never gives its number again.
+    stack.agent.kill();
+    let newest = std::fs::read_dir(&journal)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|x| x == "nj"))
+        .max()
+        .unwrap();
+    let bytes = std::fs::read(&newest).unwrap();
+    let len = bytes.len() as u64;
+    let last = fleet_agent::journal::scan(&bytes).0.pop().unwrap();
+    let last_len = (fleet_agent::journal::HEADER + last.payload.len()) as u64;
+    // At a random byte of the last record (which is at least 16 bytes of header and 30 of
+    // event).
+    let cut = 1 + telemetry::clock::monotonic_ns() % 40;
+    std::fs::OpenOptions::new()
+        .write(true)
+        .open(&newest)
+        .unwrap()
+        .set_len(len - cut)
+        .unwrap();
+    stack.restart_agent_with(&agent_args);
+    refuser.refuse(2);
+    happened += 2;
+    wait_stored(
+        &db,
+        "CommandRefused",
+        happened,
+        "the events after the power cut",
+    );
+
+    let mut c = db.client();
+    let distinct = count(
+        &mut c,
+        &format!("SELECT count(DISTINCT (robot_ns, origin_seq)) FROM events WHERE robot = '{ROBOT}' AND kind = 'CommandRefused'"),
+    );
+    assert_eq!(distinct, happened, "each supervisor event once, none twice");
+    let starts = c
+        .query(
+            &format!("SELECT value FROM events WHERE robot = '{ROBOT}' AND kind = 'AgentStarted' ORDER BY journal, seq"),
+            &[],
+        )
+        .unwrap();
+    let starts: Vec<f32> = starts.iter().map(|r| r.get(0)).collect();
+    assert_eq!(
+        starts,
+        [0.0, 0.0, 0.0, (last_len - cut) as f32],
+        "four starts; the last cut what {cut} bytes less left of the last record"
+    );
+    for (kind, n) in [("SupervisorStarted", 1), ("DriverStarted", 1)] {
+        let sql =
+            format!("SELECT count(*) FROM events WHERE robot = '{ROBOT}' AND kind = '{kind}'");
+        assert_eq!(
+            count(&mut c, &sql),
+            n,
+            "{kind}: journaled once, not at each agent start"
+        );
+    }
+    let (through, lost): (i64, i64) = {
+        let r = c
+            .query_one(
+                "SELECT stored_through, lost FROM journals WHERE robot = $1",
+                &[&ROBOT],
+            )
+            .unwrap();
+        (r.get(0), r.get(1))
+    };
+    let max_seq = count(
+        &mut c,
+        &format!("SELECT max(seq) FROM events WHERE robot = '{ROBOT}'"),
+    );
+    assert_eq!(
+        (through, lost),
+        (max_seq, 0),
+        "stored through the newest, none lost"
+    );
+    // Telemetry rolled up per second, named from the layout (which comes every 5 s).
+    let sql = format!(
+        "SELECT joints, temp_max_c, (SELECT count(*) FROM telemetry WHERE robot = '{ROBOT}') \
+         FROM telemetry WHERE robot = '{ROBOT}' ORDER BY at DESC LIMIT 1"
+    );
+    let (joints, temps, rows) = wait_for(Duration::from_secs(15), "a named telemetry row", || {
+        let r = c.query_one(&sql, &[]).ok()?;
+        let joints: Vec<String> = r.get(0);
+        let (temps, rows): (Vec<f32>, i64) = (r.get(1), r.get(2));
+        joints
+            .contains(&"left_elbow".to_string())
+            .then_some((joints, temps, rows))
+    });
+    assert!(rows >= 5, "{rows} telemetry rows");
+    assert_eq!(joints.len(), temps.len());
+    assert!(temps.iter().all(|t| (15.0..80.0).contains(t)), "{temps:?}");
+    drop(c);
+    store.terminate(Duration::from_secs(5));
+    drop(watcher);
+    drop(refuser);
+    stack.stop();
+}
