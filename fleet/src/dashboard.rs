@@ -8,6 +8,7 @@
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use fleet::collector::Collector;
+use fleet_agent::agent::wall_ms;
 use fleet_agent::keys::all_robots;
 use fleet_agent::zenoh::query::{ConsolidationMode, QueryTarget};
 use fleet_agent::zenoh::sample::{Sample, SampleKind};
@@ -15,7 +16,7 @@ use fleet_agent::zenoh::Wait;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 const DASHBOARD: &str = include_str!("dashboard.html");
 
@@ -71,12 +72,6 @@ pub struct FleetArgs {
     /// Stop after this many seconds.
     #[arg(long)]
     pub run_for: Option<f64>,
-}
-
-fn wall_ms() -> u64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_millis() as u64)
 }
 
 /// The collector, shared by zenoh's callbacks and the HTTP thread. A panic while it was held

@@ -14,6 +14,7 @@ use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use fleet::history::{RollupConfig, RollupRow, Rollups, SCHEMA_SQL};
 use fleet::journal_seen::{FleetJournals, JournalSeen, Taken};
+use fleet_agent::agent::wall_ms;
 use fleet_agent::keys::{all_robots, robot_key, robot_of};
 use fleet_agent::schema::{decode, encode, AckMsg, EventMsg, LayoutMsg, StateMsg, SCHEMA_VERSION};
 use fleet_agent::zenoh::sample::Sample;
@@ -22,7 +23,7 @@ use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{sync_channel, Receiver, TrySendError};
 use std::sync::Arc;
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 /// Where `nori fleet store` listens when told nothing (the robots' agents connect here by
 /// default).
@@ -72,12 +73,6 @@ struct Counts {
     rows_dropped: u64,
     undecodable: u64,
     database_failures: u64,
-}
-
-fn wall_ms() -> u64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_millis() as u64)
 }
 
 /// Runs the store until Ctrl-C (or `--run-for`).

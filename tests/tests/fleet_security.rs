@@ -110,7 +110,7 @@ fn only_the_inference_identity_moves_the_robot() {
         )
         .replace("mode = \"peer\"", "mode = \"client\"")
         .replace(
-            "[\"tcp/127.0.0.1:7447\", \"tcp/127.0.0.1:7448\"]",
+            "[\"tcp/127.0.0.1:7447\", \"tcp/127.0.0.1:7448\", \"tcp/127.0.0.1:7449\"]",
             &format!("[\"{endpoint}\"]"),
         )
         .replace(
@@ -120,6 +120,10 @@ fn only_the_inference_identity_moves_the_robot() {
                 certs.join(format!("{ROBOT}.json5")).display()
             ),
         );
+    assert!(
+        toml.contains(&format!("connect = [\"{endpoint}\"]")),
+        "the agent's default endpoints were not replaced by the router's"
+    );
     std::fs::write(&agent_toml, toml).unwrap();
     stack.restart_agent_with(&["--config", agent_toml.to_str().unwrap()]);
     let node = Plane::open(&stack.domain, "test").unwrap();
