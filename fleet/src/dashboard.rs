@@ -72,6 +72,10 @@ pub struct FleetArgs {
     /// Stop after this many seconds.
     #[arg(long)]
     pub run_for: Option<f64>,
+    /// The history's database (`nori fleet store --database`): the dashboard then serves the
+    /// fleet's report on `/report?days=N` (7 by default).
+    #[arg(long)]
+    pub database: Option<String>,
 }
 
 /// The collector, shared by zenoh's callbacks and the HTTP thread. A panic while it was held
@@ -139,7 +143,10 @@ pub fn run(args: &FleetArgs) -> Result<()> {
         let (c, stop) = (collector.clone(), stop.clone());
         std::thread::Builder::new()
             .name("http".into())
-            .spawn(move || serve_http(&server, &c, &stop))
+            .spawn({
+                let database = args.database.clone();
+                move || serve_http(&server, &c, database.as_deref(), &stop)
+            })
             .context("starting the HTTP thread")?
     };
 
@@ -177,13 +184,23 @@ pub fn run(args: &FleetArgs) -> Result<()> {
     Ok(())
 }
 
-fn serve_http(server: &tiny_http::Server, collector: &Mutex<Collector>, stop: &AtomicBool) {
+fn serve_http(
+    server: &tiny_http::Server,
+    collector: &Mutex<Collector>,
+    database: Option<&str>,
+    stop: &AtomicBool,
+) {
     while !stop.load(Ordering::Relaxed) {
         let Ok(Some(request)) = server.recv_timeout(Duration::from_millis(100)) else {
             continue;
         };
-        let path = request.url().split('?').next().unwrap_or("/").to_string();
-        let (body, kind, code) = page(&path, &lock(collector));
+        let (path, query) = request.url().split_once('?').unwrap_or((request.url(), ""));
+        let (path, query) = (path.to_string(), query.to_string());
+        let (body, kind, code) = if path == "/report" {
+            report_page(database, &query)
+        } else {
+            page(&path, &lock(collector))
+        };
         let mut response = tiny_http::Response::from_data(body).with_status_code(code);
         // Every answer is the present: a browser must ask again, not show a cached thumbnail.
         for header in [
@@ -197,6 +214,34 @@ fn serve_http(server: &tiny_http::Server, collector: &Mutex<Collector>, stop: &A
         if let Err(e) = request.respond(response) {
             tracing::debug!("HTTP client went away: {e}");
         }
+    }
+}
+
+/// The fleet's report over the last `days=N` days (7 by default) from the history's database.
+fn report_page(database: Option<&str>, query: &str) -> (Vec<u8>, &'static str, u16) {
+    const TEXT: &str = "text/plain; charset=utf-8";
+    let Some(database) = database else {
+        return (
+            b"no history: start nori fleet with --database (the one nori fleet store writes)\n"
+                .to_vec(),
+            TEXT,
+            404,
+        );
+    };
+    let days = query
+        .split('&')
+        .find_map(|kv| kv.strip_prefix("days="))
+        .map_or(Ok(7.0), str::parse::<f64>);
+    match days {
+        Ok(days) => match crate::report_command::html(database, days) {
+            Ok(page) => (page.into_bytes(), "text/html; charset=utf-8", 200),
+            Err(e) => (
+                format!("the report failed: {e:#}\n").into_bytes(),
+                TEXT,
+                503,
+            ),
+        },
+        Err(e) => (format!("days: {e}\n").into_bytes(), TEXT, 400),
     }
 }
 

@@ -7,4 +7,5 @@ pub mod collector;
 pub mod history;
 pub mod journal_seen;
 pub mod policy;
+pub mod report;
 pub mod seek;

@@ -3,6 +3,7 @@
 
 mod dashboard;
 mod policy_server;
+mod report_command;
 mod router;
 mod store;
 
@@ -27,6 +28,10 @@ enum Command {
     /// The fleet's history: every robot's events (once each, acknowledged to the robot when
     /// committed) and its telemetry rolled up, in PostgreSQL (`nori fleet store`).
     Store(store::StoreArgs),
+    /// The fleet's statistics over a period from the store's database: protection events by
+    /// kind and per robot-day, time above the warning levels, the hottest motors, stalls per
+    /// joint, drifting robots (`nori fleet report`).
+    Report(report_command::ReportArgs),
 }
 
 fn main() -> Result<()> {
@@ -35,5 +40,6 @@ fn main() -> Result<()> {
         Command::PolicyServer(a) => policy_server::run(&a),
         Command::Router(a) => router::run(&a),
         Command::Store(a) => store::run(&a),
+        Command::Report(a) => report_command::run(&a),
     }
 }

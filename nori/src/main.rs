@@ -8,7 +8,7 @@
 //! | `nori up`, `nori sim scenario` | `nori-stack up`, `nori-stack scenario` | `stack` |
 //! | `nori sim serve` | `nori-sim` | `sim` |
 //! | `nori sim aim` | `nori-sim-aim` | `sim` |
-//! | `nori fleet`, `nori fleet store`, `nori policy-server`, `nori router` | `nori-fleet dashboard`, `… store`, `… policy-server`, `… router` | `fleet` |
+//! | `nori fleet`, `nori fleet store`, `nori fleet report`, `nori policy-server`, `nori router` | `nori-fleet dashboard`, `… store`, `… report`, `… policy-server`, `… router` | `fleet` |
 //! | `nori bench …`, `nori model bench` | `nori-bench …`, `nori-bench model-lab` | `bench` |
 //! | `nori model analyze`, `nori model generate` | `nori-model …` | `model-lab` |
 
@@ -111,8 +111,13 @@ fn main() -> Result<()> {
         Command::Reenable(a) => plane_tools::reenable(a),
         Command::Base(a) => base_tool::base(a),
         Command::PolicyServer(p) => run_instead("nori-fleet", &["policy-server"], p),
-        // `nori fleet store` is its own command; plain `nori fleet` is the dashboard.
-        Command::Fleet(p) if p.args.first().is_some_and(|a| a == "store") => {
+        // `nori fleet store` and `nori fleet report` are commands of their own; plain `nori fleet`
+        // is the dashboard.
+        Command::Fleet(p)
+            if p.args
+                .first()
+                .is_some_and(|a| a == "store" || a == "report") =>
+        {
             run_instead("nori-fleet", &[], p)
         }
         Command::Fleet(p) => run_instead("nori-fleet", &["dashboard"], p),

@@ -674,3 +674,17 @@ impl Drop for ScratchPostgres {
         self.stop();
     }
 }
+
+/// A plain HTTP/1.0 GET: the status code and the body.
+pub fn http_get(addr: &str, path: &str) -> Option<(u16, Vec<u8>)> {
+    use std::io::{Read, Write};
+    let mut stream = std::net::TcpStream::connect(addr).ok()?;
+    stream.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
+    write!(stream, "GET {path} HTTP/1.0\r\nHost: {addr}\r\n\r\n").ok()?;
+    let mut raw = Vec::new();
+    stream.read_to_end(&mut raw).ok()?;
+    let split = raw.windows(4).position(|w| w == b"\r\n\r\n")?;
+    let head = String::from_utf8_lossy(&raw[..split]);
+    let code = head.split_whitespace().nth(1)?.parse().ok()?;
+    Some((code, raw[split + 4..].to_vec()))
+}

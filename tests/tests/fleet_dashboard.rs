@@ -9,32 +9,17 @@
 use fleet_agent::keys::robot_key;
 use fleet_agent::schema::{encode, ActionChunk, SCHEMA_VERSION};
 use fleet_agent::zenoh::Wait;
-use nori_tests::{binary, free_endpoint, scratch, wait_for, ArmStack, Proc};
+use nori_tests::{binary, free_endpoint, http_get, scratch, wait_for, ArmStack, Proc};
 use prometheus_parse::{Scrape, Value};
-use std::io::{Read, Write};
-use std::net::TcpStream;
 use std::time::Duration;
 use telemetry::clock::monotonic_ns;
 
 const ROBOT: &str = "sim-dash";
 const ELBOW: usize = 3;
 
-/// A plain HTTP/1.0 GET: the status code and the body.
-fn get_bytes(addr: &str, path: &str) -> Option<(u16, Vec<u8>)> {
-    let mut stream = TcpStream::connect(addr).ok()?;
-    stream.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
-    write!(stream, "GET {path} HTTP/1.0\r\nHost: {addr}\r\n\r\n").ok()?;
-    let mut raw = Vec::new();
-    stream.read_to_end(&mut raw).ok()?;
-    let split = raw.windows(4).position(|w| w == b"\r\n\r\n")?;
-    let head = String::from_utf8_lossy(&raw[..split]);
-    let code = head.split_whitespace().nth(1)?.parse().ok()?;
-    Some((code, raw[split + 4..].to_vec()))
-}
-
 /// The body of a 200 answer as text, or None.
 fn get(addr: &str, path: &str) -> Option<String> {
-    let (code, body) = get_bytes(addr, path)?;
+    let (code, body) = http_get(addr, path)?;
     (code == 200).then(|| String::from_utf8_lossy(&body).into_owned())
 }
 
@@ -279,7 +264,7 @@ fn the_dashboard_shows_each_cameras_picture_and_health() {
     };
     std::thread::sleep(Duration::from_millis(200));
     let plane = wait_for(Duration::from_secs(5), "a frame on the plane", picture);
-    let (code, jpeg) = get_bytes(&http, &format!("/api/robots/{id}/preview/left_wrist")).unwrap();
+    let (code, jpeg) = http_get(&http, &format!("/api/robots/{id}/preview/left_wrist")).unwrap();
     assert_eq!(code, 200);
     let mut thumb = vec![0u8; camera::convert::rgb_len(160, 120)];
     camera::convert::to_rgb(
@@ -320,11 +305,11 @@ fn the_dashboard_shows_each_cameras_picture_and_health() {
         "{head}"
     );
     assert_eq!(r["lidar"], serde_json::Value::Null, "no lidar configured");
-    let (code, body) = get_bytes(&http, &format!("/api/robots/{id}/preview/head")).unwrap();
+    let (code, body) = http_get(&http, &format!("/api/robots/{id}/preview/head")).unwrap();
     assert_eq!(code, 404);
     assert!(String::from_utf8_lossy(&body).contains("no thumbnail of camera head"));
     assert_eq!(
-        get_bytes(&http, &format!("/api/robots/{id}/scan"))
+        http_get(&http, &format!("/api/robots/{id}/scan"))
             .unwrap()
             .0,
         404

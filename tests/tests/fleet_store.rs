@@ -264,3 +264,159 @@ fn every_event_is_stored_once_through_agent_kills_a_database_outage_a_store_kill
     drop(refuser);
     stack.stop();
 }
+
+/// `nori fleet report` on a history written as the store writes it: two robots over two days,
+/// one of them running hot and hotter, with stalls and warnings.
+#[test]
+fn the_report_gives_rates_per_robot_day_the_hottest_motors_stalls_and_drift() {
+    let dir = nori_tests::scratch("fleet-report");
+    let db = ScratchPostgres::start(&dir.join("postgres"));
+    // The store makes its tables.
+    let (code, _) = Proc::spawn(
+        "nori-fleet store",
+        &binary("nori-fleet"),
+        &[
+            "store",
+            "--database",
+            &db.url,
+            "--listen",
+            &free_endpoint(),
+            "--run-for",
+            "1",
+        ],
+        &dir.join("store.log"),
+    )
+    .wait_exit(Duration::from_secs(20));
+    assert_eq!(code, Some(0));
+    let mut c = db.client();
+    // Day 1 and day 2, a row a minute: robot a's elbow at 45 °C then 52 °C (10 s a minute above
+    // 50 on day 2, max 55.5), robot b cool; b only half a day.
+    c.batch_execute(
+        "INSERT INTO telemetry (robot, at, period_s, samples, joints, temp_max_c, temp_mean_c, current_max_a, above_warn_s)
+         SELECT 'a', timestamptz '2026-11-01 00:00Z' + m * interval '1 minute', 60, 600,
+                ARRAY['left_elbow', 'neck'],
+                ARRAY[CASE WHEN m < 1440 THEN 46 ELSE 55.5 END, 30]::real[],
+                ARRAY[CASE WHEN m < 1440 THEN 45 ELSE 52 END, 30]::real[],
+                ARRAY[1.0, 0.2]::real[],
+                ARRAY[CASE WHEN m < 1440 THEN 0 ELSE 10 END, CASE WHEN m < 1440 THEN 0 ELSE 2 END, 0, 0, 0, 0]::real[]
+         FROM generate_series(0, 2879) m;
+         INSERT INTO telemetry (robot, at, period_s, samples, joints, temp_max_c, temp_mean_c, current_max_a, above_warn_s)
+         SELECT 'b', timestamptz '2026-11-01 00:00Z' + m * interval '1 minute', 60, 600,
+                ARRAY['left_elbow', 'neck'], ARRAY[35, 'NaN']::real[], ARRAY[34, 'NaN']::real[],
+                ARRAY[0.5, 'NaN']::real[], ARRAY[0, 0, 0, 0, 0, 0]::real[]
+         FROM generate_series(0, 719) m;
+         INSERT INTO events (robot, journal, seq, at, robot_ns, origin_seq, kind, joint, detail, bus, level, value)
+         SELECT 'a', 1, k, timestamptz '2026-11-01 00:00Z' + k * interval '40 minutes', k, k,
+                CASE WHEN k % 2 = 0 THEN 'Stall' ELSE 'ThermalWarning' END, 'left_elbow', '', 0, 1, 1
+         FROM generate_series(1, 60) k WHERE k < 20 OR k > 36;
+         INSERT INTO events (robot, journal, seq, at, robot_ns, origin_seq, kind, joint, detail, bus, level, value)
+         VALUES ('b', 2, 1, '2026-11-01 03:00Z', 1, 1, 'Stall', 'neck', '', 0, 0, 1),
+                ('b', 2, 2, '2026-11-01 03:01Z', 2, 0, 'AgentStarted', '', '', 255, 0, 0);",
+    )
+    .unwrap();
+    let out = std::process::Command::new(binary("nori"))
+        .args([
+            "fleet",
+            "report",
+            "--database",
+            &db.url,
+            "--from",
+            "2026-11-01 00:00Z",
+            "--to",
+            "2026-11-03 00:00Z",
+            "--json",
+            "--html",
+        ])
+        .arg(dir.join("report.html"))
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(r["robots"], 2);
+    assert!((r["robot_days"].as_f64().unwrap() - 2.5).abs() < 1e-9);
+    // a: events 1..19 and 37..60 = 43, of which 21 stalls and 22 warnings, in 2 days.
+    let a = &r["per_robot"][0];
+    assert_eq!(a["robot"], "a");
+    assert_eq!(
+        (
+            a["protections"]["Stall"].as_u64(),
+            a["protections"]["ThermalWarning"].as_u64()
+        ),
+        (Some(21), Some(22))
+    );
+    assert!((a["per_day"].as_f64().unwrap() - 21.5).abs() < 1e-9);
+    assert_eq!(
+        r["by_kind"]["Stall"][0], 22,
+        "a's 21 and b's 1; AgentStarted is no protection"
+    );
+    assert!(r["by_kind"].get("AgentStarted").is_none());
+    let hot = &r["hottest"][0];
+    assert_eq!(
+        (hot["robot"].as_str(), hot["joint"].as_str()),
+        (Some("a"), Some("left_elbow"))
+    );
+    assert!((hot["margin_c"].as_f64().unwrap() - 3.5).abs() < 1e-6);
+    assert_eq!(hot["above_warn_s"][0], 14400.0, "10 s a minute for a day");
+    assert_eq!(hot["above_warn_s"][1], 2880.0);
+    assert_eq!(r["stalls"][0], serde_json::json!(["left_elbow", 21]));
+    let drifts: Vec<String> = r["drifts"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|d| {
+            format!(
+                "{} {}",
+                d["robot"].as_str().unwrap(),
+                d["what"].as_str().unwrap()
+            )
+        })
+        .collect();
+    assert_eq!(
+        drifts,
+        ["a left_elbow mean temperature, °C"],
+        "a's elbow rose 7 °C; its events did not triple"
+    );
+    let page = std::fs::read_to_string(dir.join("report.html")).unwrap();
+    assert!(page.contains("<svg") && page.contains("left_elbow"));
+    // The same report on the dashboard's page.
+    let http = free_endpoint().replace("tcp/", "");
+    let mut dashboard = Proc::spawn(
+        "nori fleet",
+        &binary("nori"),
+        &[
+            "fleet",
+            "--database",
+            &db.url,
+            "--http",
+            &http,
+            "--listen",
+            &free_endpoint(),
+        ],
+        &dir.join("dashboard.log"),
+    );
+    let (code, body) = wait_for(Duration::from_secs(20), "the dashboard's report", || {
+        nori_tests::http_get(&http, "/report?days=60")
+    });
+    let body = String::from_utf8_lossy(&body);
+    assert_eq!(code, 200, "{body}");
+    assert!(
+        body.contains("<svg") && body.contains("21.50/day"),
+        "{body}"
+    );
+    let (code, _) = nori_tests::http_get(&http, "/report?days=soon").unwrap();
+    assert_eq!(code, 400);
+    dashboard.terminate(Duration::from_secs(5));
+    // The database down: a clear error, not a report of nothing.
+    db.stop();
+    let out = std::process::Command::new(binary("nori"))
+        .args(["fleet", "report", "--database", &db.url])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("connecting to the fleet's database"), "{err}");
+}
