@@ -8,14 +8,17 @@
 #   OUT_DIR/<robot-id>.{pem,key}          one per robot (CN = robot id)
 #   OUT_DIR/inference.{pem,key}           the inference servers (CN inference)
 #   OUT_DIR/dashboard.{pem,key}           fleet dashboards (CN dashboard)
+#   OUT_DIR/store.{pem,key}               the fleet's history store (CN store)
 #   OUT_DIR/router.json5                  router: TLS listener on ENDPOINT, mutual TLS, access control
 #   OUT_DIR/<identity>.json5              client side for each identity: its certificate, the CA
 #
 # ENDPOINT is a zenoh TLS locator, e.g. tls/127.0.0.1:7448 or tls/site-router.local:7447.
 # Access control on the router (default deny; deny rules win over allow rules):
-#   robot R      reads and writes nori/R/** only, and may not publish actions, even its own
+#   robot R      reads and writes nori/R/** only, and may not publish actions nor
+#                acknowledgements, even its own
 #   inference    reads nori/*/observation and nori/*/layout, publishes nori/*/actions
 #   dashboard    reads nori/*/{state,events,layout,alive,status}; publishes nothing
+#   store        reads nori/*/{events,state,layout}, publishes nori/*/acks only
 # For production use a real CA and keep each robot's key on its robot only.
 set -euo pipefail
 if [ $# -lt 3 ]; then
@@ -53,12 +56,12 @@ sign() {
 }
 
 sign router router "DNS:localhost,IP:127.0.0.1"
-for id in "${robots[@]}" inference dashboard; do
+for id in "${robots[@]}" inference dashboard store; do
   sign "$id" "$id" "DNS:$id"
 done
 
 # Client side of one identity.
-for id in "${robots[@]}" inference dashboard; do
+for id in "${robots[@]}" inference dashboard store; do
   cat >"$out/$id.json5" <<JSON
 // zenoh client configuration of identity "$id" (made by make-dev-ca.sh).
 {
@@ -110,13 +113,17 @@ JSON
   done
   cat <<JSON
       { id: "robots-see-interest", permission: "allow", flows: ["egress"], messages: ["declare_subscriber", "declare_liveliness_subscriber"], key_exprs: ["nori/**"] },
-      { id: "robots-publish-no-actions", permission: "deny", flows: ["ingress"], messages: ["put", "delete"], key_exprs: ["nori/*/actions"] },
+      { id: "robots-publish-no-commands", permission: "deny", flows: ["ingress"], messages: ["put", "delete"], key_exprs: ["nori/*/actions", "nori/*/acks"] },
       { id: "inference-observes", permission: "allow", flows: ["ingress"], messages: ["declare_subscriber"], key_exprs: ["nori/*/observation", "nori/*/layout"] },
       { id: "inference-hears", permission: "allow", flows: ["egress"], messages: ["put"], key_exprs: ["nori/*/observation", "nori/*/layout"] },
       { id: "inference-acts", permission: "allow", flows: ["ingress"], messages: ["put"], key_exprs: ["nori/*/actions"] },
       { id: "inference-acts-interest", permission: "allow", flows: ["egress"], messages: ["declare_subscriber"], key_exprs: ["nori/*/actions"] },
       { id: "dashboard-asks", permission: "allow", flows: ["ingress"], messages: ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"], key_exprs: ["nori/*/state", "nori/*/events", "nori/*/layout", "nori/*/alive", "nori/*/status", "nori/*/preview", "nori/*/scan"] },
       { id: "dashboard-hears", permission: "allow", flows: ["egress"], messages: ["put", "reply", "liveliness_token", "declare_queryable"], key_exprs: ["nori/*/state", "nori/*/events", "nori/*/layout", "nori/*/alive", "nori/*/status", "nori/*/preview", "nori/*/scan"] },
+      { id: "store-asks", permission: "allow", flows: ["ingress"], messages: ["declare_subscriber"], key_exprs: ["nori/*/events", "nori/*/state", "nori/*/layout"] },
+      { id: "store-hears", permission: "allow", flows: ["egress"], messages: ["put"], key_exprs: ["nori/*/events", "nori/*/state", "nori/*/layout"] },
+      { id: "store-acknowledges", permission: "allow", flows: ["ingress"], messages: ["put"], key_exprs: ["nori/*/acks"] },
+      { id: "store-acknowledges-interest", permission: "allow", flows: ["egress"], messages: ["declare_subscriber"], key_exprs: ["nori/*/acks"] },
       { id: "read-only", permission: "deny", flows: ["ingress"], messages: ["put", "delete", "declare_queryable", "liveliness_token"], key_exprs: ["nori/**"] },
     ],
     subjects: [
@@ -127,19 +134,21 @@ JSON
   cat <<JSON
       { id: "inference", cert_common_names: ["inference"] },
       { id: "dashboard", cert_common_names: ["dashboard"] },
+      { id: "store", cert_common_names: ["store"] },
     ],
     policies: [
 JSON
   for r in "${robots[@]}"; do
-    echo "      { rules: [\"own-$r\", \"robots-see-interest\", \"robots-publish-no-actions\"], subjects: [\"$r\"] },"
+    echo "      { rules: [\"own-$r\", \"robots-see-interest\", \"robots-publish-no-commands\"], subjects: [\"$r\"] },"
   done
   cat <<JSON
       { rules: ["inference-observes", "inference-hears", "inference-acts", "inference-acts-interest"], subjects: ["inference"] },
       { rules: ["dashboard-asks", "dashboard-hears", "read-only"], subjects: ["dashboard"] },
+      { rules: ["store-asks", "store-hears", "store-acknowledges", "store-acknowledges-interest"], subjects: ["store"] },
     ],
   },
 }
 JSON
 } >"$out/router.json5"
 chmod 600 "$out"/*.key "$out/ca-key.pem"
-echo "made a development CA, router, ${#robots[@]} robot(s), inference and dashboard identities in $out"
+echo "made a development CA, router, ${#robots[@]} robot(s), inference, dashboard and store identities in $out"

@@ -1,7 +1,9 @@
 //! The fleet link with mutual TLS and access control, as `deploy/zenoh/make-dev-ca.sh` sets it
 //! up: a router (`nori router`), a robot's agent, the policy server with the inference identity,
 //! and intruders. Only the inference identity moves the robot; another robot's valid
-//! certificate, a dashboard's, no certificate or plain TCP do not.
+//! certificate, a dashboard's, no certificate or plain TCP do not. Only the store identity
+//! acknowledges the robot's events: forged acknowledgements from another robot, the robot itself
+//! or a dashboard never reach it.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
@@ -71,9 +73,11 @@ fn valid_chunk(layout: &JointLayout, seq: u64, target: f32) -> Vec<u8> {
     })
 }
 
-#[test]
-fn only_the_inference_identity_moves_the_robot() {
-    let dir = scratch("tls-fleet");
+/// The development CA of `make-dev-ca.sh` for robots `ROBOT` and robot-b, and its router on a
+/// free TLS port: the scratch directory, the certificates' directory, the router's endpoint and
+/// port, and the router.
+fn fleet(tag: &str) -> (std::path::PathBuf, std::path::PathBuf, String, u16, Proc) {
+    let dir = scratch(tag);
     let port = std::net::TcpListener::bind("127.0.0.1:0")
         .unwrap()
         .local_addr()
@@ -87,7 +91,7 @@ fn only_the_inference_identity_moves_the_robot() {
         .status()
         .unwrap();
     assert!(made.success(), "make-dev-ca.sh failed");
-    let _router = Proc::spawn(
+    let router = Proc::spawn(
         "router",
         &binary("nori"),
         &[
@@ -97,12 +101,12 @@ fn only_the_inference_identity_moves_the_robot() {
         ],
         &dir.join("router.log"),
     );
-    let dashboard = wait_for(Duration::from_secs(20), "the router", || {
-        fleet_agent::net::open_file(&certs.join("dashboard.json5")).ok()
-    });
+    (dir, certs, endpoint, port, router)
+}
 
-    let mut stack = ArmStack::start("tls", &[]);
-    let agent_toml = dir.join("agent.toml");
+/// The robot's agent as a client of the router with its certificate (and `journal`).
+fn robot_on_fleet(stack: &mut ArmStack, certs: &Path, endpoint: &str, journal: &Path) {
+    let agent_toml = stack.dir.join("agent.toml");
     let toml = fleet_agent::config::DEFAULT_CONFIG_TOML
         .replace(
             "robot-id = \"sim-0001\"",
@@ -125,7 +129,23 @@ fn only_the_inference_identity_moves_the_robot() {
         "the agent's default endpoints were not replaced by the router's"
     );
     std::fs::write(&agent_toml, toml).unwrap();
-    stack.restart_agent_with(&["--config", agent_toml.to_str().unwrap()]);
+    stack.restart_agent_with(&[
+        "--config",
+        agent_toml.to_str().unwrap(),
+        "--journal-dir",
+        journal.to_str().unwrap(),
+    ]);
+}
+
+#[test]
+fn only_the_inference_identity_moves_the_robot() {
+    let (dir, certs, endpoint, port, _router) = fleet("tls-fleet");
+    let dashboard = wait_for(Duration::from_secs(20), "the router", || {
+        fleet_agent::net::open_file(&certs.join("dashboard.json5")).ok()
+    });
+
+    let mut stack = ArmStack::start("tls", &[]);
+    robot_on_fleet(&mut stack, &certs, &endpoint, &dir.join("journal"));
     let node = Plane::open(&stack.domain, "test").unwrap();
     let states = node.subscriber(&plane::JOINT_STATE).unwrap();
     let layouts = node.subscriber(&plane::LAYOUT).unwrap();
@@ -229,4 +249,125 @@ fn only_the_inference_identity_moves_the_robot() {
     drop((telemetry, dashboard, states, layouts, node));
     let report = stack.stop();
     check_left_arm_report(&report, 60.0);
+}
+
+/// The store's acknowledgements through the router: only the store identity's reach the robot.
+#[test]
+fn only_the_store_identity_acknowledges_the_robots_events() {
+    use fleet_agent::schema::{AckMsg, EventMsg};
+    use telemetry::frames::{SupervisorCommand, COMMAND_REENABLE_BUS};
+    let (dir, certs, endpoint, _, _router) = fleet("tls-store");
+    let db = nori_tests::ScratchPostgres::start(&dir.join("postgres"));
+    let store_args = |n: u32| {
+        Proc::spawn(
+            "nori fleet store",
+            &binary("nori"),
+            &[
+                "fleet",
+                "store",
+                "--database",
+                &db.url,
+                "--zenoh-config",
+                certs.join("store.json5").to_str().unwrap(),
+            ],
+            &dir.join(format!("store-{n}.log")),
+        )
+    };
+    let mut store = store_args(1);
+    let dashboard = wait_for(Duration::from_secs(20), "the router", || {
+        fleet_agent::net::open_file(&certs.join("dashboard.json5")).ok()
+    });
+    let events = dashboard
+        .declare_subscriber("nori/*/events")
+        .wait()
+        .unwrap();
+    let mut stack = ArmStack::start("tls-store-robot", &[]);
+    robot_on_fleet(&mut stack, &certs, &endpoint, &dir.join("journal"));
+    let counters = || {
+        let st = status(&dashboard);
+        let c = |k: &str| st["counters"][k].as_u64().unwrap();
+        (
+            c("events_unacknowledged"),
+            c("events_stored_through"),
+            c("acks_refused"),
+        )
+    };
+    // The store's acknowledgements come through the router.
+    let (_, through, _) = wait_for(
+        Duration::from_secs(30),
+        "the robot's events acknowledged",
+        || {
+            let c = counters();
+            (c.0 == 0 && c.1 >= 3).then_some(c)
+        },
+    );
+    let journal = wait_for(Duration::from_secs(10), "an event at the dashboard", || {
+        let s = events.try_recv().ok().flatten()?;
+        decode::<EventMsg>(&s.payload().to_bytes()).ok()
+    })
+    .journal;
+    // The store gone, three events held on the robot.
+    store.terminate(Duration::from_secs(5));
+    let node = Plane::open(&stack.domain, "test-store").unwrap();
+    let commands = node.publisher(&plane::COMMANDS).unwrap();
+    for seq in 1..=3 {
+        let cmd = SupervisorCommand {
+            seq,
+            timestamp_ns: monotonic_ns(),
+            kind: COMMAND_REENABLE_BUS,
+            ..SupervisorCommand::default()
+        };
+        plane::publish(&commands, &cmd).unwrap();
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    wait_for(Duration::from_secs(10), "three events held", || {
+        (counters().0 >= 3).then_some(())
+    });
+    // Forged acknowledgements, one valid for what the robot holds and one beyond it: from
+    // another robot, from the robot itself and from the dashboard. Had one arrived, the held
+    // events would be let go, or the refusal counted.
+    let acks = robot_key(ROBOT, "acks");
+    for identity in ["robot-b", ROBOT, "dashboard"] {
+        let forger = client(&certs, identity);
+        for stored_through in [through + 3, through + 1000] {
+            let ack = AckMsg {
+                version: SCHEMA_VERSION,
+                journal,
+                stored_through,
+            };
+            forger.put(&acks, encode(&ack)).wait().unwrap();
+        }
+        std::thread::sleep(Duration::from_millis(300));
+        forger.close().wait().unwrap();
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    let (held, now_through, refused) = counters();
+    assert!(
+        held >= 3,
+        "a forged acknowledgement let the robot's events go: {held} held"
+    );
+    assert_eq!(
+        (now_through, refused),
+        (through, 0),
+        "a forged acknowledgement reached the robot"
+    );
+    // The store back: they are stored and acknowledged.
+    let mut store = store_args(2);
+    wait_for(
+        Duration::from_secs(30),
+        "the held events acknowledged",
+        || (counters().0 == 0).then_some(()),
+    );
+    let mut c = db.client();
+    let n: i64 = c
+        .query_one(
+            "SELECT count(*) FROM events WHERE kind = 'CommandRefused'",
+            &[],
+        )
+        .unwrap()
+        .get(0);
+    assert_eq!(n, 3);
+    store.terminate(Duration::from_secs(5));
+    drop((events, dashboard, commands, node));
+    stack.stop();
 }
