@@ -558,49 +558,90 @@ fn cpu_seconds() -> f64 {
     })
 }
 
+/// One stream of `robots` robots' telemetry into this process: `raw` only counts what zenoh
+/// delivers (the baseline); otherwise the collector ingests it as `nori fleet` does (decoded
+/// outside the lock). Returns each robot's messages sent and received, and this process's CPU
+/// seconds over the stream.
+fn ingest_run(
+    publisher: &std::path::Path,
+    robots: usize,
+    args: &FleetIngestArgs,
+    raw: bool,
+) -> Result<(Vec<u64>, Vec<u64>, f64)> {
+    let endpoint = free_endpoint()?;
+    let session =
+        zenoh_session(vec![endpoint.clone()], vec![], "peer").context("opening a zenoh session")?;
+    let collector = Arc::new(Mutex::new(Collector::new(120, 500)));
+    let counts: Arc<Vec<std::sync::atomic::AtomicU64>> =
+        Arc::new((0..robots).map(|_| Default::default()).collect());
+    let (c, n) = (collector.clone(), counts.clone());
+    let _states = session
+        .declare_subscriber(all_robots("state"))
+        .callback(move |s: Sample| {
+            if raw {
+                // What zenoh costs: the sample delivered, its bytes looked at, counted.
+                let key = s.key_expr().as_str();
+                let bytes = s.payload().to_bytes();
+                let robot = key
+                    .get(6..10)
+                    .and_then(|r| r.parse::<usize>().ok())
+                    .filter(|_| !bytes.is_empty());
+                if let Some(k) = robot.and_then(|r| n.get(r)) {
+                    k.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                }
+                return;
+            }
+            let key = s.key_expr().as_str();
+            let msg = fleet::collector::decode_state(key, &s.payload().to_bytes());
+            let mut c = c.lock().unwrap_or_else(|p| p.into_inner());
+            let _ = c.decoded_state(key, msg, 0);
+        })
+        .wait()
+        .map_err(|e| anyhow!("{e}"))?;
+    let cpu_before = cpu_seconds();
+    let output = Command::new(publisher)
+        .args(["--connect", &endpoint])
+        .args([
+            "--robots",
+            &robots.to_string(),
+            "--hz",
+            &args.hz.to_string(),
+        ])
+        .args(["--seconds", &args.seconds.to_string()])
+        .stderr(Stdio::inherit())
+        .output()
+        .context("running the publishers")?;
+    anyhow::ensure!(output.status.success(), "the publishers failed");
+    let sent: Vec<u64> = serde_json::from_slice(&output.stdout)?;
+    // Whatever is still in flight arrives within a moment.
+    std::thread::sleep(Duration::from_millis(500));
+    let cpu = cpu_seconds() - cpu_before;
+    let received = if raw {
+        counts
+            .iter()
+            .map(|k| k.load(std::sync::atomic::Ordering::Relaxed))
+            .collect()
+    } else {
+        let c = collector.lock().unwrap_or_else(|p| p.into_inner());
+        (0..robots)
+            .map(|r| c.states_received(&format!("r{r:04}")))
+            .collect()
+    };
+    Ok((sent, received, cpu))
+}
+
 /// Runs `nori bench fleet-ingest`.
 pub fn fleet_ingest(args: &FleetIngestArgs) -> Result<()> {
     let publisher = stack::sibling("nori-bench-fleet-publisher")?;
     let mut rows = Vec::new();
     for &robots in &args.robots {
-        let endpoint = free_endpoint()?;
-        let session = zenoh_session(vec![endpoint.clone()], vec![], "peer")
-            .context("opening a zenoh session")?;
-        let collector = Arc::new(Mutex::new(Collector::new(120, 500)));
-        let c = collector.clone();
-        let _states = session
-            .declare_subscriber(all_robots("state"))
-            .callback(move |s: Sample| {
-                let bytes = s.payload().to_bytes();
-                let mut c = c.lock().unwrap_or_else(|p| p.into_inner());
-                let _ = c.state(s.key_expr().as_str(), &bytes, 0);
-            })
-            .wait()
-            .map_err(|e| anyhow!("{e}"))?;
-        let cpu_before = cpu_seconds();
-        let output = Command::new(&publisher)
-            .args(["--connect", &endpoint])
-            .args([
-                "--robots",
-                &robots.to_string(),
-                "--hz",
-                &args.hz.to_string(),
-            ])
-            .args(["--seconds", &args.seconds.to_string()])
-            .stderr(Stdio::inherit())
-            .output()
-            .context("running the publishers")?;
-        anyhow::ensure!(output.status.success(), "the publishers failed");
-        let sent: Vec<u64> = serde_json::from_slice(&output.stdout)?;
-        // Whatever is still in flight arrives within a moment.
-        std::thread::sleep(Duration::from_millis(500));
-        let cpu = cpu_seconds() - cpu_before;
-        let c = collector.lock().unwrap_or_else(|p| p.into_inner());
-        let received: Vec<u64> = (0..robots)
-            .map(|r| c.states_received(&format!("r{r:04}")))
-            .collect();
+        // The baseline first, then the collector, each on its own session and stream.
+        let (_, raw_received, raw_cpu) = ingest_run(&publisher, robots, args, true)?;
+        let (sent, received, cpu) = ingest_run(&publisher, robots, args, false)?;
         let (sent_total, received_total) = (sent.iter().sum::<u64>(), received.iter().sum::<u64>());
+        let raw_total = raw_received.iter().sum::<u64>();
         let offered = robots as f64 * args.hz * args.seconds;
+        let per_message_us = |cpu: f64, n: u64| if n == 0 { 0.0 } else { cpu / n as f64 * 1e6 };
         rows.push(serde_json::json!({
             "robots": robots,
             "offered": offered,
@@ -612,6 +653,11 @@ pub fn fleet_ingest(args: &FleetIngestArgs) -> Result<()> {
                 .fold(1.0, f64::min),
             "sent_vs_offered": sent_total as f64 / offered,
             "collector_cpu_share_of_a_core": cpu / (args.seconds + 0.5),
+            "raw_received": raw_total,
+            "raw_cpu_share_of_a_core": raw_cpu / (args.seconds + 0.5),
+            "collector_us_per_message": per_message_us(cpu, received_total),
+            "raw_us_per_message": per_message_us(raw_cpu, raw_total),
+            "collector_vs_raw": if raw_cpu > 0.0 { cpu / raw_cpu } else { 0.0 },
         }));
     }
     let out = serde_json::json!({"hz": args.hz, "seconds": args.seconds, "runs": rows});
@@ -619,15 +665,19 @@ pub fn fleet_ingest(args: &FleetIngestArgs) -> Result<()> {
         println!("{out}");
     } else {
         println!(
-            "fleet ingest, 18-joint telemetry at {} Hz per robot, {} s per fleet size (baseline: the offered load)",
+            "fleet ingest, 18-joint telemetry at {} Hz per robot, {} s per fleet size (baselines: the offered load; zenoh's own delivery of the same stream, counted and dropped)",
             args.hz, args.seconds
         );
+        let f = |r: &serde_json::Value, k: &str| r[k].as_f64().unwrap_or(0.0);
         for r in &rows {
             println!(
-                "  {:>4} robots: sent {} of {} offered ({:.3}), received {} (lost {}, worst robot {:.3}), collector {:.0} % of a core",
-                r["robots"], r["sent"], r["offered"], r["sent_vs_offered"].as_f64().unwrap_or(0.0),
-                r["received"], r["lost"], r["worst_robot_received_ratio"].as_f64().unwrap_or(0.0),
-                r["collector_cpu_share_of_a_core"].as_f64().unwrap_or(0.0) * 100.0
+                "  {:>4} robots: sent {} of {} offered ({:.3}), received {} (lost {}, worst robot {:.3}); \
+                 collector {:.0} % of a core, {:.1} µs a message; raw zenoh {:.0} %, {:.1} µs ({} received); ratio {:.2}",
+                r["robots"], r["sent"], r["offered"], f(r, "sent_vs_offered"),
+                r["received"], r["lost"], f(r, "worst_robot_received_ratio"),
+                f(r, "collector_cpu_share_of_a_core") * 100.0, f(r, "collector_us_per_message"),
+                f(r, "raw_cpu_share_of_a_core") * 100.0, f(r, "raw_us_per_message"), r["raw_received"],
+                f(r, "collector_vs_raw"),
             );
         }
     }

@@ -111,7 +111,15 @@ impl Collector {
 
     fn robot(&mut self, key: &str, now_ms: u64) -> Result<&mut Robot, IngestError> {
         let id = robot_of(key).ok_or_else(|| IngestError::Key(key.into()))?;
-        let robot = self.robots.entry(id.to_string()).or_default();
+        // A known robot without a new String per message (the ingest path's one allocation
+        // besides the decoded message).
+        if !self.robots.contains_key(id) {
+            self.robots.insert(id.to_string(), Robot::default());
+        }
+        let robot = self
+            .robots
+            .get_mut(id)
+            .ok_or_else(|| IngestError::Key(key.into()))?;
         robot.last_seen_ms = now_ms;
         Ok(robot)
     }
@@ -133,7 +141,23 @@ impl Collector {
 
     /// A `nori/<id>/state` message.
     pub fn state(&mut self, key: &str, payload: &[u8], now_ms: u64) -> Result<(), IngestError> {
-        let msg: StateMsg = self.decoded("state", key, payload)?;
+        let msg = decode_state(key, payload);
+        self.decoded_state(key, msg, now_ms)
+    }
+
+    /// A `nori/<id>/state` message decoded by [`decode_state`] (outside any lock on the
+    /// collector: decoding is most of the work).
+    pub fn decoded_state(
+        &mut self,
+        key: &str,
+        msg: Result<StateMsg, IngestError>,
+        now_ms: u64,
+    ) -> Result<(), IngestError> {
+        let msg = msg.inspect_err(|e| {
+            if matches!(e, IngestError::Decode { .. }) {
+                *self.undecodable.entry("state").or_default() += 1;
+            }
+        })?;
         let (history_len, every) = (self.history_len, self.history_every_ms);
         let robot = self.robot(key, now_ms)?;
         robot.states_received += 1;
@@ -614,6 +638,14 @@ impl Collector {
         let _ = encode(&mut text, &registry);
         text
     }
+}
+
+/// Decodes a `nori/<id>/state` message for [`Collector::decoded_state`].
+pub fn decode_state(key: &str, payload: &[u8]) -> Result<StateMsg, IngestError> {
+    decode(payload).map_err(|error| IngestError::Decode {
+        key: key.into(),
+        error,
+    })
 }
 
 /// The [`telemetry::frames::BusCounters`] fields that count something going wrong.

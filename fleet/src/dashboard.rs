@@ -101,9 +101,23 @@ pub fn run(args: &FleetArgs) -> Result<()> {
     )));
     type Ingest = fn(&mut Collector, &str, &[u8], u64) -> Result<(), fleet::collector::IngestError>;
     let mut subscribers = Vec::new();
+    // Telemetry, the bulk, is decoded before the collector is locked.
+    let c = collector.clone();
+    subscribers.push(
+        session
+            .declare_subscriber(all_robots("state"))
+            .callback(move |s: Sample| {
+                let key = s.key_expr().as_str();
+                let msg = fleet::collector::decode_state(key, &s.payload().to_bytes());
+                if let Err(e) = lock(&c).decoded_state(key, msg, wall_ms()) {
+                    tracing::debug!("{e}");
+                }
+            })
+            .wait()
+            .map_err(z)?,
+    );
     for (leaf, ingest) in [
-        ("state", Collector::state as Ingest),
-        ("layout", Collector::layout),
+        ("layout", Collector::layout as Ingest),
         ("events", Collector::event),
         ("preview", Collector::preview),
         ("scan", Collector::scan),
