@@ -73,9 +73,72 @@ pub struct FleetIngestArgs {
     /// Seconds each fleet size streams.
     #[arg(long, default_value_t = 5.0)]
     seconds: f64,
+    /// The robots reach the collector through a zenoh router (`nori router`, its own process),
+    /// as a fleet's site routers make them: one link into the collector instead of one per
+    /// robot. The router's CPU is reported beside the collector's.
+    #[arg(long)]
+    via_router: bool,
     /// Print one JSON object.
     #[arg(long)]
     json: bool,
+}
+
+/// A zenoh router on loopback for `--via-router` (plain TCP: the bench measures ingest, not
+/// TLS), killed when dropped.
+struct Router {
+    child: std::process::Child,
+    endpoint: String,
+    _dir: std::path::PathBuf,
+}
+
+impl Router {
+    fn start() -> Result<Router> {
+        let endpoint = free_endpoint()?;
+        let dir = std::env::temp_dir().join(format!("nori-bench-router-{}", std::process::id()));
+        std::fs::create_dir_all(&dir)?;
+        let config = dir.join("router.json5");
+        std::fs::write(
+            &config,
+            format!(
+                "{{ mode: \"router\", listen: {{ endpoints: [\"{endpoint}\"] }}, \
+                 scouting: {{ multicast: {{ enabled: false }} }} }}"
+            ),
+        )?;
+        let child = Command::new(stack::sibling("nori-fleet")?)
+            .args(["router", "--config"])
+            .arg(&config)
+            .stderr(Stdio::null())
+            .spawn()
+            .context("starting the router")?;
+        std::thread::sleep(Duration::from_millis(500));
+        Ok(Router {
+            child,
+            endpoint,
+            _dir: dir,
+        })
+    }
+
+    /// Its CPU seconds so far (user + system, from /proc).
+    fn cpu_seconds(&self) -> f64 {
+        let stat =
+            std::fs::read_to_string(format!("/proc/{}/stat", self.child.id())).unwrap_or_default();
+        // Fields after the command's closing parenthesis: utime and stime are the 12th and 13th.
+        let after = stat.rsplit_once(')').map_or("", |(_, r)| r);
+        let f: Vec<f64> = after
+            .split_whitespace()
+            .filter_map(|v| v.parse().ok())
+            .collect();
+        // In USER_HZ ticks: 100 a second in the Linux ABI of every machine this runs on.
+        let ticks = 100.0;
+        f.get(11..13).map_or(0.0, |t| (t[0] + t[1]) / ticks)
+    }
+}
+
+impl Drop for Router {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
 }
 
 fn free_endpoint() -> Result<String> {
@@ -567,10 +630,19 @@ fn ingest_run(
     robots: usize,
     args: &FleetIngestArgs,
     raw: bool,
+    router: Option<&Router>,
 ) -> Result<(Vec<u64>, Vec<u64>, f64)> {
-    let endpoint = free_endpoint()?;
-    let session =
-        zenoh_session(vec![endpoint.clone()], vec![], "peer").context("opening a zenoh session")?;
+    let (endpoint, session) = match router {
+        Some(r) => (
+            r.endpoint.clone(),
+            zenoh_session(vec![], vec![r.endpoint.clone()], "client"),
+        ),
+        None => {
+            let e = free_endpoint()?;
+            (e.clone(), zenoh_session(vec![e], vec![], "peer"))
+        }
+    };
+    let session = session.context("opening a zenoh session")?;
     let collector = Arc::new(Mutex::new(Collector::new(120, 500)));
     let counts: Arc<Vec<std::sync::atomic::AtomicU64>> =
         Arc::new((0..robots).map(|_| Default::default()).collect());
@@ -636,8 +708,17 @@ pub fn fleet_ingest(args: &FleetIngestArgs) -> Result<()> {
     let mut rows = Vec::new();
     for &robots in &args.robots {
         // The baseline first, then the collector, each on its own session and stream.
-        let (_, raw_received, raw_cpu) = ingest_run(&publisher, robots, args, true)?;
-        let (sent, received, cpu) = ingest_run(&publisher, robots, args, false)?;
+        let router = if args.via_router {
+            Some(Router::start()?)
+        } else {
+            None
+        };
+        let router_cpu = |r: &Option<Router>| r.as_ref().map_or(0.0, Router::cpu_seconds);
+        let (_, raw_received, raw_cpu) =
+            ingest_run(&publisher, robots, args, true, router.as_ref())?;
+        let r1 = router_cpu(&router);
+        let (sent, received, cpu) = ingest_run(&publisher, robots, args, false, router.as_ref())?;
+        let router_cpu_s = router_cpu(&router) - r1;
         let (sent_total, received_total) = (sent.iter().sum::<u64>(), received.iter().sum::<u64>());
         let raw_total = raw_received.iter().sum::<u64>();
         let offered = robots as f64 * args.hz * args.seconds;
@@ -658,15 +739,16 @@ pub fn fleet_ingest(args: &FleetIngestArgs) -> Result<()> {
             "collector_us_per_message": per_message_us(cpu, received_total),
             "raw_us_per_message": per_message_us(raw_cpu, raw_total),
             "collector_vs_raw": if raw_cpu > 0.0 { cpu / raw_cpu } else { 0.0 },
+            "router_cpu_share_of_a_core": router_cpu_s / (args.seconds + 0.5),
         }));
     }
-    let out = serde_json::json!({"hz": args.hz, "seconds": args.seconds, "runs": rows});
+    let out = serde_json::json!({"hz": args.hz, "seconds": args.seconds, "via_router": args.via_router, "runs": rows});
     if args.json {
         println!("{out}");
     } else {
         println!(
-            "fleet ingest, 18-joint telemetry at {} Hz per robot, {} s per fleet size (baselines: the offered load; zenoh's own delivery of the same stream, counted and dropped)",
-            args.hz, args.seconds
+            "fleet ingest, 18-joint telemetry at {} Hz per robot, {} s per fleet size{} (baselines: the offered load; zenoh's own delivery of the same stream, counted and dropped)",
+            args.hz, args.seconds, if args.via_router { ", through a router" } else { "" }
         );
         let f = |r: &serde_json::Value, k: &str| r[k].as_f64().unwrap_or(0.0);
         for r in &rows {
@@ -679,6 +761,12 @@ pub fn fleet_ingest(args: &FleetIngestArgs) -> Result<()> {
                 f(r, "raw_cpu_share_of_a_core") * 100.0, f(r, "raw_us_per_message"), r["raw_received"],
                 f(r, "collector_vs_raw"),
             );
+            if args.via_router {
+                println!(
+                    "        the router: {:.0} % of a core while the collector ingested",
+                    f(r, "router_cpu_share_of_a_core") * 100.0
+                );
+            }
         }
     }
     Ok(())
