@@ -124,6 +124,7 @@ struct Counters {
     state_sent: u64,
     observations_sent: u64,
     events_unjournaled: u64,
+    acks_malformed: u64,
     goals_forwarded: u64,
     lift_commands_forwarded: u64,
     base_commands_forwarded: u64,
@@ -286,9 +287,13 @@ impl Agent {
     /// Sends what is due of the journal and takes the fleet's acknowledgements.
     fn deliver(&mut self, io: &mut impl AgentIo, now: u64) {
         while let Some(bytes) = io.next_ack() {
-            let through = decode::<AckMsg>(&bytes)
-                .map_err(|e| e.to_string())
-                .and_then(|a| self.delivery.acknowledged(&a).map_err(|e| e.to_string()));
+            let through = match decode::<AckMsg>(&bytes) {
+                Ok(a) => self.delivery.acknowledged(&a).map_err(|e| e.to_string()),
+                Err(e) => {
+                    self.counters.acks_malformed += 1;
+                    Err(e.to_string())
+                }
+            };
             match through {
                 Ok(Some(seq)) => io.acknowledged(seq),
                 Ok(None) => {}
@@ -604,7 +609,7 @@ impl Agent {
                 events_stored_through: self.delivery.stored_through(),
                 events_lost: self.delivery.lost(),
                 events_unjournaled: c.events_unjournaled,
-                acks_refused: self.delivery.acks_refused(),
+                acks_refused: self.delivery.acks_refused() + c.acks_malformed,
                 actions_accepted: self.gate.accepted(),
                 actions_rejected: REASONS
                     .iter()
