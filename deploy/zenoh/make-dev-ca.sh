@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # A development certificate authority for the fleet link, and everything signed by it:
 #
-#   make-dev-ca.sh OUT_DIR ENDPOINT ROBOT_ID...
+#   make-dev-ca.sh OUT_DIR ENDPOINT ROBOT_ID...                        one router on ENDPOINT
+#   make-dev-ca.sh --site NAME=ENDPOINT... OUT_DIR ENDPOINT ROBOT_ID...  two tiers: site routers
+#                                                                      under a cloud router on ENDPOINT
 #
 #   OUT_DIR/ca.pem, ca-key.pem            the CA (keep the key off the robots)
 #   OUT_DIR/router.{pem,key}              the site router (CN router, SAN localhost + 127.0.0.1)
@@ -12,6 +14,15 @@
 #   OUT_DIR/router.json5                  router: TLS listener on ENDPOINT, mutual TLS, access control
 #   OUT_DIR/<identity>.json5              client side for each identity: its certificate, the CA
 #
+# With --site (the fleet's two tiers, from this folder's site-router.json5 and cloud-router.json5):
+#   OUT_DIR/cloud-router.{pem,key,json5}  the cloud router on ENDPOINT (CN cloud-router); the
+#                                         inference, dashboard and store identities connect here
+#   OUT_DIR/site-NAME.{pem,key,json5}     each site router on its own endpoint (CN site-NAME),
+#                                         linked up to the cloud router; every robot's rules on each
+#                                         site (a robot fails over to another site's router), and
+#                                         the robots' client files list every site
+#   (no router.json5)
+#
 # ENDPOINT is a zenoh TLS locator, e.g. tls/127.0.0.1:7448 or tls/site-router.local:7447.
 # Access control on the router (default deny; deny rules win over allow rules):
 #   robot R      reads and writes nori/R/** only, and may not publish actions nor
@@ -21,8 +32,14 @@
 #   store        reads nori/*/{events,state,layout}, publishes nori/*/acks only
 # For production use a real CA and keep each robot's key on its robot only.
 set -euo pipefail
+sites=()
+while [ "${1:-}" = --site ]; do
+  [[ ${2:-} =~ ^[A-Za-z0-9_-]{1,32}=.+$ ]] || { echo "--site NAME=ENDPOINT, not '${2:-}'" >&2; exit 2; }
+  sites+=("$2")
+  shift 2
+done
 if [ $# -lt 3 ]; then
-  echo "usage: $0 OUT_DIR ENDPOINT ROBOT_ID..." >&2
+  echo "usage: $0 [--site NAME=ENDPOINT]... OUT_DIR ENDPOINT ROBOT_ID..." >&2
   exit 2
 fi
 out=$(mkdir -p "$1" && cd "$1" && pwd)
@@ -55,18 +72,26 @@ sign() {
   rm -f "$out/$name.csr" "$ext"
 }
 
-sign router router "DNS:localhost,IP:127.0.0.1"
 for id in "${robots[@]}" inference dashboard store; do
   sign "$id" "$id" "DNS:$id"
 done
 
+# The endpoints robots connect to: the router's, or every site's.
+robot_endpoints="\"$endpoint\""
+if [ ${#sites[@]} -gt 0 ]; then
+  robot_endpoints=$(for s in "${sites[@]}"; do printf '"%s", ' "${s#*=}"; done)
+  robot_endpoints=${robot_endpoints%, }
+fi
+
 # Client side of one identity.
 for id in "${robots[@]}" inference dashboard store; do
+  connect="\"$endpoint\""
+  for r in "${robots[@]}"; do [ "$r" != "$id" ] || connect=$robot_endpoints; done
   cat >"$out/$id.json5" <<JSON
 // zenoh client configuration of identity "$id" (made by make-dev-ca.sh).
 {
   mode: "client",
-  connect: { endpoints: ["$endpoint"] },
+  connect: { endpoints: [$connect] },
   scouting: { multicast: { enabled: false } },
   transport: {
     link: {
@@ -82,6 +107,52 @@ for id in "${robots[@]}" inference dashboard store; do
 JSON
 done
 
+chmod 600 "$out"/*.key "$out/ca-key.pem"
+
+if [ ${#sites[@]} -gt 0 ]; then
+  # The two tiers from the shipped templates. Each substitution must take: a template that no
+  # longer has the line it replaces fails here, not in a router that silently allows the example.
+  here=$(cd "$(dirname "$0")" && pwd)
+  # expand TEMPLATE OUT SED_SCRIPT: the template without its comments through sed, each line
+  # naming the example robot once per robot; fails if a placeholder survives.
+  expand() {
+    local template=$1 target=$2 script=$3
+    {
+      echo "// made by make-dev-ca.sh from $template"
+      sed -e '/^[[:space:]]*\/\//d' -e "$script" "$here/$template" | while IFS= read -r line; do
+        if [[ $line == *robot-0001* ]]; then
+          for r in "${robots[@]}"; do echo "${line//robot-0001/$r}"; done
+        else
+          echo "$line"
+        fi
+      done
+    } >"$target"
+    if grep -qE '/etc/nori|example\.org|0\.0\.0\.0|\[::\]|robot-0001|site-home-0001' "$target"; then
+      echo "$template: a placeholder was not replaced in $target" >&2
+      exit 1
+    fi
+  }
+  sign cloud-router cloud-router "DNS:localhost,IP:127.0.0.1"
+  site_names=$(for s in "${sites[@]}"; do printf '"site-%s", ' "${s%%=*}"; done)
+  expand cloud-router.json5 "$out/cloud-router.json5" "
+    s|\"tls/\[::\]:7447\"|\"$endpoint\"|
+    s|/etc/nori/tls/|$out/|g
+    s|\"site-home-0001\", \"site-lab\"|${site_names%, }|"
+  for s in "${sites[@]}"; do
+    name=${s%%=*} site_endpoint=${s#*=}
+    sign "site-$name" "site-$name" "DNS:localhost,IP:127.0.0.1"
+    expand site-router.json5 "$out/site-$name.json5" "
+      s|\"tls/0.0.0.0:7447\"|\"$site_endpoint\"|
+      s|\"tls/fleet.example.org:7447\"|\"$endpoint\"|
+      s|/etc/nori/tls/site\.|$out/site-$name.|g
+      s|/etc/nori/tls/|$out/|g"
+  done
+  chmod 600 "$out"/*.key
+  echo "made a development CA, a cloud router, ${#sites[@]} site router(s), ${#robots[@]} robot(s), inference, dashboard and store identities in $out"
+  exit 0
+fi
+
+sign router router "DNS:localhost,IP:127.0.0.1"
 # Router: TLS only, client certificates required, access control by certificate name.
 all='"put", "delete", "declare_subscriber", "query", "declare_queryable", "reply", "liveliness_token", "declare_liveliness_subscriber", "liveliness_query"'
 {

@@ -116,6 +116,12 @@ pub trait AgentIo {
     fn next_action(&mut self) -> Option<Vec<u8>>;
     /// Answers every status query waiting, each with `status()`'s bytes.
     fn answer_status(&mut self, status: &mut dyn FnMut() -> Vec<u8>);
+    /// Whether the link to the fleet has come up since the last call, after the agent had
+    /// run without it (it started with its router out of reach). Until then `publish` sends
+    /// nothing and nothing arrives; events are journaled all the same.
+    fn fleet_joined(&mut self) -> bool {
+        false
+    }
 }
 
 /// The agent's counters beyond the gate's and the scheduler's own.
@@ -251,6 +257,12 @@ impl Agent {
     /// One turn of the loop at robot time `now` (CLOCK_MONOTONIC ns) and wall time `wall_ms`
     /// (for the fleet's plots only).
     pub fn poll(&mut self, io: &mut impl AgentIo, now: u64, wall_ms: u64) {
+        if io.fleet_joined() {
+            // Everything held goes out now, and the layout with it (the fleet reads the
+            // telemetry by it), not at their next intervals.
+            self.delivery.resend_now();
+            self.layout_every = Every::hz(1.0 / self.config.telemetry.layout_every_s);
+        }
         if let Some(cut_bytes) = self.starting.take() {
             self.journal(
                 io,

@@ -243,6 +243,13 @@ impl Delivery {
         })
     }
 
+    /// The link to the fleet has just come up: what is held goes out again from the oldest at
+    /// the next sending, without waiting out a resend interval grown while nothing got through.
+    pub fn resend_now(&mut self) {
+        self.sent = 0;
+        self.resend_after_ns = self.config.resend_after_ns;
+    }
+
     /// An event the journal could not keep, as a message: number 0 (the fleet stores it as
     /// it comes, with nothing to de-duplicate it by), sent once.
     pub fn unnumbered(&self, record: EventRecord) -> EventMsg {

@@ -47,8 +47,14 @@ struct Args {
     journal_dir: Option<PathBuf>,
 }
 
-/// The agent's two planes: iceoryx2 ports and zenoh declarations.
+/// The agent's two planes: iceoryx2 ports, and zenoh declarations once the fleet is reached.
 struct Wired {
+    /// `None` until the session opens (the robot may start with its router out of reach).
+    fleet: Option<FleetPorts>,
+    /// Sessions opened in the background, until one is.
+    connecting: Option<std::sync::mpsc::Receiver<fleet_agent::zenoh::Session>>,
+    zenoh_config: fleet_agent::zenoh::Config,
+    id: String,
     layouts: Sub<JointLayout>,
     states: Sub<JointState>,
     events: Sub<SupervisorEvent>,
@@ -57,7 +63,6 @@ struct Wired {
     /// `None` when it could not be opened (logged): events then go out live, unnumbered.
     journal: Option<Journal>,
     journal_dir: PathBuf,
-    acks: Subscriber<FifoChannelHandler<Sample>>,
     bus_health: Sub<BusHealth>,
     /// Per configured camera; `None` where the service could not be opened (logged).
     cameras: Vec<Option<FrameSub>>,
@@ -69,15 +74,89 @@ struct Wired {
     base_states: Sub<BaseState>,
     lift_commands: Pub<LiftCommand>,
     base_commands: Pub<BaseCommand>,
+}
+
+/// The agent's declarations on the fleet's session.
+struct FleetPorts {
     state_pub: Publisher<'static>,
     observation_pub: Publisher<'static>,
     layout_pub: Publisher<'static>,
     preview_pub: Publisher<'static>,
     scan_pub: Publisher<'static>,
     event_pub: Publisher<'static>,
+    acks: Subscriber<FifoChannelHandler<Sample>>,
     actions: Subscriber<FifoChannelHandler<Sample>>,
     status_key: String,
     status_queries: Queryable<FifoChannelHandler<Query>>,
+    /// The fleet sees the robot while this lives.
+    _alive: fleet_agent::zenoh::liveliness::LivelinessToken,
+    _session: fleet_agent::zenoh::Session,
+}
+
+impl FleetPorts {
+    fn declare(session: fleet_agent::zenoh::Session, id: &str) -> Result<FleetPorts> {
+        let z = |e: fleet_agent::zenoh::Error| anyhow::anyhow!("{e}");
+        let publisher = |key: &str, congestion| {
+            session
+                .declare_publisher(robot_key(id, key))
+                .congestion_control(congestion)
+                .wait()
+                .map_err(z)
+        };
+        let status_key = robot_key(id, "status");
+        Ok(FleetPorts {
+            state_pub: publisher("state", CongestionControl::Drop)?,
+            observation_pub: publisher("observation", CongestionControl::Drop)?,
+            layout_pub: publisher("layout", CongestionControl::Drop)?,
+            preview_pub: publisher("preview", CongestionControl::Drop)?,
+            scan_pub: publisher("scan", CongestionControl::Drop)?,
+            // Events are rare and matter: block rather than drop them on congestion.
+            event_pub: publisher("events", CongestionControl::Block)?,
+            acks: session
+                .declare_subscriber(robot_key(id, "acks"))
+                .wait()
+                .map_err(z)?,
+            actions: session
+                .declare_subscriber(robot_key(id, "actions"))
+                .wait()
+                .map_err(z)?,
+            status_queries: session.declare_queryable(&status_key).wait().map_err(z)?,
+            status_key,
+            _alive: session
+                .liveliness()
+                .declare_token(robot_key(id, "alive"))
+                .wait()
+                .map_err(z)?,
+            _session: session,
+        })
+    }
+}
+
+/// Opens the fleet's session on a thread of its own, trying again (1 s, doubling to 30 s) while
+/// the fleet is out of reach: a zenoh client cannot open without its router, and the robot must
+/// journal its events from boot whatever the network does.
+fn connect_in_background(
+    config: fleet_agent::zenoh::Config,
+    id: String,
+) -> std::sync::mpsc::Receiver<fleet_agent::zenoh::Session> {
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let mut wait = std::time::Duration::from_secs(1);
+        loop {
+            match fleet_agent::zenoh::open(config.clone()).wait() {
+                Ok(session) => {
+                    let _ = tx.send(session);
+                    return;
+                }
+                Err(e) => {
+                    tracing::warn!(robot = %id, "the fleet is out of reach ({e}): events are journaled; trying again in {wait:?}");
+                    std::thread::sleep(wait);
+                    wait = (wait * 2).min(std::time::Duration::from_secs(30));
+                }
+            }
+        }
+    });
+    rx
 }
 
 impl AgentIo for Wired {
@@ -144,7 +223,7 @@ impl AgentIo for Wired {
         }
     }
     fn next_ack(&mut self) -> Option<Vec<u8>> {
-        let sample = self.acks.try_recv().ok().flatten()?;
+        let sample = self.fleet.as_ref()?.acks.try_recv().ok().flatten()?;
         Some(sample.payload().to_bytes().into_owned())
     }
     fn send_goal(&mut self, goal: &GoalFrame) -> bool {
@@ -163,26 +242,53 @@ impl AgentIo for Wired {
         publish(&self.base_commands, command).is_ok()
     }
     fn publish(&mut self, what: Outbound, payload: Vec<u8>) -> bool {
+        let Some(f) = &self.fleet else {
+            return false;
+        };
         let publisher = match what {
-            Outbound::State => &self.state_pub,
-            Outbound::Observation => &self.observation_pub,
-            Outbound::Layout => &self.layout_pub,
-            Outbound::Preview => &self.preview_pub,
-            Outbound::Scan => &self.scan_pub,
-            Outbound::Event => &self.event_pub,
+            Outbound::State => &f.state_pub,
+            Outbound::Observation => &f.observation_pub,
+            Outbound::Layout => &f.layout_pub,
+            Outbound::Preview => &f.preview_pub,
+            Outbound::Scan => &f.scan_pub,
+            Outbound::Event => &f.event_pub,
         };
         publisher.put(payload).wait().is_ok()
     }
     fn next_action(&mut self) -> Option<Vec<u8>> {
-        let sample = self.actions.try_recv().ok().flatten()?;
+        let sample = self.fleet.as_ref()?.actions.try_recv().ok().flatten()?;
         Some(sample.payload().to_bytes().into_owned())
     }
     fn answer_status(&mut self, status: &mut dyn FnMut() -> Vec<u8>) {
-        while let Ok(Some(query)) = self.status_queries.try_recv() {
+        let Some(f) = &self.fleet else {
+            return;
+        };
+        while let Ok(Some(query)) = f.status_queries.try_recv() {
             // Answered on the robot's own key: a fleet asking `nori/*/status` learns from the
             // key which robot answered (a reply on the query's wildcard would not be valid).
-            if let Err(e) = query.reply(&self.status_key, status()).wait() {
+            if let Err(e) = query.reply(&f.status_key, status()).wait() {
                 tracing::debug!("status reply: {e}");
+            }
+        }
+    }
+    fn fleet_joined(&mut self) -> bool {
+        let Some(session) = self.connecting.as_ref().and_then(|rx| rx.try_recv().ok()) else {
+            return false;
+        };
+        self.connecting = None;
+        match FleetPorts::declare(session, &self.id) {
+            Ok(ports) => {
+                tracing::info!(robot = %self.id, "on the fleet");
+                self.fleet = Some(ports);
+                true
+            }
+            Err(e) => {
+                tracing::error!("declaring the robot's keys on the fleet: {e}; joining again");
+                self.connecting = Some(connect_in_background(
+                    self.zenoh_config.clone(),
+                    self.id.clone(),
+                ));
+                false
             }
         }
     }
@@ -223,22 +329,17 @@ fn run(args: Args) -> Result<()> {
     let node = Plane::open(&args.process.domain, "fleet-agent")?;
     node.cleanup_dead();
     let id = config.robot_id.clone();
-    let session = net::open(&config.zenoh)
+    let zenoh_config = net::zenoh_config(&config.zenoh)
         .with_context(|| format!("joining the fleet as {id} via {:?}", config.zenoh.connect))?;
     let journal_dir = args.journal_dir.clone().unwrap_or_else(|| {
         std::env::temp_dir().join(format!("nori-{}-journal", args.process.domain))
     });
     let (journal, start) = open_journal(&journal_dir, config.journal.bound_bytes);
-    let mut io = wire(&node, &session, &id, &config, journal, journal_dir)?;
-    let _alive = session
-        .liveliness()
-        .declare_token(robot_key(&id, "alive"))
-        .wait()
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let mut io = wire(&node, zenoh_config, &id, &config, journal, journal_dir)?;
     tracing::info!(robot = %id, domain = %args.process.domain, connect = ?config.zenoh.connect,
-        "on the fleet: telemetry on {}, actions from {}", robot_key(&id, "state"), robot_key(&id, "actions"));
+        "joining the fleet: telemetry on {}, actions from {}", robot_key(&id, "state"), robot_key(&id, "actions"));
     let mut service = ServiceManager::from_env();
-    service.ready(&format!("robot {id} on the fleet"));
+    service.ready(&format!("robot {id} joining the fleet"));
     let mut agent = Agent::resuming(&config, start);
     let run_for = args.process.run_for()?;
     fleet_agent::agent::run(&mut agent, &mut io, &shutdown, run_for, &mut |t| {
@@ -276,26 +377,21 @@ fn open_journal(dir: &std::path::Path, bound: u64) -> (Option<Journal>, JournalS
     }
 }
 
-/// Opens the agent's ports on the state plane and its declarations on zenoh.
+/// Opens the agent's ports on the state plane and starts joining the fleet.
 fn wire(
     node: &Plane,
-    session: &fleet_agent::zenoh::Session,
+    zenoh_config: fleet_agent::zenoh::Config,
     id: &str,
     config: &AgentConfig,
     journal: Option<Journal>,
     journal_dir: PathBuf,
 ) -> Result<Wired> {
     let sensors = &config.sensors;
-    let z = |e: fleet_agent::zenoh::Error| anyhow::anyhow!("{e}");
-    let publisher = |key: &str, congestion| {
-        session
-            .declare_publisher(robot_key(id, key))
-            .congestion_control(congestion)
-            .wait()
-            .map_err(z)
-    };
-    let status_key = robot_key(id, "status");
     Ok(Wired {
+        fleet: None,
+        connecting: Some(connect_in_background(zenoh_config.clone(), id.into())),
+        zenoh_config,
+        id: id.into(),
         layouts: node.subscriber(&plane::LAYOUT)?,
         states: node.subscriber(&plane::JOINT_STATE)?,
         events: node.subscriber(&plane::EVENTS)?,
@@ -303,10 +399,6 @@ fn wire(
         supervisor_beats: node.subscriber(&plane::SUPERVISOR_HEARTBEAT)?,
         journal,
         journal_dir,
-        acks: session
-            .declare_subscriber(robot_key(id, "acks"))
-            .wait()
-            .map_err(z)?,
         bus_health: node.subscriber(&plane::BUS_HEALTH)?,
         cameras: sensors
             .cameras
@@ -337,18 +429,5 @@ fn wire(
         base_states: node.subscriber(&plane::BASE_STATE)?,
         lift_commands: node.publisher(&plane::LIFT_COMMAND)?,
         base_commands: node.publisher(&plane::BASE_COMMAND)?,
-        state_pub: publisher("state", CongestionControl::Drop)?,
-        observation_pub: publisher("observation", CongestionControl::Drop)?,
-        layout_pub: publisher("layout", CongestionControl::Drop)?,
-        preview_pub: publisher("preview", CongestionControl::Drop)?,
-        scan_pub: publisher("scan", CongestionControl::Drop)?,
-        // Events are rare and matter: block rather than drop them on congestion.
-        event_pub: publisher("events", CongestionControl::Block)?,
-        actions: session
-            .declare_subscriber(robot_key(id, "actions"))
-            .wait()
-            .map_err(z)?,
-        status_queries: session.declare_queryable(&status_key).wait().map_err(z)?,
-        status_key,
     })
 }

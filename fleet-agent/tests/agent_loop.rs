@@ -52,6 +52,8 @@ struct Queues {
     acks: VecDeque<Vec<u8>>,
     driver_beat: Option<Heartbeat>,
     supervisor_beat: Option<Heartbeat>,
+    /// The link to the fleet comes up at the next turn.
+    joining: bool,
 }
 
 impl AgentIo for Queues {
@@ -135,6 +137,9 @@ impl AgentIo for Queues {
         for _ in 0..std::mem::take(&mut self.status_queries) {
             self.status_replies.push(status());
         }
+    }
+    fn fleet_joined(&mut self) -> bool {
+        std::mem::take(&mut self.joining)
     }
 }
 
@@ -864,6 +869,46 @@ fn every_event_is_journaled_before_it_is_sent_and_sent_again_until_acknowledged(
             c.events_stored_through
         ),
         (2, 2, 0, 2)
+    );
+}
+
+/// A robot that started with its router out of reach: its events are journaled while nothing
+/// gets through, and when the link comes up everything held goes out in that turn, the layout
+/// with it, not at the next resend (by then 30 s apart).
+#[test]
+fn when_the_fleet_is_reached_late_everything_held_goes_out_at_once() {
+    let (mut agent, mut io, now) = running();
+    io.events.push_back(trip(1, now));
+    let (mut t, mut last_sending) = (now, now);
+    while t < now + 125_000 * MS {
+        agent.poll(&mut io, t, 0);
+        if !sent::<EventMsg>(&mut io, Outbound::Event).is_empty() {
+            last_sending = t;
+        }
+        t += 100 * MS;
+    }
+    let kinds: Vec<String> = journaled(&io).into_iter().map(|r| r.kind).collect();
+    assert_eq!(kinds, ["AgentStarted", "ThermalTrip"]);
+    io.published.clear();
+    agent.poll(&mut io, last_sending + 1_000 * MS, 0);
+    assert!(
+        io.published.is_empty(),
+        "nothing due a second after a resend"
+    );
+    io.joining = true;
+    agent.poll(&mut io, last_sending + 1_100 * MS, 0);
+    assert!(
+        !sent::<fleet_agent::schema::LayoutMsg>(&mut io, Outbound::Layout).is_empty(),
+        "the layout goes out on joining"
+    );
+    let seqs: Vec<u64> = sent::<EventMsg>(&mut io, Outbound::Event)
+        .iter()
+        .map(|m| m.seq)
+        .collect();
+    assert_eq!(
+        seqs,
+        [1, 2],
+        "everything held goes out on joining, oldest first"
     );
 }
 
