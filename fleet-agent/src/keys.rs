@@ -47,6 +47,37 @@ pub fn all_robots(leaf: &str) -> String {
     format!("{ROOT}/*/{leaf}")
 }
 
+/// A shard pattern that is not one key-expression chunk of robot ids.
+#[derive(Debug, Error, PartialEq)]
+#[error(
+    "robot pattern {0:?}: use `*`, or a-z A-Z 0-9 - _ with `$*` for any run of them \
+     (`$*0`: ids ending in 0; `lab-$*`: ids starting with lab-)"
+)]
+pub struct BadRobotPattern(pub String);
+
+/// `nori/<pattern>/<leaf>` for each of `patterns`: the robots one shard of the fleet side
+/// (a collector, a store) serves. A fleet too big for one process runs several, each given
+/// the patterns of its share (`$*0`..`$*4` and `$*5`..`$*9` split it in two by the last digit).
+pub fn robots_matching(patterns: &[String], leaf: &str) -> Result<Vec<String>, BadRobotPattern> {
+    patterns
+        .iter()
+        .map(|p| {
+            let chunk = p == "*"
+                || (p.len() <= 64
+                    && !p.replace("$*", "").contains('$')
+                    && p.bytes().all(|b| {
+                        b.is_ascii_alphanumeric() || matches!(b, b'-' | b'_' | b'$' | b'*')
+                    })
+                    && !p.replace("$*", "").contains('*'));
+            let key = format!("{ROOT}/{p}/{leaf}");
+            match zenoh::key_expr::KeyExpr::try_from(key.clone()) {
+                Ok(k) if chunk && k.as_str() == key => Ok(key),
+                _ => Err(BadRobotPattern(p.clone())),
+            }
+        })
+        .collect()
+}
+
 /// The robot id in `nori/<id>/...`.
 pub fn robot_of(key: &str) -> Option<&str> {
     let mut parts = key.split('/');
@@ -57,6 +88,22 @@ pub fn robot_of(key: &str) -> Option<&str> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_shard_is_one_chunk_of_robot_ids() {
+        let keys = robots_matching(&["*".into(), "$*0".into(), "lab-$*".into()], "events");
+        assert_eq!(
+            keys.unwrap(),
+            ["nori/*/events", "nori/$*0/events", "nori/lab-$*/events"]
+        );
+        for bad in ["", "**", "a/b", "a*", "$", "$*$*", "x y", "*0"] {
+            assert_eq!(
+                robots_matching(&[bad.into()], "state"),
+                Err(BadRobotPattern(bad.into())),
+                "{bad:?}"
+            );
+        }
+    }
 
     #[test]
     fn robot_ids_are_single_safe_chunks() {

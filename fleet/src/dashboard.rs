@@ -9,7 +9,7 @@ use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use fleet::collector::Collector;
 use fleet_agent::agent::wall_ms;
-use fleet_agent::keys::all_robots;
+use fleet_agent::keys::robots_matching;
 use fleet_agent::zenoh::query::{ConsolidationMode, QueryTarget};
 use fleet_agent::zenoh::sample::{Sample, SampleKind};
 use fleet_agent::zenoh::Wait;
@@ -72,6 +72,11 @@ pub struct FleetArgs {
     /// Stop after this many seconds.
     #[arg(long)]
     pub run_for: Option<f64>,
+    /// The robots served, as key-expression chunks of their ids (repeatable): `*` for all,
+    /// `$*0` for ids ending in 0, `lab-$*` for ids starting with lab-. A fleet too big for one
+    /// process runs several, each with its share.
+    #[arg(long = "robots", default_value = "*")]
+    pub robots: Vec<String>,
     /// The history's database (`nori fleet store --database`): the dashboard then serves the
     /// fleet's report on `/report?days=N` (7 by default).
     #[arg(long)]
@@ -87,6 +92,8 @@ fn lock(c: &Mutex<Collector>) -> MutexGuard<'_, Collector> {
 /// Runs the collector and the dashboard until Ctrl-C (or `--run-for`).
 pub fn run(args: &FleetArgs) -> Result<()> {
     telemetry::process::init_logging();
+    let keys = |leaf: &str| robots_matching(&args.robots, leaf);
+    keys("state")?;
     let stop = telemetry::process::stop_flag()?;
     let session = args
         .zenoh
@@ -102,30 +109,38 @@ pub fn run(args: &FleetArgs) -> Result<()> {
     type Ingest = fn(&mut Collector, &str, &[u8], u64) -> Result<(), fleet::collector::IngestError>;
     let mut subscribers = Vec::new();
     // Telemetry, the bulk, is decoded before the collector is locked.
-    let c = collector.clone();
-    subscribers.push(
-        session
-            .declare_subscriber(all_robots("state"))
-            .callback(move |s: Sample| {
-                let key = s.key_expr().as_str();
-                let msg = fleet::collector::decode_state(key, &s.payload().to_bytes());
-                if let Err(e) = lock(&c).decoded_state(key, msg, wall_ms()) {
-                    tracing::debug!("{e}");
-                }
-            })
-            .wait()
-            .map_err(z)?,
-    );
-    for (leaf, ingest) in [
+    for key in keys("state")? {
+        let c = collector.clone();
+        subscribers.push(
+            session
+                .declare_subscriber(key)
+                .callback(move |s: Sample| {
+                    let key = s.key_expr().as_str();
+                    let msg = fleet::collector::decode_state(key, &s.payload().to_bytes());
+                    if let Err(e) = lock(&c).decoded_state(key, msg, wall_ms()) {
+                        tracing::debug!("{e}");
+                    }
+                })
+                .wait()
+                .map_err(z)?,
+        );
+    }
+    let leaves = [
         ("layout", Collector::layout as Ingest),
         ("events", Collector::event),
         ("preview", Collector::preview),
         ("scan", Collector::scan),
-    ] {
+    ];
+    for (key, ingest) in leaves.into_iter().flat_map(|(leaf, ingest)| {
+        keys(leaf)
+            .unwrap_or_default()
+            .into_iter()
+            .map(move |k| (k, ingest))
+    }) {
         let c = collector.clone();
         subscribers.push(
             session
-                .declare_subscriber(all_robots(leaf))
+                .declare_subscriber(key)
                 .callback(move |s: Sample| {
                     let bytes = s.payload().to_bytes();
                     if let Err(e) = ingest(&mut lock(&c), s.key_expr().as_str(), &bytes, wall_ms())
@@ -137,17 +152,23 @@ pub fn run(args: &FleetArgs) -> Result<()> {
                 .map_err(z)?,
         );
     }
-    let c = collector.clone();
-    let _alive = session
-        .liveliness()
-        .declare_subscriber(all_robots("alive"))
-        .history(true)
-        .callback(move |s: Sample| {
-            let alive = s.kind() == SampleKind::Put;
-            let _ = lock(&c).alive(s.key_expr().as_str(), alive, wall_ms());
-        })
-        .wait()
-        .map_err(z)?;
+    let mut _alive = Vec::new();
+    for key in keys("alive")? {
+        let c = collector.clone();
+        _alive.push(
+            session
+                .liveliness()
+                .declare_subscriber(key)
+                .history(true)
+                .callback(move |s: Sample| {
+                    let alive = s.kind() == SampleKind::Put;
+                    let _ = lock(&c).alive(s.key_expr().as_str(), alive, wall_ms());
+                })
+                .wait()
+                .map_err(z)?,
+        );
+    }
+    let status_keys = keys("status")?;
 
     let server = tiny_http::Server::http(&args.http)
         .map_err(|e| anyhow!("serving HTTP on {}: {e}", args.http))?;
@@ -173,22 +194,24 @@ pub fn run(args: &FleetArgs) -> Result<()> {
     {
         if Instant::now() >= next_status {
             next_status += Duration::from_millis(args.status_every_ms.max(100));
-            let c = collector.clone();
-            // Every robot answers for itself: all queryables, no consolidation.
-            let asked = session
-                .get(all_robots("status"))
-                .target(QueryTarget::All)
-                .consolidation(ConsolidationMode::None)
-                .timeout(Duration::from_millis(args.status_every_ms.max(100)))
-                .callback(move |reply| {
-                    if let Ok(s) = reply.result() {
-                        let bytes = s.payload().to_bytes();
-                        let _ = lock(&c).status(s.key_expr().as_str(), &bytes, wall_ms());
-                    }
-                })
-                .wait();
-            if let Err(e) = asked {
-                tracing::warn!("asking the robots' status: {e}");
+            for key in &status_keys {
+                let c = collector.clone();
+                // Every robot answers for itself: all queryables, no consolidation.
+                let asked = session
+                    .get(key)
+                    .target(QueryTarget::All)
+                    .consolidation(ConsolidationMode::None)
+                    .timeout(Duration::from_millis(args.status_every_ms.max(100)))
+                    .callback(move |reply| {
+                        if let Ok(s) = reply.result() {
+                            let bytes = s.payload().to_bytes();
+                            let _ = lock(&c).status(s.key_expr().as_str(), &bytes, wall_ms());
+                        }
+                    })
+                    .wait();
+                if let Err(e) = asked {
+                    tracing::warn!("asking the robots' status: {e}");
+                }
             }
         }
         std::thread::sleep(Duration::from_millis(50));

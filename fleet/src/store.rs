@@ -15,7 +15,7 @@ use clap::Args;
 use fleet::history::{RollupConfig, RollupRow, Rollups, SCHEMA_SQL};
 use fleet::journal_seen::{FleetJournals, JournalSeen, Taken};
 use fleet_agent::agent::wall_ms;
-use fleet_agent::keys::{all_robots, robot_key, robot_of};
+use fleet_agent::keys::{robot_key, robot_of, robots_matching};
 use fleet_agent::schema::{decode, encode, AckMsg, EventMsg, LayoutMsg, StateMsg, SCHEMA_VERSION};
 use fleet_agent::zenoh::sample::Sample;
 use fleet_agent::zenoh::Wait;
@@ -48,6 +48,11 @@ pub struct StoreArgs {
     /// `thermal.warn-c`).
     #[arg(long, value_delimiter = ',', default_value = "50,54,57")]
     pub warn_c: Vec<f32>,
+    /// The robots served, as key-expression chunks of their ids (repeatable): `*` for all,
+    /// `$*0` for ids ending in 0, `lab-$*` for ids starting with lab-. A fleet too big for one
+    /// process runs several, each with its share.
+    #[arg(long = "robots", default_value = "*")]
+    pub robots: Vec<String>,
     /// Messages queued between zenoh and the writer, at most.
     #[arg(long, default_value_t = 65_536)]
     pub queue: usize,
@@ -90,6 +95,8 @@ pub fn run(args: &StoreArgs) -> Result<()> {
             args.warn_c
         ));
     }
+    // Checked before anything is opened: a bad pattern is a configuration error.
+    robots_matching(&args.robots, "events")?;
     let stop = telemetry::process::stop_flag()?;
     let session = args
         .zenoh
@@ -99,11 +106,16 @@ pub fn run(args: &StoreArgs) -> Result<()> {
     let (tx, rx) = sync_channel::<Inbound>(args.queue.max(1));
     let queue_full = Arc::new(AtomicU64::new(0));
     let mut subscribers = Vec::new();
-    for leaf in ["events", "state", "layout"] {
+    for (leaf, key) in ["events", "state", "layout"].into_iter().flat_map(|leaf| {
+        robots_matching(&args.robots, leaf)
+            .unwrap_or_default()
+            .into_iter()
+            .map(move |k| (leaf, k))
+    }) {
         let (tx, full) = (tx.clone(), queue_full.clone());
         subscribers.push(
             session
-                .declare_subscriber(all_robots(leaf))
+                .declare_subscriber(key)
                 .callback(move |s: Sample| {
                     let Some(robot) = robot_of(s.key_expr().as_str()) else {
                         return;

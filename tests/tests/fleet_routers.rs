@@ -239,19 +239,24 @@ fn robots_booted_offline_or_cut_off_by_a_site_router_lose_no_event_and_no_identi
         )
     };
     let watcher = identity("dashboard");
-    let mut store = Proc::spawn(
-        "nori fleet store",
-        &binary("nori"),
-        &[
-            "fleet",
-            "store",
-            "--database",
-            &db.url,
-            "--zenoh-config",
-            certs.join("store.json5").to_str().unwrap(),
-        ],
-        &dir.join("store.log"),
-    );
+    // The store in two shards, by the robot id's last digit: even and odd.
+    let shard = |digits: [char; 5], tag: &str| {
+        let mut args: Vec<String> = ["fleet", "store", "--database", &db.url, "--zenoh-config"]
+            .map(String::from)
+            .into();
+        args.push(certs.join("store.json5").display().to_string());
+        for d in digits {
+            args.extend(["--robots".into(), format!("$*{d}")]);
+        }
+        Proc::spawn_owned(
+            "nori fleet store",
+            &binary("nori"),
+            &args,
+            &dir.join(format!("store-{tag}.log")),
+        )
+    };
+    let mut even_shard = shard(['0', '2', '4', '6', '8'], "even");
+    let mut odd_shard = shard(['1', '3', '5', '7', '9'], "odd");
     let held = |id: &str| nori_tests::agent_status(&watcher, id).counters;
     // Every robot on the fleet: its start and what it journaled offline stored and acknowledged.
     let up = Instant::now();
@@ -502,7 +507,30 @@ fn robots_booted_offline_or_cut_off_by_a_site_router_lose_no_event_and_no_identi
         );
     }
     assert_eq!((lost, copies), (0, 0));
-    store.terminate(Duration::from_secs(5));
+
+    // Each shard stores its own robots only: with the even shard stopped, the odd robots'
+    // next events are acknowledged and the even robots' are not.
+    even_shard.terminate(Duration::from_secs(5));
+    publish(&mut robots);
+    for r in robots.iter().skip(1).step_by(2) {
+        wait_for(
+            Duration::from_secs(30),
+            &format!("{} stored by the odd shard", r.id),
+            || {
+                let c = held(&r.id);
+                (c.events_unacknowledged == 0 && c.events_stored_through > r.seq).then_some(())
+            },
+        );
+    }
+    std::thread::sleep(Duration::from_secs(1));
+    for r in robots.iter().step_by(2) {
+        assert!(
+            held(&r.id).events_unacknowledged > 0,
+            "{}'s event stored by the odd shard",
+            r.id
+        );
+    }
+    odd_shard.terminate(Duration::from_secs(5));
     drop(watcher);
     for mut r in robots {
         r.agent.terminate(Duration::from_secs(5));
