@@ -120,17 +120,7 @@ impl Router {
 
     /// Its CPU seconds so far (user + system, from /proc).
     fn cpu_seconds(&self) -> f64 {
-        let stat =
-            std::fs::read_to_string(format!("/proc/{}/stat", self.child.id())).unwrap_or_default();
-        // Fields after the command's closing parenthesis: utime and stime are the 12th and 13th.
-        let after = stat.rsplit_once(')').map_or("", |(_, r)| r);
-        let f: Vec<f64> = after
-            .split_whitespace()
-            .filter_map(|v| v.parse().ok())
-            .collect();
-        // In USER_HZ ticks: 100 a second in the Linux ABI of every machine this runs on.
-        let ticks = 100.0;
-        f.get(11..13).map_or(0.0, |t| (t[0] + t[1]) / ticks)
+        bench::cpu_seconds(self.child.id()).unwrap_or(0.0)
     }
 }
 

@@ -7,6 +7,7 @@ mod base;
 mod cameras;
 mod driver;
 mod fleet;
+mod fleet_store;
 mod lidar;
 mod model_lab;
 mod plane;
@@ -40,6 +41,9 @@ enum Bench {
     PolicyLatency(fleet::PolicyLatencyArgs),
     /// Robots streaming telemetry that one fleet collector ingests with no loss.
     FleetIngest(fleet::FleetIngestArgs),
+    /// A fleet's backlog of events through the history store, against the same rows inserted
+    /// straight into its database.
+    FleetStore(fleet_store::FleetStoreArgs),
     /// Camera frames to a LeRobot video per codec (FFmpeg), against LeRobot's default encoder
     /// in the same run: CPU, size, fidelity, decoding cost.
     VideoEncode(video::VideoEncodeArgs),
@@ -60,6 +64,7 @@ fn main() -> Result<()> {
         Bench::ActionLatency(a) => fleet::action_latency(a),
         Bench::PolicyLatency(a) => fleet::policy_latency(a),
         Bench::FleetIngest(a) => fleet::fleet_ingest(a),
+        Bench::FleetStore(a) => fleet_store::run(a),
         Bench::VideoEncode(a) => video::run(a),
         Bench::RecordVideo(a) => record::run(a),
         Bench::ModelLab(a) => model_lab::run_bench(a),

@@ -60,6 +60,14 @@ CREATE TABLE IF NOT EXISTS telemetry (
 CREATE INDEX IF NOT EXISTS telemetry_at ON telemetry USING brin (at);
 ";
 
+/// One event into `events` (a copy already there is skipped): robot, journal, seq, wall ms,
+/// robot ns, origin seq, kind, joint, detail, bus, level, value. The store's statement, and
+/// the baseline of `nori bench fleet-store`.
+pub const INSERT_EVENT_SQL: &str = "INSERT INTO events \
+     (robot, journal, seq, at, robot_ns, origin_seq, kind, joint, detail, bus, level, value) \
+     VALUES ($1, $2, $3, to_timestamp($4::float8 / 1000.0), $5, $6, $7, $8, $9, $10, $11, $12) \
+     ON CONFLICT DO NOTHING";
+
 /// How telemetry is rolled up.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RollupConfig {

@@ -305,11 +305,7 @@ impl Writer {
         // What the journals will be once this batch is in; applied only after the commit.
         let mut after: BTreeMap<(String, u64), (JournalSeen, u64)> = BTreeMap::new();
         let mut tx = db.transaction()?;
-        let insert = tx.prepare(
-            "INSERT INTO events (robot, journal, seq, at, robot_ns, origin_seq, kind, joint, detail, bus, level, value) \
-             VALUES ($1, $2, $3, to_timestamp($4::float8 / 1000.0), $5, $6, $7, $8, $9, $10, $11, $12) \
-             ON CONFLICT DO NOTHING",
-        )?;
+        let insert = tx.prepare(fleet::history::INSERT_EVENT_SQL)?;
         let mut stored = 0;
         for (robot, m) in events {
             let key = (robot.clone(), m.journal);
