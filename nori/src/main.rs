@@ -60,8 +60,8 @@ enum Command {
     /// A zenoh router for a site or a test fleet (TLS and access control from its JSON5 file).
     #[command(disable_help_flag = true)]
     Router(Passed),
-    /// Benchmarks (figures next to their baseline): driver-rate, sim-speed, state-plane,
-    /// action-latency, fleet-ingest, model-lab.
+    /// Benchmarks (figures next to their baseline; `nori bench --help` lists them all):
+    /// driver-rate, state-plane, action-latency, fleet-ingest, fleet-store, model-lab ...
     #[command(disable_help_flag = true)]
     Bench(Passed),
     /// The model lab: the simulation held against measured data (analyze, generate, bench).
