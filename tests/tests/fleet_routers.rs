@@ -279,7 +279,7 @@ fn robots_booted_offline_or_cut_off_by_a_site_router_lose_no_event_and_no_identi
     // SIGKILLed and started again 5 s later (its robots see their links close at once). With
     // NORI_ROUTER_FREEZE=1, then site B frozen (SIGSTOP) for 14 s and let go: its links stay
     // open, so its robots learn it is gone only when zenoh's lease (10 s) runs out. That one
-    // is run by hand: in one run of five the store heard no event for over a minute after it
+    // is run by hand: in one run of thirteen the store heard no event for over a minute after it
     // (the robots kept them journaled; BENCHMARKS.md, "A site router frozen").
     let mut faults = vec![("site A killed", 10, 5)];
     if std::env::var_os("NORI_ROUTER_FREEZE").is_some() {
