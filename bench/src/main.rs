@@ -8,6 +8,7 @@ mod cameras;
 mod driver;
 mod fleet;
 mod fleet_store;
+mod ik;
 mod lidar;
 mod model_lab;
 mod plane;
@@ -50,6 +51,9 @@ enum Bench {
     /// Recording the cameras (`nori record --camera`): the recorder's and its FFmpegs' CPU and
     /// memory, against the cameras streaming with nobody recording, in the same run.
     RecordVideo(record::RecordVideoArgs),
+    /// The arm's inverse kinematics over random reachable targets, against the plain damped
+    /// least squares on the same targets.
+    Ik(ik::IkArgs),
     /// The model lab: accuracy per hidden effect, detection limits, analysis time (also `nori
     /// model bench`).
     ModelLab(model_lab::BenchArgs),
@@ -67,6 +71,7 @@ fn main() -> Result<()> {
         Bench::FleetStore(a) => fleet_store::run(a),
         Bench::VideoEncode(a) => video::run(a),
         Bench::RecordVideo(a) => record::run(a),
+        Bench::Ik(a) => ik::run(a),
         Bench::ModelLab(a) => model_lab::run_bench(a),
     }
 }

@@ -42,6 +42,7 @@ pub struct Pose2 {
 struct ChainJoint {
     axis: Unit<Vector3<f64>>,
     origin: Vector3<f64>,
+    hard_stops: (f64, f64),
 }
 
 /// One arm's kinematic chain.
@@ -65,6 +66,25 @@ pub struct ArmPose {
     pub tool: [f64; 3],
     /// The tool frame's orientation in the room, a unit quaternion `[w, x, y, z]`.
     pub tool_rotation: [f64; 4],
+}
+
+impl ArmChain {
+    /// Each joint's axis (in its own frame) and origin (in its parent's), base outward.
+    pub(crate) fn axes_and_origins(
+        &self,
+    ) -> impl Iterator<Item = (Unit<Vector3<f64>>, Vector3<f64>)> + '_ {
+        self.joints.iter().map(|j| (j.axis, j.origin))
+    }
+
+    /// The tool point in the last joint's frame, m.
+    pub(crate) fn tip(&self) -> Vector3<f64> {
+        self.tip
+    }
+
+    /// Each joint's mechanical hard stops `(lower, upper)`, rad, base outward.
+    pub fn hard_stops(&self) -> Vec<(f64, f64)> {
+        self.joints.iter().map(|j| j.hard_stops).collect()
+    }
 }
 
 /// The body's chains and the lift's reference height.
@@ -99,6 +119,7 @@ impl Body {
                     .map(|j| ChainJoint {
                         axis: Unit::new_normalize(Vector3::from(j.axis)),
                         origin: Vector3::from(j.origin),
+                        hard_stops: (j.lower_rad, j.upper_rad),
                     })
                     .collect(),
                 shoulder: Vector3::from(arm.base),
@@ -116,13 +137,18 @@ impl Body {
         &self.arms
     }
 
+    /// `chain`'s shoulder in the base's frame with the lift at `lift_m`.
+    pub(crate) fn shoulder_at(&self, chain: &ArmChain, lift_m: f64) -> Vector3<f64> {
+        chain.shoulder + Vector3::new(0.0, 0.0, lift_m - self.lift_start_m)
+    }
+
     /// Arm `arm` at joint angles `q` (rad, base outward; missing angles count as 0), the lift at
     /// `lift_m` and the base at `base`; `None` for an arm the body does not have.
     pub fn arm_pose(&self, arm: usize, q: &[f64], lift_m: f64, base: Pose2) -> Option<ArmPose> {
         let chain = self.arms.get(arm)?;
         let heading = Rotation3::from_axis_angle(&Vector3::z_axis(), base.theta);
         let place = |p: Vector3<f64>| heading * p + Vector3::new(base.x, base.y, 0.0);
-        let shoulder = chain.shoulder + Vector3::new(0.0, 0.0, lift_m - self.lift_start_m);
+        let shoulder = self.shoulder_at(chain, lift_m);
         let mut rot = Matrix3::identity();
         let mut p = shoulder;
         for (k, j) in chain.joints.iter().enumerate() {
