@@ -1,6 +1,6 @@
 //! `nori bench ik`: the arm's inverse kinematics (`body::ik`) over random reachable targets
 //! (the tool pose of angles drawn uniformly within the joints' ranges), against the plain damped
-//! least squares (the same solver without the null-space pull toward the ranges' middles) on
+//! least squares (the same solver without the null-space moves toward the ranges' middles) on
 //! the same targets in the same run: success within 1 mm and 1°, time per solve, and how far the
 //! answers keep from the ranges' ends.
 
@@ -68,7 +68,7 @@ pub fn run(args: &IkArgs) -> Result<()> {
         base: Pose2::default(),
     };
     let solvers = [
-        ("null-space pull (body::ik)", IkSettings::default()),
+        ("with centring (body::ik)", IkSettings::default()),
         (
             "plain damped least squares",
             IkSettings {

@@ -4,10 +4,13 @@
 //!
 //! Damped least squares (Levenberg–Marquardt: the damping shrinks while a step lowers the
 //! error and grows when it does not), the orientation error weighted as a length (0.1 m a
-//! radian) against the position's. The A3's arm has seven joints for a six-dimensional pose: the
-//! one redundant direction (the elbow swinging about the shoulder–wrist line) is spent in the
-//! Jacobian's null space on keeping every joint away from its range's ends. Each step is clamped
-//! into the ranges, so no iterate, and no answer, is outside them. A solve that stalls restarts
+//! radian) against the position's. The A3's arm has seven joints for a six-dimensional pose: once
+//! the pose is reached, the one redundant direction (the elbow swinging about the shoulder–wrist
+//! line) is spent moving the joints toward their ranges' middles along the Jacobian's null
+//! space, each move corrected back onto the target and kept only if the pose stays reached (a
+//! pull mixed into the descent itself cost success: the damped projection is not exactly in the
+//! null space). Each step is clamped into the ranges, so no iterate, and no answer, is outside
+//! them. A solve that stalls restarts
 //! from another start drawn from the ranges (a fixed sequence: the same target gives the same
 //! answer). Pure and allocation-free: chains of up to [`MAX_JOINTS`] joints in fixed-size
 //! matrices.
@@ -54,8 +57,8 @@ pub struct IkSettings {
     pub max_starts: usize,
     /// Largest change of any joint in one step, rad.
     pub max_step_rad: f64,
-    /// Weight of the null-space pull toward the middle of the ranges (0: none; the plain
-    /// damped least squares).
+    /// Gain of the moves toward the ranges' middles once the pose is reached (0: none; the
+    /// plain damped least squares).
     pub centring: f64,
 }
 
@@ -67,7 +70,7 @@ impl Default for IkSettings {
             max_steps: 60,
             max_starts: 32,
             max_step_rad: 0.4,
-            centring: 0.1,
+            centring: 0.5,
         }
     }
 }
@@ -114,6 +117,9 @@ pub enum IkError {
         angle_error_rad: f64,
     },
 }
+
+/// Moves toward the ranges' middles after the pose is reached, at most.
+const CENTRING_MOVES: usize = 8;
 
 /// Metres a radian of orientation error counts as.
 const ANGLE_LENGTH_M: f64 = 0.1;
@@ -175,11 +181,174 @@ impl Draws {
     }
 }
 
+/// One solve's fixed parts: the chain where the mount puts it, the target, the ranges.
+struct Problem<'a> {
+    chain: &'a ArmChain,
+    shoulder: Vector3<f64>,
+    heading: Matrix3<f64>,
+    target: Vector3<f64>,
+    target_rot: Matrix3<f64>,
+    lo: Angles,
+    hi: Angles,
+    n: usize,
+    settings: &'a IkSettings,
+}
+
+impl Problem<'_> {
+    fn frames(&self, q: &Angles) -> Frames {
+        frames(self.chain, self.shoulder, &self.heading, q)
+    }
+
+    fn error(&self, f: &Frames) -> (Vector6<f64>, f64, f64) {
+        error(f, &self.target, &self.target_rot)
+    }
+
+    fn reached(&self, dp: f64, da: f64) -> bool {
+        dp <= self.settings.position_tol_m && da <= self.settings.angle_tol_rad
+    }
+
+    fn clamp(&self, q: &mut Angles) {
+        for k in 0..self.n {
+            q[k] = q[k].clamp(self.lo[k], self.hi[k]);
+        }
+    }
+
+    fn jacobian(&self, f: &Frames) -> Jacobian {
+        let mut j = Jacobian::zeros();
+        for k in 0..self.n {
+            let a = f.axis[k];
+            let v = a.cross(&(f.tool - f.joint_at[k]));
+            j.fixed_view_mut::<6, 1>(0, k).copy_from(&Vector6::new(
+                v.x,
+                v.y,
+                v.z,
+                ANGLE_LENGTH_M * a.x,
+                ANGLE_LENGTH_M * a.y,
+                ANGLE_LENGTH_M * a.z,
+            ));
+        }
+        j
+    }
+
+    /// The damped pseudo-inverse of `j`.
+    fn pinv(j: &Jacobian, lambda: f64) -> Option<SMatrix<f64, MAX_JOINTS, 6>> {
+        let inv = (j * j.transpose() + nalgebra::Matrix6::identity() * (lambda * lambda))
+            .try_inverse()?;
+        Some(j.transpose() * inv)
+    }
+
+    /// How far `q` is from the ranges' middles: the sum of squares of each joint's offset as a
+    /// fraction of its half-range (0 in the middle, 1 at an end).
+    fn off_centre(&self, q: &Angles) -> f64 {
+        (0..self.n)
+            .map(|k| {
+                let half = ((self.hi[k] - self.lo[k]) / 2.0).max(1e-6);
+                ((q[k] - (self.lo[k] + self.hi[k]) / 2.0) / half).powi(2)
+            })
+            .sum()
+    }
+
+    /// Damped least squares from `q`: the closest angles found, their errors, and the steps
+    /// taken. Stops when the pose is reached or a step no longer lowers the error.
+    fn descend(&self, mut q: Angles, steps: &mut usize) -> (Angles, f64, f64) {
+        let mut f = self.frames(&q);
+        let (mut e, mut dp, mut da) = self.error(&f);
+        let mut lambda = 0.01;
+        for _ in 0..self.settings.max_steps {
+            if self.reached(dp, da) {
+                break;
+            }
+            *steps += 1;
+            let j = self.jacobian(&f);
+            let cost = e.norm_squared();
+            // A step that does not lower the error is taken back and the damping raised.
+            let mut improved = false;
+            for _ in 0..6 {
+                let Some(pinv) = Self::pinv(&j, lambda) else {
+                    lambda *= 10.0;
+                    continue;
+                };
+                let mut dq = pinv * e;
+                let largest = dq.amax();
+                if largest > self.settings.max_step_rad {
+                    dq *= self.settings.max_step_rad / largest;
+                }
+                let mut next = q + dq;
+                self.clamp(&mut next);
+                let nf = self.frames(&next);
+                let (ne, ndp, nda) = self.error(&nf);
+                if ne.norm_squared() < cost {
+                    (q, f, e, dp, da) = (next, nf, ne, ndp, nda);
+                    lambda = (lambda / 3.0).max(1e-4);
+                    improved = true;
+                    break;
+                }
+                lambda *= 4.0;
+            }
+            if !improved {
+                break;
+            }
+        }
+        (q, dp, da)
+    }
+
+    /// The pose reached at `q`: spends the redundancy moving the joints toward their ranges'
+    /// middles along the Jacobian's null space, each move corrected back onto the target and
+    /// kept only if the pose stays reached and the joints come nearer their middles.
+    fn centre(
+        &self,
+        mut q: Angles,
+        mut dp: f64,
+        mut da: f64,
+        steps: &mut usize,
+    ) -> (Angles, f64, f64) {
+        let mut gain = self.settings.centring;
+        let mut now = self.off_centre(&q);
+        for _ in 0..CENTRING_MOVES {
+            if gain < 0.05 * self.settings.centring {
+                break;
+            }
+            *steps += 1;
+            let f = self.frames(&q);
+            let j = self.jacobian(&f);
+            let Some(pinv) = Self::pinv(&j, 1e-4) else {
+                break;
+            };
+            let mut pull = Angles::zeros();
+            for k in 0..self.n {
+                let half = ((self.hi[k] - self.lo[k]) / 2.0).max(1e-6);
+                pull[k] = ((self.lo[k] + self.hi[k]) / 2.0 - q[k]) / half;
+            }
+            let mut dq =
+                (SMatrix::<f64, MAX_JOINTS, MAX_JOINTS>::identity() - pinv * j) * pull * gain;
+            let largest = dq.amax();
+            if largest > self.settings.max_step_rad {
+                dq *= self.settings.max_step_rad / largest;
+            }
+            let mut next = q + dq;
+            self.clamp(&mut next);
+            // Back onto the target (the null space is only tangent to it).
+            let (next, ndp, nda) = self.descend(next, steps);
+            let then = self.off_centre(&next);
+            if self.reached(ndp, nda) && then < now {
+                let gained = now - then;
+                (q, dp, da, now) = (next, ndp, nda, then);
+                if gained < 0.01 * now {
+                    break;
+                }
+            } else {
+                gain /= 2.0;
+            }
+        }
+        (q, dp, da)
+    }
+}
+
 impl Body {
     /// Angles of arm `arm` that put its tool at `target`, carried as `mount` says, starting
-    /// from `seed` (the arm's angles now, for teleoperation), each joint
-    /// within `limits` (`(lower, upper)` rad, base outward: the calibrated ranges the driver
-    /// clamps to; [`ArmChain::hard_stops`] without a calibration).
+    /// from `seed` (the arm's angles now, for teleoperation), each joint within `limits`
+    /// (`(lower, upper)` rad, base outward: the calibrated ranges the driver clamps to;
+    /// [`ArmChain::hard_stops`] without a calibration).
     pub fn solve(
         &self,
         arm: usize,
@@ -221,21 +390,21 @@ impl Body {
         if !rotation.w.is_finite() {
             return Err(IkError::BadInput("target"));
         }
-        let target_rot = *rotation.to_rotation_matrix().matrix();
-        let target_p = Vector3::from(target.position);
         let heading = *Rotation3::from_axis_angle(&Vector3::z_axis(), base.theta).matrix();
-        let shoulder =
-            heading * self.shoulder_at(chain, lift_m) + Vector3::new(base.x, base.y, 0.0);
-
-        let (mut lo, mut hi) = (Angles::zeros(), Angles::zeros());
-        for k in 0..n {
-            (lo[k], hi[k]) = limits[k];
-        }
-        let clamp = |q: &mut Angles| {
-            for k in 0..n {
-                q[k] = q[k].clamp(lo[k], hi[k]);
-            }
+        let mut problem = Problem {
+            chain,
+            shoulder: heading * self.shoulder_at(chain, lift_m) + Vector3::new(base.x, base.y, 0.0),
+            heading,
+            target: Vector3::from(target.position),
+            target_rot: *rotation.to_rotation_matrix().matrix(),
+            lo: Angles::zeros(),
+            hi: Angles::zeros(),
+            n,
+            settings,
         };
+        for (k, &(lo, hi)) in limits[..n].iter().enumerate() {
+            (problem.lo[k], problem.hi[k]) = (lo, hi);
+        }
         let mut draws = Draws(0x6E6F_7269_0000_0001 ^ arm as u64);
         let mut best = (f64::INFINITY, Angles::zeros(), 0.0, 0.0);
         let mut steps = 0;
@@ -245,82 +414,22 @@ impl Body {
                 q[k] = if start == 0 {
                     seed[k]
                 } else {
-                    lo[k] + (hi[k] - lo[k]) * draws.next()
+                    problem.lo[k] + (problem.hi[k] - problem.lo[k]) * draws.next()
                 };
             }
-            clamp(&mut q);
-            let mut f = frames(chain, shoulder, &heading, &q);
-            let (mut e, mut dp, mut da) = error(&f, &target_p, &target_rot);
-            let mut lambda = 0.01;
-            for _ in 0..settings.max_steps {
-                let cost = e.norm_squared();
-                if cost < best.0 {
-                    best = (cost, q, dp, da);
-                }
-                if dp <= settings.position_tol_m && da <= settings.angle_tol_rad {
-                    return Ok(solution(&q, n, dp, da, steps, start + 1));
-                }
-                steps += 1;
-                let mut j = Jacobian::zeros();
-                for k in 0..n {
-                    let a = f.axis[k];
-                    let v = a.cross(&(f.tool - f.joint_at[k]));
-                    j.fixed_view_mut::<6, 1>(0, k).copy_from(&Vector6::new(
-                        v.x,
-                        v.y,
-                        v.z,
-                        ANGLE_LENGTH_M * a.x,
-                        ANGLE_LENGTH_M * a.y,
-                        ANGLE_LENGTH_M * a.z,
-                    ));
-                }
-                // A step that does not lower the error is taken back and the damping raised.
-                let mut improved = false;
-                for _ in 0..6 {
-                    let Some(inv) = (j * j.transpose()
-                        + nalgebra::Matrix6::identity() * (lambda * lambda))
-                        .try_inverse()
-                    else {
-                        lambda *= 10.0;
-                        continue;
-                    };
-                    let pinv = j.transpose() * inv;
-                    let mut dq = pinv * e;
-                    if settings.centring > 0.0 {
-                        let mut pull = Angles::zeros();
-                        for k in 0..n {
-                            let range = (hi[k] - lo[k]).max(1e-6);
-                            pull[k] = settings.centring * ((lo[k] + hi[k]) / 2.0 - q[k]) / range;
-                        }
-                        dq +=
-                            (SMatrix::<f64, MAX_JOINTS, MAX_JOINTS>::identity() - pinv * j) * pull;
-                    }
-                    let largest = dq.amax();
-                    if largest > settings.max_step_rad {
-                        dq *= settings.max_step_rad / largest;
-                    }
-                    let mut next = q + dq;
-                    clamp(&mut next);
-                    let nf = frames(chain, shoulder, &heading, &next);
-                    let (ne, ndp, nda) = error(&nf, &target_p, &target_rot);
-                    if ne.norm_squared() < cost {
-                        (q, f, e, dp, da) = (next, nf, ne, ndp, nda);
-                        lambda = (lambda / 3.0).max(1e-4);
-                        improved = true;
-                        break;
-                    }
-                    lambda *= 4.0;
-                }
-                if !improved {
-                    break;
-                }
-            }
-            let cost = e.norm_squared();
-            if cost < best.0 {
-                best = (cost, q, dp, da);
-            }
-            if dp <= settings.position_tol_m && da <= settings.angle_tol_rad {
+            problem.clamp(&mut q);
+            let (q, dp, da) = problem.descend(q, &mut steps);
+            if problem.reached(dp, da) {
+                let (q, dp, da) = if settings.centring > 0.0 {
+                    problem.centre(q, dp, da, &mut steps)
+                } else {
+                    (q, dp, da)
+                };
                 return Ok(solution(&q, n, dp, da, steps, start + 1));
+            }
+            let miss = dp * dp + (ANGLE_LENGTH_M * da).powi(2);
+            if miss < best.0 {
+                best = (miss, q, dp, da);
             }
         }
         let (_, q, dp, da) = best;
