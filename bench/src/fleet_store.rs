@@ -8,7 +8,7 @@
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use fleet::history::{INSERT_EVENT_SQL, SCHEMA_SQL};
+use fleet::history::{EventRow, INSERT_EVENT_SQL, SCHEMA_SQL};
 use fleet_agent::keys::{robot_key, robot_of};
 use fleet_agent::schema::{decode, encode, AckMsg, EventMsg, EventRecord, SCHEMA_VERSION};
 use fleet_agent::zenoh::qos::CongestionControl;
@@ -66,23 +66,7 @@ fn raw_inserts(db: &mut postgres::Client, run: &str, robots: usize, events: u64)
         let insert = tx.prepare(INSERT_EVENT_SQL)?;
         for (robot, seq) in batch {
             let e = record(*seq);
-            tx.execute(
-                &insert,
-                &[
-                    robot,
-                    &1i64,
-                    &(*seq as i64),
-                    &(e.wall_ms as f64),
-                    &(e.timestamp_ns as i64),
-                    &(e.origin_seq as i64),
-                    &e.kind,
-                    &e.joint,
-                    &e.detail,
-                    &i16::from(e.bus),
-                    &i16::from(e.level),
-                    &e.value,
-                ],
-            )?;
+            tx.execute(&insert, &EventRow::new(robot, 1, *seq, &e).params())?;
         }
         tx.commit()?;
     }

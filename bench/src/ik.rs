@@ -22,20 +22,6 @@ pub struct IkArgs {
     json: bool,
 }
 
-/// A deterministic sequence in [0, 1) (SplitMix64): the same targets every run.
-struct Draws(u64);
-
-impl Draws {
-    fn next(&mut self) -> f64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^= z >> 31;
-        (z >> 11) as f64 / (1u64 << 53) as f64
-    }
-}
-
 #[derive(Default)]
 struct Tally {
     solved: usize,
@@ -82,12 +68,13 @@ pub fn run(args: &IkArgs) -> Result<()> {
         ("tracking (seed 0.1 rad off)", 0.1),
         ("cold (seed all zeros)", -1.0),
     ] {
-        let mut draws = Draws(42);
+        // The same targets every run.
+        let mut draws = sim::rng::Rng::new(42);
         let mut tallies: Vec<Tally> = solvers.iter().map(|_| Tally::default()).collect();
         for _ in 0..args.targets {
             let truth: Vec<f64> = limits
                 .iter()
-                .map(|(lo, hi)| lo + (hi - lo) * draws.next())
+                .map(|(lo, hi)| lo + (hi - lo) * draws.uniform())
                 .collect();
             let Some(p) = body.arm_pose(0, &truth, 0.3, Pose2::default()) else {
                 anyhow::bail!("the A3 has no left arm");
@@ -99,7 +86,7 @@ pub fn run(args: &IkArgs) -> Result<()> {
             let seed: Vec<f64> = if seed_noise > 0.0 {
                 truth
                     .iter()
-                    .map(|q| q + seed_noise * (2.0 * draws.next() - 1.0))
+                    .map(|q| q + seed_noise * (2.0 * draws.uniform() - 1.0))
                     .collect()
             } else {
                 vec![0.0; truth.len()]

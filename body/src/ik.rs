@@ -167,18 +167,21 @@ fn error(f: &Frames, target: &Vector3<f64>, target_rot: &Matrix3<f64>) -> (Vecto
     (e, dp.norm(), w.norm())
 }
 
-/// A deterministic sequence in [0, 1) (SplitMix64).
-struct Draws(u64);
-
-impl Draws {
-    fn next(&mut self) -> f64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^= z >> 31;
-        (z >> 11) as f64 / (1u64 << 53) as f64
-    }
+/// Coordinate `k` of the `i`-th point of a Kronecker sequence in [0, 1): each joint steps by
+/// its own irrational (the fractional part of a prime's square root), so the restarts cover
+/// the ranges evenly, and the same way every time. Not random.
+fn spread(i: usize, k: usize) -> f64 {
+    const STEPS: [f64; MAX_JOINTS] = [
+        0.414_213_562, // √2
+        0.732_050_808, // √3
+        0.236_067_977, // √5
+        0.645_751_311, // √7
+        0.316_624_790, // √11
+        0.605_551_275, // √13
+        0.123_105_626, // √17
+        0.358_898_944, // √19
+    ];
+    (0.5 + i as f64 * STEPS[k % MAX_JOINTS]).fract()
 }
 
 /// One solve's fixed parts: the chain where the mount puts it, the target, the ranges.
@@ -405,7 +408,6 @@ impl Body {
         for (k, &(lo, hi)) in limits[..n].iter().enumerate() {
             (problem.lo[k], problem.hi[k]) = (lo, hi);
         }
-        let mut draws = Draws(0x6E6F_7269_0000_0001 ^ arm as u64);
         let mut best = (f64::INFINITY, Angles::zeros(), 0.0, 0.0);
         let mut steps = 0;
         for start in 0..settings.max_starts.max(1) {
@@ -414,7 +416,7 @@ impl Body {
                 q[k] = if start == 0 {
                     seed[k]
                 } else {
-                    problem.lo[k] + (problem.hi[k] - problem.lo[k]) * draws.next()
+                    problem.lo[k] + (problem.hi[k] - problem.lo[k]) * spread(start, k)
                 };
             }
             problem.clamp(&mut q);
@@ -558,88 +560,52 @@ mod tests {
         let body = a3();
         let limits = body.arms()[0].hard_stops();
         let ok = target_of(&body, 0, &[0.0; 7], 0.3, Pose2::default());
-        let s = IkSettings::default();
+        let at = Mount {
+            lift_m: 0.3,
+            base: Pose2::default(),
+        };
+        let solve = |arm, target: &ToolTarget, seed: &[f64], limits: &[(f64, f64)], at| {
+            body.solve(arm, target, seed, limits, at, &IkSettings::default())
+        };
         let nan = ToolTarget {
             position: [f64::NAN, 0.0, 0.0],
             ..ok
         };
-        let p = Pose2::default();
-        assert_eq!(
-            body.solve(
-                0,
-                &nan,
-                &[0.0; 7],
-                &limits,
-                Mount {
-                    lift_m: 0.3,
-                    base: p
-                },
-                &s
-            ),
-            Err(IkError::BadInput("target"))
-        );
         let zero = ToolTarget {
             rotation: [0.0; 4],
             ..ok
         };
-        assert_eq!(
-            body.solve(
-                0,
-                &zero,
-                &[0.0; 7],
-                &limits,
-                Mount {
-                    lift_m: 0.3,
-                    base: p
-                },
-                &s
-            ),
-            Err(IkError::BadInput("target"))
-        );
-        assert_eq!(
-            body.solve(
-                0,
-                &ok,
-                &[0.0; 3],
-                &limits,
-                Mount {
-                    lift_m: 0.3,
-                    base: p
-                },
-                &s
-            ),
-            Err(IkError::BadInput("seed"))
-        );
         let mut swapped = limits.clone();
         swapped[2] = (1.0, -1.0);
-        assert_eq!(
-            body.solve(
-                0,
-                &ok,
-                &[0.0; 7],
-                &swapped,
-                Mount {
-                    lift_m: 0.3,
-                    base: p
-                },
-                &s
+        let adrift = Mount {
+            lift_m: f64::INFINITY,
+            ..at
+        };
+        for (result, refused) in [
+            (
+                solve(0, &nan, &[0.0; 7], &limits, at),
+                IkError::BadInput("target"),
             ),
-            Err(IkError::BadInput("limits"))
-        );
-        assert_eq!(
-            body.solve(
-                2,
-                &ok,
-                &[0.0; 7],
-                &limits,
-                Mount {
-                    lift_m: 0.3,
-                    base: p
-                },
-                &s
+            (
+                solve(0, &zero, &[0.0; 7], &limits, at),
+                IkError::BadInput("target"),
             ),
-            Err(IkError::NoArm(2))
-        );
+            (
+                solve(0, &ok, &[0.0; 7], &limits, adrift),
+                IkError::BadInput("target"),
+            ),
+            (
+                solve(0, &ok, &[0.0; 3], &limits, at),
+                IkError::BadInput("seed"),
+            ),
+            (
+                solve(0, &ok, &[0.0; 7], &swapped, at),
+                IkError::BadInput("limits"),
+            ),
+            (solve(2, &ok, &[0.0; 7], &limits, at), IkError::NoArm(2)),
+        ] {
+            assert_eq!(result, Err(refused));
+        }
     }
 
     /// The redundancy is spent keeping joints off their ends: against the plain solver, the
@@ -648,7 +614,6 @@ mod tests {
     fn the_null_space_keeps_the_joints_off_their_ranges_ends() {
         let body = a3();
         let limits = body.arms()[0].hard_stops();
-        let mut draws = Draws(7);
         let margin = |q: &[f64; MAX_JOINTS]| {
             (0..7)
                 .map(|k| {
@@ -658,10 +623,11 @@ mod tests {
                 .fold(f64::INFINITY, f64::min)
         };
         let (mut centred, mut plain, mut n) = (0.0, 0.0, 0);
-        for _ in 0..100 {
+        for i in 0..100 {
             let truth: Vec<f64> = limits
                 .iter()
-                .map(|(lo, hi)| lo + 0.15 * (hi - lo) + 0.7 * (hi - lo) * draws.next())
+                .enumerate()
+                .map(|(k, (lo, hi))| lo + 0.15 * (hi - lo) + 0.7 * (hi - lo) * spread(100 + i, k))
                 .collect();
             let target = target_of(&body, 0, &truth, 0.3, Pose2::default());
             let seed: Vec<f64> = truth.iter().map(|q| q + 0.2).collect();

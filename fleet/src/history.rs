@@ -7,7 +7,7 @@
 //! would miss a ten-second excursion. Every state message (10 Hz from each robot by default)
 //! is folded into its robot's current period; one row per robot and period is written.
 
-use fleet_agent::schema::{LayoutMsg, StateMsg};
+use fleet_agent::schema::{EventRecord, LayoutMsg, StateMsg};
 use std::collections::HashMap;
 
 /// The database's tables (idempotent: run at every start).
@@ -67,6 +67,54 @@ pub const INSERT_EVENT_SQL: &str = "INSERT INTO events \
      (robot, journal, seq, at, robot_ns, origin_seq, kind, joint, detail, bus, level, value) \
      VALUES ($1, $2, $3, to_timestamp($4::float8 / 1000.0), $5, $6, $7, $8, $9, $10, $11, $12) \
      ON CONFLICT DO NOTHING";
+
+/// One event as [`INSERT_EVENT_SQL`] takes it: robot `robot`'s journal `journal`, number `seq`.
+pub struct EventRow<'a> {
+    robot: &'a str,
+    numbers: [i64; 4],
+    wall_ms: f64,
+    bus_level: [i16; 2],
+    event: &'a EventRecord,
+}
+
+impl<'a> EventRow<'a> {
+    /// The row of `event`.
+    pub fn new(robot: &'a str, journal: u64, seq: u64, event: &'a EventRecord) -> Self {
+        EventRow {
+            robot,
+            numbers: [
+                journal as i64,
+                seq as i64,
+                event.timestamp_ns as i64,
+                event.origin_seq as i64,
+            ],
+            wall_ms: event.wall_ms as f64,
+            bus_level: [i16::from(event.bus), i16::from(event.level)],
+            event,
+        }
+    }
+
+    /// The statement's twelve parameters, in order.
+    pub fn params(&self) -> [&(dyn postgres::types::ToSql + Sync); 12] {
+        let [journal, seq, robot_ns, origin_seq] = &self.numbers;
+        let [bus, level] = &self.bus_level;
+        let e = self.event;
+        [
+            &self.robot,
+            journal,
+            seq,
+            &self.wall_ms,
+            robot_ns,
+            origin_seq,
+            &e.kind,
+            &e.joint,
+            &e.detail,
+            bus,
+            level,
+            &e.value,
+        ]
+    }
+}
 
 /// How telemetry is rolled up.
 #[derive(Debug, Clone, PartialEq)]

@@ -317,24 +317,8 @@ impl Writer {
             if seen.take(m.seq, m.held_from) == Taken::Copy {
                 continue;
             }
-            let e = &m.event;
-            stored += tx.execute(
-                &insert,
-                &[
-                    robot,
-                    &(m.journal as i64),
-                    &(m.seq as i64),
-                    &(e.wall_ms as f64),
-                    &(e.timestamp_ns as i64),
-                    &(e.origin_seq as i64),
-                    &e.kind,
-                    &e.joint,
-                    &e.detail,
-                    &i16::from(e.bus),
-                    &i16::from(e.level),
-                    &e.value,
-                ],
-            )?;
+            let row = fleet::history::EventRow::new(robot, m.journal, m.seq, &m.event);
+            stored += tx.execute(&insert, &row.params())?;
         }
         let upsert = tx.prepare(
             "INSERT INTO journals (robot, journal, stored_through, lost) VALUES ($1, $2, $3, $4) \

@@ -41,6 +41,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
             "model-lab",
             "stack",
             "camera",
+            "body",
         ],
     ),
     (
