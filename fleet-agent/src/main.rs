@@ -110,8 +110,10 @@ impl FleetPorts {
             layout_pub: publisher("layout", CongestionControl::Drop)?,
             preview_pub: publisher("preview", CongestionControl::Drop)?,
             scan_pub: publisher("scan", CongestionControl::Drop)?,
-            // Events are rare and matter: block rather than drop them on congestion.
-            event_pub: publisher("events", CongestionControl::Block)?,
+            // Dropped on congestion like the rest: the journal holds every event until the
+            // fleet acknowledges it and sends it again, and blocking would stall this loop (the
+            // one forwarding goals) for as long as a frozen router takes to be declared dead.
+            event_pub: publisher("events", CongestionControl::Drop)?,
             acks: session
                 .declare_subscriber(robot_key(id, "acks"))
                 .wait()

@@ -93,6 +93,8 @@ fn lock(c: &Mutex<Collector>) -> MutexGuard<'_, Collector> {
 pub fn run(args: &FleetArgs) -> Result<()> {
     telemetry::process::init_logging();
     let keys = |leaf: &str| robots_matching(&args.robots, leaf);
+    // Checked before anything is opened: a bad pattern is a configuration error (a pattern
+    // good for one leaf is good for all, so the loops below take the keys as given).
     keys("state")?;
     let stop = telemetry::process::stop_flag()?;
     let session = args
