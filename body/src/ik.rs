@@ -636,31 +636,12 @@ mod tests {
                 centring: 0.0,
                 ..with
             };
-            let p = Pose2::default();
-            if let (Ok(a), Ok(b)) = (
-                body.solve(
-                    0,
-                    &target,
-                    &seed,
-                    &limits,
-                    Mount {
-                        lift_m: 0.3,
-                        base: p,
-                    },
-                    &with,
-                ),
-                body.solve(
-                    0,
-                    &target,
-                    &seed,
-                    &limits,
-                    Mount {
-                        lift_m: 0.3,
-                        base: p,
-                    },
-                    &without,
-                ),
-            ) {
+            let at = Mount {
+                lift_m: 0.3,
+                base: Pose2::default(),
+            };
+            let solve = |settings| body.solve(0, &target, &seed, &limits, at, settings);
+            if let (Ok(a), Ok(b)) = (solve(&with), solve(&without)) {
                 centred += margin(&a.q);
                 plain += margin(&b.q);
                 n += 1;

@@ -258,18 +258,23 @@ fn robots_booted_offline_or_cut_off_by_a_site_router_lose_no_event_and_no_identi
     let mut even_shard = shard(['0', '2', '4', '6', '8'], "even");
     let mut odd_shard = shard(['1', '3', '5', '7', '9'], "odd");
     let held = |id: &str| nori_tests::agent_status(&watcher, id).counters;
+    // Each of `robots` has everything it journaled (its start, number 1, then its supervisor's
+    // events) stored and acknowledged, within `within`.
+    let caught_up = |robots: &mut dyn Iterator<Item = &Robot>, within: u64, what: &str| {
+        for r in robots {
+            wait_for(
+                Duration::from_secs(within),
+                &format!("{} {what}", r.id),
+                || {
+                    let c = held(&r.id);
+                    (c.events_unacknowledged == 0 && c.events_stored_through > r.seq).then_some(())
+                },
+            );
+        }
+    };
     // Every robot on the fleet: its start and what it journaled offline stored and acknowledged.
     let up = Instant::now();
-    for r in &robots {
-        wait_for(
-            Duration::from_secs(60),
-            &format!("{} on the fleet", r.id),
-            || {
-                let c = held(&r.id);
-                (c.events_stored_through > r.seq && c.events_unacknowledged == 0).then_some(())
-            },
-        );
-    }
+    caught_up(&mut robots.iter(), 60, "on the fleet");
     eprintln!(
         "booted offline: {} events each journaled, all stored {:.1} s after the routers started",
         robots[0].seq,
@@ -328,18 +333,7 @@ fn robots_booted_offline_or_cut_off_by_a_site_router_lose_no_event_and_no_identi
             telemetry::clock::monotonic_ns() as i64,
         ));
         on_sites.push(on_site(&robots));
-        // Every robot's journal caught up.
-        for r in &robots {
-            wait_for(
-                Duration::from_secs(60),
-                &format!("{} caught up after {fault}", r.id),
-                || {
-                    let c = held(&r.id);
-                    // Its start (number 1), then its supervisor's events.
-                    (c.events_unacknowledged == 0 && c.events_stored_through > r.seq).then_some(())
-                },
-            );
-        }
+        caught_up(&mut robots.iter(), 60, &format!("caught up after {fault}"));
     }
 
     // Access through either site router with robot 0's certificate, while the robots publish:
@@ -444,16 +438,7 @@ fn robots_booted_offline_or_cut_off_by_a_site_router_lose_no_event_and_no_identi
         "{victim} heard forged acknowledgements"
     );
     drop((intruders, inference));
-    for r in &robots {
-        wait_for(
-            Duration::from_secs(30),
-            &format!("{} caught up again", r.id),
-            || {
-                let c = held(&r.id);
-                (c.events_unacknowledged == 0 && c.events_stored_through > r.seq).then_some(())
-            },
-        );
-    }
+    caught_up(&mut robots.iter(), 30, "caught up again");
     let mut c = db.client();
     let (mut lost, mut copies, mut published) = (0, 0, 0);
     for r in &robots {
@@ -512,16 +497,11 @@ fn robots_booted_offline_or_cut_off_by_a_site_router_lose_no_event_and_no_identi
     // next events are acknowledged and the even robots' are not.
     even_shard.terminate(Duration::from_secs(5));
     publish(&mut robots);
-    for r in robots.iter().skip(1).step_by(2) {
-        wait_for(
-            Duration::from_secs(30),
-            &format!("{} stored by the odd shard", r.id),
-            || {
-                let c = held(&r.id);
-                (c.events_unacknowledged == 0 && c.events_stored_through > r.seq).then_some(())
-            },
-        );
-    }
+    caught_up(
+        &mut robots.iter().skip(1).step_by(2),
+        30,
+        "stored by the odd shard",
+    );
     std::thread::sleep(Duration::from_secs(1));
     for r in robots.iter().step_by(2) {
         assert!(
