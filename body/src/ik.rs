@@ -510,18 +510,12 @@ mod tests {
         limits[3] = (-1.0, 0.1);
         let truth = [0.4, 0.9, -0.5, -1.2, 0.3, 0.6, -0.4];
         let target = target_of(&body, 0, &truth, 0.3, Pose2::default());
-        let settings = IkSettings::default();
-        match body.solve(
-            0,
-            &target,
-            &[0.0; 7],
-            &limits,
-            Mount {
-                lift_m: 0.3,
-                base: Pose2::default(),
-            },
-            &settings,
-        ) {
+        let at = Mount {
+            lift_m: 0.3,
+            base: Pose2::default(),
+        };
+        let solve = |target| body.solve(0, target, &[0.0; 7], &limits, at, &IkSettings::default());
+        match solve(&target) {
             Ok(s) => assert!(s.q[3] >= -1.0, "{s:?}"),
             Err(IkError::NotReached { best, .. }) => {
                 assert!(best[3] >= -1.0 && best[3] <= 0.1, "{best:?}")
@@ -533,19 +527,7 @@ mod tests {
             position: [2.0, 0.18, 1.0],
             rotation: [1.0, 0.0, 0.0, 0.0],
         };
-        let e = body
-            .solve(
-                0,
-                &far,
-                &[0.0; 7],
-                &limits,
-                Mount {
-                    lift_m: 0.3,
-                    base: Pose2::default(),
-                },
-                &settings,
-            )
-            .unwrap_err();
+        let e = solve(&far).unwrap_err();
         let IkError::NotReached {
             position_error_m, ..
         } = e
