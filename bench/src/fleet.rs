@@ -131,7 +131,7 @@ impl Drop for Router {
     }
 }
 
-fn free_endpoint() -> Result<String> {
+pub(crate) fn free_endpoint() -> Result<String> {
     let l = std::net::TcpListener::bind("127.0.0.1:0")?;
     Ok(format!("tcp/127.0.0.1:{}", l.local_addr()?.port()))
 }

@@ -193,10 +193,7 @@ pub fn run(args: &FleetStoreArgs) -> Result<()> {
     let total = args.robots as u64 * args.events;
     let raw_before_s = raw_inserts(&mut db, &format!("{run}-before"), args.robots, args.events)?;
 
-    let endpoint = {
-        let l = std::net::TcpListener::bind("127.0.0.1:0")?;
-        format!("tcp/127.0.0.1:{}", l.local_addr()?.port())
-    };
+    let endpoint = crate::fleet::free_endpoint()?;
     let mut store = Command::new(stack::sibling("nori-fleet")?)
         .args(["store", "--database", &args.database, "--listen", &endpoint])
         .args(["--robots", &format!("{run}-store-$*")])

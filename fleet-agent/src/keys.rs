@@ -62,13 +62,8 @@ pub fn robots_matching(patterns: &[String], leaf: &str) -> Result<Vec<String>, B
     patterns
         .iter()
         .map(|p| {
-            let chunk = p == "*"
-                || (p.len() <= 64
-                    && !p.replace("$*", "").contains('$')
-                    && p.bytes().all(|b| {
-                        b.is_ascii_alphanumeric() || matches!(b, b'-' | b'_' | b'$' | b'*')
-                    })
-                    && !p.replace("$*", "").contains('*'));
+            // A robot id with `$*` standing for any run of its characters.
+            let chunk = p == "*" || check_robot_id(&p.replace("$*", "x")).is_ok();
             let key = format!("{ROOT}/{p}/{leaf}");
             match zenoh::key_expr::KeyExpr::try_from(key.clone()) {
                 Ok(k) if chunk && k.as_str() == key => Ok(key),

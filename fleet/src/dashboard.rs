@@ -92,10 +92,21 @@ fn lock(c: &Mutex<Collector>) -> MutexGuard<'_, Collector> {
 /// Runs the collector and the dashboard until Ctrl-C (or `--run-for`).
 pub fn run(args: &FleetArgs) -> Result<()> {
     telemetry::process::init_logging();
+    type Ingest = fn(&mut Collector, &str, &[u8], u64) -> Result<(), fleet::collector::IngestError>;
+    // Made before anything is opened: a bad pattern is a configuration error.
     let keys = |leaf: &str| robots_matching(&args.robots, leaf);
-    // Checked before anything is opened: a bad pattern is a configuration error (a pattern
-    // good for one leaf is good for all, so the loops below take the keys as given).
-    keys("state")?;
+    let (state_keys, alive_keys, status_keys) = (keys("state")?, keys("alive")?, keys("status")?);
+    let mut leaf_keys = Vec::new();
+    for (leaf, ingest) in [
+        ("layout", Collector::layout as Ingest),
+        ("events", Collector::event),
+        ("preview", Collector::preview),
+        ("scan", Collector::scan),
+    ] {
+        for key in keys(leaf)? {
+            leaf_keys.push((key, ingest));
+        }
+    }
     let stop = telemetry::process::stop_flag()?;
     let session = args
         .zenoh
@@ -108,10 +119,9 @@ pub fn run(args: &FleetArgs) -> Result<()> {
         (args.history_s * 2) as usize,
         500,
     )));
-    type Ingest = fn(&mut Collector, &str, &[u8], u64) -> Result<(), fleet::collector::IngestError>;
     let mut subscribers = Vec::new();
     // Telemetry, the bulk, is decoded before the collector is locked.
-    for key in keys("state")? {
+    for key in state_keys {
         let c = collector.clone();
         subscribers.push(
             session
@@ -127,18 +137,7 @@ pub fn run(args: &FleetArgs) -> Result<()> {
                 .map_err(z)?,
         );
     }
-    let leaves = [
-        ("layout", Collector::layout as Ingest),
-        ("events", Collector::event),
-        ("preview", Collector::preview),
-        ("scan", Collector::scan),
-    ];
-    for (key, ingest) in leaves.into_iter().flat_map(|(leaf, ingest)| {
-        keys(leaf)
-            .unwrap_or_default()
-            .into_iter()
-            .map(move |k| (k, ingest))
-    }) {
+    for (key, ingest) in leaf_keys {
         let c = collector.clone();
         subscribers.push(
             session
@@ -155,7 +154,7 @@ pub fn run(args: &FleetArgs) -> Result<()> {
         );
     }
     let mut _alive = Vec::new();
-    for key in keys("alive")? {
+    for key in alive_keys {
         let c = collector.clone();
         _alive.push(
             session
@@ -170,7 +169,6 @@ pub fn run(args: &FleetArgs) -> Result<()> {
                 .map_err(z)?,
         );
     }
-    let status_keys = keys("status")?;
 
     let server = tiny_http::Server::http(&args.http)
         .map_err(|e| anyhow!("serving HTTP on {}: {e}", args.http))?;

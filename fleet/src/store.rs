@@ -95,8 +95,13 @@ pub fn run(args: &StoreArgs) -> Result<()> {
             args.warn_c
         ));
     }
-    // Checked before anything is opened: a bad pattern is a configuration error.
-    robots_matching(&args.robots, "events")?;
+    // Made before anything is opened: a bad pattern is a configuration error.
+    let mut keys = Vec::new();
+    for leaf in ["events", "state", "layout"] {
+        for key in robots_matching(&args.robots, leaf)? {
+            keys.push((leaf, key));
+        }
+    }
     let stop = telemetry::process::stop_flag()?;
     let session = args
         .zenoh
@@ -106,12 +111,7 @@ pub fn run(args: &StoreArgs) -> Result<()> {
     let (tx, rx) = sync_channel::<Inbound>(args.queue.max(1));
     let queue_full = Arc::new(AtomicU64::new(0));
     let mut subscribers = Vec::new();
-    for (leaf, key) in ["events", "state", "layout"].into_iter().flat_map(|leaf| {
-        robots_matching(&args.robots, leaf)
-            .unwrap_or_default()
-            .into_iter()
-            .map(move |k| (leaf, k))
-    }) {
+    for (leaf, key) in keys {
         let (tx, full) = (tx.clone(), queue_full.clone());
         subscribers.push(
             session

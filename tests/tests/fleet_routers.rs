@@ -83,14 +83,6 @@ fn signal(p: &Proc, signal: nix::sys::signal::Signal) {
     nix::sys::signal::kill(nix::unistd::Pid::from_raw(p.pid() as i32), signal).unwrap();
 }
 
-/// Wall-clock time, s since the epoch (the store's `stored_at` is wall clock).
-fn wall_s() -> f64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .unwrap()
-        .as_secs_f64()
-}
-
 fn refused_actions(c: &fleet_agent::schema::AgentCounters) -> u64 {
     c.actions_rejected.values().sum()
 }
@@ -460,7 +452,8 @@ fn robots_booted_offline_or_cut_off_by_a_site_router_lose_no_event_and_no_identi
     );
     // How long each robot was off the fleet in each fault: the longest any of its events of the
     // stream waited between its supervisor publishing it and the store committing it.
-    let mono_to_wall_s = wall_s() - telemetry::clock::monotonic_ns() as f64 * 1e-9;
+    let mono_to_wall_s = fleet_agent::agent::wall_ms() as f64 * 1e-3
+        - telemetry::clock::monotonic_ns() as f64 * 1e-9;
     for ((fault, back_after, from, to), on) in phases.into_iter().zip(on_sites.chunks(2)) {
         eprintln!(
             "{fault}: robots on sites A, B before {:?}, after {:?}",
