@@ -432,6 +432,17 @@ impl DriverConfig {
                 if s.id > feetech::MAX_ID || !ids.insert(s.id) {
                     return Err(invalid(origin, at, "invalid or duplicate id"));
                 }
+                if s.joint.starts_with(telemetry::latch::RESERVED_PREFIX) {
+                    return Err(invalid(
+                        origin,
+                        at,
+                        format!(
+                            "joint {:?}: a name starting with {:?} is the trip record's own",
+                            s.joint,
+                            telemetry::latch::RESERVED_PREFIX
+                        ),
+                    ));
+                }
                 if !joints.insert(s.joint.as_str()) {
                     return Err(invalid(
                         origin,

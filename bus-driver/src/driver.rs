@@ -17,9 +17,9 @@ use feetech::registers::{self as reg, FeedbackBlock};
 use feetech::{ServoModel, ServoStatus, AMPS_PER_CURRENT_UNIT};
 use telemetry::frames::{
     BusHealth, BusHealthEntry, Directives, JointInfo, JointLayout, JointRole, BUS_HEALTH_CONNECTED,
-    BUS_HEALTH_DRIVER_TRIP, BUS_HEALTH_ENABLED, BUS_HEALTH_LATCHED, JOINT_FLAG_BUS_DISABLED,
-    JOINT_FLAG_BUS_LOST, JOINT_FLAG_DRIVER_TRIP, JOINT_FLAG_OUTPUT_LOST, MAX_BUSES,
-    STATE_FLAG_SAFE_STATE,
+    BUS_HEALTH_DRIVER_TRIP, BUS_HEALTH_ENABLED, BUS_HEALTH_LATCHED, DIRECTIVE_FLAG_STOP,
+    JOINT_FLAG_BUS_DISABLED, JOINT_FLAG_BUS_LOST, JOINT_FLAG_DRIVER_TRIP, JOINT_FLAG_OUTPUT_LOST,
+    MAX_BUSES, STATE_FLAG_OPERATOR_STOP, STATE_FLAG_SAFE_STATE,
 };
 use telemetry::{GoalFrame, JointSample, JointState, MAX_JOINTS};
 use thiserror::Error;
@@ -240,8 +240,10 @@ pub struct Driver<T: Transport> {
     wheel_timeout_ns: u64,
     safe_kind: SafeState,
     hold_permille: u16,
-    /// In the safe state (supervisor missing or never seen).
+    /// In the safe state (supervisor missing or never seen, or an operator's stop).
     safe: bool,
+    /// The supervisor's last applied directives carry an operator's stop.
+    operator_stop: bool,
     /// When the safe state was last left: older goals are refused.
     recovered_at_ns: u64,
     setup_retry_cycles: u64,
@@ -354,6 +356,7 @@ impl<T: Transport> Driver<T> {
             safe_kind: c.safe_state,
             hold_permille: (c.safe_hold_torque_percent * 10.0).round() as u16,
             safe: c.supervisor_timeout_ms > 0,
+            operator_stop: false,
             recovered_at_ns: 0,
             supervised: false,
             last_resort_trip_c: f32::from(c.last_resort_trip_c),
@@ -418,6 +421,12 @@ impl<T: Transport> Driver<T> {
     /// Whether the safe state is applied.
     pub fn in_safe_state(&self) -> bool {
         self.safe
+    }
+
+    /// Whether the supervisor's directives hold the robot stopped for an operator: the safe
+    /// state may not be left while they do.
+    pub fn operator_stopped(&self) -> bool {
+        self.operator_stop
     }
 
     /// The joints and buses, for other processes.
@@ -726,6 +735,20 @@ impl<T: Transport> Driver<T> {
         for (j, joint) in self.joints.iter_mut().enumerate() {
             joint.torque_wanted = d.torque_limit_permille[j];
         }
+        let stop = d.flags & DIRECTIVE_FLAG_STOP != 0;
+        if stop != self.operator_stop {
+            tracing::warn!(
+                "an operator {} the robot",
+                if stop { "stops" } else { "resumes" }
+            );
+        }
+        self.operator_stop = stop;
+        if stop {
+            self.state.flags |= STATE_FLAG_OPERATOR_STOP;
+            self.enter_safe_state();
+        } else {
+            self.state.flags &= !STATE_FLAG_OPERATOR_STOP;
+        }
         for b in 0..self.buses.len() {
             let off = d.bus_enabled & (1 << b) == 0;
             if off != self.buses[b].directed_off {
@@ -813,9 +836,10 @@ impl<T: Transport> Driver<T> {
     /// before `now_ns` are refused (they were meant for another situation). `hold` re-holds
     /// every joint where it is now before its torque comes back (an arm that sagged at the
     /// hold torque must not snap back to where it was frozen); `torque-off` brings the servos
-    /// up again at their present positions, one at a time.
+    /// up again at their present positions, one at a time. Never while an operator's stop is
+    /// in force.
     pub fn leave_safe_state(&mut self, now_ns: u64) {
-        if !self.safe {
+        if !self.safe || self.operator_stop {
             return;
         }
         self.safe = false;

@@ -156,7 +156,7 @@ pub fn run<T: Transport>(
                         directed |= applied;
                     }
                 }
-                if directed && driver.in_safe_state() {
+                if directed && driver.in_safe_state() && !driver.operator_stopped() {
                     driver.set_supervised(true);
                     driver.leave_safe_state(now);
                     tracing::info!("supervisor present and directing: driving");

@@ -1270,3 +1270,127 @@ fn a_wheel_whose_command_is_not_renewed_stops() {
     // The state frame says what was sent: 0.
     assert_eq!(rig.cycle().joints[16].goal_rad, 0.0);
 }
+
+/// A supervisor that says "stop" in its directives for cycles `stop_from..stop_until` of the
+/// loop, while a teleoperator sends the elbow a fresh goal every cycle (`goals.0` until the stop
+/// ends, `goals.1` after); the servo's goal register is read each cycle.
+struct StopScript {
+    cycle: u64,
+    stop: std::ops::Range<u64>,
+    elbow: usize,
+    goals: (f32, f32),
+    bus: Arc<Mutex<SimBus>>,
+    joint_count: u32,
+    /// Per cycle: the frame's flags and the elbow servo's goal register after it.
+    seen: Vec<(u32, i32)>,
+}
+
+impl bus_driver::LoopIo for StopScript {
+    fn goals(&mut self) -> Option<GoalFrame> {
+        let mut g = GoalFrame {
+            seq: self.cycle + 1,
+            timestamp_ns: monotonic_ns(),
+            joint_count: self.joint_count,
+            mask: 1 << self.elbow,
+            ..GoalFrame::default()
+        };
+        g.position_rad[self.elbow] = if self.cycle < self.stop.end {
+            self.goals.0
+        } else {
+            self.goals.1
+        };
+        Some(g)
+    }
+    fn directives(&mut self) -> Option<Directives> {
+        let mut d = directives(0b111, &[]);
+        d.timestamp_ns = monotonic_ns();
+        if self.stop.contains(&self.cycle) {
+            d.flags = telemetry::frames::DIRECTIVE_FLAG_STOP;
+        }
+        Some(d)
+    }
+    fn supervisor_heartbeat(&mut self) -> Option<telemetry::frames::Heartbeat> {
+        Some(telemetry::frames::Heartbeat {
+            pid: 42,
+            timestamp_ns: monotonic_ns(),
+            ..Default::default()
+        })
+    }
+    fn publish(&mut self, s: &telemetry::JointState) {
+        let goal = self
+            .bus
+            .lock()
+            .unwrap()
+            .servo_mut(4)
+            .unwrap()
+            .get(reg::GOAL_POSITION);
+        self.seen.push((s.flags, goal));
+        self.cycle += 1;
+    }
+}
+
+/// An operator's stop in the directives puts the driver in its safe state in the cycle it is
+/// applied, and no goal reaches a servo while it holds, however fresh; the stop's end lets the
+/// driver leave, re-holding where the arm is, and take the goals produced after it.
+#[test]
+fn an_operators_stop_holds_the_safe_state_and_refuses_every_goal_until_it_ends() {
+    let mut rig = rig_with(None, SafeState::Hold, 50);
+    let layout = rig.driver.layout();
+    let elbow = layout.joint_index("left_elbow").unwrap();
+    assert_eq!(layout.joints()[elbow].id, 4);
+    let [lo, hi] = layout.joints()[elbow].range_rad;
+    let mut io = StopScript {
+        cycle: 0,
+        stop: 20..50,
+        elbow,
+        goals: (lo + 0.3 * (hi - lo), lo + 0.6 * (hi - lo)),
+        bus: rig.buses[0].clone(),
+        joint_count: layout.joint_count,
+        seen: Vec::new(),
+    };
+    let stop = AtomicBool::new(false);
+    bus_driver::run(
+        &mut rig.driver,
+        Duration::from_millis(5),
+        Some(Duration::from_millis(50)),
+        &mut io,
+        &stop,
+        Some(80),
+    );
+    use telemetry::frames::STATE_FLAG_OPERATOR_STOP;
+    let stopped = STATE_FLAG_SAFE_STATE | STATE_FLAG_OPERATOR_STOP;
+    let seen = &io.seen;
+    assert_eq!(seen.len(), 80);
+    assert!(
+        seen[5..20].iter().all(|(f, _)| f & stopped == 0),
+        "driving before the stop: {:?}",
+        &seen[..20]
+    );
+    assert!(
+        seen[20..50].iter().all(|(f, _)| f & stopped == stopped),
+        "the stop holds from the cycle its directive is applied: {:?}",
+        &seen[18..52]
+    );
+    let held = seen[20].1;
+    assert!(
+        seen[20..50].iter().all(|&(_, g)| g == held) && held != seen[0].1,
+        "the goal before the stop, and none during it: {:?}",
+        &seen[20..50]
+    );
+    assert!(
+        seen[51..].iter().all(|(f, _)| f & stopped == 0),
+        "left once the stop ended"
+    );
+    assert!(
+        rig.driver.counters.goals_in_safe_state >= 29,
+        "{:?}",
+        rig.driver.counters
+    );
+    // After the stop, the new goal (0.2 rad, produced after the recovery) is taken.
+    let after = seen[79].1;
+    assert_ne!(after, held, "goals after the stop move the elbow");
+    assert_eq!(
+        rig.driver.counters.goals_clamped, 0,
+        "goals within the range"
+    );
+}

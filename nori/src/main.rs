@@ -1,5 +1,5 @@
 //! `nori`: the operator's command. Its own commands look at and move the robot (`state`,
-//! `goal`, `reenable`) and record demonstrations (`record`, `dataset`); every other command is
+//! `goal`, `reenable`, `stop`, `resume`) and record demonstrations (`record`, `dataset`); every other command is
 //! a program of its own, installed next to it, that `nori` runs in its place (same process,
 //! same arguments), so the one command name reaches all of them:
 //!
@@ -51,6 +51,11 @@ enum Command {
     Base(base_tool::BaseArgs),
     /// Ask the supervisor to re-enable a bus it tripped (granted once the bus has cooled).
     Reenable(plane_tools::ReenableArgs),
+    /// Stop the robot: its safe state, no goal from any source, until `nori resume` (no
+    /// restart of any process ends it).
+    Stop(plane_tools::StopArgs),
+    /// End an operator's stop: every joint re-held where it is.
+    Resume(plane_tools::StopArgs),
     /// The reference inference server: a scripted policy for every robot on the fleet.
     #[command(disable_help_flag = true)]
     PolicyServer(Passed),
@@ -109,6 +114,8 @@ fn main() -> Result<()> {
         Command::State(a) => plane_tools::state(a),
         Command::Goal(a) => plane_tools::goal(a),
         Command::Reenable(a) => plane_tools::reenable(a),
+        Command::Stop(a) => plane_tools::stop(a),
+        Command::Resume(a) => plane_tools::resume(a),
         Command::Base(a) => base_tool::base(a),
         Command::PolicyServer(p) => run_instead("nori-fleet", &["policy-server"], p),
         // `nori fleet store` and `nori fleet report` are commands of their own; plain `nori fleet`

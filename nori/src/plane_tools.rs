@@ -394,12 +394,17 @@ pub struct ReenableArgs {
     bus: String,
 }
 
+/// Options of `nori stop` and `nori resume`.
+#[derive(Args, Debug)]
+pub struct StopArgs {
+    #[command(flatten)]
+    plane: PlaneArgs,
+}
+
 /// Asks the supervisor to re-enable a bus it tripped, and reports its answer: granted only once
 /// every motor of the bus has cooled to the configured threshold.
 pub fn reenable(args: &ReenableArgs) -> Result<()> {
-    use telemetry::frames::{
-        EventKind, SupervisorCommand, COMMAND_REENABLE_BUS, COMMAND_REFUSED_NOT_TRIPPED,
-    };
+    use telemetry::frames::{EventKind, COMMAND_REENABLE_BUS, COMMAND_REFUSED_NOT_TRIPPED};
     let (node, layout) = args.plane.open("reenable", LAYOUT_TIMEOUT)?;
     let bus = layout.bus_index(&args.bus).with_context(|| {
         format!(
@@ -408,6 +413,88 @@ pub fn reenable(args: &ReenableArgs) -> Result<()> {
             layout.bus_names().collect::<Vec<_>>().join(", ")
         )
     })?;
+    let answer = command_supervisor(&node, &args.plane.domain, COMMAND_REENABLE_BUS, bus, |e| {
+        if e.bus as usize != bus {
+            return None;
+        }
+        match e.kind()? {
+            EventKind::BusReenabled => Some(Ok(())),
+            EventKind::ReenableRefused => Some(Err(format!(
+                "refused: bus {} is still at {:.0} °C",
+                args.bus, e.value
+            ))),
+            EventKind::CommandRefused if e.level == COMMAND_REFUSED_NOT_TRIPPED => Some(Err(
+                format!("nothing to do: bus {} is not tripped", args.bus),
+            )),
+            EventKind::CommandRefused => Some(Err(format!(
+                "the supervisor refused the command (reason {})",
+                e.level
+            ))),
+            _ => None,
+        }
+    })?;
+    answer.map_err(anyhow::Error::msg)?;
+    eprintln!("nori reenable: bus {} re-enabled", args.bus);
+    Ok(())
+}
+
+/// Stops the robot: the supervisor holds the driver in its safe state (no goal taken, from any
+/// source) until `nori resume`; recorded, so no restart ends it.
+pub fn stop(args: &StopArgs) -> Result<()> {
+    use telemetry::frames::{EventKind, COMMAND_STOP};
+    let (node, _) = args.plane.open("stop", LAYOUT_TIMEOUT)?;
+    let stopped = |node: &Plane| -> Result<bool> {
+        let states = node.subscriber(&plane::JOINT_STATE)?;
+        let until = Instant::now() + Duration::from_millis(300);
+        while Instant::now() < until {
+            if let Some(s) = plane::newest(&states) {
+                return Ok(s.flags & telemetry::frames::STATE_FLAG_OPERATOR_STOP != 0);
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        Ok(false)
+    };
+    if stopped(&node)? {
+        eprintln!("nori stop: the robot is already stopped (nori resume ends it)");
+        return Ok(());
+    }
+    let answer = command_supervisor(&node, &args.plane.domain, COMMAND_STOP, 0, |e| {
+        (e.kind()? == EventKind::OperatorStop).then_some(Ok(()))
+    })?;
+    answer.map_err(anyhow::Error::msg)?;
+    eprintln!("nori stop: stopped; the driver holds its safe state until `nori resume`");
+    Ok(())
+}
+
+/// Ends an operator's stop: the driver leaves its safe state, re-holding every joint where it
+/// is, and takes only goals produced from then on.
+pub fn resume(args: &StopArgs) -> Result<()> {
+    use telemetry::frames::{EventKind, COMMAND_REFUSED_NOT_STOPPED, COMMAND_RESUME};
+    let (node, _) = args.plane.open("resume", LAYOUT_TIMEOUT)?;
+    let answer = command_supervisor(&node, &args.plane.domain, COMMAND_RESUME, 0, |e| {
+        match e.kind()? {
+            EventKind::OperatorResume => Some(Ok(())),
+            EventKind::CommandRefused if e.level == COMMAND_REFUSED_NOT_STOPPED => {
+                Some(Err("nothing to do: the robot is not stopped".to_string()))
+            }
+            _ => None,
+        }
+    })?;
+    answer.map_err(anyhow::Error::msg)?;
+    eprintln!("nori resume: resumed");
+    Ok(())
+}
+
+/// Sends the supervisor one command and waits up to 2 s for the event `answer` recognises
+/// (`Some(Ok)` granted, `Some(Err(why))` refused, `None` another event).
+fn command_supervisor(
+    node: &Plane,
+    domain: &str,
+    kind: u8,
+    bus: usize,
+    mut answer: impl FnMut(&telemetry::frames::SupervisorEvent) -> Option<Result<(), String>>,
+) -> Result<Result<(), String>> {
+    use telemetry::frames::SupervisorCommand;
     let events = node.subscriber(&plane::EVENTS)?;
     let commands = node.publisher(&plane::COMMANDS)?;
     std::thread::sleep(Duration::from_millis(100));
@@ -415,7 +502,7 @@ pub fn reenable(args: &ReenableArgs) -> Result<()> {
     let cmd = SupervisorCommand {
         seq: 1,
         timestamp_ns: telemetry::clock::monotonic_ns(),
-        kind: COMMAND_REENABLE_BUS,
+        kind,
         bus: bus as u8,
         ..SupervisorCommand::default()
     };
@@ -423,32 +510,13 @@ pub fn reenable(args: &ReenableArgs) -> Result<()> {
     let until = Instant::now() + Duration::from_secs(2);
     while Instant::now() < until {
         while let Some(e) = plane::next(&events) {
-            if e.bus as usize != bus {
-                continue;
-            }
-            match e.kind() {
-                Some(EventKind::BusReenabled) => {
-                    eprintln!("nori reenable: bus {} re-enabled", args.bus);
-                    return Ok(());
-                }
-                Some(EventKind::ReenableRefused) => {
-                    bail!("refused: bus {} is still at {:.0} °C", args.bus, e.value)
-                }
-                Some(EventKind::CommandRefused) => match e.level {
-                    COMMAND_REFUSED_NOT_TRIPPED => {
-                        bail!("nothing to do: bus {} is not tripped", args.bus)
-                    }
-                    why => bail!("the supervisor refused the command (reason {why})"),
-                },
-                _ => {}
+            if let Some(a) = answer(&e) {
+                return Ok(a);
             }
         }
         std::thread::sleep(Duration::from_millis(10));
     }
-    bail!(
-        "no answer from the supervisor (is it running on domain {:?}?)",
-        args.plane.domain
-    )
+    bail!("no answer from the supervisor (is it running on domain {domain:?}?)")
 }
 
 #[cfg(test)]

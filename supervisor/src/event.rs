@@ -139,6 +139,13 @@ pub enum Event {
         /// Its hottest motor, °C.
         hottest_c: f32,
     },
+    /// An operator's stop is in force.
+    OperatorStop {
+        /// Restored from the trip record at start, not commanded now.
+        restored: bool,
+    },
+    /// An operator ended the stop.
+    OperatorResume,
 }
 
 impl Event {
@@ -219,6 +226,10 @@ impl Event {
                 temperature_c,
             ),
             DriverTrip { bus, hottest_c } => (EventKind::DriverTrip, NONE, bus, 0, hottest_c),
+            OperatorStop { restored } => {
+                (EventKind::OperatorStop, NONE, NONE, restored.into(), 0.0)
+            }
+            OperatorResume => (EventKind::OperatorResume, NONE, NONE, 0, 0.0),
         };
         SupervisorEvent {
             seq,

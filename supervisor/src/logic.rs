@@ -9,8 +9,9 @@ use crate::thermal::{BusThermal, ThermalEvent};
 use std::time::Duration;
 use telemetry::frames::{
     Directives, GripFrame, GripSample, JointLayout, JointRole, JointSample, JointState,
-    SupervisorCommand, SupervisorEvent, COMMAND_REENABLE_BUS, COMMAND_REFUSED_NOT_TRIPPED,
-    COMMAND_REFUSED_NO_SUCH_BUS, COMMAND_REFUSED_UNKNOWN_KIND, JOINT_FLAG_DRIVER_TRIP,
+    SupervisorCommand, SupervisorEvent, COMMAND_REENABLE_BUS, COMMAND_REFUSED_NOT_STOPPED,
+    COMMAND_REFUSED_NOT_TRIPPED, COMMAND_REFUSED_NO_SUCH_BUS, COMMAND_REFUSED_UNKNOWN_KIND,
+    COMMAND_RESUME, COMMAND_STOP, DIRECTIVE_FLAG_STOP, JOINT_FLAG_DRIVER_TRIP,
     JOINT_FLAG_OUTPUT_LOST, MAX_BUSES, MAX_GRIPPERS,
 };
 use telemetry::watchdog::{Liveness, Watchdog};
@@ -67,8 +68,8 @@ pub struct Supervisor {
     protection: Vec<(u8, bool)>,
     /// Per bus: the driver's own trip flag was seen (reported once per onset).
     driver_trip: Vec<bool>,
-    /// Bus enables and torque limits last handed out.
-    published: (u32, [u16; MAX_JOINTS]),
+    /// Bus enables, torque limits and flags last handed out.
+    published: (u32, [u16; MAX_JOINTS], u32),
     /// The driver's heartbeats, and what was last said of them.
     driver: DriverWatch,
 }
@@ -154,7 +155,11 @@ impl Supervisor {
             output_lost: vec![false; joints.len()],
             protection: vec![(0, false); joints.len()],
             driver_trip: vec![false; layout.bus_count as usize],
-            published: (directives.bus_enabled, directives.torque_limit_permille),
+            published: (
+                directives.bus_enabled,
+                directives.torque_limit_permille,
+                directives.flags,
+            ),
             driver: DriverWatch {
                 watchdog: Watchdog::new(Duration::from_millis(config.driver_timeout_ms)),
                 state: Liveness::Unknown,
@@ -223,6 +228,7 @@ impl Supervisor {
         self.published = (
             self.directives.bus_enabled,
             self.directives.torque_limit_permille,
+            self.directives.flags,
         );
         self.directives
     }
@@ -232,12 +238,18 @@ impl Supervisor {
         (
             self.directives.bus_enabled,
             self.directives.torque_limit_permille,
+            self.directives.flags,
         ) != self.published
     }
 
     /// The grip force of the last frame.
     pub fn grip(&self) -> &GripFrame {
         &self.grip
+    }
+
+    /// Whether an operator's stop is in force.
+    pub fn stopped(&self) -> bool {
+        self.directives.flags & DIRECTIVE_FLAG_STOP != 0
     }
 
     /// Whether bus `b` is tripped.
@@ -266,6 +278,10 @@ impl Supervisor {
     /// Latches again the trips a previous instance recorded: every bus holding one of `names`.
     /// Returns the buses tripped; names not in the layout are ignored (a reconfigured robot).
     pub fn restore_trips(&mut self, names: &[String], now_ns: u64) -> Vec<u8> {
+        if names.iter().any(|n| n == telemetry::latch::OPERATOR_STOP) {
+            self.directives.flags |= DIRECTIVE_FLAG_STOP;
+            self.event(now_ns, Event::OperatorStop { restored: true });
+        }
         let joints = self.layout.joints();
         let mut restored = Vec::new();
         for (b, bus) in self.buses.iter_mut().enumerate() {
@@ -560,8 +576,24 @@ impl Supervisor {
             let (bus, command) = (cmd.bus, cmd.kind);
             s.event(now_ns, Event::CommandRefused { bus, why, command });
         };
-        if cmd.kind != COMMAND_REENABLE_BUS {
-            return refused(self, COMMAND_REFUSED_UNKNOWN_KIND);
+        match cmd.kind {
+            COMMAND_REENABLE_BUS => {}
+            COMMAND_STOP => {
+                // A second press changes nothing and says nothing: the stop is in force.
+                if !self.stopped() {
+                    self.directives.flags |= DIRECTIVE_FLAG_STOP;
+                    self.event(now_ns, Event::OperatorStop { restored: false });
+                }
+                return;
+            }
+            COMMAND_RESUME => {
+                if !self.stopped() {
+                    return refused(self, COMMAND_REFUSED_NOT_STOPPED);
+                }
+                self.directives.flags &= !DIRECTIVE_FLAG_STOP;
+                return self.event(now_ns, Event::OperatorResume);
+            }
+            _ => return refused(self, COMMAND_REFUSED_UNKNOWN_KIND),
         }
         let b = cmd.bus as usize;
         let Some(bus) = self.buses.get_mut(b) else {

@@ -75,8 +75,10 @@ pub struct Process {
     /// The trip record as last loaded or saved (names of joints of latched buses, including
     /// those of buses this layout does not have).
     trips: Vec<String>,
-    /// Buses latched when the record was last written.
+    /// Buses latched, and whether an operator's stop was in force, when the record was last
+    /// written.
     recorded_mask: u32,
+    recorded_stop: bool,
     heartbeat: Heartbeat,
     last_publish_ns: Option<u64>,
     frames: u64,
@@ -95,6 +97,7 @@ impl Process {
             supervisor: None,
             trips,
             recorded_mask: 0,
+            recorded_stop: false,
             heartbeat: Heartbeat {
                 pid,
                 peer: Peer::Supervisor as u8,
@@ -152,14 +155,21 @@ impl Process {
             log_event(&e, &layout, self.last_state.as_ref());
             io.event(&e);
         }
-        // Trips outlive this process: recorded before the directives that announce them.
-        if s.tripped_buses() != self.recorded_mask {
+        // Trips and stops outlive this process: recorded before the directives that announce
+        // them.
+        if s.tripped_buses() != self.recorded_mask || s.stopped() != self.recorded_stop {
             self.recorded_mask = s.tripped_buses();
+            self.recorded_stop = s.stopped();
             // Latches of joints this layout does not have (a driver started on some of the
             // buses) are not this instance's to release: they stay in the record.
             let names: Vec<&str> = layout.joint_names().collect();
-            self.trips.retain(|n| !names.contains(&n.as_str()));
+            let stop = telemetry::latch::OPERATOR_STOP;
+            self.trips
+                .retain(|n| !names.contains(&n.as_str()) && n != stop);
             self.trips.extend(s.tripped_joints());
+            if s.stopped() {
+                self.trips.push(stop.to_string());
+            }
             if let Err(e) = io.save_trips(&self.trips) {
                 tracing::error!("{e}: a restart would forget the latched trips, and the driver keeps a released bus off");
             }
@@ -239,6 +249,7 @@ impl Process {
         }
         let restored = fresh.restore_trips(&self.trips, now);
         self.recorded_mask = fresh.tripped_buses();
+        self.recorded_stop = fresh.stopped();
         self.supervisor = Some(fresh);
         Ok(Some(Change::Supervising {
             joints: layout.joint_count,

@@ -10,7 +10,8 @@ use supervisor::SupervisorConfig;
 use telemetry::config::ProcessConfig;
 use telemetry::frames::{
     Directives, EventKind, GripFrame, Heartbeat, JointInfo, JointLayout, JointRole, JointSample,
-    JointState, SupervisorCommand, SupervisorEvent, COMMAND_REENABLE_BUS,
+    JointState, SupervisorCommand, SupervisorEvent, COMMAND_REENABLE_BUS, COMMAND_RESUME,
+    COMMAND_STOP, DIRECTIVE_FLAG_STOP,
 };
 use telemetry::latch::LatchError;
 use telemetry::motion::{LiftAllowance, LiftState};
@@ -20,7 +21,7 @@ const MS: u64 = 1_000_000;
 /// One call the loop made, in order.
 #[derive(Debug, Clone, PartialEq)]
 enum Call {
-    Directives { bus_enabled: u32 },
+    Directives { bus_enabled: u32, stop: bool },
     Event(Option<EventKind>, f32),
     Heartbeat,
     Grip,
@@ -55,6 +56,7 @@ impl SupervisorIo for Queues {
     fn directives(&mut self, d: &Directives) {
         self.calls.push(Call::Directives {
             bus_enabled: d.bus_enabled,
+            stop: d.flags & DIRECTIVE_FLAG_STOP != 0,
         });
     }
     fn event(&mut self, e: &SupervisorEvent) {
@@ -170,7 +172,8 @@ fn nothing_is_published_before_the_layout_and_the_heartbeat_follows_it() {
         io.calls,
         [
             Call::Directives {
-                bus_enabled: u32::MAX
+                bus_enabled: u32::MAX,
+                stop: false
             },
             Call::Heartbeat
         ]
@@ -188,7 +191,8 @@ fn nothing_is_published_before_the_layout_and_the_heartbeat_follows_it() {
         io.calls,
         [
             Call::Directives {
-                bus_enabled: u32::MAX
+                bus_enabled: u32::MAX,
+                stop: false
             },
             Call::Heartbeat
         ]
@@ -244,7 +248,7 @@ fn a_trip_is_saved_before_the_directives_that_announce_it_and_they_go_out_at_onc
     let off = io
         .calls
         .iter()
-        .position(|c| matches!(c, Call::Directives { bus_enabled } if bus_enabled & 1 == 0))
+        .position(|c| matches!(c, Call::Directives { bus_enabled, .. } if bus_enabled & 1 == 0))
         .expect("bus 0 turned off at once, not at the next period");
     assert!(
         save < off,
@@ -275,7 +279,13 @@ fn recorded_trips_latch_again_and_a_release_keeps_what_this_layout_lacks() {
         })
     );
     // The very first directives already keep bus 0 off.
-    assert_eq!(io.calls[1], Call::Directives { bus_enabled: !1 });
+    assert_eq!(
+        io.calls[1],
+        Call::Directives {
+            bus_enabled: !1,
+            stop: false
+        }
+    );
     // Cool, then released by the operator: the record drops bus 0's joints, keeps head_pan.
     io.states.push_back(state(1, 10 * MS, 30.0));
     io.commands.push_back(SupervisorCommand {
@@ -297,7 +307,8 @@ fn recorded_trips_latch_again_and_a_release_keeps_what_this_layout_lacks() {
         io.calls
     );
     assert!(io.calls.contains(&Call::Directives {
-        bus_enabled: u32::MAX
+        bus_enabled: u32::MAX,
+        stop: false
     }));
 }
 
@@ -386,4 +397,92 @@ fn the_lift_moving_past_its_rating_is_refused_travel_and_told_for_how_long() {
     assert!((a.seconds - 2.0).abs() < 0.05, "{a:?}");
     // Published with the heartbeat's period, each newer than the last.
     assert!(io.allowances.windows(2).all(|w| w[1].seq == w[0].seq + 1));
+}
+
+/// An operator's stop is recorded before the directives that carry it go out (at once, not at
+/// the next period), survives a restart of the supervisor (the new one's first directives
+/// carry it, before any command), and only the resume clears it, from the record too; trips
+/// in the record stay where they are.
+#[test]
+fn an_operators_stop_is_recorded_before_it_is_announced_and_outlives_a_restart() {
+    let stop_line = telemetry::latch::OPERATOR_STOP.to_string();
+    let command = |kind| SupervisorCommand {
+        seq: 1,
+        kind,
+        ..SupervisorCommand::default()
+    };
+    let mut p = Process::new(config(), vec!["head_pan".into()], 7);
+    let mut io = Queues {
+        layout: Some(layout()),
+        ..Queues::default()
+    };
+    p.poll(&mut io, 0).unwrap();
+    io.calls.clear();
+    io.commands.push_back(command(COMMAND_STOP));
+    p.poll(&mut io, MS).unwrap();
+    let saved = io
+        .calls
+        .iter()
+        .position(|c| *c == Call::Save(vec!["head_pan".into(), stop_line.clone()]))
+        .expect("the stop recorded");
+    let announced = io
+        .calls
+        .iter()
+        .position(|c| matches!(c, Call::Directives { stop: true, .. }))
+        .expect("the stop announced at once, 1 ms after the last directives");
+    assert!(saved < announced, "{:?}", io.calls);
+    assert!(io
+        .calls
+        .contains(&Call::Event(Some(EventKind::OperatorStop), 0.0)));
+    // A second press: nothing new.
+    io.calls.clear();
+    io.commands.push_back(command(COMMAND_STOP));
+    p.poll(&mut io, 2 * MS).unwrap();
+    assert!(!io
+        .calls
+        .iter()
+        .any(|c| matches!(c, Call::Save(_) | Call::Event(..))));
+
+    // A new supervisor on the record as saved: stopped from its first directives.
+    let mut q = Process::new(config(), vec!["head_pan".into(), stop_line.clone()], 8);
+    let mut io = Queues {
+        layout: Some(layout()),
+        ..Queues::default()
+    };
+    q.poll(&mut io, 0).unwrap();
+    let first = io
+        .calls
+        .iter()
+        .find(|c| matches!(c, Call::Directives { .. }))
+        .unwrap();
+    assert_eq!(
+        *first,
+        Call::Directives {
+            bus_enabled: u32::MAX,
+            stop: true
+        }
+    );
+    assert!(
+        !io.calls.iter().any(|c| matches!(c, Call::Save(_))),
+        "nothing to save"
+    );
+    io.calls.clear();
+    io.commands.push_back(command(COMMAND_RESUME));
+    q.poll(&mut io, MS).unwrap();
+    let saved = io
+        .calls
+        .iter()
+        .position(|c| *c == Call::Save(vec!["head_pan".into()]))
+        .expect("the stop taken off the record, the trip kept");
+    let announced = io
+        .calls
+        .iter()
+        .position(|c| matches!(c, Call::Directives { stop: false, .. }))
+        .expect("the end announced at once");
+    assert!(saved < announced);
+    // Resuming what is not stopped is refused and said.
+    io.calls.clear();
+    io.commands.push_back(command(COMMAND_RESUME));
+    q.poll(&mut io, 2 * MS).unwrap();
+    assert!(io.calls.iter().any(|c| matches!(c, Call::Event(Some(EventKind::CommandRefused), v) if *v == f32::from(COMMAND_RESUME))));
 }

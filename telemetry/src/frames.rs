@@ -80,8 +80,12 @@ pub struct JointState {
     pub joints: [JointSample; MAX_JOINTS],
 }
 
-/// The driver has applied its safe state (supervisor heartbeat lost, or stopping).
+/// The driver has applied its safe state (supervisor heartbeat lost, an operator's stop, or
+/// stopping).
 pub const STATE_FLAG_SAFE_STATE: u32 = 1;
+/// The safe state is an operator's stop (the supervisor's directives carry
+/// [`DIRECTIVE_FLAG_STOP`]): it holds until the operator resumes.
+pub const STATE_FLAG_OPERATOR_STOP: u32 = 2;
 
 /// Buses a frame can describe.
 pub const MAX_BUSES: usize = 4;
@@ -280,7 +284,7 @@ impl JointLayout {
 /// What the supervisor wants the driver to do; the newest frame wins (state, not events).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("nori::Directives/1")]
+#[type_name("nori::Directives/2")]
 pub struct Directives {
     /// Supervisor's sequence number.
     pub seq: u64,
@@ -292,7 +296,15 @@ pub struct Directives {
     pub bus_enabled: u32,
     /// Per joint torque limit, 0.1 % of full output; 0 means the configured maximum.
     pub torque_limit_permille: [u16; MAX_JOINTS],
+    /// [`DIRECTIVE_FLAG_STOP`].
+    pub flags: u32,
+    /// Reserved, zero.
+    pub reserved: u32,
 }
+
+/// [`Directives::flags`]: an operator stopped the robot: the driver holds its safe state (and
+/// takes no goal) for as long as the directives carry it, whatever else they allow.
+pub const DIRECTIVE_FLAG_STOP: u32 = 1;
 
 impl Default for Directives {
     fn default() -> Self {
@@ -302,6 +314,8 @@ impl Default for Directives {
             joint_count: 0,
             bus_enabled: u32::MAX,
             torque_limit_permille: [0; MAX_JOINTS],
+            flags: 0,
+            reserved: 0,
         }
     }
 }
@@ -368,6 +382,10 @@ pub enum EventKind {
     /// The driver's last-resort thermal tier had turned the bus off while no supervisor was
     /// heard (`value` hottest °C on the bus); the supervisor latches it as its own trip.
     DriverTrip = 14,
+    /// An operator stopped the robot (`level` 1: restored from the trip record at start).
+    OperatorStop = 15,
+    /// An operator ended the stop.
+    OperatorResume = 16,
 }
 
 /// [`EventKind::CommandRefused`]: a command kind the supervisor does not know.
@@ -376,6 +394,8 @@ pub const COMMAND_REFUSED_UNKNOWN_KIND: u8 = 1;
 pub const COMMAND_REFUSED_NO_SUCH_BUS: u8 = 2;
 /// [`EventKind::CommandRefused`]: re-enable asked for a bus that is not tripped.
 pub const COMMAND_REFUSED_NOT_TRIPPED: u8 = 3;
+/// [`EventKind::CommandRefused`]: resume asked while no stop is in force.
+pub const COMMAND_REFUSED_NOT_STOPPED: u8 = 4;
 
 /// Something the supervisor (or the driver) decided or observed.
 #[repr(C)]
@@ -417,6 +437,8 @@ impl SupervisorEvent {
             CommandRefused,
             FirmwareProtection,
             DriverTrip,
+            OperatorStop,
+            OperatorResume,
         ]
         .into_iter()
         .find(|k| *k as u8 == self.kind)
@@ -468,7 +490,7 @@ pub struct SupervisorCommand {
     pub seq: u64,
     /// CLOCK_MONOTONIC, ns.
     pub timestamp_ns: u64,
-    /// 1: re-enable the bus in `bus` (refused unless it has cooled).
+    /// [`COMMAND_REENABLE_BUS`], [`COMMAND_STOP`] or [`COMMAND_RESUME`].
     pub kind: u8,
     /// Bus index.
     pub bus: u8,
@@ -478,6 +500,11 @@ pub struct SupervisorCommand {
 
 /// [`SupervisorCommand::kind`]: re-enable a tripped bus.
 pub const COMMAND_REENABLE_BUS: u8 = 1;
+/// [`SupervisorCommand::kind`]: stop the robot: the driver's safe state until [`COMMAND_RESUME`]
+/// (recorded, so no restart of any process ends it).
+pub const COMMAND_STOP: u8 = 2;
+/// [`SupervisorCommand::kind`]: end an operator's stop.
+pub const COMMAND_RESUME: u8 = 3;
 
 /// One bus's error counts by kind: kept by the driver's bus layer (`bus_driver::bus`) as they
 /// happen and published as they are in [`BusHealthEntry`], so the two never drift apart.
@@ -628,7 +655,7 @@ mod tests {
         assert_eq!(std::mem::size_of::<JointSample>(), 32);
         assert_eq!(std::mem::size_of::<JointState>(), 32 + 32 * MAX_JOINTS);
         assert_eq!(std::mem::size_of::<GoalFrame>(), 24 + 4 * MAX_JOINTS);
-        assert_eq!(std::mem::size_of::<Directives>(), 24 + 2 * MAX_JOINTS);
+        assert_eq!(std::mem::size_of::<Directives>(), 24 + 2 * MAX_JOINTS + 8);
         assert_eq!(std::mem::size_of::<JointInfo>(), 40);
         assert_eq!(std::mem::size_of::<SupervisorEvent>(), 24);
         assert_eq!(std::mem::size_of::<Heartbeat>(), 24);

@@ -9,7 +9,9 @@
 //!   directive, says the latch is released).
 //!
 //! One joint name per line (names survive a driver started on a subset of the buses, where bus
-//! indices do not). Written atomically: temporary file, fsync, rename, fsync of the directory,
+//! indices do not), and [`OPERATOR_STOP`] while an operator's stop is in force (the supervisor
+//! restores it at start, so no restart ends a stop; the driver, which matches joint names,
+//! passes over it). Written atomically: temporary file, fsync, rename, fsync of the directory,
 //! so a crash or power loss leaves the old or the new record, never half and never none.
 
 use std::io::Write;
@@ -28,6 +30,12 @@ pub struct LatchError {
     #[source]
     pub source: std::io::Error,
 }
+
+/// Lines of the record starting with this are the record's own, never a joint (the driver's
+/// configuration refuses such joint names).
+pub const RESERVED_PREFIX: &str = "@";
+/// The record's line for an operator's stop in force.
+pub const OPERATOR_STOP: &str = "@operator-stop";
 
 /// Where the latch is kept when no path is given: `<temp dir>/nori-<domain>-trips` (a
 /// development default; the robot's units pass `/var/lib/nori/trips` to both processes).

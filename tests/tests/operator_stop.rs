@@ -1,0 +1,120 @@
+//! The operator's stop with the real processes: `nori stop` puts the driver in its safe state,
+//! where no goal moves the arm however fresh; a supervisor SIGKILLed and restarted finds the
+//! stop in the trip record and keeps it; only `nori resume` ends it, after which goals move the
+//! arm again.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use nori_tests::{binary, check_left_arm_report, wait_for, ArmStack};
+use std::process::Command;
+use std::time::{Duration, Instant};
+use telemetry::clock::monotonic_ns;
+use telemetry::frames::{STATE_FLAG_OPERATOR_STOP, STATE_FLAG_SAFE_STATE};
+use telemetry::plane::{self, newest, Plane};
+use telemetry::{GoalFrame, JointState};
+
+fn nori(args: &[&str], domain: &str) -> String {
+    let out = Command::new(binary("nori"))
+        .args(args)
+        .args(["--domain", domain])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(out.status.success(), "nori {args:?}: {stderr}");
+    stderr
+}
+
+#[test]
+fn a_stop_holds_through_a_supervisor_restart_until_the_operator_resumes() {
+    let mut stack = ArmStack::start("operator-stop", &[]);
+    let node = Plane::open(&stack.domain, "test").unwrap();
+    let states = node.subscriber(&plane::JOINT_STATE).unwrap();
+    let goals = node.publisher(&plane::GOALS).unwrap();
+    let stopped = STATE_FLAG_SAFE_STATE | STATE_FLAG_OPERATOR_STOP;
+    let driving = |s: &JointState| {
+        s.joint_count == 8 && s.joints().iter().all(|j| j.is_valid()) && s.flags & stopped == 0
+    };
+    wait_for(Duration::from_secs(20), "the arm driven", || {
+        newest(&states).filter(driving)
+    });
+    let layouts = node.subscriber(&plane::LAYOUT).unwrap();
+    let layout = wait_for(Duration::from_secs(2), "the layout", || newest(&layouts));
+    let elbow = layout.joint_index("left_elbow").unwrap();
+    let [lo, hi] = layout.joints()[elbow].range_rad;
+    // Fresh goals for the elbow every 10 ms for `for_ms`, to `rad`; the elbow's last position.
+    let mut seq = 0;
+    let mut drive = |rad: f32, for_ms: u64| -> f32 {
+        let until = Instant::now() + Duration::from_millis(for_ms);
+        while Instant::now() < until {
+            seq += 1;
+            let mut g = GoalFrame {
+                seq,
+                timestamp_ns: monotonic_ns(),
+                joint_count: 8,
+                mask: 1 << elbow,
+                ..GoalFrame::default()
+            };
+            g.position_rad[elbow] = rad;
+            plane::publish(&goals, &g).unwrap();
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        let s = wait_for(Duration::from_secs(1), "a frame", || newest(&states));
+        s.joints()[elbow].position_rad
+    };
+    let (a, b) = (lo + 0.3 * (hi - lo), lo + 0.7 * (hi - lo));
+    let at_a = drive(a, 1500);
+    assert!((at_a - a).abs() < 0.05, "driven to {a}: at {at_a}");
+
+    let said = nori(&["stop"], &stack.domain);
+    assert!(said.contains("stopped"), "{said}");
+    wait_for(Duration::from_secs(1), "the stop in the frames", || {
+        newest(&states).filter(|s| s.flags & stopped == stopped)
+    });
+    let held = drive(b, 1000);
+    assert!(
+        (held - at_a).abs() < 0.03,
+        "moved during the stop: {at_a} → {held}"
+    );
+    let s = wait_for(Duration::from_secs(1), "a frame", || newest(&states));
+    assert_eq!(s.flags & stopped, stopped);
+
+    // The supervisor dies and comes back: the record holds the stop.
+    stack.restart_supervisor();
+    wait_for(
+        Duration::from_secs(10),
+        "the new supervisor's stop in the frames",
+        || {
+            let s = newest(&states)?;
+            (s.flags & stopped == stopped).then_some(())
+        },
+    );
+    let held = drive(b, 1500);
+    assert!(
+        (held - at_a).abs() < 0.03,
+        "moved after the supervisor's restart: {at_a} → {held}"
+    );
+    let record = std::fs::read_to_string(stack.trips()).unwrap();
+    assert!(
+        record.contains(telemetry::latch::OPERATOR_STOP),
+        "{record:?}"
+    );
+
+    let said = nori(&["resume"], &stack.domain);
+    assert!(said.contains("resumed"), "{said}");
+    wait_for(Duration::from_secs(2), "driving again", || {
+        newest(&states).filter(driving)
+    });
+    let at_b = drive(b, 1500);
+    assert!(
+        (at_b - b).abs() < 0.05,
+        "driven to {b} after the resume: {at_b}"
+    );
+    let record = std::fs::read_to_string(stack.trips()).unwrap();
+    assert!(
+        !record.contains(telemetry::latch::OPERATOR_STOP),
+        "{record:?}"
+    );
+    drop((states, layouts, goals, node));
+    let report = stack.stop();
+    check_left_arm_report(&report, 60.0);
+}
