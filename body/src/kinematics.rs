@@ -132,6 +132,11 @@ impl Body {
         })
     }
 
+    /// The lift's height at which the description places the shoulders, m.
+    pub fn lift_start_m(&self) -> f64 {
+        self.lift_start_m
+    }
+
     /// The arms, in description order.
     pub fn arms(&self) -> &[ArmChain] {
         &self.arms
@@ -140,6 +145,34 @@ impl Body {
     /// `chain`'s shoulder in the base's frame with the lift at `lift_m`.
     pub(crate) fn shoulder_at(&self, chain: &ArmChain, lift_m: f64) -> Vector3<f64> {
         chain.shoulder + Vector3::new(0.0, 0.0, lift_m - self.lift_start_m)
+    }
+
+    /// The points a drawing of arm `arm` joins, in the room, at joint angles `q` (as
+    /// [`Body::arm_pose`]): its shoulder, each joint's origin base outward, and the tool point.
+    pub fn arm_points(
+        &self,
+        arm: usize,
+        q: &[f64],
+        lift_m: f64,
+        base: Pose2,
+    ) -> Option<Vec<[f64; 3]>> {
+        let chain = self.arms.get(arm)?;
+        let heading = Rotation3::from_axis_angle(&Vector3::z_axis(), base.theta);
+        let place = |p: Vector3<f64>| {
+            let r = heading * p + Vector3::new(base.x, base.y, 0.0);
+            [r.x, r.y, r.z]
+        };
+        let mut p = self.shoulder_at(chain, lift_m);
+        let mut points = Vec::with_capacity(chain.joints.len() + 2);
+        points.push(place(p));
+        let mut rot = Matrix3::identity();
+        for (k, j) in chain.joints.iter().enumerate() {
+            p += rot * j.origin;
+            points.push(place(p));
+            rot *= *Rotation3::from_axis_angle(&j.axis, q.get(k).copied().unwrap_or(0.0)).matrix();
+        }
+        points.push(place(p + rot * chain.tip));
+        Some(points)
     }
 
     /// Arm `arm` at joint angles `q` (rad, base outward; missing angles count as 0), the lift at
@@ -190,6 +223,38 @@ mod tests {
         assert_eq!(body.arms()[0].joint_names.len(), 7);
         assert_eq!(body.arms()[0].joint_names[3], "left_elbow");
         assert_eq!(body.arms()[1].joint_names[0], "right_shoulder_pitch");
+    }
+
+    #[test]
+    fn an_arms_drawing_runs_from_its_shoulder_through_each_joint_to_its_tool() {
+        let body = a3();
+        let q = [0.3, -0.2, 0.5, -1.1, 0.4, 0.2, -0.6];
+        let base = Pose2 {
+            x: 0.4,
+            y: -0.2,
+            theta: 0.7,
+        };
+        for arm in 0..2 {
+            let pose = body.arm_pose(arm, &q, 0.25, base).unwrap();
+            let points = body.arm_points(arm, &q, 0.25, base).unwrap();
+            assert_eq!(points.len(), 9);
+            assert!(close(points[0], pose.shoulder, 1e-12));
+            assert!(close(points[8], pose.tool, 1e-12));
+            // The links keep their lengths whatever the angles.
+            let zero = body
+                .arm_points(arm, &[0.0; 7], 0.0, Pose2::default())
+                .unwrap();
+            for k in 0..8 {
+                let d = |p: &[[f64; 3]]| {
+                    (0..3)
+                        .map(|i| (p[k + 1][i] - p[k][i]).powi(2))
+                        .sum::<f64>()
+                        .sqrt()
+                };
+                assert!((d(&points) - d(&zero)).abs() < 1e-12, "link {k}");
+            }
+        }
+        assert!(body.arm_points(2, &q, 0.0, base).is_none());
     }
 
     #[test]

@@ -1,0 +1,847 @@
+//! Teleoperation from a page, pure (time passed in): what the page asks (joint targets from its
+//! sliders, a tool pose dragged in 3D) becomes goal frames on the driver's one goal path, under
+//! these rules:
+//!
+//! - **Nothing the stack would refuse is sent**: a joint the driver does not have, a wheel, a
+//!   value that is not finite or lies outside the joint's calibrated range (from the driver's
+//!   layout: the range the driver clamps to) refuses the whole message, with its reason, and
+//!   is counted; a tool pose is solved by [`body::Body::solve`] within those same ranges, and
+//!   one out of reach is refused with how far the closest solution stays.
+//! - **No jump**: each joint is taken from where it was read when it is first commanded, then
+//!   moves toward its target at most `max_speed_rad_s`; the goals go out every tick.
+//! - **Dead-man**: one page controls at a time; it must be heard (any control message, or its
+//!   `alive`) within `deadman_ms`, else the arm is held where it is read (one frame of the
+//!   measured positions; grippers keep their grip) and nothing more is sent. A page whose
+//!   connection closes is released at once.
+//! - **The robot's safe state wins**: while the driver is in its safe state (an operator's stop,
+//!   no supervisor) nothing is taken and everything commanded is dropped, so no target set
+//!   before a recovery moves the arm after it.
+//!
+//! The driver then applies its own checks (finite, age, calibration clamp) and the supervisor
+//! watches the motors, as for every other source of goals.
+
+use body::ik::{IkError, IkSettings, Mount, ToolTarget};
+use body::kinematics::{Body, Pose2};
+use std::collections::BTreeMap;
+use telemetry::frames::{JointLayout, JointRole, STATE_FLAG_SAFE_STATE};
+use telemetry::{GoalFrame, JointState, MAX_JOINTS};
+use thiserror::Error;
+
+/// How teleoperation behaves.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TeleopSettings {
+    /// A controlling page silent this long is released, ms.
+    pub deadman_ms: u64,
+    /// Fastest a commanded joint moves toward its target, rad/s.
+    pub max_speed_rad_s: f64,
+    /// The inverse kinematics' tolerances and effort.
+    pub ik: IkSettings,
+}
+
+impl Default for TeleopSettings {
+    fn default() -> Self {
+        TeleopSettings {
+            deadman_ms: 300,
+            max_speed_rad_s: 1.5,
+            ik: IkSettings::default(),
+        }
+    }
+}
+
+/// What a page asks of the arms.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Command {
+    /// Joint targets by name, rad.
+    Joints(BTreeMap<String, f64>),
+    /// An arm's tool (named by its bus, `left_arm`) to a pose in the base's frame.
+    Tool {
+        /// The arm's bus name.
+        arm: String,
+        /// The target.
+        target: ToolTarget,
+    },
+    /// The controlling page is still there (sent while its operator holds control).
+    Alive,
+    /// The page lets go: the arm is held where it is.
+    Release,
+}
+
+/// Why a command was not taken.
+#[derive(Debug, Clone, PartialEq, Error)]
+pub enum Refusal {
+    /// The driver is in its safe state.
+    #[error("the robot is in its safe state (stopped, or no supervisor): nothing is taken")]
+    SafeState,
+    /// No joint state or layout yet.
+    #[error("the driver's layout and state are not known yet")]
+    NotReady,
+    /// Another page controls the robot.
+    #[error("another page controls the robot")]
+    OtherPage,
+    /// No such joint in the driver's layout.
+    #[error("no joint {0:?} in the driver's layout")]
+    UnknownJoint(String),
+    /// A wheel takes speeds, not targets.
+    #[error("{0:?} is a wheel: the base takes velocities, not targets")]
+    Wheel(String),
+    /// Not a finite number.
+    #[error("{0}: not a finite number")]
+    NotFinite(String),
+    /// Outside the calibrated range.
+    #[error("{joint} = {value:.4} rad is outside its calibrated range [{low:.4}, {high:.4}]")]
+    OutOfRange {
+        /// The joint.
+        joint: String,
+        /// What was asked.
+        value: f64,
+        /// The range.
+        low: f64,
+        /// The range.
+        high: f64,
+    },
+    /// A joint to command was not read validly in the last frame.
+    #[error("{0} was not read in the last frame: it is not moved from a guess")]
+    NotRead(String),
+    /// No such arm.
+    #[error("no arm {0:?} (the body's arms are named by their buses)")]
+    UnknownArm(String),
+    /// The tool pose cannot be reached within the calibrated ranges.
+    #[error("out of reach: the closest pose is {position_error_m:.4} m and {angle_error_rad:.3} rad away")]
+    Unreachable {
+        /// m.
+        position_error_m: f64,
+        /// rad.
+        angle_error_rad: f64,
+    },
+    /// The pose is not a finite position and a non-zero quaternion.
+    #[error("the tool pose is not a finite position and rotation")]
+    BadPose,
+}
+
+impl Refusal {
+    /// A short name for counting.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Refusal::SafeState => "safe_state",
+            Refusal::NotReady => "not_ready",
+            Refusal::OtherPage => "other_page",
+            Refusal::UnknownJoint(_) => "unknown_joint",
+            Refusal::Wheel(_) => "wheel",
+            Refusal::NotFinite(_) => "not_finite",
+            Refusal::OutOfRange { .. } => "out_of_range",
+            Refusal::NotRead(_) => "not_read",
+            Refusal::UnknownArm(_) => "unknown_arm",
+            Refusal::Unreachable { .. } => "unreachable",
+            Refusal::BadPose => "bad_pose",
+        }
+    }
+}
+
+/// What a taken tool command solved to.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Solved {
+    /// m.
+    pub position_error_m: f64,
+    /// rad.
+    pub angle_error_rad: f64,
+    /// Starts the solver needed (1: from where the arm is commanded).
+    pub starts: usize,
+}
+
+/// Why teleoperation ended by itself.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Ended {
+    /// The controlling page was not heard within the dead-man bound.
+    DeadMan,
+    /// Its connection closed.
+    PageClosed,
+    /// The page let go.
+    Released,
+    /// The driver entered its safe state.
+    SafeState,
+}
+
+/// Counts, for the page and the log.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct TeleopCounters {
+    /// Commands taken.
+    pub taken: u64,
+    /// Commands refused, by [`Refusal::kind`].
+    pub refused: BTreeMap<&'static str, u64>,
+    /// Teleoperation ended by the dead-man bound.
+    pub deadman_releases: u64,
+    /// ... by the page's connection closing.
+    pub closed_releases: u64,
+    /// ... by the driver's safe state.
+    pub safe_state_releases: u64,
+    /// Goal frames produced.
+    pub frames: u64,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Owner {
+    page: u64,
+    heard_ns: u64,
+}
+
+/// One arm of the body on the driver's layout.
+#[derive(Debug, Clone)]
+struct Arm {
+    bus: String,
+    /// Frame index of each chain joint, base outward.
+    joints: Vec<usize>,
+    /// Calibrated ranges within the hard stops, base outward.
+    limits: Vec<(f64, f64)>,
+}
+
+/// The teleoperation state.
+pub struct Teleop {
+    body: Body,
+    settings: TeleopSettings,
+    layout: JointLayout,
+    arms: Vec<Arm>,
+    owner: Option<Owner>,
+    /// Bit `i`: joint `i` is commanded.
+    active: u32,
+    target: [f64; MAX_JOINTS],
+    commanded: [f64; MAX_JOINTS],
+    last_tick_ns: Option<u64>,
+    /// The lift's height the arms are solved at, m.
+    lift_m: f64,
+    /// The hold frame owed once teleoperation ends (sent at the next tick).
+    hold: Option<Ended>,
+    seq: u64,
+    counters: TeleopCounters,
+}
+
+impl Teleop {
+    /// Teleoperation of `body`'s arms as the driver's `layout` names and limits them. An arm
+    /// some of whose joints the driver does not drive cannot be teleoperated in Cartesian
+    /// space (its joints still by sliders).
+    pub fn new(body: Body, layout: JointLayout, settings: TeleopSettings) -> Teleop {
+        let arms = body
+            .arms()
+            .iter()
+            .filter_map(|chain| {
+                let joints: Option<Vec<usize>> = chain
+                    .joint_names
+                    .iter()
+                    .map(|n| layout.joint_index(n))
+                    .collect();
+                let joints = joints?;
+                let limits = joints
+                    .iter()
+                    .zip(chain.hard_stops())
+                    .map(|(&j, (lo, hi))| {
+                        let [a, b] = layout.joints()[j].range_rad;
+                        (f64::from(a).max(lo), f64::from(b).min(hi))
+                    })
+                    .collect();
+                Some(Arm {
+                    bus: chain.bus.clone(),
+                    joints,
+                    limits,
+                })
+            })
+            .collect();
+        let lift_m = body.lift_start_m();
+        Teleop {
+            body,
+            settings,
+            layout,
+            arms,
+            owner: None,
+            active: 0,
+            target: [0.0; MAX_JOINTS],
+            commanded: [0.0; MAX_JOINTS],
+            last_tick_ns: None,
+            lift_m,
+            hold: None,
+            seq: 0,
+            counters: TeleopCounters::default(),
+        }
+    }
+
+    /// The lift's height now, m: tool poses are in the base's frame, solved with the shoulders
+    /// where the lift carries them.
+    pub fn set_lift_m(&mut self, lift_m: f64) {
+        if lift_m.is_finite() {
+            self.lift_m = lift_m;
+        }
+    }
+
+    /// The layout this teleoperation was made for.
+    pub fn layout(&self) -> &JointLayout {
+        &self.layout
+    }
+
+    /// The arms that can be moved in Cartesian space, by bus name.
+    pub fn arm_names(&self) -> impl Iterator<Item = &str> {
+        self.arms.iter().map(|a| a.bus.as_str())
+    }
+
+    /// The counts so far.
+    pub fn counters(&self) -> &TeleopCounters {
+        &self.counters
+    }
+
+    /// The page in control, if one is.
+    pub fn owner(&self) -> Option<u64> {
+        self.owner.map(|o| o.page)
+    }
+
+    /// Joints commanded now (bit per frame index).
+    pub fn active(&self) -> u32 {
+        self.active
+    }
+
+    /// The goal last commanded to joint `i` (meaningful while it is active).
+    pub fn commanded(&self, i: usize) -> Option<f64> {
+        (self.active & (1 << i) != 0).then(|| self.commanded[i])
+    }
+
+    /// Page `page`'s command at `now_ns`, against the newest joint state.
+    pub fn command(
+        &mut self,
+        page: u64,
+        command: &Command,
+        state: Option<&JointState>,
+        now_ns: u64,
+    ) -> Result<Option<Solved>, Refusal> {
+        let result = self.take(page, command, state, now_ns);
+        match &result {
+            Ok(_) => self.counters.taken += 1,
+            Err(r) => *self.counters.refused.entry(r.kind()).or_default() += 1,
+        }
+        result
+    }
+
+    fn take(
+        &mut self,
+        page: u64,
+        command: &Command,
+        state: Option<&JointState>,
+        now_ns: u64,
+    ) -> Result<Option<Solved>, Refusal> {
+        let deadman_ns = self.settings.deadman_ms * 1_000_000;
+        let owner_alive = self
+            .owner
+            .is_some_and(|o| now_ns.saturating_sub(o.heard_ns) <= deadman_ns);
+        if owner_alive && self.owner.is_some_and(|o| o.page != page) {
+            return Err(Refusal::OtherPage);
+        }
+        match command {
+            Command::Alive => {
+                if let Some(o) = self.owner.as_mut().filter(|o| o.page == page) {
+                    o.heard_ns = now_ns;
+                }
+                return Ok(None);
+            }
+            Command::Release => {
+                if self.owner.is_some_and(|o| o.page == page) {
+                    self.end(Ended::Released);
+                }
+                return Ok(None);
+            }
+            _ => {}
+        }
+        let state = state
+            .filter(|s| s.joint_count == self.layout.joint_count)
+            .ok_or(Refusal::NotReady)?;
+        if state.flags & STATE_FLAG_SAFE_STATE != 0 {
+            return Err(Refusal::SafeState);
+        }
+        let (goals, solved) = match command {
+            Command::Joints(by_name) => (self.check_joints(by_name)?, None),
+            Command::Tool { arm, target } => {
+                let (goals, solved) = self.solve(arm, target, state)?;
+                (goals, Some(solved))
+            }
+            Command::Alive | Command::Release => return Ok(None),
+        };
+        // Every joint newly commanded starts from where it was read: refused whole if one was
+        // not read.
+        for &(i, _) in &goals {
+            if self.active & (1 << i) == 0 && !state.joints()[i].is_valid() {
+                return Err(Refusal::NotRead(self.layout.joints()[i].name().to_string()));
+            }
+        }
+        for &(i, v) in &goals {
+            if self.active & (1 << i) == 0 {
+                self.commanded[i] = f64::from(state.joints()[i].position_rad);
+                self.active |= 1 << i;
+            }
+            self.target[i] = v;
+        }
+        self.hold = None;
+        self.owner = Some(Owner {
+            page,
+            heard_ns: now_ns,
+        });
+        Ok(solved)
+    }
+
+    /// Joint targets checked against the layout: every one known, not a wheel, finite and
+    /// within its calibrated range.
+    fn check_joints(&self, by_name: &BTreeMap<String, f64>) -> Result<Vec<(usize, f64)>, Refusal> {
+        by_name
+            .iter()
+            .map(|(name, &v)| {
+                let i = self
+                    .layout
+                    .joint_index(name)
+                    .ok_or_else(|| Refusal::UnknownJoint(name.clone()))?;
+                let info = &self.layout.joints()[i];
+                if info.role() == JointRole::Wheel {
+                    return Err(Refusal::Wheel(name.clone()));
+                }
+                if !v.is_finite() {
+                    return Err(Refusal::NotFinite(name.clone()));
+                }
+                let [lo, hi] = info.range_rad.map(f64::from);
+                if v < lo || v > hi {
+                    return Err(Refusal::OutOfRange {
+                        joint: name.clone(),
+                        value: v,
+                        low: lo,
+                        high: hi,
+                    });
+                }
+                Ok((i, v))
+            })
+            .collect()
+    }
+
+    /// The arm's joint targets that put its tool at `target`, solved from where the arm is
+    /// commanded (or read, for joints not commanded).
+    fn solve(
+        &self,
+        arm: &str,
+        target: &ToolTarget,
+        state: &JointState,
+    ) -> Result<(Vec<(usize, f64)>, Solved), Refusal> {
+        let a = self
+            .arms
+            .iter()
+            .find(|a| a.bus == arm)
+            .ok_or_else(|| Refusal::UnknownArm(arm.to_string()))?;
+        let norm: f64 = target.rotation.iter().map(|x| x * x).sum::<f64>().sqrt();
+        if !(target.position.iter().all(|x| x.is_finite()) && norm.is_finite() && norm > 1e-9) {
+            return Err(Refusal::BadPose);
+        }
+        let body_arm = self
+            .body
+            .arms()
+            .iter()
+            .position(|c| c.bus == a.bus)
+            .ok_or_else(|| Refusal::UnknownArm(arm.to_string()))?;
+        let mut seed = [0.0; MAX_JOINTS];
+        for (k, &j) in a.joints.iter().enumerate() {
+            let read = f64::from(state.joints()[j].position_rad);
+            let (lo, hi) = a.limits[k];
+            seed[k] = self.commanded(j).unwrap_or(read).clamp(lo, hi);
+        }
+        let mount = Mount {
+            lift_m: self.lift_m,
+            base: Pose2::default(),
+        };
+        let n = a.joints.len();
+        match self
+            .body
+            .solve(body_arm, target, &seed[..n], &a.limits, mount, &self.settings.ik)
+        {
+            Ok(s) => Ok((
+                a.joints.iter().enumerate().map(|(k, &j)| (j, s.q[k])).collect(),
+                Solved {
+                    position_error_m: s.position_error_m,
+                    angle_error_rad: s.angle_error_rad,
+                    starts: s.starts,
+                },
+            )),
+            Err(IkError::NotReached {
+                position_error_m,
+                angle_error_rad,
+                ..
+            }) => Err(Refusal::Unreachable {
+                position_error_m,
+                angle_error_rad,
+            }),
+            Err(_) => Err(Refusal::BadPose),
+        }
+    }
+
+    /// Page `page`'s connection closed: if it controlled, the arm is held where it is at the
+    /// next tick.
+    pub fn page_closed(&mut self, page: u64) {
+        if self.owner.is_some_and(|o| o.page == page) {
+            self.end(Ended::PageClosed);
+        }
+    }
+
+    fn end(&mut self, why: Ended) {
+        self.owner = None;
+        if self.active != 0 {
+            self.hold = Some(why);
+        }
+    }
+
+    /// One tick at `now_ns`: the goal frame to publish, if any, and why teleoperation ended if
+    /// it did in this tick.
+    pub fn tick(
+        &mut self,
+        state: Option<&JointState>,
+        now_ns: u64,
+    ) -> (Option<GoalFrame>, Option<Ended>) {
+        let dt = self
+            .last_tick_ns
+            .map_or(0.0, |t| now_ns.saturating_sub(t) as f64 * 1e-9)
+            .min(0.05);
+        self.last_tick_ns = Some(now_ns);
+        if self.active == 0 {
+            return (None, None);
+        }
+        let Some(state) = state.filter(|s| s.joint_count == self.layout.joint_count) else {
+            return (None, None);
+        };
+        if state.flags & STATE_FLAG_SAFE_STATE != 0 {
+            // The driver holds the robot itself; nothing commanded before survives it.
+            self.owner = None;
+            self.active = 0;
+            self.hold = None;
+            self.counters.safe_state_releases += 1;
+            return (None, Some(Ended::SafeState));
+        }
+        let deadman_ns = self.settings.deadman_ms * 1_000_000;
+        if let Some(o) = self.owner {
+            if now_ns.saturating_sub(o.heard_ns) > deadman_ns {
+                self.end(Ended::DeadMan);
+            }
+        }
+        if let Some(why) = self.hold.take() {
+            match why {
+                Ended::DeadMan => self.counters.deadman_releases += 1,
+                Ended::PageClosed => self.counters.closed_releases += 1,
+                _ => {}
+            }
+            let frame = self.hold_frame(state, now_ns);
+            self.active = 0;
+            return (Some(frame), Some(why));
+        }
+        let step = self.settings.max_speed_rad_s * dt;
+        let mut frame = self.frame(now_ns);
+        for i in 0..MAX_JOINTS {
+            if self.active & (1 << i) != 0 {
+                let d = (self.target[i] - self.commanded[i]).clamp(-step, step);
+                self.commanded[i] += d;
+                frame.position_rad[i] = self.commanded[i] as f32;
+            }
+        }
+        frame.mask = self.active;
+        self.counters.frames += 1;
+        (Some(frame), None)
+    }
+
+    /// The frame that ends teleoperation: every commanded arm joint held where it was read
+    /// (within its range); a gripper keeps its commanded grip (opening it would drop what it
+    /// holds); a joint not read keeps its commanded goal.
+    fn hold_frame(&mut self, state: &JointState, now_ns: u64) -> GoalFrame {
+        let mut frame = self.frame(now_ns);
+        for (i, info) in self.layout.joints().iter().enumerate() {
+            if self.active & (1 << i) == 0 {
+                continue;
+            }
+            let read = state.joints()[i];
+            if info.role() == JointRole::Joint && read.is_valid() {
+                let [lo, hi] = info.range_rad.map(f64::from);
+                self.commanded[i] = f64::from(read.position_rad).clamp(lo, hi);
+            }
+            frame.position_rad[i] = self.commanded[i] as f32;
+        }
+        frame.mask = self.active;
+        self.counters.frames += 1;
+        frame
+    }
+
+    fn frame(&mut self, now_ns: u64) -> GoalFrame {
+        self.seq += 1;
+        GoalFrame {
+            seq: self.seq,
+            timestamp_ns: now_ns,
+            joint_count: self.layout.joint_count,
+            ..GoalFrame::default()
+        }
+    }
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use body::RobotDescription;
+    use telemetry::frames::JointInfo;
+
+    const MS: u64 = 1_000_000;
+
+    /// The A3's left arm as a driver on its bus alone lays it out: its seven joints (ranges
+    /// 0.05 rad inside the hard stops) and the gripper.
+    pub(crate) fn a3_left_layout() -> JointLayout {
+        let body = Body::from_description(&RobotDescription::nori_a3()).unwrap();
+        let chain = &body.arms()[0];
+        let mut l = JointLayout {
+            joint_count: 8,
+            bus_count: 1,
+            ..JointLayout::default()
+        };
+        l.set_bus_name(0, "left_arm");
+        for (i, (name, (lo, hi))) in chain.joint_names.iter().zip(chain.hard_stops()).enumerate() {
+            let mut info = JointInfo {
+                id: i as u8 + 1,
+                max_temperature_c: 60,
+                range_rad: [(lo + 0.05) as f32, (hi - 0.05) as f32],
+                ..JointInfo::default()
+            };
+            info.set_name(name);
+            l.joints[i] = info;
+        }
+        let mut gripper = JointInfo {
+            id: 8,
+            role: JointRole::Gripper as u8,
+            max_temperature_c: 60,
+            range_rad: [0.0, 1.2],
+            ..JointInfo::default()
+        };
+        gripper.set_name("left_gripper");
+        l.joints[7] = gripper;
+        l
+    }
+
+    fn teleop() -> Teleop {
+        let body = Body::from_description(&RobotDescription::nori_a3()).unwrap();
+        Teleop::new(body, a3_left_layout(), TeleopSettings::default())
+    }
+
+    /// A frame with every joint read at `q` (the gripper at 0.6).
+    fn state_at(q: &[f64]) -> JointState {
+        let mut s = JointState {
+            joint_count: 8,
+            ..JointState::default()
+        };
+        for (i, j) in s.joints[..8].iter_mut().enumerate() {
+            j.valid = 1;
+            j.position_rad = q.get(i).copied().unwrap_or(0.6) as f32;
+        }
+        s
+    }
+
+    fn joints(goals: &[(&str, f64)]) -> Command {
+        Command::Joints(goals.iter().map(|(n, v)| (n.to_string(), *v)).collect())
+    }
+
+    #[test]
+    fn a_bad_joint_message_is_refused_whole_and_counted_and_moves_nothing() {
+        let mut t = teleop();
+        let s = state_at(&[0.0; 7]);
+        let range = t.layout().joints()[3].range_rad;
+        for (bad, kind) in [
+            (joints(&[("left_elbow", -0.5), ("left_knee", 0.0)]), "unknown_joint"),
+            (joints(&[("left_elbow", f64::NAN)]), "not_finite"),
+            (joints(&[("left_elbow", f64::from(range[0]) - 0.01)]), "out_of_range"),
+            (joints(&[("left_elbow", -0.5), ("left_gripper", 1.3)]), "out_of_range"),
+        ] {
+            assert_eq!(t.command(1, &bad, Some(&s), 0).unwrap_err().kind(), kind);
+        }
+        assert_eq!(t.counters().refused.values().sum::<u64>(), 4);
+        assert_eq!(t.active(), 0);
+        assert_eq!(t.tick(Some(&s), MS), (None, None), "nothing sent");
+        // Not ready: no state, or one of another layout.
+        let other = JointState {
+            joint_count: 19,
+            ..s
+        };
+        let ok = joints(&[("left_elbow", -0.5)]);
+        assert_eq!(t.command(1, &ok, Some(&other), 0), Err(Refusal::NotReady));
+        assert_eq!(t.command(1, &ok, None, 0), Err(Refusal::NotReady));
+        // A joint not read is not moved from a guess.
+        let mut unread = s;
+        unread.joints[3].valid = 0;
+        assert_eq!(
+            t.command(1, &ok, Some(&unread), 0),
+            Err(Refusal::NotRead("left_elbow".into()))
+        );
+    }
+
+    #[test]
+    fn a_taken_target_is_approached_from_where_the_joint_was_read_at_the_bounded_speed() {
+        let mut t = teleop();
+        let s = state_at(&[0.0, 0.0, 0.0, -0.2, 0.0, 0.0, 0.0]);
+        t.command(1, &joints(&[("left_elbow", -1.0)]), Some(&s), 0).unwrap();
+        let mut last = -0.2;
+        let mut now = 0;
+        for k in 0..100 {
+            // The page keeps control.
+            t.command(1, &Command::Alive, Some(&s), now).unwrap();
+            let (frame, ended) = t.tick(Some(&s), now);
+            assert_eq!(ended, None);
+            let f = frame.unwrap();
+            assert_eq!((f.mask, f.joint_count), (1 << 3, 8));
+            let g = f64::from(f.position_rad[3]);
+            let step = if k == 0 { 0.0 } else { 1.5 * 0.01 };
+            assert!((last - g) <= step + 1e-6 && g <= last + 1e-9, "tick {k}: {last} → {g}");
+            last = g;
+            now += 10 * MS;
+        }
+        assert!((last + 1.0).abs() < 1e-6, "reached: {last}");
+        assert_eq!(t.counters().frames, 100);
+    }
+
+    #[test]
+    fn a_tool_pose_is_solved_within_the_ranges_and_one_out_of_reach_is_refused() {
+        let mut t = teleop();
+        let body = Body::from_description(&RobotDescription::nori_a3()).unwrap();
+        let here = [0.1, 0.2, -0.1, -0.8, 0.1, 0.3, 0.0];
+        let s = state_at(&here);
+        let want = [0.3, 0.35, -0.2, -1.2, 0.3, 0.1, 0.2];
+        let lift = body.lift_start_m();
+        let pose = body.arm_pose(0, &want, lift, Pose2::default()).unwrap();
+        let target = ToolTarget {
+            position: pose.tool,
+            rotation: pose.tool_rotation,
+        };
+        let tool = Command::Tool {
+            arm: "left_arm".into(),
+            target,
+        };
+        let solved = t.command(1, &tool, Some(&s), 0).unwrap().unwrap();
+        assert!(solved.position_error_m < 1e-3 && solved.angle_error_rad < 1e-2);
+        // Ticks until every joint got there (well within 3 s at 1.5 rad/s).
+        let mut frame = None;
+        for k in 0..300 {
+            t.command(1, &Command::Alive, Some(&s), k * 10 * MS).unwrap();
+            frame = t.tick(Some(&s), k * 10 * MS).0;
+        }
+        let f = frame.unwrap();
+        assert_eq!(f.mask, 0x7f, "the seven joints, not the gripper");
+        let q: Vec<f64> = (0..7).map(|i| f64::from(f.position_rad[i])).collect();
+        let reached = body.arm_pose(0, &q, lift, Pose2::default()).unwrap();
+        let d: f64 = (0..3).map(|i| (reached.tool[i] - pose.tool[i]).powi(2)).sum::<f64>().sqrt();
+        assert!(d < 1e-3, "the tool {d} m from the target");
+        for (k, v) in q.iter().enumerate() {
+            let [lo, hi] = t.layout().joints()[k].range_rad;
+            assert!(*v >= f64::from(lo) - 1e-6 && *v <= f64::from(hi) + 1e-6, "joint {k}");
+        }
+        // Two metres away: refused, how far said; the plan stands.
+        let far = Command::Tool {
+            arm: "left_arm".into(),
+            target: ToolTarget {
+                position: [2.0, 2.0, 0.9],
+                rotation: [1.0, 0.0, 0.0, 0.0],
+            },
+        };
+        let e = t.command(1, &far, Some(&s), 3_000 * MS).unwrap_err();
+        assert!(matches!(e, Refusal::Unreachable { position_error_m, .. } if position_error_m > 1.0), "{e}");
+        let bad = Command::Tool {
+            arm: "left_arm".into(),
+            target: ToolTarget {
+                position: [0.3, f64::INFINITY, 0.9],
+                rotation: [1.0, 0.0, 0.0, 0.0],
+            },
+        };
+        assert_eq!(t.command(1, &bad, Some(&s), 3_000 * MS), Err(Refusal::BadPose));
+        let zero = Command::Tool {
+            arm: "left_arm".into(),
+            target: ToolTarget {
+                position: [0.3, 0.2, 0.9],
+                rotation: [0.0; 4],
+            },
+        };
+        assert_eq!(t.command(1, &zero, Some(&s), 3_000 * MS), Err(Refusal::BadPose));
+        let right = Command::Tool {
+            arm: "right_arm".into(),
+            target,
+        };
+        assert_eq!(
+            t.command(1, &right, Some(&s), 3_000 * MS),
+            Err(Refusal::UnknownArm("right_arm".into())),
+            "the right arm is not driven here"
+        );
+        assert_eq!(t.active(), 0x7f);
+    }
+
+    #[test]
+    fn a_silent_page_is_released_within_the_dead_man_bound_and_the_arm_held_where_it_is() {
+        let mut t = teleop();
+        let s = state_at(&[0.0, 0.0, 0.0, -0.2, 0.0, 0.0, 0.0]);
+        t.command(1, &joints(&[("left_elbow", -1.0), ("left_gripper", 0.2)]), Some(&s), 0)
+            .unwrap();
+        // Heard at 0 only: frames until 300 ms, then the hold.
+        let mut ended_at = None;
+        let mut moving = s;
+        for k in 0..50u64 {
+            let now = k * 10 * MS;
+            moving.joints[3].position_rad = -0.2 - 0.01 * k as f32;
+            let (frame, ended) = t.tick(Some(&moving), now);
+            if let Some(why) = ended {
+                assert_eq!(why, Ended::DeadMan);
+                let f = frame.unwrap();
+                assert_eq!(f.mask, (1 << 3) | (1 << 7));
+                assert_eq!(f.position_rad[3], moving.joints[3].position_rad, "held where read");
+                assert!((f.position_rad[7] - 0.2).abs() < 0.2, "the gripper keeps its grip goal, not the read 0.6");
+                assert!(f.position_rad[7] < 0.6);
+                ended_at = Some(now);
+                break;
+            }
+            assert!(frame.is_some());
+        }
+        let ended_at = ended_at.expect("released");
+        assert!(ended_at > 300 * MS && ended_at <= 310 * MS, "{ended_at}");
+        assert_eq!(t.tick(Some(&moving), ended_at + 10 * MS), (None, None));
+        assert_eq!(t.counters().deadman_releases, 1);
+        assert_eq!(t.owner(), None);
+    }
+
+    #[test]
+    fn a_closed_page_is_released_at_the_next_tick_and_another_page_waits_for_the_first() {
+        let mut t = teleop();
+        let s = state_at(&[0.0; 7]);
+        let elbow = joints(&[("left_elbow", -0.5)]);
+        t.command(1, &elbow, Some(&s), 0).unwrap();
+        assert_eq!(t.command(2, &elbow, Some(&s), 100 * MS), Err(Refusal::OtherPage));
+        // Page 2 cannot end page 1's control either.
+        t.command(2, &Command::Release, Some(&s), 100 * MS).unwrap_err();
+        t.page_closed(2);
+        assert_eq!(t.owner(), Some(1));
+        t.page_closed(1);
+        let (frame, ended) = t.tick(Some(&s), 110 * MS);
+        assert_eq!(ended, Some(Ended::PageClosed));
+        assert_eq!(frame.unwrap().mask, 1 << 3);
+        assert_eq!(t.tick(Some(&s), 120 * MS), (None, None));
+        t.command(2, &elbow, Some(&s), 130 * MS).unwrap();
+        assert_eq!(t.owner(), Some(2));
+        // Page 2 goes silent: page 1 may take over after the bound.
+        assert_eq!(t.command(1, &elbow, Some(&s), 400 * MS), Err(Refusal::OtherPage));
+        t.command(1, &elbow, Some(&s), 431 * MS + 1).unwrap();
+        assert_eq!(t.owner(), Some(1));
+        assert_eq!(t.counters().closed_releases, 1);
+    }
+
+    #[test]
+    fn the_safe_state_drops_everything_commanded_and_refuses_what_comes_during_it() {
+        let mut t = teleop();
+        let s = state_at(&[0.0; 7]);
+        t.command(1, &joints(&[("left_elbow", -1.0)]), Some(&s), 0).unwrap();
+        assert!(t.tick(Some(&s), 10 * MS).0.is_some());
+        let safe = JointState {
+            flags: STATE_FLAG_SAFE_STATE,
+            ..s
+        };
+        assert_eq!(t.tick(Some(&safe), 20 * MS), (None, Some(Ended::SafeState)));
+        assert_eq!(
+            t.command(1, &joints(&[("left_elbow", -1.0)]), Some(&safe), 30 * MS),
+            Err(Refusal::SafeState)
+        );
+        // Recovered: nothing planned before moves the arm.
+        assert_eq!(t.tick(Some(&s), 40 * MS), (None, None));
+        assert_eq!(t.active(), 0);
+        assert_eq!(t.counters().safe_state_releases, 1);
+    }
+}
