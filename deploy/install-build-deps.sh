@@ -4,13 +4,15 @@
 # - ffmpeg: the video of recorded camera streams (and `nori bench video-encode`);
 # - postgresql: the fleet's history (`nori fleet store`); its tests start scratch servers with
 #   deploy/fleet-db/scratch-postgres.sh (Debian's package also starts a cluster of its own,
-#   which they leave alone).
+#   which they leave alone);
+# - chromium: Nori Lab's page and the fleet dashboard are tested in a real (headless) browser.
 # Installs only what is missing (nothing to do: nothing asked of apt), with sudo unless root.
 set -euo pipefail
 missing=()
 ls /usr/lib/llvm-*/lib/libclang.so* >/dev/null 2>&1 || missing+=(libclang-dev)
 command -v ffmpeg >/dev/null || missing+=(ffmpeg)
 ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || missing+=(postgresql)
+command -v chromium >/dev/null || missing+=(chromium)
 if ((${#missing[@]})); then
   as_root=()
   [ "$(id -u)" = 0 ] || as_root=(sudo)

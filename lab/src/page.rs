@@ -188,8 +188,14 @@ mod tests {
         assert_eq!(parse(r#"{"type":"stop"}"#).unwrap().command(), None);
         for (bad, why) in [
             (r#"{"type":"joints","goals":{"a":"x"}}"#, "invalid type"),
-            (r#"{"type":"joints","goals":{"a":1e999}}"#, "number out of range"),
-            (r#"{"type":"tool","arm":"l","position":[1,2],"rotation":[1,0,0,0]}"#, "invalid length"),
+            (
+                r#"{"type":"joints","goals":{"a":1e999}}"#,
+                "number out of range",
+            ),
+            (
+                r#"{"type":"tool","arm":"l","position":[1,2],"rotation":[1,0,0,0]}"#,
+                "invalid length",
+            ),
             (r#"{"type":"launch"}"#, "unknown variant"),
             (r#"{"type":"alive","extra":1}"#, "unknown field"),
             ("not json", "expected"),
@@ -205,26 +211,49 @@ mod tests {
     fn only_this_labs_pages_with_its_token_get_the_link() {
         let local = Access::new("abc123".into(), true);
         let ok = |h, o, t| local.check(Some(h), o, Some(t));
-        assert_eq!(ok("127.0.0.1:8765", Some("http://127.0.0.1:8765"), "abc123"), Ok(()));
+        assert_eq!(
+            ok("127.0.0.1:8765", Some("http://127.0.0.1:8765"), "abc123"),
+            Ok(())
+        );
         assert_eq!(ok("localhost:8765", None, "abc123"), Ok(()));
-        assert_eq!(ok("[::1]:8765", Some("http://[::1]:8765"), "abc123"), Ok(()));
+        assert_eq!(
+            ok("[::1]:8765", Some("http://[::1]:8765"), "abc123"),
+            Ok(())
+        );
         assert_eq!(ok("127.0.0.1:8765", None, "abc124"), Err(Denied::Token));
         assert_eq!(ok("127.0.0.1:8765", None, "abc12"), Err(Denied::Token));
-        assert_eq!(local.check(Some("127.0.0.1:8765"), None, None), Err(Denied::Token));
+        assert_eq!(
+            local.check(Some("127.0.0.1:8765"), None, None),
+            Err(Denied::Token)
+        );
         // Another site's page, and a rebinding name for loopback.
         assert_eq!(
             ok("127.0.0.1:8765", Some("http://evil.example"), "abc123"),
             Err(Denied::Origin("http://evil.example".into()))
         );
         assert_eq!(
-            ok("evil.example:8765", Some("http://evil.example:8765"), "abc123"),
+            ok(
+                "evil.example:8765",
+                Some("http://evil.example:8765"),
+                "abc123"
+            ),
             Err(Denied::Host("evil.example:8765".into()))
         );
         assert!(local.check(None, None, Some("abc123")).is_err());
         // Exposed: any host name, still the origin and the token.
         let exposed = Access::new("abc123".into(), false);
-        assert_eq!(exposed.check(Some("nori.local:8765"), Some("http://nori.local:8765"), Some("abc123")), Ok(()));
-        assert_eq!(exposed.check(Some("nori.local:8765"), None, Some("x")), Err(Denied::Token));
+        assert_eq!(
+            exposed.check(
+                Some("nori.local:8765"),
+                Some("http://nori.local:8765"),
+                Some("abc123")
+            ),
+            Ok(())
+        );
+        assert_eq!(
+            exposed.check(Some("nori.local:8765"), None, Some("x")),
+            Err(Denied::Token)
+        );
         assert_eq!(query_value("/ws?a=1&token=ff00", "token"), Some("ff00"));
         assert_eq!(query_value("/ws", "token"), None);
     }

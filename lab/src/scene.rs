@@ -5,9 +5,7 @@
 
 use body::kinematics::{Body, Pose2};
 use serde_json::{json, Value};
-use telemetry::frames::{
-    JointLayout, JointRole, STATE_FLAG_OPERATOR_STOP, STATE_FLAG_SAFE_STATE,
-};
+use telemetry::frames::{JointLayout, JointRole, STATE_FLAG_OPERATOR_STOP, STATE_FLAG_SAFE_STATE};
 use telemetry::JointState;
 
 /// Tool points sampled per arm for the workspace view.
@@ -99,7 +97,10 @@ impl Scene {
             0.123_105_626,
             0.358_898_944,
         ];
-        let ranges: Vec<[f32; 2]> = idx.iter().map(|&j| self.layout.joints()[j].range_rad).collect();
+        let ranges: Vec<[f32; 2]> = idx
+            .iter()
+            .map(|&j| self.layout.joints()[j].range_rad)
+            .collect();
         let lift = self.body.lift_start_m();
         (1..=WORKSPACE_SAMPLES)
             .filter_map(|i| {
@@ -133,7 +134,9 @@ impl Scene {
                     .collect();
                 let points = self.body.arm_points(a, &q, lift_m, Pose2::default())?;
                 let pose = self.body.arm_pose(a, &q, lift_m, Pose2::default())?;
-                let valid = idx.iter().all(|&j| joints.get(j).is_some_and(|s| s.is_valid()));
+                let valid = idx
+                    .iter()
+                    .all(|&j| joints.get(j).is_some_and(|s| s.is_valid()));
                 Some(json!({
                     "bus": self.body.arms()[a].bus,
                     "points": points,
@@ -184,12 +187,26 @@ mod tests {
         let cloud = model["arms"][0]["workspace"].as_array().unwrap();
         assert_eq!(cloud.len(), WORKSPACE_SAMPLES);
         // Every sampled point is within the arm's reach of its shoulder.
-        let shoulder = body.arm_pose(0, &[0.0; 7], body.lift_start_m(), Pose2::default()).unwrap().shoulder;
-        let reach: f64 = body.arm_points(0, &[0.0; 7], 0.0, Pose2::default()).unwrap().windows(2).map(|w| {
-            (0..3).map(|i| (w[1][i] - w[0][i]).powi(2)).sum::<f64>().sqrt()
-        }).sum();
+        let shoulder = body
+            .arm_pose(0, &[0.0; 7], body.lift_start_m(), Pose2::default())
+            .unwrap()
+            .shoulder;
+        let reach: f64 = body
+            .arm_points(0, &[0.0; 7], 0.0, Pose2::default())
+            .unwrap()
+            .windows(2)
+            .map(|w| {
+                (0..3)
+                    .map(|i| (w[1][i] - w[0][i]).powi(2))
+                    .sum::<f64>()
+                    .sqrt()
+            })
+            .sum();
         for p in cloud {
-            let d: f64 = (0..3).map(|i| (p[i].as_f64().unwrap() - shoulder[i]).powi(2)).sum::<f64>().sqrt();
+            let d: f64 = (0..3)
+                .map(|i| (p[i].as_f64().unwrap() - shoulder[i]).powi(2))
+                .sum::<f64>()
+                .sqrt();
             assert!(d <= reach + 1e-3, "{p} beyond the arm's reach {reach}");
         }
         assert_eq!(model["joints"][3]["name"], "left_elbow");
@@ -210,13 +227,19 @@ mod tests {
         let tool = body.arm_pose(0, &q, 0.3, Pose2::default()).unwrap().tool;
         let drawn = &frame["arms"][0]["points"][8];
         for i in 0..3 {
-            assert!((drawn[i].as_f64().unwrap() - tool[i]).abs() < 1e-6, "{drawn} vs {tool:?}");
+            assert!(
+                (drawn[i].as_f64().unwrap() - tool[i]).abs() < 1e-6,
+                "{drawn} vs {tool:?}"
+            );
         }
         assert_eq!(frame["safe"], true);
         assert_eq!(frame["stopped"], true);
         assert_eq!(frame["joints"][5]["t"], 45.0);
         assert_eq!(frame["arms"][0]["valid"], true);
         state.joints[2].valid = 0;
-        assert_eq!(scene.frame(&state, 0.3, json!(null))["arms"][0]["valid"], false);
+        assert_eq!(
+            scene.frame(&state, 0.3, json!(null))["arms"][0]["valid"],
+            false
+        );
     }
 }

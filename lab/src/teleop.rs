@@ -446,12 +446,20 @@ impl Teleop {
             base: Pose2::default(),
         };
         let n = a.joints.len();
-        match self
-            .body
-            .solve(body_arm, target, &seed[..n], &a.limits, mount, &self.settings.ik)
-        {
+        match self.body.solve(
+            body_arm,
+            target,
+            &seed[..n],
+            &a.limits,
+            mount,
+            &self.settings.ik,
+        ) {
             Ok(s) => Ok((
-                a.joints.iter().enumerate().map(|(k, &j)| (j, s.q[k])).collect(),
+                a.joints
+                    .iter()
+                    .enumerate()
+                    .map(|(k, &j)| (j, s.q[k]))
+                    .collect(),
                 Solved {
                     position_error_m: s.position_error_m,
                     angle_error_rad: s.angle_error_rad,
@@ -643,10 +651,19 @@ pub(crate) mod tests {
         let s = state_at(&[0.0; 7]);
         let range = t.layout().joints()[3].range_rad;
         for (bad, kind) in [
-            (joints(&[("left_elbow", -0.5), ("left_knee", 0.0)]), "unknown_joint"),
+            (
+                joints(&[("left_elbow", -0.5), ("left_knee", 0.0)]),
+                "unknown_joint",
+            ),
             (joints(&[("left_elbow", f64::NAN)]), "not_finite"),
-            (joints(&[("left_elbow", f64::from(range[0]) - 0.01)]), "out_of_range"),
-            (joints(&[("left_elbow", -0.5), ("left_gripper", 1.3)]), "out_of_range"),
+            (
+                joints(&[("left_elbow", f64::from(range[0]) - 0.01)]),
+                "out_of_range",
+            ),
+            (
+                joints(&[("left_elbow", -0.5), ("left_gripper", 1.3)]),
+                "out_of_range",
+            ),
         ] {
             assert_eq!(t.command(1, &bad, Some(&s), 0).unwrap_err().kind(), kind);
         }
@@ -674,7 +691,8 @@ pub(crate) mod tests {
     fn a_taken_target_is_approached_from_where_the_joint_was_read_at_the_bounded_speed() {
         let mut t = teleop();
         let s = state_at(&[0.0, 0.0, 0.0, -0.2, 0.0, 0.0, 0.0]);
-        t.command(1, &joints(&[("left_elbow", -1.0)]), Some(&s), 0).unwrap();
+        t.command(1, &joints(&[("left_elbow", -1.0)]), Some(&s), 0)
+            .unwrap();
         let mut last = -0.2;
         let mut now = 0;
         for k in 0..100 {
@@ -686,7 +704,10 @@ pub(crate) mod tests {
             assert_eq!((f.mask, f.joint_count), (1 << 3, 8));
             let g = f64::from(f.position_rad[3]);
             let step = if k == 0 { 0.0 } else { 1.5 * 0.01 };
-            assert!((last - g) <= step + 1e-6 && g <= last + 1e-9, "tick {k}: {last} → {g}");
+            assert!(
+                (last - g) <= step + 1e-6 && g <= last + 1e-9,
+                "tick {k}: {last} → {g}"
+            );
             last = g;
             now += 10 * MS;
         }
@@ -716,18 +737,25 @@ pub(crate) mod tests {
         // Ticks until every joint got there (well within 3 s at 1.5 rad/s).
         let mut frame = None;
         for k in 0..300 {
-            t.command(1, &Command::Alive, Some(&s), k * 10 * MS).unwrap();
+            t.command(1, &Command::Alive, Some(&s), k * 10 * MS)
+                .unwrap();
             frame = t.tick(Some(&s), k * 10 * MS).0;
         }
         let f = frame.unwrap();
         assert_eq!(f.mask, 0x7f, "the seven joints, not the gripper");
         let q: Vec<f64> = (0..7).map(|i| f64::from(f.position_rad[i])).collect();
         let reached = body.arm_pose(0, &q, lift, Pose2::default()).unwrap();
-        let d: f64 = (0..3).map(|i| (reached.tool[i] - pose.tool[i]).powi(2)).sum::<f64>().sqrt();
+        let d: f64 = (0..3)
+            .map(|i| (reached.tool[i] - pose.tool[i]).powi(2))
+            .sum::<f64>()
+            .sqrt();
         assert!(d < 1e-3, "the tool {d} m from the target");
         for (k, v) in q.iter().enumerate() {
             let [lo, hi] = t.layout().joints()[k].range_rad;
-            assert!(*v >= f64::from(lo) - 1e-6 && *v <= f64::from(hi) + 1e-6, "joint {k}");
+            assert!(
+                *v >= f64::from(lo) - 1e-6 && *v <= f64::from(hi) + 1e-6,
+                "joint {k}"
+            );
         }
         // Two metres away: refused, how far said; the plan stands.
         let far = Command::Tool {
@@ -738,7 +766,10 @@ pub(crate) mod tests {
             },
         };
         let e = t.command(1, &far, Some(&s), 3_000 * MS).unwrap_err();
-        assert!(matches!(e, Refusal::Unreachable { position_error_m, .. } if position_error_m > 1.0), "{e}");
+        assert!(
+            matches!(e, Refusal::Unreachable { position_error_m, .. } if position_error_m > 1.0),
+            "{e}"
+        );
         let bad = Command::Tool {
             arm: "left_arm".into(),
             target: ToolTarget {
@@ -746,7 +777,10 @@ pub(crate) mod tests {
                 rotation: [1.0, 0.0, 0.0, 0.0],
             },
         };
-        assert_eq!(t.command(1, &bad, Some(&s), 3_000 * MS), Err(Refusal::BadPose));
+        assert_eq!(
+            t.command(1, &bad, Some(&s), 3_000 * MS),
+            Err(Refusal::BadPose)
+        );
         let zero = Command::Tool {
             arm: "left_arm".into(),
             target: ToolTarget {
@@ -754,7 +788,10 @@ pub(crate) mod tests {
                 rotation: [0.0; 4],
             },
         };
-        assert_eq!(t.command(1, &zero, Some(&s), 3_000 * MS), Err(Refusal::BadPose));
+        assert_eq!(
+            t.command(1, &zero, Some(&s), 3_000 * MS),
+            Err(Refusal::BadPose)
+        );
         let right = Command::Tool {
             arm: "right_arm".into(),
             target,
@@ -771,8 +808,13 @@ pub(crate) mod tests {
     fn a_silent_page_is_released_within_the_dead_man_bound_and_the_arm_held_where_it_is() {
         let mut t = teleop();
         let s = state_at(&[0.0, 0.0, 0.0, -0.2, 0.0, 0.0, 0.0]);
-        t.command(1, &joints(&[("left_elbow", -1.0), ("left_gripper", 0.2)]), Some(&s), 0)
-            .unwrap();
+        t.command(
+            1,
+            &joints(&[("left_elbow", -1.0), ("left_gripper", 0.2)]),
+            Some(&s),
+            0,
+        )
+        .unwrap();
         // Heard at 0 only: frames until 300 ms, then the hold.
         let mut ended_at = None;
         let mut moving = s;
@@ -784,8 +826,14 @@ pub(crate) mod tests {
                 assert_eq!(why, Ended::DeadMan);
                 let f = frame.unwrap();
                 assert_eq!(f.mask, (1 << 3) | (1 << 7));
-                assert_eq!(f.position_rad[3], moving.joints[3].position_rad, "held where read");
-                assert!((f.position_rad[7] - 0.2).abs() < 0.2, "the gripper keeps its grip goal, not the read 0.6");
+                assert_eq!(
+                    f.position_rad[3], moving.joints[3].position_rad,
+                    "held where read"
+                );
+                assert!(
+                    (f.position_rad[7] - 0.2).abs() < 0.2,
+                    "the gripper keeps its grip goal, not the read 0.6"
+                );
                 assert!(f.position_rad[7] < 0.6);
                 ended_at = Some(now);
                 break;
@@ -805,9 +853,13 @@ pub(crate) mod tests {
         let s = state_at(&[0.0; 7]);
         let elbow = joints(&[("left_elbow", -0.5)]);
         t.command(1, &elbow, Some(&s), 0).unwrap();
-        assert_eq!(t.command(2, &elbow, Some(&s), 100 * MS), Err(Refusal::OtherPage));
+        assert_eq!(
+            t.command(2, &elbow, Some(&s), 100 * MS),
+            Err(Refusal::OtherPage)
+        );
         // Page 2 cannot end page 1's control either.
-        t.command(2, &Command::Release, Some(&s), 100 * MS).unwrap_err();
+        t.command(2, &Command::Release, Some(&s), 100 * MS)
+            .unwrap_err();
         t.page_closed(2);
         assert_eq!(t.owner(), Some(1));
         t.page_closed(1);
@@ -818,7 +870,10 @@ pub(crate) mod tests {
         t.command(2, &elbow, Some(&s), 130 * MS).unwrap();
         assert_eq!(t.owner(), Some(2));
         // Page 2 goes silent: page 1 may take over after the bound.
-        assert_eq!(t.command(1, &elbow, Some(&s), 400 * MS), Err(Refusal::OtherPage));
+        assert_eq!(
+            t.command(1, &elbow, Some(&s), 400 * MS),
+            Err(Refusal::OtherPage)
+        );
         t.command(1, &elbow, Some(&s), 431 * MS + 1).unwrap();
         assert_eq!(t.owner(), Some(1));
         assert_eq!(t.counters().closed_releases, 1);
@@ -828,7 +883,8 @@ pub(crate) mod tests {
     fn the_safe_state_drops_everything_commanded_and_refuses_what_comes_during_it() {
         let mut t = teleop();
         let s = state_at(&[0.0; 7]);
-        t.command(1, &joints(&[("left_elbow", -1.0)]), Some(&s), 0).unwrap();
+        t.command(1, &joints(&[("left_elbow", -1.0)]), Some(&s), 0)
+            .unwrap();
         assert!(t.tick(Some(&s), 10 * MS).0.is_some());
         let safe = JointState {
             flags: STATE_FLAG_SAFE_STATE,

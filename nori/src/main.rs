@@ -6,6 +6,7 @@
 //! | command | program | crate |
 //! |---|---|---|
 //! | `nori up`, `nori sim scenario` | `nori-stack up`, `nori-stack scenario` | `stack` |
+//! | `nori lab` | `nori-lab` | `lab` |
 //! | `nori sim serve` | `nori-sim` | `sim` |
 //! | `nori sim aim` | `nori-sim-aim` | `sim` |
 //! | `nori fleet`, `nori fleet store`, `nori fleet report`, `nori policy-server`, `nori router` | `nori-fleet dashboard`, `… store`, `… report`, `… policy-server`, `… router` | `fleet` |
@@ -56,6 +57,9 @@ enum Command {
     Stop(plane_tools::StopArgs),
     /// End an operator's stop: every joint re-held where it is.
     Resume(plane_tools::StopArgs),
+    /// Nori Lab: the robot in the browser (3D view, teleoperation, stop), on loopback.
+    #[command(disable_help_flag = true)]
+    Lab(Passed),
     /// The reference inference server: a scripted policy for every robot on the fleet.
     #[command(disable_help_flag = true)]
     PolicyServer(Passed),
@@ -117,6 +121,7 @@ fn main() -> Result<()> {
         Command::Stop(a) => plane_tools::stop(a),
         Command::Resume(a) => plane_tools::resume(a),
         Command::Base(a) => base_tool::base(a),
+        Command::Lab(p) => run_instead("nori-lab", &[], p),
         Command::PolicyServer(p) => run_instead("nori-fleet", &["policy-server"], p),
         // `nori fleet store` and `nori fleet report` are commands of their own; plain `nori fleet`
         // is the dashboard.

@@ -29,6 +29,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
     ("fleet", &["fleet-agent", "telemetry"]),
     ("stack", &["telemetry", "sim", "bus-driver"]),
     ("nori", &["telemetry", "recorder", "feetech"]),
+    ("lab", &["telemetry", "body"]),
     (
         "bench",
         &[
@@ -73,6 +74,7 @@ const CONFINED: &[(&str, &[&str])] = &[
     ("serialport", &["bus-driver", "lidar", "lift"]),
     ("v4l", &["camera"]),
     ("tiny_http", &["fleet"]),
+    ("tungstenite", &["lab"]),
     ("prometheus-client", &["fleet"]),
 ];
 
@@ -92,6 +94,7 @@ const ROBOT: &[&str] = &[
     "base",
     "lift",
     "nori",
+    "lab",
 ];
 const OFF_ROBOT: &[&str] = &["fleet", "stack", "bench", "nori-tests", "model-lab", "sim"];
 

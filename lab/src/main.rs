@@ -1,0 +1,356 @@
+//! `nori-lab` (`nori lab`): Nori Lab's server. Reads the driver's layout and state, the lift's
+//! state and the supervisor's events from the state plane, serves the page on loopback, turns
+//! the page's teleoperation into goal frames on the driver's goal path (`lab::teleop`) and its
+//! stop button into the supervisor's stop. Prints the page's address, with its access token, on
+//! stderr, and what it counted on stdout (JSON) at exit.
+
+use anyhow::{bail, Context, Result};
+use body::kinematics::Body;
+use body::RobotDescription;
+use clap::Parser;
+use lab::page::{Access, PageMessage};
+use lab::scene::Scene;
+use lab::server::{self, Event, Files, Inbound, Pages};
+use lab::teleop::{Ended, Teleop, TeleopSettings};
+use serde_json::json;
+use std::collections::VecDeque;
+use std::net::{SocketAddr, TcpListener};
+use std::path::PathBuf;
+use std::sync::atomic::Ordering;
+use std::sync::mpsc::RecvTimeoutError;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use telemetry::clock::monotonic_ns;
+use telemetry::frames::{EventKind, JointLayout, SupervisorCommand, COMMAND_RESUME, COMMAND_STOP};
+use telemetry::motion::{LiftState, LIFT_READY};
+use telemetry::plane::{self, newest, next, publish, Plane};
+use telemetry::process::finish;
+use telemetry::JointState;
+
+#[derive(Parser)]
+#[command(
+    version,
+    about = "Nori Lab: the robot in the browser (3D view, teleoperation, stop), served on loopback"
+)]
+struct Args {
+    /// State-plane domain.
+    #[arg(long, default_value = plane::DEFAULT_DOMAIN)]
+    domain: String,
+    /// Where to serve the page. A non-loopback address needs --token-file: the page then moves
+    /// the robot for whoever holds the token.
+    #[arg(long, default_value = "127.0.0.1:8765")]
+    http: SocketAddr,
+    /// A file holding the access token (one line, at least 16 characters); one is generated at
+    /// each start when absent.
+    #[arg(long, value_name = "FILE")]
+    token_file: Option<PathBuf>,
+    /// The robot description (the embedded Nori A3 when absent).
+    #[arg(long, value_name = "FILE")]
+    robot: Option<PathBuf>,
+    /// A controlling page silent this long is released and the arm held, ms.
+    #[arg(long, default_value_t = 300)]
+    deadman_ms: u64,
+    /// Fastest a teleoperated joint moves toward its target, rad/s.
+    #[arg(long, default_value_t = 1.5)]
+    max_speed: f64,
+    /// State frames sent to each page per second.
+    #[arg(long, default_value_t = 30.0)]
+    frame_hz: f64,
+    /// Stop after this many seconds.
+    #[arg(long)]
+    run_for: Option<f64>,
+}
+
+/// The teleoperation loop's period.
+const TICK: Duration = Duration::from_millis(10);
+/// Supervisor events kept for the page.
+const RECENT_EVENTS: usize = 12;
+
+fn main() -> std::process::ExitCode {
+    finish(serve(&Args::parse()), |_| None)
+}
+
+/// The access token: read from the file, or made from the kernel's random bytes.
+fn token(file: Option<&PathBuf>) -> Result<String> {
+    if let Some(path) = file {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("reading the token file {}", path.display()))?;
+        let token = text.trim().to_string();
+        if token.len() < 16
+            || !token
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
+        {
+            bail!(
+                "{}: a token is at least 16 letters, digits, '-' or '_'",
+                path.display()
+            );
+        }
+        return Ok(token);
+    }
+    let mut bytes = [0u8; 16];
+    std::io::Read::read_exact(&mut std::fs::File::open("/dev/urandom")?, &mut bytes)
+        .context("reading /dev/urandom for a token")?;
+    Ok(bytes.iter().map(|b| format!("{b:02x}")).collect())
+}
+
+fn event_name(kind: Option<EventKind>) -> String {
+    kind.map_or_else(|| "unknown".to_string(), |k| format!("{k:?}"))
+}
+
+fn ended_name(e: Ended) -> &'static str {
+    match e {
+        Ended::DeadMan => "dead_man",
+        Ended::PageClosed => "page_closed",
+        Ended::Released => "released",
+        Ended::SafeState => "safe_state",
+    }
+}
+
+fn serve(args: &Args) -> Result<()> {
+    telemetry::process::init_logging();
+    let shutdown = telemetry::process::stop_flag()?;
+    let description = match &args.robot {
+        Some(path) => RobotDescription::load(path)?,
+        None => RobotDescription::nori_a3(),
+    };
+    let body = Body::from_description(&description)?;
+    let loopback = args.http.ip().is_loopback();
+    if !loopback && args.token_file.is_none() {
+        bail!(
+            "--http {}: serving beyond loopback needs --token-file (an open control port on a network moves the robot for anyone)",
+            args.http
+        );
+    }
+    if !(args.max_speed.is_finite() && args.max_speed > 0.0 && args.max_speed <= 6.0) {
+        bail!("--max-speed {}: between 0 and 6 rad/s", args.max_speed);
+    }
+    if !(args.frame_hz.is_finite() && (1.0..=120.0).contains(&args.frame_hz)) {
+        bail!("--frame-hz {}: between 1 and 120", args.frame_hz);
+    }
+    let settings = TeleopSettings {
+        deadman_ms: args.deadman_ms,
+        max_speed_rad_s: args.max_speed,
+        ..TeleopSettings::default()
+    };
+    let token = token(args.token_file.as_ref())?;
+
+    let node = Plane::open(&args.domain, &format!("nori-lab-{}", std::process::id()))?;
+    let layouts = node.subscriber(&plane::LAYOUT)?;
+    let states = node.subscriber(&plane::JOINT_STATE)?;
+    let lifts = node.subscriber(&plane::LIFT_STATE)?;
+    let events = node.subscriber(&plane::EVENTS)?;
+    let goals = node.publisher(&plane::GOALS)?;
+    let commands = node.publisher(&plane::COMMANDS)?;
+
+    let listener =
+        TcpListener::bind(args.http).with_context(|| format!("listening on {}", args.http))?;
+    let address = listener.local_addr()?;
+    let pages = Arc::new(Pages::default());
+    let (inbound_tx, inbound) = std::sync::mpsc::channel::<Inbound>();
+    let files = Files {
+        index_html: include_str!("page/index.html"),
+        lab_js: include_str!("page/lab.js"),
+    };
+    let http = server::serve(
+        listener,
+        files,
+        Access::new(token.clone(), loopback),
+        pages.clone(),
+        inbound_tx,
+        shutdown.clone(),
+    )?;
+    eprintln!("Nori Lab: http://{address}/#token={token}");
+
+    let started = Instant::now();
+    let run_for = args.run_for.map(Duration::from_secs_f64);
+    let frame_every = Duration::from_secs_f64(1.0 / args.frame_hz);
+    let mut next_frame = Instant::now();
+    let mut next_tick = Instant::now();
+    let mut lab: Option<(JointLayout, Teleop, Scene, Arc<str>)> = None;
+    let mut state: Option<JointState> = None;
+    let mut lift_m = body.lift_start_m();
+    let mut recent: VecDeque<serde_json::Value> = VecDeque::new();
+    let mut command_seq = 0u64;
+    let mut counts =
+        json!({"goal_frames": 0, "malformed": 0, "stops": 0, "resumes": 0, "publish_errors": 0});
+    let bump = |counts: &mut serde_json::Value, key: &str| {
+        counts[key] = json!(counts[key].as_u64().unwrap_or(0) + 1);
+    };
+    let say =
+        |pages: &Pages, page: u64, v: serde_json::Value| pages.send(page, v.to_string().into());
+
+    while !shutdown.load(Ordering::Relaxed) && run_for.is_none_or(|d| started.elapsed() < d) {
+        // The plane.
+        if let Some(l) = newest(&layouts).filter(|l| l.joint_count > 0) {
+            if lab.as_ref().is_none_or(|(old, ..)| *old != l) {
+                let scene = Scene::new(body.clone(), l);
+                let model: Arc<str> = scene.model().to_string().into();
+                pages.broadcast(&model);
+                lab = Some((l, Teleop::new(body.clone(), l, settings), scene, model));
+                tracing::info!(joints = l.joint_count, "the driver's layout");
+            }
+        }
+        if let Some(s) = newest(&states) {
+            state = Some(s);
+        }
+        // The lift's height once it is homed; without a lift, where the description has it.
+        if let Some(l) = newest::<LiftState>(&lifts) {
+            if l.state == LIFT_READY && l.height_m.is_finite() {
+                lift_m = f64::from(l.height_m);
+            }
+        }
+        while let Some(e) = next(&events) {
+            if recent.len() == RECENT_EVENTS {
+                recent.pop_front();
+            }
+            recent.push_back(json!({"kind": event_name(e.kind()), "joint": e.joint, "bus": e.bus, "level": e.level, "value": e.value}));
+        }
+
+        // The pages, until the next tick.
+        let wait = next_tick.saturating_duration_since(Instant::now());
+        let mut acted = false;
+        match inbound.recv_timeout(wait) {
+            Ok(Inbound { page, event, at_ns }) => match event {
+                Event::Opened => {
+                    say(
+                        &pages,
+                        page,
+                        json!({"type": "hello", "page": page, "deadman_ms": args.deadman_ms}),
+                    );
+                    if let Some((.., model)) = &lab {
+                        pages.send(page, model.clone());
+                    }
+                }
+                Event::Closed => {
+                    if let Some((_, teleop, ..)) = lab.as_mut() {
+                        teleop.page_closed(page);
+                    }
+                    acted = true;
+                }
+                Event::Message(Err(e)) => {
+                    bump(&mut counts, "malformed");
+                    say(
+                        &pages,
+                        page,
+                        json!({"type": "reply", "ok": false, "error": e.to_string()}),
+                    );
+                }
+                Event::Message(Ok(m @ (PageMessage::Stop {} | PageMessage::Resume {}))) => {
+                    let stop = matches!(m, PageMessage::Stop {});
+                    command_seq += 1;
+                    let cmd = SupervisorCommand {
+                        seq: command_seq,
+                        timestamp_ns: monotonic_ns(),
+                        kind: if stop { COMMAND_STOP } else { COMMAND_RESUME },
+                        ..SupervisorCommand::default()
+                    };
+                    bump(&mut counts, if stop { "stops" } else { "resumes" });
+                    let sent = publish(&commands, &cmd);
+                    if stop {
+                        // Teleoperation ends with the press, whatever the supervisor makes of it.
+                        if let Some((_, teleop, ..)) = lab.as_mut() {
+                            if let Some(owner) = teleop.owner() {
+                                teleop.page_closed(owner);
+                            }
+                        }
+                        tracing::warn!(page, "stop pressed");
+                    }
+                    say(
+                        &pages,
+                        page,
+                        json!({"type": "reply", "to": if stop { "stop" } else { "resume" }, "ok": sent.is_ok(),
+                        "error": sent.err().map(|e| e.to_string())}),
+                    );
+                    acted = true;
+                }
+                Event::Message(Ok(m)) => {
+                    let reply = match (lab.as_mut(), m.command()) {
+                        (Some((_, teleop, ..)), Some(c)) => {
+                            match teleop.command(page, &c, state.as_ref(), at_ns) {
+                                Ok(solved) => {
+                                    json!({"type": "reply", "ok": true, "solved": solved.map(|s| json!({
+                                    "position_error_m": s.position_error_m, "angle_error_rad": s.angle_error_rad, "starts": s.starts}))})
+                                }
+                                Err(r) => {
+                                    json!({"type": "reply", "ok": false, "refused": r.kind(), "error": r.to_string()})
+                                }
+                            }
+                        }
+                        _ => {
+                            json!({"type": "reply", "ok": false, "refused": "not_ready", "error": "the driver's layout is not known yet"})
+                        }
+                    };
+                    // Alive messages are answered only when refused (they come ten times a second).
+                    if !(matches!(m, PageMessage::Alive {}) && reply["ok"] == true) {
+                        say(&pages, page, reply);
+                    }
+                    acted = !matches!(m, PageMessage::Alive {});
+                }
+            },
+            Err(RecvTimeoutError::Timeout) => {}
+            Err(RecvTimeoutError::Disconnected) => bail!("the lab's server stopped"),
+        }
+
+        // Teleoperation: at every tick, and at once after a page acted.
+        let now = Instant::now();
+        if now >= next_tick || acted {
+            if now >= next_tick {
+                next_tick = now + TICK;
+            }
+            if let Some((_, teleop, ..)) = lab.as_mut() {
+                teleop.set_lift_m(lift_m);
+                let (frame, ended) = teleop.tick(state.as_ref(), monotonic_ns());
+                if let Some(f) = frame {
+                    match publish(&goals, &f) {
+                        Ok(()) => bump(&mut counts, "goal_frames"),
+                        Err(e) => {
+                            bump(&mut counts, "publish_errors");
+                            tracing::warn!("goal frame not published: {e}");
+                        }
+                    }
+                }
+                if let Some(why) = ended {
+                    tracing::info!("teleoperation ended: {}", ended_name(why));
+                    pages.broadcast(
+                        &json!({"type": "ended", "why": ended_name(why)})
+                            .to_string()
+                            .into(),
+                    );
+                }
+            }
+        }
+
+        // The pages' view.
+        if now >= next_frame {
+            next_frame += frame_every;
+            if next_frame < now {
+                next_frame = now + frame_every;
+            }
+            if let (Some((_, teleop, scene, _)), Some(s)) = (lab.as_ref(), state.as_ref()) {
+                let c = teleop.counters();
+                let extra = json!({
+                    "teleop": {"owner": teleop.owner(), "active": teleop.active(), "taken": c.taken,
+                        "refused": c.refused, "deadman_releases": c.deadman_releases,
+                        "closed_releases": c.closed_releases, "safe_state_releases": c.safe_state_releases},
+                    "events": recent,
+                    "pages": pages.open(),
+                });
+                pages.broadcast(&scene.frame(s, lift_m, extra).to_string().into());
+            }
+        }
+    }
+    shutdown.store(true, Ordering::Relaxed);
+    let _ = http.join();
+    let mut summary = counts;
+    if let Some((_, teleop, ..)) = &lab {
+        let c = teleop.counters();
+        summary["teleop"] = json!({"taken": c.taken, "refused": c.refused, "frames": c.frames,
+            "deadman_releases": c.deadman_releases, "closed_releases": c.closed_releases,
+            "safe_state_releases": c.safe_state_releases});
+    }
+    summary["dropped_messages"] = json!(pages.dropped.load(Ordering::Relaxed));
+    summary["denied_links"] = json!(pages.denied.load(Ordering::Relaxed));
+    println!("{summary}");
+    Ok(())
+}

@@ -1,0 +1,542 @@
+//! Nori Lab in a real browser: headless Chromium, driven over its DevTools protocol, on the
+//! lab served against the simulated left arm (simulator, supervisor, driver). The page loads
+//! and draws the arm where the state plane says it is (its screenshot's pixels at the joints,
+//! projected here from the robot description and the page's camera, are the joints' heat
+//! colours); dragging the tool target with pointer events moves the simulated arm's tool there;
+//! the stop button reaches the operator's stop (and a target sent meanwhile is refused and
+//! said); a frozen browser is released by the dead-man within its bound, and a closed page at
+//! once, each leaving the arm held.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use body::kinematics::{Body, Pose2};
+use body::RobotDescription;
+use nori_tests::{binary, http_get, scratch, wait_for, ArmStack, Proc};
+use serde_json::{json, Value};
+use std::net::TcpStream;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+use telemetry::frames::{STATE_FLAG_OPERATOR_STOP, STATE_FLAG_SAFE_STATE};
+use telemetry::plane::{self, newest, Plane};
+use telemetry::JointState;
+use tungstenite::stream::MaybeTlsStream;
+use tungstenite::{Message, WebSocket};
+
+/// Debian's Chromium, or `None` (then the test says so; under CI it fails instead).
+pub fn chromium() -> Option<PathBuf> {
+    let found = ["chromium", "chromium-browser"].iter().find_map(|name| {
+        std::env::var_os("PATH").and_then(|paths| {
+            std::env::split_paths(&paths)
+                .map(|d| d.join(name))
+                .find(|p| p.exists())
+        })
+    });
+    if found.is_none() {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "no chromium: deploy/install-build-deps.sh installs it"
+        );
+        eprintln!("skipped: no chromium (deploy/install-build-deps.sh installs it)");
+    }
+    found
+}
+
+/// A GET in HTTP/1.1 (Chromium's DevTools server answers no 1.0), the body of a 200.
+fn get_1_1(address: &str, path: &str) -> Option<String> {
+    use std::io::{Read, Write};
+    let mut stream = TcpStream::connect(address).ok()?;
+    stream.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
+    write!(
+        stream,
+        "GET {path} HTTP/1.1\r\nHost: {address}\r\nConnection: close\r\n\r\n"
+    )
+    .ok()?;
+    // It keeps the connection open: read the head, then Content-Length bytes.
+    let mut raw = Vec::new();
+    let mut chunk = [0u8; 4096];
+    loop {
+        let n = stream.read(&mut chunk).ok()?;
+        if n == 0 {
+            return None;
+        }
+        raw.extend_from_slice(&chunk[..n]);
+        let Some(end) = raw.windows(4).position(|w| w == b"\r\n\r\n") else {
+            continue;
+        };
+        let head = String::from_utf8_lossy(&raw[..end]).to_ascii_lowercase();
+        let length: usize = head
+            .lines()
+            .find_map(|l| l.strip_prefix("content-length:"))?
+            .trim()
+            .parse()
+            .ok()?;
+        if raw.len() >= end + 4 + length {
+            let body = String::from_utf8_lossy(&raw[end + 4..end + 4 + length]).into_owned();
+            return head.starts_with("http/1.1 200").then_some(body);
+        }
+    }
+}
+
+fn free_port() -> u16 {
+    let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    l.local_addr().unwrap().port()
+}
+
+/// A page of headless Chromium, driven over the DevTools protocol.
+struct Browser {
+    process: Proc,
+    devtools: WebSocket<MaybeTlsStream<TcpStream>>,
+    next_id: u64,
+}
+
+impl Browser {
+    fn open(chromium: &Path, url: &str, dir: &Path) -> Browser {
+        let port = free_port();
+        let process = Proc::spawn(
+            "chromium",
+            chromium,
+            &[
+                "--headless",
+                "--no-sandbox",
+                "--disable-gpu",
+                "--no-first-run",
+                "--disable-background-networking",
+                "--disable-component-update",
+                "--disable-sync",
+                "--force-device-scale-factor=1",
+                "--window-size=1300,900",
+                &format!("--remote-debugging-port={port}"),
+                &format!("--user-data-dir={}", dir.join("profile").display()),
+                url,
+            ],
+            &dir.join("chromium.log"),
+        );
+        let address = format!("127.0.0.1:{port}");
+        let page = wait_for(Duration::from_secs(30), "Chromium's page target", || {
+            let list: Value = serde_json::from_str(&get_1_1(&address, "/json/list")?).ok()?;
+            list.as_array()?
+                .iter()
+                .find(|t| t["type"] == "page")
+                .and_then(|t| t["webSocketDebuggerUrl"].as_str())
+                .map(str::to_string)
+        });
+        let (devtools, _) = tungstenite::connect(page.as_str()).unwrap();
+        if let MaybeTlsStream::Plain(s) = devtools.get_ref() {
+            s.set_read_timeout(Some(Duration::from_secs(20))).unwrap();
+        }
+        Browser {
+            process,
+            devtools,
+            next_id: 0,
+        }
+    }
+
+    /// A DevTools call's result (events in between are passed over).
+    fn call(&mut self, method: &str, params: Value) -> Value {
+        self.next_id += 1;
+        let id = self.next_id;
+        let msg = json!({"id": id, "method": method, "params": params});
+        self.devtools.send(Message::text(msg.to_string())).unwrap();
+        loop {
+            let Message::Text(text) = self.devtools.read().unwrap() else {
+                continue;
+            };
+            let v: Value = serde_json::from_str(text.as_str()).unwrap();
+            if v["id"] == id {
+                assert!(v.get("error").is_none(), "{method}: {v}");
+                return v["result"].clone();
+            }
+        }
+    }
+
+    /// The value of a script in the page.
+    fn eval(&mut self, script: &str) -> Value {
+        let r = self.call(
+            "Runtime.evaluate",
+            json!({"expression": script, "returnByValue": true, "awaitPromise": true}),
+        );
+        assert!(r.get("exceptionDetails").is_none(), "{script}: {r}");
+        r["result"]["value"].clone()
+    }
+
+    fn mouse(&mut self, kind: &str, x: f64, y: f64) {
+        let buttons = if kind == "mouseReleased" { 0 } else { 1 };
+        self.call(
+            "Input.dispatchMouseEvent",
+            json!({"type": kind, "x": x, "y": y, "button": "left", "buttons": buttons, "clickCount": 1}),
+        );
+    }
+
+    /// Clicks the element `selector`.
+    fn click(&mut self, selector: &str) {
+        let r = self.eval(&format!(
+            "(() => {{ const r = document.querySelector('{selector}').getBoundingClientRect(); return [r.left + r.width / 2, r.top + r.height / 2]; }})()"
+        ));
+        let (x, y) = (r[0].as_f64().unwrap(), r[1].as_f64().unwrap());
+        self.mouse("mousePressed", x, y);
+        self.mouse("mouseReleased", x, y);
+    }
+
+    /// The page as it is on screen: width, height, RGB.
+    fn screenshot(&mut self) -> (usize, usize, Vec<u8>) {
+        use base64::Engine;
+        let r = self.call("Page.captureScreenshot", json!({"format": "png"}));
+        let png = base64::engine::general_purpose::STANDARD
+            .decode(r["data"].as_str().unwrap())
+            .unwrap();
+        let options = zune_core::options::DecoderOptions::default()
+            .png_set_strip_to_8bit(true)
+            .png_set_add_alpha_channel(false);
+        let mut decoder =
+            zune_png::PngDecoder::new_with_options(std::io::Cursor::new(&png), options);
+        let pixels = decoder.decode().unwrap().u8().unwrap();
+        let (w, h) = decoder.dimensions().unwrap();
+        let channels = pixels.len() / (w * h);
+        let rgb: Vec<u8> = pixels
+            .chunks(channels)
+            .flat_map(|p| [p[0], p[1], p[2]])
+            .collect();
+        (w, h, rgb)
+    }
+
+    /// Freezes (SIGSTOP) or thaws (SIGCONT) every process of the browser.
+    fn freeze(&self, frozen: bool) {
+        use nix::sys::signal::{killpg, Signal};
+        let pgid = nix::unistd::Pid::from_raw(self.process.pid() as i32);
+        killpg(
+            pgid,
+            if frozen {
+                Signal::SIGSTOP
+            } else {
+                Signal::SIGCONT
+            },
+        )
+        .unwrap();
+    }
+}
+
+/// The page's colour for a motor at `t` °C with its cutoff at `cutoff` (the page's rule:
+/// blue when cool, yellow half way, red at the cutoff).
+fn heat(t: f64, cutoff: f64) -> [f64; 3] {
+    let x = ((t - 30.0) / (cutoff - 30.0)).clamp(0.0, 1.0);
+    [
+        (255.0 * (2.0 * x).min(1.0)).round(),
+        (255.0 * (2.0 * (1.0 - x)).min(1.0)).round(),
+        (255.0 * (1.0 - 3.0 * x).max(0.0)).round(),
+    ]
+}
+
+/// Projects `p` (base frame, m) to the page's CSS pixels with the page's camera `view`
+/// (`lab.view()`): written here from the camera's parameters, not taken from the page.
+fn project(view: &Value, p: [f64; 3]) -> [f64; 2] {
+    let f = |k: &str| view[k].as_f64().unwrap();
+    let (az, el, dist, fov) = (f("az"), f("el"), f("dist"), f("fov"));
+    let c: Vec<f64> = view["center"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
+    let eye = [
+        c[0] + dist * el.cos() * az.cos(),
+        c[1] + dist * el.cos() * az.sin(),
+        c[2] + dist * el.sin(),
+    ];
+    let sub = |a: [f64; 3], b: [f64; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+    let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    let unit = |a: [f64; 3]| {
+        let n = dot(a, a).sqrt();
+        [a[0] / n, a[1] / n, a[2] / n]
+    };
+    let cross = |a: [f64; 3], b: [f64; 3]| {
+        [
+            a[1] * b[2] - a[2] * b[1],
+            a[2] * b[0] - a[0] * b[2],
+            a[0] * b[1] - a[1] * b[0],
+        ]
+    };
+    let fwd = unit(sub([c[0], c[1], c[2]], eye));
+    let right = unit(cross(fwd, [0.0, 0.0, 1.0]));
+    let up = cross(right, fwd);
+    let (w, h) = (f("width"), f("height"));
+    let focal = h / (2.0 * (fov / 2.0).tan());
+    let d = sub(p, eye);
+    let z = dot(d, fwd);
+    let scale = f("cssWidth") / w;
+    [
+        f("left") + (w / 2.0 + focal * dot(d, right) / z) * scale,
+        f("top") + (h / 2.0 - focal * dot(d, up) / z) * scale,
+    ]
+}
+
+fn pixel(shot: &(usize, usize, Vec<u8>), at: [f64; 2]) -> [f64; 3] {
+    let (w, _, rgb) = shot;
+    let i = 3 * (at[1].round() as usize * w + at[0].round() as usize);
+    [
+        f64::from(rgb[i]),
+        f64::from(rgb[i + 1]),
+        f64::from(rgb[i + 2]),
+    ]
+}
+
+fn near(a: [f64; 3], b: [f64; 3], tol: f64) -> bool {
+    a.iter().zip(&b).all(|(x, y)| (x - y).abs() <= tol)
+}
+
+/// The left arm's tool point in the base's frame, where the joints are read.
+fn left_tool(body: &Body, s: &JointState) -> [f64; 3] {
+    tool_at(body, s.joints()[..7].iter().map(|j| j.position_rad))
+}
+
+/// ... and where the goals the driver sent put it.
+fn left_goal_tool(body: &Body, s: &JointState) -> [f64; 3] {
+    tool_at(body, s.joints()[..7].iter().map(|j| j.goal_rad))
+}
+
+fn tool_at(body: &Body, q: impl Iterator<Item = f32>) -> [f64; 3] {
+    let q: Vec<f64> = q.map(f64::from).collect();
+    body.arm_pose(0, &q, body.lift_start_m(), Pose2::default())
+        .unwrap()
+        .tool
+}
+
+/// How close the arm comes: the goals the driver sends put the tool within `SENT_TOL_M` of the
+/// target (the inverse kinematics and the goal registers' steps, 0.088°), and the servos hold
+/// it within `HELD_TOL_M` (their proportional position loops hold a few steps short under the
+/// arm's weight, as the STS firmware does).
+const SENT_TOL_M: f64 = 0.0015;
+const HELD_TOL_M: f64 = 0.012;
+
+/// Waits until the arm is at `target` by both measures; returns how far and how long.
+fn wait_at(
+    body: &Body,
+    states: &plane::Sub<JointState>,
+    target: [f64; 3],
+    what: &str,
+) -> (f64, f64, Duration) {
+    let started = Instant::now();
+    wait_for(Duration::from_secs(8), what, || {
+        let s = newest(states)?;
+        let (sent, held) = (
+            distance(left_goal_tool(body, &s), target),
+            distance(left_tool(body, &s), target),
+        );
+        (sent < SENT_TOL_M && held < HELD_TOL_M).then_some((sent, held, started.elapsed()))
+    })
+}
+
+fn distance(a: [f64; 3], b: [f64; 3]) -> f64 {
+    (0..3).map(|i| (a[i] - b[i]).powi(2)).sum::<f64>().sqrt()
+}
+
+fn as_point(v: &Value) -> [f64; 3] {
+    let a = v.as_array().unwrap();
+    [0, 1, 2].map(|i| a[i].as_f64().unwrap())
+}
+
+#[test]
+fn the_lab_page_shows_the_arm_drives_it_stops_it_and_lets_go_when_the_page_does() {
+    let Some(chromium) = chromium() else { return };
+    let dir = scratch("lab-page");
+    let stack = ArmStack::start("lab", &[]);
+    let node = Plane::open(&stack.domain, "test").unwrap();
+    let states = node.subscriber(&plane::JOINT_STATE).unwrap();
+    let stopped = STATE_FLAG_SAFE_STATE | STATE_FLAG_OPERATOR_STOP;
+    let driving =
+        |s: &JointState| s.joints().iter().all(|j| j.is_valid()) && s.flags & stopped == 0;
+    wait_for(Duration::from_secs(20), "the arm driven", || {
+        newest(&states).filter(|s| s.joint_count == 8 && driving(s))
+    });
+
+    let token = "lab-test-token-0123456789";
+    let token_file = dir.join("token");
+    std::fs::write(&token_file, token).unwrap();
+    let port = free_port();
+    let http = format!("127.0.0.1:{port}");
+    let mut lab = Proc::spawn(
+        "nori-lab",
+        &binary("nori-lab"),
+        &[
+            "--domain",
+            &stack.domain,
+            "--http",
+            &http,
+            "--token-file",
+            token_file.to_str().unwrap(),
+        ],
+        &dir.join("lab.log"),
+    );
+    wait_for(Duration::from_secs(10), "the lab serving", || {
+        http_get(&http, "/").filter(|(code, _)| *code == 200)
+    });
+    // No token, no link (the page itself carries no secret).
+    let (code, _) = http_get(&http, "/ws").unwrap();
+    assert_eq!(code, 404, "a plain GET of the link is no upgrade");
+
+    let mut page = Browser::open(&chromium, &format!("http://{http}/#token={token}"), &dir);
+    // The page gets the model and live frames.
+    wait_for(Duration::from_secs(20), "the page's first frames", || {
+        let n = page
+            .eval("typeof lab !== 'undefined' && lab.model && lab.frames > 5 ? lab.frames : 0")
+            .as_u64()?;
+        (n > 0).then_some(())
+    });
+    let f0 = page.eval("lab.frames").as_u64().unwrap();
+    std::thread::sleep(Duration::from_secs(2));
+    let f1 = page.eval("lab.frames").as_u64().unwrap();
+    // 30 Hz asked: at least 20 a second arrive even on a loaded machine.
+    assert!(f1 - f0 >= 40, "{} frames in 2 s", f1 - f0);
+
+    // The drawing against the state: each joint's pixel is its motor's heat colour, where the
+    // description's kinematics put it for the angles on the plane.
+    let body = Body::from_description(&RobotDescription::nori_a3()).unwrap();
+    let view = page.eval("lab.view()");
+    let s = newest(&states)
+        .unwrap_or_else(|| wait_for(Duration::from_secs(1), "a frame", || newest(&states)));
+    std::thread::sleep(Duration::from_millis(200));
+    let shot = page.screenshot();
+    let q: Vec<f64> = s.joints()[..7]
+        .iter()
+        .map(|j| f64::from(j.position_rad))
+        .collect();
+    let points = body
+        .arm_points(0, &q, body.lift_start_m(), Pose2::default())
+        .unwrap();
+    let mut drawn: Vec<([f64; 2], [f64; 3])> = Vec::new();
+    for k in 0..7 {
+        let at = project(&view, points[k + 1]);
+        let colour = heat(f64::from(s.joints()[k].temperature_c), 60.0);
+        // Joints at one origin: the last drawn shows.
+        drawn.retain(|(p, _)| (p[0] - at[0]).hypot(p[1] - at[1]) > 3.0);
+        drawn.push((at, colour));
+    }
+    assert!(drawn.len() >= 3, "{drawn:?}");
+    for (at, colour) in &drawn {
+        let seen = pixel(&shot, *at);
+        assert!(
+            near(seen, *colour, 24.0),
+            "joint at {at:?}: {seen:?}, expected {colour:?}"
+        );
+    }
+    // And nothing of the arm where it is not: 60 px beside the elbow, the background.
+    let elbow = project(&view, points[4]);
+    let beside = pixel(&shot, [elbow[0] + 60.0, elbow[1] + 60.0]);
+    assert!(
+        near(beside, [255.0, 255.0, 255.0], 30.0) || near(beside, [230.0, 230.0, 230.0], 30.0),
+        "{beside:?}"
+    );
+
+    // Drag the tool's target with the pointer: the arm follows there.
+    let tool_now = left_tool(&body, &newest(&states).unwrap_or(s));
+    let grab = project(&view, tool_now);
+    page.mouse("mousePressed", grab[0], grab[1]);
+    for k in 1..=20 {
+        let t = f64::from(k) / 20.0;
+        page.mouse("mouseMoved", grab[0] - 40.0 * t, grab[1] - 50.0 * t);
+        std::thread::sleep(Duration::from_millis(15));
+    }
+    page.mouse("mouseReleased", grab[0] - 40.0, grab[1] - 50.0);
+    let target = as_point(&page.eval("lab.target && lab.target.position"));
+    assert!(
+        distance(target, tool_now) > 0.03,
+        "the target moved with the pointer: {target:?}"
+    );
+    let (sent, held, after) = wait_at(
+        &body,
+        &states,
+        target,
+        "the arm's tool at the dragged target",
+    );
+    eprintln!(
+        "dragged target: the goals sent put the tool {:.2} mm from it, the servos hold it {:.2} mm from it, after {after:?}",
+        sent * 1e3,
+        held * 1e3
+    );
+    let replies = page.eval("lab.replies.filter(r => !r.ok).map(r => r.error)");
+    assert_eq!(replies, json!([]), "no drag step refused");
+
+    // The stop button: the operator's stop, shown; a target sent meanwhile is refused.
+    page.click("#stop");
+    wait_for(Duration::from_secs(2), "the stop on the plane", || {
+        newest(&states).filter(|s| s.flags & stopped == stopped)
+    });
+    wait_for(Duration::from_secs(2), "the stop on the page", || {
+        let text = page.eval("document.getElementById('status').textContent");
+        text.as_str()?.contains("STOPPED").then_some(())
+    });
+    // The driver holds (at its hold torque: the arm may settle a little): the goals it sends
+    // stay where the stop froze them, whatever the page asks.
+    let goals_sent =
+        |s: &JointState| -> Vec<f32> { s.joints()[..7].iter().map(|j| j.goal_rad).collect() };
+    let held = goals_sent(&wait_for(Duration::from_secs(1), "a frame", || {
+        newest(&states)
+    }));
+    let moved = [target[0], target[1] + 0.05, target[2]];
+    page.eval(&format!("lab.setTool('left_arm', {moved:?})"));
+    wait_for(Duration::from_secs(2), "the refusal on the page", || {
+        let r = page.eval("lab.replies.length ? lab.replies[lab.replies.length - 1] : null");
+        (r["refused"] == "safe_state").then_some(())
+    });
+    std::thread::sleep(Duration::from_millis(500));
+    let after = goals_sent(&wait_for(Duration::from_secs(1), "a frame", || {
+        newest(&states)
+    }));
+    assert_eq!(after, held, "a goal went out while stopped");
+    page.click("#resume");
+    wait_for(Duration::from_secs(3), "driving again", || {
+        newest(&states).filter(|s| driving(s))
+    });
+
+    // In control again, then the browser freezes: the dead-man lets go within its bound.
+    page.eval(&format!("lab.setTool('left_arm', {moved:?})"));
+    wait_at(&body, &states, moved, "the arm at the new target");
+    let goals = node.subscriber(&plane::GOALS).unwrap();
+    let froze_at = telemetry::clock::monotonic_ns();
+    page.freeze(true);
+    std::thread::sleep(Duration::from_millis(1000));
+    let mut last_goal = 0;
+    while let Some(g) = plane::next(&goals) {
+        last_goal = last_goal.max(g.timestamp_ns);
+    }
+    page.freeze(false);
+    let silent_after_ms = last_goal.saturating_sub(froze_at) as f64 * 1e-6;
+    assert!(
+        last_goal > 0,
+        "goals went out while the page was in control"
+    );
+    assert!(
+        silent_after_ms <= 300.0 + 150.0,
+        "the last goal {silent_after_ms:.0} ms after the page froze (dead-man 300 ms)"
+    );
+    wait_for(Duration::from_secs(3), "the page told", || {
+        let e = page.eval("lab.ended");
+        e.as_array()?.iter().any(|w| w == "dead_man").then_some(())
+    });
+
+    // In control once more, then the browser dies (its page cannot say goodbye): let go at
+    // once. (A page closed normally lets go itself, as it does when hidden.)
+    page.eval(&format!("lab.setTool('left_arm', {target:?})"));
+    std::thread::sleep(Duration::from_millis(300));
+    while plane::next(&goals).is_some() {}
+    let killed_at = telemetry::clock::monotonic_ns();
+    drop(page);
+    std::thread::sleep(Duration::from_millis(500));
+    let mut last_goal = 0;
+    while let Some(g) = plane::next(&goals) {
+        last_goal = last_goal.max(g.timestamp_ns);
+    }
+    let after_ms = last_goal.saturating_sub(killed_at) as f64 * 1e-6;
+    assert!(
+        after_ms < 100.0,
+        "goals {after_ms:.0} ms after the browser died"
+    );
+    let (_, summary) = lab.terminate(Duration::from_secs(5));
+    let summary: Value = serde_json::from_str(summary.trim()).unwrap();
+    assert_eq!(summary["teleop"]["deadman_releases"], 1, "{summary}");
+    assert_eq!(summary["teleop"]["closed_releases"], 1, "{summary}");
+    assert_eq!(summary["stops"], 1);
+    assert_eq!(summary["teleop"]["refused"]["safe_state"], 1, "{summary}");
+    drop((goals, states, node));
+    let report = stack.stop();
+    nori_tests::check_left_arm_report(&report, 60.0);
+}
