@@ -9,6 +9,7 @@ mod driver;
 mod fleet;
 mod fleet_store;
 mod ik;
+mod lab;
 mod lidar;
 mod model_lab;
 mod plane;
@@ -37,6 +38,9 @@ enum Bench {
     /// A policy's action on zenoh to the goal on the simulated wire, through the fleet agent,
     /// against a goal published straight on the state plane.
     ActionLatency(fleet::ActionLatencyArgs),
+    /// A key press in Nori Lab's page (headless Chromium) to the goal on the simulated wire,
+    /// against a goal published straight on the state plane; the driver's rate with the lab.
+    LabLatency(lab::LabLatencyArgs),
     /// An observation to the goal computed from it on the simulated wire, through a policy
     /// server: Python (`nori_client`) against the Rust reference in the same run.
     PolicyLatency(fleet::PolicyLatencyArgs),
@@ -66,6 +70,7 @@ fn main() -> Result<()> {
         Bench::StatePlane(a) => plane::run(a),
         Bench::CameraFrame(a) => plane::camera_frame(a),
         Bench::ActionLatency(a) => fleet::action_latency(a),
+        Bench::LabLatency(a) => lab::run(a),
         Bench::PolicyLatency(a) => fleet::policy_latency(a),
         Bench::FleetIngest(a) => fleet::fleet_ingest(a),
         Bench::FleetStore(a) => fleet_store::run(a),

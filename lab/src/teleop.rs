@@ -36,6 +36,12 @@ pub struct TeleopSettings {
     pub max_speed_rad_s: f64,
     /// The inverse kinematics' tolerances and effort.
     pub ik: IkSettings,
+    /// A pose the solver did not reach within its tolerances is still taken when its closest
+    /// solution is this close, m (the operator steers by eye: a tenth of a millimetre short at
+    /// a range's end is no reason to stop the arm) ...
+    pub accept_position_m: f64,
+    /// ... and turned this little, rad.
+    pub accept_angle_rad: f64,
 }
 
 impl Default for TeleopSettings {
@@ -44,6 +50,8 @@ impl Default for TeleopSettings {
             deadman_ms: 300,
             max_speed_rad_s: 1.5,
             ik: IkSettings::default(),
+            accept_position_m: 1e-3,
+            accept_angle_rad: 1f64.to_radians(),
         }
     }
 }
@@ -467,6 +475,26 @@ impl Teleop {
                 },
             )),
             Err(IkError::NotReached {
+                best,
+                position_error_m,
+                angle_error_rad,
+            }) if position_error_m <= self.settings.accept_position_m
+                && angle_error_rad <= self.settings.accept_angle_rad =>
+            {
+                Ok((
+                    a.joints
+                        .iter()
+                        .enumerate()
+                        .map(|(k, &j)| (j, best[k]))
+                        .collect(),
+                    Solved {
+                        position_error_m,
+                        angle_error_rad,
+                        starts: self.settings.ik.max_starts,
+                    },
+                ))
+            }
+            Err(IkError::NotReached {
                 position_error_m,
                 angle_error_rad,
                 ..
@@ -802,6 +830,47 @@ pub(crate) mod tests {
             "the right arm is not driven here"
         );
         assert_eq!(t.active(), 0x7f);
+    }
+
+    #[test]
+    fn a_pose_reached_nearly_is_taken_within_the_acceptance_and_refused_beyond_it() {
+        let body = Body::from_description(&RobotDescription::nori_a3()).unwrap();
+        let want = [0.3, 0.35, -0.2, -1.2, 0.3, 0.1, 0.2];
+        let pose = body
+            .arm_pose(0, &want, body.lift_start_m(), Pose2::default())
+            .unwrap();
+        let tool = Command::Tool {
+            arm: "left_arm".into(),
+            target: ToolTarget {
+                position: pose.tool,
+                rotation: pose.tool_rotation,
+            },
+        };
+        let s = state_at(&[0.1, 0.2, -0.1, -0.8, 0.1, 0.3, 0.0]);
+        // Two steps from one start cannot get within the solver's own tolerance...
+        let tight = |accept_position_m| TeleopSettings {
+            ik: IkSettings {
+                max_steps: 2,
+                max_starts: 1,
+                ..IkSettings::default()
+            },
+            accept_position_m,
+            accept_angle_rad: 1.0,
+            ..TeleopSettings::default()
+        };
+        let mut refusing = Teleop::new(body.clone(), a3_left_layout(), tight(0.0));
+        let e = refusing.command(1, &tool, Some(&s), 0).unwrap_err();
+        let Refusal::Unreachable {
+            position_error_m, ..
+        } = e
+        else {
+            panic!("{e}")
+        };
+        // ... and is taken when the acceptance covers how close it came.
+        let mut taking = Teleop::new(body, a3_left_layout(), tight(position_error_m + 1e-9));
+        let solved = taking.command(1, &tool, Some(&s), 0).unwrap().unwrap();
+        assert_eq!(solved.position_error_m, position_error_m);
+        assert_eq!(taking.active(), 0x7f);
     }
 
     #[test]

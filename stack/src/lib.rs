@@ -3,6 +3,7 @@
 //! scenario`, in this crate's `nori-stack` binary), the benchmarks and the process tests, so
 //! the stack is started one way everywhere.
 
+pub mod browser;
 pub mod child;
 pub mod commands;
 

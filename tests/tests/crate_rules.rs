@@ -74,7 +74,7 @@ const CONFINED: &[(&str, &[&str])] = &[
     ("serialport", &["bus-driver", "lidar", "lift"]),
     ("v4l", &["camera"]),
     ("tiny_http", &["fleet"]),
-    ("tungstenite", &["lab"]),
+    ("tungstenite", &["lab", "stack"]),
     ("prometheus-client", &["fleet"]),
 ];
 

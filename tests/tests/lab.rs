@@ -13,24 +13,16 @@ use body::kinematics::{Body, Pose2};
 use body::RobotDescription;
 use nori_tests::{binary, http_get, scratch, wait_for, ArmStack, Proc};
 use serde_json::{json, Value};
-use std::net::TcpStream;
-use std::path::{Path, PathBuf};
+use stack::browser::Browser;
+use std::path::PathBuf;
 use std::time::{Duration, Instant};
 use telemetry::frames::{STATE_FLAG_OPERATOR_STOP, STATE_FLAG_SAFE_STATE};
 use telemetry::plane::{self, newest, Plane};
 use telemetry::JointState;
-use tungstenite::stream::MaybeTlsStream;
-use tungstenite::{Message, WebSocket};
 
 /// Debian's Chromium, or `None` (then the test says so; under CI it fails instead).
-pub fn chromium() -> Option<PathBuf> {
-    let found = ["chromium", "chromium-browser"].iter().find_map(|name| {
-        std::env::var_os("PATH").and_then(|paths| {
-            std::env::split_paths(&paths)
-                .map(|d| d.join(name))
-                .find(|p| p.exists())
-        })
-    });
+fn chromium() -> Option<PathBuf> {
+    let found = stack::browser::chromium();
     if found.is_none() {
         assert!(
             std::env::var_os("CI").is_none(),
@@ -41,178 +33,46 @@ pub fn chromium() -> Option<PathBuf> {
     found
 }
 
-/// A GET in HTTP/1.1 (Chromium's DevTools server answers no 1.0), the body of a 200.
-fn get_1_1(address: &str, path: &str) -> Option<String> {
-    use std::io::{Read, Write};
-    let mut stream = TcpStream::connect(address).ok()?;
-    stream.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
-    write!(
-        stream,
-        "GET {path} HTTP/1.1\r\nHost: {address}\r\nConnection: close\r\n\r\n"
-    )
-    .ok()?;
-    // It keeps the connection open: read the head, then Content-Length bytes.
-    let mut raw = Vec::new();
-    let mut chunk = [0u8; 4096];
-    loop {
-        let n = stream.read(&mut chunk).ok()?;
-        if n == 0 {
-            return None;
-        }
-        raw.extend_from_slice(&chunk[..n]);
-        let Some(end) = raw.windows(4).position(|w| w == b"\r\n\r\n") else {
-            continue;
-        };
-        let head = String::from_utf8_lossy(&raw[..end]).to_ascii_lowercase();
-        let length: usize = head
-            .lines()
-            .find_map(|l| l.strip_prefix("content-length:"))?
-            .trim()
-            .parse()
-            .ok()?;
-        if raw.len() >= end + 4 + length {
-            let body = String::from_utf8_lossy(&raw[end + 4..end + 4 + length]).into_owned();
-            return head.starts_with("http/1.1 200").then_some(body);
-        }
-    }
-}
-
 fn free_port() -> u16 {
     let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     l.local_addr().unwrap().port()
 }
 
-/// A page of headless Chromium, driven over the DevTools protocol.
-struct Browser {
-    process: Proc,
-    devtools: WebSocket<MaybeTlsStream<TcpStream>>,
-    next_id: u64,
+/// The value of `script` in the page.
+fn js(page: &mut Browser, script: &str) -> Value {
+    page.eval(script).unwrap()
 }
 
-impl Browser {
-    fn open(chromium: &Path, url: &str, dir: &Path) -> Browser {
-        let port = free_port();
-        let process = Proc::spawn(
-            "chromium",
-            chromium,
-            &[
-                "--headless",
-                "--no-sandbox",
-                "--disable-gpu",
-                "--no-first-run",
-                "--disable-background-networking",
-                "--disable-component-update",
-                "--disable-sync",
-                "--force-device-scale-factor=1",
-                "--window-size=1300,900",
-                &format!("--remote-debugging-port={port}"),
-                &format!("--user-data-dir={}", dir.join("profile").display()),
-                url,
-            ],
-            &dir.join("chromium.log"),
-        );
-        let address = format!("127.0.0.1:{port}");
-        let page = wait_for(Duration::from_secs(30), "Chromium's page target", || {
-            let list: Value = serde_json::from_str(&get_1_1(&address, "/json/list")?).ok()?;
-            list.as_array()?
-                .iter()
-                .find(|t| t["type"] == "page")
-                .and_then(|t| t["webSocketDebuggerUrl"].as_str())
-                .map(str::to_string)
-        });
-        let (devtools, _) = tungstenite::connect(page.as_str()).unwrap();
-        if let MaybeTlsStream::Plain(s) = devtools.get_ref() {
-            s.set_read_timeout(Some(Duration::from_secs(20))).unwrap();
-        }
-        Browser {
-            process,
-            devtools,
-            next_id: 0,
-        }
-    }
+/// The page as it is on screen: width, height, RGB.
+fn screenshot(page: &mut Browser) -> (usize, usize, Vec<u8>) {
+    let png = page.screenshot_png().unwrap();
+    let options = zune_core::options::DecoderOptions::default()
+        .png_set_strip_to_8bit(true)
+        .png_set_add_alpha_channel(false);
+    let mut decoder = zune_png::PngDecoder::new_with_options(std::io::Cursor::new(&png), options);
+    let pixels = decoder.decode().unwrap().u8().unwrap();
+    let (w, h) = decoder.dimensions().unwrap();
+    let channels = pixels.len() / (w * h);
+    let rgb = pixels
+        .chunks(channels)
+        .flat_map(|p| [p[0], p[1], p[2]])
+        .collect();
+    (w, h, rgb)
+}
 
-    /// A DevTools call's result (events in between are passed over).
-    fn call(&mut self, method: &str, params: Value) -> Value {
-        self.next_id += 1;
-        let id = self.next_id;
-        let msg = json!({"id": id, "method": method, "params": params});
-        self.devtools.send(Message::text(msg.to_string())).unwrap();
-        loop {
-            let Message::Text(text) = self.devtools.read().unwrap() else {
-                continue;
-            };
-            let v: Value = serde_json::from_str(text.as_str()).unwrap();
-            if v["id"] == id {
-                assert!(v.get("error").is_none(), "{method}: {v}");
-                return v["result"].clone();
-            }
-        }
-    }
-
-    /// The value of a script in the page.
-    fn eval(&mut self, script: &str) -> Value {
-        let r = self.call(
-            "Runtime.evaluate",
-            json!({"expression": script, "returnByValue": true, "awaitPromise": true}),
-        );
-        assert!(r.get("exceptionDetails").is_none(), "{script}: {r}");
-        r["result"]["value"].clone()
-    }
-
-    fn mouse(&mut self, kind: &str, x: f64, y: f64) {
-        let buttons = if kind == "mouseReleased" { 0 } else { 1 };
-        self.call(
-            "Input.dispatchMouseEvent",
-            json!({"type": kind, "x": x, "y": y, "button": "left", "buttons": buttons, "clickCount": 1}),
-        );
-    }
-
-    /// Clicks the element `selector`.
-    fn click(&mut self, selector: &str) {
-        let r = self.eval(&format!(
-            "(() => {{ const r = document.querySelector('{selector}').getBoundingClientRect(); return [r.left + r.width / 2, r.top + r.height / 2]; }})()"
-        ));
-        let (x, y) = (r[0].as_f64().unwrap(), r[1].as_f64().unwrap());
-        self.mouse("mousePressed", x, y);
-        self.mouse("mouseReleased", x, y);
-    }
-
-    /// The page as it is on screen: width, height, RGB.
-    fn screenshot(&mut self) -> (usize, usize, Vec<u8>) {
-        use base64::Engine;
-        let r = self.call("Page.captureScreenshot", json!({"format": "png"}));
-        let png = base64::engine::general_purpose::STANDARD
-            .decode(r["data"].as_str().unwrap())
-            .unwrap();
-        let options = zune_core::options::DecoderOptions::default()
-            .png_set_strip_to_8bit(true)
-            .png_set_add_alpha_channel(false);
-        let mut decoder =
-            zune_png::PngDecoder::new_with_options(std::io::Cursor::new(&png), options);
-        let pixels = decoder.decode().unwrap().u8().unwrap();
-        let (w, h) = decoder.dimensions().unwrap();
-        let channels = pixels.len() / (w * h);
-        let rgb: Vec<u8> = pixels
-            .chunks(channels)
-            .flat_map(|p| [p[0], p[1], p[2]])
-            .collect();
-        (w, h, rgb)
-    }
-
-    /// Freezes (SIGSTOP) or thaws (SIGCONT) every process of the browser.
-    fn freeze(&self, frozen: bool) {
-        use nix::sys::signal::{killpg, Signal};
-        let pgid = nix::unistd::Pid::from_raw(self.process.pid() as i32);
-        killpg(
-            pgid,
-            if frozen {
-                Signal::SIGSTOP
-            } else {
-                Signal::SIGCONT
-            },
-        )
-        .unwrap();
-    }
+/// Freezes (SIGSTOP) or thaws (SIGCONT) every process of the browser.
+fn freeze(page: &Browser, frozen: bool) {
+    use nix::sys::signal::{killpg, Signal};
+    let pgid = nix::unistd::Pid::from_raw(page.pid().unwrap() as i32);
+    killpg(
+        pgid,
+        if frozen {
+            Signal::SIGSTOP
+        } else {
+            Signal::SIGCONT
+        },
+    )
+    .unwrap();
 }
 
 /// The page's colour for a motor at `t` °C with its cutoff at `cutoff` (the page's rule:
@@ -373,28 +233,30 @@ fn the_lab_page_shows_the_arm_drives_it_stops_it_and_lets_go_when_the_page_does(
     let (code, _) = http_get(&http, "/ws").unwrap();
     assert_eq!(code, 404, "a plain GET of the link is no upgrade");
 
-    let mut page = Browser::open(&chromium, &format!("http://{http}/#token={token}"), &dir);
+    let mut page =
+        Browser::open(&chromium, &format!("http://{http}/#token={token}"), &dir).unwrap();
     // The page gets the model and live frames.
     wait_for(Duration::from_secs(20), "the page's first frames", || {
         let n = page
             .eval("typeof lab !== 'undefined' && lab.model && lab.frames > 5 ? lab.frames : 0")
+            .ok()?
             .as_u64()?;
         (n > 0).then_some(())
     });
-    let f0 = page.eval("lab.frames").as_u64().unwrap();
+    let f0 = js(&mut page, "lab.frames").as_u64().unwrap();
     std::thread::sleep(Duration::from_secs(2));
-    let f1 = page.eval("lab.frames").as_u64().unwrap();
+    let f1 = js(&mut page, "lab.frames").as_u64().unwrap();
     // 30 Hz asked: at least 20 a second arrive even on a loaded machine.
     assert!(f1 - f0 >= 40, "{} frames in 2 s", f1 - f0);
 
     // The drawing against the state: each joint's pixel is its motor's heat colour, where the
     // description's kinematics put it for the angles on the plane.
     let body = Body::from_description(&RobotDescription::nori_a3()).unwrap();
-    let view = page.eval("lab.view()");
+    let view = js(&mut page, "lab.view()");
     let s = newest(&states)
         .unwrap_or_else(|| wait_for(Duration::from_secs(1), "a frame", || newest(&states)));
     std::thread::sleep(Duration::from_millis(200));
-    let shot = page.screenshot();
+    let shot = screenshot(&mut page);
     let q: Vec<f64> = s.joints()[..7]
         .iter()
         .map(|j| f64::from(j.position_rad))
@@ -429,14 +291,16 @@ fn the_lab_page_shows_the_arm_drives_it_stops_it_and_lets_go_when_the_page_does(
     // Drag the tool's target with the pointer: the arm follows there.
     let tool_now = left_tool(&body, &newest(&states).unwrap_or(s));
     let grab = project(&view, tool_now);
-    page.mouse("mousePressed", grab[0], grab[1]);
+    page.mouse("mousePressed", grab[0], grab[1]).unwrap();
     for k in 1..=20 {
         let t = f64::from(k) / 20.0;
-        page.mouse("mouseMoved", grab[0] - 40.0 * t, grab[1] - 50.0 * t);
+        page.mouse("mouseMoved", grab[0] - 40.0 * t, grab[1] - 50.0 * t)
+            .unwrap();
         std::thread::sleep(Duration::from_millis(15));
     }
-    page.mouse("mouseReleased", grab[0] - 40.0, grab[1] - 50.0);
-    let target = as_point(&page.eval("lab.target && lab.target.position"));
+    page.mouse("mouseReleased", grab[0] - 40.0, grab[1] - 50.0)
+        .unwrap();
+    let target = as_point(&js(&mut page, "lab.target && lab.target.position"));
     assert!(
         distance(target, tool_now) > 0.03,
         "the target moved with the pointer: {target:?}"
@@ -452,16 +316,19 @@ fn the_lab_page_shows_the_arm_drives_it_stops_it_and_lets_go_when_the_page_does(
         sent * 1e3,
         held * 1e3
     );
-    let replies = page.eval("lab.replies.filter(r => !r.ok).map(r => r.error)");
+    let replies = js(
+        &mut page,
+        "lab.replies.filter(r => !r.ok).map(r => r.error)",
+    );
     assert_eq!(replies, json!([]), "no drag step refused");
 
     // The stop button: the operator's stop, shown; a target sent meanwhile is refused.
-    page.click("#stop");
+    page.click("#stop").unwrap();
     wait_for(Duration::from_secs(2), "the stop on the plane", || {
         newest(&states).filter(|s| s.flags & stopped == stopped)
     });
     wait_for(Duration::from_secs(2), "the stop on the page", || {
-        let text = page.eval("document.getElementById('status').textContent");
+        let text = js(&mut page, "document.getElementById('status').textContent");
         text.as_str()?.contains("STOPPED").then_some(())
     });
     // The driver holds (at its hold torque: the arm may settle a little): the goals it sends
@@ -472,9 +339,12 @@ fn the_lab_page_shows_the_arm_drives_it_stops_it_and_lets_go_when_the_page_does(
         newest(&states)
     }));
     let moved = [target[0], target[1] + 0.05, target[2]];
-    page.eval(&format!("lab.setTool('left_arm', {moved:?})"));
+    js(&mut page, &format!("lab.setTool('left_arm', {moved:?})"));
     wait_for(Duration::from_secs(2), "the refusal on the page", || {
-        let r = page.eval("lab.replies.length ? lab.replies[lab.replies.length - 1] : null");
+        let r = js(
+            &mut page,
+            "lab.replies.length ? lab.replies[lab.replies.length - 1] : null",
+        );
         (r["refused"] == "safe_state").then_some(())
     });
     std::thread::sleep(Duration::from_millis(500));
@@ -482,23 +352,23 @@ fn the_lab_page_shows_the_arm_drives_it_stops_it_and_lets_go_when_the_page_does(
         newest(&states)
     }));
     assert_eq!(after, held, "a goal went out while stopped");
-    page.click("#resume");
+    page.click("#resume").unwrap();
     wait_for(Duration::from_secs(3), "driving again", || {
         newest(&states).filter(|s| driving(s))
     });
 
     // In control again, then the browser freezes: the dead-man lets go within its bound.
-    page.eval(&format!("lab.setTool('left_arm', {moved:?})"));
+    js(&mut page, &format!("lab.setTool('left_arm', {moved:?})"));
     wait_at(&body, &states, moved, "the arm at the new target");
     let goals = node.subscriber(&plane::GOALS).unwrap();
     let froze_at = telemetry::clock::monotonic_ns();
-    page.freeze(true);
+    freeze(&page, true);
     std::thread::sleep(Duration::from_millis(1000));
     let mut last_goal = 0;
     while let Some(g) = plane::next(&goals) {
         last_goal = last_goal.max(g.timestamp_ns);
     }
-    page.freeze(false);
+    freeze(&page, false);
     let silent_after_ms = last_goal.saturating_sub(froze_at) as f64 * 1e-6;
     assert!(
         last_goal > 0,
@@ -509,13 +379,13 @@ fn the_lab_page_shows_the_arm_drives_it_stops_it_and_lets_go_when_the_page_does(
         "the last goal {silent_after_ms:.0} ms after the page froze (dead-man 300 ms)"
     );
     wait_for(Duration::from_secs(3), "the page told", || {
-        let e = page.eval("lab.ended");
+        let e = js(&mut page, "lab.ended");
         e.as_array()?.iter().any(|w| w == "dead_man").then_some(())
     });
 
     // In control once more, then the browser dies (its page cannot say goodbye): let go at
     // once. (A page closed normally lets go itself, as it does when hidden.)
-    page.eval(&format!("lab.setTool('left_arm', {target:?})"));
+    js(&mut page, &format!("lab.setTool('left_arm', {target:?})"));
     std::thread::sleep(Duration::from_millis(300));
     while plane::next(&goals).is_some() {}
     let killed_at = telemetry::clock::monotonic_ns();
