@@ -191,7 +191,10 @@ fn serve(args: &Args) -> Result<()> {
                 tracing::info!(joints = l.joint_count, "the driver's layout");
             }
         }
-        if let Some(s) = newest(&states) {
+        while let Some(s) = next(&states) {
+            if let Some((_, teleop, ..)) = lab.as_mut() {
+                teleop.observe(&s);
+            }
             state = Some(s);
         }
         // The lift's height once it is homed; without a lift, where the description has it.
@@ -289,6 +292,8 @@ fn serve(args: &Args) -> Result<()> {
                 }
             },
             Err(RecvTimeoutError::Timeout) => {}
+            // The server's thread ends only once asked to stop.
+            Err(RecvTimeoutError::Disconnected) if shutdown.load(Ordering::Relaxed) => break,
             Err(RecvTimeoutError::Disconnected) => bail!("the lab's server stopped"),
         }
 

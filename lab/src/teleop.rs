@@ -27,6 +27,10 @@ use telemetry::frames::{JointLayout, JointRole, STATE_FLAG_SAFE_STATE};
 use telemetry::{GoalFrame, JointState, MAX_JOINTS};
 use thiserror::Error;
 
+/// A joint is started from a reading at most this old (a few of the driver's cycles: one
+/// missed reply does not refuse the operator's move).
+pub const READ_MAX_AGE_NS: u64 = 100_000_000;
+
 /// How teleoperation behaves.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TeleopSettings {
@@ -107,8 +111,8 @@ pub enum Refusal {
         /// The range.
         high: f64,
     },
-    /// A joint to command was not read validly in the last frame.
-    #[error("{0} was not read in the last frame: it is not moved from a guess")]
+    /// A joint to command was not read validly lately.
+    #[error("{0} was not read in the last 100 ms: it is not moved from a guess")]
     NotRead(String),
     /// No such arm.
     #[error("no arm {0:?} (the body's arms are named by their buses)")]
@@ -214,6 +218,8 @@ pub struct Teleop {
     target: [f64; MAX_JOINTS],
     commanded: [f64; MAX_JOINTS],
     last_tick_ns: Option<u64>,
+    /// Each joint's last valid reading: position, rad, and when (ns), from [`Teleop::observe`].
+    read: [Option<(f64, u64)>; MAX_JOINTS],
     /// The lift's height the arms are solved at, m.
     lift_m: f64,
     /// The hold frame owed once teleoperation ends (sent at the next tick).
@@ -263,6 +269,7 @@ impl Teleop {
             target: [0.0; MAX_JOINTS],
             commanded: [0.0; MAX_JOINTS],
             last_tick_ns: None,
+            read: [None; MAX_JOINTS],
             lift_m,
             hold: None,
             seq: 0,
@@ -276,6 +283,26 @@ impl Teleop {
         if lift_m.is_finite() {
             self.lift_m = lift_m;
         }
+    }
+
+    /// Takes a joint-state frame's valid readings (every frame, as they come: a joint missed in
+    /// the newest frame still has a recent reading to start from).
+    pub fn observe(&mut self, state: &JointState) {
+        if state.joint_count != self.layout.joint_count {
+            return;
+        }
+        for (i, j) in state.joints().iter().enumerate() {
+            if j.is_valid() {
+                self.read[i] = Some((f64::from(j.position_rad), state.timestamp_ns));
+            }
+        }
+    }
+
+    /// Joint `i`'s position read within [`READ_MAX_AGE_NS`] before the frame stamped
+    /// `newest_ns` (the driver's clock).
+    fn recent_read(&self, i: usize, newest_ns: u64) -> Option<f64> {
+        let (position, at) = self.read[i]?;
+        (newest_ns.saturating_sub(at) <= READ_MAX_AGE_NS).then_some(position)
     }
 
     /// The layout this teleoperation was made for.
@@ -359,6 +386,7 @@ impl Teleop {
         if state.flags & STATE_FLAG_SAFE_STATE != 0 {
             return Err(Refusal::SafeState);
         }
+        self.observe(state);
         let (goals, solved) = match command {
             Command::Joints(by_name) => (self.check_joints(by_name)?, None),
             Command::Tool { arm, target } => {
@@ -367,16 +395,19 @@ impl Teleop {
             }
             Command::Alive | Command::Release => return Ok(None),
         };
-        // Every joint newly commanded starts from where it was read: refused whole if one was
-        // not read.
+        // Every joint newly commanded starts from where it was read recently: refused whole if
+        // one was not.
+        let mut start = [0.0; MAX_JOINTS];
         for &(i, _) in &goals {
-            if self.active & (1 << i) == 0 && !state.joints()[i].is_valid() {
-                return Err(Refusal::NotRead(self.layout.joints()[i].name().to_string()));
+            if self.active & (1 << i) == 0 {
+                start[i] = self
+                    .recent_read(i, state.timestamp_ns)
+                    .ok_or_else(|| Refusal::NotRead(self.layout.joints()[i].name().to_string()))?;
             }
         }
         for &(i, v) in &goals {
             if self.active & (1 << i) == 0 {
-                self.commanded[i] = f64::from(state.joints()[i].position_rad);
+                self.commanded[i] = start[i];
                 self.active |= 1 << i;
             }
             self.target[i] = v;
@@ -445,7 +476,9 @@ impl Teleop {
             .ok_or_else(|| Refusal::UnknownArm(arm.to_string()))?;
         let mut seed = [0.0; MAX_JOINTS];
         for (k, &j) in a.joints.iter().enumerate() {
-            let read = f64::from(state.joints()[j].position_rad);
+            let read = self
+                .recent_read(j, state.timestamp_ns)
+                .unwrap_or(f64::from(state.joints()[j].position_rad));
             let (lo, hi) = a.limits[k];
             seed[k] = self.commanded(j).unwrap_or(read).clamp(lo, hi);
         }
@@ -706,12 +739,33 @@ pub(crate) mod tests {
         let ok = joints(&[("left_elbow", -0.5)]);
         assert_eq!(t.command(1, &ok, Some(&other), 0), Err(Refusal::NotReady));
         assert_eq!(t.command(1, &ok, None, 0), Err(Refusal::NotReady));
-        // A joint not read is not moved from a guess.
+        // A joint not read lately is not moved from a guess; one missed in the newest frame
+        // only starts from its reading of a moment before.
+        let mut fresh = teleop();
         let mut unread = s;
         unread.joints[3].valid = 0;
+        unread.timestamp_ns = 50 * MS;
         assert_eq!(
-            t.command(1, &ok, Some(&unread), 0),
-            Err(Refusal::NotRead("left_elbow".into()))
+            fresh.command(1, &ok, Some(&unread), 0),
+            Err(Refusal::NotRead("left_elbow".into())),
+            "never read"
+        );
+        let mut read = s;
+        read.joints[3].position_rad = -0.3;
+        read.timestamp_ns = 10 * MS;
+        fresh.observe(&read);
+        unread.timestamp_ns = 200 * MS;
+        assert_eq!(
+            fresh.command(1, &ok, Some(&unread), 0),
+            Err(Refusal::NotRead("left_elbow".into())),
+            "read 190 ms before"
+        );
+        unread.timestamp_ns = 60 * MS;
+        fresh.command(1, &ok, Some(&unread), 0).unwrap();
+        assert_eq!(
+            fresh.commanded(3),
+            Some(f64::from(-0.3f32)),
+            "from the reading 50 ms before"
         );
     }
 

@@ -62,6 +62,16 @@ document.addEventListener("visibilitychange", () => { if (document.hidden) setCo
 $("stop").onclick = () => { setControl(false); send({ type: "stop" }); };
 $("resume").onclick = () => send({ type: "resume" });
 
+// The page offers nothing the robot would refuse: while it is in its safe state (stopped, or
+// no supervisor) the controls do not send; `lab.setTool` does, for scripts that check the lab's
+// own refusal.
+function blocked() {
+  if (!lab.state || !lab.state.safe) return false;
+  $("reply").className = "bad";
+  $("reply").textContent = lab.state.stopped ? "stopped: resume first" : "the robot is in its safe state";
+  return true;
+}
+
 function armOf(bus) { return lab.state && lab.state.arms.find((a) => a.bus === bus); }
 function selectedArm() { return $("arm").value; }
 
@@ -93,6 +103,7 @@ function buildJoints() {
   });
   body.querySelectorAll("input[type=range]").forEach((s) => {
     s.oninput = () => {
+      if (blocked()) return;
       $("control").checked = true;
       lab.target = null;
       send({ type: "joints", goals: { [s.dataset.joint]: parseFloat(s.value) } });
@@ -272,7 +283,7 @@ canvas.addEventListener("pointermove", (e) => {
   // The target moves in the plane facing the camera through where it was grabbed.
   const b = basis(), k = drag.z / b.focal;
   const p = add(drag.start, add(mul(b.r, (px - drag.px) * k), mul(b.u, -(py - drag.py) * k)));
-  lab.setTool(selectedArm(), p);
+  if (!blocked()) lab.setTool(selectedArm(), p);
 });
 canvas.addEventListener("pointerup", () => { drag = null; });
 canvas.addEventListener("wheel", (e) => { e.preventDefault(); lab.camera.dist = Math.max(0.6, Math.min(6, lab.camera.dist * Math.exp(e.deltaY * 0.001))); });
@@ -281,6 +292,7 @@ document.addEventListener("keydown", (e) => {
   const arm = armOf(selectedArm());
   if (!step || !arm || e.target.tagName === "INPUT") return;
   e.preventDefault();
+  if (blocked()) return;
   lab.setTool(selectedArm(), add(lab.target ? lab.target.position : arm.points[arm.points.length - 1], step));
 });
 // A gamepad's A button is a dead-man: the target follows the sticks only while it is held.
@@ -292,7 +304,7 @@ function gamepad() {
   if (pad) {
     const held = pad.buttons[0] && pad.buttons[0].pressed;
     const arm = armOf(selectedArm());
-    if (held && arm) {
+    if (held && arm && !blocked()) {
       const dz = (v) => (Math.abs(v) < 0.15 ? 0 : v);
       const v = [-dz(pad.axes[1]) * 0.15, -dz(pad.axes[0]) * 0.15, -dz(pad.axes[3] || 0) * 0.15];
       if (v.some((x) => x !== 0)) lab.setTool(selectedArm(), add(lab.target ? lab.target.position : arm.points[arm.points.length - 1], mul(v, dt)));
