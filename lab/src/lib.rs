@@ -9,10 +9,12 @@
 //! - [`scene`] (pure): what the page draws, as JSON;
 //! - [`page`] (pure): the page's messages, and who may connect (token, host, origin);
 //! - [`server`]: HTTP and WebSocket on std's TCP, a thread per page, never blocking the loop;
+//! - [`recording`]: episodes recorded from the page by `nori record` itself;
 //! - the binary `nori-lab` (`nori lab`): the state plane in, goals and the supervisor's
 //!   commands out.
 
 pub mod page;
+pub mod recording;
 pub mod scene;
 pub mod server;
 pub mod teleop;

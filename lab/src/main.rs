@@ -9,6 +9,7 @@ use body::kinematics::Body;
 use body::RobotDescription;
 use clap::Parser;
 use lab::page::{Access, PageMessage};
+use lab::recording::{outcome_json, Recording, RecordingSettings};
 use lab::scene::Scene;
 use lab::server::{self, Event, Files, Inbound, Pages};
 use lab::teleop::{Ended, Teleop, TeleopSettings};
@@ -56,6 +57,13 @@ struct Args {
     /// State frames sent to each page per second.
     #[arg(long, default_value_t = 30.0)]
     frame_hz: f64,
+    /// Record the page's episodes into this LeRobot dataset (through `nori record`); without
+    /// it the page cannot record.
+    #[arg(long, value_name = "DIR")]
+    dataset: Option<PathBuf>,
+    /// A camera to record with the episodes (repeat for several; as `nori record --camera`).
+    #[arg(long = "camera", value_name = "NAME")]
+    cameras: Vec<String>,
     /// Stop after this many seconds.
     #[arg(long)]
     run_for: Option<f64>,
@@ -162,6 +170,17 @@ fn serve(args: &Args) -> Result<()> {
     )?;
     eprintln!("Nori Lab: http://{address}/#token={token}");
 
+    let mut recording = match &args.dataset {
+        Some(dataset) => Some(Recording::new(RecordingSettings {
+            nori: telemetry::process::sibling("nori")?,
+            dataset: dataset.clone(),
+            domain: args.domain.clone(),
+            cameras: args.cameras.clone(),
+            log: std::env::temp_dir().join(format!("nori-lab-record-{}.log", std::process::id())),
+        })),
+        None => None,
+    };
+
     let started = Instant::now();
     let run_for = args.run_for.map(Duration::from_secs_f64);
     let frame_every = Duration::from_secs_f64(1.0 / args.frame_hz);
@@ -267,6 +286,25 @@ fn serve(args: &Args) -> Result<()> {
                     );
                     acted = true;
                 }
+                Event::Message(Ok(
+                    m @ (PageMessage::RecordStart { .. }
+                    | PageMessage::RecordStop {}
+                    | PageMessage::RecordDiscard {}),
+                )) => {
+                    let done = match (recording.as_mut(), &m) {
+                        (None, _) => {
+                            Err("this lab records nothing: start it with --dataset DIR".to_string())
+                        }
+                        (Some(r), PageMessage::RecordStart { task }) => r.start(task),
+                        (Some(r), PageMessage::RecordStop {}) => r.end(false),
+                        (Some(r), _) => r.end(true),
+                    };
+                    say(
+                        &pages,
+                        page,
+                        json!({"type": "reply", "to": "record", "ok": done.is_ok(), "error": done.err()}),
+                    );
+                }
                 Event::Message(Ok(m)) => {
                     let reply = match (lab.as_mut(), m.command()) {
                         (Some((_, teleop, ..)), Some(c)) => {
@@ -326,6 +364,15 @@ fn serve(args: &Args) -> Result<()> {
             }
         }
 
+        if let Some(outcome) = recording.as_mut().and_then(Recording::poll) {
+            tracing::info!("recording: {outcome:?}");
+            pages.broadcast(
+                &json!({"type": "recorded", "outcome": outcome_json(&outcome)})
+                    .to_string()
+                    .into(),
+            );
+        }
+
         // The pages' view.
         if now >= next_frame {
             next_frame += frame_every;
@@ -340,6 +387,7 @@ fn serve(args: &Args) -> Result<()> {
                         "closed_releases": c.closed_releases, "safe_state_releases": c.safe_state_releases},
                     "events": recent,
                     "pages": pages.open(),
+                    "recording": recording.as_ref().map(Recording::status),
                 });
                 pages.broadcast(&scene.frame(s, lift_m, extra).to_string().into());
             }
@@ -347,6 +395,17 @@ fn serve(args: &Args) -> Result<()> {
     }
     shutdown.store(true, Ordering::Relaxed);
     let _ = http.join();
+    // An episode being recorded is kept, as `nori record` keeps it on SIGINT.
+    if let Some(r) = recording.as_mut().filter(|r| r.busy()) {
+        let _ = r.end(false);
+        let until = Instant::now() + Duration::from_secs(20);
+        while r.busy() && Instant::now() < until {
+            if let Some(outcome) = r.poll() {
+                tracing::info!("recording at exit: {outcome:?}");
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
     let mut summary = counts;
     if let Some((_, teleop, ..)) = &lab {
         let c = teleop.counters();

@@ -41,6 +41,15 @@ pub enum PageMessage {
     Stop {},
     /// End the stop.
     Resume {},
+    /// Start recording an episode of `task`.
+    RecordStart {
+        /// What is demonstrated.
+        task: String,
+    },
+    /// End the episode and keep it.
+    RecordStop {},
+    /// End the episode and throw it away.
+    RecordDiscard {},
 }
 
 impl PageMessage {
@@ -61,7 +70,11 @@ impl PageMessage {
             },
             PageMessage::Alive {} => Command::Alive,
             PageMessage::Release {} => Command::Release,
-            PageMessage::Stop {} | PageMessage::Resume {} => return None,
+            PageMessage::Stop {}
+            | PageMessage::Resume {}
+            | PageMessage::RecordStart { .. }
+            | PageMessage::RecordStop {}
+            | PageMessage::RecordDiscard {} => return None,
         })
     }
 }

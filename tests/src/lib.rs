@@ -688,3 +688,33 @@ pub fn http_get(addr: &str, path: &str) -> Option<(u16, Vec<u8>)> {
     let code = head.split_whitespace().nth(1)?.parse().ok()?;
     Some((code, raw[split + 4..].to_vec()))
 }
+
+/// Runs the independent LeRobot check; `None` (said loudly) only outside CI when pyarrow is
+/// not installed. In CI (`CI` set) a missing pyarrow fails: `.ci/run` installs it.
+pub fn lerobot_check(root: &Path, args: &[&str]) -> Option<serde_json::Value> {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("python/check_lerobot_dataset.py");
+    let out = Command::new("python3")
+        // Hugging Face `datasets` (optional) reads local files only, into a cache of this test.
+        .env("HF_DATASETS_OFFLINE", "1")
+        .env("HF_DATASETS_CACHE", root.with_extension("hf-cache"))
+        .arg(&script)
+        .arg(root)
+        .args(args)
+        .output()
+        .expect("running python3");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    if out.status.code() == Some(3) {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "pyarrow/pandas/numpy missing in CI (.ci/run installs them): {stderr}"
+        );
+        eprintln!("\n!!!!!!!! SKIPPED the independent LeRobot check: {stderr} (pip install pyarrow pandas numpy) !!!!!!!!\n");
+        return None;
+    }
+    assert!(
+        out.status.success(),
+        "LeRobot check of {}: {stderr}",
+        root.display()
+    );
+    Some(serde_json::from_slice(&out.stdout).expect("check summary"))
+}

@@ -3,6 +3,8 @@
 //! and draws the arm where the state plane says it is (its screenshot's pixels at the joints,
 //! projected here from the robot description and the page's camera, are the joints' heat
 //! colours); dragging the tool target with pointer events moves the simulated arm's tool there;
+//! an episode recorded with the page's buttons is a LeRobot dataset (checked by pyarrow and, when
+//! installed, Hugging Face `datasets`), and a discarded one leaves nothing;
 //! the stop button reaches the operator's stop (and a target sent meanwhile is refused and
 //! said); a frozen browser is released by the dead-man within its bound, and a closed page at
 //! once, each leaving the arm held.
@@ -11,7 +13,7 @@
 
 use body::kinematics::{Body, Pose2};
 use body::RobotDescription;
-use nori_tests::{binary, http_get, scratch, wait_for, ArmStack, Proc};
+use nori_tests::{binary, http_get, lerobot_check, scratch, wait_for, ArmStack, Proc};
 use serde_json::{json, Value};
 use stack::browser::Browser;
 use std::path::PathBuf;
@@ -213,6 +215,7 @@ fn the_lab_page_shows_the_arm_drives_it_stops_it_and_lets_go_when_the_page_does(
         newest(&states).filter(|s| s.joint_count == 8 && driving(s))
     });
 
+    let dataset = dir.join("dataset");
     let token = "lab-test-token-0123456789";
     let token_file = dir.join("token");
     std::fs::write(&token_file, token).unwrap();
@@ -228,6 +231,8 @@ fn the_lab_page_shows_the_arm_drives_it_stops_it_and_lets_go_when_the_page_does(
             &http,
             "--token-file",
             token_file.to_str().unwrap(),
+            "--dataset",
+            dataset.to_str().unwrap(),
         ],
         &dir.join("lab.log"),
     );
@@ -293,6 +298,20 @@ fn the_lab_page_shows_the_arm_drives_it_stops_it_and_lets_go_when_the_page_does(
         "{beside:?}"
     );
 
+    // Record while dragging: the page's record button starts `nori record`.
+    js(
+        &mut page,
+        "document.getElementById('task').value = 'reach forward'",
+    );
+    page.click("#record-start").unwrap();
+    wait_for(Duration::from_secs(20), "the page recording", || {
+        let r = js(
+            &mut page,
+            "lab.recording && lab.recording.state === 'recording' && lab.recording.seconds > 0.5",
+        );
+        (r == json!(true)).then_some(())
+    });
+
     // Drag the tool's target with the pointer: the arm follows there.
     let tool_now = left_tool(&body, &newest(&states).unwrap_or(s));
     let grab = project(&view, tool_now);
@@ -336,6 +355,49 @@ fn the_lab_page_shows_the_arm_drives_it_stops_it_and_lets_go_when_the_page_does(
         "lab.replies.filter(r => !r.ok).map(r => r.error)",
     );
     assert_eq!(replies, json!([]), "no drag step refused");
+
+    // The episode saved from the page is a LeRobot dataset with the motion in it.
+    page.click("#record-stop").unwrap();
+    let saved = wait_for(Duration::from_secs(20), "the episode saved", || {
+        let r = js(
+            &mut page,
+            "lab.recorded.length ? lab.recorded[lab.recorded.length - 1] : null",
+        );
+        (r["saved"] == true).then_some(r)
+    });
+    assert_eq!(saved["episode"], 0, "{saved}");
+    assert!(saved["frames"].as_u64().unwrap() >= 30, "{saved}");
+    if let Some(check) = lerobot_check(&dataset, &["--episodes", "1"]) {
+        assert_eq!(
+            (check["episodes"].as_u64(), check["frames"].as_u64()),
+            (Some(1), saved["frames"].as_u64()),
+            "{check}"
+        );
+    }
+    // A second episode, discarded: the dataset keeps one.
+    page.click("#record-start").unwrap();
+    wait_for(Duration::from_secs(20), "recording again", || {
+        let r = js(
+            &mut page,
+            "lab.recording.state === 'recording' && lab.recording.seconds > 0.5",
+        );
+        (r == json!(true)).then_some(())
+    });
+    page.click("#record-discard").unwrap();
+    wait_for(Duration::from_secs(20), "the episode discarded", || {
+        let r = js(
+            &mut page,
+            "lab.recorded.length ? lab.recorded[lab.recorded.length - 1] : null",
+        );
+        (r["discarded"] == true).then_some(())
+    });
+    assert_eq!(js(&mut page, "lab.recording.episodes"), json!(1));
+    if let Some(check) = lerobot_check(&dataset, &["--episodes", "1"]) {
+        assert_eq!(
+            check["episodes"], 1,
+            "the discarded episode left nothing: {check}"
+        );
+    }
 
     // The stop button: the operator's stop, shown; a target sent meanwhile is refused.
     page.click("#stop").unwrap();

@@ -7,7 +7,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use nori_tests::{binary, wait_for, ArmStack, Proc, Rng};
+use nori_tests::{binary, lerobot_check, wait_for, ArmStack, Proc, Rng};
 use std::path::Path;
 use std::process::Command;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -25,36 +25,6 @@ const JOINTS: u32 = 8;
 
 fn serial() -> std::sync::MutexGuard<'static, ()> {
     SERIAL.lock().unwrap_or_else(|e| e.into_inner())
-}
-
-/// Runs the independent LeRobot check; `None` (said loudly) only outside CI when pyarrow is
-/// not installed. In CI (`CI` set) a missing pyarrow fails: `.ci/run` installs it.
-fn lerobot_check(root: &Path, args: &[&str]) -> Option<serde_json::Value> {
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("python/check_lerobot_dataset.py");
-    let out = Command::new("python3")
-        // Hugging Face `datasets` (optional) reads local files only, into a cache of this test.
-        .env("HF_DATASETS_OFFLINE", "1")
-        .env("HF_DATASETS_CACHE", root.with_extension("hf-cache"))
-        .arg(&script)
-        .arg(root)
-        .args(args)
-        .output()
-        .expect("running python3");
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    if out.status.code() == Some(3) {
-        assert!(
-            std::env::var_os("CI").is_none(),
-            "pyarrow/pandas/numpy missing in CI (.ci/run installs them): {stderr}"
-        );
-        eprintln!("\n!!!!!!!! SKIPPED the independent LeRobot check: {stderr} (pip install pyarrow pandas numpy) !!!!!!!!\n");
-        return None;
-    }
-    assert!(
-        out.status.success(),
-        "LeRobot check of {}: {stderr}",
-        root.display()
-    );
-    Some(serde_json::from_slice(&out.stdout).expect("check summary"))
 }
 
 /// Waves the elbow (as a policy would) until `stop`, so the recording has motion in it.

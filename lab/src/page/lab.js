@@ -11,7 +11,7 @@ const ctx = canvas.getContext("2d");
 const $ = (id) => document.getElementById(id);
 
 const lab = {
-  connected: false, page: null, model: null, state: null, frames: 0, replies: [], ended: [],
+  connected: false, page: null, model: null, state: null, frames: 0, replies: [], ended: [], recorded: [],
   target: null, // {arm, position, rotation}
   camera: { az: 0.9, el: 0.35, dist: 2.2, center: [0.15, 0, 0.85], fov: 0.8 },
 };
@@ -42,6 +42,8 @@ function connect() {
       const r = $("reply");
       if (m.ok) { r.className = "muted"; r.textContent = m.solved ? `reached within ${(m.solved.position_error_m * 1000).toFixed(2)} mm` : "taken"; }
       else { r.className = "bad"; r.textContent = `refused: ${m.error}`; if (lab.target && m.refused === "unreachable") lab.target.unreachable = true; }
+    } else if (m.type === "recorded") {
+      lab.recorded.push(m.outcome);
     } else if (m.type === "ended") {
       lab.ended.push(m.why);
       setControl(false);
@@ -61,6 +63,9 @@ setInterval(() => { if ($("control").checked) send({ type: "alive" }); }, 100);
 document.addEventListener("visibilitychange", () => { if (document.hidden) setControl(false); });
 $("stop").onclick = () => { setControl(false); send({ type: "stop" }); };
 $("resume").onclick = () => send({ type: "resume" });
+$("record-start").onclick = () => send({ type: "record_start", task: $("task").value });
+$("record-stop").onclick = () => send({ type: "record_stop" });
+$("record-discard").onclick = () => send({ type: "record_discard" });
 
 // The page offers nothing the robot would refuse: while it is in its safe state (stopped, or
 // no supervisor) the controls do not send; `lab.setTool` does, for scripts that check the lab's
@@ -138,6 +143,11 @@ function update() {
     const slider = document.querySelector(`input[data-joint="${lab.model.joints[i].name}"]`);
     if (slider && document.activeElement !== slider) slider.value = j.p;
   });
+  const rec = s.extra.recording;
+  lab.recording = rec;
+  $("recording").textContent = !rec ? "this lab records nothing (start it with --dataset DIR)"
+    : `${rec.episodes} episode(s) in ${rec.dataset} · ${rec.state}${rec.seconds != null ? ` ${rec.seconds.toFixed(1)} s` : ""}`
+      + (rec.last ? ` · last: ${rec.last.saved ? `episode ${rec.last.episode} saved, ${rec.last.frames} frames` : rec.last.discarded ? "discarded" : rec.last.failed}` : "");
   $("events").innerHTML = s.extra.events.slice().reverse()
     .map((e) => `${e.kind} joint ${e.joint} bus ${e.bus} level ${e.level} value ${e.value.toFixed(1)}`).join("<br>");
 }
