@@ -133,6 +133,12 @@ fn serve(args: &Args) -> Result<()> {
     if !(args.max_speed.is_finite() && args.max_speed > 0.0 && args.max_speed <= 6.0) {
         bail!("--max-speed {}: between 0 and 6 rad/s", args.max_speed);
     }
+    if !(50..=2000).contains(&args.deadman_ms) {
+        bail!("--deadman-ms {}: between 50 and 2000 ms", args.deadman_ms);
+    }
+    if args.run_for.is_some_and(|s| !(s.is_finite() && s >= 0.0)) {
+        bail!("--run-for: a number of seconds, 0 or more");
+    }
     if !(args.frame_hz.is_finite() && (1.0..=120.0).contains(&args.frame_hz)) {
         bail!("--frame-hz {}: between 1 and 120", args.frame_hz);
     }
@@ -272,9 +278,7 @@ fn serve(args: &Args) -> Result<()> {
                     if stop {
                         // Teleoperation ends with the press, whatever the supervisor makes of it.
                         if let Some((_, teleop, ..)) = lab.as_mut() {
-                            if let Some(owner) = teleop.owner() {
-                                teleop.page_closed(owner);
-                            }
+                            teleop.let_go();
                         }
                         tracing::warn!(page, "stop pressed");
                     }

@@ -547,6 +547,12 @@ impl Teleop {
         }
     }
 
+    /// Ends teleoperation, whichever page controls: the arm is held where it is at the next
+    /// tick (the stop button, pressed on any page).
+    pub fn let_go(&mut self) {
+        self.end(Ended::Released);
+    }
+
     fn end(&mut self, why: Ended) {
         self.owner = None;
         if self.active != 0 {
@@ -1000,6 +1006,14 @@ pub(crate) mod tests {
         t.command(1, &elbow, Some(&s), 431 * MS + 1).unwrap();
         assert_eq!(t.owner(), Some(1));
         assert_eq!(t.counters().closed_releases, 1);
+        // The stop button, pressed on any page, lets go of whichever controls.
+        t.let_go();
+        let (frame, ended) = t.tick(Some(&s), 440 * MS);
+        assert_eq!(
+            (frame.map(|f| f.mask), ended),
+            (Some(1 << 3), Some(Ended::Released))
+        );
+        assert_eq!((t.owner(), t.active()), (None, 0));
     }
 
     #[test]

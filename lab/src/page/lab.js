@@ -35,7 +35,7 @@ function connect() {
     const m = JSON.parse(ev.data);
     if (m.type === "hello") lab.page = m.page;
     else if (m.type === "model") { lab.model = m; buildJoints(); }
-    else if (m.type === "state") { lab.state = m; lab.frames++; update(); }
+    else if (m.type === "state") { lab.state = m; lab.frames++; update(); redraw(); }
     else if (m.type === "reply") {
       lab.replies.push(m);
       if (lab.replies.length > 50) lab.replies.shift();
@@ -89,6 +89,7 @@ lab.setTool = (arm, position, rotation) => {
   lab.target = { arm, position: position.slice(), rotation: rotation.slice(), unreachable: false };
   $("control").checked = true;
   send({ type: "tool", arm, position: lab.target.position, rotation: lab.target.rotation });
+  redraw();
   return true;
 };
 lab.stop = () => $("stop").click();
@@ -202,7 +203,16 @@ function line(b, p, q, color, width, dash) {
   ctx.setLineDash([]);
 }
 
+// Drawn when something changed (a state frame, the view, the target), at most once an
+// animation frame: an idle page costs the operator's machine nothing.
+let drawPending = false;
+function redraw() {
+  if (!drawPending) { drawPending = true; requestAnimationFrame(draw); }
+}
+lab.redraw = redraw;
+
 function draw() {
+  drawPending = false;
   const b = basis();
   ctx.clearRect(0, 0, canvas.width, canvas.height);
   for (let k = -10; k <= 10; k++) {
@@ -210,7 +220,7 @@ function draw() {
     line(b, [-1, k / 10, 0], [1, k / 10, 0], "#e6e6e6", 1);
   }
   const s = lab.state, m = lab.model;
-  if (!s || !m) { requestAnimationFrame(draw); return; }
+  if (!s || !m) return;
   // The base's footprint and the lift's column up to the shoulders.
   const h = 0.225, sq = [[h, h], [-h, h], [-h, -h], [h, -h]];
   for (let k = 0; k < 4; k++) line(b, [...sq[k], 0.05], [...sq[(k + 1) % 4], 0.05], "#555", 2);
@@ -264,7 +274,6 @@ function draw() {
   ctx.font = "bold 22px system-ui";
   if (s.stopped) { ctx.fillStyle = "#c0141c"; ctx.fillText("STOPPED", 14, 30); }
   else if (s.safe) { ctx.fillStyle = "#e0a000"; ctx.fillText("SAFE STATE", 14, 30); }
-  requestAnimationFrame(draw);
 }
 
 // ---- pointer, keyboard, gamepad ----
@@ -288,6 +297,7 @@ canvas.addEventListener("pointermove", (e) => {
   if (drag.kind === "orbit") {
     lab.camera.az = drag.az - (px - drag.px) * 0.01;
     lab.camera.el = Math.max(-0.2, Math.min(1.4, drag.el + (py - drag.py) * 0.01));
+    redraw();
     return;
   }
   // The target moves in the plane facing the camera through where it was grabbed.
@@ -296,7 +306,8 @@ canvas.addEventListener("pointermove", (e) => {
   if (!blocked()) lab.setTool(selectedArm(), p);
 });
 canvas.addEventListener("pointerup", () => { drag = null; });
-canvas.addEventListener("wheel", (e) => { e.preventDefault(); lab.camera.dist = Math.max(0.6, Math.min(6, lab.camera.dist * Math.exp(e.deltaY * 0.001))); });
+canvas.addEventListener("wheel", (e) => { e.preventDefault(); lab.camera.dist = Math.max(0.6, Math.min(6, lab.camera.dist * Math.exp(e.deltaY * 0.001))); redraw(); });
+$("workspace").onchange = redraw;
 document.addEventListener("keydown", (e) => {
   const step = { ArrowUp: [0.005, 0, 0], ArrowDown: [-0.005, 0, 0], ArrowLeft: [0, 0.005, 0], ArrowRight: [0, -0.005, 0], PageUp: [0, 0, 0.005], PageDown: [0, 0, -0.005] }[e.key];
   const arm = armOf(selectedArm());
@@ -325,5 +336,5 @@ function gamepad() {
 }
 
 connect();
-requestAnimationFrame(draw);
+redraw();
 requestAnimationFrame(gamepad);
