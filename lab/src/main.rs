@@ -11,7 +11,7 @@ use clap::Parser;
 use lab::page::{Access, PageMessage};
 use lab::recording::{outcome_json, Recording, RecordingSettings};
 use lab::scene::Scene;
-use lab::server::{self, Event, Files, Inbound, Pages};
+use lab::server::{self, Event, Files, Inbound, Outgoing, Pages};
 use lab::teleop::{Ended, Teleop, TeleopSettings};
 use serde_json::json;
 use std::collections::VecDeque;
@@ -23,8 +23,8 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
 use telemetry::frames::{EventKind, JointLayout, SupervisorCommand, COMMAND_RESUME, COMMAND_STOP};
-use telemetry::motion::{LiftState, LIFT_READY};
-use telemetry::plane::{self, newest, next, publish, Plane};
+use telemetry::motion::{lift_state_name, BaseState, LiftState, LIFT_READY};
+use telemetry::plane::{self, newest, next, publish, CameraStream, FrameSub, Plane};
 use telemetry::process::finish;
 use telemetry::JointState;
 
@@ -61,9 +61,14 @@ struct Args {
     /// it the page cannot record.
     #[arg(long, value_name = "DIR")]
     dataset: Option<PathBuf>,
-    /// A camera to record with the episodes (repeat for several; as `nori record --camera`).
+    /// A camera to show on the page and record with the episodes (repeat for several; its
+    /// `nori-camera` must publish MJPEG, as `nori record --camera` needs).
     #[arg(long = "camera", value_name = "NAME")]
     cameras: Vec<String>,
+    /// Camera images sent to each page per second, per camera (the device's JPEGs as they
+    /// are: nothing is decoded or encoded on the robot).
+    #[arg(long, default_value_t = 5.0)]
+    camera_hz: f64,
     /// Stop after this many seconds.
     #[arg(long)]
     run_for: Option<f64>,
@@ -100,6 +105,64 @@ fn token(file: Option<&PathBuf>) -> Result<String> {
     std::io::Read::read_exact(&mut std::fs::File::open("/dev/urandom")?, &mut bytes)
         .context("reading /dev/urandom for a token")?;
     Ok(bytes.iter().map(|b| format!("{b:02x}")).collect())
+}
+
+/// One camera shown on the pages: its newest JPEG, passed on as the camera sent it.
+struct CameraView {
+    name: String,
+    jpegs: FrameSub,
+    /// The next binary message: the header and the newest JPEG.
+    newest: Vec<u8>,
+    header_len: usize,
+    /// Capture time (ns) and size of the newest, and whether it went out already.
+    captured_ns: Option<u64>,
+    size: (u32, u32),
+    sent: bool,
+    images: u64,
+}
+
+impl CameraView {
+    fn new(name: &str, jpegs: FrameSub) -> CameraView {
+        let mut newest = vec![1, name.len() as u8];
+        newest.extend_from_slice(name.as_bytes());
+        CameraView {
+            name: name.to_string(),
+            jpegs,
+            header_len: newest.len(),
+            newest,
+            captured_ns: None,
+            size: (0, 0),
+            sent: true,
+            images: 0,
+        }
+    }
+
+    /// Takes in what the camera published; keeps the newest.
+    fn take(&mut self) {
+        while let Ok(Some(sample)) = self.jpegs.receive() {
+            let h = sample.user_header();
+            self.newest.truncate(self.header_len);
+            self.newest.extend_from_slice(sample.payload());
+            self.captured_ns = Some(h.capture_ns);
+            self.size = (h.width, h.height);
+            self.sent = false;
+        }
+    }
+
+    /// The newest image, if not sent yet.
+    fn message(&mut self) -> Option<Outgoing> {
+        if self.sent || self.newest.len() == self.header_len {
+            return None;
+        }
+        self.sent = true;
+        self.images += 1;
+        Some(Outgoing::Binary(self.newest.as_slice().into()))
+    }
+
+    fn status(&self, now_ns: u64) -> serde_json::Value {
+        json!({"name": self.name, "width": self.size.0, "height": self.size.1, "images": self.images,
+            "age_ms": self.captured_ns.map(|t| now_ns.saturating_sub(t) as f64 * 1e-6)})
+    }
 }
 
 fn event_name(kind: Option<EventKind>) -> String {
@@ -139,6 +202,14 @@ fn serve(args: &Args) -> Result<()> {
     if args.run_for.is_some_and(|s| !(s.is_finite() && s >= 0.0)) {
         bail!("--run-for: a number of seconds, 0 or more");
     }
+    if !(args.camera_hz.is_finite() && (0.5..=30.0).contains(&args.camera_hz)) {
+        bail!("--camera-hz {}: between 0.5 and 30", args.camera_hz);
+    }
+    for (i, name) in args.cameras.iter().enumerate() {
+        if !telemetry::sensors::valid_camera_name(name) || args.cameras[..i].contains(name) {
+            bail!("--camera {name:?}: a camera name (1 to 32 of a-z, 0-9 and _), once");
+        }
+    }
     if !(args.frame_hz.is_finite() && (1.0..=120.0).contains(&args.frame_hz)) {
         bail!("--frame-hz {}: between 1 and 120", args.frame_hz);
     }
@@ -153,9 +224,22 @@ fn serve(args: &Args) -> Result<()> {
     let layouts = node.subscriber(&plane::LAYOUT)?;
     let states = node.subscriber(&plane::JOINT_STATE)?;
     let lifts = node.subscriber(&plane::LIFT_STATE)?;
+    let bases = node.subscriber(&plane::BASE_STATE)?;
     let events = node.subscriber(&plane::EVENTS)?;
     let goals = node.publisher(&plane::GOALS)?;
     let commands = node.publisher(&plane::COMMANDS)?;
+    let mut cameras = args
+        .cameras
+        .iter()
+        .map(|name| {
+            Ok(CameraView::new(
+                name,
+                node.camera_subscriber(name, CameraStream::Mjpeg)?,
+            ))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let camera_every = Duration::from_secs_f64(1.0 / args.camera_hz);
+    let mut next_images = Instant::now();
 
     let listener =
         TcpListener::bind(args.http).with_context(|| format!("listening on {}", args.http))?;
@@ -195,6 +279,9 @@ fn serve(args: &Args) -> Result<()> {
     let mut lab: Option<(JointLayout, Teleop, Scene, Arc<str>)> = None;
     let mut state: Option<JointState> = None;
     let mut lift_m = body.lift_start_m();
+    // The lift's and the base's newest states, for the page (none without them).
+    let mut lift: Option<LiftState> = None;
+    let mut base: Option<BaseState> = None;
     let mut recent: VecDeque<serde_json::Value> = VecDeque::new();
     let mut command_seq = 0u64;
     let mut counts =
@@ -227,6 +314,11 @@ fn serve(args: &Args) -> Result<()> {
             if l.state == LIFT_READY && l.height_m.is_finite() {
                 lift_m = f64::from(l.height_m);
             }
+            lift = Some(l);
+        }
+        base = newest::<BaseState>(&bases).or(base);
+        for c in &mut cameras {
+            c.take();
         }
         while let Some(e) = next(&events) {
             if recent.len() == RECENT_EVENTS {
@@ -244,7 +336,8 @@ fn serve(args: &Args) -> Result<()> {
                     say(
                         &pages,
                         page,
-                        json!({"type": "hello", "page": page, "deadman_ms": args.deadman_ms}),
+                        json!({"type": "hello", "page": page, "deadman_ms": args.deadman_ms,
+                            "cameras": args.cameras}),
                     );
                     if let Some((.., model)) = &lab {
                         pages.send(page, model.clone());
@@ -377,6 +470,16 @@ fn serve(args: &Args) -> Result<()> {
             );
         }
 
+        // The cameras' newest images, each once.
+        if now >= next_images {
+            next_images = now + camera_every;
+            for c in &mut cameras {
+                if let Some(message) = c.message() {
+                    pages.broadcast_message(&message);
+                }
+            }
+        }
+
         // The pages' view.
         if now >= next_frame {
             next_frame += frame_every;
@@ -392,6 +495,13 @@ fn serve(args: &Args) -> Result<()> {
                     "events": recent,
                     "pages": pages.open(),
                     "recording": recording.as_ref().map(Recording::status),
+                    "cameras": cameras.iter().map(|c| c.status(monotonic_ns())).collect::<Vec<_>>(),
+                    "lift": lift.map(|l| json!({"state": lift_state_name(l.state),
+                        "height_m": l.height_m.is_finite().then_some(l.height_m),
+                        "goal_m": l.goal_m.is_finite().then_some(l.goal_m), "current_a": l.current_a})),
+                    "base": base.map(|b| json!({"x_m": b.x_m, "y_m": b.y_m, "heading_rad": b.theta_rad,
+                        "linear_m_s": b.linear_m_s, "angular_rad_s": b.angular_rad_s,
+                        "flags": b.flag_names().collect::<Vec<_>>()})),
                 });
                 pages.broadcast(&scene.frame(s, lift_m, extra).to_string().into());
             }

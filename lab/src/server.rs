@@ -37,6 +37,16 @@ pub struct Inbound {
     pub at_ns: u64,
 }
 
+/// What the lab sends a page: JSON text, or a camera's JPEG (binary: a byte `1`, the camera
+/// name's length, the name, the JPEG as the camera sent it).
+#[derive(Debug, Clone)]
+pub enum Outgoing {
+    /// A JSON message.
+    Text(Arc<str>),
+    /// A binary message.
+    Binary(Arc<[u8]>),
+}
+
 /// Messages queued per page before the newest are dropped.
 const OUTBOX: usize = 8;
 /// How long a page's thread waits for the page before it looks at its queue again.
@@ -49,7 +59,7 @@ const MAX_HEAD: usize = 16 * 1024;
 /// The open pages' queues, and what was dropped or refused.
 #[derive(Default)]
 pub struct Pages {
-    outboxes: Mutex<Vec<(u64, SyncSender<Arc<str>>)>>,
+    outboxes: Mutex<Vec<(u64, SyncSender<Outgoing>)>>,
     next_page: AtomicU64,
     /// Messages dropped because a page did not keep up.
     pub dropped: AtomicU64,
@@ -60,9 +70,14 @@ pub struct Pages {
 impl Pages {
     /// Queues `text` for every open page.
     pub fn broadcast(&self, text: &Arc<str>) {
+        self.broadcast_message(&Outgoing::Text(text.clone()));
+    }
+
+    /// Queues `message` for every open page.
+    pub fn broadcast_message(&self, message: &Outgoing) {
         let outboxes = self.outboxes.lock().unwrap_or_else(PoisonError::into_inner);
         for (_, tx) in outboxes.iter() {
-            self.queue(tx, text.clone());
+            self.queue(tx, message.clone());
         }
     }
 
@@ -70,7 +85,7 @@ impl Pages {
     pub fn send(&self, page: u64, text: Arc<str>) {
         let outboxes = self.outboxes.lock().unwrap_or_else(PoisonError::into_inner);
         if let Some((_, tx)) = outboxes.iter().find(|(p, _)| *p == page) {
-            self.queue(tx, text);
+            self.queue(tx, Outgoing::Text(text));
         }
     }
 
@@ -82,13 +97,13 @@ impl Pages {
             .len()
     }
 
-    fn queue(&self, tx: &SyncSender<Arc<str>>, text: Arc<str>) {
-        if let Err(TrySendError::Full(_)) = tx.try_send(text) {
+    fn queue(&self, tx: &SyncSender<Outgoing>, message: Outgoing) {
+        if let Err(TrySendError::Full(_)) = tx.try_send(message) {
             self.dropped.fetch_add(1, Ordering::Relaxed);
         }
     }
 
-    fn add(&self) -> (u64, Receiver<Arc<str>>) {
+    fn add(&self) -> (u64, Receiver<Outgoing>) {
         let page = self.next_page.fetch_add(1, Ordering::Relaxed) + 1;
         let (tx, rx) = mpsc::sync_channel(OUTBOX);
         self.outboxes
@@ -325,8 +340,11 @@ fn link(
                     ) => {}
                 Err(e) => return Err(e),
             }
-            while let Ok(text) = outbox.try_recv() {
-                ws.send(Message::text(text.as_ref()))?;
+            while let Ok(message) = outbox.try_recv() {
+                ws.send(match message {
+                    Outgoing::Text(text) => Message::text(text.as_ref()),
+                    Outgoing::Binary(bytes) => Message::binary(bytes.to_vec()),
+                })?;
             }
         }
         let _ = ws.close(None);

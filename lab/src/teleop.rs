@@ -199,6 +199,8 @@ struct Owner {
 /// One arm of the body on the driver's layout.
 #[derive(Debug, Clone)]
 struct Arm {
+    /// Its index among the body's arms.
+    index: usize,
     bus: String,
     /// Frame index of each chain joint, base outward.
     joints: Vec<usize>,
@@ -236,7 +238,8 @@ impl Teleop {
         let arms = body
             .arms()
             .iter()
-            .filter_map(|chain| {
+            .enumerate()
+            .filter_map(|(index, chain)| {
                 let joints: Option<Vec<usize>> = chain
                     .joint_names
                     .iter()
@@ -252,6 +255,7 @@ impl Teleop {
                     })
                     .collect();
                 Some(Arm {
+                    index,
                     bus: chain.bus.clone(),
                     joints,
                     limits,
@@ -308,11 +312,6 @@ impl Teleop {
     /// The layout this teleoperation was made for.
     pub fn layout(&self) -> &JointLayout {
         &self.layout
-    }
-
-    /// The arms that can be moved in Cartesian space, by bus name.
-    pub fn arm_names(&self) -> impl Iterator<Item = &str> {
-        self.arms.iter().map(|a| a.bus.as_str())
     }
 
     /// The counts so far.
@@ -468,12 +467,6 @@ impl Teleop {
         if !(target.position.iter().all(|x| x.is_finite()) && norm.is_finite() && norm > 1e-9) {
             return Err(Refusal::BadPose);
         }
-        let body_arm = self
-            .body
-            .arms()
-            .iter()
-            .position(|c| c.bus == a.bus)
-            .ok_or_else(|| Refusal::UnknownArm(arm.to_string()))?;
         let mut seed = [0.0; MAX_JOINTS];
         for (k, &j) in a.joints.iter().enumerate() {
             let read = self
@@ -488,7 +481,7 @@ impl Teleop {
         };
         let n = a.joints.len();
         match self.body.solve(
-            body_arm,
+            a.index,
             target,
             &seed[..n],
             &a.limits,

@@ -337,6 +337,9 @@ def main():
     valid = cols["observation.joint_valid"]
     check(np.isin(valid, [0.0, 1.0]).all(), "observation.joint_valid is not 0/1")
     camera_valid = cols.get("observation.camera_valid")
+    if camera_valid is not None:
+        # One camera's mask reads as a flat column: a row per frame, a column per camera.
+        camera_valid = np.asarray(camera_valid).reshape(len(camera_valid), -1)
     if videos:
         check(camera_valid is not None, "videos without observation.camera_valid")
         check(features["observation.camera_valid"]["names"] == [k.removeprefix("observation.images.") for k in videos],

@@ -24,6 +24,7 @@ function send(msg) {
 }
 function connect() {
   ws = new WebSocket(`ws://${location.host}/ws?token=${encodeURIComponent(token)}`);
+  ws.binaryType = "arraybuffer";
   ws.onopen = () => { lab.connected = true; };
   ws.onclose = () => {
     lab.connected = false;
@@ -32,8 +33,9 @@ function connect() {
     setTimeout(connect, 1000);
   };
   ws.onmessage = (ev) => {
+    if (ev.data instanceof ArrayBuffer) { showImage(new Uint8Array(ev.data)); return; }
     const m = JSON.parse(ev.data);
-    if (m.type === "hello") lab.page = m.page;
+    if (m.type === "hello") { lab.page = m.page; buildCameras(m.cameras); }
     else if (m.type === "model") { lab.model = m; buildJoints(); }
     else if (m.type === "state") { lab.state = m; lab.frames++; update(); redraw(); }
     else if (m.type === "reply") {
@@ -51,6 +53,28 @@ function connect() {
       $("reply").textContent = `teleoperation ended: ${m.why.replace("_", " ")}`;
     }
   };
+}
+
+// ---- the cameras: each image is the camera's own JPEG, shown as it came ----
+lab.images = {};
+function buildCameras(names) {
+  $("cameras").innerHTML = names.map((n) => `<figure><img id="cam-${n}" alt="${n}"><figcaption id="cap-${n}">${n}</figcaption></figure>`).join("");
+  for (const n of names) {
+    const img = document.getElementById(`cam-${n}`);
+    lab.images[n] = { received: 0, decoded: 0, broken: 0 };
+    img.onload = () => { img.dataset.loaded = `${img.naturalWidth}x${img.naturalHeight}`; lab.images[n].decoded++; };
+    img.onerror = () => { lab.images[n].broken++; };
+  }
+}
+function showImage(bytes) {
+  if (bytes[0] !== 1) return;
+  const name = new TextDecoder().decode(bytes.subarray(2, 2 + bytes[1]));
+  const img = document.getElementById(`cam-${name}`);
+  if (!img) return;
+  lab.images[name].received++;
+  const old = img.src;
+  img.src = URL.createObjectURL(new Blob([bytes.subarray(2 + bytes[1])], { type: "image/jpeg" }));
+  if (old) URL.revokeObjectURL(old);
 }
 
 // ---- control and the dead-man ----
@@ -144,6 +168,18 @@ function update() {
     const slider = document.querySelector(`input[data-joint="${lab.model.joints[i].name}"]`);
     if (slider && document.activeElement !== slider) slider.value = j.p;
   });
+  for (const c of s.extra.cameras) {
+    const cap = document.getElementById(`cap-${c.name}`);
+    if (!cap) continue;
+    const stale = c.age_ms == null || c.age_ms > 500;
+    cap.textContent = `${c.name} ${c.width}×${c.height} · ${c.age_ms == null ? "no image yet" : `${c.age_ms.toFixed(0)} ms old`}`;
+    cap.className = stale ? "bad" : "muted";
+  }
+  const l = s.extra.lift, bs = s.extra.base;
+  $("body").textContent = [
+    l ? `lift ${l.state}${l.height_m != null ? ` at ${l.height_m.toFixed(3)} m` : ""}` : "no lift",
+    bs ? `base x ${bs.x_m.toFixed(2)} m, y ${bs.y_m.toFixed(2)} m, heading ${bs.heading_rad.toFixed(2)} rad, ${bs.linear_m_s.toFixed(2)} m/s${bs.flags.length ? ` (${bs.flags.join(", ")})` : ""}` : "no base",
+  ].join(" · ");
   const rec = s.extra.recording;
   lab.recording = rec;
   $("recording").textContent = !rec ? "this lab records nothing (start it with --dataset DIR)"
@@ -184,7 +220,7 @@ lab.project = (p) => {
 };
 lab.view = () => {
   const rect = canvas.getBoundingClientRect();
-  return Object.assign({ width: canvas.width, height: canvas.height, left: rect.left, top: rect.top, cssWidth: rect.width }, lab.camera);
+  return Object.assign({ width: canvas.width, height: canvas.height, left: rect.left, top: rect.top, cssWidth: rect.width, cssHeight: rect.height }, lab.camera);
 };
 
 // Temperature → colour: blue when cool, through yellow, red at the firmware cutoff.
@@ -247,7 +283,8 @@ function draw() {
       const j = s.joints[idx[k]], info = m.joints[idx[k]];
       const [x, y, z] = project(a.points[k + 1], b);
       if (z <= 0.05) continue;
-      ctx.beginPath(); ctx.arc(x, y, 9, 0, 2 * Math.PI);
+      // Its size: the motor's current (9 px at rest, up to 15 px at 3 A).
+      ctx.beginPath(); ctx.arc(x, y, 9 + 2 * Math.min(3, Math.abs(j.c)), 0, 2 * Math.PI);
       ctx.fillStyle = j.v && j.on ? heat(j.t, info.cutoff_c) : "#bbb";
       ctx.fill(); ctx.lineWidth = 2; ctx.strokeStyle = "#111"; ctx.stroke();
       if (j.f & (FLAG_BUS_DISABLED | FLAG_DRIVER_TRIP | FLAG_OUTPUT_LOST | FLAG_BUS_LOST)) {
