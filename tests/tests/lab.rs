@@ -310,6 +310,30 @@ fn the_lab_page_shows_the_arm_drives_it_stops_it_and_lets_go_when_the_page_does(
         drawn.push((at, colour));
     }
     assert!(drawn.len() >= 3, "{drawn:?}");
+    // The motors here are all at the ambient temperature: the page's scale itself, from cool
+    // to the cutoff, is checked against the rule it is written to.
+    let scale = js(
+        &mut page,
+        "[30, 38, 45, 52, 59, 60, 75].map(t => lab.heat(t, 60))",
+    );
+    for (t, drawn) in [30.0, 38.0, 45.0, 52.0, 59.0, 60.0, 75.0]
+        .iter()
+        .zip(scale.as_array().unwrap())
+    {
+        let rgb: Vec<f64> = drawn
+            .as_str()
+            .unwrap()
+            .trim_start_matches("rgb(")
+            .trim_end_matches(')')
+            .split(',')
+            .map(|v| v.trim().parse().unwrap())
+            .collect();
+        assert!(
+            near([rgb[0], rgb[1], rgb[2]], heat(*t, 60.0), 0.5),
+            "{t} °C drawn {drawn}"
+        );
+    }
+    assert_eq!(heat(60.0, 60.0), [255.0, 0.0, 0.0], "red at the cutoff");
     for (at, colour) in &drawn {
         let seen = pixel(&shot, *at);
         assert!(
