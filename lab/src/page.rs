@@ -218,6 +218,12 @@ mod tests {
         }
         let huge = format!(r#"{{"type":"alive","pad":"{}"}}"#, "x".repeat(MAX_MESSAGE));
         assert!(parse(&huge).unwrap_err().to_string().contains("at most"));
+        // Up to 8 KiB is read (a joints message naming every joint with long names).
+        let pad = |n: usize| format!(r#"{{"type":"joints","goals":{{"{}":0.5}}}}"#, "j".repeat(n));
+        let at_most = pad(MAX_MESSAGE - pad(0).len());
+        assert_eq!(at_most.len(), MAX_MESSAGE);
+        assert!(matches!(parse(&at_most), Ok(PageMessage::Joints { .. })));
+        assert!(parse(&pad(MAX_MESSAGE - pad(0).len() + 1)).is_err());
     }
 
     #[test]
@@ -235,6 +241,8 @@ mod tests {
         );
         assert_eq!(ok("127.0.0.1:8765", None, "abc124"), Err(Denied::Token));
         assert_eq!(ok("127.0.0.1:8765", None, "abc12"), Err(Denied::Token));
+        // Two differences that would cancel if they were combined by exclusive or.
+        assert_eq!(ok("127.0.0.1:8765", None, "bac123"), Err(Denied::Token));
         assert_eq!(
             local.check(Some("127.0.0.1:8765"), None, None),
             Err(Denied::Token)

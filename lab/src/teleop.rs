@@ -463,10 +463,6 @@ impl Teleop {
             .iter()
             .find(|a| a.bus == arm)
             .ok_or_else(|| Refusal::UnknownArm(arm.to_string()))?;
-        let norm: f64 = target.rotation.iter().map(|x| x * x).sum::<f64>().sqrt();
-        if !(target.position.iter().all(|x| x.is_finite()) && norm.is_finite() && norm > 1e-9) {
-            return Err(Refusal::BadPose);
-        }
         let mut seed = [0.0; MAX_JOINTS];
         for (k, &j) in a.joints.iter().enumerate() {
             let read = self
@@ -528,6 +524,8 @@ impl Teleop {
                 position_error_m,
                 angle_error_rad,
             }),
+            // A target that is not a finite position and a non-zero quaternion (the solver's
+            // own check).
             Err(_) => Err(Refusal::BadPose),
         }
     }
@@ -794,6 +792,96 @@ pub(crate) mod tests {
         }
         assert!((last + 1.0).abs() < 1e-6, "reached: {last}");
         assert_eq!(t.counters().frames, 100);
+    }
+
+    #[test]
+    fn a_range_end_is_in_range_and_frames_carry_fresh_stamps_and_rising_numbers() {
+        let mut t = teleop();
+        let s = state_at(&[0.0; 7]);
+        let [lo, hi] = t.layout().joints()[3].range_rad.map(f64::from);
+        t.command(1, &joints(&[("left_elbow", lo)]), Some(&s), 0)
+            .unwrap();
+        t.command(1, &joints(&[("left_elbow", hi)]), Some(&s), 0)
+            .unwrap();
+        assert_eq!(t.counters().taken, 2);
+        assert_eq!(t.commanded(2), None, "a joint not commanded has no goal");
+        let mut seq = 0;
+        for k in 1..=3u64 {
+            let f = t.tick(Some(&s), k * 7 * MS).0.unwrap();
+            assert_eq!(
+                f.timestamp_ns,
+                k * 7 * MS,
+                "stamped now: the driver refuses old goals"
+            );
+            assert!(f.seq > seq);
+            seq = f.seq;
+        }
+        t.command(1, &Command::Release, Some(&s), 30 * MS).unwrap();
+        let (f, ended) = t.tick(Some(&s), 40 * MS);
+        let f = f.unwrap();
+        assert_eq!(ended, Some(Ended::Released), "the owner lets go");
+        assert_eq!((f.timestamp_ns, f.seq > seq), (40 * MS, true));
+        assert_eq!(t.counters().frames, 4);
+    }
+
+    #[test]
+    fn a_joint_already_commanded_goes_on_from_its_goal_not_from_its_reading() {
+        let mut t = teleop();
+        // The reading lags (the servo has not moved yet).
+        let s = state_at(&[0.0, 0.0, 0.0, -0.2, 0.0, 0.0, 0.0]);
+        t.command(1, &joints(&[("left_elbow", -1.0)]), Some(&s), 0)
+            .unwrap();
+        for k in 0..20 {
+            t.command(1, &Command::Alive, Some(&s), k * 10 * MS)
+                .unwrap();
+            t.tick(Some(&s), k * 10 * MS);
+        }
+        let goal = t.commanded(3).unwrap();
+        assert!(goal < -0.45, "{goal}");
+        // A new target: the goal goes on from where it was (one step of 20 ms at 1.5 rad/s), no
+        // jump back to the reading.
+        t.command(1, &joints(&[("left_elbow", -1.1)]), Some(&s), 200 * MS)
+            .unwrap();
+        let f = t.tick(Some(&s), 210 * MS).0.unwrap();
+        assert!(
+            (f64::from(f.position_rad[3]) - goal).abs() <= 1.5 * 0.02 + 1e-6,
+            "{} from {goal}",
+            f.position_rad[3]
+        );
+    }
+
+    #[test]
+    fn tool_poses_are_solved_where_the_lift_carries_the_shoulders() {
+        let body = Body::from_description(&RobotDescription::nori_a3()).unwrap();
+        let want = [0.3, 0.35, -0.2, -1.2, 0.3, 0.1, 0.2];
+        let raised = body.lift_start_m() + 0.2;
+        let pose = body.arm_pose(0, &want, raised, Pose2::default()).unwrap();
+        let tool = Command::Tool {
+            arm: "left_arm".into(),
+            target: ToolTarget {
+                position: pose.tool,
+                rotation: pose.tool_rotation,
+            },
+        };
+        let s = state_at(&[0.1, 0.2, -0.1, -0.8, 0.1, 0.3, 0.0]);
+        let mut t = teleop();
+        t.set_lift_m(raised);
+        t.command(1, &tool, Some(&s), 0).unwrap();
+        let mut f = None;
+        for k in 0..300 {
+            t.command(1, &Command::Alive, Some(&s), k * 10 * MS)
+                .unwrap();
+            f = t.tick(Some(&s), k * 10 * MS).0;
+        }
+        let q: Vec<f64> = (0..7)
+            .map(|i| f64::from(f.unwrap().position_rad[i]))
+            .collect();
+        let at = body.arm_pose(0, &q, raised, Pose2::default()).unwrap().tool;
+        let d: f64 = (0..3)
+            .map(|i| (at[i] - pose.tool[i]).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        assert!(d < 1e-3, "{d} m off with the lift raised 0.2 m");
     }
 
     #[test]
