@@ -699,6 +699,24 @@ pub(crate) mod tests {
         s
     }
 
+    /// Where the left arm stands in the tests, and where they send its tool.
+    const HERE: [f64; 7] = [0.1, 0.2, -0.1, -0.8, 0.1, 0.3, 0.0];
+    const WANT: [f64; 7] = [0.3, 0.35, -0.2, -1.2, 0.3, 0.1, 0.2];
+
+    /// The left arm's tool to where angles `q` put it with the lift at `lift_m`; that pose.
+    fn tool_to(body: &Body, q: &[f64], lift_m: f64) -> (Command, body::kinematics::ArmPose) {
+        let pose = body.arm_pose(0, q, lift_m, Pose2::default()).unwrap();
+        let target = ToolTarget {
+            position: pose.tool,
+            rotation: pose.tool_rotation,
+        };
+        let tool = Command::Tool {
+            arm: "left_arm".into(),
+            target,
+        };
+        (tool, pose)
+    }
+
     fn joints(goals: &[(&str, f64)]) -> Command {
         Command::Joints(goals.iter().map(|(n, v)| (n.to_string(), *v)).collect())
     }
@@ -853,17 +871,9 @@ pub(crate) mod tests {
     #[test]
     fn tool_poses_are_solved_where_the_lift_carries_the_shoulders() {
         let body = Body::from_description(&RobotDescription::nori_a3()).unwrap();
-        let want = [0.3, 0.35, -0.2, -1.2, 0.3, 0.1, 0.2];
         let raised = body.lift_start_m() + 0.2;
-        let pose = body.arm_pose(0, &want, raised, Pose2::default()).unwrap();
-        let tool = Command::Tool {
-            arm: "left_arm".into(),
-            target: ToolTarget {
-                position: pose.tool,
-                rotation: pose.tool_rotation,
-            },
-        };
-        let s = state_at(&[0.1, 0.2, -0.1, -0.8, 0.1, 0.3, 0.0]);
+        let (tool, pose) = tool_to(&body, &WANT, raised);
+        let s = state_at(&HERE);
         let mut t = teleop();
         t.set_lift_m(raised);
         t.command(1, &tool, Some(&s), 0).unwrap();
@@ -888,18 +898,11 @@ pub(crate) mod tests {
     fn a_tool_pose_is_solved_within_the_ranges_and_one_out_of_reach_is_refused() {
         let mut t = teleop();
         let body = Body::from_description(&RobotDescription::nori_a3()).unwrap();
-        let here = [0.1, 0.2, -0.1, -0.8, 0.1, 0.3, 0.0];
-        let s = state_at(&here);
-        let want = [0.3, 0.35, -0.2, -1.2, 0.3, 0.1, 0.2];
+        let s = state_at(&HERE);
         let lift = body.lift_start_m();
-        let pose = body.arm_pose(0, &want, lift, Pose2::default()).unwrap();
-        let target = ToolTarget {
-            position: pose.tool,
-            rotation: pose.tool_rotation,
-        };
-        let tool = Command::Tool {
-            arm: "left_arm".into(),
-            target,
+        let (tool, pose) = tool_to(&body, &WANT, lift);
+        let Command::Tool { target, .. } = tool.clone() else {
+            unreachable!()
         };
         let solved = t.command(1, &tool, Some(&s), 0).unwrap().unwrap();
         assert!(solved.position_error_m < 1e-3 && solved.angle_error_rad < 1e-2);
@@ -976,18 +979,8 @@ pub(crate) mod tests {
     #[test]
     fn a_pose_reached_nearly_is_taken_within_the_acceptance_and_refused_beyond_it() {
         let body = Body::from_description(&RobotDescription::nori_a3()).unwrap();
-        let want = [0.3, 0.35, -0.2, -1.2, 0.3, 0.1, 0.2];
-        let pose = body
-            .arm_pose(0, &want, body.lift_start_m(), Pose2::default())
-            .unwrap();
-        let tool = Command::Tool {
-            arm: "left_arm".into(),
-            target: ToolTarget {
-                position: pose.tool,
-                rotation: pose.tool_rotation,
-            },
-        };
-        let s = state_at(&[0.1, 0.2, -0.1, -0.8, 0.1, 0.3, 0.0]);
+        let (tool, _) = tool_to(&body, &WANT, body.lift_start_m());
+        let s = state_at(&HERE);
         // Two steps from one start cannot get within the solver's own tolerance...
         let tight = |accept_position_m| TeleopSettings {
             ik: IkSettings {
