@@ -22,7 +22,7 @@ use std::sync::mpsc::RecvTimeoutError;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
-use telemetry::frames::{EventKind, JointLayout, SupervisorCommand, COMMAND_RESUME, COMMAND_STOP};
+use telemetry::frames::{EventKind, SupervisorCommand, COMMAND_RESUME, COMMAND_STOP};
 use telemetry::motion::{lift_state_name, BaseState, LiftState, LIFT_READY};
 use telemetry::plane::{self, newest, next, publish, CameraStream, FrameSub, Plane};
 use telemetry::process::finish;
@@ -72,6 +72,16 @@ struct Args {
     /// Stop after this many seconds.
     #[arg(long)]
     run_for: Option<f64>,
+}
+
+/// What the loop counted, printed at exit.
+#[derive(Debug, Default, serde::Serialize)]
+struct Counts {
+    goal_frames: u64,
+    malformed: u64,
+    stops: u64,
+    resumes: u64,
+    publish_errors: u64,
 }
 
 /// The teleoperation loop's period.
@@ -276,7 +286,7 @@ fn serve(args: &Args) -> Result<()> {
     let frame_every = Duration::from_secs_f64(1.0 / args.frame_hz);
     let mut next_frame = Instant::now();
     let mut next_tick = Instant::now();
-    let mut lab: Option<(JointLayout, Teleop, Scene, Arc<str>)> = None;
+    let mut lab: Option<(Teleop, Scene, Arc<str>)> = None;
     let mut state: Option<JointState> = None;
     let mut lift_m = body.lift_start_m();
     // The lift's and the base's newest states, for the page (none without them).
@@ -284,27 +294,26 @@ fn serve(args: &Args) -> Result<()> {
     let mut base: Option<BaseState> = None;
     let mut recent: VecDeque<serde_json::Value> = VecDeque::new();
     let mut command_seq = 0u64;
-    let mut counts =
-        json!({"goal_frames": 0, "malformed": 0, "stops": 0, "resumes": 0, "publish_errors": 0});
-    let bump = |counts: &mut serde_json::Value, key: &str| {
-        counts[key] = json!(counts[key].as_u64().unwrap_or(0) + 1);
-    };
+    let mut counts = Counts::default();
     let say =
         |pages: &Pages, page: u64, v: serde_json::Value| pages.send(page, v.to_string().into());
 
     while !shutdown.load(Ordering::Relaxed) && run_for.is_none_or(|d| started.elapsed() < d) {
         // The plane.
         if let Some(l) = newest(&layouts).filter(|l| l.joint_count > 0) {
-            if lab.as_ref().is_none_or(|(old, ..)| *old != l) {
+            if lab
+                .as_ref()
+                .is_none_or(|(teleop, ..)| *teleop.layout() != l)
+            {
                 let scene = Scene::new(body.clone(), l);
                 let model: Arc<str> = scene.model().to_string().into();
                 pages.broadcast(&model);
-                lab = Some((l, Teleop::new(body.clone(), l, settings), scene, model));
+                lab = Some((Teleop::new(body.clone(), l, settings), scene, model));
                 tracing::info!(joints = l.joint_count, "the driver's layout");
             }
         }
         while let Some(s) = next(&states) {
-            if let Some((_, teleop, ..)) = lab.as_mut() {
+            if let Some((teleop, ..)) = lab.as_mut() {
                 teleop.observe(&s);
             }
             state = Some(s);
@@ -344,13 +353,13 @@ fn serve(args: &Args) -> Result<()> {
                     }
                 }
                 Event::Closed => {
-                    if let Some((_, teleop, ..)) = lab.as_mut() {
+                    if let Some((teleop, ..)) = lab.as_mut() {
                         teleop.page_closed(page);
                     }
                     acted = true;
                 }
                 Event::Message(Err(e)) => {
-                    bump(&mut counts, "malformed");
+                    counts.malformed += 1;
                     say(
                         &pages,
                         page,
@@ -366,11 +375,15 @@ fn serve(args: &Args) -> Result<()> {
                         kind: if stop { COMMAND_STOP } else { COMMAND_RESUME },
                         ..SupervisorCommand::default()
                     };
-                    bump(&mut counts, if stop { "stops" } else { "resumes" });
+                    if stop {
+                        counts.stops += 1;
+                    } else {
+                        counts.resumes += 1;
+                    }
                     let sent = publish(&commands, &cmd);
                     if stop {
                         // Teleoperation ends with the press, whatever the supervisor makes of it.
-                        if let Some((_, teleop, ..)) = lab.as_mut() {
+                        if let Some((teleop, ..)) = lab.as_mut() {
                             teleop.let_go();
                         }
                         tracing::warn!(page, "stop pressed");
@@ -404,7 +417,7 @@ fn serve(args: &Args) -> Result<()> {
                 }
                 Event::Message(Ok(m)) => {
                     let reply = match (lab.as_mut(), m.command()) {
-                        (Some((_, teleop, ..)), Some(c)) => {
+                        (Some((teleop, ..)), Some(c)) => {
                             match teleop.command(page, &c, state.as_ref(), at_ns) {
                                 Ok(solved) => {
                                     json!({"type": "reply", "ok": true, "solved": solved.map(|s| json!({
@@ -438,14 +451,14 @@ fn serve(args: &Args) -> Result<()> {
             if now >= next_tick {
                 next_tick = now + TICK;
             }
-            if let Some((_, teleop, ..)) = lab.as_mut() {
+            if let Some((teleop, ..)) = lab.as_mut() {
                 teleop.set_lift_m(lift_m);
                 let (frame, ended) = teleop.tick(state.as_ref(), monotonic_ns());
                 if let Some(f) = frame {
                     match publish(&goals, &f) {
-                        Ok(()) => bump(&mut counts, "goal_frames"),
+                        Ok(()) => counts.goal_frames += 1,
                         Err(e) => {
-                            bump(&mut counts, "publish_errors");
+                            counts.publish_errors += 1;
                             tracing::warn!("goal frame not published: {e}");
                         }
                     }
@@ -486,7 +499,7 @@ fn serve(args: &Args) -> Result<()> {
             if next_frame < now {
                 next_frame = now + frame_every;
             }
-            if let (Some((_, teleop, scene, _)), Some(s)) = (lab.as_ref(), state.as_ref()) {
+            if let (Some((teleop, scene, _)), Some(s)) = (lab.as_ref(), state.as_ref()) {
                 let c = teleop.counters();
                 let extra = json!({
                     "teleop": {"owner": teleop.owner(), "active": teleop.active(), "taken": c.taken,
@@ -520,8 +533,8 @@ fn serve(args: &Args) -> Result<()> {
             std::thread::sleep(Duration::from_millis(20));
         }
     }
-    let mut summary = counts;
-    if let Some((_, teleop, ..)) = &lab {
+    let mut summary = serde_json::to_value(&counts)?;
+    if let Some((teleop, ..)) = &lab {
         let c = teleop.counters();
         summary["teleop"] = json!({"taken": c.taken, "refused": c.refused, "frames": c.frames,
             "deadman_releases": c.deadman_releases, "closed_releases": c.closed_releases,
