@@ -1394,3 +1394,87 @@ fn an_operators_stop_holds_the_safe_state_and_refuses_every_goal_until_it_ends()
         "goals within the range"
     );
 }
+
+/// A supervisor that stops the robot at cycle 20, falls silent (stale heartbeats) for cycles
+/// 40..60 — a crash and restart — and directs again, still stopped, from cycle 60; at cycle 80
+/// the left elbow's motor reads the last-resort trip temperature.
+struct RestartDuringStop {
+    cycle: u64,
+    bus: Arc<Mutex<SimBus>>,
+}
+
+impl bus_driver::LoopIo for RestartDuringStop {
+    fn goals(&mut self) -> Option<GoalFrame> {
+        None
+    }
+    fn directives(&mut self) -> Option<Directives> {
+        let mut d = directives(0b111, &[]);
+        d.timestamp_ns = monotonic_ns();
+        if self.cycle >= 20 {
+            d.flags = telemetry::frames::DIRECTIVE_FLAG_STOP;
+        }
+        Some(d)
+    }
+    fn supervisor_heartbeat(&mut self) -> Option<telemetry::frames::Heartbeat> {
+        let age = if (40..60).contains(&self.cycle) {
+            1_000_000_000
+        } else {
+            0
+        };
+        Some(telemetry::frames::Heartbeat {
+            pid: 42,
+            timestamp_ns: monotonic_ns() - age,
+            ..Default::default()
+        })
+    }
+    fn publish(&mut self, _: &telemetry::JointState) {
+        self.cycle += 1;
+        if self.cycle == 80 {
+            self.bus.lock().unwrap().servo_mut(4).unwrap().temperature = 59.2;
+        }
+    }
+}
+
+/// A supervisor that restarts during an operator's stop is live again once its directives
+/// are applied, stop or no stop: the driver's last-resort thermal tier (for when no
+/// supervisor is heard) stands down, and a hot motor is the supervisor's to handle. Until the
+/// stop ended, the driver used to keep its own tier armed beside the live supervisor.
+#[test]
+fn a_supervisor_restarted_during_an_operators_stop_takes_the_thermal_tier_back() {
+    let mut rig = rig_with(None, SafeState::Hold, 50);
+    let mut io = RestartDuringStop {
+        cycle: 0,
+        bus: rig.buses[0].clone(),
+    };
+    let stop = AtomicBool::new(false);
+    let run = |rig: &mut Rig, io: &mut RestartDuringStop, cycles| {
+        bus_driver::run(
+            &mut rig.driver,
+            Duration::from_millis(5),
+            Some(Duration::from_millis(50)),
+            io,
+            &stop,
+            Some(cycles),
+        )
+    };
+    run(&mut rig, &mut io, 60);
+    assert!(
+        rig.driver.operator_stopped() && rig.driver.in_safe_state(),
+        "stopped, and the supervisor missed: {:?}",
+        rig.driver.counters
+    );
+    assert!(rig.driver.counters.stale_supervisor_frames > 0);
+    run(&mut rig, &mut io, 120);
+    assert!(rig.driver.operator_stopped(), "still stopped");
+    assert_eq!(
+        rig.driver.counters.last_resort_trips, 0,
+        "the driver tripped a bus itself beside a live supervisor"
+    );
+    assert_eq!(rig.health().buses[0].flags & BUS_HEALTH_DRIVER_TRIP, 0);
+
+    // The control: silent again, the same hot motor trips its bus at once.
+    io.cycle = 40;
+    run(&mut rig, &mut io, 150);
+    assert_eq!(rig.driver.counters.last_resort_trips, 1);
+    assert!(rig.health().buses[0].flags & BUS_HEALTH_DRIVER_TRIP != 0);
+}
