@@ -135,6 +135,33 @@ impl Base {
     }
 }
 
+/// The base cruised at `want` (of `measure`) once ramped: the samples' median within
+/// `tolerance`, and no more than a fifth of them off by more than three times it. A loaded
+/// machine may starve the lidar or a control period (the field then holds the base, rightly,
+/// or a period measures its wheels over a longer time than it divides by): a sample or a
+/// short run of them, never the bulk. Each off sample is shown with its flags.
+fn assert_cruising(
+    states: &[BaseState],
+    measure: impl Fn(&BaseState) -> f32,
+    want: f32,
+    tolerance: f32,
+) {
+    let values: Vec<f64> = states.iter().map(|s| f64::from(measure(s))).collect();
+    let median = nori_tests::quantile(&values, 0.5) as f32;
+    let off: Vec<(f32, u32)> = states
+        .iter()
+        .map(|s| (measure(s), s.flags))
+        .filter(|(v, _)| (v - want).abs() > 3.0 * tolerance)
+        .collect();
+    assert!(
+        (median - want).abs() < tolerance && off.len() * 5 <= states.len(),
+        "measured a median {median} for {want} (within {tolerance}); {} of {} samples off \
+         (value, flags): {off:?}",
+        off.len(),
+        states.len()
+    );
+}
+
 #[test]
 fn the_base_follows_knows_where_it_went_stops_when_told_nothing_and_short_of_a_wall() {
     let mut base = Base::start("base", &[], &[]);
@@ -164,17 +191,9 @@ fn the_base_follows_knows_where_it_went_stops_when_told_nothing_and_short_of_a_w
     let arc = base.drive(0.12, 0.3, 2.0);
     // Followed: once ramped up (0.3 s at 0.5 m/s²), the measured speed is the command's.
     for (states, v) in [(&back[10..], -0.15), (&arc[10..], 0.12)] {
-        let mean = states.iter().map(|s| s.linear_m_s).sum::<f32>() / states.len() as f32;
-        assert!(
-            (mean - v).abs() < 0.1 * v.abs(),
-            "measured {mean} m/s for {v} m/s"
-        );
+        assert_cruising(states, |s| s.linear_m_s, v, 0.1 * v.abs());
     }
-    let arc_turn = arc[10..].iter().map(|s| s.angular_rad_s).sum::<f32>() / (arc.len() - 10) as f32;
-    assert!(
-        (arc_turn - 0.3).abs() < 0.05,
-        "measured {arc_turn} rad/s for 0.3"
-    );
+    assert_cruising(&arc[10..], |s| s.angular_rad_s, 0.3, 0.05);
 
     // Commands stop: still within the command timeout and the braking from 0.12 m/s (plus a
     // control period, a driver cycle and the wheels' own deceleration: 150 ms).
@@ -391,8 +410,6 @@ fn a_policy_drives_the_base_through_the_gate_and_the_base_stops_when_it_falls_si
     }
     let silent = monotonic_ns();
     let cruising = &seen[10..];
-    let mean = cruising.iter().map(|s| s.linear_m_s).sum::<f32>() / cruising.len() as f32;
-    assert!((mean + 0.12).abs() < 0.012, "measured {mean} m/s for -0.12");
     assert!(
         cruising
             .iter()
@@ -400,6 +417,7 @@ fn a_policy_drives_the_base_through_the_gate_and_the_base_stops_when_it_falls_si
                 && s.flags & BASE_FLAG_NOT_DRIVEN == 0),
         "the agent kept the command in force along the plan: {cruising:?}"
     );
+    assert_cruising(cruising, |s| s.linear_m_s, -0.12, 0.012);
     // Silent: the last chunk's last step is 200 ms after it was sent (at most 100 ms before
     // `silent`), held 100 ms (the horizon); then the base's command times out and it brakes.
     let stopped = base.wheels_still_after(silent, Duration::from_secs(3));
