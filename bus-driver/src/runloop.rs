@@ -156,8 +156,10 @@ pub fn run<T: Transport>(
                         directed |= applied;
                     }
                 }
+                // Supervised once its directive is applied, stopped or not: its thermal tier
+                // is then live and the driver's last-resort one stands down.
+                driver.set_supervised(directed);
                 if directed && driver.in_safe_state() && !driver.operator_stopped() {
-                    driver.set_supervised(true);
                     driver.leave_safe_state(now);
                     tracing::info!("supervisor present and directing: driving");
                 }
