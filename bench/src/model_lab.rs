@@ -117,19 +117,21 @@ pub fn run_bench(a: &BenchArgs) -> Result<()> {
             null.runs
         );
     }
-    println!("| hidden | size range | named correctly | parameter within 25 % | median parameter error | detection limit (≥ 90 %) | mean analysis |");
-    println!("|---|---|---|---|---|---|---|");
+    println!("| hidden | size range | named correctly | a wrong catalog name | parameter within 25 % | median parameter error | detection limit (≥ 90 %) | mean analysis |");
+    println!("|---|---|---|---|---|---|---|---|");
     for e in &report.effects {
         println!(
-            "| `{}` | {} | {:.0} % | {} | {} | {} | {:.2} s |",
-            e.effect,
-            if e.effect == Effect::None {
+            "| `{}` | {} | {:.0} % (`{}`) | {:.0} % | {} | {} | {} | {:.2} s |",
+            e.hidden,
+            if matches!(e.effect, Effect::None | Effect::Unexplained) {
                 "–".to_string()
             } else {
                 format!("{}–{} {}", e.size_range.0, e.size_range.1, e.unit)
             },
             100.0 * e.accuracy,
-            if e.effect == Effect::None {
+            e.effect,
+            100.0 * e.wrong_name(),
+            if matches!(e.effect, Effect::None | Effect::Unexplained) {
                 "–".to_string()
             } else {
                 format!("{:.0} %", 100.0 * e.recovered)
@@ -159,7 +161,7 @@ pub fn run_bench(a: &BenchArgs) -> Result<()> {
             .collect();
         println!(
             "| `{}` | {} {} | {} |",
-            e.effect,
+            e.hidden,
             sweep.join(", "),
             e.unit,
             if conf.is_empty() {

@@ -31,8 +31,28 @@
 //! A relative-gain threshold would not do either: where the held-out error is mostly sensor
 //! noise and rounding, a real effect removes a real but small fraction of it.
 //!
-//! Among supported extensions the cause is the one with the largest ΔBIC; with none, `none`.
+//! Two more conditions make a supported extension a finding rather than an artefact of many
+//! samples:
+//! 4. *practical significance*, whatever its p-value: its correction of the held-out
+//!    predictions (RMS of δ) reaches [`PRACTICAL_OF_FLOOR`] of the channel's noise floor (the
+//!    register's resolution is the yardstick where the nominal model fits to within the
+//!    noise), and where the nominal misfit is beyond the noise it removes at least
+//!    [`PRACTICAL_GAIN`] of the held-out RMSE (the misfit is the yardstick there: a 0.25 %
+//!    gain explains nothing, however many samples make it significant);
+//! 5. *physical plausibility*: its parameter lies in the range its physics allows
+//!    ([`Effect::bounds`]); a fit outside it is evidence against the name.
+//!
+//! Among supported extensions the candidate is the one with the largest ΔBIC. Whether it (or
+//! nothing) is the answer depends on what is left: each channel's held-out misfit — after its
+//! best supported extension, or the nominal model's if none — is compared with the channel's
+//! *noise floor*, what a right model still misses (the register's rounding, q/√12, and the
+//! readings' own high-frequency noise, from their second differences, see [`NoiseFloor`]). A
+//! misfit whose RMSE exceeds [`MISFIT_RMSE_FLOORS`] floors, or whose bias exceeds
+//! [`MISFIT_BIAS_FLOORS`] of them, is significant: the cause is then `unexplained` (with the
+//! residual's structure and the partial explanations, [`Unexplained`]); otherwise it is the
+//! candidate, or `none`: the nominal model fits to within the data's noise.
 
+use crate::audit::{self, Finding};
 use crate::catalog::{Channel, Effect};
 use crate::data::{self, Cleaning, Dataset};
 use crate::electrical::{self, CurrentEstimator, ElectricalData, ElectricalFit};
@@ -64,6 +84,16 @@ fn test_blocks(len: usize) -> impl Iterator<Item = std::ops::Range<usize>> {
     let count = if len < TEST_BLOCKS { 0 } else { TEST_BLOCKS };
     (0..count).map(move |j| j * len / TEST_BLOCKS..(j + 1) * len / TEST_BLOCKS)
 }
+/// A held-out misfit whose RMSE exceeds this many noise floors is significant.
+pub const MISFIT_RMSE_FLOORS: f64 = 2.0;
+/// A held-out misfit whose mean error exceeds this many noise floors is significant.
+pub const MISFIT_BIAS_FLOORS: f64 = 1.0;
+/// An extension's held-out correction (RMS) must reach this fraction of the noise floor to
+/// matter (1 °C register: about 0.02 °C).
+pub const PRACTICAL_OF_FLOOR: f64 = 0.05;
+/// Where the nominal misfit is beyond the noise, an extension must cut the held-out RMSE by
+/// at least this fraction to matter.
+pub const PRACTICAL_GAIN: f64 = 0.05;
 /// Lags of the Ljung–Box whiteness test.
 pub const LJUNG_BOX_LAGS: usize = 20;
 
@@ -73,9 +103,10 @@ pub enum AnalysisError {
     /// Neither channel has what it needs.
     #[error(
         "nothing to analyse: the thermal channel needs temperature_c and current_a, the \
-         electrical channel voltage_v and a current (measured, or goal/position to estimate it)"
+         electrical channel voltage_v and a current (measured, or goal/position to estimate \
+         it){}", if .0.is_empty() { String::new() } else { format!("; refused: {}", .0) }
     )]
-    NoChannel,
+    NoChannel(String),
     /// The split leaves a part empty.
     #[error("split fraction {0} leaves no fitting or no held-out data")]
     BadSplit(f64),
@@ -90,6 +121,8 @@ pub struct Options {
     pub estimator: Option<CurrentEstimator>,
     /// Extensions to try (the whole catalog by default).
     pub candidates: Vec<Effect>,
+    /// The physical ranges the data are checked against before anything is fitted.
+    pub limits: audit::Limits,
 }
 
 impl Default for Options {
@@ -98,6 +131,7 @@ impl Default for Options {
             fit_fraction: 0.7,
             estimator: None,
             candidates: Effect::CATALOG.to_vec(),
+            limits: audit::Limits::default(),
         }
     }
 }
@@ -155,6 +189,103 @@ pub struct Misfit {
     pub ljung_box_p: f64,
     /// Correlation of the held-out residuals with candidate regressors.
     pub correlations: BTreeMap<String, f64>,
+    /// What a right model would still miss on this channel.
+    pub noise_floor: NoiseFloor,
+}
+
+/// What a right model still misses on one channel, judged from the readings alone (no model):
+/// the register's rounding (uniform over one step: q/√12) and the readings' own noise, from
+/// their second differences within segments (E[(Δ²x)²] = 6σ² for white noise on a signal
+/// that is smooth at the sampling rate; it also counts part of the rounding, so the floor
+/// errs high, towards `none`).
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct NoiseFloor {
+    /// The register's step.
+    pub quantum: f64,
+    /// The readings' high-frequency noise.
+    pub readings_noise: f64,
+    /// √(q²/12 + σ²).
+    pub floor: f64,
+}
+
+impl NoiseFloor {
+    /// The floor of `series` (per motor, NaN where missing) read in steps of `quantum`.
+    pub fn of(series: &[Vec<f64>], quantum: f64, segments: &[(usize, usize)]) -> NoiseFloor {
+        let (mut sum, mut n) = (0.0, 0usize);
+        for x in series {
+            for &(s, e) in segments {
+                for k in s + 1..e.min(x.len()).saturating_sub(1) {
+                    let d2 = x[k + 1] - 2.0 * x[k] + x[k - 1];
+                    if d2.is_finite() {
+                        sum += d2 * d2;
+                        n += 1;
+                    }
+                }
+            }
+        }
+        let readings_noise = if n > 0 {
+            (sum / n as f64 / 6.0).sqrt()
+        } else {
+            0.0
+        };
+        NoiseFloor {
+            quantum,
+            readings_noise,
+            floor: (quantum * quantum / 12.0 + readings_noise * readings_noise).sqrt(),
+        }
+    }
+
+    /// Whether a held-out misfit (RMSE, bias) is beyond this floor, and how that was judged.
+    pub fn judge(&self, rmse: f64, bias: f64, unit: &str) -> (bool, String) {
+        let (r, b) = (rmse / self.floor, bias.abs() / self.floor);
+        // NaN (no residuals) is no evidence of a misfit.
+        let significant = r > MISFIT_RMSE_FLOORS || b > MISFIT_BIAS_FLOORS;
+        let how = format!(
+            "held-out RMSE {rmse:.3} {unit} = {r:.1} noise floors, |bias| {:.3} {unit} = {b:.1} \
+             (floor {:.3} {unit}: step {} {unit}, readings' noise {:.3} {unit}); significant \
+             beyond {MISFIT_RMSE_FLOORS} floors of RMSE or {MISFIT_BIAS_FLOORS} of bias",
+            bias.abs(),
+            self.floor,
+            (self.quantum * 1e6).round() / 1e6,
+            self.readings_noise
+        );
+        (significant, how)
+    }
+}
+
+/// One channel's held-out misfit once its best supported extension (if any) is applied.
+#[derive(Debug, Clone, Serialize)]
+pub struct ChannelVerdict {
+    /// The channel.
+    pub channel: Channel,
+    /// Its best supported extension, if any.
+    pub extension: Option<Effect>,
+    /// Held-out RMSE with it (or the nominal model's).
+    pub rmse: f64,
+    /// Held-out mean error with it.
+    pub bias: f64,
+    /// Unit of both.
+    pub unit: &'static str,
+    /// Beyond the noise floor: the model misses something still.
+    pub significant: bool,
+    /// How that was judged, with the figures.
+    pub judged: String,
+}
+
+/// What the lab can see of a misfit it cannot name.
+#[derive(Debug, Clone, Serialize)]
+pub struct Unexplained {
+    /// The channel whose misfit is left.
+    pub channel: Channel,
+    /// Supported extensions that reduce it without bringing it to the noise floor, with their
+    /// held-out gain.
+    pub partial: Vec<(Effect, f64)>,
+    /// The regressors the nominal model's held-out residual correlates with most (|r| first).
+    pub strongest_regressors: Vec<(String, f64)>,
+    /// Per motor, worst first: id, held-out RMSE, bias.
+    pub motors: Vec<(i64, f64, f64)>,
+    /// The held-out part in ten spans of time: start, end (s), RMSE, bias (all motors).
+    pub time_course: Vec<(f64, f64, f64, f64)>,
 }
 
 /// One extension as tried.
@@ -193,7 +324,18 @@ pub struct Candidate {
     pub heldout_slope: f64,
     /// t statistic of that slope (block standard error), tested against [`MIN_HELDOUT_T`].
     pub heldout_slope_t: f64,
-    /// All three tests passed.
+    /// RMS of the extension's correction of the held-out predictions (nominal − extended).
+    pub heldout_change: f64,
+    /// The correction that matters: [`PRACTICAL_OF_FLOOR`] noise floors.
+    pub required_change: f64,
+    /// The held-out gain that matters: [`PRACTICAL_GAIN`] where the nominal misfit is beyond
+    /// the noise, else none (0).
+    pub required_gain: f64,
+    /// The range the parameter's physics allows ([`Effect::bounds`]).
+    pub bounds: Option<(f64, f64)>,
+    /// The parameter lies within it.
+    pub plausible: bool,
+    /// Every test passed.
     pub supported: bool,
     /// Why not, when not.
     pub verdict: String,
@@ -218,6 +360,8 @@ pub struct Diagnostics {
     pub channels: Vec<Channel>,
     /// Where currents came from for the electrical channel.
     pub current_source: Option<&'static str>,
+    /// What the data audit found and did, before anything was fitted.
+    pub audit: Vec<Finding>,
     /// Glitch rejection.
     pub cleaning: Cleaning,
     /// Register resolution, °C.
@@ -231,6 +375,8 @@ pub struct Diagnostics {
     pub electrical: Option<Misfit>,
     /// Every extension tried.
     pub candidates: Vec<Candidate>,
+    /// Per channel, the misfit left and whether it is beyond the noise floor.
+    pub verdicts: Vec<ChannelVerdict>,
     /// Significance level per test (family-wise [`ALPHA`] over the catalog).
     pub alpha_per_test: f64,
     /// Required t statistic of the held-out improvement.
@@ -264,6 +410,8 @@ pub struct Analysis {
     pub gain: f64,
     /// Per-motor figures.
     pub motors: Vec<MotorFigures>,
+    /// When the cause is `unexplained`: what the lab can see of the misfit.
+    pub unexplained: Option<Unexplained>,
     /// Diagnostics.
     pub diagnostics: Diagnostics,
 }
@@ -392,7 +540,12 @@ fn n_eff_of(res: &[Vec<f64>]) -> f64 {
         .sum()
 }
 
-fn misfit(res: &[Vec<f64>], regressors: BTreeMap<String, Vec<f64>>, unit: &'static str) -> Misfit {
+fn misfit(
+    res: &[Vec<f64>],
+    regressors: BTreeMap<String, Vec<f64>>,
+    unit: &'static str,
+    noise_floor: NoiseFloor,
+) -> Misfit {
     let all: Vec<f64> = res.concat();
     let (mut q, mut df) = (0.0, 0.0);
     let mut lag1 = 0.0;
@@ -423,6 +576,7 @@ fn misfit(res: &[Vec<f64>], regressors: BTreeMap<String, Vec<f64>>, unit: &'stat
             .into_iter()
             .map(|(k, v)| (k, stats::correlation(&all, &v)))
             .collect(),
+        noise_floor,
     }
 }
 
@@ -482,11 +636,19 @@ pub fn analyze(
     if split < 2 || split >= n {
         return Err(AnalysisError::BadSplit(opts.fit_fraction));
     }
+    let audit = audit::check(&mut d, &opts.limits);
     let cleaning = data::reject_glitches(&mut d);
     let td = thermal_data(&d, split);
     let ed = ElectricalData::new(&d, split, opts.estimator);
     if td.is_none() && ed.is_none() {
-        return Err(AnalysisError::NoChannel);
+        return Err(AnalysisError::NoChannel(
+            audit
+                .iter()
+                .filter(|f| f.action == "refused")
+                .map(|f| format!("{}: {}", f.column, f.detail))
+                .collect::<Vec<_>>()
+                .join("; "),
+        ));
     }
     let mut candidates = Vec::new();
     let mut channels = Vec::new();
@@ -496,6 +658,9 @@ pub fn analyze(
     let mut thermal_misfit = None;
     let mut register_noise = None;
     let mut thermal_fits: Vec<(Effect, ThermalFit, Vec<Vec<f64>>)> = Vec::new();
+    let mut verdicts = Vec::new();
+    // Per channel, the nominal model's held-out residuals per motor: id, indices, residuals.
+    let mut nominal_held: Vec<(Channel, Vec<HeldResiduals>)> = Vec::new();
     if let Some(td) = &td {
         channels.push(Channel::Thermal);
         progress(&format!(
@@ -520,7 +685,15 @@ pub fn analyze(
             .map(|m| residuals_at(&nom_pred[m], &td.measured[m], &td.held_idx[m]))
             .collect();
         register_noise = Some(reg.sigma());
-        thermal_misfit = Some(misfit(&held, thermal_regressors(td, &nom_pred), "°C"));
+        let floor = NoiseFloor::of(&td.measured, td.quantum, &td.segments);
+        let ids: Vec<i64> = td.motors.iter().map(|&dm| d.motors[dm]).collect();
+        let nominal_verdict = verdict(Channel::Thermal, None, &ids, &held, "°C", &floor);
+        thermal_misfit = Some(misfit(
+            &held,
+            thermal_regressors(td, &nom_pred),
+            "°C",
+            floor,
+        ));
         for (i, &effect) in opts
             .candidates
             .iter()
@@ -547,6 +720,8 @@ pub fn analyze(
             candidates.push(judge(
                 effect,
                 parameter,
+                &nominal_verdict,
+                floor.floor,
                 nom.sse,
                 fit.sse,
                 test,
@@ -556,6 +731,23 @@ pub fn analyze(
             ));
             thermal_fits.push((effect, fit, pred));
         }
+        let best = best_supported(&candidates, Channel::Thermal);
+        let pred = thermal_fits
+            .iter()
+            .find(|(e, _, _)| Some(*e) == best)
+            .map_or(&nom_pred, |(_, _, p)| p);
+        let left: Vec<Vec<f64>> = (0..td.n())
+            .map(|m| residuals_at(&pred[m], &td.measured[m], &td.held_idx[m]))
+            .collect();
+        verdicts.push(verdict(Channel::Thermal, best, &ids, &left, "°C", &floor));
+        nominal_held.push((
+            Channel::Thermal,
+            td.motors
+                .iter()
+                .enumerate()
+                .map(|(m, &dm)| (d.motors[dm], td.held_idx[m].clone(), held[m].clone()))
+                .collect(),
+        ));
         thermal_nominal = Some((nom, nom_pred));
     }
 
@@ -595,7 +787,10 @@ pub fn analyze(
                 .flat_map(|m| held_idx[m].iter().map(move |&k| ed.bus_current[m][k]))
                 .collect(),
         );
-        elec_misfit = Some(misfit(&held, regs, "V"));
+        let floor = NoiseFloor::of(&ed.voltage, data::quantum(&ed.voltage), &d.segments());
+        let ids: Vec<i64> = ed.motors.iter().map(|&dm| d.motors[dm]).collect();
+        let nominal_verdict = verdict(Channel::Electrical, None, &ids, &held, "V", &floor);
+        elec_misfit = Some(misfit(&held, regs, "V", floor));
         if opts.candidates.contains(&Effect::SupplySag) {
             progress("electrical: fitting supply_sag");
             let sag = electrical::fit(ed, true);
@@ -607,6 +802,8 @@ pub fn analyze(
                     value: sag.resistance_ohm,
                     unit: "ohm".into(),
                 }),
+                &nominal_verdict,
+                floor.floor,
                 nom.sse,
                 sag.sse,
                 test,
@@ -616,16 +813,47 @@ pub fn analyze(
             ));
             elec_sag = Some(sag);
         }
+        let best = best_supported(&candidates, Channel::Electrical);
+        let left = match (&elec_sag, best) {
+            (Some(sag), Some(_)) => res(sag, &held_idx),
+            _ => held.clone(),
+        };
+        verdicts.push(verdict(Channel::Electrical, best, &ids, &left, "V", &floor));
+        nominal_held.push((
+            Channel::Electrical,
+            ed.motors
+                .iter()
+                .enumerate()
+                .map(|(m, &dm)| (d.motors[dm], held_idx[m].clone(), held[m].clone()))
+                .collect(),
+        ));
         elec_nominal = Some(nom);
     }
 
-    // The cause: the supported extension with the largest ΔBIC.
+    // The cause: the supported extension with the largest ΔBIC, unless a channel's misfit
+    // stays beyond its noise floor; then `unexplained`.
+    let left_over = verdicts.iter().find(|v| v.significant);
     let chosen = candidates
         .iter()
-        .filter(|c| c.supported)
+        .filter(|c| c.supported && left_over.is_none())
         .max_by(|a, b| a.delta_bic.total_cmp(&b.delta_bic))
         .cloned();
-    let cause = chosen.as_ref().map_or(Effect::None, |c| c.id);
+    let cause = match (left_over, &chosen) {
+        (Some(_), _) => Effect::Unexplained,
+        (None, Some(c)) => c.id,
+        (None, None) => Effect::None,
+    };
+    let unexplained = left_over.map(|v| {
+        let misfit = match v.channel {
+            Channel::Thermal => thermal_misfit.as_ref(),
+            Channel::Electrical => elec_misfit.as_ref(),
+        };
+        let held = nominal_held
+            .iter()
+            .find(|(c, _)| *c == v.channel)
+            .map_or(&[][..], |(_, h)| &h[..]);
+        structure(v.channel, &candidates, misfit, held, &d.t, split)
+    });
     let chosen_fit = Chosen {
         effect: cause,
         thermal: thermal_fits
@@ -727,14 +955,11 @@ pub fn analyze(
                 .collect();
         }
     }
-    let channel = if cause == Effect::None {
-        if td.is_some() {
-            Channel::Thermal
-        } else {
-            Channel::Electrical
-        }
-    } else {
-        cause.channel()
+    let channel = match (&unexplained, cause) {
+        (Some(u), _) => u.channel,
+        (None, Effect::None) if td.is_some() => Channel::Thermal,
+        (None, Effect::None) => Channel::Electrical,
+        (None, c) => c.channel(),
     };
     let (baseline, extended, unit) = match channel {
         Channel::Thermal => (base_c, ext_c, "°C"),
@@ -764,6 +989,7 @@ pub fn analyze(
             0.0
         },
         motors,
+        unexplained,
         diagnostics: Diagnostics {
             samples: n,
             motors: d.motors.len(),
@@ -772,12 +998,14 @@ pub fn analyze(
             segments: segs.len(),
             channels,
             current_source: ed.as_ref().map(|e| e.current_source),
+            audit,
             cleaning,
             temperature_quantum_c: d.temperature_quantum,
             register_noise_c: register_noise,
             thermal: thermal_misfit,
             electrical: elec_misfit,
             candidates,
+            verdicts,
             alpha_per_test: ALPHA / Effect::CATALOG.len() as f64,
             min_heldout_t: MIN_HELDOUT_T,
             notes: d.notes.clone(),
@@ -788,6 +1016,125 @@ pub fn analyze(
         traces,
         model,
     })
+}
+
+/// A motor's held-out residuals: its id, the sample indices and the residuals there.
+type HeldResiduals = (i64, Vec<usize>, Vec<f64>);
+
+/// The supported candidate of `channel` with the largest ΔBIC.
+fn best_supported(candidates: &[Candidate], channel: Channel) -> Option<Effect> {
+    candidates
+        .iter()
+        .filter(|c| c.supported && c.channel == channel)
+        .max_by(|a, b| a.delta_bic.total_cmp(&b.delta_bic))
+        .map(|c| c.id)
+}
+
+/// Fewest held-out residuals of a motor judged on its own.
+const MIN_MOTOR_RESIDUALS: usize = 20;
+
+/// The verdict on the misfit `left` (held-out residuals per motor, of motors `ids`) after
+/// `extension`: all motors pooled, and each on its own (one motor's misfit must not drown in
+/// its well-fitted neighbours'); the worst one is named.
+fn verdict(
+    channel: Channel,
+    extension: Option<Effect>,
+    ids: &[i64],
+    left: &[Vec<f64>],
+    unit: &'static str,
+    floor: &NoiseFloor,
+) -> ChannelVerdict {
+    let all = left.concat();
+    let (rmse, bias) = (stats::rmse(&all), stats::mean(&all));
+    let (mut significant, mut judged) = floor.judge(rmse, bias, unit);
+    judged = format!("all motors: {judged}");
+    let worst = ids
+        .iter()
+        .zip(left)
+        .filter(|(_, r)| r.len() >= MIN_MOTOR_RESIDUALS)
+        .map(|(id, r)| (id, stats::rmse(r), stats::mean(r)))
+        .max_by(|a, b| {
+            let score = |x: &(&i64, f64, f64)| {
+                (x.1 / MISFIT_RMSE_FLOORS).max(x.2.abs() / MISFIT_BIAS_FLOORS)
+            };
+            score(a).total_cmp(&score(b))
+        });
+    if let Some((id, r, b)) = worst {
+        let (s, how) = floor.judge(r, b, unit);
+        significant |= s;
+        judged = format!("{judged}; worst motor {id}: {how}");
+    }
+    ChannelVerdict {
+        channel,
+        extension,
+        rmse,
+        bias,
+        unit,
+        significant,
+        judged,
+    }
+}
+
+/// What can be seen of a misfit no catalog entry explains: the partial explanations, the
+/// regressors the residual follows, the worst motors and the residual's course in time.
+fn structure(
+    channel: Channel,
+    candidates: &[Candidate],
+    misfit: Option<&Misfit>,
+    held: &[HeldResiduals],
+    t: &[f64],
+    split: usize,
+) -> Unexplained {
+    let mut partial: Vec<(Effect, f64)> = candidates
+        .iter()
+        .filter(|c| c.supported && c.channel == channel)
+        .map(|c| (c.id, c.gain))
+        .collect();
+    partial.sort_by(|a, b| b.1.total_cmp(&a.1));
+    let mut strongest: Vec<(String, f64)> = misfit
+        .map(|m| {
+            m.correlations
+                .iter()
+                .filter(|(_, r)| r.is_finite())
+                .map(|(k, r)| (k.clone(), *r))
+                .collect()
+        })
+        .unwrap_or_default();
+    strongest.sort_by(|a, b| b.1.abs().total_cmp(&a.1.abs()));
+    strongest.truncate(3);
+    let mut motors: Vec<(i64, f64, f64)> = held
+        .iter()
+        .map(|(id, _, r)| (*id, stats::rmse(r), stats::mean(r)))
+        .collect();
+    motors.sort_by(|a, b| b.1.total_cmp(&a.1));
+    let (t0, t1) = (
+        t.get(split).copied().unwrap_or(0.0),
+        t.last().copied().unwrap_or(0.0),
+    );
+    let span = ((t1 - t0) / 10.0).max(1e-9);
+    let mut spans = vec![Vec::new(); 10];
+    for (_, idx, r) in held {
+        for (&k, &e) in idx.iter().zip(r) {
+            let j = (((t[k] - t0) / span) as usize).min(9);
+            spans[j].push(e);
+        }
+    }
+    let time_course = spans
+        .iter()
+        .enumerate()
+        .filter(|(_, e)| !e.is_empty())
+        .map(|(j, e)| {
+            let a = t0 + j as f64 * span;
+            (a, a + span, stats::rmse(e), stats::mean(e))
+        })
+        .collect();
+    Unexplained {
+        channel,
+        partial,
+        strongest_regressors: strongest,
+        motors,
+        time_course,
+    }
 }
 
 /// The fitting part's significance test of one extension.
@@ -883,6 +1230,8 @@ fn block_wald_test(base: &[Vec<f64>], ext: &[Vec<f64>]) -> FitTest {
 fn judge(
     effect: Effect,
     parameter: Option<Parameter>,
+    nominal: &ChannelVerdict,
+    floor: f64,
     base_sse: f64,
     sse: f64,
     test: FitTest,
@@ -909,7 +1258,26 @@ fn judge(
         0.0
     };
     let alpha = ALPHA / Effect::CATALOG.len() as f64;
-    let verdict = if p_value >= alpha {
+    let heldout_change = stats::rmse(
+        &base_res
+            .iter()
+            .zip(res)
+            .flat_map(|(b, e)| b.iter().zip(e).map(|(b, e)| b - e))
+            .collect::<Vec<f64>>(),
+    );
+    let required_change = PRACTICAL_OF_FLOOR * floor;
+    let required_gain = if nominal.significant {
+        PRACTICAL_GAIN
+    } else {
+        0.0
+    };
+    let bounds = effect.bounds();
+    let value = parameter.as_ref().map_or(f64::NAN, |p| p.value);
+    let plausible = bounds.is_none_or(|(lo, hi, _)| value >= lo && value <= hi);
+    let verdict = if !plausible {
+        let (lo, hi, why) = bounds.unwrap_or((f64::NAN, f64::NAN, ""));
+        format!("parameter {value:.4} outside what its physics allows, [{lo}, {hi}]: {why}")
+    } else if p_value >= alpha {
         format!("not significant (p = {p_value:.2e} ≥ {alpha:.1e})")
     } else if delta_bic <= 0.0 {
         format!("BIC does not improve (ΔBIC = {delta_bic:.1})")
@@ -933,6 +1301,19 @@ fn judge(
             "held-out error worse (gain {:.1} %, slope {heldout_slope:.2})",
             100.0 * gain
         )
+    } else if heldout_change.is_nan() || heldout_change < required_change {
+        format!(
+            "no practical difference: it changes the held-out predictions by {heldout_change:.4} \
+             RMS, {required_change:.4} would matter ({PRACTICAL_OF_FLOOR} of the noise floor \
+             {floor:.4})"
+        )
+    } else if gain.is_nan() || gain < required_gain {
+        format!(
+            "explains too little: held-out gain {:.2} % of a misfit beyond the noise, {:.0} % \
+             would matter",
+            100.0 * gain,
+            100.0 * required_gain
+        )
     } else {
         "supported".to_string()
     };
@@ -952,6 +1333,11 @@ fn judge(
         heldout_t,
         heldout_slope,
         heldout_slope_t,
+        heldout_change,
+        required_change,
+        required_gain,
+        bounds: bounds.map(|(lo, hi, _)| (lo, hi)),
+        plausible,
         supported: verdict == "supported",
         verdict,
         iterations,

@@ -8,7 +8,7 @@
 
 use crate::analysis::{analyze, Options};
 use crate::catalog::Effect;
-use crate::generate::{generate, size_range, Spec};
+use crate::generate::{generate, size_range, Foreign, Spec};
 use serde::Serialize;
 use std::time::Instant;
 
@@ -70,7 +70,10 @@ pub struct Run {
 /// Accuracy on one effect.
 #[derive(Debug, Clone, Serialize)]
 pub struct EffectScore {
-    /// The hidden effect.
+    /// What was hidden: a catalog id, `none`, or an effect outside the catalog.
+    pub hidden: &'static str,
+    /// The answer that is right: the hidden catalog effect, `none`, or `unexplained` for an
+    /// effect outside the catalog.
     pub effect: Effect,
     /// Size range drawn from.
     pub size_range: (f64, f64),
@@ -110,6 +113,19 @@ pub struct Report {
     pub effects: Vec<EffectScore>,
     /// Total wall time, s.
     pub seconds: f64,
+}
+
+impl EffectScore {
+    /// Fraction of runs given a catalog name that is not the hidden effect's.
+    pub fn wrong_name(&self) -> f64 {
+        let wrong: usize = self
+            .confusions
+            .iter()
+            .filter(|(e, _)| Effect::CATALOG.contains(e))
+            .map(|(_, n)| n)
+            .sum();
+        wrong as f64 / self.runs.max(1) as f64
+    }
 }
 
 fn run_one(spec: &Spec, seed: u64) -> Run {
@@ -239,6 +255,7 @@ pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
             .last()
             .map(|(s, _)| *s);
         let score = EffectScore {
+            hidden: effect.id(),
             effect,
             size_range: size_range(effect),
             unit: effect.parameter().map_or("", |p| p.1),
@@ -261,6 +278,53 @@ pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
             score.detection_limit
         ));
         effects.push(score);
+    }
+    // Effects outside the catalog: the right answer is `unexplained`, never a catalog name.
+    if settings.effects.is_empty() || settings.effects.contains(&Effect::Unexplained) {
+        for foreign in Foreign::ALL {
+            let spec = Spec {
+                duration_s: settings.duration_s,
+                period_s: settings.period_s,
+                foreign: Some(foreign),
+                ..Spec::new(Effect::None)
+            };
+            let jobs: Vec<(Spec, u64)> = (0..settings.seeds).map(|s| (spec.clone(), s)).collect();
+            let runs = run_many(&jobs, settings.jobs);
+            let n = runs.len().max(1) as f64;
+            let mut confusions: Vec<(Effect, usize)> = Vec::new();
+            for r in runs.iter().filter(|r| r.named != Effect::Unexplained) {
+                match confusions.iter_mut().find(|(e, _)| *e == r.named) {
+                    Some(c) => c.1 += 1,
+                    None => confusions.push((r.named, 1)),
+                }
+            }
+            let score = EffectScore {
+                hidden: foreign.id(),
+                effect: Effect::Unexplained,
+                size_range: (0.0, 0.0),
+                unit: "",
+                runs: runs.len(),
+                accuracy: runs
+                    .iter()
+                    .filter(|r| r.named == Effect::Unexplained)
+                    .count() as f64
+                    / n,
+                recovered: 0.0,
+                median_parameter_error: None,
+                confusions,
+                mean_seconds: runs.iter().map(|r| r.seconds).sum::<f64>() / n,
+                sweep: Vec::new(),
+                detection_limit: None,
+                detail: runs,
+            };
+            progress(&format!(
+                "{:18} unexplained {:5.1} %  a catalog name {:5.1} %",
+                foreign.id(),
+                100.0 * score.accuracy,
+                100.0 * score.wrong_name()
+            ));
+            effects.push(score);
+        }
     }
     Report {
         seeds: settings.seeds,

@@ -30,6 +30,8 @@ pub enum Effect {
     SupplySag,
     /// The current register reads with an offset.
     CurrentOffset,
+    /// The nominal model misses more than the data's noise and no catalog entry explains it.
+    Unexplained,
 }
 
 impl Effect {
@@ -53,12 +55,14 @@ impl Effect {
             Effect::AmbientDrift => "ambient_drift",
             Effect::SupplySag => "supply_sag",
             Effect::CurrentOffset => "current_offset",
+            Effect::Unexplained => "unexplained",
         }
     }
 
     /// The effect of an id.
     pub fn from_id(id: &str) -> Option<Effect> {
-        std::iter::once(Effect::None)
+        [Effect::None, Effect::Unexplained]
+            .into_iter()
             .chain(Effect::CATALOG)
             .find(|e| e.id() == id)
     }
@@ -66,7 +70,7 @@ impl Effect {
     /// The extension's parameter: name and unit (one per extension, shared by all motors).
     pub fn parameter(self) -> Option<(&'static str, &'static str)> {
         match self {
-            Effect::None => None,
+            Effect::None | Effect::Unexplained => None,
             Effect::SensorLag => Some(("sensor_time_constant", "s")),
             // Conductance to each neighbour over the motor's own conductance to ambient.
             Effect::NeighborCoupling => Some(("coupling_ratio", "1")),
@@ -77,10 +81,55 @@ impl Effect {
         }
     }
 
+    /// The range the extension's parameter can take under its physics (catalog unit), and
+    /// why. A fit outside it is evidence against the name, not a finding.
+    pub fn bounds(self) -> Option<(f64, f64, &'static str)> {
+        match self {
+            Effect::None | Effect::Unexplained => None,
+            Effect::SensorLag => Some((
+                1.0,
+                1800.0,
+                "a sensor node lagging the winding by seconds to half an hour (slower is the \
+                 case itself, the nominal time constant)",
+            )),
+            Effect::NeighborCoupling => Some((
+                0.0,
+                2.0,
+                "heat flows from the hotter motor (≥ 0), through a bracket at most about twice \
+                 as well as to the air",
+            )),
+            Effect::CopperTempco => Some((
+                0.2,
+                1.0,
+                "copper's 0.393 %/K, up to 2.5 times that per kelvin of a sensor that sees only \
+                 part of the winding's rise; below half of copper's is no copper",
+            )),
+            Effect::AmbientDrift => Some((
+                -10.0,
+                10.0,
+                "a room warms or cools by at most about 10 K an hour",
+            )),
+            Effect::SupplySag => Some((
+                0.005,
+                2.0,
+                "a battery's or a supply's internal resistance with its wiring: 5 mΩ to 2 Ω",
+            )),
+            Effect::CurrentOffset => Some((
+                -0.5,
+                0.5,
+                "a current sensor's offset is a fraction of its 3 A range: at most 0.5 A",
+            )),
+        }
+    }
+
     /// One line on what the extension adds.
     pub fn describe(self) -> &'static str {
         match self {
-            Effect::None => "no extension: the nominal model is as good as the data can tell",
+            Effect::None => "no extension: the nominal model fits to within the data's noise",
+            Effect::Unexplained => {
+                "the nominal model misses more than the data's noise, and no catalog entry \
+                 explains it"
+            }
             Effect::SensorLag => "the sensor reads a second node lagging the winding",
             Effect::NeighborCoupling => "heat flows between adjacent motors of a chain",
             Effect::CopperTempco => "winding resistance rises with temperature",

@@ -2,7 +2,7 @@
 //! the alignment of the per-motor rows on one time grid, segmentation at logging gaps and the
 //! rejection of sensor glitches.
 //!
-//! The format is the long one of `shared/data/README.md`: one row per motor per sample, a header
+//! The format is the long one of `data/README.md`: one row per motor per sample, a header
 //! line naming the columns, empty cells for missing values. A directory is read as a sequence of
 //! runs (its `.csv` files in name order, which is time order for time-stamped names); each run
 //! starts a new segment, since nothing is known about the robot between two runs.
@@ -249,6 +249,47 @@ pub fn load(path: &Path) -> Result<Dataset, DataError> {
     Dataset::from_runs(runs, meta, &path.display().to_string())
 }
 
+/// Finds where a motor's clock steps back in file order (an NTP correction, a logger restarted
+/// without a new file) and shifts that motor's later rows forward so its time runs on, one
+/// sample period after the last reading before the jump: sorted by time, the rows after the
+/// jump would otherwise be interleaved with those before it. A file sorted by motor is no
+/// jump (each motor's own rows are followed). Returns one finding per run with a jump.
+fn repair_clock(name: &str, rows: &mut [Row]) -> Option<crate::audit::Finding> {
+    // Per motor: the last time read (after shifts), the shift in force, its periods.
+    let mut last: BTreeMap<i64, (f64, f64, Vec<f64>)> = BTreeMap::new();
+    let mut jumps: Vec<(usize, f64, f64)> = Vec::new();
+    for (n, r) in rows.iter_mut().enumerate() {
+        let e = last
+            .entry(r.motor)
+            .or_insert((f64::NEG_INFINITY, 0.0, Vec::new()));
+        let t = r.t + e.1;
+        if t < e.0 {
+            let mut periods = e.2.clone();
+            periods.sort_by(f64::total_cmp);
+            let period = periods.get(periods.len() / 2).copied().unwrap_or(0.0);
+            let back = e.0 - t + period;
+            e.1 += back;
+            jumps.push((n + 1, back, e.0));
+        } else if e.0.is_finite() && e.2.len() < 64 {
+            e.2.push(t - e.0);
+        }
+        r.t += e.1;
+        e.0 = r.t;
+    }
+    let (row, back, at) = *jumps.first()?;
+    Some(crate::audit::Finding {
+        column: "t_s",
+        kind: "clock_jump",
+        action: "fixed",
+        detail: format!(
+            "{name}: the clock steps back {back:.3} s after t = {at:.3} s (data row {row}); \
+             {} backward step(s) in all (one per motor per jump): each motor's later rows \
+             shifted forward to run on from its last reading",
+            jumps.len()
+        ),
+    })
+}
+
 /// Measured data on one time grid: `[motor][sample]`, NaN where a value is missing.
 #[derive(Debug, Clone, Default)]
 pub struct Dataset {
@@ -281,6 +322,8 @@ pub struct Dataset {
     pub temperature_quantum: f64,
     /// How the input was adapted (runs joined, columns absent), for the report.
     pub notes: Vec<String>,
+    /// The clock's backward jumps found (and repaired) while reading, in row order.
+    pub clock_findings: Vec<crate::audit::Finding>,
 }
 
 /// A gap longer than this many median sample periods (and than [`MIN_SEGMENT_GAP_S`]) starts a
@@ -297,6 +340,14 @@ impl Dataset {
         meta: Meta,
         origin: &str,
     ) -> Result<Self, DataError> {
+        let mut clock_findings = Vec::new();
+        let runs: Vec<(String, Vec<Row>)> = runs
+            .into_iter()
+            .map(|(name, mut rows)| {
+                clock_findings.extend(repair_clock(&name, &mut rows));
+                (name, rows)
+            })
+            .collect();
         let mut motors: Vec<i64> = runs
             .iter()
             .flat_map(|(_, r)| r.iter().map(|r| r.motor))
@@ -317,6 +368,7 @@ impl Dataset {
         let nm = motors.len();
         let mut d = Dataset {
             motors: motors.clone(),
+            clock_findings,
             ..Default::default()
         };
         let mut offset = 0.0;
@@ -499,7 +551,7 @@ pub fn has_values(col: &[Vec<f64>]) -> bool {
 }
 
 /// The smallest non-zero step between distinct readings (the register's resolution).
-fn quantum(col: &[Vec<f64>]) -> f64 {
+pub(crate) fn quantum(col: &[Vec<f64>]) -> f64 {
     let mut vals: Vec<f64> = col
         .iter()
         .flatten()

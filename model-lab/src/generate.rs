@@ -17,7 +17,7 @@ use std::fmt::Write as _;
 /// in the catalog's unit.
 pub fn size_range(effect: Effect) -> (f64, f64) {
     match effect {
-        Effect::None => (0.0, 0.0),
+        Effect::None | Effect::Unexplained => (0.0, 0.0),
         Effect::SensorLag => (30.0, 240.0),
         Effect::NeighborCoupling => (0.15, 1.0),
         // Copper's 0.393 %/K is inside.
@@ -32,11 +32,43 @@ fn signed(effect: Effect) -> bool {
     matches!(effect, Effect::AmbientDrift | Effect::CurrentOffset)
 }
 
+/// Effects the catalog has no entry for: hidden in data, the lab must answer `unexplained`
+/// (never a catalog name).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Foreign {
+    /// The cooling changes part-way (a fan stops, the servo is re-mounted): from a random time
+    /// in the record's second half every motor's copper-loss gain is 40–80 % higher.
+    CoolingLoss,
+    /// An unlogged heat source (a board's regulator) warms one motor by 6–12 K at equilibrium,
+    /// on and off with a random period of 20–60 min.
+    HiddenHeater,
+}
+
+impl Foreign {
+    /// Every foreign effect.
+    pub const ALL: [Foreign; 2] = [Foreign::CoolingLoss, Foreign::HiddenHeater];
+
+    /// Its name.
+    pub fn id(self) -> &'static str {
+        match self {
+            Foreign::CoolingLoss => "cooling_loss",
+            Foreign::HiddenHeater => "hidden_heater",
+        }
+    }
+
+    /// The foreign effect of a name.
+    pub fn from_id(id: &str) -> Option<Foreign> {
+        Foreign::ALL.into_iter().find(|f| f.id() == id)
+    }
+}
+
 /// What to generate.
 #[derive(Debug, Clone)]
 pub struct Spec {
     /// The hidden effect.
     pub effect: Effect,
+    /// An effect outside the catalog, hidden as well.
+    pub foreign: Option<Foreign>,
     /// Its size (catalog unit); drawn from [`size_range`] when None.
     pub size: Option<f64>,
     /// Recording length, s.
@@ -52,6 +84,7 @@ impl Spec {
     pub fn new(effect: Effect) -> Self {
         Spec {
             effect,
+            foreign: None,
             size: None,
             duration_s: 7200.0,
             period_s: 1.0,
@@ -65,6 +98,8 @@ impl Spec {
 pub struct Truth {
     /// The hidden effect.
     pub effect: Effect,
+    /// The hidden effect outside the catalog, if any.
+    pub foreign: Option<Foreign>,
     /// Its parameter, named like the lab names it.
     pub parameter: Option<Parameter>,
     /// Motors.
@@ -153,6 +188,22 @@ pub fn generate(spec: &Spec, seed: u64) -> Generated {
     let mut w: Vec<f64> = (0..n).map(|m| idle[m] + warm[m]).collect();
     let mut s = w.clone();
     let size_of = |e: Effect| if effect == e { size } else { 0.0 };
+    // The foreign effect draws from a generator of its own: the same seed without it gives the
+    // same data as before it existed.
+    let mut frng = Rng::new(seed ^ 0x666F_7265_6967_6E00);
+    let duration = steps as f64 * spec.period_s;
+    let (loss_from_s, loss) = match spec.foreign {
+        Some(Foreign::CoolingLoss) => (frng.range(0.5, 0.9) * duration, frng.range(0.4, 0.8)),
+        _ => (f64::INFINITY, 0.0),
+    };
+    let (heated, heater_k, heater_period_s) = match spec.foreign {
+        Some(Foreign::HiddenHeater) => (
+            frng.int(0, n - 1),
+            frng.range(6.0, 12.0),
+            frng.range(1200.0, 3600.0),
+        ),
+        _ => (usize::MAX, 0.0, 1.0),
+    };
     let (lag, kappa, alpha, drift_h) = (
         size_of(Effect::SensorLag),
         size_of(Effect::NeighborCoupling),
@@ -162,9 +213,14 @@ pub fn generate(spec: &Spec, seed: u64) -> Generated {
     let deriv = |t: f64, w: &[f64], s: &[f64], k: usize, dw: &mut [f64], ds: &mut [f64]| {
         for m in 0..n {
             let i = current[m][k];
-            let mut heat =
-                idle[m] + drift_h * t / 3600.0 + gain[m] * (1.0 + alpha * (w[m] - 25.0)) * i * i
-                    - w[m];
+            let cooling = if t >= loss_from_s { 1.0 + loss } else { 1.0 };
+            let mut heat = idle[m]
+                + drift_h * t / 3600.0
+                + cooling * gain[m] * (1.0 + alpha * (w[m] - 25.0)) * i * i
+                - w[m];
+            if m == heated && (t / heater_period_s).fract() < 0.5 {
+                heat += heater_k;
+            }
             if kappa != 0.0 {
                 if m > 0 {
                     heat += kappa * (w[m - 1] - w[m]);
@@ -245,6 +301,7 @@ pub fn generate(spec: &Spec, seed: u64) -> Generated {
         meta,
         truth: Truth {
             effect,
+            foreign: spec.foreign,
             parameter: effect.parameter().map(|(name, unit)| Parameter {
                 name: name.into(),
                 value: size,

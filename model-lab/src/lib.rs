@@ -11,6 +11,8 @@
 //! * [`electrical`]: the supply voltage channel (constant supply, or sagging with bus current).
 //! * [`catalog`]: the extensions (`sensor_lag`, `neighbor_coupling`, `copper_tempco`,
 //!   `ambient_drift`, `supply_sag`, `current_offset`) and `none`.
+//! * [`audit`]: data that lie — channels against the servo's physical ranges and unit
+//!   mistakes (fixed when unambiguous, refused when nonsense), stuck sensors, clock jumps.
 //! * [`analysis`]: split, calibrate, misfit statistics, the tests that decide the cause.
 //! * [`fit`]: Levenberg–Marquardt aware of per-motor block structure.
 //! * [`stats`]: RMSE, bias, autocorrelation, Ljung–Box, χ².
@@ -21,6 +23,7 @@
 //! The model file the lab writes is [`sim::extension::ModelExtension`], which the simulator loads.
 
 pub mod analysis;
+pub mod audit;
 pub mod bench;
 pub mod catalog;
 pub mod data;

@@ -27,7 +27,7 @@ enum ModelCommand {
 /// Options of `nori model analyze`.
 #[derive(Args, Debug)]
 struct AnalyzeArgs {
-    /// Telemetry CSV (shared/data/README.md format), or a directory of them (one run each).
+    /// Telemetry CSV (data/README.md format), or a directory of them (one run each).
     data: PathBuf,
     /// Print one JSON object instead of the summary.
     #[arg(long)]
@@ -63,6 +63,9 @@ struct GenerateArgs {
     /// Effect size in the catalog unit (random in the generator's range when absent).
     #[arg(long)]
     size: Option<f64>,
+    /// Also hide an effect outside the catalog: cooling_loss or hidden_heater.
+    #[arg(long)]
+    foreign: Option<String>,
     /// Motors (random 2..=8 when absent).
     #[arg(long)]
     motors: Option<usize>,
@@ -100,6 +103,14 @@ fn run_analyze(a: &AnalyzeArgs) -> Result<()> {
             resistance_ohm: rating.rated_voltage / rating.stall_current_a,
             ke_v_s_per_rad: rating.rated_voltage / rating.no_load_speed_rad_s,
         }),
+        limits: model_lab::audit::Limits {
+            stall_current_a: rating.stall_current_a,
+            // Feetech's 12 V servos take up to 14.8 V (a charged 4S pack); margin for a
+            // charger's ripple.
+            max_supply_v: 1.4 * rating.rated_voltage,
+            max_speed_rad_s: 3.0 * rating.no_load_speed_rad_s,
+            ..model_lab::audit::Limits::default()
+        },
         ..Options::default()
     };
     let data = model_lab::load(&a.data)?;
@@ -146,6 +157,34 @@ fn run_analyze(a: &AnalyzeArgs) -> Result<()> {
     for p in &an.parameters {
         println!("  {} = {:.4} {}", p.name, p.value, p.unit);
     }
+    for f in &an.diagnostics.audit {
+        println!(
+            "  data: {} {} ({}): {}",
+            f.column, f.action, f.kind, f.detail
+        );
+    }
+    for v in &an.diagnostics.verdicts {
+        println!(
+            "  judged {:?} after {}: {}",
+            v.channel,
+            v.extension.map_or("none", |e| e.id()),
+            v.judged
+        );
+    }
+    if let Some(u) = &an.unexplained {
+        let r: Vec<String> = u
+            .strongest_regressors
+            .iter()
+            .map(|(k, r)| format!("{k} {r:+.2}"))
+            .collect();
+        println!("  unexplained: the residual follows {}", r.join(", "));
+        if let Some((m, rmse, bias)) = u.motors.first() {
+            println!(
+                "  worst motor {m}: RMSE {rmse:.3} {u}, bias {bias:+.3} {u}",
+                u = an.unit
+            );
+        }
+    }
     for c in &an.diagnostics.candidates {
         println!(
             "  tried {:18} gain {:+6.1} %  ΔBIC {:10.1}  {}",
@@ -162,8 +201,15 @@ fn run_generate(a: &GenerateArgs) -> Result<()> {
     let Some(effect) = Effect::from_id(&a.effect) else {
         bail!("unknown effect {:?}", a.effect);
     };
+    let foreign = match &a.foreign {
+        None => None,
+        Some(f) => Some(model_lab::generate::Foreign::from_id(f).with_context(|| {
+            format!("unknown foreign effect {f:?} (cooling_loss, hidden_heater)")
+        })?),
+    };
     let spec = Spec {
         effect,
+        foreign,
         size: a.size,
         duration_s: a.duration_s,
         period_s: a.period_s,

@@ -6,6 +6,11 @@ use crate::analysis::{Analysis, Traces, LJUNG_BOX_LAGS};
 use crate::stats;
 use std::fmt::Write as _;
 
+/// Colours of per-motor series.
+const PALETTE: [&str; 8] = [
+    "#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22",
+];
+
 /// One line of a plot.
 struct Series<'a> {
     name: &'a str,
@@ -229,6 +234,88 @@ pub fn render(a: &Analysis, tr: &Traces, source: &str) -> Vec<(String, String)> 
     }
     let _ = writeln!(
         md,
+        "\nHow it was judged (the misfit left on each channel against its noise floor):\n"
+    );
+    for v in &d.verdicts {
+        let _ = writeln!(
+            md,
+            "- {:?}, after `{}`: {} — **{}**",
+            v.channel,
+            v.extension.map_or("none", |e| e.id()),
+            v.judged,
+            if v.significant {
+                "beyond the noise"
+            } else {
+                "within the noise"
+            }
+        );
+    }
+    if let Some(u) = &a.unexplained {
+        let _ = writeln!(
+            md,
+            "\n## What is left unexplained ({:?} channel)\n",
+            u.channel
+        );
+        if u.partial.is_empty() {
+            let _ = writeln!(md, "No catalog extension reduces it.\n");
+        } else {
+            for (e, gain) in &u.partial {
+                let _ = writeln!(
+                    md,
+                    "- `{e}` reduces it ({:+.1} % held-out) but leaves it beyond the noise",
+                    100.0 * gain
+                );
+            }
+        }
+        let _ = writeln!(md, "\nThe nominal residual follows most:\n");
+        for (k, r) in &u.strongest_regressors {
+            let _ = writeln!(md, "- {k}: r = {r:+.3}");
+        }
+        let _ = writeln!(md, "\n| motor | held-out RMSE | bias |\n|---|---|---|");
+        for (m, r, b) in &u.motors {
+            let _ = writeln!(md, "| {m} | {r:.3} {u} | {b:+.3} {u} |", u = a.unit);
+        }
+        let _ = writeln!(md, "\n| held-out span (s) | RMSE | bias |\n|---|---|---|");
+        for (t0, t1, r, b) in &u.time_course {
+            let _ = writeln!(
+                md,
+                "| {t0:.0}–{t1:.0} | {r:.3} {u} | {b:+.3} {u} |",
+                u = a.unit
+            );
+        }
+        let names: Vec<String> = tr
+            .series
+            .iter()
+            .map(|s| format!("motor {}", s.motor))
+            .collect();
+        let series: Vec<Series> = tr
+            .series
+            .iter()
+            .enumerate()
+            .map(|(i, s)| Series {
+                name: &names[i],
+                color: PALETTE[i % PALETTE.len()],
+                points: thin(
+                    (tr.split..tr.t.len())
+                        .map(|k| (tr.t[k], s.nominal[k] - s.measured[k]))
+                        .collect(),
+                    2000,
+                ),
+                dots: true,
+            })
+            .collect();
+        let svg = plot(
+            "held-out residual of the nominal model (prediction − reading), per motor",
+            "t (s)",
+            tr.unit,
+            &series,
+            None,
+        );
+        let _ = writeln!(md, "\n![held-out residual](residual.svg)\n");
+        files.push(("residual.svg".into(), svg));
+    }
+    let _ = writeln!(
+        md,
         "\n{} samples of {} motors, {:.0} s in {} segment(s); held out from t = {:.0} s. \
          Glitches rejected: {}, missing readings: {}. Temperature register step {:.4} °C{}.\n",
         d.samples,
@@ -267,16 +354,19 @@ pub fn render(a: &Analysis, tr: &Traces, source: &str) -> Vec<(String, String)> 
     }
     let _ = writeln!(
         md,
-        "\n## Extensions tried\n\n| id | parameter | LR | p | ΔBIC | held-out RMSE | gain | held-out slope (t) | verdict |\n|---|---|---|---|---|---|---|---|---|"
+        "\n## Extensions tried\n\n| id | parameter | physics allows | LR | p | ΔBIC | held-out RMSE | gain | held-out slope (t) | correction (matters from) | verdict |\n|---|---|---|---|---|---|---|---|---|---|---|"
     );
     for c in &d.candidates {
         let par = c
             .parameter
             .as_ref()
             .map_or("–".into(), |p| format!("{:.4} {}", p.value, p.unit));
+        let range = c
+            .bounds
+            .map_or("–".into(), |(lo, hi)| format!("{lo} to {hi}"));
         let _ = writeln!(
             md,
-            "| `{}` | {par} | {:.1} | {:.1e} | {:.1} | {:.4} | {:+.1} % | {:.2} ({:.2}) | {} |",
+            "| `{}` | {par} | {range} | {:.1} | {:.1e} | {:.1} | {:.4} | {:+.1} % | {:.2} ({:.2}) | {:.4} ({:.4}) | {} |",
             c.id,
             c.lr,
             c.p_value,
@@ -285,6 +375,8 @@ pub fn render(a: &Analysis, tr: &Traces, source: &str) -> Vec<(String, String)> 
             100.0 * c.gain,
             c.heldout_slope,
             c.heldout_slope_t,
+            c.heldout_change,
+            c.required_change,
             c.verdict
         );
     }
@@ -312,9 +404,6 @@ pub fn render(a: &Analysis, tr: &Traces, source: &str) -> Vec<(String, String)> 
     let _ = writeln!(md, "\n## Plots\n");
     let split_t = tr.t.get(tr.split).copied();
     let mut acf_series = Vec::new();
-    let palette = [
-        "#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22",
-    ];
     for (i, s) in tr.series.iter().enumerate() {
         let xy = |v: &[f64]| -> Vec<(f64, f64)> {
             tr.t.iter().copied().zip(v.iter().copied()).collect()
@@ -360,7 +449,7 @@ pub fn render(a: &Analysis, tr: &Traces, source: &str) -> Vec<(String, String)> 
         let acf_e = stats::autocorrelation(&ext, lags);
         acf_series.push((
             s.motor,
-            palette[i % palette.len()],
+            PALETTE[i % PALETTE.len()],
             acf.into_iter()
                 .enumerate()
                 .map(|(k, v)| (k as f64, v))

@@ -81,7 +81,7 @@ pub struct ThermalModel<'a> {
 const BOUNDS_LN_TAU: (f64, f64) = (0.0, 14.0); // 1 s .. 1.2e6 s
 
 fn ext_count(effect: Effect) -> usize {
-    usize::from(effect != Effect::None)
+    usize::from(!matches!(effect, Effect::None | Effect::Unexplained))
 }
 
 /// Admissible range of the extension parameter in its fitted form. Sensor lag is fitted as
@@ -94,7 +94,7 @@ fn ext_bounds(effect: Effect) -> (f64, f64) {
         Effect::CopperTempco => (-3.0, 3.0),
         Effect::AmbientDrift => (-50.0, 50.0),
         Effect::CurrentOffset => (-5.0, 5.0),
-        Effect::None | Effect::SupplySag => (0.0, 0.0),
+        Effect::None | Effect::Unexplained | Effect::SupplySag => (0.0, 0.0),
     }
 }
 
@@ -107,7 +107,7 @@ fn ext_starts(effect: Effect) -> &'static [f64] {
         Effect::CopperTempco => &[0.0, 0.5, -0.5],
         Effect::AmbientDrift => &[0.0],
         Effect::CurrentOffset => &[0.0, 0.3, -0.3],
-        Effect::None | Effect::SupplySag => &[0.0],
+        Effect::None | Effect::Unexplained | Effect::SupplySag => &[0.0],
     }
 }
 
@@ -293,7 +293,7 @@ impl<'a> ThermalModel<'a> {
     pub fn decode(&self, p: &[f64]) -> ThermalParams {
         let n = self.data.n();
         let ext = match self.effect {
-            Effect::None => f64::NAN,
+            Effect::None | Effect::Unexplained => f64::NAN,
             Effect::SensorLag => p[0].exp(),
             _ => p[0],
         };

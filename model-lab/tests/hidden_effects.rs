@@ -189,3 +189,110 @@ fn the_simulator_loads_the_fitted_extension_and_behaves_differently() {
         "neighbour of a hot servo: {extended} °C extended vs {nominal} °C nominal"
     );
 }
+
+/// Effects the catalog has no entry for are `unexplained`, never a catalog name: the misfit
+/// left is beyond the noise floor, and the report shows what can be seen of it.
+#[test]
+fn an_effect_outside_the_catalog_is_unexplained_with_its_structure() {
+    use model_lab::generate::Foreign;
+    for (foreign, seed) in [(Foreign::CoolingLoss, 44), (Foreign::HiddenHeater, 42)] {
+        let g = generate(
+            &Spec {
+                foreign: Some(foreign),
+                ..spec(Effect::None, None, 3)
+            },
+            seed,
+        );
+        let (a, model) = run(&g);
+        assert_eq!(
+            a.cause,
+            Effect::Unexplained,
+            "{}: {:#?}",
+            foreign.id(),
+            a.diagnostics.verdicts
+        );
+        assert!(a.parameters.is_empty());
+        assert_eq!(model.cause, "unexplained");
+        let thermal = &a.diagnostics.verdicts[0];
+        assert!(thermal.significant && thermal.judged.contains("noise floors"));
+        let u = a.unexplained.as_ref().unwrap();
+        assert_eq!(u.time_course.len(), 10);
+        assert_eq!(u.motors.len(), 3);
+        assert_eq!(u.strongest_regressors.len(), 3);
+        // The hidden heater warms one motor: it is the worst.
+        if foreign == Foreign::HiddenHeater {
+            assert!(u.motors[0].1 > 2.0 * u.motors[1].1, "{:?}", u.motors);
+        }
+        let files = model_lab::report::render(&a, &run_traces(&g), "x");
+        let md = &files[0].1;
+        assert!(md.contains("What is left unexplained") && md.contains("residual.svg"));
+        assert!(files.iter().any(|(n, _)| n == "residual.svg"));
+    }
+}
+
+fn run_traces(g: &Generated) -> model_lab::analysis::Traces {
+    let d = g.dataset().unwrap();
+    analyze(d, &Options::default(), &mut |_| {}).unwrap().traces
+}
+
+/// A fit outside what the effect's physics allows is refused whatever its statistics, and
+/// an extension that changes the held-out predictions by less than matters is refused too;
+/// both figures are in every candidate.
+#[test]
+fn implausible_and_negligible_extensions_are_refused() {
+    let g = generate(&spec(Effect::None, None, 4), 23);
+    let (a, _) = run(&g);
+    let sag = a
+        .diagnostics
+        .candidates
+        .iter()
+        .find(|c| c.id == Effect::SupplySag)
+        .unwrap();
+    // Null data: a supply resistance of micro-ohms, below any wiring's.
+    assert!(sag.parameter.as_ref().unwrap().value.abs() < 0.005);
+    assert!(!sag.plausible && sag.verdict.contains("outside what its physics allows"));
+    for c in &a.diagnostics.candidates {
+        let (lo, hi) = c.bounds.unwrap();
+        let v = c.parameter.as_ref().unwrap().value;
+        assert_eq!(c.plausible, (lo..=hi).contains(&v), "{c:?}");
+        assert!(c.required_change > 0.0 && c.heldout_change.is_finite());
+    }
+    assert!(a.diagnostics.verdicts.iter().all(|v| !v.significant));
+    // The generator's sizes all lie where the lab's bounds allow; copper's own value too.
+    for e in Effect::CATALOG {
+        let (lo, hi, _) = e.bounds().unwrap();
+        let (a, b) = model_lab::generate::size_range(e);
+        assert!(lo <= a && b <= hi, "{e}");
+    }
+    let (lo, hi, _) = Effect::CopperTempco.bounds().unwrap();
+    assert!(lo < 0.393 && 0.393 < hi);
+}
+
+/// A current logged in milliamperes is found, converted and said, and the hidden effect is
+/// still named with its parameter.
+#[test]
+fn a_current_in_milliamps_is_converted_and_the_effect_still_named() {
+    let g = generate(&spec(Effect::CurrentOffset, Some(0.15), 3), 43);
+    let mut lines = g.csv.lines();
+    let mut csv = format!("{}\n", lines.next().unwrap());
+    for l in lines {
+        let mut cells: Vec<String> = l.split(',').map(str::to_string).collect();
+        let a: f64 = cells[4].parse().unwrap();
+        cells[4] = format!("{:.1}", a * 1000.0);
+        csv.push_str(&cells.join(","));
+        csv.push('\n');
+    }
+    let dirty = Generated { csv, ..g.clone() };
+    let (a, _) = run(&dirty);
+    let audit = &a.diagnostics.audit;
+    assert_eq!(audit.len(), 1, "{audit:#?}");
+    assert_eq!((audit[0].kind, audit[0].action), ("milliamps", "fixed"));
+    assert_eq!(
+        a.cause,
+        Effect::CurrentOffset,
+        "{:#?}",
+        a.diagnostics.candidates
+    );
+    let p = a.parameters[0].value;
+    assert!((p - 0.15).abs() < 0.15 * 0.15, "{p}");
+}

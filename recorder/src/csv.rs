@@ -1,5 +1,5 @@
 //! Export of recorded episodes to the telemetry CSV format the model lab reads
-//! (`shared/data/README.md`: long format, one row per motor per sample, empty cells for missing
+//! (`data/README.md`: long format, one row per motor per sample, empty cells for missing
 //! samples: a joint `observation.joint_valid` marks as held), one file per episode with its
 //! `NAME.meta.json` sidecar.
 //!
