@@ -16,6 +16,9 @@ pub struct BenchArgs {
     /// Seeds per size step of the detection-limit sweep (0: skip the sweep).
     #[arg(long, default_value_t = 20)]
     sweep_seeds: u64,
+    /// Seeds per motion effect (generated runs through the motion channel; 0: skip it).
+    #[arg(long, default_value_t = 50)]
+    motion_seeds: u64,
     /// Worker threads.
     #[arg(long, default_value_t = 2)]
     jobs: usize,
@@ -85,8 +88,12 @@ pub fn run_bench(a: &BenchArgs) -> Result<()> {
         sweep_seeds: a.sweep_seeds,
         jobs: a.jobs,
         effects: only,
+        motion_seeds: a.motion_seeds,
         ..Default::default()
     };
+    if !a.no_timing {
+        motion_timing();
+    }
     let report = model_lab::bench::run(&settings, &mut |l| eprintln!("{l}"));
     if a.json {
         let mut v = serde_json::to_value(&report)?;
@@ -172,4 +179,41 @@ pub fn run_bench(a: &BenchArgs) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// The motion channel's replay of a 6 s run (the goal: ≤ 50 ms) next to its baseline in the
+/// same run: the simulator's servo stepped bare for the same 6 s (no log to follow, no load).
+fn motion_timing() {
+    use model_lab::motion::{simulate, MotionParams, MotionRun, SIM_DT_S};
+    let g = model_lab::generate::generate_motion(Effect::None, 7);
+    let robot = sim::RobotDescription::nori_a3();
+    let (Ok(d), Some(rating)) = (g.dataset(), robot.rating("sts3250")) else {
+        return;
+    };
+    let runs = MotionRun::from_dataset(&d, rating.rated_voltage);
+    let p = MotionParams::default();
+    let repeats = 20;
+    let t = Instant::now();
+    for _ in 0..repeats {
+        for r in &runs {
+            std::hint::black_box(simulate(rating, &p, r));
+        }
+    }
+    let replay = t.elapsed().as_secs_f64() / (repeats * runs.len()) as f64;
+    let t = Instant::now();
+    for _ in 0..repeats * runs.len() {
+        let mut s = sim::servo::Servo::new(1, rating.model, rating, 0.0, 25.0);
+        for _ in 0..(6.0 / SIM_DT_S) as usize {
+            s.step(SIM_DT_S, 0.0, 0.0, 25.0, 1.0);
+        }
+        std::hint::black_box(s.angle);
+    }
+    let bare = t.elapsed().as_secs_f64() / (repeats * runs.len()) as f64;
+    println!(
+        "motion: a 6 s run replayed in {:.2} ms (goal ≤ 50 ms); the servo stepped bare for 6 s: \
+         {:.2} ms; ratio {:.2}",
+        1e3 * replay,
+        1e3 * bare,
+        replay / bare
+    );
 }

@@ -56,6 +56,7 @@ use crate::audit::{self, Finding};
 use crate::catalog::{Channel, Effect};
 use crate::data::{self, Cleaning, Dataset};
 use crate::electrical::{self, CurrentEstimator, ElectricalData, ElectricalFit};
+use crate::motion::{self, MotionAnalysis, MotionRun};
 use crate::register::Register;
 use crate::stats;
 use crate::thermal::{
@@ -107,6 +108,9 @@ pub enum AnalysisError {
          it){}", if .0.is_empty() { String::new() } else { format!("; refused: {}", .0) }
     )]
     NoChannel(String),
+    /// The servo model is not in the robot description.
+    #[error("unknown servo model {0:?} (sts3215, sts3250, sts3095)")]
+    UnknownServo(String),
     /// The split leaves a part empty.
     #[error("split fraction {0} leaves no fitting or no held-out data")]
     BadSplit(f64),
@@ -123,6 +127,8 @@ pub struct Options {
     pub candidates: Vec<Effect>,
     /// The physical ranges the data are checked against before anything is fitted.
     pub limits: audit::Limits,
+    /// The servo model (`sim`'s description) the motion channel replays runs through.
+    pub servo: String,
 }
 
 impl Default for Options {
@@ -130,8 +136,12 @@ impl Default for Options {
         Options {
             fit_fraction: 0.7,
             estimator: None,
-            candidates: Effect::CATALOG.to_vec(),
+            candidates: Effect::CATALOG
+                .into_iter()
+                .chain(motion::MOTION_CATALOG)
+                .collect(),
             limits: audit::Limits::default(),
+            servo: "sts3215".into(),
         }
     }
 }
@@ -412,6 +422,11 @@ pub struct Analysis {
     pub motors: Vec<MotorFigures>,
     /// When the cause is `unexplained`: what the lab can see of the misfit.
     pub unexplained: Option<Unexplained>,
+    /// Every cause named, one per channel that names one (thermal or electrical first, then
+    /// motion): the effects found together.
+    pub causes: Vec<Effect>,
+    /// The motion channel, when the data carry runs it can replay.
+    pub motion: Option<MotionAnalysis>,
     /// Diagnostics.
     pub diagnostics: Diagnostics,
 }
@@ -640,7 +655,19 @@ pub fn analyze(
     let cleaning = data::reject_glitches(&mut d);
     let td = thermal_data(&d, split);
     let ed = ElectricalData::new(&d, split, opts.estimator);
-    if td.is_none() && ed.is_none() {
+    let robot = sim::RobotDescription::nori_a3();
+    let rating = robot
+        .rating(&opts.servo)
+        .ok_or_else(|| AnalysisError::UnknownServo(opts.servo.clone()))?;
+    let motion_runs = MotionRun::from_dataset(&d, rating.rated_voltage);
+    let motion = motion::analyze_motion(
+        rating,
+        &opts.servo,
+        &motion_runs,
+        &opts.candidates,
+        progress,
+    );
+    if td.is_none() && ed.is_none() && motion.is_none() {
         return Err(AnalysisError::NoChannel(
             audit
                 .iter()
@@ -841,12 +868,17 @@ pub fn analyze(
     let cause = match (left_over, &chosen) {
         (Some(_), _) => Effect::Unexplained,
         (None, Some(c)) => c.id,
+        // Motion alone: its answer.
+        (None, None) if td.is_none() && ed.is_none() => {
+            motion.as_ref().map_or(Effect::None, |m| m.cause)
+        }
         (None, None) => Effect::None,
     };
     let unexplained = left_over.map(|v| {
         let misfit = match v.channel {
             Channel::Thermal => thermal_misfit.as_ref(),
             Channel::Electrical => elec_misfit.as_ref(),
+            Channel::Motion => None,
         };
         let held = nominal_held
             .iter()
@@ -964,6 +996,11 @@ pub fn analyze(
     let (baseline, extended, unit) = match channel {
         Channel::Thermal => (base_c, ext_c, "°C"),
         Channel::Electrical => (base_v, ext_v, "V"),
+        Channel::Motion => (
+            motion.as_ref().map(|m| m.nominal_mae_rad),
+            motion.as_ref().map(|m| m.chosen_mae_rad),
+            "rad",
+        ),
     };
     let (baseline, extended) = (baseline.unwrap_or(f64::NAN), extended.unwrap_or(f64::NAN));
     let parameters = chosen
@@ -972,7 +1009,10 @@ pub fn analyze(
         .into_iter()
         .collect();
     let segs = d.segments();
-    let model = model_file(&d, &td, &thermal_nominal, &chosen_fit, &chosen);
+    let mut model = model_file(&d, &td, &thermal_nominal, &chosen_fit, &chosen);
+    if let Some(m) = &motion {
+        m.write_extension(&mut model);
+    }
     let analysis = Analysis {
         cause,
         description: cause.describe(),
@@ -990,6 +1030,12 @@ pub fn analyze(
         },
         motors,
         unexplained,
+        causes: [Some(cause), motion.as_ref().map(|m| m.cause)]
+            .into_iter()
+            .flatten()
+            .filter(|c| *c != Effect::None)
+            .collect(),
+        motion,
         diagnostics: Diagnostics {
             samples: n,
             motors: d.motors.len(),

@@ -34,6 +34,8 @@ pub struct Settings {
     pub jobs: usize,
     /// Hidden effects to score (`none` included); empty: `none` and the whole catalog.
     pub effects: Vec<Effect>,
+    /// Seeds per motion effect (generated runs through the motion channel; 0: none).
+    pub motion_seeds: u64,
 }
 
 impl Default for Settings {
@@ -46,6 +48,7 @@ impl Default for Settings {
             period_s: 1.0,
             jobs: 1,
             effects: Vec::new(),
+            motion_seeds: 50,
         }
     }
 }
@@ -113,6 +116,103 @@ pub struct Report {
     pub effects: Vec<EffectScore>,
     /// Total wall time, s.
     pub seconds: f64,
+}
+
+/// Scores the motion channel on `effect` over `settings.motion_seeds` seeds.
+fn motion_score(
+    effect: Effect,
+    settings: &Settings,
+    progress: &mut dyn FnMut(&str),
+) -> EffectScore {
+    let next = std::sync::atomic::AtomicU64::new(0);
+    let out = std::sync::Mutex::new(Vec::new());
+    std::thread::scope(|scope| {
+        for _ in 0..settings.jobs.max(1) {
+            scope.spawn(|| loop {
+                let seed = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                if seed >= settings.motion_seeds {
+                    break;
+                }
+                let g = crate::generate::generate_motion(effect, seed);
+                let t = Instant::now();
+                let opts = Options {
+                    servo: "sts3250".into(),
+                    ..Options::default()
+                };
+                let m = g
+                    .dataset()
+                    .ok()
+                    .and_then(|d| analyze(d, &opts, &mut |_| {}).ok())
+                    .and_then(|o| o.analysis.motion);
+                let named = m.as_ref().map_or(Effect::None, |m| m.cause);
+                // The parameter that carries the effect: the largest (the directional
+                // friction's strong side).
+                let i = (0..g.parameters.len())
+                    .max_by(|&a, &b| g.parameters[a].abs().total_cmp(&g.parameters[b].abs()))
+                    .unwrap_or(0);
+                let recovered = m.as_ref().and_then(|m| {
+                    (named == effect)
+                        .then(|| m.candidates.iter().find(|c| c.id == effect))
+                        .flatten()
+                        .and_then(|c| c.parameters.get(2 + i).map(|p| p.value))
+                });
+                let run = Run {
+                    seed,
+                    size: g.parameters.get(i).copied().unwrap_or(0.0),
+                    named,
+                    recovered,
+                    motors: 1,
+                    seconds: t.elapsed().as_secs_f64(),
+                };
+                if let Ok(mut o) = out.lock() {
+                    o.push(run);
+                }
+            });
+        }
+    });
+    let mut runs = out.into_inner().unwrap_or_default();
+    runs.sort_by_key(|r| r.seed);
+    let n = runs.len().max(1) as f64;
+    let mut errors: Vec<f64> = runs
+        .iter()
+        .filter(|r| r.named == effect)
+        .filter_map(|r| r.recovered.map(|v| ((v - r.size) / r.size).abs()))
+        .collect();
+    errors.sort_by(f64::total_cmp);
+    let mut confusions: Vec<(Effect, usize)> = Vec::new();
+    for r in runs.iter().filter(|r| r.named != effect) {
+        match confusions.iter_mut().find(|(e, _)| *e == r.named) {
+            Some(c) => c.1 += 1,
+            None => confusions.push((r.named, 1)),
+        }
+    }
+    let score = EffectScore {
+        hidden: if effect == Effect::None {
+            "none (motion)"
+        } else {
+            effect.id()
+        },
+        effect,
+        size_range: crate::generate::motion_size_range(effect),
+        unit: effect.parameter().map_or("", |p| p.1),
+        runs: runs.len(),
+        accuracy: runs.iter().filter(|r| r.named == effect).count() as f64 / n,
+        recovered: errors.iter().filter(|e| **e <= PARAMETER_TOLERANCE).count() as f64 / n,
+        median_parameter_error: errors.get(errors.len() / 2).copied(),
+        confusions,
+        mean_seconds: runs.iter().map(|r| r.seconds).sum::<f64>() / n,
+        sweep: Vec::new(),
+        detection_limit: None,
+        detail: runs,
+    };
+    progress(&format!(
+        "{:18} accuracy {:5.1} %  parameter within {:.0} %: {:5.1} %",
+        score.hidden,
+        100.0 * score.accuracy,
+        100.0 * PARAMETER_TOLERANCE,
+        100.0 * score.recovered
+    ));
+    score
 }
 
 impl EffectScore {
@@ -325,6 +425,15 @@ pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
             ));
             effects.push(score);
         }
+    }
+    // The motion channel: generated runs hiding one mechanical effect (or none).
+    let motion_wanted = |e: Effect| settings.effects.is_empty() || settings.effects.contains(&e);
+    for effect in std::iter::once(Effect::None).chain(crate::motion::MOTION_CATALOG) {
+        if settings.motion_seeds == 0 || !motion_wanted(effect) {
+            continue;
+        }
+        let score = motion_score(effect, settings, progress);
+        effects.push(score);
     }
     Report {
         seeds: settings.seeds,

@@ -10,6 +10,8 @@ pub enum Channel {
     Thermal,
     /// The supply voltage seen by the servos, V.
     Electrical,
+    /// The output shaft's position, rad.
+    Motion,
 }
 
 /// One extension of the nominal model (or none).
@@ -32,10 +34,21 @@ pub enum Effect {
     CurrentOffset,
     /// The nominal model misses more than the data's noise and no catalog entry explains it.
     Unexplained,
+    /// Friction higher at rest than in motion (Stribeck): breakaway fading with speed.
+    Stribeck,
+    /// Friction proportional to the torque the gearbox carries.
+    LoadFriction,
+    /// Gearbox friction that differs between driving the load and being driven back by it.
+    DirectionalFriction,
+    /// The reflected (armature) inertia differs from the rating's.
+    ArmatureError,
+    /// The firmware's position-loop gain differs from the configured one.
+    FirmwareGain,
 }
 
 impl Effect {
-    /// Every extension, in the order they are tried.
+    /// Every thermal and electrical extension, in the order they are tried (the motion
+    /// channel's are [`crate::motion::MOTION_CATALOG`]).
     pub const CATALOG: [Effect; 6] = [
         Effect::SensorLag,
         Effect::NeighborCoupling,
@@ -56,6 +69,11 @@ impl Effect {
             Effect::SupplySag => "supply_sag",
             Effect::CurrentOffset => "current_offset",
             Effect::Unexplained => "unexplained",
+            Effect::Stribeck => "stribeck",
+            Effect::LoadFriction => "load_friction",
+            Effect::DirectionalFriction => "directional_friction",
+            Effect::ArmatureError => "armature_error",
+            Effect::FirmwareGain => "firmware_gain",
         }
     }
 
@@ -64,6 +82,7 @@ impl Effect {
         [Effect::None, Effect::Unexplained]
             .into_iter()
             .chain(Effect::CATALOG)
+            .chain(crate::motion::MOTION_CATALOG)
             .find(|e| e.id() == id)
     }
 
@@ -78,6 +97,11 @@ impl Effect {
             Effect::AmbientDrift => Some(("ambient_drift", "K/h")),
             Effect::SupplySag => Some(("supply_resistance", "ohm")),
             Effect::CurrentOffset => Some(("current_offset", "A")),
+            // The motion entries' parameters (several for some) are `motion::extension_params`;
+            // the first is named here.
+            e => crate::motion::extension_params(e)
+                .first()
+                .map(|p| (p.name, p.unit)),
         }
     }
 
@@ -119,6 +143,10 @@ impl Effect {
                 0.5,
                 "a current sensor's offset is a fraction of its 3 A range: at most 0.5 A",
             )),
+            // The motion entries' ranges are their fits' bounds (`motion::extension_params`).
+            e => crate::motion::extension_params(e)
+                .first()
+                .map(|p| (p.lo, p.hi, "the range of `motion::extension_params`")),
         }
     }
 
@@ -136,6 +164,13 @@ impl Effect {
             Effect::AmbientDrift => "the ambient temperature drifts",
             Effect::SupplySag => "the supply voltage drops with the bus current",
             Effect::CurrentOffset => "the current register reads with an offset",
+            Effect::Stribeck => "friction is higher at rest than in motion (Stribeck)",
+            Effect::LoadFriction => "friction grows with the torque the gearbox carries",
+            Effect::DirectionalFriction => {
+                "the gearbox's friction differs between driving the load and being back-driven"
+            }
+            Effect::ArmatureError => "the reflected inertia differs from the rating's",
+            Effect::FirmwareGain => "the firmware's position gain differs from the configured",
         }
     }
 
@@ -143,6 +178,11 @@ impl Effect {
     pub fn channel(self) -> Channel {
         match self {
             Effect::SupplySag => Channel::Electrical,
+            Effect::Stribeck
+            | Effect::LoadFriction
+            | Effect::DirectionalFriction
+            | Effect::ArmatureError
+            | Effect::FirmwareGain => Channel::Motion,
             _ => Channel::Thermal,
         }
     }

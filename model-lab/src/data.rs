@@ -109,6 +109,76 @@ pub struct Meta {
     pub servo: Option<BTreeMap<String, String>>,
 }
 
+/// What a run's sidecar says about the mechanics on the servo's output: a pendulum (BAM's
+/// bench: a mass on an arm, angle 0 hanging down) and the position gain the run was recorded
+/// with. In `NAME.meta.json` as `"mechanics": {"mass_kg": …, "length_m": …, "kp": …}`; a
+/// BAM log's own `NAME.json` (top-level `mass`, `length`, `kp`) is read too.
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize, serde::Serialize)]
+pub struct Mechanics {
+    /// Mass at the arm's end, kg.
+    #[serde(alias = "mass")]
+    pub mass_kg: f64,
+    /// Arm length to the mass, m.
+    #[serde(alias = "length")]
+    pub length_m: f64,
+    /// P_Coefficient the run was recorded with.
+    #[serde(default = "default_kp")]
+    pub kp: f64,
+}
+
+fn default_kp() -> f64 {
+    32.0
+}
+
+/// One run (file) of the data: its samples `start..end` and its mechanics when known.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RunInfo {
+    /// The file.
+    pub name: String,
+    /// First sample.
+    pub start: usize,
+    /// One past the last sample.
+    pub end: usize,
+    /// What its sidecar says, if anything.
+    pub mechanics: Option<Mechanics>,
+}
+
+#[derive(Deserialize)]
+struct MechanicsSidecar {
+    mechanics: Option<Mechanics>,
+}
+
+/// A run's mechanics from `NAME.meta.json` or a BAM log's `NAME.json`, if either says.
+fn read_mechanics(csv: &Path) -> Result<Option<Mechanics>, DataError> {
+    let read = |p: &Path| -> Result<Option<String>, DataError> {
+        if !p.exists() {
+            return Ok(None);
+        }
+        std::fs::read_to_string(p)
+            .map(Some)
+            .map_err(|source| DataError::Io {
+                path: p.display().to_string(),
+                source,
+            })
+    };
+    let bad = |p: &Path, source| DataError::Meta {
+        path: p.display().to_string(),
+        source,
+    };
+    let meta = csv.with_extension("meta.json");
+    if let Some(text) = read(&meta)? {
+        let m: MechanicsSidecar = serde_json::from_str(&text).map_err(|e| bad(&meta, e))?;
+        if m.mechanics.is_some() {
+            return Ok(m.mechanics);
+        }
+    }
+    let bam = csv.with_extension("json");
+    match read(&bam)? {
+        Some(text) => Ok(Some(serde_json::from_str(&text).map_err(|e| bad(&bam, e))?)),
+        None => Ok(None),
+    }
+}
+
 /// Columns a reader recognises, with the aliases it accepts for them.
 const COLUMNS: &[(&str, &[&str])] = &[
     ("t_s", &["time_s", "timestamp"]),
@@ -246,7 +316,15 @@ pub fn load(path: &Path) -> Result<Dataset, DataError> {
             })?;
         }
     }
-    Dataset::from_runs(runs, meta, &path.display().to_string())
+    let mut d = Dataset::from_runs(runs, meta, &path.display().to_string())?;
+    for f in &files {
+        let mechanics = read_mechanics(f)?;
+        let name = f.display().to_string();
+        if let Some(r) = d.runs.iter_mut().find(|r| r.name == name) {
+            r.mechanics = mechanics;
+        }
+    }
+    Ok(d)
 }
 
 /// Finds where a motor's clock steps back in file order (an NTP correction, a logger restarted
@@ -324,6 +402,8 @@ pub struct Dataset {
     pub notes: Vec<String>,
     /// The clock's backward jumps found (and repaired) while reading, in row order.
     pub clock_findings: Vec<crate::audit::Finding>,
+    /// The runs (files), in order.
+    pub runs: Vec<RunInfo>,
 }
 
 /// A gap longer than this many median sample periods (and than [`MIN_SEGMENT_GAP_S`]) starts a
@@ -398,6 +478,12 @@ impl Dataset {
                 ));
             }
             run_starts.push(d.t.len());
+            d.runs.push(RunInfo {
+                name: name.clone(),
+                start: d.t.len(),
+                end: d.t.len() + by_t.len(),
+                mechanics: None,
+            });
             for (k, group) in by_t {
                 let t = k as f64 / 1000.0 + shift;
                 d.t.push(t);

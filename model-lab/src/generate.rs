@@ -17,7 +17,6 @@ use std::fmt::Write as _;
 /// in the catalog's unit.
 pub fn size_range(effect: Effect) -> (f64, f64) {
     match effect {
-        Effect::None | Effect::Unexplained => (0.0, 0.0),
         Effect::SensorLag => (30.0, 240.0),
         Effect::NeighborCoupling => (0.15, 1.0),
         // Copper's 0.393 %/K is inside.
@@ -25,6 +24,8 @@ pub fn size_range(effect: Effect) -> (f64, f64) {
         Effect::AmbientDrift => (1.0, 4.0),
         Effect::SupplySag => (0.03, 0.3),
         Effect::CurrentOffset => (0.05, 0.25),
+        // Nothing hidden, or the motion channel's (`motion_size_range`).
+        _ => (0.0, 0.0),
     }
 }
 
@@ -312,5 +313,167 @@ pub fn generate(spec: &Spec, seed: u64) -> Generated {
             gain_k_per_a2: gain,
             sensor_noise_c: noise,
         },
+    }
+}
+
+/// The range a hidden motion effect's first parameter is drawn from (magnitude; the armature
+/// and gain errors get a random sign, with a smaller range below zero).
+pub fn motion_size_range(effect: Effect) -> (f64, f64) {
+    match effect {
+        Effect::Stribeck => (0.12, 0.25),
+        Effect::LoadFriction => (0.1, 0.3),
+        Effect::DirectionalFriction => (0.2, 0.4),
+        Effect::ArmatureError => (0.6, 1.5),
+        Effect::FirmwareGain => (0.25, 0.6),
+        _ => (0.0, 0.0),
+    }
+}
+
+/// A run's goal (rad) and torque enable at a time (s).
+type Trajectory = fn(f64) -> (f64, bool);
+
+/// Measured-like motion runs with one hidden mechanical effect (or none).
+#[derive(Debug, Clone)]
+pub struct GeneratedMotion {
+    /// Per run: a name and its CSV text (telemetry format, motor 1).
+    pub runs: Vec<(String, String)>,
+    /// The load of every run.
+    pub mechanics: crate::data::Mechanics,
+    /// The hidden effect.
+    pub effect: Effect,
+    /// Its parameters in `motion::extension_params` order.
+    pub parameters: Vec<f64>,
+    /// The friction the truth had, N·m and N·m·s/rad.
+    pub coulomb_viscous: (f64, f64),
+}
+
+impl GeneratedMotion {
+    /// The runs as the reader sees them, each with its mechanics.
+    pub fn dataset(&self) -> Result<Dataset, DataError> {
+        let mut runs = Vec::new();
+        for (name, csv) in &self.runs {
+            runs.push((name.clone(), parse_csv(csv, name)?));
+        }
+        let mut d = Dataset::from_runs(runs, Meta::default(), "generated motion")?;
+        for r in &mut d.runs {
+            r.mechanics = Some(self.mechanics);
+        }
+        Ok(d)
+    }
+}
+
+/// Four 6 s runs of one STS3250 swinging a mass on an arm, as on BAM's bench (a double sine,
+/// lift and drop with the torque released at 2 s, a chirp, up and down steps), sampled at
+/// about 50 Hz with jitter, positions in encoder steps, the supply sagging with the current in
+/// 0.1 V steps; the truth is the simulator's servo at a tenth of the lab's step, carrying the
+/// hidden effect and friction of its own.
+pub fn generate_motion(effect: Effect, seed: u64) -> GeneratedMotion {
+    use crate::motion::{decode, MotionParams};
+    use sim::servo::{Servo, RAD_PER_STEP};
+    let mut rng = Rng::new(seed ^ 0x6D6F_7469_6F6E_0000);
+    let robot = sim::RobotDescription::nori_a3();
+    // The description always has the STS3250 (the arms' shoulders).
+    let Some(rating) = robot.rating("sts3250") else {
+        return GeneratedMotion {
+            runs: Vec::new(),
+            mechanics: crate::data::Mechanics {
+                mass_kg: 0.0,
+                length_m: 0.0,
+                kp: 32.0,
+            },
+            effect,
+            parameters: Vec::new(),
+            coulomb_viscous: (0.0, 0.0),
+        };
+    };
+    let mechanics = crate::data::Mechanics {
+        mass_kg: rng.range(0.6, 1.4),
+        length_m: rng.range(0.08, 0.14),
+        kp: 32.0,
+    };
+    let (lo, hi) = motion_size_range(effect);
+    let size = rng.range(lo, hi);
+    let parameters = match effect {
+        Effect::Stribeck => vec![size, rng.range(0.1, 0.6)],
+        Effect::LoadFriction => vec![size],
+        // Back-driven much worse than driving (a worm-like gear), or the other way.
+        Effect::DirectionalFriction => {
+            let other = rng.range(0.0, 0.05);
+            if rng.chance(0.5) {
+                vec![other, size]
+            } else {
+                vec![size, other]
+            }
+        }
+        Effect::ArmatureError => vec![if rng.chance(0.5) { size } else { -0.4 * size }],
+        Effect::FirmwareGain => vec![if rng.chance(0.5) { size } else { -0.5 * size }],
+        _ => Vec::new(),
+    };
+    let coulomb_viscous = (rng.range(0.03, 0.12), rng.range(0.03, 0.15));
+    let mut x = vec![coulomb_viscous.0, coulomb_viscous.1];
+    x.extend(&parameters);
+    let truth: MotionParams = decode(effect, &x);
+    let (m, l) = (mechanics.mass_kg, mechanics.length_m);
+    let trajectories: [(&str, Trajectory); 4] = [
+        ("sin_sin", |t| {
+            (1.2 * (1.3 * t).sin() * (0.4 * t).sin().abs().max(0.3), true)
+        }),
+        ("lift_and_drop", |t| (-1.4 * (t / 0.6).min(1.0), t < 2.0)),
+        ("chirp", |t| ((0.25 * t * t).sin(), true)),
+        ("up_and_down", |t| {
+            let g = if t < 1.5 {
+                1.4 * t / 1.5
+            } else if t < 3.5 {
+                1.4
+            } else {
+                1.1
+            };
+            (g, true)
+        }),
+    ];
+    let mut runs = Vec::new();
+    for (name, goal_of) in trajectories {
+        let mut s = Servo::new(1, rating.model, rating, 0.0, 25.0);
+        s.plant.coulomb = truth.coulomb_nm;
+        s.plant.viscous = truth.viscous_nms;
+        s.extension = truth.ext;
+        s.configure_for_replay(32);
+        s.command_torque(true);
+        let mut csv = String::from("t_s,motor,goal_rad,position_rad,voltage_v,torque_enabled\n");
+        let h = 1e-4;
+        let mut t = 0.0;
+        let mut next_sample = 0.0;
+        let mut torque = true;
+        while t < 6.0 {
+            if t >= next_sample {
+                let (goal, on) = goal_of(t);
+                let goal = (goal / RAD_PER_STEP).round() * RAD_PER_STEP;
+                if on != torque {
+                    s.command_torque(on);
+                    torque = on;
+                }
+                s.command_goal(goal);
+                let position = (s.angle / RAD_PER_STEP).round() * RAD_PER_STEP;
+                let volts =
+                    ((12.6 - 0.45 * s.current.abs() + 0.03 * rng.normal()) * 10.0).round() / 10.0;
+                let _ = writeln!(
+                    csv,
+                    "{t:.4},1,{goal:.6},{position:.6},{volts:.1},{}",
+                    u8::from(torque)
+                );
+                next_sample += 0.02 + 0.003 * rng.normal().clamp(-1.0, 1.0);
+            }
+            s.supply = 12.6 - 0.45 * s.current.abs();
+            s.step(h, m * 9.81 * l * s.angle.sin(), m * l * l, 25.0, 1.0);
+            t += h;
+        }
+        runs.push((format!("{name}.csv"), csv));
+    }
+    GeneratedMotion {
+        runs,
+        mechanics,
+        effect,
+        parameters,
+        coulomb_viscous,
     }
 }

@@ -9,6 +9,8 @@
 //! * [`register`]: the temperature register's likelihood (rounding and noise), fitted as a
 //!   deviance residual.
 //! * [`electrical`]: the supply voltage channel (constant supply, or sagging with bus current).
+//! * [`motion`]: the motion channel — measured runs replayed open-loop through the simulator's
+//!   servo (firmware loop, motor, gear, friction) with their load; held out run by run.
 //! * [`catalog`]: the extensions (`sensor_lag`, `neighbor_coupling`, `copper_tempco`,
 //!   `ambient_drift`, `supply_sag`, `current_offset`) and `none`.
 //! * [`audit`]: data that lie — channels against the servo's physical ranges and unit
@@ -30,6 +32,7 @@ pub mod data;
 pub mod electrical;
 pub mod fit;
 pub mod generate;
+pub mod motion;
 pub mod register;
 pub mod report;
 pub mod stats;

@@ -111,6 +111,7 @@ fn run_analyze(a: &AnalyzeArgs) -> Result<()> {
             max_speed_rad_s: 3.0 * rating.no_load_speed_rad_s,
             ..model_lab::audit::Limits::default()
         },
+        servo: a.servo.clone(),
         ..Options::default()
     };
     let data = model_lab::load(&a.data)?;
@@ -193,6 +194,30 @@ fn run_analyze(a: &AnalyzeArgs) -> Result<()> {
             c.delta_bic,
             c.verdict
         );
+    }
+    if let Some(m) = &an.motion {
+        println!(
+            "motion ({} runs through the simulator's {}): cause {}; {}",
+            m.as_configured.len(),
+            m.servo,
+            m.cause,
+            m.judged
+        );
+        for (run, mae, rmse) in &m.as_configured {
+            println!("  as configured  {run}: MAE {mae:.4} rad, RMSE {rmse:.4} rad");
+        }
+        for c in &m.candidates {
+            let runs: Vec<String> = c.runs.iter().map(|h| format!("{:.4}", h.mae_rad)).collect();
+            println!(
+                "  {:20} held-out MAE {:.4} rad ({}) gain {:+6.1} %  {}",
+                c.id.id(),
+                c.mae_rad,
+                runs.join(" "),
+                100.0 * c.gain,
+                c.verdict
+            );
+        }
+        println!("  one run simulated in {:.1} ms", 1e3 * m.seconds_per_run);
     }
     Ok(())
 }

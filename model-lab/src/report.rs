@@ -380,6 +380,80 @@ pub fn render(a: &Analysis, tr: &Traces, source: &str) -> Vec<(String, String)> 
             c.verdict
         );
     }
+    if let Some(m) = &a.motion {
+        let _ = writeln!(
+            md,
+            "\n## Motion channel ({} runs through the simulator's {})\n\n**Cause: `{}`**; {}.\n\n\
+             The simulator's servo as configured (its rated friction), open loop:\n\n\
+             | run | MAE (rad) | RMSE (rad) |\n|---|---|---|",
+            m.as_configured.len(),
+            m.servo,
+            m.cause,
+            m.judged
+        );
+        for (run, mae, rmse) in &m.as_configured {
+            let _ = writeln!(md, "| {} | {mae:.4} | {rmse:.4} |", esc(run));
+        }
+        let _ = writeln!(
+            md,
+            "\nCalibrated and extended, each run predicted by a model fitted without it:\n\n\
+             | model | held-out MAE per run (rad) | mean | gain | runs improved | parameters (fitted on all runs) | verdict |\n|---|---|---|---|---|---|---|"
+        );
+        for c in &m.candidates {
+            let runs: Vec<String> = c.runs.iter().map(|h| format!("{:.4}", h.mae_rad)).collect();
+            let pars: Vec<String> = c
+                .parameters
+                .iter()
+                .map(|p| format!("{} = {:.4} {}", p.name, p.value, p.unit))
+                .collect();
+            let _ = writeln!(
+                md,
+                "| `{}` | {} | {:.4} | {:+.1} % | {}/{} | {} | {} |",
+                c.id,
+                runs.join(", "),
+                c.mae_rad,
+                100.0 * c.gain,
+                c.improved_runs,
+                c.runs.len(),
+                pars.join("; "),
+                c.verdict
+            );
+        }
+        for (k, tr) in m.traces.iter().enumerate() {
+            let xy = |v: &[f64]| -> Vec<(f64, f64)> {
+                tr.t.iter().copied().zip(v.iter().copied()).collect()
+            };
+            let name = format!("motion-{k}.svg");
+            let svg = plot(
+                &format!("{}: measured vs nominal vs {}", tr.run, m.cause),
+                "t (s)",
+                "rad",
+                &[
+                    Series {
+                        name: "measured",
+                        color: "#999",
+                        points: thin(xy(&tr.measured), 3000),
+                        dots: true,
+                    },
+                    Series {
+                        name: "nominal (calibrated)",
+                        color: "#1f77b4",
+                        points: thin(xy(&tr.nominal), 3000),
+                        dots: false,
+                    },
+                    Series {
+                        name: "chosen",
+                        color: "#d62728",
+                        points: thin(xy(&tr.chosen), 3000),
+                        dots: false,
+                    },
+                ],
+                None,
+            );
+            let _ = writeln!(md, "\n![{}]({name})", esc(&tr.run));
+            files.push((name, svg));
+        }
+    }
     let _ = writeln!(
         md,
         "\n## Per motor\n\n| motor | τ (s) | k (K/A²) | idle (°C) | readings fit/held | nominal RMSE (°C) | extended RMSE (°C) | bias (°C) | nominal RMSE (V) | extended RMSE (V) |\n|---|---|---|---|---|---|---|---|---|---|"

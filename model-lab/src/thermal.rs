@@ -94,7 +94,7 @@ fn ext_bounds(effect: Effect) -> (f64, f64) {
         Effect::CopperTempco => (-3.0, 3.0),
         Effect::AmbientDrift => (-50.0, 50.0),
         Effect::CurrentOffset => (-5.0, 5.0),
-        Effect::None | Effect::Unexplained | Effect::SupplySag => (0.0, 0.0),
+        _ => (0.0, 0.0),
     }
 }
 
@@ -107,7 +107,7 @@ fn ext_starts(effect: Effect) -> &'static [f64] {
         Effect::CopperTempco => &[0.0, 0.5, -0.5],
         Effect::AmbientDrift => &[0.0],
         Effect::CurrentOffset => &[0.0, 0.3, -0.3],
-        Effect::None | Effect::Unexplained | Effect::SupplySag => &[0.0],
+        _ => &[0.0],
     }
 }
 

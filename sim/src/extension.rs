@@ -1,5 +1,7 @@
 //! Model extensions fitted on measured data by the model lab (`nori model analyze`), loaded
-//! into a simulated bus with [`crate::SimBus::apply_extension`].
+//! into a simulated bus with [`crate::SimBus::apply_extension`]: thermal and electrical
+//! (sensor lag, coupling, copper, ambient, supply, current offset) and mechanical (inertia,
+//! the firmware's gain, Stribeck and torque-proportional friction, directional or not).
 //!
 //! The file is TOML with kebab-case keys; unknown keys are refused. It names the cause (a
 //! catalog id of the model lab) and the extension's parameter in physical units; the fitted
@@ -91,6 +93,31 @@ pub struct ModelExtension {
     /// `current_offset`: the current register reads the current plus this, A.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub current_offset_a: Option<f64>,
+    /// `armature_error`: the reflected inertia is the rating's × (1 + this).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub armature_error: Option<f64>,
+    /// `firmware_gain`: the position loop's duty per radian is the configured × (1 + this).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub duty_gain_error: Option<f64>,
+    /// `stribeck`: extra friction at rest, N·m, fading as exp(−(ω/ω_s)²) ...
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stribeck_nm: Option<f64>,
+    /// ... over this speed ω_s, rad/s.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stribeck_speed_rad_s: Option<f64>,
+    /// `load_friction` / `directional_friction`: friction proportional to the torque the
+    /// gearbox carries while the motor drives the load, per N·m.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub friction_drive_ratio: Option<f64>,
+    /// ... and while the load drives the motor back, per N·m.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub friction_back_ratio: Option<f64>,
+    /// The Coulomb friction the model lab calibrated with the extension, N·m (for reference).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fitted_coulomb_nm: Option<f64>,
+    /// The viscous friction it calibrated, N·m·s/rad (for reference).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fitted_viscous_nms: Option<f64>,
     /// Relative reduction of the held-out error the extension brought, for reference.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub heldout_gain: Option<f64>,
@@ -111,6 +138,14 @@ impl ModelExtension {
             ambient_drift_k_per_h: None,
             supply_resistance_ohm: None,
             current_offset_a: None,
+            armature_error: None,
+            duty_gain_error: None,
+            stribeck_nm: None,
+            stribeck_speed_rad_s: None,
+            friction_drive_ratio: None,
+            friction_back_ratio: None,
+            fitted_coulomb_nm: None,
+            fitted_viscous_nms: None,
             heldout_gain: None,
             motor: Vec::new(),
         }
@@ -146,6 +181,9 @@ impl ModelExtension {
             ("sensor-time-constant-s", m.sensor_time_constant_s, 0.0),
             ("neighbor-coupling-ratio", m.neighbor_coupling_ratio, -1.0),
             ("supply-resistance-ohm", m.supply_resistance_ohm, -1.0),
+            ("armature-error", m.armature_error, -1.0),
+            ("duty-gain-error", m.duty_gain_error, -1.0),
+            ("stribeck-speed-rad-s", m.stribeck_speed_rad_s, 0.0),
         ];
         for (key, v, above) in checks {
             if let Some(v) = v {
@@ -166,6 +204,23 @@ impl ModelExtension {
                 return Err(invalid(key, "must be finite".into()));
             }
         }
+        for (key, v) in [
+            ("stribeck-nm", m.stribeck_nm),
+            ("friction-drive-ratio", m.friction_drive_ratio),
+            ("friction-back-ratio", m.friction_back_ratio),
+            ("fitted-coulomb-nm", m.fitted_coulomb_nm),
+            ("fitted-viscous-nms", m.fitted_viscous_nms),
+        ] {
+            if v.is_some_and(|v| !(v.is_finite() && v >= 0.0)) {
+                return Err(invalid(key, "must be finite and ≥ 0".into()));
+            }
+        }
+        if m.stribeck_nm.is_some() && m.stribeck_speed_rad_s.is_none() {
+            return Err(invalid(
+                "stribeck-speed-rad-s",
+                "needed with stribeck-nm".into(),
+            ));
+        }
         Ok(m)
     }
 
@@ -185,6 +240,18 @@ pub struct ServoExtension {
     pub resistance_tempco_per_k: f64,
     /// Offset of the current register, A.
     pub current_offset_a: f64,
+    /// Relative error of the reflected inertia (0: the rating's).
+    pub armature_error: f64,
+    /// Relative error of the position loop's gain (0: the configured).
+    pub duty_gain_error: f64,
+    /// Extra friction at rest, N·m (Stribeck), ...
+    pub stribeck_nm: f64,
+    /// ... fading over this speed, rad/s.
+    pub stribeck_speed_rad_s: f64,
+    /// Friction per N·m the gearbox carries while the motor drives the load.
+    pub friction_drive_ratio: f64,
+    /// Friction per N·m the gearbox carries while the load drives the motor back.
+    pub friction_back_ratio: f64,
 }
 
 impl From<&ModelExtension> for ServoExtension {
@@ -193,6 +260,12 @@ impl From<&ModelExtension> for ServoExtension {
             sensor_time_constant_s: m.sensor_time_constant_s.unwrap_or(0.0),
             resistance_tempco_per_k: m.resistance_tempco_per_k.unwrap_or(0.0),
             current_offset_a: m.current_offset_a.unwrap_or(0.0),
+            armature_error: m.armature_error.unwrap_or(0.0),
+            duty_gain_error: m.duty_gain_error.unwrap_or(0.0),
+            stribeck_nm: m.stribeck_nm.unwrap_or(0.0),
+            stribeck_speed_rad_s: m.stribeck_speed_rad_s.unwrap_or(1.0),
+            friction_drive_ratio: m.friction_drive_ratio.unwrap_or(0.0),
+            friction_back_ratio: m.friction_back_ratio.unwrap_or(0.0),
         }
     }
 }
@@ -255,6 +328,62 @@ mod tests {
         assert!(rl + 3 < rn, "lagging sensor {rl} vs winding {rn}");
         // A resistance that rises with temperature heats the winding more.
         assert!(hot.temperature > nominal.temperature + 0.5);
+    }
+
+    /// The mechanical entries: read from the file, refused when impossible, and acting in the
+    /// servo's step (more inertia swings slower).
+    #[test]
+    fn a_loaded_mechanical_extension_changes_the_motion() {
+        let m = ModelExtension::parse(
+            "format = 1\ncause = \"stribeck\"\nstribeck-nm = 0.1\nstribeck-speed-rad-s = 0.3\n\
+             armature-error = 0.5\nduty-gain-error = 0.2\nfriction-drive-ratio = 0.1\n\
+             friction-back-ratio = 0.3\n",
+            "m.toml",
+        )
+        .unwrap();
+        let e = ServoExtension::from(&m);
+        assert_eq!(
+            (
+                e.stribeck_nm,
+                e.stribeck_speed_rad_s,
+                e.armature_error,
+                e.duty_gain_error
+            ),
+            (0.1, 0.3, 0.5, 0.2)
+        );
+        assert_eq!((e.friction_drive_ratio, e.friction_back_ratio), (0.1, 0.3));
+        for bad in [
+            "stribeck-nm = 0.1\n",
+            "stribeck-nm = -0.1\nstribeck-speed-rad-s = 1.0\n",
+            "armature-error = -1.0\n",
+            "friction-back-ratio = -0.1\n",
+        ] {
+            let text = format!("format = 1\ncause = \"x\"\n{bad}");
+            assert!(ModelExtension::parse(&text, "b").is_err(), "{bad}");
+        }
+        // A 1 kg pendulum on 0.1 m released from 0.5 rad with the torque off: the first
+        // return through 0, with and without 50 % more armature inertia.
+        let swing = |ext: ServoExtension| {
+            let d = RobotDescription::nori_a3();
+            let r = d.rating("sts3250").unwrap();
+            let mut s = Servo::new(1, r.model, r, 0.5, 25.0);
+            s.plant.coulomb = 0.0;
+            s.extension = ext;
+            let mut t = 0.0;
+            while s.angle > 0.0 && t < 5.0 {
+                s.step(0.0005, 9.81 * 0.1 * s.angle.sin(), 0.01, 25.0, 1.0);
+                t += 0.0005;
+            }
+            t
+        };
+        let (nominal, heavier) = (
+            swing(ServoExtension::default()),
+            swing(ServoExtension {
+                armature_error: 0.5,
+                ..ServoExtension::default()
+            }),
+        );
+        assert!(heavier > 1.1 * nominal, "{heavier} vs {nominal}");
     }
 
     #[test]

@@ -491,7 +491,8 @@ impl Servo {
             _ => {
                 self.advance_setpoint(dt);
                 let error = (self.setpoint - self.raw_position() + self.fw.homing) * RAD_PER_STEP;
-                self.fw.kp * DUTY_PER_KP_RAD * error
+                let gain = DUTY_PER_KP_RAD * (1.0 + self.extension.duty_gain_error);
+                self.fw.kp * gain * error
             }
         };
         let mut cap = self.fw.torque_cap;
@@ -556,11 +557,27 @@ impl Servo {
         };
         let motor_torque = p.kt * self.current;
         let drive = motor_torque - load_torque - p.viscous * self.speed;
-        let inertia = p.armature + load_inertia;
-        if self.speed.abs() < STICK_SPEED && drive.abs() <= p.coulomb {
+        let ext = self.extension;
+        let inertia = p.armature * (1.0 + ext.armature_error) + load_inertia;
+        // The friction budget: Coulomb, Stribeck's extra at rest, and a part proportional to
+        // the torque the gearbox carries (different when the load drives the motor back).
+        let back_driven = motor_torque * self.speed < 0.0;
+        let ratio = if back_driven {
+            ext.friction_back_ratio
+        } else {
+            ext.friction_drive_ratio
+        };
+        let stribeck = if ext.stribeck_nm > 0.0 {
+            let x = self.speed / ext.stribeck_speed_rad_s;
+            ext.stribeck_nm * (-x * x).exp()
+        } else {
+            0.0
+        };
+        let coulomb = p.coulomb + stribeck + ratio * motor_torque.abs();
+        if self.speed.abs() < STICK_SPEED && drive.abs() <= coulomb {
             self.speed = 0.0;
         } else {
-            let friction = p.coulomb
+            let friction = coulomb
                 * if self.speed.abs() >= STICK_SPEED {
                     self.speed.signum()
                 } else {
@@ -570,7 +587,7 @@ impl Servo {
             // Coulomb friction stops a joint; it never reverses it.
             self.speed = if self.speed != 0.0
                 && new_speed.signum() != self.speed.signum()
-                && (drive.abs() <= p.coulomb)
+                && (drive.abs() <= coulomb)
             {
                 0.0
             } else {
@@ -634,6 +651,28 @@ impl Servo {
             pr.overload = true;
             log.overload_trips += 1;
         }
+    }
+
+    /// Sets the servo up to replay logged commands (a bench's, or the model lab's): the
+    /// position gain `kp`, and no protection that unloads the motor (a replay must follow the
+    /// log, not the firmware's own cut-offs).
+    pub fn configure_for_replay(&mut self, kp: u8) {
+        self.write(reg::P_COEFFICIENT.addr, &[kp]);
+        self.write(reg::UNLOADING_CONDITION.addr, &[0]);
+    }
+
+    /// Writes the goal position for joint angle `angle_rad` (rounded to a step, within the
+    /// register's range).
+    pub fn command_goal(&mut self, angle_rad: f64) {
+        let raw = (CENTER_STEP + angle_rad / RAD_PER_STEP)
+            .round()
+            .clamp(0.0, f64::from(STEPS_PER_TURN - 1)) as u16;
+        self.write(reg::GOAL_POSITION.addr, &raw.to_le_bytes());
+    }
+
+    /// Writes Torque_Enable.
+    pub fn command_torque(&mut self, on: bool) {
+        self.write(reg::TORQUE_ENABLE.addr, &[u8::from(on)]);
     }
 
     /// Joint angle of a raw Present_Position value for this servo (homing offset applied).

@@ -1,0 +1,807 @@
+//! The motion channel: measured runs replayed open-loop through the simulator's own servo
+//! model ([`sim::servo::Servo`]: the firmware's position loop and duty, the DC motor with its
+//! back-EMF, the gearbox, friction) carrying the run's load (a pendulum, from its sidecar),
+//! driven by the run's logged goal, torque-enable and supply-voltage sequences; the simulated
+//! position is compared with the measured one (MAE and RMSE in rad, per run).
+//!
+//! The nominal model is the simulator's servo with its Coulomb and viscous friction calibrated
+//! (BAM's "m1", Coulomb–viscous). Each catalog extension adds its parameters to those two and
+//! is fitted the same way: Nelder–Mead on the mean absolute error over the training runs (the
+//! loss BAM fits with; the stick–slip makes it non-smooth, so no gradients). Runs are held
+//! out whole, one at a time: a run's figures are always those of a model fitted without it.
+//!
+//! An extension is named when, on the held-out runs, it cuts the nominal model's mean absolute
+//! error by at least [`MOTION_PRACTICAL_GAIN`] and by [`MOTION_MIN_MAE_CUT`], on a majority
+//! of the runs, with its parameters inside the ranges their physics allows; among several, the
+//! largest gain. Whatever is named, a misfit left beyond the channel's noise floor (the
+//! encoder's step and the positions' own noise, as for the other channels) is `unexplained`.
+
+use crate::analysis::NoiseFloor;
+use crate::catalog::Effect;
+use crate::data::{Dataset, Mechanics};
+use crate::stats;
+use serde::Serialize;
+use sim::description::ServoRating;
+use sim::extension::ServoExtension;
+use sim::servo::{Servo, RAD_PER_STEP};
+
+/// The simulation's step, s (the simulator's default).
+pub const SIM_DT_S: f64 = 0.001;
+/// Gravity, m/s².
+const G: f64 = 9.81;
+/// An extension must cut the held-out mean absolute error by this fraction to matter ...
+pub const MOTION_PRACTICAL_GAIN: f64 = 0.05;
+/// ... and by at least the mean absolute error that rounding to the encoder's step alone
+/// makes (a quarter step), rad.
+pub const MOTION_MIN_MAE_CUT: f64 = RAD_PER_STEP / 4.0;
+/// Nelder–Mead evaluations per fit, per parameter and one.
+const FIT_EVALUATIONS_PER_VERTEX: usize = 100;
+
+/// One measured run of one servo, as the motion channel uses it.
+#[derive(Debug, Clone)]
+pub struct MotionRun {
+    /// The file.
+    pub name: String,
+    /// Sample times, s, from the run's start.
+    pub t: Vec<f64>,
+    /// Commanded position, rad.
+    pub goal: Vec<f64>,
+    /// Measured position, rad (NaN where missing).
+    pub position: Vec<f64>,
+    /// Supply voltage, V (held over missing readings).
+    pub voltage: Vec<f64>,
+    /// Torque enabled.
+    pub torque: Vec<bool>,
+    /// The load.
+    pub mechanics: Mechanics,
+}
+
+impl MotionRun {
+    /// The runs of `d` the motion channel can replay: each run (file) with its mechanics
+    /// known, a goal and a position column, for the first motor that has them; none else.
+    pub fn from_dataset(d: &Dataset, rated_voltage: f64) -> Vec<MotionRun> {
+        let Some(m) = (0..d.motors.len()).find(|&m| {
+            d.goal[m].iter().any(|v| v.is_finite()) && d.position[m].iter().any(|v| v.is_finite())
+        }) else {
+            return Vec::new();
+        };
+        d.runs
+            .iter()
+            .filter_map(|r| {
+                let mechanics = r.mechanics?;
+                let range = r.start..r.end;
+                let t0 = d.t[r.start];
+                let hold = |col: &[f64], first: f64| {
+                    let mut last = col[range.clone()]
+                        .iter()
+                        .copied()
+                        .find(|v| v.is_finite())
+                        .unwrap_or(first);
+                    col[range.clone()]
+                        .iter()
+                        .map(|&v| {
+                            if v.is_finite() {
+                                last = v;
+                            }
+                            last
+                        })
+                        .collect::<Vec<f64>>()
+                };
+                let run = MotionRun {
+                    name: r.name.clone(),
+                    t: d.t[range.clone()].iter().map(|t| t - t0).collect(),
+                    goal: hold(&d.goal[m], 0.0),
+                    position: d.position[m][range.clone()].to_vec(),
+                    voltage: hold(&d.voltage[m], rated_voltage),
+                    torque: d.torque_enabled[m][range.clone()]
+                        .iter()
+                        .map(|v| !(v.is_finite() && *v < 0.5))
+                        .collect(),
+                    mechanics,
+                };
+                (run.position.iter().filter(|v| v.is_finite()).count() >= 20).then_some(run)
+            })
+            .collect()
+    }
+}
+
+/// The motion model's parameters: the calibrated friction and an extension.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct MotionParams {
+    /// Coulomb friction, N·m.
+    pub coulomb_nm: f64,
+    /// Viscous friction, N·m·s/rad.
+    pub viscous_nms: f64,
+    /// The extension's part.
+    pub ext: ServoExtension,
+}
+
+/// Replays `run` through the simulator's servo of `rating` with `p`: the simulated position at
+/// each sample time. Goal, torque and supply are held from one sample to the next.
+pub fn simulate(rating: &ServoRating, p: &MotionParams, run: &MotionRun) -> Vec<f64> {
+    let start = run
+        .position
+        .iter()
+        .copied()
+        .find(|v| v.is_finite())
+        .unwrap_or(0.0);
+    let mut s = Servo::new(1, rating.model, rating, start, 25.0);
+    s.plant.coulomb = p.coulomb_nm;
+    s.plant.viscous = p.viscous_nms;
+    s.extension = p.ext;
+    s.configure_for_replay(run.mechanics.kp.round().clamp(0.0, 255.0) as u8);
+    let (m, l) = (run.mechanics.mass_kg, run.mechanics.length_m);
+    let inertia = m * l * l;
+    let mut out = Vec::with_capacity(run.t.len());
+    let mut torque = None;
+    for k in 0..run.t.len() {
+        out.push(s.angle);
+        if k + 1 == run.t.len() {
+            break;
+        }
+        s.command_goal(run.goal[k]);
+        if torque != Some(run.torque[k]) {
+            s.command_torque(run.torque[k]);
+            torque = Some(run.torque[k]);
+        }
+        s.supply = run.voltage[k];
+        let dt = (run.t[k + 1] - run.t[k]).max(0.0);
+        let steps = (dt / SIM_DT_S).ceil().max(1.0);
+        let h = dt / steps;
+        for _ in 0..steps as usize {
+            // Gravity pulls the mass back toward hanging (angle 0).
+            s.step(h, m * G * l * s.angle.sin(), inertia, 25.0, 1.0);
+        }
+    }
+    out
+}
+
+/// Mean absolute and root-mean-square error of `sim` against the run's measured positions.
+pub fn errors(sim: &[f64], run: &MotionRun) -> (f64, f64) {
+    let e: Vec<f64> = sim
+        .iter()
+        .zip(&run.position)
+        .filter(|(_, m)| m.is_finite())
+        .map(|(s, m)| s - m)
+        .collect();
+    let mae = e.iter().map(|x| x.abs()).sum::<f64>() / e.len().max(1) as f64;
+    (mae, stats::rmse(&e))
+}
+
+/// One parameter of a motion model: name, unit, the range its physics allows (the fit's
+/// bounds) and its nominal value.
+#[derive(Debug, Clone, Copy)]
+pub struct MotionParam {
+    /// Name.
+    pub name: &'static str,
+    /// Unit.
+    pub unit: &'static str,
+    /// Lowest physical value.
+    pub lo: f64,
+    /// Highest physical value.
+    pub hi: f64,
+    /// Nominal value (where the fit starts).
+    pub start: f64,
+}
+
+const COULOMB: MotionParam = MotionParam {
+    name: "coulomb_friction",
+    unit: "N·m",
+    lo: 0.0,
+    hi: 0.5,
+    start: 0.05,
+};
+const VISCOUS: MotionParam = MotionParam {
+    name: "viscous_friction",
+    unit: "N·m·s/rad",
+    lo: 0.0,
+    hi: 1.0,
+    start: 0.06,
+};
+
+/// The extension's own parameters (after Coulomb and viscous).
+pub fn extension_params(effect: Effect) -> &'static [MotionParam] {
+    match effect {
+        Effect::ArmatureError => &[MotionParam {
+            name: "armature_error",
+            unit: "1",
+            lo: -0.9,
+            hi: 3.0,
+            start: 0.0,
+        }],
+        Effect::FirmwareGain => &[MotionParam {
+            name: "duty_gain_error",
+            unit: "1",
+            lo: -0.5,
+            hi: 1.0,
+            start: 0.0,
+        }],
+        Effect::Stribeck => &[
+            MotionParam {
+                name: "stribeck_friction",
+                unit: "N·m",
+                lo: 0.0,
+                hi: 0.3,
+                start: 0.05,
+            },
+            MotionParam {
+                name: "stribeck_speed",
+                unit: "rad/s",
+                lo: 0.02,
+                hi: 3.0,
+                start: 0.3,
+            },
+        ],
+        Effect::LoadFriction => &[MotionParam {
+            name: "load_friction_ratio",
+            unit: "1",
+            lo: 0.0,
+            hi: 0.6,
+            start: 0.05,
+        }],
+        Effect::DirectionalFriction => &[
+            MotionParam {
+                name: "drive_friction_ratio",
+                unit: "1",
+                lo: 0.0,
+                hi: 0.6,
+                start: 0.05,
+            },
+            MotionParam {
+                name: "back_friction_ratio",
+                unit: "1",
+                lo: 0.0,
+                hi: 0.6,
+                start: 0.05,
+            },
+        ],
+        _ => &[],
+    }
+}
+
+/// All of a model's parameters: Coulomb, viscous, then the extension's.
+fn model_params(effect: Effect) -> Vec<MotionParam> {
+    let mut v = vec![COULOMB, VISCOUS];
+    v.extend_from_slice(extension_params(effect));
+    v
+}
+
+/// The parameters of `effect` from a vector (in [`model_params`] order).
+pub fn decode(effect: Effect, x: &[f64]) -> MotionParams {
+    let mut p = MotionParams {
+        coulomb_nm: x[0],
+        viscous_nms: x[1],
+        ext: ServoExtension {
+            stribeck_speed_rad_s: 1.0,
+            ..ServoExtension::default()
+        },
+    };
+    let e = &mut p.ext;
+    match effect {
+        Effect::ArmatureError => e.armature_error = x[2],
+        Effect::FirmwareGain => e.duty_gain_error = x[2],
+        Effect::Stribeck => {
+            e.stribeck_nm = x[2];
+            e.stribeck_speed_rad_s = x[3];
+        }
+        Effect::LoadFriction => {
+            e.friction_drive_ratio = x[2];
+            e.friction_back_ratio = x[2];
+        }
+        Effect::DirectionalFriction => {
+            e.friction_drive_ratio = x[2];
+            e.friction_back_ratio = x[3];
+        }
+        _ => {}
+    }
+    p
+}
+
+/// Nelder–Mead over the box of `params`, on `loss`, from `x0`; the best point.
+fn nelder_mead(
+    params: &[MotionParam],
+    x0: &[f64],
+    loss: &dyn Fn(&[f64]) -> f64,
+    evaluations: usize,
+) -> Vec<f64> {
+    let n = params.len();
+    let clamp = |x: &mut [f64]| {
+        for (v, p) in x.iter_mut().zip(params) {
+            *v = v.clamp(p.lo, p.hi);
+        }
+    };
+    let mut simplex: Vec<(Vec<f64>, f64)> = Vec::with_capacity(n + 1);
+    let mut x0 = x0.to_vec();
+    clamp(&mut x0);
+    simplex.push((x0.clone(), loss(&x0)));
+    for (i, p) in params.iter().enumerate() {
+        let mut x = x0.clone();
+        // A fifth of the range, toward its wider side.
+        let step = 0.2 * (p.hi - p.lo);
+        x[i] = if p.hi - x[i] >= x[i] - p.lo {
+            x[i] + step
+        } else {
+            x[i] - step
+        };
+        clamp(&mut x);
+        let f = loss(&x);
+        simplex.push((x, f));
+    }
+    let mut used = n + 1;
+    while used < evaluations {
+        simplex.sort_by(|a, b| a.1.total_cmp(&b.1));
+        let worst = simplex[n].clone();
+        let centroid: Vec<f64> = (0..n)
+            .map(|j| simplex[..n].iter().map(|(x, _)| x[j]).sum::<f64>() / n as f64)
+            .collect();
+        let along = |t: f64| -> Vec<f64> {
+            let mut x: Vec<f64> = (0..n)
+                .map(|j| centroid[j] + t * (worst.0[j] - centroid[j]))
+                .collect();
+            clamp(&mut x);
+            x
+        };
+        let r = along(-1.0);
+        let fr = loss(&r);
+        used += 1;
+        if fr < simplex[0].1 {
+            let e = along(-2.0);
+            let fe = loss(&e);
+            used += 1;
+            simplex[n] = if fe < fr { (e, fe) } else { (r, fr) };
+        } else if fr < simplex[n - 1].1 {
+            simplex[n] = (r, fr);
+        } else {
+            let c = along(if fr < worst.1 { -0.5 } else { 0.5 });
+            let fc = loss(&c);
+            used += 1;
+            if fc < worst.1.min(fr) {
+                simplex[n] = (c, fc);
+            } else {
+                // Shrink toward the best.
+                let best = simplex[0].0.clone();
+                for (x, f) in simplex.iter_mut().skip(1) {
+                    for j in 0..n {
+                        x[j] = best[j] + 0.5 * (x[j] - best[j]);
+                    }
+                    *f = loss(x);
+                    used += 1;
+                }
+            }
+        }
+    }
+    simplex.sort_by(|a, b| a.1.total_cmp(&b.1));
+    simplex.swap_remove(0).0
+}
+
+/// Fits `effect` (with Coulomb and viscous) on `runs` from `start` (in [`model_params`]
+/// order): the parameter vector.
+pub fn fit(rating: &ServoRating, effect: Effect, runs: &[&MotionRun], start: &[f64]) -> Vec<f64> {
+    let params = model_params(effect);
+    let loss = |x: &[f64]| -> f64 {
+        let p = decode(effect, x);
+        runs.iter()
+            .map(|r| errors(&simulate(rating, &p, r), r).0)
+            .sum::<f64>()
+            / runs.len().max(1) as f64
+    };
+    // Two rounds, the second from a fresh simplex around the first's best: Nelder–Mead's
+    // simplex collapses along the stick–slip's ridges, a restart frees it.
+    let half = FIT_EVALUATIONS_PER_VERTEX * (params.len() + 1) / 2;
+    let first = nelder_mead(&params, start, &loss, half);
+    nelder_mead(&params, &first, &loss, half)
+}
+
+/// Fits `models` in order on `runs`, each extension from the nominal model's fitted friction
+/// (and the directional friction from the load-proportional one's ratio, on both sides: the
+/// larger model starts where the nested one ended).
+fn fit_models(
+    rating: &ServoRating,
+    models: &[Effect],
+    runs: &[&MotionRun],
+) -> Vec<(Effect, Vec<f64>)> {
+    let mut out: Vec<(Effect, Vec<f64>)> = Vec::new();
+    for &effect in models {
+        let defaults: Vec<f64> = model_params(effect).iter().map(|p| p.start).collect();
+        let fitted = |e: Effect| out.iter().find(|(f, _)| *f == e).map(|(_, x)| x.clone());
+        let start = match (effect, fitted(Effect::None), fitted(Effect::LoadFriction)) {
+            (Effect::DirectionalFriction, _, Some(l)) => vec![l[0], l[1], l[2], l[2]],
+            (Effect::None, _, _) | (_, None, _) => defaults,
+            (_, Some(n), _) => [n[0], n[1]]
+                .into_iter()
+                .chain(defaults.into_iter().skip(2))
+                .collect(),
+        };
+        let x = fit(rating, effect, runs, &start);
+        out.push((effect, x));
+    }
+    out
+}
+
+/// One model's held-out figures on one run.
+#[derive(Debug, Clone, Serialize)]
+pub struct HeldOutRun {
+    /// The run.
+    pub run: String,
+    /// Mean absolute error, rad.
+    pub mae_rad: f64,
+    /// Root-mean-square error, rad.
+    pub rmse_rad: f64,
+    /// The parameters fitted without it, in [`extension_params`] order after Coulomb and viscous.
+    pub parameters: Vec<f64>,
+}
+
+/// One motion model as tried.
+#[derive(Debug, Clone, Serialize)]
+pub struct MotionCandidate {
+    /// The extension (`none`: the calibrated nominal model).
+    pub id: Effect,
+    /// Per held-out run.
+    pub runs: Vec<HeldOutRun>,
+    /// Mean held-out MAE, rad.
+    pub mae_rad: f64,
+    /// Relative reduction of the nominal model's mean held-out MAE.
+    pub gain: f64,
+    /// Held-out runs it improved.
+    pub improved_runs: usize,
+    /// Its parameters fitted on all runs, named, with units.
+    pub parameters: Vec<crate::analysis::Parameter>,
+    /// Every parameter strictly inside its physical range on every fold.
+    pub plausible: bool,
+    /// Every test passed.
+    pub supported: bool,
+    /// Why not, when not.
+    pub verdict: String,
+}
+
+/// The motion channel's analysis.
+#[derive(Debug, Clone, Serialize)]
+pub struct MotionAnalysis {
+    /// The servo model replayed.
+    pub servo: String,
+    /// The simulator's servo as configured (its rated friction), per run: MAE, RMSE, rad.
+    pub as_configured: Vec<(String, f64, f64)>,
+    /// Runs never held out: the only ones where the load moves free of the position loop
+    /// (friction cannot be fitted without one).
+    pub always_fitted: Vec<String>,
+    /// The calibrated nominal model and every extension, on held-out runs.
+    pub candidates: Vec<MotionCandidate>,
+    /// The named cause: a motion extension, `none` or `unexplained`.
+    pub cause: Effect,
+    /// Mean held-out MAE of the calibrated nominal model, rad.
+    pub nominal_mae_rad: f64,
+    /// Mean held-out MAE of the best supported extension (or the nominal model's), rad.
+    pub chosen_mae_rad: f64,
+    /// The misfit left with it, against the positions' noise floor.
+    pub judged: String,
+    /// Mean time to simulate one run once, s.
+    pub seconds_per_run: f64,
+    /// Per run, the series behind the plots.
+    #[serde(skip)]
+    pub traces: Vec<MotionTrace>,
+}
+
+/// One run's positions: measured, the calibrated nominal model's and the chosen model's (both
+/// fitted on all runs), rad.
+#[derive(Debug, Clone)]
+pub struct MotionTrace {
+    /// The run.
+    pub run: String,
+    /// Sample times, s.
+    pub t: Vec<f64>,
+    /// Measured.
+    pub measured: Vec<f64>,
+    /// The calibrated nominal model.
+    pub nominal: Vec<f64>,
+    /// The chosen model.
+    pub chosen: Vec<f64>,
+}
+
+/// Whether a run lets the load move free of the position loop: torque released for at least
+/// half a second while it moves.
+fn moves_free(r: &MotionRun) -> bool {
+    let mut free_s = 0.0;
+    for k in 1..r.t.len() {
+        let moved = (r.position[k] - r.position[k - 1]).abs() > RAD_PER_STEP;
+        if !r.torque[k - 1] && moved {
+            free_s += r.t[k] - r.t[k - 1];
+        }
+    }
+    free_s >= 0.5
+}
+
+impl MotionAnalysis {
+    /// Writes the named motion extension (fitted on all runs) into the simulator's model file,
+    /// with the friction calibrated beside it; the file's cause names every channel's.
+    pub fn write_extension(&self, m: &mut sim::extension::ModelExtension) {
+        if !MOTION_CATALOG.contains(&self.cause) {
+            return;
+        }
+        let Some(c) = self.candidates.iter().find(|c| c.id == self.cause) else {
+            return;
+        };
+        let x: Vec<f64> = c.parameters.iter().map(|p| p.value).collect();
+        let p = decode(self.cause, &x);
+        let e = p.ext;
+        let id = self.cause.id();
+        m.cause = match m.cause.as_str() {
+            "none" => id.to_string(),
+            other if other.split('+').any(|c| c == id) => other.to_string(),
+            other => format!("{other}+{id}"),
+        };
+        m.fitted_coulomb_nm = Some(p.coulomb_nm);
+        m.fitted_viscous_nms = Some(p.viscous_nms);
+        match self.cause {
+            Effect::ArmatureError => m.armature_error = Some(e.armature_error),
+            Effect::FirmwareGain => m.duty_gain_error = Some(e.duty_gain_error),
+            Effect::Stribeck => {
+                m.stribeck_nm = Some(e.stribeck_nm);
+                m.stribeck_speed_rad_s = Some(e.stribeck_speed_rad_s);
+            }
+            _ => {
+                m.friction_drive_ratio = Some(e.friction_drive_ratio);
+                m.friction_back_ratio = Some(e.friction_back_ratio);
+            }
+        }
+    }
+}
+
+/// The motion catalog, in the order tried.
+pub const MOTION_CATALOG: [Effect; 5] = [
+    Effect::Stribeck,
+    Effect::LoadFriction,
+    Effect::DirectionalFriction,
+    Effect::ArmatureError,
+    Effect::FirmwareGain,
+];
+
+/// Runs the motion channel on `runs` (at least two: each is held out in turn), or None.
+pub fn analyze_motion(
+    rating: &ServoRating,
+    servo: &str,
+    runs: &[MotionRun],
+    candidates: &[Effect],
+    progress: &mut dyn FnMut(&str),
+) -> Option<MotionAnalysis> {
+    if runs.len() < 2 {
+        return None;
+    }
+    let nominal_rated = MotionParams {
+        coulomb_nm: rating.coulomb_nm,
+        viscous_nms: rating.viscous_nms,
+        ext: ServoExtension {
+            stribeck_speed_rad_s: 1.0,
+            ..ServoExtension::default()
+        },
+    };
+    let t = std::time::Instant::now();
+    let as_configured: Vec<(String, f64, f64)> = runs
+        .iter()
+        .map(|r| {
+            let (mae, rmse) = errors(&simulate(rating, &nominal_rated, r), r);
+            (r.name.clone(), mae, rmse)
+        })
+        .collect();
+    let seconds_per_run = t.elapsed().as_secs_f64() / runs.len() as f64;
+    let mut tried = Vec::new();
+    let mut fitted_on_all: Vec<(Effect, Vec<f64>)> = Vec::new();
+    let models: Vec<Effect> = std::iter::once(Effect::None)
+        .chain(
+            MOTION_CATALOG
+                .into_iter()
+                .filter(|e| candidates.contains(e)),
+        )
+        .collect();
+    // Friction shows where the load moves free of the position loop (torque released): with
+    // the loop stiff, it hides behind the loop's gain. A run is held out only if the runs left
+    // to fit on still include such a run; the only one is never held out (its figures are then
+    // missing, and the report says so).
+    let free: Vec<bool> = runs.iter().map(moves_free).collect();
+    let free_count = free.iter().filter(|f| **f).count();
+    let held_out: Vec<usize> = (0..runs.len())
+        .filter(|&k| free_count == 0 || free_count > usize::from(free[k]))
+        .collect();
+    if held_out.is_empty() {
+        return None;
+    }
+    // Every training set (each held-out run's complement, then all runs), fitted on two
+    // threads: the sets are independent.
+    progress(&format!(
+        "motion: fitting {} models on {} training sets",
+        models.len(),
+        held_out.len() + 1
+    ));
+    let sets: Vec<Vec<&MotionRun>> = held_out
+        .iter()
+        .map(|&k| {
+            runs.iter()
+                .enumerate()
+                .filter(|(j, _)| *j != k)
+                .map(|(_, r)| r)
+                .collect()
+        })
+        .chain(std::iter::once(runs.iter().collect()))
+        .collect();
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let fits = std::sync::Mutex::new(vec![Vec::new(); sets.len()]);
+    std::thread::scope(|scope| {
+        for _ in 0..2 {
+            scope.spawn(|| loop {
+                let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                let Some(set) = sets.get(i) else {
+                    break;
+                };
+                let f = fit_models(rating, &models, set);
+                if let Ok(mut all) = fits.lock() {
+                    all[i] = f;
+                }
+            });
+        }
+    });
+    let fits = fits.into_inner().unwrap_or_default();
+    let fitted = |set: usize, effect: Effect| -> Vec<f64> {
+        fits.get(set)
+            .and_then(|f| f.iter().find(|(e, _)| *e == effect))
+            .map_or_else(Vec::new, |(_, x)| x.clone())
+    };
+    for &effect in &models {
+        let params = model_params(effect);
+        let held: Vec<HeldOutRun> = held_out
+            .iter()
+            .enumerate()
+            .map(|(set, &k)| {
+                let x = fitted(set, effect);
+                let (mae, rmse) =
+                    errors(&simulate(rating, &decode(effect, &x), &runs[k]), &runs[k]);
+                HeldOutRun {
+                    run: runs[k].name.clone(),
+                    mae_rad: mae,
+                    rmse_rad: rmse,
+                    parameters: x,
+                }
+            })
+            .collect();
+        let x = fitted(held_out.len(), effect);
+        let parameters = params
+            .iter()
+            .zip(&x)
+            .map(|(p, v)| crate::analysis::Parameter {
+                name: p.name.into(),
+                value: *v,
+                unit: p.unit.into(),
+            })
+            .collect();
+        // A parameter pinned at the edge of what its physics allows is the fit asking for
+        // more than the physics gives: not plausible (a ratio of friction at 0, a side without
+        // friction, is physics, not an edge).
+        let inside = |x: &[f64]| {
+            params.iter().zip(x).skip(2).all(|(p, v)| {
+                let margin = 1e-3 * (p.hi - p.lo);
+                (*v > p.lo + margin || p.lo == 0.0 && *v >= 0.0) && *v < p.hi - margin
+            })
+        };
+        let plausible = inside(&x) && held.iter().all(|h| inside(&h.parameters));
+        fitted_on_all.push((effect, x.clone()));
+        let mae = held.iter().map(|h| h.mae_rad).sum::<f64>() / held.len() as f64;
+        tried.push(MotionCandidate {
+            id: effect,
+            runs: held,
+            mae_rad: mae,
+            gain: 0.0,
+            improved_runs: 0,
+            parameters,
+            plausible,
+            supported: false,
+            verdict: String::new(),
+        });
+    }
+    let (nominal, extensions) = tried.split_first_mut()?;
+    nominal.verdict = "the calibrated nominal model (Coulomb and viscous friction)".into();
+    for c in extensions.iter_mut() {
+        c.gain = 1.0 - c.mae_rad / nominal.mae_rad;
+        c.improved_runs = c
+            .runs
+            .iter()
+            .zip(&nominal.runs)
+            .filter(|(e, n)| e.mae_rad < n.mae_rad)
+            .count();
+        let step_gain = nominal.mae_rad - c.mae_rad;
+        c.verdict = if !c.plausible {
+            "a parameter at the edge of (or beyond) what its physics allows".into()
+        } else if c.gain < MOTION_PRACTICAL_GAIN || step_gain < MOTION_MIN_MAE_CUT {
+            format!(
+                "no practical difference: held-out MAE {:.5} → {:.5} rad ({:+.1} %; {:.0} % and a \
+                 quarter encoder step, {MOTION_MIN_MAE_CUT:.5} rad, would matter)",
+                nominal.mae_rad,
+                c.mae_rad,
+                100.0 * c.gain,
+                100.0 * MOTION_PRACTICAL_GAIN
+            )
+        } else if 2 * c.improved_runs <= c.runs.len() {
+            format!(
+                "better on only {} of {} held-out runs",
+                c.improved_runs,
+                c.runs.len()
+            )
+        } else {
+            "supported".into()
+        };
+        c.supported = c.verdict == "supported";
+    }
+    let mut best = extensions
+        .iter()
+        .filter(|c| c.supported)
+        .max_by(|a, b| a.gain.total_cmp(&b.gain));
+    // The directional friction holds the load-proportional one (equal sides): it is named
+    // only where it predicts better than that by what matters.
+    if let Some(d) = best.filter(|c| c.id == Effect::DirectionalFriction) {
+        if let Some(l) = extensions
+            .iter()
+            .find(|c| c.id == Effect::LoadFriction && c.supported)
+        {
+            let cut = l.mae_rad - d.mae_rad;
+            if cut < MOTION_PRACTICAL_GAIN * l.mae_rad || cut < MOTION_MIN_MAE_CUT {
+                best = Some(l);
+            }
+        }
+    }
+    let chosen = best.unwrap_or(&*nominal);
+    let (chosen_id, chosen_mae, nominal_mae) = (chosen.id, chosen.mae_rad, nominal.mae_rad);
+    // The misfit left, against the positions' noise floor (pooled over held-out runs).
+    let floor = {
+        let series: Vec<Vec<f64>> = held_out.iter().map(|&k| runs[k].position.clone()).collect();
+        let segments: Vec<(usize, usize)> = series.iter().map(|s| (0, s.len())).collect();
+        let per: Vec<NoiseFloor> = series
+            .iter()
+            .zip(&segments)
+            .map(|(s, seg)| NoiseFloor::of(std::slice::from_ref(s), RAD_PER_STEP, &[*seg]))
+            .collect();
+        let mean_sq = per.iter().map(|f| f.readings_noise.powi(2)).sum::<f64>() / per.len() as f64;
+        NoiseFloor {
+            quantum: RAD_PER_STEP,
+            readings_noise: mean_sq.sqrt(),
+            floor: (RAD_PER_STEP * RAD_PER_STEP / 12.0 + mean_sq).sqrt(),
+        }
+    };
+    let rmse = (chosen.runs.iter().map(|h| h.rmse_rad.powi(2)).sum::<f64>()
+        / chosen.runs.len() as f64)
+        .sqrt();
+    let (significant, judged) = floor.judge(rmse, 0.0, "rad");
+    let sim_of = |effect: Effect, r: &MotionRun| {
+        fitted_on_all
+            .iter()
+            .find(|(e, _)| *e == effect)
+            .map(|(_, x)| simulate(rating, &decode(effect, x), r))
+            .unwrap_or_default()
+    };
+    let traces = runs
+        .iter()
+        .map(|r| MotionTrace {
+            run: r.name.clone(),
+            t: r.t.clone(),
+            measured: r.position.clone(),
+            nominal: sim_of(Effect::None, r),
+            chosen: sim_of(chosen_id, r),
+        })
+        .collect();
+    let cause = match (significant, best.is_some()) {
+        (true, _) => Effect::Unexplained,
+        (false, true) => chosen_id,
+        (false, false) => Effect::None,
+    };
+    Some(MotionAnalysis {
+        servo: servo.into(),
+        as_configured,
+        always_fitted: (0..runs.len())
+            .filter(|k| !held_out.contains(k))
+            .map(|k| runs[k].name.clone())
+            .collect(),
+        candidates: tried,
+        cause,
+        nominal_mae_rad: nominal_mae,
+        chosen_mae_rad: chosen_mae,
+        judged: format!("after `{chosen_id}`: {judged}"),
+        seconds_per_run,
+        traces,
+    })
+}
