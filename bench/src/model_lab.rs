@@ -19,6 +19,9 @@ pub struct BenchArgs {
     /// Seeds per motion effect (generated runs through the motion channel; 0: skip it).
     #[arg(long, default_value_t = 50)]
     motion_seeds: u64,
+    /// Only these families of rows: catalog, foreign, pairs, dirty, motion (all by default).
+    #[arg(long, value_delimiter = ',')]
+    rows: Vec<String>,
     /// Worker threads.
     #[arg(long, default_value_t = 2)]
     jobs: usize,
@@ -89,6 +92,7 @@ pub fn run_bench(a: &BenchArgs) -> Result<()> {
         jobs: a.jobs,
         effects: only,
         motion_seeds: a.motion_seeds,
+        rows: a.rows.clone(),
         ..Default::default()
     };
     if !a.no_timing {
@@ -116,7 +120,11 @@ pub fn run_bench(a: &BenchArgs) -> Result<()> {
             t["ratio"].as_f64().unwrap_or(f64::NAN),
         );
     }
-    if let Some(null) = report.effects.iter().find(|e| e.effect == Effect::None) {
+    if let Some(null) = report
+        .effects
+        .iter()
+        .find(|e| e.effect == Effect::None && e.runs > 0)
+    {
         println!(
             "false alarms on null data: {:.1} % ({} of {} runs named an effect; goal ≤ 5 %)",
             100.0 * (1.0 - null.accuracy),

@@ -60,7 +60,7 @@ use crate::motion::{self, MotionAnalysis, MotionRun};
 use crate::register::Register;
 use crate::stats;
 use crate::thermal::{
-    fit_extension, fit_nominal, refit_nominal, ThermalData, ThermalFit, ThermalModel,
+    fit_extension, fit_nominal, fit_pair, refit_nominal, ThermalData, ThermalFit, ThermalModel,
 };
 use serde::Serialize;
 use std::collections::BTreeMap;
@@ -303,6 +303,9 @@ pub struct Unexplained {
 pub struct Candidate {
     /// Catalog id.
     pub id: Effect,
+    /// Tried on top of this extension (a pair, fitted together; the tests then weigh what
+    /// `id` adds to it).
+    pub with: Option<Effect>,
     /// Channel.
     pub channel: Channel,
     /// Fitted parameter.
@@ -686,6 +689,8 @@ pub fn analyze(
     let mut register_noise = None;
     let mut thermal_fits: Vec<(Effect, ThermalFit, Vec<Vec<f64>>)> = Vec::new();
     let mut verdicts = Vec::new();
+    // Two thermal effects named together: the first, the second, their parameters.
+    let mut pair_named: Option<(Effect, Effect, f64, f64)> = None;
     // Per channel, the nominal model's held-out residuals per motor: id, indices, residuals.
     let mut nominal_held: Vec<(Channel, Vec<HeldResiduals>)> = Vec::new();
     if let Some(td) = &td {
@@ -759,9 +764,91 @@ pub fn analyze(
             thermal_fits.push((effect, fit, pred));
         }
         let best = best_supported(&candidates, Channel::Thermal);
+        // Two effects at once: the best supported extension fitted together with each other
+        // one (an effect can hide another: a drift masks a lag until the drift is modelled);
+        // a second is named beside the first when it passes every test against the first
+        // alone; among several, the one with the largest ΔBIC.
+        let singles: Vec<(Effect, ThermalFit)> = thermal_fits
+            .iter()
+            .map(|(e, f, _)| (*e, f.clone()))
+            .collect();
+        let first = best.and_then(|b| {
+            thermal_fits
+                .iter()
+                .find(|(e, _, _)| *e == b)
+                .map(|(e, f, p)| (*e, f.clone(), p.clone()))
+        });
+        let mut best_pair: Option<PairFit> = None;
+        if let Some((a, fa, base_pred)) = &first {
+            let base_held: Vec<Vec<f64>> = (0..td.n())
+                .map(|m| residuals_at(&base_pred[m], &td.measured[m], &td.held_idx[m]))
+                .collect();
+            let after_first = verdict(Channel::Thermal, Some(*a), &ids, &base_held, "°C", &floor);
+            for (b, fb) in singles.iter().filter(|(e, _)| e != a) {
+                progress(&format!("thermal: fitting {a} with {b}"));
+                let pair = fit_pair(td, fa, fb, Some(&reg));
+                let model = pair.model(td);
+                let pair_pred = model.predict(&pair.p);
+                let decoded = model.decode(&pair.p);
+                let pair_held: Vec<Vec<f64>> = (0..td.n())
+                    .map(|m| residuals_at(&pair_pred[m], &td.measured[m], &td.held_idx[m]))
+                    .collect();
+                let test = deviance_test(td, &reg, base_pred, &pair_pred, fa.sse, pair.sse);
+                let parameter = b.parameter().map(|(name, unit)| Parameter {
+                    name: name.into(),
+                    value: decoded.second_extension,
+                    unit: unit.into(),
+                });
+                let mut c = judge(
+                    *b,
+                    parameter,
+                    &after_first,
+                    floor.floor,
+                    fa.sse,
+                    pair.sse,
+                    test,
+                    &base_held,
+                    &pair_held,
+                    pair.iterations,
+                );
+                c.with = Some(*a);
+                // The first's parameter, refitted beside the second, must still be physical.
+                if c.supported
+                    && !a
+                        .bounds()
+                        .is_none_or(|(lo, hi, _)| (lo..=hi).contains(&decoded.extension))
+                {
+                    c.supported = false;
+                    c.verdict = format!(
+                        "beside it, {a} moves to {:.4}, outside what its physics allows",
+                        decoded.extension
+                    );
+                }
+                if c.supported
+                    && best_pair
+                        .as_ref()
+                        .is_none_or(|b| c.delta_bic > b.candidate.delta_bic)
+                {
+                    best_pair = Some(PairFit {
+                        candidate: c.clone(),
+                        fit: pair,
+                        prediction: pair_pred,
+                        values: (decoded.extension, decoded.second_extension),
+                    });
+                }
+                candidates.push(c);
+            }
+        }
+        if let (Some((a, _, _)), Some(p)) = (&first, best_pair) {
+            pair_named = Some((*a, p.candidate.id, p.values.0, p.values.1));
+            thermal_fits.push((*a, p.fit, p.prediction));
+        }
+        // The fit the thermal channel is judged with: the pair's when named, else the best
+        // single's (the pair's fit is the last one pushed for its first effect).
         let pred = thermal_fits
             .iter()
-            .find(|(e, _, _)| Some(*e) == best)
+            .rev()
+            .find(|(e, f, _)| Some(*e) == best && (pair_named.is_some() || f.second.is_none()))
             .map_or(&nom_pred, |(_, _, p)| p);
         let left: Vec<Vec<f64>> = (0..td.n())
             .map(|m| residuals_at(&pred[m], &td.measured[m], &td.held_idx[m]))
@@ -862,7 +949,7 @@ pub fn analyze(
     let left_over = verdicts.iter().find(|v| v.significant);
     let chosen = candidates
         .iter()
-        .filter(|c| c.supported && left_over.is_none())
+        .filter(|c| c.supported && c.with.is_none() && left_over.is_none())
         .max_by(|a, b| a.delta_bic.total_cmp(&b.delta_bic))
         .cloned();
     let cause = match (left_over, &chosen) {
@@ -888,9 +975,11 @@ pub fn analyze(
     });
     let chosen_fit = Chosen {
         effect: cause,
+        // The pair's fit when one was named (pushed after the single's), else the single's.
         thermal: thermal_fits
             .iter()
-            .find(|(e, _, _)| *e == cause)
+            .rev()
+            .find(|(e, f, _)| *e == cause && (pair_named.is_some() || f.second.is_none()))
             .map(|(_, f, p)| (f.clone(), p.clone())),
         electrical: (cause == Effect::SupplySag)
             .then(|| elec_sag.clone())
@@ -1003,13 +1092,54 @@ pub fn analyze(
         ),
     };
     let (baseline, extended) = (baseline.unwrap_or(f64::NAN), extended.unwrap_or(f64::NAN));
-    let parameters = chosen
-        .as_ref()
-        .and_then(|c| c.parameter.clone())
-        .into_iter()
+    // Every effect named: each channel's best (and the thermal pair's second), unless some
+    // channel's misfit is left unexplained; then the motion channel's.
+    let mut named: Vec<Effect> = if left_over.is_some() {
+        vec![Effect::Unexplained]
+    } else {
+        verdicts.iter().filter_map(|v| v.extension).collect()
+    };
+    if let Some((first, second, _, _)) = pair_named.filter(|_| left_over.is_none()) {
+        if let Some(i) = named.iter().position(|e| *e == first) {
+            named.insert(i + 1, second);
+        }
+    }
+    // Their parameters, the cause's first; a pair's each with the value it took beside the
+    // other.
+    named.sort_by_key(|e| *e != cause);
+    let parameters: Vec<Parameter> = named
+        .iter()
+        .filter_map(|&e| {
+            let value = match pair_named {
+                Some((first, _, v1, _)) if first == e => Some(v1),
+                Some((_, second, _, v2)) if second == e => Some(v2),
+                _ => candidates
+                    .iter()
+                    .find(|c| c.id == e && c.with.is_none())
+                    .and_then(|c| c.parameter.as_ref())
+                    .map(|p| p.value),
+            }?;
+            e.parameter().map(|(name, unit)| Parameter {
+                name: name.into(),
+                value,
+                unit: unit.into(),
+            })
+        })
         .collect();
+    if let Some(m) = motion.as_ref().filter(|m| m.cause != Effect::None) {
+        if !named.contains(&m.cause) {
+            named.push(m.cause);
+        }
+    }
     let segs = d.segments();
     let mut model = model_file(&d, &td, &thermal_nominal, &chosen_fit, &chosen);
+    // Every effect named, with its parameter as named (a pair's refitted together).
+    for (e, p) in named.iter().zip(&parameters) {
+        set_key(&mut model, *e, p.value);
+        if *e != cause {
+            model.cause = format!("{}+{}", model.cause, e.id());
+        }
+    }
     if let Some(m) = &motion {
         m.write_extension(&mut model);
     }
@@ -1030,11 +1160,7 @@ pub fn analyze(
         },
         motors,
         unexplained,
-        causes: [Some(cause), motion.as_ref().map(|m| m.cause)]
-            .into_iter()
-            .flatten()
-            .filter(|c| *c != Effect::None)
-            .collect(),
+        causes: named,
         motion,
         diagnostics: Diagnostics {
             samples: n,
@@ -1064,6 +1190,18 @@ pub fn analyze(
     })
 }
 
+/// A pair of thermal extensions fitted together, as tried.
+struct PairFit {
+    /// The second's candidate (tried beside the first).
+    candidate: Candidate,
+    /// The pair's fit.
+    fit: ThermalFit,
+    /// Its predictions.
+    prediction: Vec<Vec<f64>>,
+    /// The first's and the second's parameters, in the catalog's units.
+    values: (f64, f64),
+}
+
 /// A motor's held-out residuals: its id, the sample indices and the residuals there.
 type HeldResiduals = (i64, Vec<usize>, Vec<f64>);
 
@@ -1071,7 +1209,7 @@ type HeldResiduals = (i64, Vec<usize>, Vec<f64>);
 fn best_supported(candidates: &[Candidate], channel: Channel) -> Option<Effect> {
     candidates
         .iter()
-        .filter(|c| c.supported && c.channel == channel)
+        .filter(|c| c.supported && c.channel == channel && c.with.is_none())
         .max_by(|a, b| a.delta_bic.total_cmp(&b.delta_bic))
         .map(|c| c.id)
 }
@@ -1365,6 +1503,7 @@ fn judge(
     };
     Candidate {
         id: effect,
+        with: None,
         channel: effect.channel(),
         parameter,
         baseline_fit_sse: base_sse,
@@ -1459,6 +1598,19 @@ fn improvement_t(base: &[Vec<f64>], ext: &[Vec<f64>]) -> f64 {
     mean / (var / m).sqrt()
 }
 
+/// The model file's key of a thermal or electrical extension, in the file's units.
+fn set_key(m: &mut sim::extension::ModelExtension, effect: Effect, v: f64) {
+    match effect {
+        Effect::SensorLag => m.sensor_time_constant_s = Some(v),
+        Effect::NeighborCoupling => m.neighbor_coupling_ratio = Some(v),
+        Effect::CopperTempco => m.resistance_tempco_per_k = Some(v / 100.0),
+        Effect::AmbientDrift => m.ambient_drift_k_per_h = Some(v),
+        Effect::SupplySag => m.supply_resistance_ohm = Some(v),
+        Effect::CurrentOffset => m.current_offset_a = Some(v),
+        _ => {}
+    }
+}
+
 fn model_file(
     d: &Dataset,
     td: &Option<ThermalData>,
@@ -1473,14 +1625,8 @@ fn model_file(
         .as_ref()
         .and_then(|c| c.parameter.as_ref())
         .map(|p| p.value);
-    match (chosen.effect, value) {
-        (Effect::SensorLag, Some(v)) => m.sensor_time_constant_s = Some(v),
-        (Effect::NeighborCoupling, Some(v)) => m.neighbor_coupling_ratio = Some(v),
-        (Effect::CopperTempco, Some(v)) => m.resistance_tempco_per_k = Some(v / 100.0),
-        (Effect::AmbientDrift, Some(v)) => m.ambient_drift_k_per_h = Some(v),
-        (Effect::SupplySag, Some(v)) => m.supply_resistance_ohm = Some(v),
-        (Effect::CurrentOffset, Some(v)) => m.current_offset_a = Some(v),
-        _ => {}
+    if let Some(v) = value {
+        set_key(&mut m, chosen.effect, v);
     }
     m.heldout_gain = cand.as_ref().map(|c| c.gain);
     if let (Some(td), Some((nom, _))) = (td, nominal) {
@@ -1490,7 +1636,10 @@ fn model_file(
             Some((f, _)) => (chosen.effect, &f.p),
             None => (Effect::None, &nom.p),
         };
-        let params = ThermalModel::new(td, effect).decode(p);
+        let params = match &chosen.thermal {
+            Some((f, _)) => f.model(td).decode(p),
+            None => ThermalModel::new(td, effect).decode(p),
+        };
         m.motor = td
             .motors
             .iter()

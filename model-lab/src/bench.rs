@@ -6,9 +6,9 @@
 //! end: the smallest size at which the effect is still named in ≥ [`DETECTION_RATE`] of the runs
 //! (and at every larger size of the sweep).
 
-use crate::analysis::{analyze, Options};
+use crate::analysis::{analyze, Options, Parameter};
 use crate::catalog::Effect;
-use crate::generate::{generate, size_range, Foreign, Spec};
+use crate::generate::{generate, size_range, Dirty, Foreign, Spec};
 use serde::Serialize;
 use std::time::Instant;
 
@@ -36,6 +36,8 @@ pub struct Settings {
     pub effects: Vec<Effect>,
     /// Seeds per motion effect (generated runs through the motion channel; 0: none).
     pub motion_seeds: u64,
+    /// Families of rows to score (`catalog`, `foreign`, `pairs`, `dirty`, `motion`); empty: all.
+    pub rows: Vec<String>,
 }
 
 impl Default for Settings {
@@ -49,9 +51,19 @@ impl Default for Settings {
             jobs: 1,
             effects: Vec::new(),
             motion_seeds: 50,
+            rows: Vec::new(),
         }
     }
 }
+
+/// The pairs of hidden effects scored: two thermal ones of different kinds, and a thermal one
+/// with the electrical one.
+pub const PAIRS: [(Effect, Effect); 4] = [
+    (Effect::SensorLag, Effect::AmbientDrift),
+    (Effect::CopperTempco, Effect::CurrentOffset),
+    (Effect::NeighborCoupling, Effect::AmbientDrift),
+    (Effect::SensorLag, Effect::SupplySag),
+];
 
 /// One run.
 #[derive(Debug, Clone, Serialize)]
@@ -68,13 +80,19 @@ pub struct Run {
     pub motors: usize,
     /// Analysis wall time, s.
     pub seconds: f64,
+    /// With a second hidden effect: both named.
+    pub both_named: bool,
+    /// With a second hidden effect: both parameters within [`PARAMETER_TOLERANCE`].
+    pub both_recovered: bool,
+    /// With a dirty channel: the audit found it (a finding of its kind).
+    pub flagged: bool,
 }
 
 /// Accuracy on one effect.
 #[derive(Debug, Clone, Serialize)]
 pub struct EffectScore {
-    /// What was hidden: a catalog id, `none`, or an effect outside the catalog.
-    pub hidden: &'static str,
+    /// What was hidden: a catalog id, `none`, a pair `a+b`, or an effect outside the catalog.
+    pub hidden: String,
     /// The answer that is right: the hidden catalog effect, `none`, or `unexplained` for an
     /// effect outside the catalog.
     pub effect: Effect,
@@ -157,6 +175,9 @@ fn motion_score(
                         .and_then(|c| c.parameters.get(2 + i).map(|p| p.value))
                 });
                 let run = Run {
+                    both_named: false,
+                    both_recovered: false,
+                    flagged: false,
                     seed,
                     size: g.parameters.get(i).copied().unwrap_or(0.0),
                     named,
@@ -188,9 +209,9 @@ fn motion_score(
     }
     let score = EffectScore {
         hidden: if effect == Effect::None {
-            "none (motion)"
+            "none (motion)".into()
         } else {
-            effect.id()
+            effect.id().into()
         },
         effect,
         size_range: crate::generate::motion_size_range(effect),
@@ -238,17 +259,41 @@ fn run_one(spec: &Spec, seed: u64) -> Run {
         .ok()
         .and_then(|d| analyze(d, &Options::default(), &mut |_| {}).ok());
     let seconds = t.elapsed().as_secs_f64();
+    // Each hidden effect's parameter, found among those named.
+    let hidden: Vec<Parameter> = g
+        .truth
+        .parameter
+        .iter()
+        .cloned()
+        .chain(g.truth.second.iter().map(|(_, p)| p.clone()))
+        .collect();
     match out {
-        Some(o) => Run {
-            seed,
-            size,
-            named: o.analysis.cause,
-            recovered: (o.analysis.cause == spec.effect)
-                .then(|| o.analysis.parameters.first().map(|p| p.value))
-                .flatten(),
-            motors,
-            seconds,
-        },
+        Some(o) => {
+            let a = &o.analysis;
+            let within = |t: &Parameter| {
+                a.parameters.iter().any(|p| {
+                    p.name == t.name
+                        && (p.value - t.value).abs() <= PARAMETER_TOLERANCE * t.value.abs()
+                })
+            };
+            let second = g.truth.second.as_ref().map(|(e, _)| *e);
+            Run {
+                seed,
+                size,
+                named: a.cause,
+                recovered: (a.cause == spec.effect)
+                    .then(|| a.parameters.first().map(|p| p.value))
+                    .flatten(),
+                motors,
+                seconds,
+                both_named: second
+                    .is_some_and(|s| a.causes.contains(&spec.effect) && a.causes.contains(&s)),
+                both_recovered: second.is_some() && hidden.iter().all(within),
+                flagged: spec
+                    .dirty
+                    .is_some_and(|k| a.diagnostics.audit.iter().any(|f| f.kind == k.id())),
+            }
+        }
         None => Run {
             seed,
             size,
@@ -256,6 +301,9 @@ fn run_one(spec: &Spec, seed: u64) -> Run {
             recovered: None,
             motors,
             seconds,
+            both_named: false,
+            both_recovered: false,
+            flagged: false,
         },
     }
 }
@@ -289,8 +337,11 @@ fn run_many(jobs: &[(Spec, u64)], threads: usize) -> Vec<Run> {
 pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
     let start = Instant::now();
     let mut effects = Vec::new();
+    let wants =
+        |family: &str| settings.rows.is_empty() || settings.rows.iter().any(|r| r == family);
     for effect in std::iter::once(Effect::None).chain(Effect::CATALOG) {
-        if !settings.effects.is_empty() && !settings.effects.contains(&effect) {
+        if !wants("catalog") || !settings.effects.is_empty() && !settings.effects.contains(&effect)
+        {
             continue;
         }
         let spec = Spec {
@@ -355,7 +406,7 @@ pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
             .last()
             .map(|(s, _)| *s);
         let score = EffectScore {
-            hidden: effect.id(),
+            hidden: effect.id().into(),
             effect,
             size_range: size_range(effect),
             unit: effect.parameter().map_or("", |p| p.1),
@@ -380,7 +431,9 @@ pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
         effects.push(score);
     }
     // Effects outside the catalog: the right answer is `unexplained`, never a catalog name.
-    if settings.effects.is_empty() || settings.effects.contains(&Effect::Unexplained) {
+    if wants("foreign")
+        && (settings.effects.is_empty() || settings.effects.contains(&Effect::Unexplained))
+    {
         for foreign in Foreign::ALL {
             let spec = Spec {
                 duration_s: settings.duration_s,
@@ -399,7 +452,7 @@ pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
                 }
             }
             let score = EffectScore {
-                hidden: foreign.id(),
+                hidden: foreign.id().into(),
                 effect: Effect::Unexplained,
                 size_range: (0.0, 0.0),
                 unit: "",
@@ -426,10 +479,92 @@ pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
             effects.push(score);
         }
     }
+    // Two effects at once: both must be named (the score's `effect` is the first).
+    if wants("pairs") && settings.effects.is_empty() {
+        for (first, second) in PAIRS {
+            let spec = Spec {
+                duration_s: settings.duration_s,
+                period_s: settings.period_s,
+                second: Some(second),
+                ..Spec::new(first)
+            };
+            let jobs: Vec<(Spec, u64)> = (0..settings.seeds).map(|s| (spec.clone(), s)).collect();
+            let runs = run_many(&jobs, settings.jobs);
+            let n = runs.len().max(1) as f64;
+            let both = runs.iter().filter(|r| r.both_named).count();
+            let mut confusions: Vec<(Effect, usize)> = Vec::new();
+            for r in runs.iter().filter(|r| !r.both_named) {
+                match confusions.iter_mut().find(|(e, _)| *e == r.named) {
+                    Some(c) => c.1 += 1,
+                    None => confusions.push((r.named, 1)),
+                }
+            }
+            let score = EffectScore {
+                hidden: format!("{}+{}", first.id(), second.id()),
+                effect: first,
+                size_range: size_range(first),
+                unit: first.parameter().map_or("", |p| p.1),
+                runs: runs.len(),
+                accuracy: both as f64 / n,
+                recovered: runs.iter().filter(|r| r.both_recovered).count() as f64 / n,
+                median_parameter_error: None,
+                confusions,
+                mean_seconds: runs.iter().map(|r| r.seconds).sum::<f64>() / n,
+                sweep: Vec::new(),
+                detection_limit: None,
+                detail: runs,
+            };
+            progress(&format!(
+                "{:18} both named {:5.1} %  both parameters within {:.0} %: {:5.1} %",
+                score.hidden,
+                100.0 * score.accuracy,
+                100.0 * PARAMETER_TOLERANCE,
+                100.0 * score.recovered
+            ));
+            effects.push(score);
+        }
+    }
+    // Data that lie: the audit must find each kind (the score's accuracy), and the analysis
+    // still answer `none` on the null data behind it (its `recovered`).
+    if wants("dirty") && settings.effects.is_empty() {
+        for dirty in Dirty::ALL {
+            let spec = Spec {
+                duration_s: settings.duration_s,
+                period_s: settings.period_s,
+                dirty: Some(dirty),
+                ..Spec::new(Effect::None)
+            };
+            let jobs: Vec<(Spec, u64)> = (0..settings.seeds).map(|s| (spec.clone(), s)).collect();
+            let runs = run_many(&jobs, settings.jobs);
+            let n = runs.len().max(1) as f64;
+            let score = EffectScore {
+                hidden: format!("dirty: {}", dirty.id()),
+                effect: Effect::None,
+                size_range: (0.0, 0.0),
+                unit: "",
+                runs: runs.len(),
+                accuracy: runs.iter().filter(|r| r.flagged).count() as f64 / n,
+                recovered: runs.iter().filter(|r| r.named == Effect::None).count() as f64 / n,
+                median_parameter_error: None,
+                confusions: Vec::new(),
+                mean_seconds: runs.iter().map(|r| r.seconds).sum::<f64>() / n,
+                sweep: Vec::new(),
+                detection_limit: None,
+                detail: runs,
+            };
+            progress(&format!(
+                "{:18} flagged {:5.1} %  still none {:5.1} %",
+                score.hidden,
+                100.0 * score.accuracy,
+                100.0 * score.recovered
+            ));
+            effects.push(score);
+        }
+    }
     // The motion channel: generated runs hiding one mechanical effect (or none).
     let motion_wanted = |e: Effect| settings.effects.is_empty() || settings.effects.contains(&e);
     for effect in std::iter::once(Effect::None).chain(crate::motion::MOTION_CATALOG) {
-        if settings.motion_seeds == 0 || !motion_wanted(effect) {
+        if settings.motion_seeds == 0 || !wants("motion") || !motion_wanted(effect) {
             continue;
         }
         let score = motion_score(effect, settings, progress);

@@ -63,6 +63,32 @@ impl Foreign {
     }
 }
 
+/// Data that lie: a channel written wrong, for the audit to find.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Dirty {
+    /// The current column in milliamperes (the register's 6.5 mA steps × 1000).
+    Milliamps,
+    /// One motor's temperature register stuck at its reading for 30–60 min, from a random
+    /// time in the first two thirds of the record.
+    StuckSensor,
+    /// The logger's clock steps back 2–15 min at a random row in the middle of the record.
+    ClockJump,
+}
+
+impl Dirty {
+    /// Every kind.
+    pub const ALL: [Dirty; 3] = [Dirty::Milliamps, Dirty::StuckSensor, Dirty::ClockJump];
+
+    /// Its name, and the audit's finding for it.
+    pub fn id(self) -> &'static str {
+        match self {
+            Dirty::Milliamps => "milliamps",
+            Dirty::StuckSensor => "stuck",
+            Dirty::ClockJump => "clock_jump",
+        }
+    }
+}
+
 /// What to generate.
 #[derive(Debug, Clone)]
 pub struct Spec {
@@ -70,6 +96,10 @@ pub struct Spec {
     pub effect: Effect,
     /// An effect outside the catalog, hidden as well.
     pub foreign: Option<Foreign>,
+    /// A second catalog effect hidden beside the first (its size drawn from its range).
+    pub second: Option<Effect>,
+    /// A channel written wrong.
+    pub dirty: Option<Dirty>,
     /// Its size (catalog unit); drawn from [`size_range`] when None.
     pub size: Option<f64>,
     /// Recording length, s.
@@ -86,6 +116,8 @@ impl Spec {
         Spec {
             effect,
             foreign: None,
+            second: None,
+            dirty: None,
             size: None,
             duration_s: 7200.0,
             period_s: 1.0,
@@ -101,6 +133,8 @@ pub struct Truth {
     pub effect: Effect,
     /// The hidden effect outside the catalog, if any.
     pub foreign: Option<Foreign>,
+    /// The second hidden catalog effect's parameter, if any.
+    pub second: Option<(Effect, Parameter)>,
     /// Its parameter, named like the lab names it.
     pub parameter: Option<Parameter>,
     /// Motors.
@@ -188,10 +222,22 @@ pub fn generate(spec: &Spec, seed: u64) -> Generated {
     let warm: Vec<f64> = (0..n).map(|_| rng.range(0.0, 3.0)).collect();
     let mut w: Vec<f64> = (0..n).map(|m| idle[m] + warm[m]).collect();
     let mut s = w.clone();
-    let size_of = |e: Effect| if effect == e { size } else { 0.0 };
-    // The foreign effect draws from a generator of its own: the same seed without it gives the
-    // same data as before it existed.
+    // The foreign effect and the second one draw from a generator of their own: the same seed
+    // without them gives the same data as before they existed.
     let mut frng = Rng::new(seed ^ 0x666F_7265_6967_6E00);
+    let second = spec.second.filter(|e| *e != effect).map(|e| {
+        let (lo, hi) = size_range(e);
+        let mut v = frng.range(lo, hi);
+        if signed(e) {
+            v *= frng.sign();
+        }
+        (e, v)
+    });
+    let size_of = |e: Effect| match second {
+        _ if effect == e => size,
+        Some((s, v)) if s == e => v,
+        _ => 0.0,
+    };
     let duration = steps as f64 * spec.period_s;
     let (loss_from_s, loss) = match spec.foreign {
         Some(Foreign::CoolingLoss) => (frng.range(0.5, 0.9) * duration, frng.range(0.4, 0.8)),
@@ -271,28 +317,60 @@ pub fn generate(spec: &Spec, seed: u64) -> Generated {
         }
     }
 
-    // The registers.
+    // The registers, and what a dirty channel does to them.
     let offset = size_of(Effect::CurrentOffset);
     let rs = size_of(Effect::SupplySag);
+    let (stuck_motor, stuck_from, stuck_until) = match spec.dirty {
+        Some(Dirty::StuckSensor) => {
+            let from = frng.range(0.05, 0.6) * duration;
+            (frng.int(0, n - 1), from, from + frng.range(1800.0, 3600.0))
+        }
+        _ => (usize::MAX, 0.0, 0.0),
+    };
+    let (jump_from, jump_s) = match spec.dirty {
+        Some(Dirty::ClockJump) => (frng.range(0.3, 0.7) * duration, frng.range(120.0, 900.0)),
+        _ => (f64::INFINITY, 0.0),
+    };
+    let mut stuck_reading: Option<String> = None;
     let mut csv = String::from("t_s,motor,voltage_v,temperature_c,current_a\n");
     for k in 0..steps {
-        let t = k as f64 * spec.period_s;
+        let true_t = k as f64 * spec.period_s;
+        let t = if true_t >= jump_from {
+            true_t - jump_s
+        } else {
+            true_t
+        };
         let bus: f64 = (0..n).map(|m| current[m][k].abs()).sum();
         for m in 0..n {
             if rng.chance(0.003) {
                 continue; // dropped row
             }
-            let temp = if rng.chance(0.003) {
+            let mut temp = if rng.chance(0.003) {
                 String::new()
             } else if rng.chance(0.002) {
                 if rng.chance(0.5) { "0" } else { "150" }.to_string()
             } else {
                 format!("{}", (readings[m][k] + noise * rng.normal()).round())
             };
+            if m == stuck_motor && (stuck_from..stuck_until).contains(&true_t) {
+                // Stuck on its first good reading of the interval.
+                match &stuck_reading {
+                    Some(r) => temp.clone_from(r),
+                    None if !temp.is_empty() && temp != "0" && temp != "150" => {
+                        stuck_reading = Some(temp.clone());
+                    }
+                    None => {}
+                }
+            }
             let i_reg = ((current[m][k] + offset + 0.01 * rng.normal()) / CURRENT_LSB_A).round()
                 * CURRENT_LSB_A;
             let v = ((v0 + v_off[m] - rs * bus + 0.03 * rng.normal()) * 10.0).round() / 10.0;
-            let _ = writeln!(csv, "{t:.3},{},{v:.1},{temp},{i_reg:.4}", m + 1);
+            if spec.dirty == Some(Dirty::Milliamps) {
+                let ma = 1000.0 * i_reg;
+                let _ = writeln!(csv, "{t:.3},{},{v:.1},{temp},{ma:.1}", m + 1);
+            } else {
+                let _ = writeln!(csv, "{t:.3},{},{v:.1},{temp},{i_reg:.4}", m + 1);
+            }
         }
     }
     let chain: Vec<String> = (1..=n).map(|m| m.to_string()).collect();
@@ -303,6 +381,18 @@ pub fn generate(spec: &Spec, seed: u64) -> Generated {
         truth: Truth {
             effect,
             foreign: spec.foreign,
+            second: second.and_then(|(e, v)| {
+                e.parameter().map(|(name, unit)| {
+                    (
+                        e,
+                        Parameter {
+                            name: name.into(),
+                            value: v,
+                            unit: unit.into(),
+                        },
+                    )
+                })
+            }),
             parameter: effect.parameter().map(|(name, unit)| Parameter {
                 name: name.into(),
                 value: size,

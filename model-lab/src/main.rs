@@ -66,6 +66,12 @@ struct GenerateArgs {
     /// Also hide an effect outside the catalog: cooling_loss or hidden_heater.
     #[arg(long)]
     foreign: Option<String>,
+    /// Also hide a second catalog effect (its size drawn from its range).
+    #[arg(long)]
+    second: Option<String>,
+    /// Write one channel wrong: milliamps, stuck or clock_jump.
+    #[arg(long)]
+    dirty: Option<String>,
     /// Motors (random 2..=8 when absent).
     #[arg(long)]
     motors: Option<usize>,
@@ -155,6 +161,10 @@ fn run_analyze(a: &AnalyzeArgs) -> Result<()> {
         100.0 * an.gain,
         u = an.unit
     );
+    if an.causes.len() > 1 {
+        let all: Vec<&str> = an.causes.iter().map(|c| c.id()).collect();
+        println!("effects named together: {}", all.join(" + "));
+    }
     for p in &an.parameters {
         println!("  {} = {:.4} {}", p.name, p.value, p.unit);
     }
@@ -189,7 +199,10 @@ fn run_analyze(a: &AnalyzeArgs) -> Result<()> {
     for c in &an.diagnostics.candidates {
         println!(
             "  tried {:18} gain {:+6.1} %  ΔBIC {:10.1}  {}",
-            c.id.id(),
+            match c.with {
+                Some(w) => format!("{} + {}", w.id(), c.id.id()),
+                None => c.id.id().to_string(),
+            },
             100.0 * c.gain,
             c.delta_bic,
             c.verdict
@@ -205,6 +218,12 @@ fn run_analyze(a: &AnalyzeArgs) -> Result<()> {
         );
         for (run, mae, rmse) in &m.as_configured {
             println!("  as configured  {run}: MAE {mae:.4} rad, RMSE {rmse:.4} rad");
+        }
+        if !m.always_fitted.is_empty() {
+            println!(
+                "  never held out (the only run with the load free of the position loop): {}",
+                m.always_fitted.join(", ")
+            );
         }
         for c in &m.candidates {
             let runs: Vec<String> = c.runs.iter().map(|h| format!("{:.4}", h.mae_rad)).collect();
@@ -232,9 +251,26 @@ fn run_generate(a: &GenerateArgs) -> Result<()> {
             format!("unknown foreign effect {f:?} (cooling_loss, hidden_heater)")
         })?),
     };
+    let second = match &a.second {
+        None => None,
+        Some(e) => Some(Effect::from_id(e).with_context(|| format!("unknown effect {e:?}"))?),
+    };
+    let dirty = match &a.dirty {
+        None => None,
+        Some(k) => Some(
+            model_lab::generate::Dirty::ALL
+                .into_iter()
+                .find(|d| d.id() == k)
+                .with_context(|| {
+                    format!("unknown dirty channel {k:?} (milliamps, stuck, clock_jump)")
+                })?,
+        ),
+    };
     let spec = Spec {
         effect,
         foreign,
+        second,
+        dirty,
         size: a.size,
         duration_s: a.duration_s,
         period_s: a.period_s,

@@ -217,6 +217,10 @@ pub fn render(a: &Analysis, tr: &Traces, source: &str) -> Vec<(String, String)> 
     let mut md = String::new();
     let d = &a.diagnostics;
     let _ = writeln!(md, "# Model lab report: {}\n", esc(source));
+    if a.causes.len() > 1 {
+        let all: Vec<String> = a.causes.iter().map(|c| format!("`{c}`")).collect();
+        let _ = writeln!(md, "**Effects named together: {}.**\n", all.join(" + "));
+    }
     let _ = writeln!(
         md,
         "**Cause: `{}`** ({}).\n\nHeld-out error on the {:?} channel: nominal {:.4} {u}, \
@@ -366,8 +370,11 @@ pub fn render(a: &Analysis, tr: &Traces, source: &str) -> Vec<(String, String)> 
             .map_or("–".into(), |(lo, hi)| format!("{lo} to {hi}"));
         let _ = writeln!(
             md,
-            "| `{}` | {par} | {range} | {:.1} | {:.1e} | {:.1} | {:.4} | {:+.1} % | {:.2} ({:.2}) | {:.4} ({:.4}) | {} |",
-            c.id,
+            "| {} | {par} | {range} | {:.1} | {:.1e} | {:.1} | {:.4} | {:+.1} % | {:.2} ({:.2}) | {:.4} ({:.4}) | {} |",
+            match c.with {
+                Some(w) => format!("`{}` beside `{w}`", c.id),
+                None => format!("`{}`", c.id),
+            },
             c.lr,
             c.p_value,
             c.delta_bic,
@@ -393,6 +400,14 @@ pub fn render(a: &Analysis, tr: &Traces, source: &str) -> Vec<(String, String)> 
         );
         for (run, mae, rmse) in &m.as_configured {
             let _ = writeln!(md, "| {} | {mae:.4} | {rmse:.4} |", esc(run));
+        }
+        if !m.always_fitted.is_empty() {
+            let _ = writeln!(
+                md,
+                "\nNever held out: {} (the only run(s) where the load moves free of the \
+                 position loop, without which no friction can be fitted).",
+                m.always_fitted.join(", ")
+            );
         }
         let _ = writeln!(
             md,

@@ -56,10 +56,10 @@ pub struct ThermalData {
 /// Parameters of a thermal model, decoded.
 #[derive(Debug, Clone)]
 pub struct ThermalParams {
-    /// The extension.
-    pub effect: Effect,
     /// The extension's parameter, in the catalog's unit (NaN for none).
     pub extension: f64,
+    /// The second extension's (of a pair), NaN without one.
+    pub second_extension: f64,
     /// Per motor: time constant τ, s.
     pub tau_s: Vec<f64>,
     /// Per motor: copper-loss gain k = R·R_th, K/A².
@@ -68,10 +68,11 @@ pub struct ThermalParams {
     pub idle_c: Vec<f64>,
 }
 
-/// One thermal model (nominal or extended) over one data set.
+/// One thermal model (nominal, extended, or extended by a pair) over one data set.
 pub struct ThermalModel<'a> {
     data: &'a ThermalData,
-    effect: Effect,
+    /// The extensions (none, one or two), their parameters first in the vector, in order.
+    effects: Vec<Effect>,
     /// Fit up to this sample (exclusive).
     until: usize,
     /// Fit the register's deviance residuals (None: plain prediction − reading).
@@ -80,8 +81,9 @@ pub struct ThermalModel<'a> {
 
 const BOUNDS_LN_TAU: (f64, f64) = (0.0, 14.0); // 1 s .. 1.2e6 s
 
-fn ext_count(effect: Effect) -> usize {
-    usize::from(!matches!(effect, Effect::None | Effect::Unexplained))
+fn is_extension(effect: Effect) -> bool {
+    effect.channel() == crate::catalog::Channel::Thermal
+        && !matches!(effect, Effect::None | Effect::Unexplained)
 }
 
 /// Admissible range of the extension parameter in its fitted form. Sensor lag is fitted as
@@ -143,12 +145,27 @@ impl ThermalData {
 impl<'a> ThermalModel<'a> {
     /// A model of `effect` over `data`, fitted on the fitting part.
     pub fn new(data: &'a ThermalData, effect: Effect) -> Self {
+        Self::composed(data, &[effect])
+    }
+
+    /// A model carrying every extension of `effects` at once (the catalog composes: each adds
+    /// its term to the same equation), fitted on the fitting part.
+    pub fn composed(data: &'a ThermalData, effects: &[Effect]) -> Self {
         ThermalModel {
             data,
-            effect,
+            effects: effects
+                .iter()
+                .copied()
+                .filter(|e| is_extension(*e))
+                .collect(),
             until: data.split,
             register: None,
         }
+    }
+
+    /// The parameter of `effect` in `p`, if the model carries it.
+    fn ext(&self, p: &[f64], effect: Effect) -> Option<f64> {
+        self.effects.iter().position(|e| *e == effect).map(|i| p[i])
     }
 
     /// The same model, fitted on the register's likelihood.
@@ -164,13 +181,28 @@ impl<'a> ThermalModel<'a> {
     }
 
     fn block<'p>(&self, p: &'p [f64], m: usize) -> &'p [f64] {
-        let s = ext_count(self.effect) + m * self.data.block_len();
+        let s = self.effects.len() + m * self.data.block_len();
         &p[s..s + self.data.block_len()]
+    }
+
+    /// The winding's equation over one step for motor block `blk` at current `i` and mid-step
+    /// time `tm` (s from the record's start): τ·dT/dt = a − λ·T, each extension adding its term.
+    #[inline]
+    fn drive(&self, p: &[f64], blk: &[f64], i: f64, tm: f64) -> (f64, f64) {
+        let (k, tb) = (blk[1], blk[2]);
+        let it = i - self.ext(p, Effect::CurrentOffset).unwrap_or(0.0);
+        let q = k * it * it;
+        let alpha = self.ext(p, Effect::CopperTempco).unwrap_or(0.0) / 100.0;
+        let drift = self.ext(p, Effect::AmbientDrift).unwrap_or(0.0);
+        (
+            tb + drift * tm / 3600.0 + q * (1.0 - alpha * TEMPCO_REFERENCE_C),
+            1.0 - alpha * q,
+        )
     }
 
     /// Simulates the predicted reading of every motor for samples `0..until` into `y`.
     pub fn simulate(&self, p: &[f64], until: usize, y: &mut [Vec<f64>]) {
-        if self.effect == Effect::NeighborCoupling {
+        if self.effects.contains(&Effect::NeighborCoupling) {
             self.simulate_coupled(p, until, y);
         } else {
             for (m, ym) in y.iter_mut().enumerate() {
@@ -192,15 +224,9 @@ impl<'a> ThermalModel<'a> {
         let d = self.data;
         y.clear();
         y.resize(until, f64::NAN);
-        let ext = if ext_count(self.effect) > 0 {
-            p[0]
-        } else {
-            0.0
-        };
         let blk = self.block(p, m);
         let tau = blk[0].exp();
-        let (k, tb) = (blk[1], blk[2]);
-        let lag = (self.effect == Effect::SensorLag).then(|| ext.exp());
+        let lag = self.ext(p, Effect::SensorLag).map(f64::exp);
         let t0 = d.t.first().copied().unwrap_or(0.0);
         let cur = &d.current[m];
         for (si, &(s, e)) in d.segments.iter().enumerate() {
@@ -212,23 +238,8 @@ impl<'a> ThermalModel<'a> {
             y[s] = sens;
             for kk in s + 1..e.min(until) {
                 let dt = d.t[kk] - d.t[kk - 1];
-                let i = cur[kk - 1];
-                let (a, lambda) = match self.effect {
-                    Effect::CopperTempco => {
-                        let alpha = ext / 100.0;
-                        let q = k * i * i;
-                        (tb + q * (1.0 - alpha * TEMPCO_REFERENCE_C), 1.0 - alpha * q)
-                    }
-                    Effect::AmbientDrift => {
-                        let tm = 0.5 * (d.t[kk] + d.t[kk - 1]) - t0;
-                        (tb + ext * tm / 3600.0 + k * i * i, 1.0)
-                    }
-                    Effect::CurrentOffset => {
-                        let it = i - ext;
-                        (tb + k * it * it, 1.0)
-                    }
-                    _ => (tb + k * i * i, 1.0),
-                };
+                let tm = 0.5 * (d.t[kk] + d.t[kk - 1]) - t0;
+                let (a, lambda) = self.drive(p, blk, cur[kk - 1], tm);
                 let w1 = lin_step(w, a / tau, lambda / tau, dt);
                 sens = match lag {
                     // The sensor node follows the winding's average over the step.
@@ -245,11 +256,15 @@ impl<'a> ThermalModel<'a> {
     }
 
     /// All motors at once: heat flows to each neighbour in proportion to the temperature
-    /// difference (κ = G·R_th), the neighbours' temperatures held over a step.
+    /// difference (κ = G·R_th), the neighbours' temperatures held over a step; any other
+    /// extension of the model acts as in [`Self::simulate_motor`].
     fn simulate_coupled(&self, p: &[f64], until: usize, y: &mut [Vec<f64>]) {
         let d = self.data;
         let n = d.n();
-        let kappa = p[0];
+        let kappa = self.ext(p, Effect::NeighborCoupling).unwrap_or(0.0);
+        let lag = self.ext(p, Effect::SensorLag).map(f64::exp);
+        let t0 = d.t.first().copied().unwrap_or(0.0);
+        let mut sens = vec![0.0; n];
         for ym in y.iter_mut() {
             ym.clear();
             ym.resize(until, f64::NAN);
@@ -262,23 +277,34 @@ impl<'a> ThermalModel<'a> {
             }
             for m in 0..n {
                 w[m] = self.initial(self.block(p, m), m, si);
+                sens[m] = w[m];
                 y[m][s] = w[m];
             }
             for kk in s + 1..e.min(until) {
                 let dt = d.t[kk] - d.t[kk - 1];
+                let tm = 0.5 * (d.t[kk] + d.t[kk - 1]) - t0;
                 for m in 0..n {
                     let blk = self.block(p, m);
                     let tau = blk[0].exp();
-                    let i = d.current[m][kk - 1];
                     let nb = &d.neighbours[m];
                     let nb_sum: f64 = nb.iter().map(|&j| w[j]).sum();
-                    let a = blk[2] + blk[1] * i * i + kappa * nb_sum;
-                    let lambda = 1.0 + kappa * nb.len() as f64;
+                    let (a, lambda) = self.drive(p, blk, d.current[m][kk - 1], tm);
+                    let a = a + kappa * nb_sum;
+                    let lambda = lambda + kappa * nb.len() as f64;
                     w1[m] = lin_step(w[m], a / tau, lambda / tau, dt);
                 }
+                for m in 0..n {
+                    sens[m] = match lag {
+                        Some(ts) => {
+                            let e = (-dt / ts).exp();
+                            sens[m] * e + (1.0 - e) * 0.5 * (w[m] + w1[m])
+                        }
+                        None => w1[m],
+                    };
+                }
                 std::mem::swap(&mut w, &mut w1);
-                for (ym, wm) in y.iter_mut().zip(&w) {
-                    ym[kk] = *wm;
+                for (ym, sm) in y.iter_mut().zip(&sens) {
+                    ym[kk] = *sm;
                 }
             }
         }
@@ -286,20 +312,20 @@ impl<'a> ThermalModel<'a> {
 
     /// Number of parameters.
     pub fn n_params(&self) -> usize {
-        ext_count(self.effect) + self.data.n() * self.data.block_len()
+        self.effects.len() + self.data.n() * self.data.block_len()
     }
 
     /// Decodes a parameter vector.
     pub fn decode(&self, p: &[f64]) -> ThermalParams {
         let n = self.data.n();
-        let ext = match self.effect {
-            Effect::None | Effect::Unexplained => f64::NAN,
-            Effect::SensorLag => p[0].exp(),
-            _ => p[0],
+        let value = |i: usize| match self.effects.get(i) {
+            None => f64::NAN,
+            Some(Effect::SensorLag) => p[i].exp(),
+            Some(_) => p[i],
         };
         ThermalParams {
-            effect: self.effect,
-            extension: ext,
+            extension: value(0),
+            second_extension: value(1),
             tau_s: (0..n).map(|m| self.block(p, m)[0].exp()).collect(),
             gain_k_per_a2: (0..n).map(|m| self.block(p, m)[1]).collect(),
             idle_c: (0..n).map(|m| self.block(p, m)[2]).collect(),
@@ -324,8 +350,8 @@ impl Problem for ThermalModel<'_> {
     }
 
     fn param_block(&self, j: usize) -> Option<usize> {
-        let e = ext_count(self.effect);
-        if j < e || self.effect == Effect::NeighborCoupling {
+        let e = self.effects.len();
+        if j < e || self.effects.contains(&Effect::NeighborCoupling) {
             None
         } else {
             Some((j - e) / self.data.block_len())
@@ -357,10 +383,10 @@ impl Problem for ThermalModel<'_> {
     }
 
     fn clamp(&self, p: &mut [f64]) {
-        let e = ext_count(self.effect);
-        if e > 0 {
-            let (lo, hi) = ext_bounds(self.effect);
-            p[0] = p[0].clamp(lo, hi);
+        let e = self.effects.len();
+        for (i, &effect) in self.effects.iter().enumerate() {
+            let (lo, hi) = ext_bounds(effect);
+            p[i] = p[i].clamp(lo, hi);
         }
         for m in 0..self.data.n() {
             let s = e + m * self.data.block_len();
@@ -379,6 +405,8 @@ const TAU_GRID_S: [f64; 12] = [
 pub struct ThermalFit {
     /// The extension.
     pub effect: Effect,
+    /// The second extension, fitted together with the first ([`fit_pair`]).
+    pub second: Option<Effect>,
     /// Fitted parameter vector.
     pub p: Vec<f64>,
     /// Sum of squared residuals on the fitting part.
@@ -431,9 +459,18 @@ pub fn fit_nominal(data: &ThermalData) -> ThermalFit {
     let f = levenberg_marquardt(&model, &p, 60);
     ThermalFit {
         effect: Effect::None,
+        second: None,
         p: f.p,
         sse: f.sse,
         iterations: f.iterations,
+    }
+}
+
+impl ThermalFit {
+    /// The model this fit is of.
+    pub fn model<'a>(&self, data: &'a ThermalData) -> ThermalModel<'a> {
+        let effects: Vec<Effect> = std::iter::once(self.effect).chain(self.second).collect();
+        ThermalModel::composed(data, &effects)
     }
 }
 
@@ -443,6 +480,7 @@ pub fn refit_nominal(data: &ThermalData, ls: &ThermalFit, register: &Register) -
     let f = levenberg_marquardt(&model, &ls.p, 60);
     ThermalFit {
         effect: Effect::None,
+        second: None,
         p: f.p,
         sse: f.sse,
         iterations: ls.iterations + f.iterations,
@@ -461,6 +499,9 @@ pub fn fit_extension(
     let mut model = ThermalModel::new(data, effect);
     model.register = register;
     let mut best: Option<Fitted> = None;
+    if !is_extension(effect) {
+        return nominal.clone();
+    }
     for &start in ext_starts(effect) {
         let mut p = vec![start];
         p.extend_from_slice(&nominal.p);
@@ -480,6 +521,30 @@ pub fn fit_extension(
     let f = levenberg_marquardt(&model, &start, 60);
     ThermalFit {
         effect,
+        second: None,
+        p: f.p,
+        sse: f.sse,
+        iterations: f.iterations,
+    }
+}
+
+/// Fits a pair of extensions at once, starting from their single fits' parameters (`first`
+/// and `second`, each the extension's value followed by the nominal blocks) and the first's
+/// motor constants.
+pub fn fit_pair(
+    data: &ThermalData,
+    first: &ThermalFit,
+    second: &ThermalFit,
+    register: Option<&Register>,
+) -> ThermalFit {
+    let mut model = ThermalModel::composed(data, &[first.effect, second.effect]);
+    model.register = register;
+    let mut p = vec![first.p[0], second.p[0]];
+    p.extend_from_slice(&first.p[1..]);
+    let f = levenberg_marquardt(&model, &p, 60);
+    ThermalFit {
+        effect: first.effect,
+        second: Some(second.effect),
         p: f.p,
         sse: f.sse,
         iterations: f.iterations,

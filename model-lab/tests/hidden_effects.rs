@@ -132,7 +132,14 @@ fn json_carries_the_required_fields() {
     let diag = &v["diagnostics"];
     assert!(diag["thermal"]["ljung_box_p"].is_f64());
     assert!(diag["thermal"]["correlations"]["time"].is_f64());
-    assert_eq!(diag["candidates"].as_array().map(Vec::len), Some(6));
+    // Every extension alone, then each other one beside the best (a pair fitted together).
+    let candidates = diag["candidates"].as_array().unwrap();
+    let alone = candidates.iter().filter(|c| c["with"].is_null()).count();
+    let beside = candidates
+        .iter()
+        .filter(|c| c["with"] == "ambient_drift")
+        .count();
+    assert_eq!((alone, beside, candidates.len()), (6, 4, 10));
 }
 
 #[test]
@@ -295,4 +302,95 @@ fn a_current_in_milliamps_is_converted_and_the_effect_still_named() {
     );
     let p = a.parameters[0].value;
     assert!((p - 0.15).abs() < 0.15 * 0.15, "{p}");
+}
+
+/// Two effects at once are both named, each with its parameter: two thermal ones (fitted
+/// together), or a thermal and an electrical one (each channel's own).
+#[test]
+fn two_effects_at_once_are_both_named() {
+    for (first, second, seed) in [
+        (Effect::SensorLag, Effect::AmbientDrift, 51),
+        (Effect::NeighborCoupling, Effect::SupplySag, 52),
+    ] {
+        let g = generate(
+            &Spec {
+                second: Some(second),
+                ..spec(first, None, 3)
+            },
+            seed,
+        );
+        let (a, model) = run(&g);
+        let mut named = a.causes.clone();
+        named.sort_by_key(|e| e.id());
+        let mut hidden = vec![first, second];
+        hidden.sort_by_key(|e| e.id());
+        assert_eq!(
+            named, hidden,
+            "{first} + {second}: {:#?}\n{:#?}",
+            a.diagnostics.candidates, a.diagnostics.verdicts
+        );
+        let truth = [
+            g.truth.parameter.clone().unwrap(),
+            g.truth.second.clone().unwrap().1,
+        ];
+        let found: Vec<f64> = truth
+            .iter()
+            .map(|t| {
+                a.parameters
+                    .iter()
+                    .chain(
+                        a.diagnostics
+                            .candidates
+                            .iter()
+                            .filter_map(|c| c.parameter.as_ref())
+                            .filter(|p| p.name == "supply_resistance"),
+                    )
+                    .find(|p| p.name == t.name)
+                    .map_or(f64::NAN, |p| p.value)
+            })
+            .collect();
+        for (t, f) in truth.iter().zip(&found) {
+            assert!(
+                (f - t.value).abs() <= 0.25 * t.value.abs(),
+                "{}: {f} for {}",
+                t.name,
+                t.value
+            );
+        }
+        assert!(
+            model.cause.contains(first.id()) && model.cause.contains(second.id()),
+            "{}",
+            model.cause
+        );
+    }
+}
+
+/// The generator writes a channel wrong (current in mA, a stuck sensor, a clock that steps
+/// back); the audit finds each, and the null data behind it still read `none`.
+#[test]
+fn dirty_channels_from_the_generator_are_flagged() {
+    use model_lab::generate::Dirty;
+    for (dirty, seed) in [
+        (Dirty::Milliamps, 61),
+        (Dirty::StuckSensor, 62),
+        (Dirty::ClockJump, 63),
+    ] {
+        let g = generate(
+            &Spec {
+                dirty: Some(dirty),
+                ..spec(Effect::None, None, 3)
+            },
+            seed,
+        );
+        let (a, _) = run(&g);
+        let kinds: Vec<&str> = a.diagnostics.audit.iter().map(|f| f.kind).collect();
+        assert_eq!(kinds, [dirty.id()], "{:#?}", a.diagnostics.audit);
+        assert_eq!(
+            a.cause,
+            Effect::None,
+            "{}: {:#?}",
+            dirty.id(),
+            a.diagnostics.verdicts
+        );
+    }
 }
