@@ -44,6 +44,8 @@ pub enum Effect {
     ArmatureError,
     /// The firmware's position-loop gain differs from the configured one.
     FirmwareGain,
+    /// Play in the gearbox between the motor and the output.
+    Backlash,
 }
 
 impl Effect {
@@ -74,6 +76,7 @@ impl Effect {
             Effect::DirectionalFriction => "directional_friction",
             Effect::ArmatureError => "armature_error",
             Effect::FirmwareGain => "firmware_gain",
+            Effect::Backlash => "backlash",
         }
     }
 
@@ -171,6 +174,7 @@ impl Effect {
             }
             Effect::ArmatureError => "the reflected inertia differs from the rating's",
             Effect::FirmwareGain => "the firmware's position gain differs from the configured",
+            Effect::Backlash => "the gearbox has play between the motor and the output",
         }
     }
 
@@ -182,7 +186,8 @@ impl Effect {
             | Effect::LoadFriction
             | Effect::DirectionalFriction
             | Effect::ArmatureError
-            | Effect::FirmwareGain => Channel::Motion,
+            | Effect::FirmwareGain
+            | Effect::Backlash => Channel::Motion,
             _ => Channel::Thermal,
         }
     }

@@ -415,6 +415,7 @@ pub fn motion_size_range(effect: Effect) -> (f64, f64) {
         Effect::DirectionalFriction => (0.2, 0.4),
         Effect::ArmatureError => (0.6, 1.5),
         Effect::FirmwareGain => (0.25, 0.6),
+        Effect::Backlash => (0.01, 0.04),
         _ => (0.0, 0.0),
     }
 }
@@ -485,7 +486,7 @@ pub fn generate_motion(effect: Effect, seed: u64) -> GeneratedMotion {
     let size = rng.range(lo, hi);
     let parameters = match effect {
         Effect::Stribeck => vec![size, rng.range(0.1, 0.6)],
-        Effect::LoadFriction => vec![size],
+        Effect::LoadFriction | Effect::Backlash => vec![size],
         // Back-driven much worse than driving (a worm-like gear), or the other way.
         Effect::DirectionalFriction => {
             let other = rng.range(0.0, 0.05);

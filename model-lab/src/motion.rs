@@ -216,6 +216,14 @@ pub fn extension_params(effect: Effect) -> &'static [MotionParam] {
             hi: 1.0,
             start: 0.0,
         }],
+        // A hobby servo's gear train: a few milliradians to a few degrees of play.
+        Effect::Backlash => &[MotionParam {
+            name: "backlash",
+            unit: "rad",
+            lo: 0.0,
+            hi: 0.06,
+            start: 0.005,
+        }],
         Effect::Stribeck => &[
             MotionParam {
                 name: "stribeck_friction",
@@ -280,6 +288,7 @@ pub fn decode(effect: Effect, x: &[f64]) -> MotionParams {
     match effect {
         Effect::ArmatureError => e.armature_error = x[2],
         Effect::FirmwareGain => e.duty_gain_error = x[2],
+        Effect::Backlash => e.backlash_rad = x[2],
         Effect::Stribeck => {
             e.stribeck_nm = x[2];
             e.stribeck_speed_rad_s = x[3];
@@ -534,6 +543,7 @@ impl MotionAnalysis {
         match self.cause {
             Effect::ArmatureError => m.armature_error = Some(e.armature_error),
             Effect::FirmwareGain => m.duty_gain_error = Some(e.duty_gain_error),
+            Effect::Backlash => m.backlash_rad = Some(e.backlash_rad),
             Effect::Stribeck => {
                 m.stribeck_nm = Some(e.stribeck_nm);
                 m.stribeck_speed_rad_s = Some(e.stribeck_speed_rad_s);
@@ -547,12 +557,13 @@ impl MotionAnalysis {
 }
 
 /// The motion catalog, in the order tried.
-pub const MOTION_CATALOG: [Effect; 5] = [
+pub const MOTION_CATALOG: [Effect; 6] = [
     Effect::Stribeck,
     Effect::LoadFriction,
     Effect::DirectionalFriction,
     Effect::ArmatureError,
     Effect::FirmwareGain,
+    Effect::Backlash,
 ];
 
 /// Runs the motion channel on `runs` (at least two: each is held out in turn), or None.

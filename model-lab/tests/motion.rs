@@ -67,6 +67,11 @@ fn a_torque_proportional_friction_is_told_from_a_directional_one() {
 }
 
 #[test]
+fn play_in_the_gearbox_is_named_and_its_size_recovered() {
+    hidden(Effect::Backlash, 0, 0.25);
+}
+
+#[test]
 fn a_firmware_gain_other_than_configured_is_named() {
     hidden(Effect::FirmwareGain, 0, 0.25);
 }

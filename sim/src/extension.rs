@@ -1,7 +1,8 @@
 //! Model extensions fitted on measured data by the model lab (`nori model analyze`), loaded
 //! into a simulated bus with [`crate::SimBus::apply_extension`]: thermal and electrical
 //! (sensor lag, coupling, copper, ambient, supply, current offset) and mechanical (inertia,
-//! the firmware's gain, Stribeck and torque-proportional friction, directional or not).
+//! the firmware's gain, Stribeck and torque-proportional friction, directional or not, play in
+//! the gearbox).
 //!
 //! The file is TOML with kebab-case keys; unknown keys are refused. It names the cause (a
 //! catalog id of the model lab) and the extension's parameter in physical units; the fitted
@@ -112,6 +113,10 @@ pub struct ModelExtension {
     /// ... and while the load drives the motor back, per N·m.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub friction_back_ratio: Option<f64>,
+    /// `backlash`: play in the gearbox between the motor and the output (the encoder's side),
+    /// rad.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub backlash_rad: Option<f64>,
     /// The Coulomb friction the model lab calibrated with the extension, N·m (for reference).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub fitted_coulomb_nm: Option<f64>,
@@ -144,6 +149,7 @@ impl ModelExtension {
             stribeck_speed_rad_s: None,
             friction_drive_ratio: None,
             friction_back_ratio: None,
+            backlash_rad: None,
             fitted_coulomb_nm: None,
             fitted_viscous_nms: None,
             heldout_gain: None,
@@ -208,6 +214,7 @@ impl ModelExtension {
             ("stribeck-nm", m.stribeck_nm),
             ("friction-drive-ratio", m.friction_drive_ratio),
             ("friction-back-ratio", m.friction_back_ratio),
+            ("backlash-rad", m.backlash_rad),
             ("fitted-coulomb-nm", m.fitted_coulomb_nm),
             ("fitted-viscous-nms", m.fitted_viscous_nms),
         ] {
@@ -252,6 +259,8 @@ pub struct ServoExtension {
     pub friction_drive_ratio: f64,
     /// Friction per N·m the gearbox carries while the load drives the motor back.
     pub friction_back_ratio: f64,
+    /// Play in the gearbox, rad (0: none).
+    pub backlash_rad: f64,
 }
 
 impl From<&ModelExtension> for ServoExtension {
@@ -266,6 +275,7 @@ impl From<&ModelExtension> for ServoExtension {
             stribeck_speed_rad_s: m.stribeck_speed_rad_s.unwrap_or(1.0),
             friction_drive_ratio: m.friction_drive_ratio.unwrap_or(0.0),
             friction_back_ratio: m.friction_back_ratio.unwrap_or(0.0),
+            backlash_rad: m.backlash_rad.unwrap_or(0.0),
         }
     }
 }
@@ -384,6 +394,39 @@ mod tests {
             }),
         );
         assert!(heavier > 1.1 * nominal, "{heavier} vs {nominal}");
+
+        // Play in the gearbox: a goal swinging ±0.3 rad through zero, a light load. The output
+        // lags the motor by up to half the play each time the torque reverses, so the two runs
+        // part by about that much.
+        let follow = |backlash_rad: f64| {
+            let d = RobotDescription::nori_a3();
+            let r = d.rating("sts3250").unwrap();
+            let mut s = Servo::new(1, r.model, r, 0.0, 25.0);
+            s.extension = ServoExtension {
+                backlash_rad,
+                ..ServoExtension::default()
+            };
+            s.configure_for_replay(32);
+            s.command_torque(true);
+            let mut out = Vec::new();
+            for k in 0..4000 {
+                if k % 20 == 0 {
+                    s.command_goal(0.3 * (k as f64 * 0.001 * 3.0).sin());
+                }
+                s.step(0.001, 0.5 * s.angle.sin(), 0.005, 25.0, 1.0);
+                out.push(s.angle);
+            }
+            out
+        };
+        let (rigid, loose) = (follow(0.0), follow(0.04));
+        let apart = rigid
+            .iter()
+            .zip(&loose)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        assert!((0.01..0.1).contains(&apart), "{apart}");
+        let bad = ModelExtension::parse("format = 1\ncause = \"x\"\nbacklash-rad = -0.01\n", "b");
+        assert!(bad.is_err());
     }
 
     #[test]

@@ -173,6 +173,10 @@ pub struct Servo {
     setpoint_speed: f64,
     /// Speed mode: the integral of the speed error, rad.
     speed_integral: f64,
+    /// With backlash: the motor side's angle less the output's, within ±half the play, rad ...
+    motor_lead: f64,
+    /// ... and the motor side's speed, rad/s (the output's, `speed`, without backlash).
+    motor_speed: f64,
     /// Protection state.
     pub protections: Protections,
     /// Counters for tests and reports.
@@ -208,6 +212,8 @@ impl Servo {
             setpoint: CENTER_STEP + angle / RAD_PER_STEP,
             setpoint_speed: 0.0,
             speed_integral: 0.0,
+            motor_lead: 0.0,
+            motor_speed: 0.0,
             protections: Protections::default(),
             log: ServoLog::default(),
             answering: true,
@@ -549,54 +555,105 @@ impl Servo {
     ) {
         let p = self.plant;
         self.duty = self.firmware_duty(dt);
+        let ext = self.extension;
+        let play = ext.backlash_rad > 0.0;
+        if !play {
+            self.motor_speed = self.speed;
+        }
+        // The back-EMF is the motor's: with play in the gearbox its side may move alone.
         let driving = self.duty != 0.0 || self.torque_enabled();
         self.current = if driving {
-            (self.duty * self.supply - p.ke * self.speed) / p.resistance
+            (self.duty * self.supply - p.ke * self.motor_speed) / p.resistance
         } else {
             0.0
         };
         let motor_torque = p.kt * self.current;
-        let drive = motor_torque - load_torque - p.viscous * self.speed;
-        let ext = self.extension;
-        let inertia = p.armature * (1.0 + ext.armature_error) + load_inertia;
+        let armature = p.armature * (1.0 + ext.armature_error);
         // The friction budget: Coulomb, Stribeck's extra at rest, and a part proportional to
         // the torque the gearbox carries (different when the load drives the motor back).
-        let back_driven = motor_torque * self.speed < 0.0;
+        let back_driven = motor_torque * self.motor_speed < 0.0;
         let ratio = if back_driven {
             ext.friction_back_ratio
         } else {
             ext.friction_drive_ratio
         };
         let stribeck = if ext.stribeck_nm > 0.0 {
-            let x = self.speed / ext.stribeck_speed_rad_s;
+            let x = self.motor_speed / ext.stribeck_speed_rad_s;
             ext.stribeck_nm * (-x * x).exp()
         } else {
             0.0
         };
         let coulomb = p.coulomb + stribeck + ratio * motor_torque.abs();
-        if self.speed.abs() < STICK_SPEED && drive.abs() <= coulomb {
-            self.speed = 0.0;
+        if !play {
+            let drive = motor_torque - load_torque - p.viscous * self.speed;
+            self.speed = friction_step(self.speed, drive, coulomb, armature + load_inertia, dt);
+            self.motor_speed = self.speed;
         } else {
-            let friction = coulomb
-                * if self.speed.abs() >= STICK_SPEED {
-                    self.speed.signum()
-                } else {
-                    drive.signum()
-                };
-            let new_speed = self.speed + dt * (drive - friction) / inertia;
-            // Coulomb friction stops a joint; it never reverses it.
-            self.speed = if self.speed != 0.0
-                && new_speed.signum() != self.speed.signum()
-                && (drive.abs() <= coulomb)
-            {
-                0.0
-            } else {
-                new_speed
-            };
+            self.step_play(
+                motor_torque,
+                load_torque,
+                load_inertia,
+                armature,
+                coulomb,
+                dt,
+            );
         }
         self.angle += dt * self.speed;
         self.step_thermal(dt * thermal_speedup, ambient);
         self.step_protections(dt);
+    }
+
+    /// The gearbox with play: the motor side (armature, friction, the motor's torque) and the
+    /// output (the load) move together while in contact at either end of the play, and apart
+    /// inside it; reaching an end, they collide without bouncing (momentum kept).
+    fn step_play(
+        &mut self,
+        motor_torque: f64,
+        load_torque: f64,
+        load_inertia: f64,
+        armature: f64,
+        coulomb: f64,
+        dt: f64,
+    ) {
+        let viscous = self.plant.viscous;
+        let half = 0.5 * self.extension.backlash_rad;
+        // An output with nothing on it still has its last gear's inertia.
+        let output_inertia = load_inertia.max(0.05 * armature);
+        let (wm, wo) = (self.motor_speed, self.speed);
+        let motor_free = motor_torque - viscous * wm;
+        let motor_accel = if wm.abs() < STICK_SPEED && motor_free.abs() <= coulomb {
+            0.0
+        } else {
+            (motor_free
+                - coulomb
+                    * if wm.abs() >= STICK_SPEED {
+                        wm.signum()
+                    } else {
+                        motor_free.signum()
+                    })
+                / armature
+        };
+        let output_accel = -load_torque / output_inertia;
+        let pushing = (self.motor_lead >= half - 1e-12 && wm >= wo && motor_accel >= output_accel)
+            || (self.motor_lead <= -half + 1e-12 && wm <= wo && motor_accel <= output_accel);
+        if pushing {
+            let drive = motor_torque - load_torque - viscous * wo;
+            let v = friction_step(wo, drive, coulomb, armature + output_inertia, dt);
+            self.speed = v;
+            self.motor_speed = v;
+            self.motor_lead = self.motor_lead.clamp(-half, half);
+            return;
+        }
+        self.motor_speed = friction_step(wm, motor_free, coulomb, armature, dt);
+        self.speed = wo + dt * output_accel;
+        self.motor_lead += dt * (self.motor_speed - self.speed);
+        if self.motor_lead.abs() > half {
+            self.motor_lead = self.motor_lead.clamp(-half, half);
+            let v = (armature * self.motor_speed + output_inertia * self.speed)
+                / (armature + output_inertia);
+            self.motor_speed = v;
+            self.speed = v;
+        }
     }
 
     fn step_thermal(&mut self, dt: f64, ambient: f64) {
@@ -678,6 +735,27 @@ impl Servo {
     /// Joint angle of a raw Present_Position value for this servo (homing offset applied).
     pub fn angle_of_present(&self, present: i32) -> f64 {
         (f64::from(present + self.get(reg::HOMING_OFFSET)) - CENTER_STEP) * RAD_PER_STEP
+    }
+}
+
+/// One step of a speed under a drive torque, Coulomb friction `coulomb` (with the stick band:
+/// at rest, a drive it beats holds the joint) and `inertia`: friction stops a joint, it never
+/// reverses it.
+fn friction_step(speed: f64, drive: f64, coulomb: f64, inertia: f64, dt: f64) -> f64 {
+    if speed.abs() < STICK_SPEED && drive.abs() <= coulomb {
+        return 0.0;
+    }
+    let friction = coulomb
+        * if speed.abs() >= STICK_SPEED {
+            speed.signum()
+        } else {
+            drive.signum()
+        };
+    let new_speed = speed + dt * (drive - friction) / inertia;
+    if speed != 0.0 && new_speed.signum() != speed.signum() && drive.abs() <= coulomb {
+        0.0
+    } else {
+        new_speed
     }
 }
 
