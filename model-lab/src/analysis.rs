@@ -763,7 +763,7 @@ pub fn analyze(
             ));
             thermal_fits.push((effect, fit, pred));
         }
-        let best = best_supported(&candidates, Channel::Thermal);
+        let mut best = best_supported(&candidates, Channel::Thermal);
         // Two effects at once: the best supported extension fitted together with each other
         // one (an effect can hide another: a drift masks a lag until the drift is modelled);
         // a second is named beside the first when it passes every test against the first
@@ -772,7 +772,23 @@ pub fn analyze(
             .iter()
             .map(|(e, f, _)| (*e, f.clone()))
             .collect();
-        let first = best.and_then(|b| {
+        // Without a supported one, the strongest significant one (two effects can spoil each
+        // other's held-out test alone): its pair must then stand against the nominal model too.
+        let alpha = ALPHA / Effect::CATALOG.len() as f64;
+        let base = best.or_else(|| {
+            candidates
+                .iter()
+                .filter(|c| {
+                    c.channel == Channel::Thermal
+                        && c.with.is_none()
+                        && c.plausible
+                        && c.p_value < alpha
+                        && c.delta_bic > 0.0
+                })
+                .max_by(|a, b| a.delta_bic.total_cmp(&b.delta_bic))
+                .map(|c| c.id)
+        });
+        let first = base.and_then(|b| {
             thermal_fits
                 .iter()
                 .find(|(e, _, _)| *e == b)
@@ -812,6 +828,33 @@ pub fn analyze(
                     pair.iterations,
                 );
                 c.with = Some(*a);
+                if c.supported && best.is_none() {
+                    let pair_param = a.parameter().map(|(name, unit)| Parameter {
+                        name: name.into(),
+                        value: decoded.extension,
+                        unit: unit.into(),
+                    });
+                    let test = deviance_test(td, &reg, &nom_pred, &pair_pred, nom.sse, pair.sse);
+                    let whole = judge(
+                        *a,
+                        pair_param,
+                        &nominal_verdict,
+                        floor.floor,
+                        nom.sse,
+                        pair.sse,
+                        test,
+                        &held,
+                        &pair_held,
+                        pair.iterations,
+                    );
+                    if !whole.supported {
+                        c.supported = false;
+                        c.verdict = format!(
+                            "with {a}, not supported against the nominal model: {}",
+                            whole.verdict
+                        );
+                    }
+                }
                 // The first's parameter, refitted beside the second, must still be physical.
                 if c.supported
                     && !a
@@ -842,6 +885,15 @@ pub fn analyze(
         if let (Some((a, _, _)), Some(p)) = (&first, best_pair) {
             pair_named = Some((*a, p.candidate.id, p.values.0, p.values.1));
             thermal_fits.push((*a, p.fit, p.prediction));
+            // A first that stood only with its second is supported now, and says so.
+            if let Some(c) = candidates
+                .iter_mut()
+                .find(|c| c.id == *a && c.with.is_none() && !c.supported)
+            {
+                c.supported = true;
+                c.verdict = format!("supported beside {} (alone: {})", p.candidate.id, c.verdict);
+            }
+            best = Some(*a);
         }
         // The fit the thermal channel is judged with: the pair's when named, else the best
         // single's (the pair's fit is the last one pushed for its first effect).
