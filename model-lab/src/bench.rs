@@ -200,13 +200,7 @@ fn motion_score(
         .filter_map(|r| r.recovered.map(|v| ((v - r.size) / r.size).abs()))
         .collect();
     errors.sort_by(f64::total_cmp);
-    let mut confusions: Vec<(Effect, usize)> = Vec::new();
-    for r in runs.iter().filter(|r| r.named != effect) {
-        match confusions.iter_mut().find(|(e, _)| *e == r.named) {
-            Some(c) => c.1 += 1,
-            None => confusions.push((r.named, 1)),
-        }
-    }
+    let confusions = confusions(&runs, |r| r.named != effect);
     let score = EffectScore {
         hidden: if effect == Effect::None {
             "none (motion)".into()
@@ -236,13 +230,27 @@ fn motion_score(
     score
 }
 
+/// What the runs `wrong` picks named instead, with how often.
+fn confusions(runs: &[Run], wrong: impl Fn(&Run) -> bool) -> Vec<(Effect, usize)> {
+    let mut out: Vec<(Effect, usize)> = Vec::new();
+    for r in runs.iter().filter(|r| wrong(r)) {
+        match out.iter_mut().find(|(e, _)| *e == r.named) {
+            Some(c) => c.1 += 1,
+            None => out.push((r.named, 1)),
+        }
+    }
+    out
+}
+
 impl EffectScore {
     /// Fraction of runs given a catalog name that is not the hidden effect's.
     pub fn wrong_name(&self) -> f64 {
         let wrong: usize = self
             .confusions
             .iter()
-            .filter(|(e, _)| Effect::CATALOG.contains(e))
+            .filter(|(e, _)| {
+                Effect::CATALOG.contains(e) || crate::motion::MOTION_CATALOG.contains(e)
+            })
             .map(|(_, n)| n)
             .sum();
         wrong as f64 / self.runs.max(1) as f64
@@ -358,13 +366,7 @@ pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
             .filter_map(|r| r.recovered.map(|v| ((v - r.size) / r.size).abs()))
             .collect();
         errors.sort_by(f64::total_cmp);
-        let mut confusions: Vec<(Effect, usize)> = Vec::new();
-        for r in runs.iter().filter(|r| r.named != effect) {
-            match confusions.iter_mut().find(|(e, _)| *e == r.named) {
-                Some(c) => c.1 += 1,
-                None => confusions.push((r.named, 1)),
-            }
-        }
+        let confusions = confusions(&runs, |r| r.named != effect);
         // Detection-limit sweep: from the range's lower end, halve while the effect is still
         // found reliably; when it is not found there, double until it is.
         let mut sweep: Vec<(f64, f64)> = Vec::new();
@@ -444,13 +446,7 @@ pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
             let jobs: Vec<(Spec, u64)> = (0..settings.seeds).map(|s| (spec.clone(), s)).collect();
             let runs = run_many(&jobs, settings.jobs);
             let n = runs.len().max(1) as f64;
-            let mut confusions: Vec<(Effect, usize)> = Vec::new();
-            for r in runs.iter().filter(|r| r.named != Effect::Unexplained) {
-                match confusions.iter_mut().find(|(e, _)| *e == r.named) {
-                    Some(c) => c.1 += 1,
-                    None => confusions.push((r.named, 1)),
-                }
-            }
+            let confusions = confusions(&runs, |r| r.named != Effect::Unexplained);
             let score = EffectScore {
                 hidden: foreign.id().into(),
                 effect: Effect::Unexplained,
@@ -492,13 +488,7 @@ pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
             let runs = run_many(&jobs, settings.jobs);
             let n = runs.len().max(1) as f64;
             let both = runs.iter().filter(|r| r.both_named).count();
-            let mut confusions: Vec<(Effect, usize)> = Vec::new();
-            for r in runs.iter().filter(|r| !r.both_named) {
-                match confusions.iter_mut().find(|(e, _)| *e == r.named) {
-                    Some(c) => c.1 += 1,
-                    None => confusions.push((r.named, 1)),
-                }
-            }
+            let confusions = confusions(&runs, |r| !r.both_named);
             let score = EffectScore {
                 hidden: format!("{}+{}", first.id(), second.id()),
                 effect: first,
