@@ -729,7 +729,9 @@ pub fn analyze(
         for (i, &effect) in opts
             .candidates
             .iter()
-            .filter(|e| e.channel() == Channel::Thermal)
+            .filter(|e| {
+                e.channel() == Channel::Thermal && !matches!(e, Effect::None | Effect::Unexplained)
+            })
             .enumerate()
         {
             if effect == Effect::NeighborCoupling && td.neighbours.iter().all(Vec::is_empty) {
@@ -834,7 +836,9 @@ pub fn analyze(
                         value: decoded.extension,
                         unit: unit.into(),
                     });
-                    let test = deviance_test(td, &reg, &nom_pred, &pair_pred, nom.sse, pair.sse);
+                    // Two parameters against the nominal model: χ²(2), two BIC penalties.
+                    let test = deviance_test(td, &reg, &nom_pred, &pair_pred, nom.sse, pair.sse)
+                        .with_params(2.0);
                     let whole = judge(
                         *a,
                         pair_param,
@@ -1025,17 +1029,26 @@ pub fn analyze(
             .map_or(&[][..], |(_, h)| &h[..]);
         structure(v.channel, &candidates, misfit, held, &d.t, split)
     });
+    // Each channel's named extension (whatever the cause across channels), when nothing is
+    // left unexplained.
+    let named_on = |channel: Channel| {
+        verdicts
+            .iter()
+            .find(|v| v.channel == channel)
+            .and_then(|v| v.extension)
+            .filter(|_| left_over.is_none())
+    };
     let chosen_fit = Chosen {
         effect: cause,
         // The pair's fit when one was named (pushed after the single's), else the single's.
-        thermal: thermal_fits
-            .iter()
-            .rev()
-            .find(|(e, f, _)| *e == cause && (pair_named.is_some() || f.second.is_none()))
-            .map(|(_, f, p)| (f.clone(), p.clone())),
-        electrical: (cause == Effect::SupplySag)
-            .then(|| elec_sag.clone())
-            .flatten(),
+        thermal: named_on(Channel::Thermal).and_then(|t| {
+            thermal_fits
+                .iter()
+                .rev()
+                .find(|(e, f, _)| *e == t && (pair_named.is_some() || f.second.is_none()))
+                .map(|(_, f, p)| (f.clone(), p.clone()))
+        }),
+        electrical: named_on(Channel::Electrical).and_then(|_| elec_sag.clone()),
     };
 
     // Per-motor figures.
@@ -1130,6 +1143,8 @@ pub fn analyze(
     }
     let channel = match (&unexplained, cause) {
         (Some(u), _) => u.channel,
+        // Motion alone: its channel, whatever its answer.
+        _ if td.is_none() && ed.is_none() => Channel::Motion,
         (None, Effect::None) if td.is_some() => Channel::Thermal,
         (None, Effect::None) => Channel::Electrical,
         (None, c) => c.channel(),
@@ -1289,6 +1304,7 @@ fn verdict(
         .zip(left)
         .filter(|(_, r)| r.len() >= MIN_MOTOR_RESIDUALS)
         .map(|(id, r)| (id, stats::rmse(r), stats::mean(r)))
+        .filter(|(_, rmse, bias)| rmse.is_finite() && bias.is_finite())
         .max_by(|a, b| {
             let score = |x: &(&i64, f64, f64)| {
                 (x.1 / MISFIT_RMSE_FLOORS).max(x.2.abs() / MISFIT_BIAS_FLOORS)
@@ -1382,6 +1398,20 @@ struct FitTest {
     n_eff: f64,
     /// p-value.
     p_value: f64,
+    /// Parameters the test weighs (its χ² degrees of freedom and BIC penalty).
+    params: f64,
+}
+
+impl FitTest {
+    /// The same statistic weighing `params` parameters instead of one (a pair against the
+    /// nominal model: two).
+    fn with_params(self, params: f64) -> FitTest {
+        FitTest {
+            p_value: stats::chi2_sf(self.lr, params),
+            params,
+            ..self
+        }
+    }
 }
 
 /// The thermal channel's test: the likelihood ratio of the register model, Σρ²(nominal) −
@@ -1433,6 +1463,7 @@ fn deviance_test(
         lr,
         n_eff: (n as f64 / phi).max(1.0),
         p_value: stats::chi2_sf(lr, 1.0),
+        params: 1.0,
     }
 }
 
@@ -1458,7 +1489,12 @@ fn block_wald_test(base: &[Vec<f64>], ext: &[Vec<f64>]) -> FitTest {
     } else {
         1.0
     };
-    FitTest { lr, n_eff, p_value }
+    FitTest {
+        lr,
+        n_eff,
+        p_value,
+        params: 1.0,
+    }
 }
 
 /// The three tests of the module docs.
@@ -1479,8 +1515,13 @@ fn judge(
     let held = stats::rmse(&res.concat());
     let heldout_t = improvement_t(base_res, res);
     let (heldout_slope, heldout_slope_t, heldout_slope_se) = slope_stats(base_res, res);
-    let FitTest { lr, n_eff, p_value } = test;
-    let delta_bic = lr - n_eff.ln();
+    let FitTest {
+        lr,
+        n_eff,
+        p_value,
+        params,
+    } = test;
+    let delta_bic = lr - params * n_eff.ln();
     // The held-out test can only refute an extension where it has the power to see it: with a
     // block standard error of the slope above [`MAX_INFORMATIVE_SE`], a correction the readings
     // follow fully (β = 1) would not reach [`MIN_HELDOUT_T`] most of the time (the correction is

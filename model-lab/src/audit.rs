@@ -90,9 +90,19 @@ fn refuse(col: &mut [Vec<f64>]) {
     }
 }
 
-/// Up to this many times a channel's physical limit, data are taken as real (flagged);
-/// beyond it, as a unit mistake or nonsense.
+/// Up to this many times a current's, a voltage's or a temperature's physical limit, data are
+/// taken as real (flagged: another servo, a harder duty); beyond it, as a unit mistake or
+/// nonsense. Angles and speeds have no such margin: beyond a turn is a unit mistake.
 pub const BEYOND_RATING: f64 = 5.0;
+
+/// What a column's values can be: |value| up to `limit` (`tolerance` times it flagged but
+/// used), the median within `plausible`, in `unit`.
+struct Physical<'a> {
+    unit: &'a str,
+    limit: f64,
+    tolerance: f64,
+    plausible: (f64, f64),
+}
 
 /// A unit a column may have been written in by mistake: its name, the factor to the right
 /// unit, and whether its values would be whole numbers (a raw register).
@@ -110,12 +120,16 @@ struct Mistake {
 fn check_scale(
     col: &mut [Vec<f64>],
     column: &'static str,
-    unit: &str,
-    limit: f64,
-    plausible: (f64, f64),
+    range: Physical,
     mistakes: &[Mistake],
     out: &mut Vec<Finding>,
 ) {
+    let Physical {
+        unit,
+        limit,
+        tolerance,
+        plausible,
+    } = range;
     let Some((p99, median, n)) = spread(col) else {
         return;
     };
@@ -126,14 +140,14 @@ fn check_scale(
     }
     // A little beyond the rating is another motor or a harder duty than rated, not a unit
     // mistake (those are factors of ten or more): said, and used as it is.
-    if p99 <= BEYOND_RATING * limit && median >= plausible.0 && median <= plausible.1 {
+    if p99 <= tolerance * limit && median >= plausible.0 && median <= plausible.1 {
         out.push(Finding {
             column,
             kind: "beyond_rating",
             action: "flagged",
             detail: format!(
                 "{} values, 99th percentile of |value| {p99:.4} {unit}, above the servo's \
-                 {limit} {unit} but within {BEYOND_RATING} times it: another motor than \
+                 {limit} {unit} but within {tolerance} times it: another motor than \
                  `--servo`, or a duty beyond its rating; used as it is",
                 spread(col).map_or(0, |s| s.2)
             ),
@@ -215,18 +229,24 @@ fn stuck_temperatures(d: &mut Dataset, out: &mut Vec<Finding>) {
                 };
                 let v = d.temperature[m][first];
                 let mut end = first + 1;
+                let mut last = first;
                 while end < e && !(d.temperature[m][end].is_finite() && d.temperature[m][end] != v)
                 {
+                    if d.temperature[m][end].is_finite() {
+                        last = end;
+                    }
                     end += 1;
                 }
-                let span = d.t[end - 1] - d.t[first];
+                // The span the one reading was seen over (missing readings after it prove
+                // nothing).
+                let span = d.t[last] - d.t[first];
                 if span >= STUCK_MIN_S {
-                    let change = heating_change(d, m, first, end);
+                    let change = heating_change(d, m, first, last + 1);
                     if change >= STUCK_HEATING_CHANGE_A2 {
-                        let count = (first..end)
+                        let count = (first..=last)
                             .filter(|&j| d.temperature[m][j].is_finite())
                             .count();
-                        for j in first..end {
+                        for j in first..=last {
                             d.temperature[m][j] = f64::NAN;
                         }
                         out.push(Finding {
@@ -239,7 +259,7 @@ fn stuck_temperatures(d: &mut Dataset, out: &mut Vec<Finding>) {
                                  {change:.2} A²: a stuck sensor; its {count} readings there dropped",
                                 d.motors[m],
                                 d.t[first],
-                                d.t[end - 1]
+                                d.t[last]
                             ),
                         });
                     }
@@ -317,9 +337,12 @@ pub fn check(d: &mut Dataset, limits: &Limits) -> Vec<Finding> {
     check_scale(
         &mut d.current,
         "current_a",
-        "A",
-        limits.stall_current_a,
-        (-limits.stall_current_a, limits.stall_current_a),
+        Physical {
+            unit: "A",
+            limit: limits.stall_current_a,
+            tolerance: BEYOND_RATING,
+            plausible: (-limits.stall_current_a, limits.stall_current_a),
+        },
         &[
             counts("register_counts", 0.0065, "raw register counts of 6.5 mA"),
             plain("milliamps", 0.001, "milliamperes"),
@@ -329,9 +352,12 @@ pub fn check(d: &mut Dataset, limits: &Limits) -> Vec<Finding> {
     check_scale(
         &mut d.voltage,
         "voltage_v",
-        "V",
-        limits.max_supply_v,
-        (3.0, limits.max_supply_v),
+        Physical {
+            unit: "V",
+            limit: limits.max_supply_v,
+            tolerance: BEYOND_RATING,
+            plausible: (3.0, limits.max_supply_v),
+        },
         &[
             counts(
                 "tenths_of_volts",
@@ -352,9 +378,12 @@ pub fn check(d: &mut Dataset, limits: &Limits) -> Vec<Finding> {
     check_scale(
         &mut d.temperature,
         "temperature_c",
-        "°C",
-        limits.max_temperature_c,
-        (-20.0, limits.max_temperature_c),
+        Physical {
+            unit: "°C",
+            limit: limits.max_temperature_c,
+            tolerance: BEYOND_RATING,
+            plausible: (-20.0, limits.max_temperature_c),
+        },
         &[kelvin],
         &mut out,
     );
@@ -373,9 +402,12 @@ pub fn check(d: &mut Dataset, limits: &Limits) -> Vec<Finding> {
         check_scale(
             col,
             name,
-            "rad",
-            turn,
-            (-turn, turn),
+            Physical {
+                unit: "rad",
+                limit: turn,
+                tolerance: 1.0,
+                plausible: (-turn, turn),
+            },
             &angle_mistakes,
             &mut out,
         );
@@ -383,9 +415,12 @@ pub fn check(d: &mut Dataset, limits: &Limits) -> Vec<Finding> {
     check_scale(
         &mut d.velocity,
         "velocity_rad_s",
-        "rad/s",
-        limits.max_speed_rad_s,
-        (-limits.max_speed_rad_s, limits.max_speed_rad_s),
+        Physical {
+            unit: "rad/s",
+            limit: limits.max_speed_rad_s,
+            tolerance: 1.0,
+            plausible: (-limits.max_speed_rad_s, limits.max_speed_rad_s),
+        },
         &[
             counts(
                 "register_counts",
@@ -597,6 +632,20 @@ mod tests {
         assert!(d.t.windows(2).all(|w| w[1] > w[0]));
         let clean = dirty(Effect::None, |_, l| l.into());
         assert_eq!(d.t.len(), clean.t.len());
+        // Two rows of a motor swapped (a logger's threads racing) are no jump either.
+        let g = generate(
+            &Spec {
+                motors: Some(2),
+                period_s: 2.0,
+                ..Spec::new(Effect::None)
+            },
+            5,
+        );
+        let mut lines: Vec<&str> = g.csv.lines().collect();
+        lines.swap(101, 103);
+        let rows = parse_csv(&(lines.join("\n") + "\n"), "swapped").unwrap();
+        let d = Dataset::from_runs(vec![("s".into(), rows)], Meta::default(), "s").unwrap();
+        assert!(d.clock_findings.is_empty(), "{:?}", d.clock_findings);
         // A file sorted by motor is no jump.
         let g = generate(
             &Spec {
@@ -636,6 +685,30 @@ mod tests {
         );
         let (a, b) = (d.current[0][10], clean.current[0][10]);
         assert!((a - 2.5 * b).abs() < 1e-3, "{a} {b}: used as it is");
+    }
+
+    #[test]
+    fn small_angles_in_degrees_are_converted_not_taken_for_radians() {
+        // ±20° swings: a 99th percentile of 20, three times a turn in radians.
+        let mut csv = String::from("t_s,motor,goal_rad,position_rad\n");
+        for k in 0..500 {
+            let t = f64::from(k) * 0.02;
+            let deg = 20.0 * (2.0 * t).sin();
+            csv.push_str(&format!("{t:.2},1,{deg:.3},{:.3}\n", 0.98 * deg));
+        }
+        let rows = parse_csv(&csv, "deg").unwrap();
+        let mut d = Dataset::from_runs(vec![("deg".into(), rows)], Meta::default(), "d").unwrap();
+        let f = check(&mut d, &Limits::default());
+        assert_eq!(
+            kinds(&f),
+            [
+                ("position_rad", "degrees", "fixed"),
+                ("goal_rad", "degrees", "fixed")
+            ],
+            "{f:#?}"
+        );
+        let max = d.position[0].iter().fold(0.0_f64, |m, x| m.max(x.abs()));
+        assert!((max - 0.98 * 20f64.to_radians()).abs() < 0.01, "{max}");
     }
 
     #[test]

@@ -341,18 +341,22 @@ fn repair_clock(name: &str, rows: &mut [Row]) -> Option<crate::audit::Finding> {
             .entry(r.motor)
             .or_insert((f64::NEG_INFINITY, 0.0, Vec::new()));
         let t = r.t + e.1;
-        if t < e.0 {
+        // A step back of a few periods is rows a little out of order (sorting fixes them); a
+        // jump is longer than that and than a second.
+        let period = || {
             let mut periods = e.2.clone();
             periods.sort_by(f64::total_cmp);
-            let period = periods.get(periods.len() / 2).copied().unwrap_or(0.0);
-            let back = e.0 - t + period;
+            periods.get(periods.len() / 2).copied().unwrap_or(0.0)
+        };
+        if t < e.0 - 1.0 && t < e.0 - 3.0 * period() {
+            let back = e.0 - t + period();
             e.1 += back;
             jumps.push((n + 1, back, e.0));
-        } else if e.0.is_finite() && e.2.len() < 64 {
+        } else if e.0.is_finite() && t > e.0 && e.2.len() < 64 {
             e.2.push(t - e.0);
         }
         r.t += e.1;
-        e.0 = r.t;
+        e.0 = e.0.max(r.t);
     }
     let (row, back, at) = *jumps.first()?;
     Some(crate::audit::Finding {

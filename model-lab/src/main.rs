@@ -112,8 +112,8 @@ fn run_analyze(a: &AnalyzeArgs) -> Result<()> {
         limits: model_lab::audit::Limits {
             stall_current_a: rating.stall_current_a,
             // Feetech's 12 V servos take up to 14.8 V (a charged 4S pack); margin for a
-            // charger's ripple.
-            max_supply_v: 1.4 * rating.rated_voltage,
+            // charger's ripple. A lower-rated servo may run on the 12 V bus (the STS3095).
+            max_supply_v: (1.4 * rating.rated_voltage).max(16.8),
             max_speed_rad_s: 3.0 * rating.no_load_speed_rad_s,
             ..model_lab::audit::Limits::default()
         },

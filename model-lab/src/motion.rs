@@ -279,10 +279,7 @@ pub fn decode(effect: Effect, x: &[f64]) -> MotionParams {
     let mut p = MotionParams {
         coulomb_nm: x[0],
         viscous_nms: x[1],
-        ext: ServoExtension {
-            stribeck_speed_rad_s: 1.0,
-            ..ServoExtension::default()
-        },
+        ext: ServoExtension::default(),
     };
     let e = &mut p.ext;
     match effect {
@@ -580,10 +577,7 @@ pub fn analyze_motion(
     let nominal_rated = MotionParams {
         coulomb_nm: rating.coulomb_nm,
         viscous_nms: rating.viscous_nms,
-        ext: ServoExtension {
-            stribeck_speed_rad_s: 1.0,
-            ..ServoExtension::default()
-        },
+        ext: ServoExtension::default(),
     };
     let t = std::time::Instant::now();
     let as_configured: Vec<(String, f64, f64)> = runs
@@ -719,7 +713,7 @@ pub fn analyze_motion(
         let step_gain = nominal.mae_rad - c.mae_rad;
         c.verdict = if !c.plausible {
             "a parameter at the edge of (or beyond) what its physics allows".into()
-        } else if c.gain < MOTION_PRACTICAL_GAIN || step_gain < MOTION_MIN_MAE_CUT {
+        } else if !(c.gain >= MOTION_PRACTICAL_GAIN && step_gain >= MOTION_MIN_MAE_CUT) {
             format!(
                 "no practical difference: held-out MAE {:.5} → {:.5} rad ({:+.1} %; {:.0} % and a \
                  quarter encoder step, {MOTION_MIN_MAE_CUT:.5} rad, would matter)",

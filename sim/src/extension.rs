@@ -239,7 +239,7 @@ impl ModelExtension {
 }
 
 /// The per-servo part of an extension, applied by the servo's own step.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ServoExtension {
     /// Time constant of the sensor node, s (0: the register reads the winding).
     pub sensor_time_constant_s: f64,
@@ -261,6 +261,25 @@ pub struct ServoExtension {
     pub friction_back_ratio: f64,
     /// Play in the gearbox, rad (0: none).
     pub backlash_rad: f64,
+}
+
+impl Default for ServoExtension {
+    /// The nominal servo: every extension off (Stribeck's speed 1 rad/s, so a Stribeck
+    /// friction set alone never divides by zero).
+    fn default() -> Self {
+        ServoExtension {
+            sensor_time_constant_s: 0.0,
+            resistance_tempco_per_k: 0.0,
+            current_offset_a: 0.0,
+            armature_error: 0.0,
+            duty_gain_error: 0.0,
+            stribeck_nm: 0.0,
+            stribeck_speed_rad_s: 1.0,
+            friction_drive_ratio: 0.0,
+            friction_back_ratio: 0.0,
+            backlash_rad: 0.0,
+        }
+    }
 }
 
 impl From<&ModelExtension> for ServoExtension {
