@@ -230,6 +230,17 @@ fn motion_score(
     score
 }
 
+/// `spec` (with the settings' length and period) over the settings' seeds.
+fn seeded(settings: &Settings, spec: Spec) -> Vec<Run> {
+    let spec = Spec {
+        duration_s: settings.duration_s,
+        period_s: settings.period_s,
+        ..spec
+    };
+    let jobs: Vec<(Spec, u64)> = (0..settings.seeds).map(|s| (spec.clone(), s)).collect();
+    run_many(&jobs, settings.jobs)
+}
+
 /// What the runs `wrong` picks named instead, with how often.
 fn confusions(runs: &[Run], wrong: impl Fn(&Run) -> bool) -> Vec<(Effect, usize)> {
     let mut out: Vec<(Effect, usize)> = Vec::new();
@@ -437,14 +448,13 @@ pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
         && (settings.effects.is_empty() || settings.effects.contains(&Effect::Unexplained))
     {
         for foreign in Foreign::ALL {
-            let spec = Spec {
-                duration_s: settings.duration_s,
-                period_s: settings.period_s,
-                foreign: Some(foreign),
-                ..Spec::new(Effect::None)
-            };
-            let jobs: Vec<(Spec, u64)> = (0..settings.seeds).map(|s| (spec.clone(), s)).collect();
-            let runs = run_many(&jobs, settings.jobs);
+            let runs = seeded(
+                settings,
+                Spec {
+                    foreign: Some(foreign),
+                    ..Spec::new(Effect::None)
+                },
+            );
             let n = runs.len().max(1) as f64;
             let confusions = confusions(&runs, |r| r.named != Effect::Unexplained);
             let score = EffectScore {
@@ -478,14 +488,13 @@ pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
     // Two effects at once: both must be named (the score's `effect` is the first).
     if wants("pairs") && settings.effects.is_empty() {
         for (first, second) in PAIRS {
-            let spec = Spec {
-                duration_s: settings.duration_s,
-                period_s: settings.period_s,
-                second: Some(second),
-                ..Spec::new(first)
-            };
-            let jobs: Vec<(Spec, u64)> = (0..settings.seeds).map(|s| (spec.clone(), s)).collect();
-            let runs = run_many(&jobs, settings.jobs);
+            let runs = seeded(
+                settings,
+                Spec {
+                    second: Some(second),
+                    ..Spec::new(first)
+                },
+            );
             let n = runs.len().max(1) as f64;
             let both = runs.iter().filter(|r| r.both_named).count();
             let confusions = confusions(&runs, |r| !r.both_named);
@@ -518,14 +527,13 @@ pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
     // still answer `none` on the null data behind it (its `recovered`).
     if wants("dirty") && settings.effects.is_empty() {
         for dirty in Dirty::ALL {
-            let spec = Spec {
-                duration_s: settings.duration_s,
-                period_s: settings.period_s,
-                dirty: Some(dirty),
-                ..Spec::new(Effect::None)
-            };
-            let jobs: Vec<(Spec, u64)> = (0..settings.seeds).map(|s| (spec.clone(), s)).collect();
-            let runs = run_many(&jobs, settings.jobs);
+            let runs = seeded(
+                settings,
+                Spec {
+                    dirty: Some(dirty),
+                    ..Spec::new(Effect::None)
+                },
+            );
             let n = runs.len().max(1) as f64;
             let score = EffectScore {
                 hidden: format!("dirty: {}", dirty.id()),

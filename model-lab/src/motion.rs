@@ -71,21 +71,14 @@ impl MotionRun {
                 let mechanics = r.mechanics?;
                 let range = r.start..r.end;
                 let t0 = d.t[r.start];
+                // Goal and supply held over missing samples (`first` when a run has none).
                 let hold = |col: &[f64], first: f64| {
-                    let mut last = col[range.clone()]
-                        .iter()
-                        .copied()
-                        .find(|v| v.is_finite())
-                        .unwrap_or(first);
-                    col[range.clone()]
-                        .iter()
-                        .map(|&v| {
-                            if v.is_finite() {
-                                last = v;
-                            }
-                            last
-                        })
-                        .collect::<Vec<f64>>()
+                    let part = &col[range.clone()];
+                    if part.iter().any(|v| v.is_finite()) {
+                        crate::electrical::hold(part)
+                    } else {
+                        vec![first; part.len()]
+                    }
                 };
                 let run = MotionRun {
                     name: r.name.clone(),
