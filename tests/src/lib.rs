@@ -235,6 +235,31 @@ pub use sim::rng::Rng;
 
 pub use telemetry::stats::quantile;
 
+/// A speed held at `want`, judged as a loaded machine allows: the median of the samples within
+/// `tolerance`, and at most a fifth of them off by more than three tolerances (a starved lidar
+/// holds the base, rightly; a late control period measures its wheels over a longer time than
+/// it divides by). Each sample carries what explains it (its flags, its frame), shown when it
+/// fails. A product that never reached the speed, or dipped in most samples, still fails.
+pub fn assert_cruising<L: std::fmt::Debug>(samples: &[(f32, L)], want: f32, tolerance: f32) {
+    assert!(
+        !samples.is_empty(),
+        "no samples of a speed meant to be {want}"
+    );
+    let values: Vec<f64> = samples.iter().map(|(v, _)| f64::from(*v)).collect();
+    let median = quantile(&values, 0.5) as f32;
+    let off: Vec<&(f32, L)> = samples
+        .iter()
+        .filter(|(v, _)| (v - want).abs() > 3.0 * tolerance)
+        .collect();
+    assert!(
+        (median - want).abs() < tolerance && off.len() * 5 <= samples.len(),
+        "measured a median {median} for {want} (within {tolerance}); {} of {} samples off: \
+         {off:?}",
+        off.len(),
+        samples.len()
+    );
+}
+
 /// `joint` in the newest state frame that read it, older frames dropped; `None` if no waiting
 /// frame did. A servo that missed its reply in a cycle (a late reply on a loaded machine) is
 /// reported as zeros with `valid == 0`, so reading its goal or position from such a frame

@@ -16,6 +16,13 @@ use telemetry::plane::{self, newest, Plane};
 /// The column's obstruction time (lift.toml) and a control period and a status period of slack.
 const PRESS_BOUND_S: f64 = 0.15 + 0.02 + 0.02;
 
+/// How far from its goal a lift that got there may stand: the controller's hold band (twice
+/// its tolerance: it moves again only beyond it, so as not to hunt) and a hall count. A starved
+/// controller brakes a period late and lands at the band's edge (seen in CI on a loaded runner:
+/// exactly 2.0 mm past the goal, held there as designed).
+const HOLD_M: f32 = (2.0 * lift::column::ColumnConfig::A3.tolerance_m
+    + 1.0 / lift::column::ColumnConfig::A3.counts_per_m) as f32;
+
 /// The simulator with the lift standing 5 cm up at start (homing takes seconds, not twenty)
 /// and `sim_args`, and `nori-lift` on its board (started once the simulator has linked it:
 /// before, nori-lift exits 69 as it should without its board, and systemd would start it again).
@@ -86,7 +93,7 @@ fn the_lift_homes_goes_to_a_height_holds_it_and_stops_on_a_hand() {
     command(0.4, 0);
     let sent = Instant::now();
     let there = wait_for(Duration::from_secs(20), "the lift at 0.4 m", || {
-        newest(&states).filter(|s| (s.height_m - 0.4).abs() < 0.002 && s.velocity_m_s == 0.0)
+        newest(&states).filter(|s| (s.height_m - 0.4).abs() <= HOLD_M && s.velocity_m_s == 0.0)
     });
     let took = sent.elapsed().as_secs_f64();
     assert!(
@@ -97,7 +104,7 @@ fn the_lift_homes_goes_to_a_height_holds_it_and_stops_on_a_hand() {
     // Held: the simulator's column where nori-lift says, and staying there.
     std::thread::sleep(Duration::from_millis(2000));
     let held = newest(&states).unwrap();
-    assert!((held.height_m - 0.4).abs() < 0.002, "{held:?}");
+    assert!((held.height_m - 0.4).abs() <= HOLD_M, "{held:?}");
     std::thread::sleep(Duration::from_millis(1100));
     let h = truth();
     // The simulator's column where nori-lift has it: within the switch's width at homing
@@ -114,7 +121,7 @@ fn the_lift_homes_goes_to_a_height_holds_it_and_stops_on_a_hand() {
     std::thread::sleep(Duration::from_millis(300));
     let s = newest(&states).unwrap();
     assert_eq!(s.commands_refused, 1, "{s:?}");
-    assert!((s.height_m - 0.4).abs() < 0.002, "{s:?}");
+    assert!((s.height_m - 0.4).abs() <= HOLD_M, "{s:?}");
 
     // A hand under it at 0.25 m (from 24 s after start): coming down, it stops on it and backs
     // off a centimetre.

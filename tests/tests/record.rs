@@ -725,28 +725,20 @@ fn the_whole_body_is_recorded_nineteen_wide_with_the_lift_rising_and_the_base_dr
         "the lift only rises"
     );
     assert!(rows.iter().all(|r| r.frame.action[16] == 0.2), "its goal");
-    // The base at its commanded twist once the ramp is through, measured by the wheels: over
-    // the last second on average (one frame's twist is from one control period of the wheels'
-    // positions, a few encoder counts: ±0.07 rad/s of turn rate).
+    // The base at its commanded twist once the ramp is through, measured by the wheels over
+    // the last second (one frame's twist is from one control period of the wheels' positions,
+    // a few encoder counts: ±0.07 rad/s of turn rate), judged as a loaded machine allows (seen
+    // in CI: a late control period's 0.68 rad/s in one frame; a starved lidar's hold in a few).
     let cruising = &rows[rows.len() - FPS as usize..];
-    let mean = |i: usize| cruising.iter().map(|r| r.frame.state[i]).sum::<f32>() / FPS as f32;
-    let (v, w) = (mean(17), mean(18));
-    assert!(
-        (v + 0.15).abs() < 0.02 && (w - 0.3).abs() < 0.05,
-        "{v} m/s {w} rad/s"
-    );
-    // Frame by frame within 0.15 rad/s, but for a spike or two: a control period of the base
-    // that ran late on a loaded machine measures its wheels over a longer time than it divides
-    // by (seen once in CI: 0.68 rad/s in one frame of 30, the second's mean on target).
-    let off: Vec<f32> = cruising
-        .iter()
-        .map(|r| r.frame.state[18])
-        .filter(|w| (w - 0.3).abs() >= 0.15)
-        .collect();
-    assert!(
-        off.len() <= 2 && off.iter().all(|w| (w - 0.3).abs() < 0.5),
-        "turn rates off the command: {off:?}"
-    );
+    let frames = |i: usize| -> Vec<(f32, usize)> {
+        cruising
+            .iter()
+            .enumerate()
+            .map(|(k, r)| (r.frame.state[i], rows.len() - FPS as usize + k))
+            .collect()
+    };
+    nori_tests::assert_cruising(&frames(17), -0.15, 0.02);
+    nori_tests::assert_cruising(&frames(18), 0.3, 0.05);
     for r in cruising {
         assert_eq!((r.frame.action[17], r.frame.action[18]), (-0.15, 0.3));
     }
