@@ -60,6 +60,14 @@ fn a_hidden_inertia_error_is_named_and_its_size_recovered() {
     hidden(Effect::ArmatureError, 0, 0.25);
 }
 
+/// A lighter armature than the datasheet's: fitted from the nominal model's friction alone
+/// (which has taken up the missing inertia), the fit ends in the friction's basin; from its
+/// second start it finds the inertia.
+#[test]
+fn a_lighter_armature_is_found_from_the_fits_second_start() {
+    hidden(Effect::ArmatureError, 18, 0.25);
+}
+
 #[test]
 fn a_torque_proportional_friction_is_told_from_a_directional_one() {
     hidden(Effect::LoadFriction, 0, 0.25);
@@ -79,6 +87,30 @@ fn a_firmware_gain_other_than_configured_is_named() {
 #[test]
 fn runs_without_an_extension_give_none() {
     hidden(Effect::None, 3, 0.0);
+}
+
+/// On runs with nothing hidden, the replay's own 1 ms steps (the generated servo runs ten times
+/// finer) fit as a firmware gain a percent low that cuts the held-out error by more than the
+/// practical margins: its size, within the motor's own ±10 %, is what refuses it.
+#[test]
+fn a_firmware_gain_within_the_motors_tolerance_is_no_finding() {
+    let g = generate_motion(Effect::None, 11);
+    let out = analyze(g.dataset().unwrap(), &options(), &mut |_| {}).unwrap();
+    let m = out.analysis.motion.unwrap();
+    assert_eq!(m.cause, Effect::None, "{}", m.judged);
+    let gain = m
+        .candidates
+        .iter()
+        .find(|c| c.id == Effect::FirmwareGain)
+        .unwrap();
+    assert!(
+        gain.gain >= motion::MOTION_PRACTICAL_GAIN
+            && m.nominal_mae_rad - gain.mae_rad >= motion::MOTION_MIN_MAE_CUT
+            && gain.improved_runs == gain.runs.len(),
+        "the size is not what refuses it here: {gain:#?}"
+    );
+    assert!(gain.parameters[2].value.abs() < 0.1, "{gain:#?}");
+    assert!(gain.verdict.starts_with("too small"), "{}", gain.verdict);
 }
 
 /// BAM's four STS3250 runs (1.13 kg on 0.12 m, kp 32, 12 V): the loader finds their
