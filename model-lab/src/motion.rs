@@ -181,6 +181,7 @@ pub struct MotionParam {
     /// Where a second fit starts: an extension's effect trades against the friction (a
     /// lighter armature against more friction, a sharp Stribeck peak against a broad one), so
     /// one start can end in the other basin; the better of the two on the training runs is kept.
+    /// (Both fits start the friction constants from the nominal model's fit.)
     pub second_start: f64,
     /// A size smaller than this is no finding whatever it predicts: within what the servo's
     /// own tolerances or the encoder already allow (0: not a size, e.g. a speed scale).
@@ -768,8 +769,10 @@ pub fn analyze_motion(
             "a parameter at the edge of (or beyond) what its physics allows".into()
         } else if let Some((p, v)) = size.filter(|(p, v)| v.abs() < p.negligible) {
             format!(
-                "too small to be a finding: {} {v:.4} {} (below {} counts as none)",
-                p.name, p.unit, p.negligible
+                "too small to be a finding: {} {v:.4} {unit} (below {:.4} {unit} counts as none)",
+                p.name,
+                p.negligible,
+                unit = p.unit
             )
         } else if !(c.gain >= MOTION_PRACTICAL_GAIN && step_gain >= MOTION_MIN_MAE_CUT) {
             format!(
