@@ -68,6 +68,32 @@ fn a_lighter_armature_is_found_from_the_fits_second_start() {
     hidden(Effect::ArmatureError, 18, 0.25);
 }
 
+/// Nothing hidden, but the nominal fit from its first start stalls at a third of the true
+/// Coulomb friction (0.027 for 0.082 N·m), and a Stribeck peak then "explains" the rest (named
+/// with a 65 % held-out gain): the nominal model's second start, with more friction, finds it.
+#[test]
+fn a_nominal_fit_stalled_at_little_friction_is_started_again() {
+    hidden(Effect::None, 29, 0.0);
+    let g = generate_motion(Effect::None, 29);
+    let out = analyze(g.dataset().unwrap(), &options(), &mut |_| {}).unwrap();
+    let m = out.analysis.motion.unwrap();
+    let nominal = &m.candidates[0];
+    let coulomb = nominal.parameters[0].value;
+    assert!(
+        (coulomb - g.coulomb_viscous.0).abs() < 0.1 * g.coulomb_viscous.0,
+        "Coulomb {coulomb} for {}",
+        g.coulomb_viscous.0
+    );
+}
+
+/// Play hidden beside much Coulomb friction (0.021 rad, 0.109 N·m): the nominal fit takes
+/// little friction (0.03 N·m), and the play's fits from there stall with it while a Stribeck
+/// peak is named instead; its fit from the friction's own second start finds both.
+#[test]
+fn play_hidden_beside_much_friction_is_found_from_the_frictions_own_second_start() {
+    hidden(Effect::Backlash, 23, 0.25);
+}
+
 #[test]
 fn a_torque_proportional_friction_is_told_from_a_directional_one() {
     hidden(Effect::LoadFriction, 0, 0.25);
