@@ -180,8 +180,8 @@ pub struct MotionParam {
     pub start: f64,
     /// Where a second fit starts: an extension's effect trades against the friction (a
     /// lighter armature against more friction, a sharp Stribeck peak against a broad one), so
-    /// one start can end in the other basin; the better of the two on the training runs is kept.
-    /// (Both fits start the friction constants from the nominal model's fit.)
+    /// one start can end in the other basin; the best start on the training runs is kept
+    /// (see [`fit_models`]).
     pub second_start: f64,
     /// A size smaller than this is no finding whatever it predicts: within what the servo's
     /// own tolerances or the encoder already allow (0: not a size, e.g. a speed scale).
@@ -194,7 +194,7 @@ const COULOMB: MotionParam = MotionParam {
     lo: 0.0,
     hi: 0.5,
     start: 0.05,
-    second_start: 0.05,
+    second_start: 0.15,
     negligible: 0.0,
 };
 const VISCOUS: MotionParam = MotionParam {
@@ -435,7 +435,7 @@ pub fn fit(rating: &ServoRating, effect: Effect, runs: &[&MotionRun], start: &[f
 /// Fits `models` in order on `runs`, each extension from the nominal model's fitted friction
 /// (and the directional friction from the load-proportional one's ratio, on both sides: the
 /// larger model starts where the nested one ended), and again from its parameters' second
-/// starts: the better on `runs` is kept.
+/// starts: the best on `runs` is kept.
 fn fit_models(
     rating: &ServoRating,
     models: &[Effect],
@@ -454,14 +454,27 @@ fn fit_models(
                 .collect(),
         };
         let mut x = fit(rating, effect, runs, &start);
+        // Again from every parameter's second start (for the nominal model: more friction,
+        // from little the fit can stall where the load's stick-slip is half explained; a
+        // hidden effect can pull the nominal fit there too, and an extension's fit from it
+        // would stall with it), and an extension also from the nominal's fitted friction with
+        // its own second start (its effect trading against the friction).
+        let mut starts: Vec<Vec<f64>> = vec![model_params(effect)
+            .iter()
+            .map(|p| p.second_start)
+            .collect()];
         if effect != Effect::None {
-            let second: Vec<f64> = start
-                .iter()
-                .take(2)
-                .copied()
-                .chain(extension_params(effect).iter().map(|p| p.second_start))
-                .collect();
-            let y = fit(rating, effect, runs, &second);
+            starts.push(
+                start
+                    .iter()
+                    .take(2)
+                    .copied()
+                    .chain(extension_params(effect).iter().map(|p| p.second_start))
+                    .collect(),
+            );
+        }
+        for s in starts {
+            let y = fit(rating, effect, runs, &s);
             if training_loss(rating, effect, runs, &y) < training_loss(rating, effect, runs, &x) {
                 x = y;
             }
