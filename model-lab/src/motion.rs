@@ -454,6 +454,7 @@ fn fit_models(
                 .collect(),
         };
         let mut x = fit(rating, effect, runs, &start);
+        let mut best = training_loss(rating, effect, runs, &x);
         // Again from every parameter's second start (for the nominal model: more friction,
         // from little the fit can stall where the load's stick-slip is half explained; a
         // hidden effect can pull the nominal fit there too, and an extension's fit from it
@@ -475,8 +476,9 @@ fn fit_models(
         }
         for s in starts {
             let y = fit(rating, effect, runs, &s);
-            if training_loss(rating, effect, runs, &y) < training_loss(rating, effect, runs, &x) {
-                x = y;
+            let loss = training_loss(rating, effect, runs, &y);
+            if loss < best {
+                (x, best) = (y, loss);
             }
         }
         out.push((effect, x));

@@ -6,7 +6,7 @@
 
 #![allow(missing_docs, clippy::unwrap_used, clippy::expect_used)]
 
-use model_lab::generate::generate_motion;
+use model_lab::generate::{generate_motion, GeneratedMotion};
 use model_lab::motion::{self, MotionRun};
 use model_lab::{analyze, Effect, Options};
 use std::path::Path;
@@ -18,8 +18,9 @@ fn options() -> Options {
     }
 }
 
-/// Names a hidden mechanical effect and recovers its first parameter within `tol`.
-fn hidden(effect: Effect, seed: u64, tol: f64) {
+/// Names a hidden mechanical effect and recovers its first parameter within `tol`; the runs
+/// and the motion channel's analysis, for more checks.
+fn hidden(effect: Effect, seed: u64, tol: f64) -> (GeneratedMotion, motion::MotionAnalysis) {
     let g = generate_motion(effect, seed);
     let out = analyze(g.dataset().unwrap(), &options(), &mut |_| {}).unwrap();
     let (a, model) = (out.analysis, out.model);
@@ -48,6 +49,7 @@ fn hidden(effect: Effect, seed: u64, tol: f64) {
         );
         assert!(c.gain >= motion::MOTION_PRACTICAL_GAIN);
     }
+    (g, a.motion.expect("checked above"))
 }
 
 #[test]
@@ -73,10 +75,7 @@ fn a_lighter_armature_is_found_from_the_fits_second_start() {
 /// with a 65 % held-out gain): the nominal model's second start, with more friction, finds it.
 #[test]
 fn a_nominal_fit_stalled_at_little_friction_is_started_again() {
-    hidden(Effect::None, 29, 0.0);
-    let g = generate_motion(Effect::None, 29);
-    let out = analyze(g.dataset().unwrap(), &options(), &mut |_| {}).unwrap();
-    let m = out.analysis.motion.unwrap();
+    let (g, m) = hidden(Effect::None, 29, 0.0);
     let nominal = &m.candidates[0];
     let coulomb = nominal.parameters[0].value;
     assert!(
