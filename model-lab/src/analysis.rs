@@ -75,6 +75,11 @@ pub const MIN_HELDOUT_T: f64 = 1.645;
 /// extension: 1 / (2 · 1.645), so a correction the readings follow fully (β = 1) reaches
 /// [`MIN_HELDOUT_T`] with about 95 % probability.
 pub const MAX_INFORMATIVE_SE: f64 = 0.304;
+/// A pair's second that stands only on the fitting part and the held-out slope combined
+/// must be followed by the held-out readings at about its fitted size: this range of the
+/// slope (a correction 10 times too small that happens to point the right way says nothing
+/// of the effect's size).
+const HELDOUT_SIZE: std::ops::RangeInclusive<f64> = 0.5..=2.0;
 /// Contiguous blocks per motor of the block statistics (held-out slope, fitting-part score
 /// variance): residuals are correlated within a block, roughly independent between blocks.
 const TEST_BLOCKS: usize = 10;
@@ -319,8 +324,12 @@ pub struct Candidate {
     /// Likelihood-ratio statistic.
     pub lr: f64,
     /// p-value of the fitting part's test of the extension (thermal: the register model's
-    /// likelihood ratio; electrical: the block Wald test), tested against the per-test α.
+    /// likelihood ratio; electrical: the block Wald test), tested against the per-test α;
+    /// with `with_heldout`, combined with the held-out slope's.
     pub p_value: f64,
+    /// A pair's second judged on the fitting part and the held-out slope together (the
+    /// fitting part's test alone fell short; ΔBIC then does not apply).
+    pub with_heldout: bool,
     /// BIC improvement over the nominal model (positive: better).
     pub delta_bic: f64,
     /// Held-out RMSE of the nominal model.
@@ -682,6 +691,11 @@ pub fn analyze(
     }
     let mut candidates = Vec::new();
     let mut channels = Vec::new();
+    // The record's span, h (what an ambient drift's size is judged against).
+    let hours = match (d.t.first(), d.t.last()) {
+        (Some(a), Some(b)) => (b - a) / 3600.0,
+        _ => 0.0,
+    };
 
     // Thermal channel.
     let mut thermal_nominal = None;
@@ -756,6 +770,7 @@ pub fn analyze(
                 parameter,
                 &nominal_verdict,
                 floor.floor,
+                hours,
                 nom.sse,
                 fit.sse,
                 test,
@@ -822,6 +837,7 @@ pub fn analyze(
                     parameter,
                     &after_first,
                     floor.floor,
+                    hours,
                     fa.sse,
                     pair.sse,
                     test,
@@ -829,6 +845,36 @@ pub fn analyze(
                     &pair_held,
                     pair.iterations,
                 );
+                // The second is often nearly collinear with the first on the fitting part (a
+                // current offset and copper's coefficient both scale the heating) and shows
+                // where the winding runs hottest, in the held-out part: where the fitting part
+                // alone falls short, its test and the held-out slope's decide together.
+                if !c.supported && c.plausible && (c.p_value >= alpha || c.delta_bic <= 0.0) {
+                    let alone = c.verdict.clone();
+                    let combined = judge(
+                        *b,
+                        c.parameter.clone(),
+                        &after_first,
+                        floor.floor,
+                        hours,
+                        fa.sse,
+                        pair.sse,
+                        test.with_heldout(c.heldout_slope_t),
+                        &base_held,
+                        &pair_held,
+                        pair.iterations,
+                    );
+                    if combined.supported {
+                        c = Candidate {
+                            verdict: format!(
+                                "supported on the fitting part and the held-out slope together \
+                                 (Fisher p = {:.2e}; the fitting part alone: {alone})",
+                                combined.p_value
+                            ),
+                            ..combined
+                        };
+                    }
+                }
                 c.with = Some(*a);
                 if c.supported && best.is_none() {
                     let pair_param = a.parameter().map(|(name, unit)| Parameter {
@@ -844,6 +890,7 @@ pub fn analyze(
                         pair_param,
                         &nominal_verdict,
                         floor.floor,
+                        hours,
                         nom.sse,
                         pair.sse,
                         test,
@@ -874,7 +921,7 @@ pub fn analyze(
                 if c.supported
                     && best_pair
                         .as_ref()
-                        .is_none_or(|b| c.delta_bic > b.candidate.delta_bic)
+                        .is_none_or(|b| stronger_second(&c, &b.candidate))
                 {
                     best_pair = Some(PairFit {
                         candidate: c.clone(),
@@ -974,6 +1021,7 @@ pub fn analyze(
                 }),
                 &nominal_verdict,
                 floor.floor,
+                hours,
                 nom.sse,
                 sag.sse,
                 test,
@@ -1257,6 +1305,19 @@ pub fn analyze(
     })
 }
 
+/// Whether the supported pair second `c` beats `than`: one supported on the fitting part
+/// alone beats one that needed the held-out slope; among the first kind the larger ΔBIC wins,
+/// among the second the smaller combined p-value (their ΔBIC, the fitting part's alone, is
+/// what fell short).
+fn stronger_second(c: &Candidate, than: &Candidate) -> bool {
+    match (c.with_heldout, than.with_heldout) {
+        (false, true) => true,
+        (true, false) => false,
+        (false, false) => c.delta_bic > than.delta_bic,
+        (true, true) => c.p_value < than.p_value,
+    }
+}
+
 /// A pair of thermal extensions fitted together, as tried.
 struct PairFit {
     /// The second's candidate (tried beside the first).
@@ -1400,6 +1461,9 @@ struct FitTest {
     p_value: f64,
     /// Parameters the test weighs (its χ² degrees of freedom and BIC penalty).
     params: f64,
+    /// The p-value combines the fitting part's with the held-out slope's (see
+    /// [`FitTest::with_heldout`]): the BIC, a fitting-part criterion, does not apply.
+    with_heldout: bool,
 }
 
 impl FitTest {
@@ -1409,6 +1473,22 @@ impl FitTest {
         FitTest {
             p_value: stats::chi2_sf(self.lr, params),
             params,
+            ..self
+        }
+    }
+
+    /// The fitting part's p-value combined (Fisher) with the held-out slope's one-sided one,
+    /// `slope_t` its t statistic: two independent tests of one null hypothesis, the held-out
+    /// readings never fitted.
+    fn with_heldout(self, slope_t: f64) -> FitTest {
+        let heldout_p = if slope_t.is_nan() {
+            1.0
+        } else {
+            stats::normal_sf(slope_t)
+        };
+        FitTest {
+            p_value: stats::fisher(&[self.p_value, heldout_p]),
+            with_heldout: true,
             ..self
         }
     }
@@ -1464,6 +1544,7 @@ fn deviance_test(
         n_eff: (n as f64 / phi).max(1.0),
         p_value: stats::chi2_sf(lr, 1.0),
         params: 1.0,
+        with_heldout: false,
     }
 }
 
@@ -1494,6 +1575,7 @@ fn block_wald_test(base: &[Vec<f64>], ext: &[Vec<f64>]) -> FitTest {
         n_eff,
         p_value,
         params: 1.0,
+        with_heldout: false,
     }
 }
 
@@ -1504,6 +1586,7 @@ fn judge(
     parameter: Option<Parameter>,
     nominal: &ChannelVerdict,
     floor: f64,
+    hours: f64,
     base_sse: f64,
     sse: f64,
     test: FitTest,
@@ -1520,6 +1603,7 @@ fn judge(
         n_eff,
         p_value,
         params,
+        with_heldout,
     } = test;
     let delta_bic = lr - params * n_eff.ln();
     // The held-out test can only refute an extension where it has the power to see it: with a
@@ -1554,9 +1638,26 @@ fn judge(
     let verdict = if !plausible {
         let (lo, hi, why) = bounds.unwrap_or((f64::NAN, f64::NAN, ""));
         format!("parameter {value:.4} outside what its physics allows, [{lo}, {hi}]: {why}")
+    } else if let Some((small, why)) = effect
+        .negligible(hours, floor)
+        .filter(|(s, _)| value.abs() < *s)
+    {
+        format!("too small to be a finding: {value:.4} (below {small:.4} counts as none: {why})")
     } else if p_value >= alpha {
-        format!("not significant (p = {p_value:.2e} ≥ {alpha:.1e})")
-    } else if delta_bic <= 0.0 {
+        let with = if with_heldout {
+            ", the held-out slope's combined"
+        } else {
+            ""
+        };
+        format!("not significant (p = {p_value:.2e} ≥ {alpha:.1e}{with})")
+    } else if with_heldout && !HELDOUT_SIZE.contains(&heldout_slope) {
+        format!(
+            "the held-out readings follow {heldout_slope:.2} times its correction: named on \
+             held-out evidence, it must be about its fitted size ({:.1}–{:.1})",
+            HELDOUT_SIZE.start(),
+            HELDOUT_SIZE.end()
+        )
+    } else if !with_heldout && delta_bic <= 0.0 {
         format!("BIC does not improve (ΔBIC = {delta_bic:.1})")
     } else if informative && (heldout_slope_t.is_nan() || heldout_slope_t < MIN_HELDOUT_T) {
         format!(
@@ -1604,6 +1705,7 @@ fn judge(
         n_eff,
         lr,
         p_value,
+        with_heldout,
         delta_bic,
         baseline_heldout_rmse: base_held,
         heldout_rmse: held,

@@ -74,6 +74,9 @@ pub struct Run {
     pub size: f64,
     /// Named cause.
     pub named: Effect,
+    /// A further cause named beside the hidden one when only one was hidden (a spurious
+    /// second: the run counts as wrong, under this name).
+    pub extra: Option<Effect>,
     /// Recovered parameter (when the named cause is the hidden one).
     pub recovered: Option<f64>,
     /// Motors.
@@ -175,6 +178,7 @@ fn motion_score(
                         .and_then(|c| c.parameters.get(2 + i).map(|p| p.value))
                 });
                 let run = Run {
+                    extra: None,
                     both_named: false,
                     both_recovered: false,
                     flagged: false,
@@ -241,13 +245,20 @@ fn seeded(settings: &Settings, spec: Spec) -> Vec<Run> {
     run_many(&jobs, settings.jobs)
 }
 
-/// What the runs `wrong` picks named instead, with how often.
+impl Run {
+    /// The run's answer: its cause, or the spurious second named beside it.
+    fn answer(&self) -> Effect {
+        self.extra.unwrap_or(self.named)
+    }
+}
+
+/// What the runs `wrong` picks answered instead, with how often.
 fn confusions(runs: &[Run], wrong: impl Fn(&Run) -> bool) -> Vec<(Effect, usize)> {
     let mut out: Vec<(Effect, usize)> = Vec::new();
     for r in runs.iter().filter(|r| wrong(r)) {
-        match out.iter_mut().find(|(e, _)| *e == r.named) {
+        match out.iter_mut().find(|(e, _)| *e == r.answer()) {
             Some(c) => c.1 += 1,
-            None => out.push((r.named, 1)),
+            None => out.push((r.answer(), 1)),
         }
     }
     out
@@ -300,6 +311,10 @@ fn run_one(spec: &Spec, seed: u64) -> Run {
                 seed,
                 size,
                 named: a.cause,
+                extra: second
+                    .is_none()
+                    .then(|| a.causes.iter().find(|c| **c != a.cause).copied())
+                    .flatten(),
                 recovered: (a.cause == spec.effect)
                     .then(|| a.parameters.first().map(|p| p.value))
                     .flatten(),
@@ -317,6 +332,7 @@ fn run_one(spec: &Spec, seed: u64) -> Run {
             seed,
             size,
             named: Effect::None,
+            extra: None,
             recovered: None,
             motors,
             seconds,
@@ -371,13 +387,13 @@ pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
         let jobs: Vec<(Spec, u64)> = (0..settings.seeds).map(|s| (spec.clone(), s)).collect();
         let runs = run_many(&jobs, settings.jobs);
         let n = runs.len().max(1) as f64;
-        let correct: Vec<&Run> = runs.iter().filter(|r| r.named == effect).collect();
+        let correct: Vec<&Run> = runs.iter().filter(|r| r.answer() == effect).collect();
         let mut errors: Vec<f64> = correct
             .iter()
             .filter_map(|r| r.recovered.map(|v| ((v - r.size) / r.size).abs()))
             .collect();
         errors.sort_by(f64::total_cmp);
-        let confusions = confusions(&runs, |r| r.named != effect);
+        let confusions = confusions(&runs, |r| r.answer() != effect);
         // Detection-limit sweep: from the range's lower end, halve while the effect is still
         // found reliably; when it is not found there, double until it is.
         let mut sweep: Vec<(f64, f64)> = Vec::new();
@@ -395,7 +411,7 @@ pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
                     })
                     .collect();
                 let r = run_many(&jobs, settings.jobs);
-                r.iter().filter(|r| r.named == effect).count() as f64 / r.len().max(1) as f64
+                r.iter().filter(|r| r.answer() == effect).count() as f64 / r.len().max(1) as f64
             };
             let lo = size_range(effect).0;
             let first = rate_at(lo);
@@ -456,7 +472,7 @@ pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
                 },
             );
             let n = runs.len().max(1) as f64;
-            let confusions = confusions(&runs, |r| r.named != Effect::Unexplained);
+            let confusions = confusions(&runs, |r| r.answer() != Effect::Unexplained);
             let score = EffectScore {
                 hidden: foreign.id().into(),
                 effect: Effect::Unexplained,
@@ -465,7 +481,7 @@ pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
                 runs: runs.len(),
                 accuracy: runs
                     .iter()
-                    .filter(|r| r.named == Effect::Unexplained)
+                    .filter(|r| r.answer() == Effect::Unexplained)
                     .count() as f64
                     / n,
                 recovered: 0.0,
@@ -542,7 +558,7 @@ pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
                 unit: "",
                 runs: runs.len(),
                 accuracy: runs.iter().filter(|r| r.flagged).count() as f64 / n,
-                recovered: runs.iter().filter(|r| r.named == Effect::None).count() as f64 / n,
+                recovered: runs.iter().filter(|r| r.answer() == Effect::None).count() as f64 / n,
                 median_parameter_error: None,
                 confusions: Vec::new(),
                 mean_seconds: runs.iter().map(|r| r.seconds).sum::<f64>() / n,

@@ -108,6 +108,34 @@ impl Effect {
         }
     }
 
+    /// The size below which the extension's parameter (catalog unit, in magnitude) is no
+    /// finding whatever it predicts, and why: within what the nominal model's own tolerances,
+    /// the registers or the readings' noise already allow, for a record of `hours` whose
+    /// channel has the noise floor `noise_floor`. (A fit that needs the extension's shape at a
+    /// negligible size is fitting something else. The bounds of [`Effect::bounds`] already
+    /// exclude negligible sizes of the others; the motion entries' are
+    /// `motion::MotionParam::negligible`.)
+    pub fn negligible(self, hours: f64, noise_floor: f64) -> Option<(f64, &'static str)> {
+        match self {
+            Effect::NeighborCoupling => Some((
+                0.02,
+                "a neighbour's heat conducted at under 2 % of the motor's own path to the air \
+                 is within the nominal thermal resistance's own uncertainty",
+            )),
+            Effect::AmbientDrift if hours > 0.0 => Some((
+                noise_floor / hours,
+                "a drift that moves the ambient by less than the temperature's noise floor \
+                 over the whole record is the readings' own noise",
+            )),
+            Effect::CurrentOffset => Some((
+                0.01,
+                "an offset under 10 mA is within about one and a half steps of the 6.5 mA \
+                 current register",
+            )),
+            _ => None,
+        }
+    }
+
     /// The range the extension's parameter can take under its physics (catalog unit), and
     /// why. A fit outside it is evidence against the name, not a finding.
     pub fn bounds(self) -> Option<(f64, f64, &'static str)> {

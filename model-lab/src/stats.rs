@@ -177,6 +177,23 @@ pub fn chi2_sf(x: f64, df: f64) -> f64 {
     gamma_q(df / 2.0, x / 2.0).clamp(0.0, 1.0)
 }
 
+/// One-sided upper tail of the standard normal distribution: P(Z > z).
+pub fn normal_sf(z: f64) -> f64 {
+    let tail = 0.5 * chi2_sf(z * z, 1.0);
+    if z >= 0.0 {
+        tail
+    } else {
+        1.0 - tail
+    }
+}
+
+/// Fisher's combination of independent p-values of one null hypothesis: under it,
+/// −2 Σ ln pᵢ is χ² with 2k degrees of freedom; its upper tail is the combined p-value.
+pub fn fisher(p: &[f64]) -> f64 {
+    let x: f64 = p.iter().map(|p| -2.0 * p.max(f64::MIN_POSITIVE).ln()).sum();
+    chi2_sf(x, 2.0 * p.len() as f64)
+}
+
 /// The χ² quantile with upper tail `p` (bisection on [`chi2_sf`]).
 pub fn chi2_isf(p: f64, df: f64) -> f64 {
     let (mut lo, mut hi) = (0.0, 1.0);
@@ -215,6 +232,19 @@ mod tests {
         assert!((chi2_isf(0.01, 2.0) - 9.210).abs() < 1e-3);
         assert!((chi2_isf(0.05, 20.0) - 31.410).abs() < 1e-3);
         assert!((chi2_sf(3.841_458_8, 1.0) - 0.05).abs() < 1e-6);
+    }
+
+    #[test]
+    fn normal_tail_and_fisher_match_tables() {
+        // Φ̄(1.645) = 0.0500, Φ̄(2.326) = 0.0100, Φ̄(0) = 0.5, Φ̄(−1.645) = 0.95.
+        assert!((normal_sf(1.644_854) - 0.05).abs() < 1e-6);
+        assert!((normal_sf(2.326_348) - 0.01).abs() < 1e-6);
+        assert!((normal_sf(0.0) - 0.5).abs() < 1e-12);
+        assert!((normal_sf(-1.644_854) - 0.95).abs() < 1e-6);
+        // Two p-values of 0.05: −2 Σ ln p = 11.983, χ²(4) upper tail 0.0175.
+        assert!((fisher(&[0.05, 0.05]) - 0.017_5).abs() < 1e-4);
+        // One p-value alone is itself (χ²(2) of −2 ln p is p).
+        assert!((fisher(&[0.003]) - 0.003).abs() < 1e-9);
     }
 
     #[test]

@@ -487,6 +487,10 @@ pub fn refit_nominal(data: &ThermalData, ls: &ThermalFit, register: &Register) -
     }
 }
 
+/// Most Levenberg–Marquardt iterations of an extension's refining fit (it stops earlier once
+/// the squared error no longer improves).
+const EXTENSION_MAX_ITERATIONS: usize = 200;
+
 /// Fits an extension, starting from the nominal fit and a few values of the extension's
 /// parameter (a short fit each), then refining the best start.
 /// `register`: the likelihood the nominal fit was refitted on (None: least squares).
@@ -518,7 +522,10 @@ pub fn fit_extension(
         },
         |b| b.p,
     );
-    let f = levenberg_marquardt(&model, &start, 60);
+    // Until it converges: a drift or a lag far from its start can need more than the pair's
+    // 60 iterations (stopped at 60, a pair fitted from there "found" a second effect of
+    // negligible size, the first merely converging beside it).
+    let f = levenberg_marquardt(&model, &start, EXTENSION_MAX_ITERATIONS);
     ThermalFit {
         effect,
         second: None,

@@ -396,6 +396,13 @@ fn one_effect_alone_is_named_alone() {
             "seed {seed}: {found} for {truth}"
         );
     }
+    // The generator's sizes are findings: above what each effect counts as negligible (over
+    // its 2 h, against a noise floor of half a degree).
+    for e in Effect::CATALOG {
+        if let Some((small, _)) = e.negligible(2.0, 0.5) {
+            assert!(model_lab::generate::size_range(e).0 > small, "{e}");
+        }
+    }
 }
 
 /// The generator writes a channel wrong (current in mA, a stuck sensor, a clock that steps
