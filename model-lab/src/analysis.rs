@@ -40,7 +40,16 @@
 //!    [`PRACTICAL_GAIN`] of the held-out RMSE (the misfit is the yardstick there: a 0.25 %
 //!    gain explains nothing, however many samples make it significant);
 //! 5. *physical plausibility*: its parameter lies in the range its physics allows
-//!    ([`Effect::bounds`]); a fit outside it is evidence against the name.
+//!    ([`Effect::bounds`]); a fit outside it is evidence against the name; and its size is
+//!    not negligible ([`Effect::negligible`]): a fit that needs the extension's shape at a size
+//!    within the model's own tolerances or the readings' noise is fitting something else.
+//!
+//! A pair's second (tried beside the best single, against it) passes the same tests; where
+//! the fitting part's test alone falls short (1 or 2), its p-value combined with the held-out
+//! slope's by Fisher's method may stand in for both, provided the held-out readings follow
+//! the second's correction at about its fitted size ([`HELDOUT_SIZE`]): two effects that
+//! scale the same heating are nearly collinear on the fitting part and part where the
+//! windings run hottest.
 //!
 //! Among supported extensions the candidate is the one with the largest ΔBIC. Whether it (or
 //! nothing) is the answer depends on what is left: each channel's held-out misfit — after its
@@ -1478,8 +1487,9 @@ impl FitTest {
     }
 
     /// The fitting part's p-value combined (Fisher) with the held-out slope's one-sided one,
-    /// `slope_t` its t statistic: two independent tests of one null hypothesis, the held-out
-    /// readings never fitted.
+    /// `slope_t` its t statistic: two tests of one null hypothesis, taken as independent (the
+    /// held-out readings are never fitted; a correction that partly undoes the first's own
+    /// fit error makes them not quite so, which the size guards of [`judge`] answer).
     fn with_heldout(self, slope_t: f64) -> FitTest {
         let heldout_p = if slope_t.is_nan() {
             1.0
@@ -1644,12 +1654,7 @@ fn judge(
     {
         format!("too small to be a finding: {value:.4} (below {small:.4} counts as none: {why})")
     } else if p_value >= alpha {
-        let with = if with_heldout {
-            ", the held-out slope's combined"
-        } else {
-            ""
-        };
-        format!("not significant (p = {p_value:.2e} ≥ {alpha:.1e}{with})")
+        format!("not significant (p = {p_value:.2e} ≥ {alpha:.1e})")
     } else if with_heldout && !HELDOUT_SIZE.contains(&heldout_slope) {
         format!(
             "the held-out readings follow {heldout_slope:.2} times its correction: named on \

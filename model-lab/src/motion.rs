@@ -186,6 +186,10 @@ pub struct MotionParam {
     /// A size smaller than this is no finding whatever it predicts: within what the servo's
     /// own tolerances or the encoder already allow (0: not a size, e.g. a speed scale).
     pub negligible: f64,
+    /// The lower bound is what the data resolve, not a physical limit: a fit pinned there is
+    /// still physical (a Stribeck speed at its floor is a breakaway sharper than the encoder
+    /// and the replay's steps show, a step from static to kinetic friction).
+    pub resolution_floor: bool,
 }
 
 const COULOMB: MotionParam = MotionParam {
@@ -196,6 +200,7 @@ const COULOMB: MotionParam = MotionParam {
     start: 0.05,
     second_start: 0.15,
     negligible: 0.0,
+    resolution_floor: false,
 };
 const VISCOUS: MotionParam = MotionParam {
     name: "viscous_friction",
@@ -205,6 +210,7 @@ const VISCOUS: MotionParam = MotionParam {
     start: 0.06,
     second_start: 0.06,
     negligible: 0.0,
+    resolution_floor: false,
 };
 
 /// The extension's own parameters (after Coulomb and viscous).
@@ -219,6 +225,7 @@ pub fn extension_params(effect: Effect) -> &'static [MotionParam] {
             second_start: -0.4,
             // The motor's and the gears' inertia are datasheet figures known to about ±10 %.
             negligible: 0.1,
+            resolution_floor: false,
         }],
         Effect::FirmwareGain => &[MotionParam {
             name: "duty_gain_error",
@@ -232,6 +239,7 @@ pub fn extension_params(effect: Effect) -> &'static [MotionParam] {
             // different firmware. (The replay's 1 ms steps against a servo that runs
             // continuously alone fit as a gain 0.5-1.3 % low on data with nothing hidden.)
             negligible: 0.1,
+            resolution_floor: false,
         }],
         // A hobby servo's gear train: a few milliradians to a few degrees of play.
         Effect::Backlash => &[MotionParam {
@@ -243,6 +251,7 @@ pub fn extension_params(effect: Effect) -> &'static [MotionParam] {
             second_start: 0.03,
             // Two encoder steps: less is within the encoder's resolution.
             negligible: 2.0 * RAD_PER_STEP,
+            resolution_floor: false,
         }],
         Effect::Stribeck => &[
             MotionParam {
@@ -254,15 +263,18 @@ pub fn extension_params(effect: Effect) -> &'static [MotionParam] {
                 start: 0.05,
                 second_start: 0.2,
                 negligible: 0.01,
+                resolution_floor: false,
             },
             MotionParam {
                 name: "stribeck_speed",
                 unit: "rad/s",
+                // One encoder step in 77 ms, 0.08 of a step per replay step.
                 lo: 0.02,
                 hi: 3.0,
                 start: 0.3,
                 second_start: 1.0,
                 negligible: 0.0,
+                resolution_floor: true,
             },
         ],
         Effect::LoadFriction => &[MotionParam {
@@ -273,6 +285,7 @@ pub fn extension_params(effect: Effect) -> &'static [MotionParam] {
             start: 0.05,
             second_start: 0.3,
             negligible: 0.02,
+            resolution_floor: false,
         }],
         Effect::DirectionalFriction => &[
             MotionParam {
@@ -283,6 +296,7 @@ pub fn extension_params(effect: Effect) -> &'static [MotionParam] {
                 start: 0.05,
                 second_start: 0.3,
                 negligible: 0.02,
+                resolution_floor: false,
             },
             MotionParam {
                 name: "back_friction_ratio",
@@ -292,6 +306,7 @@ pub fn extension_params(effect: Effect) -> &'static [MotionParam] {
                 start: 0.05,
                 second_start: 0.3,
                 negligible: 0.02,
+                resolution_floor: false,
             },
         ],
         _ => &[],
@@ -740,11 +755,12 @@ pub fn analyze_motion(
             .collect();
         // A parameter pinned at the edge of what its physics allows is the fit asking for
         // more than the physics gives: not plausible (a ratio of friction at 0, a side without
-        // friction, is physics, not an edge).
+        // friction, is physics, not an edge; nor is a floor of what the data resolve).
         let inside = |x: &[f64]| {
             params.iter().zip(x).skip(2).all(|(p, v)| {
                 let margin = 1e-3 * (p.hi - p.lo);
-                (*v > p.lo + margin || p.lo == 0.0 && *v >= 0.0) && *v < p.hi - margin
+                let floor_ok = p.lo == 0.0 || p.resolution_floor;
+                (*v > p.lo + margin || floor_ok && *v >= p.lo) && *v < p.hi - margin
             })
         };
         let plausible = inside(&x) && held.iter().all(|h| inside(&h.parameters));

@@ -64,10 +64,16 @@ fn a_hidden_stribeck_friction_is_named_and_its_size_recovered() {
 #[test]
 fn a_breakaway_sharper_than_the_data_resolve_is_still_stribeck() {
     let (_, m) = hidden(Effect::Stribeck, 1, 0.25);
-    let c = m.candidates.iter().find(|c| c.id == Effect::Stribeck).unwrap();
+    let c = m
+        .candidates
+        .iter()
+        .find(|c| c.id == Effect::Stribeck)
+        .unwrap();
     let speed_floor = motion::extension_params(Effect::Stribeck)[1].lo;
     assert!(
-        c.runs.iter().any(|r| r.parameters[3] <= speed_floor * 1.001),
+        c.runs
+            .iter()
+            .any(|r| r.parameters[3] <= speed_floor * 1.001),
         "no fold at the speed's floor: {:?}",
         c.runs
     );
