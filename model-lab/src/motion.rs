@@ -268,7 +268,7 @@ pub fn extension_params(effect: Effect) -> &'static [MotionParam] {
             MotionParam {
                 name: "stribeck_speed",
                 unit: "rad/s",
-                // One encoder step in 77 ms, 0.08 of a step per replay step.
+                // One encoder step in 77 ms, a seventieth of a step per replay step.
                 lo: 0.02,
                 hi: 3.0,
                 start: 0.3,
