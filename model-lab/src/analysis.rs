@@ -841,38 +841,31 @@ pub fn analyze(
                     value: decoded.second_extension,
                     unit: unit.into(),
                 });
-                let mut c = judge(
-                    *b,
-                    parameter,
-                    &after_first,
-                    floor.floor,
-                    hours,
-                    fa.sse,
-                    pair.sse,
-                    test,
-                    &base_held,
-                    &pair_held,
-                    pair.iterations,
-                );
+                // The second against the first alone, under the fitting part's test or another.
+                let (pair_sse, pair_iterations) = (pair.sse, pair.iterations);
+                let judge_second = |test: FitTest| {
+                    judge(
+                        *b,
+                        parameter.clone(),
+                        &after_first,
+                        floor.floor,
+                        hours,
+                        fa.sse,
+                        pair_sse,
+                        test,
+                        &base_held,
+                        &pair_held,
+                        pair_iterations,
+                    )
+                };
+                let mut c = judge_second(test);
                 // The second is often nearly collinear with the first on the fitting part (a
                 // current offset and copper's coefficient both scale the heating) and shows
                 // where the winding runs hottest, in the held-out part: where the fitting part
                 // alone falls short, its test and the held-out slope's decide together.
                 if !c.supported && c.plausible && (c.p_value >= alpha || c.delta_bic <= 0.0) {
                     let alone = c.verdict.clone();
-                    let combined = judge(
-                        *b,
-                        c.parameter.clone(),
-                        &after_first,
-                        floor.floor,
-                        hours,
-                        fa.sse,
-                        pair.sse,
-                        test.with_heldout(c.heldout_slope_t),
-                        &base_held,
-                        &pair_held,
-                        pair.iterations,
-                    );
+                    let combined = judge_second(test.with_heldout(c.heldout_slope_t));
                     if combined.supported {
                         c = Candidate {
                             verdict: format!(
