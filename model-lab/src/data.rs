@@ -726,6 +726,19 @@ mod tests {
         assert_eq!(d.temperature_quantum, 1.0);
     }
 
+    /// BAM's logs stamp samples to 10 µs at about 50 Hz: a joint swinging at 2 rad/s moves an
+    /// encoder step in under a millisecond, so the sample times are kept as logged.
+    #[test]
+    fn sample_times_are_kept_to_the_microsecond() {
+        let text = "t_s,motor,position_rad\n0.01370,1,0.0\n0.034312,1,0.1\n0.0343,2,0.2\n";
+        let rows = parse_csv(text, "x").unwrap();
+        let d = Dataset::from_runs(vec![("x".into(), rows)], Meta::default(), "x").unwrap();
+        assert_eq!(d.t.len(), 3, "{:?}", d.t);
+        for (t, logged) in d.t.iter().zip([0.0137, 0.0343, 0.034312]) {
+            assert!((t - logged).abs() < 1e-9, "{t} for {logged}");
+        }
+    }
+
     #[test]
     fn a_bad_cell_names_line_and_column() {
         let err = parse_csv("t_s,motor,current_a\n0,1,abc\n", "f.csv")
