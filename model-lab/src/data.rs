@@ -72,6 +72,8 @@ pub enum DataError {
 
 /// Most distinct motor ids a data set may have (a Feetech bus addresses 253).
 pub const MAX_MOTORS: usize = 256;
+/// Rows whose `t_s` agree to this resolution (per second: a microsecond) are one sample.
+const TIME_KEYS_PER_S: f64 = 1e6;
 
 /// One CSV row (one motor at one time). Missing cells are NaN.
 #[derive(Debug, Clone, Copy)]
@@ -461,14 +463,18 @@ impl Dataset {
             if rows.is_empty() {
                 continue;
             }
-            // Group rows by time (ms key); BTreeMap keeps them sorted.
+            // Group rows by time (µs key: a millisecond would move a sample of a joint at
+            // 2 rad/s by up to a step of the encoder); BTreeMap keeps them sorted.
             let mut by_t: BTreeMap<i64, Vec<&Row>> = BTreeMap::new();
             for r in rows {
-                by_t.entry((r.t * 1000.0).round() as i64)
+                by_t.entry((r.t * TIME_KEYS_PER_S).round() as i64)
                     .or_default()
                     .push(r);
             }
-            let first = by_t.keys().next().map_or(0.0, |&k| k as f64 / 1000.0);
+            let first = by_t
+                .keys()
+                .next()
+                .map_or(0.0, |&k| k as f64 / TIME_KEYS_PER_S);
             let shift = if d.t.is_empty() {
                 0.0
             } else {
@@ -489,7 +495,7 @@ impl Dataset {
                 mechanics: None,
             });
             for (k, group) in by_t {
-                let t = k as f64 / 1000.0 + shift;
+                let t = k as f64 / TIME_KEYS_PER_S + shift;
                 d.t.push(t);
                 let mut cells = vec![[f64::NAN; 7]; nm];
                 for r in group {
