@@ -192,7 +192,8 @@ pub fn run_bench(a: &BenchArgs) -> Result<()> {
 /// The motion channel's replay of a 6 s run (the goal: ≤ 50 ms) next to its baseline in the
 /// same run: the simulator's servo stepped bare for the same 6 s (no log to follow, no load).
 fn motion_timing() {
-    use model_lab::motion::{simulate, MotionParams, MotionRun, SIM_DT_S};
+    use model_lab::motion::{simulate, MotionParams, MotionRun};
+    use sim::servo::FIRMWARE_PERIOD_S;
     let g = model_lab::generate::generate_motion(Effect::None, 7);
     let robot = sim::RobotDescription::nori_a3();
     let (Ok(d), Some(rating)) = (g.dataset(), robot.rating("sts3250")) else {
@@ -211,8 +212,8 @@ fn motion_timing() {
     let t = Instant::now();
     for _ in 0..repeats * runs.len() {
         let mut s = sim::servo::Servo::new(1, rating.model, rating, 0.0, 25.0);
-        for _ in 0..(6.0 / SIM_DT_S) as usize {
-            s.step(SIM_DT_S, 0.0, 0.0, 25.0, 1.0);
+        for _ in 0..(6.0 / FIRMWARE_PERIOD_S) as usize {
+            s.step(FIRMWARE_PERIOD_S, 0.0, 0.0, 25.0, 1.0);
         }
         std::hint::black_box(s.angle);
     }

@@ -459,7 +459,13 @@ impl GeneratedMotion {
 /// 0.1 V steps; the truth is the simulator's servo at a tenth of the lab's step, carrying the
 /// hidden effect and friction of its own.
 pub fn generate_motion(effect: Effect, seed: u64) -> GeneratedMotion {
-    use crate::motion::{decode, MotionParams};
+    generate_motion_sized(effect, seed, None)
+}
+
+/// [`generate_motion`] with the effect's size `given` (the value of the parameter that carries
+/// it, signed; the rest drawn from `seed` as there), for what the size alone decides.
+pub fn generate_motion_sized(effect: Effect, seed: u64, given: Option<f64>) -> GeneratedMotion {
+    use crate::motion::{decode, gravity, MotionParams};
     use sim::servo::{Servo, RAD_PER_STEP};
     let mut rng = Rng::new(seed ^ 0x6D6F_7469_6F6E_0000);
     let robot = sim::RobotDescription::nori_a3();
@@ -484,7 +490,7 @@ pub fn generate_motion(effect: Effect, seed: u64) -> GeneratedMotion {
     };
     let (lo, hi) = motion_size_range(effect);
     let size = rng.range(lo, hi);
-    let parameters = match effect {
+    let mut parameters = match effect {
         Effect::Stribeck => vec![size, rng.range(0.1, 0.6)],
         Effect::LoadFriction | Effect::Backlash => vec![size],
         // Back-driven much worse than driving (a worm-like gear), or the other way.
@@ -500,6 +506,15 @@ pub fn generate_motion(effect: Effect, seed: u64) -> GeneratedMotion {
         Effect::FirmwareGain => vec![if rng.chance(0.5) { size } else { -0.5 * size }],
         _ => Vec::new(),
     };
+    // The parameter that carries the effect: the first, or the directional friction's
+    // stronger side.
+    let carrier = (0..parameters.len())
+        .max_by(|&a, &b| parameters[a].abs().total_cmp(&parameters[b].abs()))
+        .filter(|_| effect == Effect::DirectionalFriction)
+        .unwrap_or(0);
+    if let (Some(given), Some(p)) = (given, parameters.get_mut(carrier)) {
+        *p = given;
+    }
     let coulomb_viscous = (rng.range(0.03, 0.12), rng.range(0.03, 0.15));
     let mut x = vec![coulomb_viscous.0, coulomb_viscous.1];
     x.extend(&parameters);
@@ -555,7 +570,7 @@ pub fn generate_motion(effect: Effect, seed: u64) -> GeneratedMotion {
                 next_sample += 0.02 + 0.003 * rng.normal().clamp(-1.0, 1.0);
             }
             s.supply = 12.6 - 0.45 * s.current.abs();
-            s.step(h, m * 9.81 * l * s.angle.sin(), m * l * l, 25.0, 1.0);
+            s.step(h, gravity(m, l, &s, h), m * l * l, 25.0, 1.0);
             t += h;
         }
         runs.push((format!("{name}.csv"), csv));

@@ -23,19 +23,15 @@ use crate::stats;
 use serde::Serialize;
 use sim::description::ServoRating;
 use sim::extension::ServoExtension;
-use sim::servo::{Servo, RAD_PER_STEP};
+use sim::servo::{Servo, RAD_PER_STEP, TICK_TOLERANCE_S};
 
-/// The simulation's step, s (the simulator's default).
-pub const SIM_DT_S: f64 = 0.001;
 /// Gravity, m/s².
 const G: f64 = 9.81;
 /// An extension must cut the held-out mean absolute error by this fraction to matter ...
 pub const MOTION_PRACTICAL_GAIN: f64 = 0.05;
 /// ... and by at least half the mean absolute error that rounding to the encoder's step alone
 /// makes (an eighth of a step), rad: systematic over a run's hundreds of samples, where an
-/// effect that shows only at moments (play where the load reverses) errs by steps there. The
-/// replay's own error on runs with nothing hidden (its 1 ms steps against a servo that runs
-/// continuously) stays below it but for a firmware gain a percent low, which its size rules out.
+/// effect that shows only at moments (play where the load reverses) errs by steps there.
 pub const MOTION_MIN_MAE_CUT: f64 = RAD_PER_STEP / 8.0;
 /// Nelder–Mead evaluations per fit, per parameter and one.
 const FIT_EVALUATIONS_PER_VERTEX: usize = 100;
@@ -113,7 +109,8 @@ pub struct MotionParams {
 }
 
 /// Replays `run` through the simulator's servo of `rating` with `p`: the simulated position at
-/// each sample time. Goal, torque and supply are held from one sample to the next.
+/// each sample time. Goal, torque and supply are held from one sample to the next; the servo
+/// is stepped from one firmware tick to the next (each step holds one duty).
 pub fn simulate(rating: &ServoRating, p: &MotionParams, run: &MotionRun) -> Vec<f64> {
     let start = run
         .position
@@ -141,15 +138,21 @@ pub fn simulate(rating: &ServoRating, p: &MotionParams, run: &MotionRun) -> Vec<
             torque = Some(run.torque[k]);
         }
         s.supply = run.voltage[k];
-        let dt = (run.t[k + 1] - run.t[k]).max(0.0);
-        let steps = (dt / SIM_DT_S).ceil().max(1.0);
-        let h = dt / steps;
-        for _ in 0..steps as usize {
-            // Gravity pulls the mass back toward hanging (angle 0).
-            s.step(h, m * G * l * s.angle.sin(), inertia, 25.0, 1.0);
+        let mut left = (run.t[k + 1] - run.t[k]).max(0.0);
+        while left > TICK_TOLERANCE_S {
+            let h = left.min(s.until_tick());
+            s.step(h, gravity(m, l, &s, h), inertia, 25.0, 1.0);
+            left -= h;
         }
     }
     out
+}
+
+/// The torque gravity puts on a mass `m` at `l` on the servo's output (toward hanging, angle
+/// 0) over a step of `h`: taken at the step's middle, as the servo holds it over the step (at
+/// the step's start it would pump energy into a free swing, a step's error per swing).
+pub fn gravity(m: f64, l: f64, s: &Servo, h: f64) -> f64 {
+    m * G * l * (s.angle + 0.5 * h * s.speed).sin()
 }
 
 /// Mean absolute and root-mean-square error of `sim` against the run's measured positions.
@@ -236,8 +239,7 @@ pub fn extension_params(effect: Effect) -> &'static [MotionParam] {
             second_start: -0.25,
             // The duty's effect scales with the motor constant (about ±10 % from one motor to
             // the next) and with the supply, logged in 0.1 V steps: a gain off by less is no
-            // different firmware. (The replay's 1 ms steps against a servo that runs
-            // continuously alone fit as a gain 0.5-1.3 % low on data with nothing hidden.)
+            // different firmware.
             negligible: 0.1,
             resolution_floor: false,
         }],

@@ -21,6 +21,13 @@ pub const MAX_DUTY: f64 = 0.97;
 pub const DUTY_PER_KP_RAD: f64 = 0.166;
 /// Below this speed (rad/s) a joint whose drive torque cannot beat static friction sticks.
 const STICK_SPEED: f64 = 1e-3;
+/// The firmware's control period, s: it reads the encoder and sets the duty once per period
+/// and the PWM holds that duty until the next (1 kHz, the simulator's default step; Feetech
+/// does not publish its loop rate). Whatever step the caller integrates with, the duty changes
+/// on the same ticks: a replay at 1 ms and a reference at 0.1 ms run the same firmware.
+pub const FIRMWARE_PERIOD_S: f64 = 0.001;
+/// Time closer to a firmware tick than this, s, is on it (sums of small steps round).
+pub const TICK_TOLERANCE_S: f64 = 1e-9;
 /// Integral gain of the speed mode's loop, per second, times the back-EMF constant: the
 /// firmware's "constant speed" mode holds the goal speed under a steady load (the speed
 /// error's integral settles in about 1/20 s), within what the torque allows.
@@ -177,6 +184,8 @@ pub struct Servo {
     motor_lead: f64,
     /// ... and the motor side's speed, rad/s (the output's, `speed`, without backlash).
     motor_speed: f64,
+    /// Time since the firmware's last tick, s (0: a tick is due).
+    since_tick: f64,
     /// Protection state.
     pub protections: Protections,
     /// Counters for tests and reports.
@@ -214,6 +223,7 @@ impl Servo {
             speed_integral: 0.0,
             motor_lead: 0.0,
             motor_speed: 0.0,
+            since_tick: 0.0,
             protections: Protections::default(),
             log: ServoLog::default(),
             answering: true,
@@ -544,7 +554,8 @@ impl Servo {
     /// Advances the servo by `dt` seconds given the load on its output: `load_torque` (N·m, e.g.
     /// gravity and contacts, opposing positive motion when positive), `load_inertia` (kg·m²,
     /// added to the armature) and the ambient temperature. `thermal_speedup` integrates the
-    /// thermal node that many times faster (for accelerated heating scenarios).
+    /// thermal node that many times faster (for accelerated heating scenarios). The firmware
+    /// runs on its own ticks ([`FIRMWARE_PERIOD_S`]) within `dt`; the load is held over `dt`.
     pub fn step(
         &mut self,
         dt: f64,
@@ -553,8 +564,34 @@ impl Servo {
         ambient: f64,
         thermal_speedup: f64,
     ) {
+        let mut left = dt;
+        while left > TICK_TOLERANCE_S {
+            if self.since_tick == 0.0 {
+                self.duty = self.firmware_duty(FIRMWARE_PERIOD_S);
+            }
+            let h = left.min(self.until_tick());
+            self.step_plant(h, load_torque, load_inertia);
+            self.step_thermal(h * thermal_speedup, ambient);
+            self.step_protections(h);
+            left -= h;
+            self.since_tick += h;
+            if self.until_tick() <= TICK_TOLERANCE_S {
+                self.since_tick = 0.0;
+            }
+        }
+    }
+
+    /// Time until the firmware's next tick, s: a caller whose load changes with the motion
+    /// steps to it so that each of its steps holds one duty.
+    pub fn until_tick(&self) -> f64 {
+        FIRMWARE_PERIOD_S - self.since_tick
+    }
+
+    /// The motor, gearbox and load over `dt` at the held duty: the speed and angle integrated
+    /// exactly for the linear part (the motor's back-EMF damping kt·ke/R is fast beside a light
+    /// load, and an explicit step would bias it by half a step), friction as in [`coast`].
+    fn step_plant(&mut self, dt: f64, load_torque: f64, load_inertia: f64) {
         let p = self.plant;
-        self.duty = self.firmware_duty(dt);
         let ext = self.extension;
         let play = ext.backlash_rad > 0.0;
         if !play {
@@ -566,6 +603,15 @@ impl Servo {
             (self.duty * self.supply - p.ke * self.motor_speed) / p.resistance
         } else {
             0.0
+        };
+        // The motor's torque is `forcing − electrical·speed`.
+        let (forcing, electrical) = if driving {
+            (
+                p.kt * self.duty * self.supply / p.resistance,
+                p.kt * p.ke / p.resistance,
+            )
+        } else {
+            (0.0, 0.0)
         };
         let motor_torque = p.kt * self.current;
         let armature = p.armature * (1.0 + ext.armature_error);
@@ -584,43 +630,44 @@ impl Servo {
             0.0
         };
         let coulomb = p.coulomb + stribeck + ratio * motor_torque.abs();
-        if !play {
-            let drive = motor_torque - load_torque - p.viscous * self.speed;
-            self.speed = friction_step(self.speed, drive, coulomb, armature + load_inertia, dt);
-            self.motor_speed = self.speed;
+        let motor = Drive {
+            forcing,
+            damping: electrical + p.viscous,
+            coulomb,
+        };
+        let moved = if !play {
+            let joint = Drive {
+                forcing: forcing - load_torque,
+                ..motor
+            };
+            let (speed, moved) = coast(self.speed, joint, armature + load_inertia, dt);
+            self.speed = speed;
+            self.motor_speed = speed;
+            moved
         } else {
-            self.step_play(
-                motor_torque,
-                load_torque,
-                load_inertia,
-                armature,
-                coulomb,
-                dt,
-            );
-        }
-        self.angle += dt * self.speed;
-        self.step_thermal(dt * thermal_speedup, ambient);
-        self.step_protections(dt);
+            self.step_play(motor, load_torque, load_inertia, armature, dt)
+        };
+        self.angle += moved;
     }
 
     /// The gearbox with play: the motor side (armature, friction, the motor's torque) and the
     /// output (the load) move together while in contact at either end of the play, and apart
-    /// inside it; reaching an end, they collide without bouncing (momentum kept).
+    /// inside it; reaching an end, they collide without bouncing (momentum kept). The output's
+    /// move, rad.
     fn step_play(
         &mut self,
-        motor_torque: f64,
+        motor: Drive,
         load_torque: f64,
         load_inertia: f64,
         armature: f64,
-        coulomb: f64,
         dt: f64,
-    ) {
-        let viscous = self.plant.viscous;
+    ) -> f64 {
         let half = 0.5 * self.extension.backlash_rad;
         // An output with nothing on it still has its last gear's inertia.
         let output_inertia = load_inertia.max(0.05 * armature);
         let (wm, wo) = (self.motor_speed, self.speed);
-        let motor_free = motor_torque - viscous * wm;
+        let motor_free = motor.forcing - motor.damping * wm;
+        let coulomb = motor.coulomb;
         let motor_accel = if wm.abs() < STICK_SPEED && motor_free.abs() <= coulomb {
             0.0
         } else {
@@ -637,16 +684,21 @@ impl Servo {
         let pushing = (self.motor_lead >= half - 1e-12 && wm >= wo && motor_accel >= output_accel)
             || (self.motor_lead <= -half + 1e-12 && wm <= wo && motor_accel <= output_accel);
         if pushing {
-            let drive = motor_torque - load_torque - viscous * wo;
-            let v = friction_step(wo, drive, coulomb, armature + output_inertia, dt);
+            let joint = Drive {
+                forcing: motor.forcing - load_torque,
+                ..motor
+            };
+            let (v, moved) = coast(wo, joint, armature + output_inertia, dt);
             self.speed = v;
             self.motor_speed = v;
             self.motor_lead = self.motor_lead.clamp(-half, half);
-            return;
+            return moved;
         }
-        self.motor_speed = friction_step(wm, motor_free, coulomb, armature, dt);
+        let (motor_speed, motor_moved) = coast(wm, motor, armature, dt);
+        let moved = dt * (wo + 0.5 * dt * output_accel);
+        self.motor_speed = motor_speed;
         self.speed = wo + dt * output_accel;
-        self.motor_lead += dt * (self.motor_speed - self.speed);
+        self.motor_lead += motor_moved - moved;
         if self.motor_lead.abs() > half {
             self.motor_lead = self.motor_lead.clamp(-half, half);
             let v = (armature * self.motor_speed + output_inertia * self.speed)
@@ -654,6 +706,7 @@ impl Servo {
             self.motor_speed = v;
             self.speed = v;
         }
+        moved
     }
 
     fn step_thermal(&mut self, dt: f64, ambient: f64) {
@@ -738,25 +791,74 @@ impl Servo {
     }
 }
 
-/// One step of a speed under a drive torque, Coulomb friction `coulomb` (with the stick band:
-/// at rest, a drive it beats holds the joint) and `inertia`: friction stops a joint, it never
-/// reverses it.
-fn friction_step(speed: f64, drive: f64, coulomb: f64, inertia: f64, dt: f64) -> f64 {
-    if speed.abs() < STICK_SPEED && drive.abs() <= coulomb {
-        return 0.0;
+/// The torque on a moving part: `forcing − damping·speed`, against Coulomb friction `coulomb`.
+#[derive(Debug, Clone, Copy)]
+struct Drive {
+    forcing: f64,
+    damping: f64,
+    coulomb: f64,
+}
+
+/// A part of `inertia` at `speed` under `drive` for `dt`: its speed after, and how far it
+/// moved. Between stops the motion is linear (`J·ω' = forcing − damping·ω ∓ coulomb`) and is
+/// integrated exactly; at rest, a drive static friction beats holds it (the stick band), and
+/// friction stops a part, it never reverses it: one that comes to rest within `dt` stays
+/// there unless the drive beats the friction, then starts the other way.
+fn coast(speed: f64, drive: Drive, inertia: f64, dt: f64) -> (f64, f64) {
+    let Drive {
+        forcing,
+        damping,
+        coulomb,
+    } = drive;
+    let net = forcing - damping * speed;
+    if speed.abs() < STICK_SPEED && net.abs() <= coulomb {
+        return (0.0, 0.0);
     }
-    let friction = coulomb
-        * if speed.abs() >= STICK_SPEED {
-            speed.signum()
-        } else {
-            drive.signum()
-        };
-    let new_speed = speed + dt * (drive - friction) / inertia;
-    if speed != 0.0 && new_speed.signum() != speed.signum() && drive.abs() <= coulomb {
-        0.0
+    let sign = if speed.abs() >= STICK_SPEED {
+        speed.signum()
     } else {
-        new_speed
+        net.signum()
+    };
+    let push = forcing - sign * coulomb;
+    let rate = damping / inertia;
+    // Speed and distance after `t` under this friction's sign.
+    let at = |t: f64| -> (f64, f64) {
+        if rate * dt < 1e-9 {
+            let a = (push - damping * speed) / inertia;
+            (speed + a * t, t * (speed + 0.5 * a * t))
+        } else {
+            let terminal = push / damping;
+            // 1 − e^(−rate·t), accurate when rate·t is small.
+            let decayed = -(-rate * t).exp_m1();
+            (
+                speed + (terminal - speed) * decayed,
+                terminal * t + (speed - terminal) * decayed / rate,
+            )
+        }
+    };
+    let (end, moved) = at(dt);
+    if end * sign >= 0.0 {
+        return (end, moved);
     }
+    // It stops within the step: when (solved on the same law), how far, and what then.
+    let stop = if rate * dt < 1e-9 {
+        -speed * inertia / (push - damping * speed)
+    } else {
+        let terminal = push / damping;
+        ((speed - terminal) / -terminal).ln() / rate
+    };
+    // (Not finite only for a part inside the stick band not yet turned: it rests.)
+    let stop = if stop.is_finite() {
+        stop.clamp(0.0, dt)
+    } else {
+        dt
+    };
+    let (_, to_stop) = at(stop);
+    if forcing.abs() <= coulomb || stop >= dt {
+        return (0.0, to_stop);
+    }
+    let (after, moved_after) = coast(0.0, drive, inertia, dt - stop);
+    (after, to_stop + moved_after)
 }
 
 #[cfg(test)]
@@ -893,6 +995,32 @@ mod tests {
                 worst / RAD_PER_STEP
             );
         }
+    }
+
+    /// Friction stops a part where the exact law says (`ω = −c/b + (ω₀ + c/b)·e^(−b·t/J)`
+    /// reaches 0 at `t = J/b·ln(1 + b·ω₀/c)`), and holds it there unless the drive beats it,
+    /// then starts it the other way, whatever the step.
+    #[test]
+    fn friction_stops_a_part_where_the_exact_law_says() {
+        let drive = |forcing| Drive {
+            forcing,
+            damping: 1.0,
+            coulomb: 0.5,
+        };
+        let (j, w0) = (0.1, 2.0);
+        let stop = j * (1.0_f64 + w0 / 0.5).ln();
+        let travelled = -0.5 * stop + (w0 + 0.5) * (1.0 - (-stop / j).exp()) * j;
+        let (w, moved) = coast(w0, drive(0.0), j, 1.0);
+        assert_eq!(w, 0.0);
+        assert!((moved - travelled).abs() < 1e-12, "{moved} for {travelled}");
+        // Before the stop, the law itself.
+        let (w, _) = coast(w0, drive(0.0), j, 0.1);
+        assert!((w - (-0.5 + 2.5 * (-1.0_f64).exp())).abs() < 1e-12, "{w}");
+        // A drive of 0.8 N·m against 0.5 of friction turns it: moving back at the step's end.
+        let (w, moved) = coast(w0, drive(-0.8), j, 1.0);
+        assert!(w < -0.2 && moved < travelled, "{w} rad/s, {moved} rad");
+        // At rest, a drive friction beats holds it.
+        assert_eq!(coast(0.0, drive(0.4), j, 1.0), (0.0, 0.0));
     }
 
     #[test]
