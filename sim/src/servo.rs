@@ -186,6 +186,8 @@ pub struct Servo {
     motor_speed: f64,
     /// Time since the firmware's last tick, s (0: a tick is due).
     since_tick: f64,
+    /// The last exponential decay the plant computed (most steps repeat it).
+    decay: Decay,
     /// Protection state.
     pub protections: Protections,
     /// Counters for tests and reports.
@@ -224,6 +226,7 @@ impl Servo {
             motor_lead: 0.0,
             motor_speed: 0.0,
             since_tick: 0.0,
+            decay: Decay::default(),
             protections: Protections::default(),
             log: ServoLog::default(),
             answering: true,
@@ -640,7 +643,8 @@ impl Servo {
                 forcing: forcing - load_torque,
                 ..motor
             };
-            let (speed, moved) = coast(self.speed, joint, armature + load_inertia, dt);
+            let inertia = armature + load_inertia;
+            let (speed, moved) = coast(self.speed, joint, inertia, dt, &mut self.decay);
             self.speed = speed;
             self.motor_speed = speed;
             moved
@@ -688,13 +692,14 @@ impl Servo {
                 forcing: motor.forcing - load_torque,
                 ..motor
             };
-            let (v, moved) = coast(wo, joint, armature + output_inertia, dt);
+            let inertia = armature + output_inertia;
+            let (v, moved) = coast(wo, joint, inertia, dt, &mut self.decay);
             self.speed = v;
             self.motor_speed = v;
             self.motor_lead = self.motor_lead.clamp(-half, half);
             return moved;
         }
-        let (motor_speed, motor_moved) = coast(wm, motor, armature, dt);
+        let (motor_speed, motor_moved) = coast(wm, motor, armature, dt, &mut self.decay);
         let moved = dt * (wo + 0.5 * dt * output_accel);
         self.motor_speed = motor_speed;
         self.speed = wo + dt * output_accel;
@@ -799,12 +804,33 @@ struct Drive {
     coulomb: f64,
 }
 
+/// `1 − e^(−x)`, remembered for the last `x`: a replay's steps are a firmware period long and
+/// its damping and inertia rarely change, so most steps ask for the same decay again.
+#[derive(Debug, Clone, Copy, Default)]
+struct Decay {
+    x: f64,
+    decayed: f64,
+}
+
+impl Decay {
+    fn of(&mut self, x: f64) -> f64 {
+        if x != self.x {
+            // Accurate when x is small (exp_m1).
+            *self = Decay {
+                x,
+                decayed: -(-x).exp_m1(),
+            };
+        }
+        self.decayed
+    }
+}
+
 /// A part of `inertia` at `speed` under `drive` for `dt`: its speed after, and how far it
 /// moved. Between stops the motion is linear (`J·ω' = forcing − damping·ω ∓ coulomb`) and is
 /// integrated exactly; at rest, a drive static friction beats holds it (the stick band), and
 /// friction stops a part, it never reverses it: one that comes to rest within `dt` stays
 /// there unless the drive beats the friction, then starts the other way.
-fn coast(speed: f64, drive: Drive, inertia: f64, dt: f64) -> (f64, f64) {
+fn coast(speed: f64, drive: Drive, inertia: f64, dt: f64, decay: &mut Decay) -> (f64, f64) {
     let Drive {
         forcing,
         damping,
@@ -822,14 +848,13 @@ fn coast(speed: f64, drive: Drive, inertia: f64, dt: f64) -> (f64, f64) {
     let push = forcing - sign * coulomb;
     let rate = damping / inertia;
     // Speed and distance after `t` under this friction's sign.
-    let at = |t: f64| -> (f64, f64) {
+    let mut at = |t: f64| -> (f64, f64) {
         if rate * dt < 1e-9 {
             let a = (push - damping * speed) / inertia;
             (speed + a * t, t * (speed + 0.5 * a * t))
         } else {
             let terminal = push / damping;
-            // 1 − e^(−rate·t), accurate when rate·t is small.
-            let decayed = -(-rate * t).exp_m1();
+            let decayed = decay.of(rate * t);
             (
                 speed + (terminal - speed) * decayed,
                 terminal * t + (speed - terminal) * decayed / rate,
@@ -857,7 +882,7 @@ fn coast(speed: f64, drive: Drive, inertia: f64, dt: f64) -> (f64, f64) {
     if forcing.abs() <= coulomb || stop >= dt {
         return (0.0, to_stop);
     }
-    let (after, moved_after) = coast(0.0, drive, inertia, dt - stop);
+    let (after, moved_after) = coast(0.0, drive, inertia, dt - stop, decay);
     (after, to_stop + moved_after)
 }
 
@@ -1010,17 +1035,20 @@ mod tests {
         let (j, w0) = (0.1, 2.0);
         let stop = j * (1.0_f64 + w0 / 0.5).ln();
         let travelled = -0.5 * stop + (w0 + 0.5) * (1.0 - (-stop / j).exp()) * j;
-        let (w, moved) = coast(w0, drive(0.0), j, 1.0);
+        let (w, moved) = coast(w0, drive(0.0), j, 1.0, &mut Decay::default());
         assert_eq!(w, 0.0);
         assert!((moved - travelled).abs() < 1e-12, "{moved} for {travelled}");
         // Before the stop, the law itself.
-        let (w, _) = coast(w0, drive(0.0), j, 0.1);
+        let (w, _) = coast(w0, drive(0.0), j, 0.1, &mut Decay::default());
         assert!((w - (-0.5 + 2.5 * (-1.0_f64).exp())).abs() < 1e-12, "{w}");
         // A drive of 0.8 N·m against 0.5 of friction turns it: moving back at the step's end.
-        let (w, moved) = coast(w0, drive(-0.8), j, 1.0);
+        let (w, moved) = coast(w0, drive(-0.8), j, 1.0, &mut Decay::default());
         assert!(w < -0.2 && moved < travelled, "{w} rad/s, {moved} rad");
         // At rest, a drive friction beats holds it.
-        assert_eq!(coast(0.0, drive(0.4), j, 1.0), (0.0, 0.0));
+        assert_eq!(
+            coast(0.0, drive(0.4), j, 1.0, &mut Decay::default()),
+            (0.0, 0.0)
+        );
     }
 
     #[test]
