@@ -847,13 +847,16 @@ fn coast(speed: f64, drive: Drive, inertia: f64, dt: f64, decay: &mut Decay) -> 
     };
     let push = forcing - sign * coulomb;
     let rate = damping / inertia;
+    // Without damping worth the name over the step, the law is a constant acceleration.
+    let undamped = rate * dt < 1e-9;
+    // The speed the part tends to under this friction's sign (when damped).
+    let terminal = push / damping;
     // Speed and distance after `t` under this friction's sign.
     let mut at = |t: f64| -> (f64, f64) {
-        if rate * dt < 1e-9 {
+        if undamped {
             let a = (push - damping * speed) / inertia;
             (speed + a * t, t * (speed + 0.5 * a * t))
         } else {
-            let terminal = push / damping;
             let decayed = decay.of(rate * t);
             (
                 speed + (terminal - speed) * decayed,
@@ -866,10 +869,9 @@ fn coast(speed: f64, drive: Drive, inertia: f64, dt: f64, decay: &mut Decay) -> 
         return (end, moved);
     }
     // It stops within the step: when (solved on the same law), how far, and what then.
-    let stop = if rate * dt < 1e-9 {
+    let stop = if undamped {
         -speed * inertia / (push - damping * speed)
     } else {
-        let terminal = push / damping;
         ((speed - terminal) / -terminal).ln() / rate
     };
     // (Not finite only for a part inside the stick band not yet turned: it rests.)
