@@ -166,11 +166,7 @@ fn motion_score(
                     .and_then(|d| analyze(d, &opts, &mut |_| {}).ok())
                     .and_then(|o| o.analysis.motion);
                 let named = m.as_ref().map_or(Effect::None, |m| m.cause);
-                // The parameter that carries the effect: the largest (the directional
-                // friction's strong side).
-                let i = (0..g.parameters.len())
-                    .max_by(|&a, &b| g.parameters[a].abs().total_cmp(&g.parameters[b].abs()))
-                    .unwrap_or(0);
+                let i = g.carrier();
                 let recovered = m.as_ref().and_then(|m| {
                     (named == effect)
                         .then(|| m.candidates.iter().find(|c| c.id == effect))

@@ -451,6 +451,17 @@ impl GeneratedMotion {
         }
         Ok(d)
     }
+
+    /// The index of the parameter that carries the effect: the largest.
+    pub fn carrier(&self) -> usize {
+        (0..self.parameters.len())
+            .max_by(|&a, &b| {
+                self.parameters[a]
+                    .abs()
+                    .total_cmp(&self.parameters[b].abs())
+            })
+            .unwrap_or(0)
+    }
 }
 
 /// Four 6 s runs of one STS3250 swinging a mass on an arm, as on BAM's bench (a double sine,
