@@ -420,6 +420,15 @@ pub fn motion_size_range(effect: Effect) -> (f64, f64) {
     }
 }
 
+/// The parameter that carries a hidden motion effect: the first (a Stribeck friction's excess
+/// at rest, not its width), or the directional friction's stronger side.
+fn carrier(effect: Effect, parameters: &[f64]) -> usize {
+    (0..parameters.len())
+        .max_by(|&a, &b| parameters[a].abs().total_cmp(&parameters[b].abs()))
+        .filter(|_| effect == Effect::DirectionalFriction)
+        .unwrap_or(0)
+}
+
 /// A run's goal (rad) and torque enable at a time (s).
 type Trajectory = fn(f64) -> (f64, bool);
 
@@ -452,15 +461,9 @@ impl GeneratedMotion {
         Ok(d)
     }
 
-    /// The index of the parameter that carries the effect: the largest.
+    /// The index of the parameter that carries the effect (its size).
     pub fn carrier(&self) -> usize {
-        (0..self.parameters.len())
-            .max_by(|&a, &b| {
-                self.parameters[a]
-                    .abs()
-                    .total_cmp(&self.parameters[b].abs())
-            })
-            .unwrap_or(0)
+        carrier(self.effect, &self.parameters)
     }
 }
 
@@ -517,13 +520,8 @@ pub fn generate_motion_sized(effect: Effect, seed: u64, given: Option<f64>) -> G
         Effect::FirmwareGain => vec![if rng.chance(0.5) { size } else { -0.5 * size }],
         _ => Vec::new(),
     };
-    // The parameter that carries the effect: the first, or the directional friction's
-    // stronger side.
-    let carrier = (0..parameters.len())
-        .max_by(|&a, &b| parameters[a].abs().total_cmp(&parameters[b].abs()))
-        .filter(|_| effect == Effect::DirectionalFriction)
-        .unwrap_or(0);
-    if let (Some(given), Some(p)) = (given, parameters.get_mut(carrier)) {
+    let at = carrier(effect, &parameters);
+    if let (Some(given), Some(p)) = (given, parameters.get_mut(at)) {
         *p = given;
     }
     let coulomb_viscous = (rng.range(0.03, 0.12), rng.range(0.03, 0.15));
