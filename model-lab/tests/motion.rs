@@ -130,6 +130,22 @@ fn a_torque_proportional_friction_is_told_from_a_directional_one() {
     hidden(Effect::DirectionalFriction, 0, 0.25);
 }
 
+/// Seed 5: a friction of 0.108 of the carried torque on both sides, which the directional fit
+/// takes as 0.120 driving and 0.100 back-driven (the logged supply, sampled every 20 ms, misses
+/// the sag while the motor drives, and a little more friction there stands in for it): the
+/// held-out error falls by a tenth of a step more than the load-proportional fit's, but sides
+/// a sixth apart are one friction, not a directional one.
+#[test]
+fn a_load_friction_fitted_a_little_lopsided_is_not_directional() {
+    let (_, m) = hidden(Effect::LoadFriction, 5, 0.25);
+    let d = m
+        .candidates
+        .iter()
+        .find(|c| c.id == Effect::DirectionalFriction)
+        .unwrap();
+    assert!(!d.supported, "{}", d.verdict);
+}
+
 #[test]
 fn play_in_the_gearbox_is_named_and_its_size_recovered() {
     hidden(Effect::Backlash, 0, 0.25);
