@@ -12,9 +12,10 @@
 //!
 //! An extension is named when, on the held-out runs, it cuts the nominal model's mean absolute
 //! error by at least [`MOTION_PRACTICAL_GAIN`] and by [`MOTION_MIN_MAE_CUT`], on a majority
-//! of the runs, with its parameters inside the ranges their physics allows; among several, the
-//! largest gain. Whatever is named, a misfit left beyond the channel's noise floor (the
-//! encoder's step and the positions' own noise, as for the other channels) is `unexplained`.
+//! of the runs, with its parameters inside the ranges their physics allows (and a directional
+//! friction's sides [`DIRECTIONAL_MIN_ASYMMETRY`] apart); among several, the largest gain.
+//! Whatever is named, a misfit left beyond the channel's noise floor (the encoder's step and
+//! the positions' own noise, as for the other channels) is `unexplained`.
 
 use crate::analysis::NoiseFloor;
 use crate::catalog::Effect;
@@ -36,6 +37,14 @@ pub const MOTION_PRACTICAL_GAIN: f64 = 0.05;
 /// cannot know (logged at the samples, in 0.1 V steps), and the catalog's extensions cut at
 /// most about a thirtieth of a step, each at a size that is no finding.
 pub const MOTION_MIN_MAE_CUT: f64 = RAD_PER_STEP / 16.0;
+/// A directional friction's two sides differ by at least this fraction of the larger; closer,
+/// they are one load-proportional friction. A spur gear train's back-driven losses exceed its
+/// driving ones by a few percent (per mesh of efficiency η, back-driven 2 − 1/η: four meshes at
+/// 0.95 carry 0.186 and 0.194 of the torque), and the supply, logged at the samples, misses its
+/// sag while the motor drives, which a little more friction there imitates (sides up to a sixth
+/// apart on generated runs hiding one friction, a twentieth with a steady supply); a worm-like
+/// or self-locking train differs by far more.
+pub const DIRECTIONAL_MIN_ASYMMETRY: f64 = 1.0 / 3.0;
 /// Nelder–Mead evaluations per fit, per parameter and one.
 const FIT_EVALUATIONS_PER_VERTEX: usize = 100;
 
@@ -801,6 +810,11 @@ pub fn analyze_motion(
             .filter(|(p, _)| p.negligible > 0.0)
             .map(|(p, v)| (p, v.value))
             .max_by(|a, b| (a.1.abs() / a.0.negligible).total_cmp(&(b.1.abs() / b.0.negligible)));
+        // A directional friction's two sides (driving, back-driven).
+        let sides = (c.id == Effect::DirectionalFriction)
+            .then(|| c.parameters.get(2..4))
+            .flatten()
+            .map(|p| (p[0].value, p[1].value));
         c.verdict = if !c.plausible {
             "a parameter at the edge of (or beyond) what its physics allows".into()
         } else if let Some((p, v)) = size.filter(|(p, v)| v.abs() < p.negligible) {
@@ -809,6 +823,15 @@ pub fn analyze_motion(
                 p.name,
                 p.negligible,
                 unit = p.unit
+            )
+        } else if let Some((drive, back)) =
+            sides.filter(|(d, b)| (d - b).abs() < DIRECTIONAL_MIN_ASYMMETRY * d.max(*b))
+        {
+            format!(
+                "one friction, not a directional one: driving {drive:.3} and back-driven \
+                 {back:.3} differ by {:.0} % of the larger ({:.0} % would be directional)",
+                100.0 * (drive - back).abs() / drive.max(back),
+                100.0 * DIRECTIONAL_MIN_ASYMMETRY
             )
         } else if !(c.gain >= MOTION_PRACTICAL_GAIN && step_gain >= MOTION_MIN_MAE_CUT) {
             format!(
