@@ -75,28 +75,6 @@ fn a_broad_stribeck_peak_the_nominal_took_for_coulomb_friction_is_measured() {
     hidden(Effect::Stribeck, 25, 0.25);
 }
 
-/// Seed 1: held out on its `sin_sin` run, the Stribeck fit ends at a breakaway of 0.39 N·m
-/// sharper than the data resolve (its speed at the 0.02 rad/s floor); that floor is the
-/// encoder's and the replay's, not physics, so the fit is still a Stribeck friction and named
-/// (it was refused as "at the edge of what its physics allows", and the cause left `none`).
-#[test]
-fn a_breakaway_sharper_than_the_data_resolve_is_still_stribeck() {
-    let (_, m) = hidden(Effect::Stribeck, 1, 0.25);
-    let c = m
-        .candidates
-        .iter()
-        .find(|c| c.id == Effect::Stribeck)
-        .unwrap();
-    let speed_floor = motion::extension_params(Effect::Stribeck)[1].lo;
-    assert!(
-        c.runs
-            .iter()
-            .any(|r| r.parameters[3] <= speed_floor * 1.001),
-        "no fold at the speed's floor: {:?}",
-        c.runs
-    );
-}
-
 #[test]
 fn a_hidden_inertia_error_is_named_and_its_size_recovered() {
     hidden(Effect::ArmatureError, 0, 0.25);
