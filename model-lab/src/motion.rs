@@ -504,8 +504,8 @@ fn fit_models(
             );
         }
         // A Stribeck peak hidden, the nominal model takes its breakaway as Coulomb friction
-        // and drops the viscous (a broad peak fades over the speeds the joint moves at, as
-        // viscous friction would rise): from there the peak's fits end at a fraction of its
+        // and drops the viscous (a broad peak fading over the speeds the joint moves at is
+        // friction falling with speed): from there the peak's fits end at a fraction of its
         // size. Again with that friction moved into the peak: a quarter left as Coulomb, the
         // viscous and the peak's width from their own starts.
         if let (Effect::Stribeck, Some(n)) = (effect, fitted(Effect::None)) {
