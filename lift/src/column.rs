@@ -303,6 +303,11 @@ mod tests {
         t: f64,
         counts_at_start: f64,
         obstacle_m: Option<f64>,
+        /// Seconds pressed on the obstacle so far.
+        pressed_s: f64,
+        /// The halls report this count whatever the column does (a lost hall signal, a board
+        /// repeating one STATUS).
+        frozen_counts: Option<i64>,
     }
 
     impl Column {
@@ -313,6 +318,8 @@ mod tests {
                 t: 0.0,
                 counts_at_start: h,
                 obstacle_m: None,
+                pressed_s: 0.0,
+                frozen_counts: None,
             }
         }
 
@@ -330,9 +337,13 @@ mod tests {
                 _ => self.h = next,
             }
             self.t += dt;
+            if blocked {
+                self.pressed_s += dt;
+            }
+            let counts = ((self.h - self.counts_at_start) * c.counts_per_m).round() as i64;
             LiftReading {
                 t_s: self.t,
-                counts: ((self.h - self.counts_at_start) * c.counts_per_m).round() as i64,
+                counts: self.frozen_counts.unwrap_or(counts),
                 current_a: if blocked {
                     8.0
                 } else if command != 0.0 {
@@ -342,6 +353,7 @@ mod tests {
                 },
                 at_lower: self.h <= 0.0005,
                 at_upper: self.h >= c.travel_m - 0.0005,
+                ..LiftReading::default()
             }
         }
     }
@@ -489,5 +501,116 @@ mod tests {
         );
         assert_eq!(lift.state(), LiftState::Unhomed);
         assert_eq!(lift.set_goal(0.4), Err(LiftError::NotHomed));
+    }
+
+    /// Homed and standing at 0.5 m, a hand under it at 0.25 m.
+    fn above_a_hand() -> (LiftController, Column) {
+        let (mut lift, mut col) = homed();
+        lift.set_goal(0.5).unwrap();
+        run(&mut lift, &mut col, 20.0, true);
+        col.obstacle_m = Some(0.25);
+        (lift, col)
+    }
+
+    /// Runs `seconds` at 100 Hz with `goal(t)` sent every `every_s` (as a policy's plan or a
+    /// teleoperator streams it, taken before the step as `nori-lift` does); returns the
+    /// obstructions met.
+    fn streamed(
+        lift: &mut LiftController,
+        col: &mut Column,
+        seconds: f64,
+        every_s: f64,
+        goal: impl Fn(f64) -> f64,
+    ) -> usize {
+        let (mut command, mut next_send, mut met) = (0.0, 0.0, 0);
+        for k in 0..(seconds * 100.0).round() as usize {
+            let t = k as f64 * 0.01;
+            if t >= next_send - 1e-9 {
+                let _ = lift.set_goal(goal(t));
+                next_send += every_s;
+            }
+            let r = col.step(command, 0.01);
+            let (v, e) = lift.step(&r, true);
+            command = v;
+            met += usize::from(matches!(e, Some(LiftEvent::Obstruction { .. })));
+        }
+        met
+    }
+
+    #[test]
+    fn a_goal_sent_again_and_again_does_not_press_the_hand_again() {
+        // The agent renews its goal every 10 ms; a teleoperator's page and a policy's plan
+        // every 60-140 ms.
+        for every_s in [0.01, 0.06, 0.14] {
+            let (mut lift, mut col) = above_a_hand();
+            let met = streamed(&mut lift, &mut col, 12.0, every_s, |_| 0.1);
+            assert_eq!(met, 1, "every {every_s} s: met the hand {met} times");
+            assert!(
+                col.pressed_s <= 0.15 + 0.011,
+                "every {every_s} s: pressed {} s in all",
+                col.pressed_s
+            );
+            assert!(
+                (col.h - 0.26).abs() < 0.002,
+                "every {every_s} s: left at {} m, not backed off",
+                col.h
+            );
+        }
+    }
+
+    #[test]
+    fn goals_toward_an_obstruction_are_refused_and_one_away_from_it_is_taken() {
+        let (mut lift, mut col) = above_a_hand();
+        streamed(&mut lift, &mut col, 12.0, 0.05, |_| 0.1);
+        // A plan creeping down toward the hand (every goal a different one) moves nothing.
+        let met = streamed(&mut lift, &mut col, 4.0, 0.05, |t| 0.24 - 0.01 * t);
+        assert_eq!(met, 0);
+        assert!(col.pressed_s <= 0.15 + 0.011, "pressed {} s", col.pressed_s);
+        assert!((col.h - 0.26).abs() < 0.002, "{} m", col.h);
+        // A goal away from it is taken.
+        assert_eq!(lift.set_goal(0.4), Ok(0.4));
+        run(&mut lift, &mut col, 8.0, true);
+        assert!((col.h - 0.4).abs() < 0.002, "{} m", col.h);
+    }
+
+    #[test]
+    fn a_back_off_that_gets_nowhere_stops_the_column() {
+        let (mut lift, mut col) = above_a_hand();
+        lift.set_goal(0.1).unwrap();
+        let mut command = 0.0;
+        for _ in 0..1200 {
+            let r = col.step(command, 0.01);
+            let (v, e) = lift.step(&r, true);
+            command = v;
+            if matches!(e, Some(LiftEvent::Obstruction { .. })) {
+                break;
+            }
+        }
+        // The halls stop counting as it starts backing off: it must not drive on blind.
+        col.frozen_counts = Some(((col.h - col.counts_at_start) * 10_000.0).round() as i64);
+        let (_, fastest) = run(&mut lift, &mut col, 10.0, true);
+        assert!(fastest > 0.0, "it never tried to back off");
+        assert!(
+            col.h < 0.25 + 0.01 + 0.01,
+            "the back-off drove on to {} m with its counts frozen",
+            col.h
+        );
+    }
+
+    #[test]
+    fn a_jump_of_the_hall_counts_is_not_believed() {
+        let (mut lift, mut col) = homed();
+        lift.set_goal(0.4).unwrap();
+        run(&mut lift, &mut col, 16.0, true);
+        assert!((col.h - 0.4).abs() < 0.002, "{} m", col.h);
+        // The board browns out and restarts within a status period: its counts start at 0
+        // again, here, 0.4 m up.
+        col.counts_at_start = col.h;
+        run(&mut lift, &mut col, 6.0, true);
+        assert!(
+            (col.h - 0.4).abs() < 0.003,
+            "the counts' jump moved the column to {} m",
+            col.h
+        );
     }
 }
