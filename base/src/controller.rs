@@ -582,7 +582,60 @@ mod tests {
             .unwrap();
         let (_, none) = period(&mut c, 410 * MS, None, &mut goal);
         assert!(none.flags & BASE_FLAG_FIELD_BLIND != 0 && none.requested_linear_m_s == 0.3);
-        assert!(none.commanded_angular_rad_s > 0.0);
+        assert_eq!(none.commanded_angular_rad_s, 0.0, "{none:?}");
+    }
+
+    /// Drives `c` for `seconds` in 20 ms periods under `command`, seeing `scan` (made for each
+    /// period's time); returns the fastest commanded speed and turn rate.
+    fn drive_blind(
+        c: &mut Controller,
+        command_vw: (f32, f32),
+        seconds: f64,
+        scan: impl Fn(u64) -> Option<LidarScan>,
+    ) -> (f32, f32) {
+        let mut goal = GoalFrame::default();
+        let (mut v, mut w) = (0.0f32, 0.0f32);
+        for k in 0..(seconds * 50.0) as u64 {
+            let t = k * 20 * MS;
+            c.on_command(&command(t, command_vw.0, command_vw.1), t)
+                .unwrap();
+            let (_, s) = period(c, t, scan(t).as_ref(), &mut goal);
+            assert!(s.flags & BASE_FLAG_FIELD_BLIND != 0, "{s:?}");
+            v = v.max(s.commanded_linear_m_s.abs());
+            w = w.max(s.commanded_angular_rad_s.abs());
+        }
+        (v, w)
+    }
+
+    #[test]
+    fn a_blind_base_turns_no_corner_into_what_it_cannot_see() {
+        // No revolution yet, or a lidar gone silent: a square base turning sweeps its corners
+        // outward, into whatever it cannot see.
+        let mut c = ready(true);
+        assert_eq!(drive_blind(&mut c, (0.0, 0.5), 2.0, |_| None), (0.0, 0.0));
+        let mut c = ready(true);
+        let stale = wall(5.0, 0);
+        let (v, w) = drive_blind(&mut c, (0.2, 0.5), 2.0, |t| {
+            (t > 400 * MS).then_some(stale)
+        });
+        assert_eq!((v, w), (0.0, 0.0));
+    }
+
+    #[test]
+    fn a_revolution_with_no_return_it_can_trust_is_blind() {
+        // A lidar whose window is covered: every point "no return", or nearer than the
+        // minimum range (the cover itself). Neither is free space.
+        for range in [0.0f32, 0.02] {
+            let mut c = ready(true);
+            let (v, w) = drive_blind(&mut c, (0.2, 0.5), 1.0, |t| {
+                let mut s = wall(5.0, t);
+                for p in &mut s.points[..360] {
+                    p.range_m = range;
+                }
+                Some(s)
+            });
+            assert_eq!((v, w), (0.0, 0.0), "every point at {range} m");
+        }
     }
 
     #[test]
