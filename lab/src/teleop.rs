@@ -1111,4 +1111,111 @@ pub(crate) mod tests {
         assert_eq!(t.active(), 0);
         assert_eq!(t.counters().safe_state_releases, 1);
     }
+
+    /// `s` as the driver's frame number `seq`, stamped `t_ns`.
+    fn frame_at(s: &JointState, seq: u64, t_ns: u64) -> JointState {
+        JointState {
+            seq,
+            timestamp_ns: t_ns,
+            ..*s
+        }
+    }
+
+    #[test]
+    fn a_driver_that_dies_and_restarts_gets_nothing_commanded_before() {
+        let mut t = teleop();
+        let s = state_at(&[0.0, 0.0, 0.0, -0.2, 0.0, 0.0, 0.0]);
+        t.command(1, &joints(&[("left_elbow", -1.2)]), Some(&frame_at(&s, 1, 0)), 0)
+            .unwrap();
+        let mut now = 0;
+        let mut seq = 1;
+        // 100 ms of teleoperation with the driver's frames coming, the elbow following.
+        let mut newest = frame_at(&s, seq, 0);
+        for _ in 0..10 {
+            now += 10 * MS;
+            seq += 1;
+            let mut f = frame_at(&s, seq, now);
+            f.joints[3].position_rad = t.commanded(3).unwrap() as f32;
+            t.observe(&f);
+            newest = f;
+            t.command(1, &Command::Alive, Some(&newest), now).unwrap();
+            t.tick(Some(&newest), now);
+        }
+        let left_at = f64::from(newest.joints[3].position_rad);
+        // The driver dies: no frame for a second; the page still holds control.
+        let mut sent_while_dead = Vec::new();
+        for _ in 0..100 {
+            now += 10 * MS;
+            let _ = t.command(1, &Command::Alive, Some(&newest), now);
+            if let (Some(f), _) = t.tick(Some(&newest), now) {
+                sent_while_dead.push(f64::from(f.position_rad[3]));
+            }
+        }
+        assert!(
+            sent_while_dead
+                .iter()
+                .all(|g| (g - left_at).abs() <= 0.25),
+            "goals ran on from {left_at} while the driver was dead: {:?}",
+            sent_while_dead.last()
+        );
+        // A new driver: its frames numbered from 1 again, out of its safe state at once (a
+        // live supervisor), the elbow where it was left.
+        let mut moved = Vec::new();
+        for k in 1..=20u64 {
+            now += 10 * MS;
+            let f = frame_at(&s, k, now);
+            let mut f = f;
+            f.joints[3].position_rad = left_at as f32;
+            t.observe(&f);
+            let _ = t.command(1, &Command::Alive, Some(&f), now);
+            if let (Some(g), _) = t.tick(Some(&f), now) {
+                moved.push(f64::from(g.position_rad[3]));
+            }
+        }
+        assert!(
+            moved.iter().all(|g| (g - left_at).abs() < 1e-6),
+            "a restarted driver was sent goals commanded before it: {moved:?} from {left_at}"
+        );
+    }
+
+    #[test]
+    fn a_safe_state_shorter_than_a_tick_still_drops_everything() {
+        let mut t = teleop();
+        let s = state_at(&[0.0; 7]);
+        t.command(1, &joints(&[("left_elbow", -1.0)]), Some(&frame_at(&s, 1, 0)), 0)
+            .unwrap();
+        assert!(t.tick(Some(&frame_at(&s, 1, 0)), 0).0.is_some());
+        // Between two ticks the driver entered its safe state and left it again.
+        let safe = JointState {
+            flags: STATE_FLAG_SAFE_STATE,
+            ..frame_at(&s, 2, 4 * MS)
+        };
+        t.observe(&safe);
+        let after = frame_at(&s, 3, 8 * MS);
+        t.observe(&after);
+        let (frame, ended) = t.tick(Some(&after), 10 * MS);
+        assert_eq!(ended, Some(Ended::SafeState), "{frame:?}");
+        assert_eq!(frame, None);
+        assert_eq!(t.active(), 0);
+    }
+
+    #[test]
+    fn the_speed_bound_holds_against_where_the_joint_is_read() {
+        let mut t = teleop();
+        let s = state_at(&[0.0, 0.0, 0.0, -0.2, 0.0, 0.0, 0.0]);
+        t.command(1, &joints(&[("left_elbow", -1.2)]), Some(&frame_at(&s, 1, 0)), 0)
+            .unwrap();
+        // The elbow does not follow (held by something, or its servo off): the goal must not
+        // run ahead of it toward the target, to be met at once when it is free.
+        let mut now = 0;
+        for k in 2..200u64 {
+            now += 10 * MS;
+            let f = frame_at(&s, k, now);
+            t.observe(&f);
+            t.command(1, &Command::Alive, Some(&f), now).unwrap();
+            t.tick(Some(&f), now);
+        }
+        let ahead = (t.commanded(3).unwrap() + 0.2).abs();
+        assert!(ahead <= 0.25, "the goal ran {ahead} rad ahead of the reading");
+    }
 }
