@@ -486,3 +486,105 @@ fn an_operators_stop_is_recorded_before_it_is_announced_and_outlives_a_restart()
     q.poll(&mut io, 2 * MS).unwrap();
     assert!(io.calls.iter().any(|c| matches!(c, Call::Event(Some(EventKind::CommandRefused), v) if *v == f32::from(COMMAND_RESUME))));
 }
+
+/// The newest allowance's word: travel allowed.
+fn lift_allowed(io: &Queues) -> bool {
+    io.allowances.last().expect("an allowance").allowed == 1
+}
+
+/// The operator's stop stops the lift too (the lift is not on the driver's buses: its
+/// allowance carries the stop), with or without the driver's layout, from a restarted
+/// supervisor's first allowance on, until the resume.
+#[test]
+fn an_operators_stop_refuses_the_lift_travel_until_the_resume() {
+    let stop = |kind| SupervisorCommand {
+        seq: 1,
+        kind,
+        ..SupervisorCommand::default()
+    };
+    // With the driver's layout.
+    let mut p = Process::new(config(), Vec::new(), 7);
+    let mut io = Queues {
+        layout: Some(layout()),
+        ..Queues::default()
+    };
+    p.poll(&mut io, 0).unwrap();
+    assert!(lift_allowed(&io));
+    io.commands.push_back(stop(COMMAND_STOP));
+    p.poll(&mut io, MS).unwrap();
+    assert!(!lift_allowed(&io), "{:?}", io.allowances.last());
+    p.poll(&mut io, 10 * MS).unwrap();
+    assert!(!lift_allowed(&io));
+    io.commands.push_back(stop(COMMAND_RESUME));
+    p.poll(&mut io, 11 * MS).unwrap();
+    assert!(lift_allowed(&io));
+
+    // The driver dead (no layout): the stop still reaches the lift, and is recorded.
+    let mut p = Process::new(config(), Vec::new(), 8);
+    let mut io = Queues::default();
+    p.poll(&mut io, 0).unwrap();
+    assert!(lift_allowed(&io));
+    io.commands.push_back(stop(COMMAND_STOP));
+    p.poll(&mut io, MS).unwrap();
+    assert!(!lift_allowed(&io), "{:?}", io.allowances.last());
+    let stop_line = telemetry::latch::OPERATOR_STOP.to_string();
+    assert!(
+        io.calls
+            .iter()
+            .any(|c| matches!(c, Call::Save(lines) if lines.contains(&stop_line))),
+        "{:?}",
+        io.calls
+    );
+
+    // Restarted with the stop in its record and no driver: refused from the first allowance.
+    let mut p = Process::new(config(), vec![stop_line], 9);
+    let mut io = Queues::default();
+    p.poll(&mut io, 0).unwrap();
+    assert!(!lift_allowed(&io), "{:?}", io.allowances);
+}
+
+/// The lift motor's duty budget outlives the supervisor as the trip record does: a
+/// supervisor restarted (a crash loop) after the budget is spent still refuses travel, and
+/// grants it again only once the rest the motor needs has passed.
+#[test]
+fn a_restarted_supervisor_remembers_the_lifts_spent_budget() {
+    let text = SupervisorConfig::DEFAULT_TOML.replacen("on-s = 120", "on-s = 4", 1);
+    let text = text.replacen("off-s = 1080", "off-s = 36", 1);
+    let text = text.replacen("resume-s = 30", "resume-s = 2", 1);
+    let config = SupervisorConfig::parse(&text, "test").unwrap();
+    let mut p = Process::new(config.clone(), Vec::new(), 1);
+    let mut io = Queues::default();
+    let state = |t_ms: u64, moving: bool| LiftState {
+        timestamp_ns: t_ms * MS,
+        velocity_m_s: if moving { 0.03 } else { 0.0 },
+        ..LiftState::default()
+    };
+    let mut t = 0;
+    while t <= 4100 {
+        io.lift_states.push_back(state(t, true));
+        p.poll(&mut io, t * MS).unwrap();
+        t += 10;
+    }
+    assert!(!lift_allowed(&io), "spent");
+    let record = io
+        .calls
+        .iter()
+        .rev()
+        .find_map(|c| match c {
+            Call::Save(lines) => Some(lines.clone()),
+            _ => None,
+        })
+        .unwrap_or_default();
+    // Killed and started again 1 s later: still refused, for about the rest it still needs.
+    let mut q = Process::new(config.clone(), record.clone(), 2);
+    let mut io = Queues::default();
+    q.poll(&mut io, (t + 1000) * MS).unwrap();
+    assert!(!lift_allowed(&io), "a restart granted a spent budget again");
+    let wait = io.allowances.last().unwrap().seconds;
+    assert!((wait - 17.0).abs() < 0.5, "{wait} s of rest still needed");
+    // Started again after the rest it needed: allowed.
+    let mut r = Process::new(config, record, 3);
+    let mut io = Queues::default();
+    r.poll(&mut io, (t + 18_500) * MS).unwrap();
+    assert!(lift_allowed(&io));
+}
