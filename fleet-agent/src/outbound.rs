@@ -160,7 +160,7 @@ pub fn lift_command(target: &Target, seq: u64, now_ns: u64) -> Option<LiftComman
         seq,
         timestamp_ns: now_ns,
         height_m,
-        reserved: 0,
+        kind: telemetry::motion::LIFT_COMMAND_GOAL,
     })
 }
 

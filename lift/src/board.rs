@@ -17,6 +17,10 @@ pub const START: u8 = 0xA5;
 pub const DRIVE: u8 = 0x01;
 /// Board → host: status.
 pub const STATUS: u8 = 0x81;
+/// [`Status::faults`]: the board stopped the motor on its over-current protection.
+pub const FAULT_OVER_CURRENT: u8 = 1;
+/// [`Status::faults`]: the board stopped the motor because no DRIVE came in time.
+pub const FAULT_WATCHDOG: u8 = 2;
 /// The longest payload.
 const MAX_PAYLOAD: usize = 16;
 

@@ -1,4 +1,11 @@
 //! The column's controller, sans-IO.
+//!
+//! The rules it keeps, and why, are in `docs/hazards.md` (the lift's rows); in short: no
+//! position is trusted before homing or after the hall counts jump; goals are clamped into the
+//! soft limits; an obstruction stops the column and backs it off, and it then goes no further
+//! toward the obstruction until a goal away from it or an operator's release (a re-sent goal is
+//! the same goal); a back-off that gets nowhere jams it until an operator's release; the
+//! operator's stop drops the goal and refuses new ones until it ends.
 
 /// The motor-controller board as the controller sees it.
 pub trait LiftActuator {
@@ -24,6 +31,8 @@ pub struct LiftReading {
     pub at_lower: bool,
     /// The upper limit switch is pressed.
     pub at_upper: bool,
+    /// The board stopped the motor on its own over-current protection.
+    pub over_current: bool,
 }
 
 /// The column and how it is driven.
@@ -73,6 +82,26 @@ impl ColumnConfig {
     pub fn soft_limits(&self) -> (f64, f64) {
         (self.soft_margin_m, self.travel_m - self.soft_margin_m)
     }
+
+    /// The most the counts can change in `dt_s`: twice the rated speed, and half the soft
+    /// margin (a sag, a reading's jitter; a shift smaller than that keeps the column inside
+    /// its switches). A larger change is not the column moving.
+    fn plausible_counts(&self, dt_s: f64) -> f64 {
+        (2.0 * self.max_speed_m_s * dt_s + 0.5 * self.soft_margin_m) * self.counts_per_m
+    }
+}
+
+/// Whether the lift may travel now: the supervisor's word as `nori-lift` last heard it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Travel {
+    /// Travel allowed.
+    Allowed,
+    /// The motor's duty-cycle budget is spent: held, its goal kept for when it has rested.
+    DutySpent,
+    /// No live supervisor: held, its goal kept.
+    NoSupervisor,
+    /// An operator's stop: held, its goal dropped, no goal taken until the stop ends.
+    OperatorStop,
 }
 
 /// Where the controller is.
@@ -84,9 +113,19 @@ pub enum LiftState {
     Homing,
     /// Homed: following goals.
     Ready,
-    /// Stopped on an obstruction at `at_m` and backing off; a new goal releases it.
+    /// Stopped on an obstruction at `at_m` going up (`up`) or down, backing off and then held;
+    /// no goal toward it is taken until a goal away from it or an operator's release.
     Obstructed {
         /// Where it met it, m.
+        at_m: f64,
+        /// The direction it was going.
+        up: bool,
+    },
+    /// Its back-off from an obstruction at `at_m` got nowhere either (something else in the
+    /// way, or hall counts that no longer count): stopped, nothing taken until an operator's
+    /// release, which homes it again.
+    Jammed {
+        /// Where it met the obstruction, m.
         at_m: f64,
     },
 }
@@ -103,6 +142,17 @@ pub enum LiftEvent {
         /// Direction it was going.
         up: bool,
     },
+    /// The back-off from an obstruction got nowhere: jammed.
+    BackOffBlocked {
+        /// Where it met the obstruction, m.
+        at_m: f64,
+    },
+    /// The hall counts jumped further than the column can move (a board that restarted):
+    /// no position is trusted; the column stands until homed again.
+    CountsJumped {
+        /// The jump, counts.
+        counts: i64,
+    },
     /// A goal was reached, m.
     Reached(f64),
 }
@@ -116,6 +166,21 @@ pub enum LiftError {
     /// NaN or infinite.
     #[error("the height {0} is not a finite number")]
     NotFinite(f64),
+    /// Toward an obstruction it stopped on.
+    #[error("the lift stopped on an obstruction at {at_m:.3} m: no goal toward it until a goal away from it or `nori lift release`")]
+    TowardObstruction {
+        /// Where it met it, m.
+        at_m: f64,
+    },
+    /// Jammed.
+    #[error("the lift is jammed (its back-off from an obstruction at {at_m:.3} m got nowhere): `nori lift release` homes it again")]
+    Jammed {
+        /// Where it met the obstruction, m.
+        at_m: f64,
+    },
+    /// An operator's stop is in force.
+    #[error("an operator's stop is in force: nothing moves until `nori resume`")]
+    OperatorStop,
 }
 
 /// The column's controller.
@@ -123,6 +188,7 @@ pub enum LiftError {
 pub struct LiftController {
     config: ColumnConfig,
     state: LiftState,
+    travel: Travel,
     zero: i64,
     goal_m: Option<f64>,
     velocity: f64,
@@ -139,6 +205,7 @@ impl LiftController {
         LiftController {
             config,
             state: LiftState::Unhomed,
+            travel: Travel::NoSupervisor,
             zero: 0,
             goal_m: None,
             velocity: 0.0,
@@ -153,12 +220,21 @@ impl LiftController {
         self.state
     }
 
+    /// The goal in force, m.
+    pub fn goal_m(&self) -> Option<f64> {
+        self.goal_m
+    }
+
     /// The height of `r`, m above the lower switch (`None` before homing).
     pub fn height_m(&self, r: &LiftReading) -> Option<f64> {
         match self.state {
             LiftState::Unhomed | LiftState::Homing => None,
-            _ => Some((r.counts - self.zero) as f64 / self.config.counts_per_m),
+            _ => Some(self.height_of(r)),
         }
+    }
+
+    fn height_of(&self, r: &LiftReading) -> f64 {
+        (r.counts - self.zero) as f64 / self.config.counts_per_m
     }
 
     /// Starts homing.
@@ -167,79 +243,93 @@ impl LiftController {
         self.goal_m = None;
     }
 
-    /// A new goal height, clamped into the soft limits (returned); it also releases an
-    /// obstruction stop.
+    /// The supervisor's word on travel, before the commands of a period. An operator's stop
+    /// drops the goal: the column stays where it stops, and nothing it was told before the
+    /// stop moves it after.
+    pub fn set_travel(&mut self, travel: Travel) {
+        if travel == Travel::OperatorStop {
+            self.goal_m = None;
+        }
+        self.travel = travel;
+    }
+
+    /// A goal height, clamped into the soft limits (returned). The goal in force sent again
+    /// changes nothing: not the obstruction timer, not an obstruction's hold.
     pub fn set_goal(&mut self, height_m: f64) -> Result<f64, LiftError> {
         if !height_m.is_finite() {
             return Err(LiftError::NotFinite(height_m));
         }
-        if matches!(self.state, LiftState::Unhomed | LiftState::Homing) {
-            return Err(LiftError::NotHomed);
+        if self.travel == Travel::OperatorStop {
+            return Err(LiftError::OperatorStop);
         }
         let (lo, hi) = self.config.soft_limits();
         let goal = height_m.clamp(lo, hi);
-        self.goal_m = Some(goal);
-        self.state = LiftState::Ready;
-        self.stuck_since = None;
-        self.arrived = false;
+        match self.state {
+            LiftState::Unhomed | LiftState::Homing => return Err(LiftError::NotHomed),
+            LiftState::Jammed { at_m } => return Err(LiftError::Jammed { at_m }),
+            LiftState::Obstructed { at_m, up } => {
+                // Away from it means beyond the back-off point: nothing short of it is safe
+                // from pressing again.
+                let away = if up {
+                    goal <= at_m - self.config.back_off_m
+                } else {
+                    goal >= at_m + self.config.back_off_m
+                };
+                if !away {
+                    return Err(LiftError::TowardObstruction { at_m });
+                }
+                self.state = LiftState::Ready;
+            }
+            LiftState::Ready => {}
+        }
+        if self.goal_m != Some(goal) {
+            self.goal_m = Some(goal);
+            self.arrived = false;
+        }
         Ok(goal)
     }
 
-    /// One step with the board's reading `r`; `allowed` is the duty-cycle budget's word.
-    /// Returns the velocity to command (m/s, up positive) and what happened.
-    pub fn step(&mut self, r: &LiftReading, allowed: bool) -> (f64, Option<LiftEvent>) {
+    /// An operator's deliberate release: an obstruction's hold ends (the column stays where it
+    /// is, with no goal), a jammed column homes again (its counts may have stopped counting).
+    pub fn release(&mut self) {
+        match self.state {
+            LiftState::Obstructed { .. } => {
+                self.state = LiftState::Ready;
+                self.goal_m = None;
+            }
+            LiftState::Jammed { .. } => self.home(),
+            _ => {}
+        }
+    }
+
+    /// One step with the board's reading `r`. Returns the velocity to command (m/s, up
+    /// positive) and what happened.
+    pub fn step(&mut self, r: &LiftReading) -> (f64, Option<LiftEvent>) {
         let c = self.config;
         let dt = self.last.map_or(0.0, |l| (r.t_s - l.t_s).clamp(0.0, 0.1));
-        let measured = match self.last {
-            Some(l) if dt > 0.0 => (r.counts - l.counts) as f64 / c.counts_per_m / dt,
-            _ => 0.0,
-        };
+        let jump = self.last.map_or(0, |l| r.counts - l.counts);
         self.last = Some(*r);
-        let mut event = None;
-        let want = match self.state {
-            LiftState::Unhomed => 0.0,
-            LiftState::Homing if r.at_lower => {
-                self.zero = r.counts;
-                self.state = LiftState::Ready;
-                event = Some(LiftEvent::Homed);
-                0.0
-            }
-            LiftState::Homing => -c.homing_speed_m_s,
-            LiftState::Ready | LiftState::Obstructed { .. } => {
-                let h = (r.counts - self.zero) as f64 / c.counts_per_m;
-                // Held at the goal: moving again only if it drifts past twice the tolerance
-                // (a sag under load, an overshoot), so it does not hunt around it.
-                let band = if self.arrived {
-                    2.0 * c.tolerance_m
-                } else {
-                    c.tolerance_m
-                };
-                match self.goal_m {
-                    Some(goal) if (goal - h).abs() > band => {
-                        self.arrived = false;
-                        let distance = goal - h;
-                        distance.signum()
-                            * c.max_speed_m_s
-                                .min((2.0 * c.accel_m_s2 * distance.abs()).sqrt())
-                    }
-                    Some(goal) => {
-                        if !self.arrived && self.state == LiftState::Ready {
-                            event = Some(LiftEvent::Reached(goal));
-                        }
-                        self.arrived = true;
-                        0.0
-                    }
-                    None => 0.0,
-                }
-            }
+        if jump.unsigned_abs() as f64 > c.plausible_counts(dt) && self.homed() {
+            // Not the column moving: the board restarted (its counts with it) or lies. Nothing
+            // it says of the height can be trusted until homed again.
+            self.state = LiftState::Unhomed;
+            self.goal_m = None;
+            self.velocity = 0.0;
+            return (0.0, Some(LiftEvent::CountsJumped { counts: jump }));
+        }
+        let measured = if dt > 0.0 {
+            jump as f64 / c.counts_per_m / dt
+        } else {
+            0.0
         };
-        // Acceleration limit, then the switches, then the duty budget.
+        let (want, mut event) = self.wanted(r);
+        // Acceleration limit, then the switches, then the supervisor's word.
         let step = c.accel_m_s2 * dt;
         let mut v = self.velocity + (want - self.velocity).clamp(-step, step);
         if (r.at_upper && v > 0.0) || (r.at_lower && v < 0.0 && self.state != LiftState::Homing) {
             v = 0.0;
         }
-        if !allowed {
+        if self.travel != Travel::Allowed {
             v = 0.0;
         }
         if let Some(e) = self.watch_obstruction(r, v, measured) {
@@ -250,15 +340,58 @@ impl LiftController {
         (v, event)
     }
 
+    fn homed(&self) -> bool {
+        !matches!(self.state, LiftState::Unhomed | LiftState::Homing)
+    }
+
+    /// The speed the state asks for before the limits, and a homing or arrival.
+    fn wanted(&mut self, r: &LiftReading) -> (f64, Option<LiftEvent>) {
+        let c = self.config;
+        match self.state {
+            LiftState::Unhomed | LiftState::Jammed { .. } => (0.0, None),
+            LiftState::Homing if r.at_lower => {
+                self.zero = r.counts;
+                self.state = LiftState::Ready;
+                (0.0, Some(LiftEvent::Homed))
+            }
+            LiftState::Homing => (-c.homing_speed_m_s, None),
+            LiftState::Ready | LiftState::Obstructed { .. } => {
+                let Some(goal) = self.goal_m else {
+                    return (0.0, None);
+                };
+                let h = self.height_of(r);
+                // Held at the goal: moving again only if it drifts past twice the tolerance
+                // (a sag under load, an overshoot), so it does not hunt around it.
+                let band = if self.arrived {
+                    2.0 * c.tolerance_m
+                } else {
+                    c.tolerance_m
+                };
+                let distance = goal - h;
+                if distance.abs() > band {
+                    self.arrived = false;
+                    let speed = c
+                        .max_speed_m_s
+                        .min((2.0 * c.accel_m_s2 * distance.abs()).sqrt());
+                    return (distance.signum() * speed, None);
+                }
+                let reached = !self.arrived && self.state == LiftState::Ready;
+                self.arrived = true;
+                (0.0, reached.then_some(LiftEvent::Reached(goal)))
+            }
+        }
+    }
+
     /// Pushing without getting anywhere, or at a stall's current, for the obstruction time:
-    /// stop and back off.
+    /// stop and back off; the same while backing off: stop, jammed.
     fn watch_obstruction(&mut self, r: &LiftReading, v: f64, measured: f64) -> Option<LiftEvent> {
         let c = self.config;
         let pushing = v.abs() >= 0.5 * c.homing_speed_m_s;
         let stuck = pushing
             && (measured.abs() < c.obstruction_speed_fraction * v.abs()
-                || r.current_a.abs() >= c.obstruction_current_a);
-        if !stuck || matches!(self.state, LiftState::Obstructed { .. }) {
+                || r.current_a.abs() >= c.obstruction_current_a
+                || r.over_current);
+        if !stuck {
             self.stuck_since = None;
             return None;
         }
@@ -267,26 +400,36 @@ impl LiftController {
             return None;
         }
         self.stuck_since = None;
-        if self.state == LiftState::Homing {
-            // Homing stopped short of the switch: something is under the column. Stay unhomed.
-            self.state = LiftState::Unhomed;
-            return Some(LiftEvent::Obstruction {
-                at_m: f64::NAN,
-                up: false,
-            });
-        }
-        let h = (r.counts - self.zero) as f64 / c.counts_per_m;
-        let up = v > 0.0;
-        let (lo, hi) = c.soft_limits();
-        let back = if up {
-            h - c.back_off_m
-        } else {
-            h + c.back_off_m
-        };
-        self.goal_m = Some(back.clamp(lo, hi));
         self.arrived = false;
-        self.state = LiftState::Obstructed { at_m: h };
-        Some(LiftEvent::Obstruction { at_m: h, up })
+        let h = self.height_of(r);
+        match self.state {
+            LiftState::Homing => {
+                // Homing stopped short of the switch: something is under the column. Stay
+                // unhomed.
+                self.state = LiftState::Unhomed;
+                Some(LiftEvent::Obstruction {
+                    at_m: f64::NAN,
+                    up: false,
+                })
+            }
+            LiftState::Obstructed { at_m, .. } => {
+                self.goal_m = None;
+                self.state = LiftState::Jammed { at_m };
+                Some(LiftEvent::BackOffBlocked { at_m })
+            }
+            _ => {
+                let up = v > 0.0;
+                let (lo, hi) = c.soft_limits();
+                let back = if up {
+                    h - c.back_off_m
+                } else {
+                    h + c.back_off_m
+                };
+                self.goal_m = Some(back.clamp(lo, hi));
+                self.state = LiftState::Obstructed { at_m: h, up };
+                Some(LiftEvent::Obstruction { at_m: h, up })
+            }
+        }
     }
 }
 
@@ -368,9 +511,14 @@ mod tests {
         let mut events = Vec::new();
         let mut fastest: f64 = 0.0;
         let mut command = 0.0;
+        lift.set_travel(if allowed {
+            Travel::Allowed
+        } else {
+            Travel::DutySpent
+        });
         for _ in 0..(seconds * 100.0).round() as usize {
             let r = col.step(command, 0.01);
-            let (v, e) = lift.step(&r, allowed);
+            let (v, e) = lift.step(&r);
             command = v;
             fastest = fastest.max(v.abs());
             events.extend(e);
@@ -380,6 +528,7 @@ mod tests {
 
     fn homed() -> (LiftController, Column) {
         let mut lift = LiftController::new(ColumnConfig::A3);
+        lift.set_travel(Travel::Allowed);
         let mut col = Column::new(0.3);
         assert_eq!(lift.set_goal(0.4), Err(LiftError::NotHomed));
         lift.home();
@@ -445,8 +594,14 @@ mod tests {
         // Backed off a centimetre and stays there until told otherwise.
         assert!((col.h - 0.31).abs() < 0.002, "{} m", col.h);
         assert!(matches!(lift.state(), LiftState::Obstructed { .. }));
-        // The hand gone, a new goal releases it.
+        // The same goal again, or one toward the hand, is refused; the hand gone, the
+        // operator's release lets it go there.
+        assert!(
+            matches!(lift.set_goal(0.1), Err(LiftError::TowardObstruction { at_m }) if (at_m - 0.3).abs() < 0.002)
+        );
         col.obstacle_m = None;
+        lift.release();
+        assert_eq!(lift.state(), LiftState::Ready);
         lift.set_goal(0.1).unwrap();
         let (events, _) = run(&mut lift, &mut col, 12.0, true);
         assert_eq!(events, [LiftEvent::Reached(0.1)]);
@@ -468,7 +623,7 @@ mod tests {
             if r.current_a >= 8.0 && met.is_none() {
                 met = Some(r.t_s);
             }
-            let (v, e) = lift.step(&r, true);
+            let (v, e) = lift.step(&r);
             command = v;
             if matches!(e, Some(LiftEvent::Obstruction { .. })) {
                 let pushed = r.t_s - met.expect("stopped before meeting it");
@@ -488,6 +643,7 @@ mod tests {
         assert_eq!(fastest, 0.0);
         assert!(col.h < 0.011);
         let mut lift = LiftController::new(ColumnConfig::A3);
+        lift.set_travel(Travel::Allowed);
         let mut col = Column::new(0.3);
         col.obstacle_m = Some(0.2);
         lift.home();
@@ -502,6 +658,10 @@ mod tests {
         assert_eq!(lift.state(), LiftState::Unhomed);
         assert_eq!(lift.set_goal(0.4), Err(LiftError::NotHomed));
     }
+
+    /// The obstruction time, the step in which the column meets the hand and the one in which
+    /// it is told to stop, s.
+    const PRESS_BOUND_S: f64 = 0.15 + 0.02 + 1e-9;
 
     /// Homed and standing at 0.5 m, a hand under it at 0.25 m.
     fn above_a_hand() -> (LiftController, Column) {
@@ -530,7 +690,7 @@ mod tests {
                 next_send += every_s;
             }
             let r = col.step(command, 0.01);
-            let (v, e) = lift.step(&r, true);
+            let (v, e) = lift.step(&r);
             command = v;
             met += usize::from(matches!(e, Some(LiftEvent::Obstruction { .. })));
         }
@@ -546,7 +706,7 @@ mod tests {
             let met = streamed(&mut lift, &mut col, 12.0, every_s, |_| 0.1);
             assert_eq!(met, 1, "every {every_s} s: met the hand {met} times");
             assert!(
-                col.pressed_s <= 0.15 + 0.011,
+                col.pressed_s <= PRESS_BOUND_S,
                 "every {every_s} s: pressed {} s in all",
                 col.pressed_s
             );
@@ -565,7 +725,11 @@ mod tests {
         // A plan creeping down toward the hand (every goal a different one) moves nothing.
         let met = streamed(&mut lift, &mut col, 4.0, 0.05, |t| 0.24 - 0.01 * t);
         assert_eq!(met, 0);
-        assert!(col.pressed_s <= 0.15 + 0.011, "pressed {} s", col.pressed_s);
+        assert!(
+            col.pressed_s <= PRESS_BOUND_S,
+            "pressed {} s",
+            col.pressed_s
+        );
         assert!((col.h - 0.26).abs() < 0.002, "{} m", col.h);
         // A goal away from it is taken.
         assert_eq!(lift.set_goal(0.4), Ok(0.4));
@@ -580,7 +744,7 @@ mod tests {
         let mut command = 0.0;
         for _ in 0..1200 {
             let r = col.step(command, 0.01);
-            let (v, e) = lift.step(&r, true);
+            let (v, e) = lift.step(&r);
             command = v;
             if matches!(e, Some(LiftEvent::Obstruction { .. })) {
                 break;
@@ -612,5 +776,78 @@ mod tests {
             "the counts' jump moved the column to {} m",
             col.h
         );
+    }
+
+    #[test]
+    fn the_operators_stop_drops_the_goal_and_refuses_goals_until_it_ends() {
+        let (mut lift, mut col) = homed();
+        lift.set_goal(0.6).unwrap();
+        run(&mut lift, &mut col, 4.0, true);
+        let at = col.h;
+        assert!(at > 0.05, "{at} m");
+        lift.set_travel(Travel::OperatorStop);
+        assert_eq!(lift.goal_m(), None);
+        assert_eq!(lift.set_goal(0.6), Err(LiftError::OperatorStop));
+        let mut command = 0.0;
+        for _ in 0..300 {
+            let r = col.step(command, 0.01);
+            command = lift.step(&r).0;
+            assert_eq!(command, 0.0);
+        }
+        // Resumed: nothing told before the stop moves it; a new goal does.
+        lift.set_travel(Travel::Allowed);
+        let stood = col.h;
+        for _ in 0..300 {
+            let r = col.step(command, 0.01);
+            command = lift.step(&r).0;
+        }
+        assert!(
+            (col.h - stood).abs() < 1e-3,
+            "moved to {} m after the resume",
+            col.h
+        );
+        assert!(lift.set_goal(0.6).is_ok());
+    }
+
+    #[test]
+    fn a_jammed_column_takes_no_goal_and_the_operators_release_homes_it() {
+        let (mut lift, mut col) = above_a_hand();
+        lift.set_goal(0.1).unwrap();
+        let mut command = 0.0;
+        let mut jammed = false;
+        for _ in 0..2000 {
+            let r = col.step(command, 0.01);
+            let (v, e) = lift.step(&r);
+            command = v;
+            if matches!(e, Some(LiftEvent::Obstruction { .. })) {
+                col.frozen_counts = Some(r.counts);
+            }
+            jammed |= matches!(e, Some(LiftEvent::BackOffBlocked { .. }));
+        }
+        assert!(jammed);
+        assert!(matches!(lift.state(), LiftState::Jammed { .. }));
+        assert!(matches!(lift.set_goal(0.5), Err(LiftError::Jammed { .. })));
+        lift.release();
+        assert_eq!(lift.state(), LiftState::Homing);
+    }
+
+    #[test]
+    fn the_boards_over_current_stop_is_an_obstruction() {
+        let (mut lift, mut col) = homed();
+        lift.set_goal(0.5).unwrap();
+        let mut command = 0.0;
+        for k in 0..400 {
+            let mut r = col.step(command, 0.01);
+            // From 2 s on the board reports its over-current stop (and its motor stopped).
+            r.over_current = k >= 200;
+            let (v, e) = lift.step(&r);
+            command = v;
+            if let Some(LiftEvent::Obstruction { up, .. }) = e {
+                assert!(up);
+                assert!((200..=200 + 17).contains(&k), "stopped at step {k}");
+                return;
+            }
+        }
+        panic!("the board's over-current stop was not taken as an obstruction");
     }
 }

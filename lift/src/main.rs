@@ -6,7 +6,7 @@
 use anyhow::{Context, Result};
 use clap::Parser;
 use lift::board::{self, Decoder, Message};
-use lift::column::{LiftController, LiftEvent, LiftReading, LiftState as Controller};
+use lift::column::{LiftController, LiftEvent, LiftReading, LiftState as Controller, Travel};
 use lift::config::LiftConfig;
 use serialport::SerialPort;
 use std::io::{Read, Write};
@@ -14,7 +14,8 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
 use telemetry::motion::{
-    LiftAllowance, LiftState, LIFT_HOMING, LIFT_LINK_LOST, LIFT_OBSTRUCTED, LIFT_READY,
+    LiftAllowance, LiftCommand, LiftState, LIFT_COMMAND_GOAL, LIFT_COMMAND_RELEASE, LIFT_HOMING,
+    LIFT_JAMMED, LIFT_LINK_LOST, LIFT_OBSTRUCTED, LIFT_READY, LIFT_REFUSED_OPERATOR_STOP,
     LIFT_UNHOMED,
 };
 use telemetry::plane::{self, newest, next, publish, Plane};
@@ -51,6 +52,9 @@ struct Counters {
     commands_refused: u32,
     obstructions: u32,
     link_losses: u64,
+    releases: u32,
+    count_jumps: u32,
+    board_over_current: u64,
 }
 
 fn serve(args: &Args) -> Result<()> {
@@ -77,8 +81,9 @@ fn serve(args: &Args) -> Result<()> {
     controller.home();
     let mut decoder = Decoder::new();
     let (mut reading, mut heard) = (None::<LiftReading>, Instant::now());
-    let (mut velocity, mut goal) = (0.0, f32::NAN);
+    let (mut velocity, mut faults) = (0.0, 0u8);
     let mut counters = Counters::default();
+    let mut refusing = None::<String>;
     let mut out = [0u8; 21];
     let mut buf = [0u8; 256];
     let started = Instant::now();
@@ -93,12 +98,16 @@ fn serve(args: &Args) -> Result<()> {
         if let Some(s) = fresh {
             counters.statuses += 1;
             heard = Instant::now();
+            faults = s.faults;
+            let over_current = s.faults & board::FAULT_OVER_CURRENT != 0;
+            counters.board_over_current += u64::from(over_current);
             reading = Some(LiftReading {
                 t_s,
                 counts: i64::from(s.counts),
                 current_a: f64::from(s.current_ma) * 1e-3,
                 at_lower: s.switches & 1 != 0,
                 at_upper: s.switches & 2 != 0,
+                over_current,
             });
         }
         let lost = heard.elapsed() > config.silence;
@@ -108,26 +117,39 @@ fn serve(args: &Args) -> Result<()> {
             counters.link_losses += 1;
             controller.home();
         }
-        while let Some(c) = next(&commands) {
-            counters.commands += 1;
-            match take_command(&mut controller, &c, now_ns, max_age_ns) {
-                Ok(g) => goal = g as f32,
-                Err(why) => {
-                    counters.commands_refused += 1;
-                    tracing::warn!(seq = c.seq, "lift command refused: {why}");
-                }
-            }
-        }
-        // Travel only on a live allowance of the supervisor's duty-cycle budget.
+        // The supervisor's word first: an operator's stop drops the goal before any command
+        // of this period is taken.
         if let Some(a) = newest(&allowances) {
             allowance = Some(a);
         }
-        let (held, duty_wait_s) = held_back(allowance, now_ns);
+        let (travel, duty_wait_s) = travel(allowance, now_ns);
+        controller.set_travel(travel);
+        while let Some(c) = next(&commands) {
+            counters.commands += 1;
+            let outcome = take_command(&mut controller, &c, now_ns, max_age_ns);
+            counters.releases += u32::from(outcome == Ok(Taken::Released));
+            match outcome {
+                Ok(_) => refusing = None,
+                Err(why) => {
+                    counters.commands_refused += 1;
+                    // Said once per reason, not at the rate a plan streams it.
+                    if refusing.as_ref() != Some(&why) {
+                        tracing::warn!(seq = c.seq, "lift command refused: {why}");
+                        refusing = Some(why);
+                    }
+                }
+            }
+        }
         if let (Some(r), Some(_)) = (reading, fresh) {
-            let (v, event) = controller.step(&r, held == 0);
+            let (v, event) = controller.step(&r);
             velocity = v;
             if let Some(e) = event {
                 counters.obstructions += u32::from(matches!(e, LiftEvent::Obstruction { .. }));
+                if matches!(e, LiftEvent::CountsJumped { .. }) {
+                    // As after a silent board: its counts started again; home again.
+                    counters.count_jumps += 1;
+                    controller.home();
+                }
                 log_event(e);
             }
         }
@@ -143,7 +165,7 @@ fn serve(args: &Args) -> Result<()> {
             height_m: reading
                 .and_then(|r| controller.height_m(&r))
                 .map_or(f32::NAN, |h| h as f32),
-            goal_m: goal,
+            goal_m: controller.goal_m().map_or(f32::NAN, |g| g as f32),
             velocity_m_s: velocity as f32,
             current_a: reading.map_or(0.0, |r| r.current_a as f32),
             state: if lost {
@@ -152,8 +174,8 @@ fn serve(args: &Args) -> Result<()> {
                 state_code(controller.state())
             },
             switches: reading.map_or(0, |r| u8::from(r.at_lower) | (u8::from(r.at_upper) << 1)),
-            held,
-            reserved: 0,
+            held: held_code(travel),
+            board_faults: faults,
             duty_wait_s,
             obstructions: counters.obstructions,
             commands_refused: counters.commands_refused,
@@ -189,20 +211,38 @@ fn newest_status(
     fresh
 }
 
-/// A height command, unless it is stale or from the future (then why not).
+/// What a command did.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Taken {
+    /// A goal, clamped into the soft limits, m.
+    Goal(f64),
+    /// The operator's release.
+    Released,
+}
+
+/// A command, unless it is stale or from the future (then why not).
 fn take_command(
     controller: &mut LiftController,
-    c: &telemetry::motion::LiftCommand,
+    c: &LiftCommand,
     now_ns: u64,
     max_age_ns: u64,
-) -> Result<f64, String> {
+) -> Result<Taken, String> {
     let age = now_ns.saturating_sub(c.timestamp_ns);
     if age > max_age_ns || c.timestamp_ns > now_ns + 1_000_000 {
         return Err(format!("{} ms old", age / 1_000_000));
     }
-    controller
-        .set_goal(f64::from(c.height_m))
-        .map_err(|e| e.to_string())
+    match c.kind {
+        LIFT_COMMAND_GOAL => controller
+            .set_goal(f64::from(c.height_m))
+            .map(Taken::Goal)
+            .map_err(|e| e.to_string()),
+        LIFT_COMMAND_RELEASE => {
+            tracing::warn!(state = ?controller.state(), "the operator releases the lift");
+            controller.release();
+            Ok(Taken::Released)
+        }
+        other => Err(format!("unknown command kind {other}")),
+    }
 }
 
 fn log_event(e: LiftEvent) {
@@ -214,6 +254,14 @@ fn log_event(e: LiftEvent) {
                 "the lift met an obstruction: stopped, backing off"
             )
         }
+        LiftEvent::BackOffBlocked { at_m } => tracing::error!(
+            at_m,
+            "the lift's back-off got nowhere: stopped, jammed until `nori lift release`"
+        ),
+        LiftEvent::CountsJumped { counts } => tracing::error!(
+            counts,
+            "the lift's hall counts jumped (its board restarted?): homing again"
+        ),
         LiftEvent::Homed => tracing::info!("the lift is homed"),
         LiftEvent::Reached(h) => tracing::info!(height_m = h, "the lift is there"),
     }
@@ -225,17 +273,28 @@ fn state_code(s: Controller) -> u8 {
         Controller::Homing => LIFT_HOMING,
         Controller::Ready => LIFT_READY,
         Controller::Obstructed { .. } => LIFT_OBSTRUCTED,
+        Controller::Jammed { .. } => LIFT_JAMMED,
     }
 }
 
-/// Whether travel is held back (0 no, 1 the duty budget is spent, 2 no live allowance: none
-/// for 200 ms, no supervisor, no travel, as the driver holds without one), and the rest the
-/// budget still needs, s.
-fn held_back(allowance: Option<LiftAllowance>, now_ns: u64) -> (u8, f32) {
+/// The supervisor's word on travel (none for 200 ms: no supervisor, no travel, as the driver
+/// holds without one), and with the budget spent the rest it still needs, s.
+fn travel(allowance: Option<LiftAllowance>, now_ns: u64) -> (Travel, f32) {
     match allowance.filter(|a| now_ns.saturating_sub(a.timestamp_ns) <= 200_000_000) {
-        Some(a) if a.allowed == 1 => (0, 0.0),
-        Some(a) => (1, a.seconds),
-        None => (2, 0.0),
+        Some(a) if a.allowed == 1 => (Travel::Allowed, 0.0),
+        Some(a) if a.refused == LIFT_REFUSED_OPERATOR_STOP => (Travel::OperatorStop, 0.0),
+        Some(a) => (Travel::DutySpent, a.seconds),
+        None => (Travel::NoSupervisor, 0.0),
+    }
+}
+
+/// [`LiftState::held`]'s code.
+fn held_code(travel: Travel) -> u8 {
+    match travel {
+        Travel::Allowed => 0,
+        Travel::DutySpent => 1,
+        Travel::NoSupervisor => 2,
+        Travel::OperatorStop => 3,
     }
 }
 

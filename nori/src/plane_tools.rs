@@ -343,6 +343,16 @@ pub fn goal(args: &GoalArgs) -> Result<()> {
     let (node, layout) = args.plane.open("goal", LAYOUT_TIMEOUT)?;
     let names: Vec<String> = layout.joint_names().map(str::to_string).collect();
     let Goals { mut joints, lift_m } = parse_goals(&names, &args.goals)?;
+    // A wheel goal would reach the wheel with no protective field and no ramp: the base's
+    // protections are `nori-base`'s, reached through `nori base`.
+    if let Some(w) = layout.joints().iter().enumerate().find(|(i, j)| {
+        joints.mask & (1 << i) != 0 && j.role() == telemetry::frames::JointRole::Wheel
+    }) {
+        bail!(
+            "{} is a wheel: the base is driven through its protections (lidar field, ramp, timeout) with `nori base LINEAR ANGULAR --for SECONDS`",
+            w.1.name()
+        );
+    }
     let publisher = node.publisher(&plane::GOALS)?;
     let lift_commands = node.publisher(&plane::LIFT_COMMAND)?;
     let lift_states = node.subscriber(&plane::LIFT_STATE)?;
@@ -360,7 +370,7 @@ pub fn goal(args: &GoalArgs) -> Result<()> {
             seq: 1,
             timestamp_ns: now,
             height_m,
-            reserved: 0,
+            kind: telemetry::motion::LIFT_COMMAND_GOAL,
         };
         plane::publish(&lift_commands, &command)?;
     }

@@ -148,26 +148,33 @@ impl std::fmt::Display for BaseState {
 }
 
 /// A height for the lift, m above its lowest (the lower switch): clamped into the soft limits
-/// by the lift's controller; refused when older than its timeout on arrival.
+/// by the lift's controller; refused when older than its timeout on arrival. Or, with
+/// [`LIFT_COMMAND_RELEASE`], the operator's release of an obstruction's hold or a jam.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
-#[type_name("nori::LiftCommand/1")]
+#[type_name("nori::LiftCommand/2")]
 pub struct LiftCommand {
     /// Sender's sequence number.
     pub seq: u64,
     /// When it was made, CLOCK_MONOTONIC ns.
     pub timestamp_ns: u64,
-    /// Height, m.
+    /// Height, m (a goal).
     pub height_m: f32,
-    /// Padding.
-    pub reserved: u32,
+    /// `LIFT_COMMAND_*`.
+    pub kind: u32,
 }
+
+/// [`LiftCommand::kind`]: go to `height_m`.
+pub const LIFT_COMMAND_GOAL: u32 = 0;
+/// [`LiftCommand::kind`]: the operator releases an obstruction's hold (the column stays, with
+/// no goal) or a jam (the column homes again). Only an operator's tool sends it.
+pub const LIFT_COMMAND_RELEASE: u32 = 1;
 
 /// The supervisor's word on the lift's travel (its duty-cycle budget), every 5 ms: the lift
 /// moves only while the newest one is fresh and allows it.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
-#[type_name("nori::LiftAllowance/1")]
+#[type_name("nori::LiftAllowance/2")]
 pub struct LiftAllowance {
     /// The supervisor's sequence number.
     pub seq: u64,
@@ -175,8 +182,10 @@ pub struct LiftAllowance {
     pub timestamp_ns: u64,
     /// 1: travel allowed.
     pub allowed: u8,
+    /// Why not: `LIFT_REFUSED_*`.
+    pub refused: u8,
     /// Padding.
-    pub reserved: [u8; 3],
+    pub reserved: [u8; 2],
     /// Allowed: running left, s; refused: rest still needed, s.
     pub seconds: f32,
     /// The budget used (heat as running time), s.
@@ -185,21 +194,29 @@ pub struct LiftAllowance {
     pub reserved2: u32,
 }
 
+/// [`LiftAllowance::refused`]: the motor's duty-cycle budget is spent.
+pub const LIFT_REFUSED_DUTY: u8 = 1;
+/// [`LiftAllowance::refused`]: an operator's stop is in force (the lift drops its goal).
+pub const LIFT_REFUSED_OPERATOR_STOP: u8 = 2;
+
 /// [`LiftState::state`]: not homed (no height is known).
 pub const LIFT_UNHOMED: u8 = 0;
 /// Homing: going down to the lower switch.
 pub const LIFT_HOMING: u8 = 1;
 /// Homed, following goals.
 pub const LIFT_READY: u8 = 2;
-/// Stopped on an obstruction (and backed off); a new command releases it.
+/// Stopped on an obstruction (and backed off): no goal toward it until one away from it or the
+/// operator's release.
 pub const LIFT_OBSTRUCTED: u8 = 3;
 /// The board does not answer (unplugged, or its link broken): the board's watchdog holds it.
 pub const LIFT_LINK_LOST: u8 = 4;
+/// Its back-off from an obstruction got nowhere: stopped until the operator's release.
+pub const LIFT_JAMMED: u8 = 5;
 
 /// Where the lift is, every control period of `nori-lift`.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
-#[type_name("nori::LiftState/1")]
+#[type_name("nori::LiftState/2")]
 pub struct LiftState {
     /// Frames published, from 1.
     pub seq: u64,
@@ -218,10 +235,11 @@ pub struct LiftState {
     /// Bit 0: lower switch, bit 1: upper switch.
     pub switches: u8,
     /// Travel held back: 0 allowed, 1 the duty-cycle budget is spent, 2 no live allowance
-    /// from the supervisor.
+    /// from the supervisor, 3 an operator's stop.
     pub held: u8,
-    /// Padding.
-    pub reserved: u8,
+    /// The board's fault bits in its newest status (bit 0 its over-current stop, bit 1 its
+    /// watchdog stop).
+    pub board_faults: u8,
     /// With the budget spent: rest still needed, s.
     pub duty_wait_s: f32,
     /// Obstructions met so far.

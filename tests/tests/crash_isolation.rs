@@ -600,7 +600,7 @@ fn wild_body(domain: String, seed: u64, stop: Arc<AtomicBool>) -> std::thread::J
                     seq,
                     timestamp_ns: monotonic_ns(),
                     height_m: height,
-                    reserved: 0,
+                    kind: telemetry::motion::LIFT_COMMAND_GOAL,
                 };
                 let _ = publish(&lift, &c);
             }

@@ -75,7 +75,7 @@ fn the_lift_homes_goes_to_a_height_holds_it_and_stops_on_a_hand() {
             seq,
             timestamp_ns: monotonic_ns() - age_ms * 1_000_000,
             height_m: h,
-            reserved: 0,
+            kind: telemetry::motion::LIFT_COMMAND_GOAL,
         };
         plane::publish(&commands, &c).unwrap();
     };
@@ -209,7 +209,7 @@ fn the_duty_budget_stops_travel_when_spent_and_no_supervisor_means_no_travel() {
         seq: 1,
         timestamp_ns: monotonic_ns(),
         height_m: 0.4,
-        reserved: 0,
+        kind: telemetry::motion::LIFT_COMMAND_GOAL,
     };
     plane::publish(&commands, &c).unwrap();
     let refused = wait_for(Duration::from_secs(10), "the budget spent", || {
@@ -255,5 +255,120 @@ fn the_duty_budget_stops_travel_when_spent_and_no_supervisor_means_no_travel() {
     drop(commands);
     drop(states);
     drop(node);
+    stack.stop();
+}
+
+/// From outside, as the operator and a streaming planner would: the operator's stop (on the
+/// supervisor's command service, as `nori stop` and the lab's button send it) stops a column
+/// moving up at once, drops its goal and refuses goals until the resume, after which nothing
+/// told before moves it; and a goal re-sent every 60 ms onto a hand at 0.25 m presses it once,
+/// within the obstruction time, and leaves the column backed off.
+#[test]
+fn the_operators_stop_stops_the_lift_and_a_streamed_goal_presses_a_hand_once() {
+    use telemetry::frames::{SupervisorCommand, COMMAND_RESUME, COMMAND_STOP};
+    use telemetry::motion::LIFT_COMMAND_GOAL;
+    let (mut stack, mut lift) = lift_on_sim(
+        "lift-stop",
+        &["--lift-obstacle-at", "0.25", "--lift-obstacle-from", "0"],
+    );
+    stack.restart_supervisor();
+    let node = Plane::open(&stack.domain, "test").unwrap();
+    let commands = node.publisher(&plane::LIFT_COMMAND).unwrap();
+    let operator = node.publisher(&plane::COMMANDS).unwrap();
+    let states = node.subscriber(&plane::LIFT_STATE).unwrap();
+    let mut seq = 0;
+    let mut command = |h: f32| {
+        seq += 1;
+        let c = LiftCommand {
+            seq,
+            timestamp_ns: monotonic_ns(),
+            height_m: h,
+            kind: LIFT_COMMAND_GOAL,
+        };
+        plane::publish(&commands, &c).unwrap();
+    };
+    let say = |kind: u8, seq: u64| {
+        let c = SupervisorCommand {
+            seq,
+            timestamp_ns: monotonic_ns(),
+            kind,
+            ..SupervisorCommand::default()
+        };
+        plane::publish(&operator, &c).unwrap();
+    };
+    wait_for(Duration::from_secs(15), "the lift homed", || {
+        newest(&states).filter(|s: &LiftState| s.state == LIFT_READY)
+    });
+    command(0.35);
+    wait_for(
+        Duration::from_secs(15),
+        "the lift going up past 0.15 m",
+        || newest(&states).filter(|s| s.height_m > 0.15 && s.velocity_m_s > 0.0),
+    );
+    say(COMMAND_STOP, 1);
+    let stopped_at = Instant::now();
+    let stopped = wait_for(Duration::from_secs(1), "the lift stopped", || {
+        newest(&states).filter(|s| s.held == 3 && s.velocity_m_s == 0.0)
+    });
+    assert!(
+        stopped_at.elapsed() < Duration::from_millis(200),
+        "stopped only after {:?}",
+        stopped_at.elapsed()
+    );
+    assert!(stopped.goal_m.is_nan(), "the goal kept: {stopped:?}");
+    std::thread::sleep(Duration::from_millis(300));
+    let stood = newest(&states).unwrap();
+    // A goal during the stop is refused; the column stands.
+    command(0.5);
+    std::thread::sleep(Duration::from_millis(1500));
+    let s = newest(&states).unwrap();
+    assert_eq!(s.commands_refused, stood.commands_refused + 1, "{s:?}");
+    assert!(
+        (s.height_m - stood.height_m).abs() < 0.001,
+        "moved during the stop: {s:?}"
+    );
+    eprintln!(
+        "lift stop: {:.1} mm of travel after the stop",
+        (stood.height_m - stopped.height_m) * 1000.0
+    );
+    // Resumed: nothing told before moves it.
+    say(COMMAND_RESUME, 2);
+    wait_for(Duration::from_secs(1), "the stop ended", || {
+        newest(&states).filter(|s| s.held == 0)
+    });
+    std::thread::sleep(Duration::from_millis(1000));
+    let s = newest(&states).unwrap();
+    assert!(
+        (s.height_m - stood.height_m).abs() < 0.001,
+        "moved after the resume: {s:?}"
+    );
+
+    // Coming down onto the hand under a goal re-sent every 60 ms for 8 s.
+    let until = Instant::now() + Duration::from_secs(8);
+    while Instant::now() < until {
+        command(0.1);
+        std::thread::sleep(Duration::from_millis(60));
+    }
+    let s = newest(&states).unwrap();
+    assert_eq!((s.state, s.obstructions), (LIFT_OBSTRUCTED, 1), "{s:?}");
+    assert!(
+        (s.height_m - 0.26).abs() < 0.003,
+        "left at {} m",
+        s.height_m
+    );
+    let text = std::fs::read_to_string(stack.dir.join("sim-report.json")).unwrap();
+    let report: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let pressed = report["lift"]["pressed_s"].as_f64().unwrap();
+    assert!(
+        pressed > 0.0 && pressed <= PRESS_BOUND_S,
+        "pressed on the hand {pressed} s in all under a streamed goal (bound {PRESS_BOUND_S} s)"
+    );
+    eprintln!(
+        "lift streamed onto a hand: pressed {:.0} ms in all",
+        pressed * 1000.0
+    );
+    let (code, out) = lift.terminate(Duration::from_secs(5));
+    assert_eq!(code, Some(0), "{out}");
+    drop((commands, operator, states, node));
     stack.stop();
 }

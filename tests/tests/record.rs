@@ -675,7 +675,7 @@ fn the_whole_body_is_recorded_nineteen_wide_with_the_lift_rising_and_the_base_dr
                     seq,
                     timestamp_ns: now,
                     height_m: 0.2,
-                    reserved: 0,
+                    kind: telemetry::motion::LIFT_COMMAND_GOAL,
                 };
                 publish(&lift, &height).unwrap();
                 std::thread::sleep(Duration::from_millis(50));
