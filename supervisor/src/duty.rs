@@ -115,7 +115,58 @@ impl DutyBudget {
     pub fn used_s(&self) -> f64 {
         self.used_s
     }
+
+    /// Whether it is spent (and has not yet regained the resume time).
+    pub fn exhausted(&self) -> bool {
+        self.exhausted
+    }
+
+    /// The trip record's line that keeps this budget across a restart, saved at `now_ns`
+    /// (CLOCK_MONOTONIC): the heat it holds and `ahead_s` more (the running the motor may do
+    /// before the next save), so the record never holds less heat than the motor.
+    pub fn record_line(&self, ahead_s: f64, now_ns: u64) -> String {
+        let used = (self.used_s + ahead_s).min(self.rating.on_s);
+        format!(
+            "{RECORD_PREFIX}{used:.3} {} {now_ns}",
+            u8::from(self.exhausted)
+        )
+    }
+
+    /// The budget a record line kept, rested until `now_ns`: since the save, or, when the
+    /// clock has started again since (a reboot), since the boot. The lift does not move without
+    /// a supervisor (it travels only on a live allowance), so the time between is rest; either
+    /// is at most the rest there was. `None` when the line is not a budget's.
+    pub fn restore(rating: DutyRating, line: &str, now_ns: u64) -> Option<DutyBudget> {
+        let mut fields = line.strip_prefix(RECORD_PREFIX)?.split_whitespace();
+        let used_s: f64 = fields.next()?.parse().ok()?;
+        let exhausted = match fields.next()? {
+            "0" => false,
+            "1" => true,
+            _ => return None,
+        };
+        let at_ns: u64 = fields.next()?.parse().ok()?;
+        if fields.next().is_some() || !(used_s.is_finite() && used_s >= 0.0) {
+            return None;
+        }
+        let mut b = DutyBudget {
+            rating,
+            used_s: used_s.min(rating.on_s),
+            exhausted,
+        };
+        let rested_ns = if at_ns <= now_ns {
+            now_ns - at_ns
+        } else {
+            now_ns
+        };
+        b.update(false, rested_ns as f64 * 1e-9);
+        Some(b)
+    }
 }
+
+/// The trip record's line of the lift motor's budget starts with this (`telemetry::latch`
+/// reserves `@` for the record's own lines): heat as running time, s; spent (1) or not (0);
+/// when it was saved, CLOCK_MONOTONIC ns.
+pub const RECORD_PREFIX: &str = "@lift-duty ";
 
 #[cfg(test)]
 mod tests {
@@ -169,6 +220,39 @@ mod tests {
             assert!(c < 10, "never spent at 50 % duty");
         }
         assert!(c >= 4, "spent after {c} cycles");
+    }
+
+    #[test]
+    fn a_budget_kept_in_the_record_comes_back_rested_only_as_long_as_it_was() {
+        let mut b = DutyBudget::new(DutyRating::DESK_COLUMN);
+        run(&mut b, true, 120.0);
+        assert!(b.exhausted());
+        let line = b.record_line(0.5, 1_000_000_000_000);
+        assert_eq!(line, "@lift-duty 120.000 1 1000000000000");
+        // Back 90 s later: 10 s regained, still spent, 180 s of rest to go.
+        let r = DutyBudget::restore(DutyRating::DESK_COLUMN, &line, 1_090_000_000_000).unwrap();
+        assert!(r.exhausted() && (r.used_s() - 110.0).abs() < 1e-6, "{r:?}");
+        // After a reboot (the clock started again): only the time since the boot is rest.
+        let r = DutyBudget::restore(DutyRating::DESK_COLUMN, &line, 9_000_000_000).unwrap();
+        assert!((r.used_s() - 119.0).abs() < 1e-6, "{r:?}");
+        // The margin ahead is saved, up to the rating.
+        let mut b = DutyBudget::new(DutyRating::DESK_COLUMN);
+        run(&mut b, true, 10.0);
+        assert!(b.record_line(0.5, 0).starts_with("@lift-duty 10.500 0 "));
+        for bad in [
+            "@lift-duty",
+            "@lift-duty NaN 0 1",
+            "@lift-duty -1 0 1",
+            "@lift-duty 3 2 1",
+            "@lift-duty 3 0 1 extra",
+            "@operator-stop",
+        ] {
+            assert_eq!(
+                DutyBudget::restore(DutyRating::DESK_COLUMN, bad, 5),
+                None,
+                "{bad}"
+            );
+        }
     }
 
     #[test]

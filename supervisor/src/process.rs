@@ -9,23 +9,27 @@
 //! saved to the record before the directives that announce it are published, so no restart
 //! can come between a bus turned off and the latch that keeps it off.
 
-use crate::duty::{Allowance, DutyBudget};
+use crate::duty::{Allowance, DutyBudget, RECORD_PREFIX};
+use crate::event::Event;
 use crate::logic::{LayoutError, Supervisor};
 use crate::SupervisorConfig;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 use telemetry::frames::{
     Directives, EventKind, GripFrame, Heartbeat, JointLayout, JointState, Peer, SupervisorCommand,
-    SupervisorEvent,
+    SupervisorEvent, COMMAND_REFUSED_NOT_STOPPED, COMMAND_RESUME, COMMAND_STOP,
 };
-use telemetry::latch::LatchError;
-use telemetry::motion::{LiftAllowance, LiftState};
+use telemetry::latch::{LatchError, OPERATOR_STOP};
+use telemetry::motion::{LiftAllowance, LiftState, LIFT_REFUSED_DUTY, LIFT_REFUSED_OPERATOR_STOP};
 use telemetry::watchdog::Liveness;
 
 /// Directives and heartbeat period.
 pub const PUBLISH_EVERY: Duration = Duration::from_millis(5);
 /// Poll period of the loop.
 pub const POLL: Duration = Duration::from_millis(1);
+/// The lift's budget is saved with this much running ahead, and again once the motor has run
+/// it: the record never holds less heat than the motor (a crash between saves forgets none).
+const DUTY_SAVE_AHEAD_S: f64 = 0.5;
 
 /// The supervisor's plane and its trip record, as its loop uses them. Every call returns at
 /// once.
@@ -87,15 +91,33 @@ pub struct Process {
     lift_duty: DutyBudget,
     last_lift: Option<(u64, bool)>,
     allowance: LiftAllowance,
+    /// The budget's line of the record as loaded, until the first turn restores it (it needs
+    /// the time).
+    duty_line: Option<String>,
+    /// Running the last save still covers, s (below zero: save again), and whether the budget
+    /// was spent then.
+    duty_ahead_s: f64,
+    duty_saved_spent: bool,
+    /// Events of the operator's stop taken before the driver's layout, numbered.
+    early_events: u64,
 }
 
 impl Process {
     /// A process with `config` and the trip record `trips` as loaded at start; its heartbeat
     /// carries `pid`.
-    pub fn new(config: SupervisorConfig, trips: Vec<String>, pid: u32) -> Process {
+    pub fn new(config: SupervisorConfig, mut trips: Vec<String>, pid: u32) -> Process {
+        let duty_line = trips
+            .iter()
+            .position(|l| l.starts_with(RECORD_PREFIX.trim_end()))
+            .map(|i| trips.remove(i));
+        trips.retain(|l| !l.starts_with(RECORD_PREFIX.trim_end()));
         Process {
             supervisor: None,
             trips,
+            duty_line,
+            duty_ahead_s: 0.0,
+            duty_saved_spent: false,
+            early_events: 0,
             recorded_mask: 0,
             recorded_stop: false,
             heartbeat: Heartbeat {
@@ -130,10 +152,20 @@ impl Process {
         io: &mut impl SupervisorIo,
         now: u64,
     ) -> Result<Option<Change>, LayoutError> {
-        // The lift's budget does not wait for the driver's layout: the lift is not on its buses.
-        self.lift_duty_tier(io, now);
+        if let Some(line) = self.duty_line.take() {
+            self.restore_duty(&line, now);
+        }
         let change = self.take_layout(io, now)?;
+        if self.supervisor.is_none() {
+            // No driver's layout (the driver dead or not yet started): the operator's stop is
+            // still taken, for the lift, and recorded for the supervisor to come.
+            self.early_commands(io, now);
+        }
         let Some(s) = self.supervisor.as_mut() else {
+            // The lift's budget does not wait for the driver's layout: the lift is not on its
+            // buses.
+            self.lift_duty_tier(io, now);
+            self.save_duty(io, now);
             return Ok(change);
         };
         while let Some(state) = io.next_state() {
@@ -163,17 +195,19 @@ impl Process {
             // Latches of joints this layout does not have (a driver started on some of the
             // buses) are not this instance's to release: they stay in the record.
             let names: Vec<&str> = layout.joint_names().collect();
-            let stop = telemetry::latch::OPERATOR_STOP;
             self.trips
-                .retain(|n| !names.contains(&n.as_str()) && n != stop);
+                .retain(|n| !names.contains(&n.as_str()) && n != OPERATOR_STOP);
             self.trips.extend(s.tripped_joints());
             if s.stopped() {
-                self.trips.push(stop.to_string());
+                self.trips.push(OPERATOR_STOP.to_string());
             }
-            if let Err(e) = io.save_trips(&self.trips) {
-                tracing::error!("{e}: a restart would forget the latched trips, and the driver keeps a released bus off");
-            }
+            self.save_record(io, now);
         }
+        self.lift_duty_tier(io, now);
+        self.save_duty(io, now);
+        let Some(s) = self.supervisor.as_mut() else {
+            return Ok(change);
+        };
         // Directives go out every period as the heartbeat of the decision, and at once when they
         // change (a trip must not wait for the next period).
         let period_over = self
@@ -191,25 +225,111 @@ impl Process {
         Ok(change)
     }
 
+    /// Whether an operator's stop is in force: the supervisor's word, or before the driver's
+    /// layout the record's.
+    fn stopped(&self) -> bool {
+        match &self.supervisor {
+            Some(s) => s.stopped(),
+            None => self.trips.iter().any(|l| l == OPERATOR_STOP),
+        }
+    }
+
+    /// The operator's stop and resume before the driver's layout is known: kept in the record
+    /// (restored by the supervisor made for the layout) and said as events; other commands
+    /// wait for the layout.
+    fn early_commands(&mut self, io: &mut impl SupervisorIo, now: u64) {
+        while let Some(cmd) = io.next_command() {
+            let event = match cmd.kind {
+                COMMAND_STOP if !self.stopped() => {
+                    self.trips.push(OPERATOR_STOP.to_string());
+                    Event::OperatorStop { restored: false }
+                }
+                COMMAND_RESUME if self.stopped() => {
+                    self.trips.retain(|l| l != OPERATOR_STOP);
+                    Event::OperatorResume
+                }
+                COMMAND_RESUME => Event::CommandRefused {
+                    bus: cmd.bus,
+                    why: COMMAND_REFUSED_NOT_STOPPED,
+                    command: cmd.kind,
+                },
+                // A second stop changes nothing; a bus to re-enable is not known yet.
+                _ => continue,
+            };
+            if !matches!(event, Event::CommandRefused { .. }) {
+                self.save_record(io, now);
+            }
+            self.early_events += 1;
+            io.event(&event.frame(self.early_events, now));
+        }
+    }
+
+    /// Saves the trip record: the latched joints, the operator's stop, the lift's budget.
+    fn save_record(&mut self, io: &mut impl SupervisorIo, now: u64) {
+        let mut lines = self.trips.clone();
+        // A cold motor needs no line (a robot without a lift keeps a record of trips only).
+        if self.lift_duty.used_s() > 0.0 || self.lift_duty.exhausted() {
+            // The heat the running ahead adds, and the rest a restore would credit for it.
+            let r = self.config.lift.rating();
+            let ahead = DUTY_SAVE_AHEAD_S * (1.0 + r.on_s / r.off_s);
+            lines.push(self.lift_duty.record_line(ahead, now));
+        }
+        self.duty_ahead_s = DUTY_SAVE_AHEAD_S;
+        self.duty_saved_spent = self.lift_duty.exhausted();
+        if let Err(e) = io.save_trips(&lines) {
+            tracing::error!("{e}: a restart would forget the latched trips and the lift's duty budget, and the driver keeps a released bus off");
+        }
+    }
+
+    /// Saves the record when the lift has run the margin it was last saved with (the rest a
+    /// restore credits from the save's time is then rest indeed), or its budget turned spent or
+    /// allowed.
+    fn save_duty(&mut self, io: &mut impl SupervisorIo, now: u64) {
+        if self.duty_ahead_s < 0.0 || self.lift_duty.exhausted() != self.duty_saved_spent {
+            self.save_record(io, now);
+        }
+    }
+
+    /// The budget as the record kept it; a line that does not read is a spent budget (the
+    /// motor's heat is not known: it rests).
+    fn restore_duty(&mut self, line: &str, now: u64) {
+        let rating = self.config.lift.rating();
+        self.lift_duty = DutyBudget::restore(rating, line, now).unwrap_or_else(|| {
+            tracing::error!(
+                line,
+                "the lift's duty budget in the trip record does not read: taken as spent"
+            );
+            let mut spent = DutyBudget::new(rating);
+            spent.update(true, rating.on_s);
+            spent
+        });
+        self.duty_saved_spent = self.lift_duty.exhausted();
+    }
+
     /// The lift motor's duty-cycle budget: filled while the lift's states say it moves, its
-    /// allowance published with the heartbeat's period (and at once when it changes).
+    /// allowance (refused too during an operator's stop) published with the heartbeat's
+    /// period, and at once when it changes.
     fn lift_duty_tier(&mut self, io: &mut impl SupervisorIo, now: u64) {
         while let Some(s) = io.next_lift_state() {
             if let Some((t, moving)) = self.last_lift {
                 let dt = s.timestamp_ns.saturating_sub(t) as f64 * 1e-9;
                 self.lift_duty.update(moving, dt);
+                if moving {
+                    self.duty_ahead_s -= dt;
+                }
             }
             self.last_lift = Some((s.timestamp_ns, s.velocity_m_s != 0.0));
         }
-        let (allowed, seconds) = match self.lift_duty.allowance() {
-            Allowance::Allowed { left_s } => (1, left_s),
-            Allowance::Refused { wait_s } => (0, wait_s),
+        let (allowed, refused, seconds) = match self.lift_duty.allowance() {
+            _ if self.stopped() => (0, LIFT_REFUSED_OPERATOR_STOP, 0.0),
+            Allowance::Allowed { left_s } => (1, 0, left_s),
+            Allowance::Refused { wait_s } => (0, LIFT_REFUSED_DUTY, wait_s),
         };
-        let changed = allowed != self.allowance.allowed;
+        let changed = (allowed, refused) != (self.allowance.allowed, self.allowance.refused);
         let due =
             now.saturating_sub(self.allowance.timestamp_ns) >= PUBLISH_EVERY.as_nanos() as u64;
         if changed || due {
-            if changed && allowed == 0 {
+            if changed && refused == LIFT_REFUSED_DUTY {
                 tracing::warn!(
                     wait_s = seconds,
                     "the lift's duty-cycle budget is spent: no travel for {seconds:.0} s"
@@ -219,6 +339,7 @@ impl Process {
                 seq: self.allowance.seq + 1,
                 timestamp_ns: now,
                 allowed,
+                refused,
                 seconds: seconds as f32,
                 used_s: self.lift_duty.used_s() as f32,
                 ..LiftAllowance::default()
