@@ -280,12 +280,14 @@ impl Controller {
         let Some((field, max_age_ns)) = &self.config.field else {
             return (requested, None, BASE_FLAG_NO_LIDAR);
         };
-        let fresh =
-            scan.filter(|s| s.point_count > 0 && now_ns.saturating_sub(s.end_ns) <= *max_age_ns);
+        let fresh = scan.filter(|s| {
+            now_ns.saturating_sub(s.end_ns) <= *max_age_ns && field.trusted(scan_points(s))
+        });
         let Some(scan) = fresh else {
-            // A lidar that should be there and says nothing: no motion along the path.
-            let turn = Twist::new(0.0, requested.angular_rad_s);
-            return (turn, None, BASE_FLAG_FIELD_BLIND);
+            // A lidar that should be there and says nothing it can be trusted on (no revolution,
+            // a silent or stale one, a covered window): no motion at all. Turning sweeps a
+            // square body's corners outward, into what it cannot see.
+            return (Twist::default(), None, BASE_FLAG_FIELD_BLIND);
         };
         // The direction of travel: the one asked for, or while stopping the one still moving.
         let v = requested.linear_m_s;
@@ -294,11 +296,7 @@ impl Controller {
         } else {
             self.ramp.twist().linear_m_s >= 0.0
         };
-        let points = || {
-            scan.points()
-                .iter()
-                .map(|p| (f64::from(p.angle_rad), f64::from(p.range_m)))
-        };
+        let points = || scan_points(scan);
         let limits = &self.config.limits;
         let verdict = field.verdict(points(), forward, limits.linear_brake_m_s2);
         // The turn likewise: the one asked for, or while stopping the one still turning.
@@ -326,6 +324,13 @@ impl Controller {
         }
         (target, Some(verdict.free_m), flags)
     }
+}
+
+/// A revolution's points as (bearing, rad; range, m).
+fn scan_points(scan: &LidarScan) -> impl Iterator<Item = (f64, f64)> + '_ {
+    scan.points()
+        .iter()
+        .map(|p| (f64::from(p.angle_rad), f64::from(p.range_m)))
 }
 
 #[cfg(test)]
@@ -615,9 +620,7 @@ mod tests {
         assert_eq!(drive_blind(&mut c, (0.0, 0.5), 2.0, |_| None), (0.0, 0.0));
         let mut c = ready(true);
         let stale = wall(5.0, 0);
-        let (v, w) = drive_blind(&mut c, (0.2, 0.5), 2.0, |t| {
-            (t > 400 * MS).then_some(stale)
-        });
+        let (v, w) = drive_blind(&mut c, (0.2, 0.5), 2.0, |t| (t > 400 * MS).then_some(stale));
         assert_eq!((v, w), (0.0, 0.0));
     }
 

@@ -62,10 +62,30 @@ pub struct TurnVerdict {
     pub max_rate_rad_s: f64,
 }
 
+/// A revolution is trusted only with a return in each of this many equal sectors around the
+/// lidar: a sector with none is a covered window, not free space (a home has a wall within
+/// the lidar's 12 m in every direction).
+pub const SECTORS: usize = 8;
+
 /// The turning field's angular resolution, rad (a degree: 1.7 mm at the A3's corners' 0.35 m).
 const TURN_STEP_RAD: f64 = std::f64::consts::PI / 180.0;
 
 impl FieldConfig {
+    /// Whether a revolution's points (bearing, rad; range, m, 0 for no return) can be judged:
+    /// each of [`SECTORS`] sectors around the lidar holds a return at or beyond the minimum
+    /// range. A window covered, wholly or in part, reads as no return or as the cover itself.
+    pub fn trusted(&self, points: impl IntoIterator<Item = (f64, f64)>) -> bool {
+        let mut seen = [false; SECTORS];
+        let sector = std::f64::consts::TAU / SECTORS as f64;
+        for (bearing, range) in points {
+            if range.is_finite() && range >= self.min_range_m && bearing.is_finite() {
+                let k = (bearing.rem_euclid(std::f64::consts::TAU) / sector) as usize;
+                seen[k.min(SECTORS - 1)] = true;
+            }
+        }
+        seen.iter().all(|&s| s)
+    }
+
     /// The verdict for travel forward (`forward`) or backward, from one revolution's points
     /// (bearing in the lidar's frame, rad counter-clockwise; range, m, 0 for no return), with
     /// the base braking at `brake_m_s2`.
@@ -187,6 +207,23 @@ pub(crate) mod tests {
                 (b, r.min(10.0))
             })
             .collect()
+    }
+
+    #[test]
+    fn a_revolution_with_a_sector_of_no_return_is_not_trusted() {
+        assert!(A3.trusted(wall(1.1)));
+        // A cover over the window's front quarter: no return, or the cover itself.
+        for cover in [0.0, 0.02] {
+            let covered = wall(1.1).into_iter().map(|(b, r)| {
+                let front = b.cos() > std::f64::consts::FRAC_PI_4.cos();
+                (b, if front { cover } else { r })
+            });
+            assert!(!A3.trusted(covered), "covered by returns at {cover} m");
+        }
+        assert!(!A3.trusted(std::iter::empty()));
+        // One return per sector is enough (dark furniture returns little).
+        let sparse = (0..SECTORS).map(|k| (k as f64 * 0.8 + 0.1, 3.0));
+        assert!(A3.trusted(sparse));
     }
 
     #[test]
