@@ -185,6 +185,8 @@ fn ended_name(e: Ended) -> &'static str {
         Ended::PageClosed => "page_closed",
         Ended::Released => "released",
         Ended::SafeState => "safe_state",
+        Ended::DriverRestarted => "driver_restarted",
+        Ended::DriverSilent => "driver_silent",
     }
 }
 

@@ -8,14 +8,19 @@
 //!   is counted; a tool pose is solved by [`body::Body::solve`] within those same ranges, and
 //!   one out of reach is refused with how far the closest solution stays.
 //! - **No jump**: each joint is taken from where it was read when it is first commanded, then
-//!   moves toward its target at most `max_speed_rad_s`; the goals go out every tick.
+//!   moves toward its target at most `max_speed_rad_s`, and never more than `max_lead_rad`
+//!   ahead of where it is read (a joint held back, or a servo that stopped answering, is not
+//!   waited for by a goal running on); the goals go out every tick.
 //! - **Dead-man**: one page controls at a time; it must be heard (any control message, or its
 //!   `alive`) within `deadman_ms`, else the arm is held where it is read (one frame of the
 //!   measured positions; grippers keep their grip) and nothing more is sent. A page whose
 //!   connection closes is released at once.
 //! - **The robot's safe state wins**: while the driver is in its safe state (an operator's stop,
 //!   no supervisor) nothing is taken and everything commanded is dropped, so no target set
-//!   before a recovery moves the arm after it.
+//!   before a recovery moves the arm after it. Every frame is watched, not only the newest: a
+//!   safe state shorter than a tick, a driver that restarted (its frames numbered from the
+//!   start again) or one silent for [`READ_MAX_AGE_NS`] drops everything as well, and nothing
+//!   is sent to a driver that is not heard.
 //!
 //! The driver then applies its own checks (finite, age, calibration clamp) and the supervisor
 //! watches the motors, as for every other source of goals.
@@ -46,6 +51,10 @@ pub struct TeleopSettings {
     pub accept_position_m: f64,
     /// ... and turned this little, rad.
     pub accept_angle_rad: f64,
+    /// The farthest a goal runs ahead of where its joint is read, rad (beyond the firmware
+    /// loop's error under the arm's weight, under 0.15 rad, where the supervisor deems it
+    /// saturated).
+    pub max_lead_rad: f64,
 }
 
 impl Default for TeleopSettings {
@@ -56,6 +65,7 @@ impl Default for TeleopSettings {
             ik: IkSettings::default(),
             accept_position_m: 1e-3,
             accept_angle_rad: 1f64.to_radians(),
+            max_lead_rad: 0.2,
         }
     }
 }
@@ -87,6 +97,9 @@ pub enum Refusal {
     /// No joint state or layout yet.
     #[error("the driver's layout and state are not known yet")]
     NotReady,
+    /// The driver's newest frame is too old.
+    #[error("the driver is not heard (no joint state for 100 ms): nothing is taken")]
+    DriverSilent,
     /// Another page controls the robot.
     #[error("another page controls the robot")]
     OtherPage,
@@ -136,6 +149,7 @@ impl Refusal {
         match self {
             Refusal::SafeState => "safe_state",
             Refusal::NotReady => "not_ready",
+            Refusal::DriverSilent => "driver_silent",
             Refusal::OtherPage => "other_page",
             Refusal::UnknownJoint(_) => "unknown_joint",
             Refusal::Wheel(_) => "wheel",
@@ -171,6 +185,10 @@ pub enum Ended {
     Released,
     /// The driver entered its safe state.
     SafeState,
+    /// The driver restarted (its frames numbered from the start again).
+    DriverRestarted,
+    /// No frame of the driver within [`READ_MAX_AGE_NS`].
+    DriverSilent,
 }
 
 /// Counts, for the page and the log.
@@ -184,7 +202,7 @@ pub struct TeleopCounters {
     pub deadman_releases: u64,
     /// ... by the page's connection closing.
     pub closed_releases: u64,
-    /// ... by the driver's safe state.
+    /// ... by the driver's safe state, restart or silence.
     pub safe_state_releases: u64,
     /// Goal frames produced.
     pub frames: u64,
@@ -226,6 +244,9 @@ pub struct Teleop {
     lift_m: f64,
     /// The hold frame owed once teleoperation ends (sent at the next tick).
     hold: Option<Ended>,
+    /// The driver's newest frame number, and a safe state or restart seen since the last tick.
+    driver_seq: Option<u64>,
+    interrupted: Option<Ended>,
     seq: u64,
     counters: TeleopCounters,
 }
@@ -276,6 +297,8 @@ impl Teleop {
             read: [None; MAX_JOINTS],
             lift_m,
             hold: None,
+            driver_seq: None,
+            interrupted: None,
             seq: 0,
             counters: TeleopCounters::default(),
         }
@@ -295,6 +318,14 @@ impl Teleop {
         if state.joint_count != self.layout.joint_count {
             return;
         }
+        // The same frame seen again (a command's newest) is not a restart.
+        if self.driver_seq.is_some_and(|s| state.seq < s) {
+            self.interrupted = Some(Ended::DriverRestarted);
+        }
+        if state.flags & STATE_FLAG_SAFE_STATE != 0 {
+            self.interrupted = Some(Ended::SafeState);
+        }
+        self.driver_seq = Some(state.seq);
         for (i, j) in state.joints().iter().enumerate() {
             if j.is_valid() {
                 self.read[i] = Some((f64::from(j.position_rad), state.timestamp_ns));
@@ -384,6 +415,9 @@ impl Teleop {
             .ok_or(Refusal::NotReady)?;
         if state.flags & STATE_FLAG_SAFE_STATE != 0 {
             return Err(Refusal::SafeState);
+        }
+        if now_ns.saturating_sub(state.timestamp_ns) > READ_MAX_AGE_NS {
+            return Err(Refusal::DriverSilent);
         }
         self.observe(state);
         let (goals, solved) = match command {
@@ -564,18 +598,24 @@ impl Teleop {
             .min(0.05);
         self.last_tick_ns = Some(now_ns);
         if self.active == 0 {
+            self.interrupted = None;
             return (None, None);
         }
         let Some(state) = state.filter(|s| s.joint_count == self.layout.joint_count) else {
             return (None, None);
         };
-        if state.flags & STATE_FLAG_SAFE_STATE != 0 {
-            // The driver holds the robot itself; nothing commanded before survives it.
+        self.observe(state);
+        if now_ns.saturating_sub(state.timestamp_ns) > READ_MAX_AGE_NS {
+            self.interrupted = Some(Ended::DriverSilent);
+        }
+        if let Some(why) = self.interrupted.take() {
+            // The driver holds the robot itself, or is not there to be told: nothing
+            // commanded before survives it.
             self.owner = None;
             self.active = 0;
             self.hold = None;
             self.counters.safe_state_releases += 1;
-            return (None, Some(Ended::SafeState));
+            return (None, Some(why));
         }
         let deadman_ns = self.settings.deadman_ms * 1_000_000;
         if let Some(o) = self.owner {
@@ -593,14 +633,26 @@ impl Teleop {
             self.active = 0;
             return (Some(frame), Some(why));
         }
-        let step = self.settings.max_speed_rad_s * dt;
+        let (step, lead) = (
+            self.settings.max_speed_rad_s * dt,
+            self.settings.max_lead_rad,
+        );
         let mut frame = self.frame(now_ns);
-        for i in 0..MAX_JOINTS {
-            if self.active & (1 << i) != 0 {
+        for (i, info) in self.layout.joints().iter().enumerate() {
+            if self.active & (1 << i) == 0 {
+                continue;
+            }
+            // Toward the target, an arm joint never further ahead of where it is read than the
+            // lead (a gripper's goal beyond its reading is its grip); a joint not read lately
+            // keeps its goal.
+            if let Some(read) = self.recent_read(i, state.timestamp_ns) {
                 let d = (self.target[i] - self.commanded[i]).clamp(-step, step);
                 self.commanded[i] += d;
-                frame.position_rad[i] = self.commanded[i] as f32;
+                if info.role() == JointRole::Joint {
+                    self.commanded[i] = self.commanded[i].clamp(read - lead, read + lead);
+                }
             }
+            frame.position_rad[i] = self.commanded[i] as f32;
         }
         frame.mask = self.active;
         self.counters.frames += 1;
@@ -741,11 +793,14 @@ pub(crate) mod tests {
                 "out_of_range",
             ),
         ] {
-            assert_eq!(t.command(1, &bad, Some(&s), 0).unwrap_err().kind(), kind);
+            assert_eq!(
+                t.command(1, &bad, Some(&at(&s, 0)), 0).unwrap_err().kind(),
+                kind
+            );
         }
         assert_eq!(t.counters().refused.values().sum::<u64>(), 4);
         assert_eq!(t.active(), 0);
-        assert_eq!(t.tick(Some(&s), MS), (None, None), "nothing sent");
+        assert_eq!(t.tick(Some(&at(&s, MS)), MS), (None, None), "nothing sent");
         // Not ready: no state, or one of another layout.
         let other = JointState {
             joint_count: 19,
@@ -788,14 +843,15 @@ pub(crate) mod tests {
     fn a_taken_target_is_approached_from_where_the_joint_was_read_at_the_bounded_speed() {
         let mut t = teleop();
         let s = state_at(&[0.0, 0.0, 0.0, -0.2, 0.0, 0.0, 0.0]);
-        t.command(1, &joints(&[("left_elbow", -1.0)]), Some(&s), 0)
+        t.command(1, &joints(&[("left_elbow", -1.0)]), Some(&at(&s, 0)), 0)
             .unwrap();
         let mut last = -0.2;
         let mut now = 0;
         for k in 0..100 {
             // The page keeps control.
-            t.command(1, &Command::Alive, Some(&s), now).unwrap();
-            let (frame, ended) = t.tick(Some(&s), now);
+            let f = followed(&t, &s, now);
+            t.command(1, &Command::Alive, Some(&f), now).unwrap();
+            let (frame, ended) = t.tick(Some(&f), now);
             assert_eq!(ended, None);
             let f = frame.unwrap();
             assert_eq!((f.mask, f.joint_count), (1 << 3, 8));
@@ -817,15 +873,15 @@ pub(crate) mod tests {
         let mut t = teleop();
         let s = state_at(&[0.0; 7]);
         let [lo, hi] = t.layout().joints()[3].range_rad.map(f64::from);
-        t.command(1, &joints(&[("left_elbow", lo)]), Some(&s), 0)
+        t.command(1, &joints(&[("left_elbow", lo)]), Some(&at(&s, 0)), 0)
             .unwrap();
-        t.command(1, &joints(&[("left_elbow", hi)]), Some(&s), 0)
+        t.command(1, &joints(&[("left_elbow", hi)]), Some(&at(&s, 0)), 0)
             .unwrap();
         assert_eq!(t.counters().taken, 2);
         assert_eq!(t.commanded(2), None, "a joint not commanded has no goal");
         let mut seq = 0;
         for k in 1..=3u64 {
-            let f = t.tick(Some(&s), k * 7 * MS).0.unwrap();
+            let f = t.tick(Some(&at(&s, k * 7 * MS)), k * 7 * MS).0.unwrap();
             assert_eq!(
                 f.timestamp_ns,
                 k * 7 * MS,
@@ -834,8 +890,9 @@ pub(crate) mod tests {
             assert!(f.seq > seq);
             seq = f.seq;
         }
-        t.command(1, &Command::Release, Some(&s), 30 * MS).unwrap();
-        let (f, ended) = t.tick(Some(&s), 40 * MS);
+        t.command(1, &Command::Release, Some(&at(&s, 30 * MS)), 30 * MS)
+            .unwrap();
+        let (f, ended) = t.tick(Some(&at(&s, 40 * MS)), 40 * MS);
         let f = f.unwrap();
         assert_eq!(ended, Some(Ended::Released), "the owner lets go");
         assert_eq!((f.timestamp_ns, f.seq > seq), (40 * MS, true));
@@ -847,20 +904,26 @@ pub(crate) mod tests {
         let mut t = teleop();
         // The reading lags (the servo has not moved yet).
         let s = state_at(&[0.0, 0.0, 0.0, -0.2, 0.0, 0.0, 0.0]);
-        t.command(1, &joints(&[("left_elbow", -1.0)]), Some(&s), 0)
+        t.command(1, &joints(&[("left_elbow", -1.0)]), Some(&at(&s, 0)), 0)
             .unwrap();
         for k in 0..20 {
-            t.command(1, &Command::Alive, Some(&s), k * 10 * MS)
+            t.command(1, &Command::Alive, Some(&at(&s, k * 10 * MS)), k * 10 * MS)
                 .unwrap();
-            t.tick(Some(&s), k * 10 * MS);
+            t.tick(Some(&at(&s, k * 10 * MS)), k * 10 * MS);
         }
+        // As far ahead of the reading as the lead lets it.
         let goal = t.commanded(3).unwrap();
-        assert!(goal < -0.45, "{goal}");
+        assert!((goal + 0.2 + 0.2).abs() < 1e-6, "{goal}");
         // A new target: the goal goes on from where it was (one step of 20 ms at 1.5 rad/s), no
         // jump back to the reading.
-        t.command(1, &joints(&[("left_elbow", -1.1)]), Some(&s), 200 * MS)
-            .unwrap();
-        let f = t.tick(Some(&s), 210 * MS).0.unwrap();
+        t.command(
+            1,
+            &joints(&[("left_elbow", -1.1)]),
+            Some(&at(&s, 200 * MS)),
+            200 * MS,
+        )
+        .unwrap();
+        let f = t.tick(Some(&at(&s, 210 * MS)), 210 * MS).0.unwrap();
         assert!(
             (f64::from(f.position_rad[3]) - goal).abs() <= 1.5 * 0.02 + 1e-6,
             "{} from {goal}",
@@ -876,12 +939,13 @@ pub(crate) mod tests {
         let s = state_at(&HERE);
         let mut t = teleop();
         t.set_lift_m(raised);
-        t.command(1, &tool, Some(&s), 0).unwrap();
+        t.command(1, &tool, Some(&at(&s, 0)), 0).unwrap();
         let mut f = None;
         for k in 0..300 {
-            t.command(1, &Command::Alive, Some(&s), k * 10 * MS)
-                .unwrap();
-            f = t.tick(Some(&s), k * 10 * MS).0;
+            let now = k * 10 * MS;
+            let read = followed(&t, &s, now);
+            t.command(1, &Command::Alive, Some(&read), now).unwrap();
+            f = t.tick(Some(&read), now).0;
         }
         let q: Vec<f64> = (0..7)
             .map(|i| f64::from(f.unwrap().position_rad[i]))
@@ -904,14 +968,15 @@ pub(crate) mod tests {
         let Command::Tool { target, .. } = tool.clone() else {
             unreachable!()
         };
-        let solved = t.command(1, &tool, Some(&s), 0).unwrap().unwrap();
+        let solved = t.command(1, &tool, Some(&at(&s, 0)), 0).unwrap().unwrap();
         assert!(solved.position_error_m < 1e-3 && solved.angle_error_rad < 1e-2);
         // Ticks until every joint got there (well within 3 s at 1.5 rad/s).
         let mut frame = None;
         for k in 0..300 {
-            t.command(1, &Command::Alive, Some(&s), k * 10 * MS)
-                .unwrap();
-            frame = t.tick(Some(&s), k * 10 * MS).0;
+            let now = k * 10 * MS;
+            let read = followed(&t, &s, now);
+            t.command(1, &Command::Alive, Some(&read), now).unwrap();
+            frame = t.tick(Some(&read), now).0;
         }
         let f = frame.unwrap();
         assert_eq!(f.mask, 0x7f, "the seven joints, not the gripper");
@@ -937,7 +1002,9 @@ pub(crate) mod tests {
                 rotation: [1.0, 0.0, 0.0, 0.0],
             },
         };
-        let e = t.command(1, &far, Some(&s), 3_000 * MS).unwrap_err();
+        let e = t
+            .command(1, &far, Some(&at(&s, 3_000 * MS)), 3_000 * MS)
+            .unwrap_err();
         assert!(
             matches!(e, Refusal::Unreachable { position_error_m, .. } if position_error_m > 1.0),
             "{e}"
@@ -950,7 +1017,7 @@ pub(crate) mod tests {
             },
         };
         assert_eq!(
-            t.command(1, &bad, Some(&s), 3_000 * MS),
+            t.command(1, &bad, Some(&at(&s, 3_000 * MS)), 3_000 * MS),
             Err(Refusal::BadPose)
         );
         let zero = Command::Tool {
@@ -961,7 +1028,7 @@ pub(crate) mod tests {
             },
         };
         assert_eq!(
-            t.command(1, &zero, Some(&s), 3_000 * MS),
+            t.command(1, &zero, Some(&at(&s, 3_000 * MS)), 3_000 * MS),
             Err(Refusal::BadPose)
         );
         let right = Command::Tool {
@@ -969,7 +1036,7 @@ pub(crate) mod tests {
             target,
         };
         assert_eq!(
-            t.command(1, &right, Some(&s), 3_000 * MS),
+            t.command(1, &right, Some(&at(&s, 3_000 * MS)), 3_000 * MS),
             Err(Refusal::UnknownArm("right_arm".into())),
             "the right arm is not driven here"
         );
@@ -993,7 +1060,7 @@ pub(crate) mod tests {
             ..TeleopSettings::default()
         };
         let mut refusing = Teleop::new(body.clone(), a3_left_layout(), tight(0.0));
-        let e = refusing.command(1, &tool, Some(&s), 0).unwrap_err();
+        let e = refusing.command(1, &tool, Some(&at(&s, 0)), 0).unwrap_err();
         let Refusal::Unreachable {
             position_error_m, ..
         } = e
@@ -1002,7 +1069,10 @@ pub(crate) mod tests {
         };
         // ... and is taken when the acceptance covers how close it came.
         let mut taking = Teleop::new(body, a3_left_layout(), tight(position_error_m + 1e-9));
-        let solved = taking.command(1, &tool, Some(&s), 0).unwrap().unwrap();
+        let solved = taking
+            .command(1, &tool, Some(&at(&s, 0)), 0)
+            .unwrap()
+            .unwrap();
         assert_eq!(solved.position_error_m, position_error_m);
         assert_eq!(taking.active(), 0x7f);
     }
@@ -1014,7 +1084,7 @@ pub(crate) mod tests {
         t.command(
             1,
             &joints(&[("left_elbow", -1.0), ("left_gripper", 0.2)]),
-            Some(&s),
+            Some(&at(&s, 0)),
             0,
         )
         .unwrap();
@@ -1024,7 +1094,7 @@ pub(crate) mod tests {
         for k in 0..50u64 {
             let now = k * 10 * MS;
             moving.joints[3].position_rad = -0.2 - 0.01 * k as f32;
-            let (frame, ended) = t.tick(Some(&moving), now);
+            let (frame, ended) = t.tick(Some(&at(&moving, now)), now);
             if let Some(why) = ended {
                 assert_eq!(why, Ended::DeadMan);
                 let f = frame.unwrap();
@@ -1045,7 +1115,10 @@ pub(crate) mod tests {
         }
         let ended_at = ended_at.expect("released");
         assert!(ended_at > 300 * MS && ended_at <= 310 * MS, "{ended_at}");
-        assert_eq!(t.tick(Some(&moving), ended_at + 10 * MS), (None, None));
+        assert_eq!(
+            t.tick(Some(&at(&moving, ended_at + 10 * MS)), ended_at + 10 * MS),
+            (None, None)
+        );
         assert_eq!(t.counters().deadman_releases, 1);
         assert_eq!(t.owner(), None);
     }
@@ -1055,34 +1128,36 @@ pub(crate) mod tests {
         let mut t = teleop();
         let s = state_at(&[0.0; 7]);
         let elbow = joints(&[("left_elbow", -0.5)]);
-        t.command(1, &elbow, Some(&s), 0).unwrap();
+        t.command(1, &elbow, Some(&at(&s, 0)), 0).unwrap();
         assert_eq!(
-            t.command(2, &elbow, Some(&s), 100 * MS),
+            t.command(2, &elbow, Some(&at(&s, 100 * MS)), 100 * MS),
             Err(Refusal::OtherPage)
         );
         // Page 2 cannot end page 1's control either.
-        t.command(2, &Command::Release, Some(&s), 100 * MS)
+        t.command(2, &Command::Release, Some(&at(&s, 100 * MS)), 100 * MS)
             .unwrap_err();
         t.page_closed(2);
         assert_eq!(t.owner(), Some(1));
         t.page_closed(1);
-        let (frame, ended) = t.tick(Some(&s), 110 * MS);
+        let (frame, ended) = t.tick(Some(&at(&s, 110 * MS)), 110 * MS);
         assert_eq!(ended, Some(Ended::PageClosed));
         assert_eq!(frame.unwrap().mask, 1 << 3);
-        assert_eq!(t.tick(Some(&s), 120 * MS), (None, None));
-        t.command(2, &elbow, Some(&s), 130 * MS).unwrap();
+        assert_eq!(t.tick(Some(&at(&s, 120 * MS)), 120 * MS), (None, None));
+        t.command(2, &elbow, Some(&at(&s, 130 * MS)), 130 * MS)
+            .unwrap();
         assert_eq!(t.owner(), Some(2));
         // Page 2 goes silent: page 1 may take over after the bound.
         assert_eq!(
-            t.command(1, &elbow, Some(&s), 400 * MS),
+            t.command(1, &elbow, Some(&at(&s, 400 * MS)), 400 * MS),
             Err(Refusal::OtherPage)
         );
-        t.command(1, &elbow, Some(&s), 431 * MS + 1).unwrap();
+        t.command(1, &elbow, Some(&at(&s, 431 * MS + 1)), 431 * MS + 1)
+            .unwrap();
         assert_eq!(t.owner(), Some(1));
         assert_eq!(t.counters().closed_releases, 1);
         // The stop button, pressed on any page, lets go of whichever controls.
         t.let_go();
-        let (frame, ended) = t.tick(Some(&s), 440 * MS);
+        let (frame, ended) = t.tick(Some(&at(&s, 440 * MS)), 440 * MS);
         assert_eq!(
             (frame.map(|f| f.mask), ended),
             (Some(1 << 3), Some(Ended::Released))
@@ -1094,22 +1169,48 @@ pub(crate) mod tests {
     fn the_safe_state_drops_everything_commanded_and_refuses_what_comes_during_it() {
         let mut t = teleop();
         let s = state_at(&[0.0; 7]);
-        t.command(1, &joints(&[("left_elbow", -1.0)]), Some(&s), 0)
+        t.command(1, &joints(&[("left_elbow", -1.0)]), Some(&at(&s, 0)), 0)
             .unwrap();
-        assert!(t.tick(Some(&s), 10 * MS).0.is_some());
+        assert!(t.tick(Some(&at(&s, 10 * MS)), 10 * MS).0.is_some());
         let safe = JointState {
             flags: STATE_FLAG_SAFE_STATE,
             ..s
         };
-        assert_eq!(t.tick(Some(&safe), 20 * MS), (None, Some(Ended::SafeState)));
         assert_eq!(
-            t.command(1, &joints(&[("left_elbow", -1.0)]), Some(&safe), 30 * MS),
+            t.tick(Some(&at(&safe, 20 * MS)), 20 * MS),
+            (None, Some(Ended::SafeState))
+        );
+        assert_eq!(
+            t.command(
+                1,
+                &joints(&[("left_elbow", -1.0)]),
+                Some(&at(&safe, 30 * MS)),
+                30 * MS
+            ),
             Err(Refusal::SafeState)
         );
         // Recovered: nothing planned before moves the arm.
-        assert_eq!(t.tick(Some(&s), 40 * MS), (None, None));
+        assert_eq!(t.tick(Some(&at(&s, 40 * MS)), 40 * MS), (None, None));
         assert_eq!(t.active(), 0);
         assert_eq!(t.counters().safe_state_releases, 1);
+    }
+
+    /// The driver's frame at `t_ns` of servos that follow their goals: `s` with every
+    /// commanded joint read where it was last commanded.
+    fn followed(t: &Teleop, s: &JointState, t_ns: u64) -> JointState {
+        let mut f = at(s, t_ns);
+        for (i, j) in f.joints[..8].iter_mut().enumerate() {
+            if let Some(g) = t.commanded(i) {
+                j.position_rad = g as f32;
+            }
+        }
+        f
+    }
+
+    /// `s` as the driver's frame at `t_ns` (numbered by the millisecond: a frame seen again
+    /// is the same frame).
+    fn at(s: &JointState, t_ns: u64) -> JointState {
+        frame_at(s, t_ns / MS + 1, t_ns)
     }
 
     /// `s` as the driver's frame number `seq`, stamped `t_ns`.
@@ -1125,8 +1226,13 @@ pub(crate) mod tests {
     fn a_driver_that_dies_and_restarts_gets_nothing_commanded_before() {
         let mut t = teleop();
         let s = state_at(&[0.0, 0.0, 0.0, -0.2, 0.0, 0.0, 0.0]);
-        t.command(1, &joints(&[("left_elbow", -1.2)]), Some(&frame_at(&s, 1, 0)), 0)
-            .unwrap();
+        t.command(
+            1,
+            &joints(&[("left_elbow", -1.2)]),
+            Some(&frame_at(&s, 1, 0)),
+            0,
+        )
+        .unwrap();
         let mut now = 0;
         let mut seq = 1;
         // 100 ms of teleoperation with the driver's frames coming, the elbow following.
@@ -1152,9 +1258,7 @@ pub(crate) mod tests {
             }
         }
         assert!(
-            sent_while_dead
-                .iter()
-                .all(|g| (g - left_at).abs() <= 0.25),
+            sent_while_dead.iter().all(|g| (g - left_at).abs() <= 0.25),
             "goals ran on from {left_at} while the driver was dead: {:?}",
             sent_while_dead.last()
         );
@@ -1182,8 +1286,13 @@ pub(crate) mod tests {
     fn a_safe_state_shorter_than_a_tick_still_drops_everything() {
         let mut t = teleop();
         let s = state_at(&[0.0; 7]);
-        t.command(1, &joints(&[("left_elbow", -1.0)]), Some(&frame_at(&s, 1, 0)), 0)
-            .unwrap();
+        t.command(
+            1,
+            &joints(&[("left_elbow", -1.0)]),
+            Some(&frame_at(&s, 1, 0)),
+            0,
+        )
+        .unwrap();
         assert!(t.tick(Some(&frame_at(&s, 1, 0)), 0).0.is_some());
         // Between two ticks the driver entered its safe state and left it again.
         let safe = JointState {
@@ -1203,8 +1312,13 @@ pub(crate) mod tests {
     fn the_speed_bound_holds_against_where_the_joint_is_read() {
         let mut t = teleop();
         let s = state_at(&[0.0, 0.0, 0.0, -0.2, 0.0, 0.0, 0.0]);
-        t.command(1, &joints(&[("left_elbow", -1.2)]), Some(&frame_at(&s, 1, 0)), 0)
-            .unwrap();
+        t.command(
+            1,
+            &joints(&[("left_elbow", -1.2)]),
+            Some(&frame_at(&s, 1, 0)),
+            0,
+        )
+        .unwrap();
         // The elbow does not follow (held by something, or its servo off): the goal must not
         // run ahead of it toward the target, to be met at once when it is free.
         let mut now = 0;
@@ -1216,6 +1330,9 @@ pub(crate) mod tests {
             t.tick(Some(&f), now);
         }
         let ahead = (t.commanded(3).unwrap() + 0.2).abs();
-        assert!(ahead <= 0.25, "the goal ran {ahead} rad ahead of the reading");
+        assert!(
+            ahead <= 0.25,
+            "the goal ran {ahead} rad ahead of the reading"
+        );
     }
 }
