@@ -343,7 +343,11 @@ fn the_operators_stop_stops_the_lift_and_a_streamed_goal_presses_a_hand_once() {
         "moved after the resume: {s:?}"
     );
 
-    // Coming down onto the hand under a goal re-sent every 60 ms for 8 s.
+    // Up above the hand, then down onto it under a goal re-sent every 60 ms for 8 s.
+    command(0.35);
+    wait_for(Duration::from_secs(15), "the lift at 0.35 m", || {
+        newest(&states).filter(|s| (s.height_m - 0.35).abs() <= HOLD_M && s.velocity_m_s == 0.0)
+    });
     let until = Instant::now() + Duration::from_secs(8);
     while Instant::now() < until {
         command(0.1);
