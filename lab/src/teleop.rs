@@ -1222,28 +1222,30 @@ pub(crate) mod tests {
         }
     }
 
-    #[test]
-    fn a_driver_that_dies_and_restarts_gets_nothing_commanded_before() {
+    /// Teleoperation with the elbow read at `from` (the driver's first frame, at 0) and sent
+    /// toward `to`.
+    fn elbow_sent_from(from: f64, to: f64) -> (Teleop, JointState) {
         let mut t = teleop();
-        let s = state_at(&[0.0, 0.0, 0.0, -0.2, 0.0, 0.0, 0.0]);
+        let s = state_at(&[0.0, 0.0, 0.0, from, 0.0, 0.0, 0.0]);
         t.command(
             1,
-            &joints(&[("left_elbow", -1.2)]),
+            &joints(&[("left_elbow", to)]),
             Some(&frame_at(&s, 1, 0)),
             0,
         )
         .unwrap();
+        (t, s)
+    }
+
+    #[test]
+    fn a_driver_that_dies_and_restarts_gets_nothing_commanded_before() {
+        let (mut t, s) = elbow_sent_from(-0.2, -1.2);
         let mut now = 0;
-        let mut seq = 1;
         // 100 ms of teleoperation with the driver's frames coming, the elbow following.
-        let mut newest = frame_at(&s, seq, 0);
+        let mut newest = at(&s, 0);
         for _ in 0..10 {
             now += 10 * MS;
-            seq += 1;
-            let mut f = frame_at(&s, seq, now);
-            f.joints[3].position_rad = t.commanded(3).unwrap() as f32;
-            t.observe(&f);
-            newest = f;
+            newest = followed(&t, &s, now);
             t.command(1, &Command::Alive, Some(&newest), now).unwrap();
             t.tick(Some(&newest), now);
         }
@@ -1267,8 +1269,7 @@ pub(crate) mod tests {
         let mut moved = Vec::new();
         for k in 1..=20u64 {
             now += 10 * MS;
-            let f = frame_at(&s, k, now);
-            let mut f = f;
+            let mut f = frame_at(&s, k, now);
             f.joints[3].position_rad = left_at as f32;
             t.observe(&f);
             let _ = t.command(1, &Command::Alive, Some(&f), now);
@@ -1310,15 +1311,7 @@ pub(crate) mod tests {
 
     #[test]
     fn the_speed_bound_holds_against_where_the_joint_is_read() {
-        let mut t = teleop();
-        let s = state_at(&[0.0, 0.0, 0.0, -0.2, 0.0, 0.0, 0.0]);
-        t.command(
-            1,
-            &joints(&[("left_elbow", -1.2)]),
-            Some(&frame_at(&s, 1, 0)),
-            0,
-        )
-        .unwrap();
+        let (mut t, s) = elbow_sent_from(-0.2, -1.2);
         // The elbow does not follow (held by something, or its servo off): the goal must not
         // run ahead of it toward the target, to be met at once when it is free.
         let mut now = 0;

@@ -451,6 +451,8 @@ mod tests {
         /// The halls report this count whatever the column does (a lost hall signal, a board
         /// repeating one STATUS).
         frozen_counts: Option<i64>,
+        /// The controller's last command, which the next step drives.
+        command: f64,
     }
 
     impl Column {
@@ -463,6 +465,7 @@ mod tests {
                 obstacle_m: None,
                 pressed_s: 0.0,
                 frozen_counts: None,
+                command: 0.0,
             }
         }
 
@@ -501,6 +504,27 @@ mod tests {
         }
     }
 
+    impl Column {
+        /// One 10 ms period of the loop: the column driven by the controller's last command,
+        /// its reading fed to the controller.
+        fn turn(&mut self, lift: &mut LiftController) -> (LiftReading, Option<LiftEvent>) {
+            let r = self.step(self.command, 0.01);
+            let (v, e) = lift.step(&r);
+            self.command = v;
+            (r, e)
+        }
+
+        /// Periods until the controller stops on an obstruction (at most `periods`).
+        fn until_obstruction(&mut self, lift: &mut LiftController, periods: usize) -> LiftReading {
+            for _ in 0..periods {
+                if let (r, Some(LiftEvent::Obstruction { .. })) = self.turn(lift) {
+                    return r;
+                }
+            }
+            panic!("no obstruction in {periods} periods");
+        }
+    }
+
     /// Runs `seconds` at 100 Hz; returns the events and the largest speed commanded.
     fn run(
         lift: &mut LiftController,
@@ -510,17 +534,14 @@ mod tests {
     ) -> (Vec<LiftEvent>, f64) {
         let mut events = Vec::new();
         let mut fastest: f64 = 0.0;
-        let mut command = 0.0;
         lift.set_travel(if allowed {
             Travel::Allowed
         } else {
             Travel::DutySpent
         });
         for _ in 0..(seconds * 100.0).round() as usize {
-            let r = col.step(command, 0.01);
-            let (v, e) = lift.step(&r);
-            command = v;
-            fastest = fastest.max(v.abs());
+            let (_, e) = col.turn(lift);
+            fastest = fastest.max(col.command.abs());
             events.extend(e);
         }
         (events, fastest)
@@ -617,14 +638,12 @@ mod tests {
         // From the moment it meets the obstacle to the command 0: at most the obstruction
         // time and a step.
         let mut met = None;
-        let mut command = 0.0;
         for _ in 0..1500 {
-            let r = col.step(command, 0.01);
+            let (r, e) = col.turn(&mut lift);
             if r.current_a >= 8.0 && met.is_none() {
                 met = Some(r.t_s);
             }
-            let (v, e) = lift.step(&r);
-            command = v;
+            let v = col.command;
             if matches!(e, Some(LiftEvent::Obstruction { .. })) {
                 let pushed = r.t_s - met.expect("stopped before meeting it");
                 assert!(pushed <= 0.15 + 0.011, "pushed for {pushed} s");
@@ -682,16 +701,14 @@ mod tests {
         every_s: f64,
         goal: impl Fn(f64) -> f64,
     ) -> usize {
-        let (mut command, mut next_send, mut met) = (0.0, 0.0, 0);
+        let (mut next_send, mut met) = (0.0, 0);
         for k in 0..(seconds * 100.0).round() as usize {
             let t = k as f64 * 0.01;
             if t >= next_send - 1e-9 {
                 let _ = lift.set_goal(goal(t));
                 next_send += every_s;
             }
-            let r = col.step(command, 0.01);
-            let (v, e) = lift.step(&r);
-            command = v;
+            let (_, e) = col.turn(lift);
             met += usize::from(matches!(e, Some(LiftEvent::Obstruction { .. })));
         }
         met
@@ -741,17 +758,9 @@ mod tests {
     fn a_back_off_that_gets_nowhere_stops_the_column() {
         let (mut lift, mut col) = above_a_hand();
         lift.set_goal(0.1).unwrap();
-        let mut command = 0.0;
-        for _ in 0..1200 {
-            let r = col.step(command, 0.01);
-            let (v, e) = lift.step(&r);
-            command = v;
-            if matches!(e, Some(LiftEvent::Obstruction { .. })) {
-                break;
-            }
-        }
+        let r = col.until_obstruction(&mut lift, 1200);
         // The halls stop counting as it starts backing off: it must not drive on blind.
-        col.frozen_counts = Some(((col.h - col.counts_at_start) * 10_000.0).round() as i64);
+        col.frozen_counts = Some(r.counts);
         let (_, fastest) = run(&mut lift, &mut col, 10.0, true);
         assert!(fastest > 0.0, "it never tried to back off");
         assert!(
@@ -788,18 +797,15 @@ mod tests {
         lift.set_travel(Travel::OperatorStop);
         assert_eq!(lift.goal_m(), None);
         assert_eq!(lift.set_goal(0.6), Err(LiftError::OperatorStop));
-        let mut command = 0.0;
         for _ in 0..300 {
-            let r = col.step(command, 0.01);
-            command = lift.step(&r).0;
-            assert_eq!(command, 0.0);
+            col.turn(&mut lift);
+            assert_eq!(col.command, 0.0);
         }
         // Resumed: nothing told before the stop moves it; a new goal does.
         lift.set_travel(Travel::Allowed);
         let stood = col.h;
         for _ in 0..300 {
-            let r = col.step(command, 0.01);
-            command = lift.step(&r).0;
+            col.turn(&mut lift);
         }
         assert!(
             (col.h - stood).abs() < 1e-3,
@@ -813,16 +819,14 @@ mod tests {
     fn a_jammed_column_takes_no_goal_and_the_operators_release_homes_it() {
         let (mut lift, mut col) = above_a_hand();
         lift.set_goal(0.1).unwrap();
-        let mut command = 0.0;
+        let r = col.until_obstruction(&mut lift, 2000);
+        col.frozen_counts = Some(r.counts);
         let mut jammed = false;
-        for _ in 0..2000 {
-            let r = col.step(command, 0.01);
-            let (v, e) = lift.step(&r);
-            command = v;
-            if matches!(e, Some(LiftEvent::Obstruction { .. })) {
-                col.frozen_counts = Some(r.counts);
-            }
-            jammed |= matches!(e, Some(LiftEvent::BackOffBlocked { .. }));
+        for _ in 0..200 {
+            jammed |= matches!(
+                col.turn(&mut lift).1,
+                Some(LiftEvent::BackOffBlocked { .. })
+            );
         }
         assert!(jammed);
         assert!(matches!(lift.state(), LiftState::Jammed { .. }));
@@ -838,7 +842,8 @@ mod tests {
         let mut command = 0.0;
         for k in 0..400 {
             let mut r = col.step(command, 0.01);
-            // From 2 s on the board reports its over-current stop (and its motor stopped).
+            // From 2 s on the board reports its over-current stop (only the bit says so: the
+            // column here goes on moving).
             r.over_current = k >= 200;
             let (v, e) = lift.step(&r);
             command = v;

@@ -354,22 +354,32 @@ fn a_layout_without_room_for_the_software_tier_is_an_error() {
     assert!(io.calls.is_empty());
 }
 
+/// A lift rated 4 s on per 36 s off, travel again with 2 s regained (a test spends it).
+fn short_lift_rating() -> SupervisorConfig {
+    let text = SupervisorConfig::DEFAULT_TOML.replacen("on-s = 120", "on-s = 4", 1);
+    let text = text.replacen("off-s = 1080", "off-s = 36", 1);
+    let text = text.replacen("resume-s = 30", "resume-s = 2", 1);
+    SupervisorConfig::parse(&text, "test").unwrap()
+}
+
+/// The lift's state at `t_ms`, moving or not.
+fn lift_state(t_ms: u64, moving: bool) -> LiftState {
+    LiftState {
+        timestamp_ns: t_ms * MS,
+        velocity_m_s: if moving { 0.03 } else { 0.0 },
+        ..LiftState::default()
+    }
+}
+
 /// The lift's duty-cycle budget runs with or without the driver's layout (the lift is not on
 /// its buses): moving for the rated time spends it, the allowance turns to a refusal at once
 /// with the rest it needs, and comes back once the resume time is regained.
 #[test]
 fn the_lift_moving_past_its_rating_is_refused_travel_and_told_for_how_long() {
-    let text = SupervisorConfig::DEFAULT_TOML.replacen("on-s = 120", "on-s = 4", 1);
-    let text = text.replacen("off-s = 1080", "off-s = 36", 1);
-    let text = text.replacen("resume-s = 30", "resume-s = 2", 1);
-    let config = SupervisorConfig::parse(&text, "test").unwrap();
+    let config = short_lift_rating();
     let mut p = Process::new(config, Vec::new(), 1);
     let mut io = Queues::default();
-    let state = |t_ms: u64, moving: bool| LiftState {
-        timestamp_ns: t_ms * MS,
-        velocity_m_s: if moving { 0.03 } else { 0.0 },
-        ..LiftState::default()
-    };
+    let state = lift_state;
     // 10 ms states of a moving lift for 3.99 s: still allowed, the rest of the budget said.
     let mut t = 0;
     while t < 3990 {
@@ -558,17 +568,10 @@ fn an_operators_stop_refuses_the_lift_travel_until_the_resume() {
 /// grants it again only once the rest the motor needs has passed.
 #[test]
 fn a_restarted_supervisor_remembers_the_lifts_spent_budget() {
-    let text = SupervisorConfig::DEFAULT_TOML.replacen("on-s = 120", "on-s = 4", 1);
-    let text = text.replacen("off-s = 1080", "off-s = 36", 1);
-    let text = text.replacen("resume-s = 30", "resume-s = 2", 1);
-    let config = SupervisorConfig::parse(&text, "test").unwrap();
+    let config = short_lift_rating();
     let mut p = Process::new(config.clone(), Vec::new(), 1);
     let mut io = Queues::default();
-    let state = |t_ms: u64, moving: bool| LiftState {
-        timestamp_ns: t_ms * MS,
-        velocity_m_s: if moving { 0.03 } else { 0.0 },
-        ..LiftState::default()
-    };
+    let state = lift_state;
     let mut t = 0;
     while t <= 4100 {
         io.lift_states.push_back(state(t, true));
@@ -589,4 +592,31 @@ fn a_restarted_supervisor_remembers_the_lifts_spent_budget() {
     let mut io = Queues::default();
     r.poll(&mut io, (t + 18_500) * MS).unwrap();
     assert!(lift_allowed(&io));
+}
+
+/// The record's heat is never below the motor's, whatever it did since the save: run, rest
+/// long, run again (without spending the budget), and a restart at that moment restores at
+/// least the heat the motor has (a rule that saved only when the heat passed its last saved
+/// value would credit the second run as rest).
+#[test]
+fn a_restart_after_rest_and_running_again_restores_at_least_the_motors_heat() {
+    let mut p = Process::new(short_lift_rating(), Vec::new(), 1);
+    let mut io = Queues::default();
+    let mut t = 0;
+    for (moving, until_ms) in [(true, 3500), (false, 23_500), (true, 25_000)] {
+        while t <= until_ms {
+            io.lift_states.push_back(lift_state(t, moving));
+            p.poll(&mut io, t * MS).unwrap();
+            t += 10;
+        }
+    }
+    let heat = io.allowances.last().unwrap().used_s;
+    let mut q = Process::new(short_lift_rating(), io.record.clone(), 2);
+    let mut io = Queues::default();
+    q.poll(&mut io, t * MS).unwrap();
+    let restored = io.allowances.last().unwrap().used_s;
+    assert!(
+        restored >= heat - 1e-3,
+        "restored {restored} s of heat for the motor's {heat} s"
+    );
 }

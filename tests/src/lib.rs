@@ -23,6 +23,19 @@ fn release_dir() -> PathBuf {
     target.join("release")
 }
 
+/// Runs the operator's `nori ARGS --domain DOMAIN`, which must succeed; returns what it said
+/// (its stderr).
+pub fn nori_ok(args: &[&str], domain: &str) -> String {
+    let out = std::process::Command::new(binary("nori"))
+        .args(args)
+        .args(["--domain", domain])
+        .output()
+        .expect("nori runs");
+    let said = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(out.status.success(), "nori {args:?}: {said}");
+    said
+}
+
 /// Path of a workspace binary, built once per test run in the release profile: the processes
 /// run as deployed. (Unoptimised, the simulator falls behind real time in bursts on a two-core
 /// machine, so a moving joint looks static to the supervisor: a timing artefact no robot has.)

@@ -6,7 +6,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use nori_tests::{binary, scratch, wait_for, ArmStack, Proc};
+use nori_tests::{binary, nori_ok, scratch, wait_for, ArmStack, Proc};
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
 use telemetry::config::ProcessConfig;
@@ -50,6 +50,23 @@ fn lift_on_sim(tag: &str, sim_args: &[&str]) -> (ArmStack, Proc) {
     (stack, lift)
 }
 
+/// A goal of `h` m numbered `seq`, made `age_ms` ago.
+fn goal(seq: u64, h: f32, age_ms: u64) -> LiftCommand {
+    LiftCommand {
+        seq,
+        timestamp_ns: monotonic_ns() - age_ms * 1_000_000,
+        height_m: h,
+        kind: telemetry::motion::LIFT_COMMAND_GOAL,
+    }
+}
+
+/// The simulator's figure `key` of its lift (its report, written as it runs).
+fn sim_lift(stack: &ArmStack, key: &str) -> f64 {
+    let text = std::fs::read_to_string(stack.dir.join("sim-report.json")).unwrap();
+    let report: serde_json::Value = serde_json::from_str(&text).unwrap();
+    report["lift"][key].as_f64().unwrap()
+}
+
 #[test]
 fn the_lift_homes_goes_to_a_height_holds_it_and_stops_on_a_hand() {
     // A hand appearing under it at 0.25 m after 24 s.
@@ -63,21 +80,11 @@ fn the_lift_homes_goes_to_a_height_holds_it_and_stops_on_a_hand() {
     let node = Plane::open(&stack.domain, "test").unwrap();
     let commands = node.publisher(&plane::LIFT_COMMAND).unwrap();
     let states = node.subscriber(&plane::LIFT_STATE).unwrap();
-    let truth = || -> f64 {
-        let text = std::fs::read_to_string(stack.dir.join("sim-report.json")).unwrap();
-        let report: serde_json::Value = serde_json::from_str(&text).unwrap();
-        report["lift"]["height_m"].as_f64().unwrap()
-    };
+    let truth = || -> f64 { sim_lift(&stack, "height_m") };
     let mut seq = 0;
     let mut command = |h: f32, age_ms: u64| {
         seq += 1;
-        let c = LiftCommand {
-            seq,
-            timestamp_ns: monotonic_ns() - age_ms * 1_000_000,
-            height_m: h,
-            kind: telemetry::motion::LIFT_COMMAND_GOAL,
-        };
-        plane::publish(&commands, &c).unwrap();
+        plane::publish(&commands, &goal(seq, h, age_ms)).unwrap();
     };
 
     // Homed at its lower switch.
@@ -143,9 +150,7 @@ fn the_lift_homes_goes_to_a_height_holds_it_and_stops_on_a_hand() {
         "backed off to {} m",
         s.height_m
     );
-    let text = std::fs::read_to_string(stack.dir.join("sim-report.json")).unwrap();
-    let report: serde_json::Value = serde_json::from_str(&text).unwrap();
-    let pressed = report["lift"]["longest_press_s"].as_f64().unwrap();
+    let pressed = sim_lift(&stack, "longest_press_s");
     assert!(
         pressed > 0.0 && pressed <= PRESS_BOUND_S,
         "the column pressed on the hand for {pressed} s (bound {PRESS_BOUND_S} s)"
@@ -205,13 +210,7 @@ fn the_duty_budget_stops_travel_when_spent_and_no_supervisor_means_no_travel() {
         newest(&states).filter(|s| s.state == LIFT_READY)
     });
     // Homing ran about 3.3 s of the 6 s: the rest of the budget spent going up.
-    let c = LiftCommand {
-        seq: 1,
-        timestamp_ns: monotonic_ns(),
-        height_m: 0.4,
-        kind: telemetry::motion::LIFT_COMMAND_GOAL,
-    };
-    plane::publish(&commands, &c).unwrap();
+    plane::publish(&commands, &goal(1, 0.4, 0)).unwrap();
     let refused = wait_for(Duration::from_secs(10), "the budget spent", || {
         newest(&states).filter(|s| s.held == 1)
     });
@@ -258,15 +257,13 @@ fn the_duty_budget_stops_travel_when_spent_and_no_supervisor_means_no_travel() {
     stack.stop();
 }
 
-/// From outside, as the operator and a streaming planner would: the operator's stop (on the
-/// supervisor's command service, as `nori stop` and the lab's button send it) stops a column
-/// moving up at once, drops its goal and refuses goals until the resume, after which nothing
-/// told before moves it; and a goal re-sent every 60 ms onto a hand at 0.25 m presses it once,
-/// within the obstruction time, and leaves the column backed off.
+/// From outside, as the operator and a streaming planner would, with no bus-driver running:
+/// `nori stop` stops a column moving up at once, drops its goal and refuses goals until
+/// `nori resume`, after which nothing told before moves it; a goal re-sent every 60 ms onto a
+/// hand at 0.25 m presses it once, within the obstruction time, and leaves the column backed
+/// off and holding; `nori lift release` ends the hold without moving it.
 #[test]
 fn the_operators_stop_stops_the_lift_and_a_streamed_goal_presses_a_hand_once() {
-    use telemetry::frames::{SupervisorCommand, COMMAND_RESUME, COMMAND_STOP};
-    use telemetry::motion::LIFT_COMMAND_GOAL;
     let (mut stack, mut lift) = lift_on_sim(
         "lift-stop",
         &["--lift-obstacle-at", "0.25", "--lift-obstacle-from", "0"],
@@ -274,27 +271,11 @@ fn the_operators_stop_stops_the_lift_and_a_streamed_goal_presses_a_hand_once() {
     stack.restart_supervisor();
     let node = Plane::open(&stack.domain, "test").unwrap();
     let commands = node.publisher(&plane::LIFT_COMMAND).unwrap();
-    let operator = node.publisher(&plane::COMMANDS).unwrap();
     let states = node.subscriber(&plane::LIFT_STATE).unwrap();
     let mut seq = 0;
     let mut command = |h: f32| {
         seq += 1;
-        let c = LiftCommand {
-            seq,
-            timestamp_ns: monotonic_ns(),
-            height_m: h,
-            kind: LIFT_COMMAND_GOAL,
-        };
-        plane::publish(&commands, &c).unwrap();
-    };
-    let say = |kind: u8, seq: u64| {
-        let c = SupervisorCommand {
-            seq,
-            timestamp_ns: monotonic_ns(),
-            kind,
-            ..SupervisorCommand::default()
-        };
-        plane::publish(&operator, &c).unwrap();
+        plane::publish(&commands, &goal(seq, h, 0)).unwrap();
     };
     wait_for(Duration::from_secs(15), "the lift homed", || {
         newest(&states).filter(|s: &LiftState| s.state == LIFT_READY)
@@ -305,7 +286,8 @@ fn the_operators_stop_stops_the_lift_and_a_streamed_goal_presses_a_hand_once() {
         "the lift going up past 0.15 m",
         || newest(&states).filter(|s| s.height_m > 0.15 && s.velocity_m_s > 0.0),
     );
-    say(COMMAND_STOP, 1);
+    let said = nori_ok(&["stop"], &stack.domain);
+    assert!(said.contains("stopped"), "{said}");
     let stopped_at = Instant::now();
     let stopped = wait_for(Duration::from_secs(1), "the lift stopped", || {
         newest(&states).filter(|s| s.held == 3 && s.velocity_m_s == 0.0)
@@ -332,7 +314,7 @@ fn the_operators_stop_stops_the_lift_and_a_streamed_goal_presses_a_hand_once() {
         (stood.height_m - stopped.height_m) * 1000.0
     );
     // Resumed: nothing told before moves it.
-    say(COMMAND_RESUME, 2);
+    nori_ok(&["resume"], &stack.domain);
     wait_for(Duration::from_secs(1), "the stop ended", || {
         newest(&states).filter(|s| s.held == 0)
     });
@@ -360,9 +342,7 @@ fn the_operators_stop_stops_the_lift_and_a_streamed_goal_presses_a_hand_once() {
         "left at {} m",
         s.height_m
     );
-    let text = std::fs::read_to_string(stack.dir.join("sim-report.json")).unwrap();
-    let report: serde_json::Value = serde_json::from_str(&text).unwrap();
-    let pressed = report["lift"]["pressed_s"].as_f64().unwrap();
+    let pressed = sim_lift(&stack, "pressed_s");
     assert!(
         pressed > 0.0 && pressed <= PRESS_BOUND_S,
         "pressed on the hand {pressed} s in all under a streamed goal (bound {PRESS_BOUND_S} s)"
@@ -371,8 +351,15 @@ fn the_operators_stop_stops_the_lift_and_a_streamed_goal_presses_a_hand_once() {
         "lift streamed onto a hand: pressed {:.0} ms in all",
         pressed * 1000.0
     );
+    // The hand gone, the operator releases the hold: the column stays, with no goal.
+    let said = nori_ok(&["lift", "release"], &stack.domain);
+    assert!(said.contains("released"), "{said}");
+    std::thread::sleep(Duration::from_millis(500));
+    let released = newest(&states).unwrap();
+    assert_eq!(released.state, LIFT_READY, "{released:?}");
+    assert!(released.goal_m.is_nan() && (released.height_m - s.height_m).abs() < 0.001);
     let (code, out) = lift.terminate(Duration::from_secs(5));
     assert_eq!(code, Some(0), "{out}");
-    drop((commands, operator, states, node));
+    drop((commands, states, node));
     stack.stop();
 }

@@ -5,24 +5,13 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use nori_tests::{binary, check_left_arm_report, wait_for, ArmStack};
+use nori_tests::{binary, check_left_arm_report, nori_ok as nori, wait_for, ArmStack};
 use std::process::Command;
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
 use telemetry::frames::{STATE_FLAG_OPERATOR_STOP, STATE_FLAG_SAFE_STATE};
 use telemetry::plane::{self, newest, Plane};
 use telemetry::{GoalFrame, JointState};
-
-fn nori(args: &[&str], domain: &str) -> String {
-    let out = Command::new(binary("nori"))
-        .args(args)
-        .args(["--domain", domain])
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
-    assert!(out.status.success(), "nori {args:?}: {stderr}");
-    stderr
-}
 
 #[test]
 fn a_stop_holds_through_a_supervisor_restart_until_the_operator_resumes() {
