@@ -50,6 +50,9 @@ enum Command {
     Goal(plane_tools::GoalArgs),
     /// Drive the base at a velocity (LINEAR m/s, ANGULAR rad/s) for a while.
     Base(base_tool::BaseArgs),
+    /// The lift: `nori lift release` ends an obstruction's hold or a jam (heights: `nori goal
+    /// lift=M`).
+    Lift(plane_tools::LiftArgs),
     /// Ask the supervisor to re-enable a bus it tripped (granted once the bus has cooled).
     Reenable(plane_tools::ReenableArgs),
     /// Stop the robot: its safe state, no goal from any source, until `nori resume` (no
@@ -118,6 +121,7 @@ fn main() -> Result<()> {
         Command::State(a) => plane_tools::state(a),
         Command::Goal(a) => plane_tools::goal(a),
         Command::Reenable(a) => plane_tools::reenable(a),
+        Command::Lift(a) => plane_tools::lift(a),
         Command::Stop(a) => plane_tools::stop(a),
         Command::Resume(a) => plane_tools::resume(a),
         Command::Base(a) => base_tool::base(a),

@@ -35,10 +35,19 @@ impl PlaneArgs {
                 "nori {tool}: --driver-config is ignored: names come from the running driver's layout"
             );
         }
-        let node = Plane::open(&self.domain, &format!("nori-{tool}-{}", std::process::id()))?;
+        let node = self.node(tool)?;
         let layouts = node.subscriber(&plane::LAYOUT)?;
         let layout = wait_for_layout(&layouts, &self.domain, timeout, None)?;
         Ok((node, layout))
+    }
+
+    /// Opens the plane as `tool`, without waiting for a driver (what does not name joints or
+    /// buses: the operator's stop, the lift).
+    pub fn node(&self, tool: &str) -> Result<Plane> {
+        Ok(Plane::open(
+            &self.domain,
+            &format!("nori-{tool}-{}", std::process::id()),
+        )?)
     }
 }
 
@@ -202,6 +211,7 @@ fn lift_held(l: &LiftState) -> Option<String> {
             "duty-cycle budget spent: travel again in {:.0} s",
             l.duty_wait_s
         )),
+        3 => Some("the operator's stop (`nori resume`)".into()),
         _ => Some("no allowance from the supervisor".into()),
     }
 }
@@ -404,6 +414,59 @@ pub struct ReenableArgs {
     bus: String,
 }
 
+/// Options of `nori lift`.
+#[derive(Args, Debug)]
+pub struct LiftArgs {
+    #[command(subcommand)]
+    action: LiftAction,
+}
+
+/// What `nori lift` does.
+#[derive(clap::Subcommand, Debug)]
+pub enum LiftAction {
+    /// The operator's release, once whatever the lift stopped on is gone: an obstruction's
+    /// hold ends (the column stays, with no goal), a jammed column homes again (down to its
+    /// lower switch, watched for obstructions as it goes).
+    Release {
+        #[command(flatten)]
+        plane: PlaneArgs,
+    },
+}
+
+/// Sends the operator's release to the lift and says what it made of it.
+pub fn lift(args: &LiftArgs) -> Result<()> {
+    let LiftAction::Release { plane } = &args.action;
+    let node = plane.node("lift")?;
+    let commands = node.publisher(&plane::LIFT_COMMAND)?;
+    let states = node.subscriber(&plane::LIFT_STATE)?;
+    std::thread::sleep(Duration::from_millis(100));
+    let now = telemetry::clock::monotonic_ns();
+    let command = LiftCommand {
+        seq: 1,
+        timestamp_ns: now,
+        height_m: f32::NAN,
+        kind: telemetry::motion::LIFT_COMMAND_RELEASE,
+    };
+    plane::publish(&commands, &command)?;
+    let until = Instant::now() + Duration::from_millis(1000);
+    let mut seen = None;
+    while Instant::now() < until {
+        seen = plane::newest(&states).or(seen);
+        if let Some(l) = seen.filter(|l: &LiftState| l.timestamp_ns > now) {
+            eprintln!("nori lift: released; the lift: {}", lift_line(&l));
+            return Ok(());
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    match seen {
+        Some(l) => bail!(
+            "release sent, but the lift's state is {} ms old: is nori-lift running?",
+            now.saturating_sub(l.timestamp_ns) / 1_000_000
+        ),
+        None => bail!("release sent, but no lift state on the plane: is nori-lift running?"),
+    }
+}
+
 /// Options of `nori stop` and `nori resume`.
 #[derive(Args, Debug)]
 pub struct StopArgs {
@@ -452,7 +515,9 @@ pub fn reenable(args: &ReenableArgs) -> Result<()> {
 /// source) until `nori resume`; recorded, so no restart ends it.
 pub fn stop(args: &StopArgs) -> Result<()> {
     use telemetry::frames::{EventKind, COMMAND_STOP};
-    let (node, _) = args.plane.open("stop", LAYOUT_TIMEOUT)?;
+    // No driver needed: the supervisor takes the stop for the lift, and records it for the
+    // driver to come.
+    let node = args.plane.node("stop")?;
     let stopped = |node: &Plane| -> Result<bool> {
         let states = node.subscriber(&plane::JOINT_STATE)?;
         let until = Instant::now() + Duration::from_millis(300);
@@ -480,7 +545,7 @@ pub fn stop(args: &StopArgs) -> Result<()> {
 /// is, and takes only goals produced from then on.
 pub fn resume(args: &StopArgs) -> Result<()> {
     use telemetry::frames::{EventKind, COMMAND_REFUSED_NOT_STOPPED, COMMAND_RESUME};
-    let (node, _) = args.plane.open("resume", LAYOUT_TIMEOUT)?;
+    let node = args.plane.node("resume")?;
     let answer = command_supervisor(&node, &args.plane.domain, COMMAND_RESUME, 0, |e| {
         match e.kind()? {
             EventKind::OperatorResume => Some(Ok(())),

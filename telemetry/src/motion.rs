@@ -119,8 +119,11 @@ pub fn lift_state_name(state: u8) -> &'static str {
     match state {
         LIFT_HOMING => "homing",
         LIFT_READY => "ready",
-        LIFT_OBSTRUCTED => "stopped on an obstruction",
+        LIFT_OBSTRUCTED => {
+            "stopped on an obstruction (no goal toward it until `nori lift release`)"
+        }
         LIFT_LINK_LOST => "board not answering",
+        LIFT_JAMMED => "jammed: its back-off got nowhere (`nori lift release` homes it)",
         _ => "not homed",
     }
 }
