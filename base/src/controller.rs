@@ -649,4 +649,58 @@ mod tests {
         c.on_state(&state(40 * MS, [0.4, -0.4], [0.0, 0.0]));
         assert!(c.tick(40 * MS, None, &mut goal).0);
     }
+
+    #[test]
+    fn a_revolution_stamped_ahead_is_no_fresh_revolution() {
+        // One revolution whose end is stamped 10 s ahead of the base's clock (a lidar process
+        // on another clock base, a replayed or simulated publisher, a u64 near its end), then
+        // the lidar is silent: nori-base keeps its newest revolution and ticks on with it.
+        let mut c = ready(true);
+        let ahead = wall(5.0, 10_000 * MS);
+        let mut goal = GoalFrame::default();
+        let mut fastest = 0.0f32;
+        let mut blind_ticks = 0;
+        for k in 0..250u64 {
+            let t = k * 20 * MS;
+            c.on_command(&command(t, 0.3, 0.5), t).unwrap();
+            let (_, s) = period(&mut c, t, Some(&ahead), &mut goal);
+            blind_ticks += usize::from(s.flags & BASE_FLAG_FIELD_BLIND != 0);
+            if t > 300 * MS {
+                fastest = fastest.max(s.commanded_linear_m_s.abs());
+            }
+        }
+        let wrapped = wall(5.0, u64::MAX);
+        let (_, s) = period(&mut c, 5_000 * MS, Some(&wrapped), &mut goal);
+        eprintln!(
+            "5 s with one revolution stamped 10 s ahead: {blind_ticks} blind periods, {fastest} m/s commanded; end_ns = u64::MAX: blind {}",
+            s.flags & BASE_FLAG_FIELD_BLIND != 0
+        );
+        assert_eq!(
+            fastest, 0.0,
+            "drove at {fastest} m/s on a revolution nobody renewed"
+        );
+    }
+
+    #[test]
+    fn a_revolution_without_a_single_return_is_blind() {
+        // The laser dead or the window covered (every point "no return", or nearer than the
+        // lidar's minimum range, which nori-lidar turns into "no return"), revolutions coming.
+        let mut c = ready(true);
+        let mut goal = GoalFrame::default();
+        let mut fastest = (0.0f32, 0.0f32);
+        for k in 0..100u64 {
+            let t = k * 20 * MS;
+            let mut s = wall(5.0, t);
+            for p in s.points[..360].iter_mut() {
+                p.range_m = 0.0;
+                p.quality = 0;
+            }
+            c.on_command(&command(t, 0.3, 1.0), t).unwrap();
+            let (_, st) = period(&mut c, t, Some(&s), &mut goal);
+            fastest.0 = fastest.0.max(st.commanded_linear_m_s.abs());
+            fastest.1 = fastest.1.max(st.commanded_angular_rad_s.abs());
+        }
+        eprintln!("2 s of revolutions without a return: {fastest:?} (m/s, rad/s) commanded");
+        assert_eq!(fastest, (0.0, 0.0));
+    }
 }

@@ -1328,4 +1328,100 @@ pub(crate) mod tests {
             "the goal ran {ahead} rad ahead of the reading"
         );
     }
+
+    /// The page's message that reached the lab at `arrived_ns` (the lab's `at_ns`), before a
+    /// driver interruption, handled by the lab's loop only after it (one inbound message a
+    /// turn, behind others or an IK solve): `interrupt` feeds the frames of the interruption.
+    fn queued_across(
+        interrupt: impl Fn(&mut Teleop, &JointState) -> JointState,
+    ) -> (Result<Option<Solved>, Refusal>, Vec<f64>) {
+        let mut t = teleop();
+        let s = state_at(&[0.0, 0.0, 0.0, -0.2, 0.0, 0.0, 0.0]);
+        // The page controls the elbow (a small move), frames following.
+        t.command(
+            1,
+            &joints(&[("left_elbow", -0.25)]),
+            Some(&frame_at(&s, 1, 0)),
+            0,
+        )
+        .unwrap();
+        t.tick(Some(&frame_at(&s, 1, 0)), 0);
+        // 2 ms: the page's next message (the elbow to -1.2) reaches the lab and waits in its
+        // queue. Then the interruption, and a tick that drops everything.
+        let arrived_ns = 2 * MS;
+        let after = interrupt(&mut t, &s);
+        let (_, ended) = t.tick(Some(&after), after.timestamp_ns + 2 * MS);
+        assert!(ended.is_some(), "the interruption was seen");
+        // The queued message is handled now, with its arrival time.
+        let taken = t.command(
+            1,
+            &joints(&[("left_elbow", -1.2)]),
+            Some(&after),
+            arrived_ns,
+        );
+        let mut sent = Vec::new();
+        let mut now = after.timestamp_ns + 2 * MS;
+        for k in 0..100u64 {
+            now += 10 * MS;
+            let f = followed(&t, &frame_at(&s, after.seq + 1 + k, now), now);
+            t.observe(&f);
+            let _ = t.command(1, &Command::Alive, Some(&f), now);
+            if let (Some(g), _) = t.tick(Some(&f), now) {
+                sent.push(f64::from(g.position_rad[3]));
+            }
+        }
+        (taken, sent)
+    }
+
+    #[test]
+    fn a_command_sent_before_a_short_safe_state_is_refused_after_it() {
+        let (taken, sent) = queued_across(|t, s| {
+            t.observe(&JointState {
+                flags: STATE_FLAG_SAFE_STATE,
+                ..frame_at(s, 2, 4 * MS)
+            });
+            let after = frame_at(s, 3, 8 * MS);
+            t.observe(&after);
+            after
+        });
+        eprintln!(
+            "safe state 4-8 ms, message of 2 ms handled after: {taken:?}; elbow goals sent after it: first {:?} last {:?} ({} frames)",
+            sent.first(),
+            sent.last(),
+            sent.len()
+        );
+        assert!(
+            sent.is_empty(),
+            "a command from before the safe state moved the elbow to {:?}",
+            sent.last()
+        );
+    }
+
+    #[test]
+    fn a_command_sent_before_a_driver_restart_is_refused_after_it() {
+        let (taken, sent) = queued_across(|t, s| {
+            // The driver dies at 3 ms; a new one numbers its frames from 1 again, 600 ms
+            // later, in its safe state for 50 ms, then out of it.
+            for k in 1..=5u64 {
+                t.observe(&JointState {
+                    flags: STATE_FLAG_SAFE_STATE,
+                    ..frame_at(s, k, 600 * MS + k * 10 * MS)
+                });
+            }
+            let after = frame_at(s, 6, 660 * MS);
+            t.observe(&after);
+            after
+        });
+        eprintln!(
+            "driver restart, message of 2 ms handled after: {taken:?}; elbow goals sent after it: first {:?} last {:?} ({} frames)",
+            sent.first(),
+            sent.last(),
+            sent.len()
+        );
+        assert!(
+            sent.is_empty(),
+            "a command from before the restart moved the elbow to {:?}",
+            sent.last()
+        );
+    }
 }

@@ -855,4 +855,196 @@ mod tests {
         }
         panic!("the board's over-current stop was not taken as an obstruction");
     }
+
+    /// The hand under the column, stopped on once (streamed 0.1 m as the existing test does):
+    /// backed off to 0.26 m and held, `Obstructed`.
+    fn stopped_on_the_hand_once() -> (LiftController, Column) {
+        let (mut lift, mut col) = above_a_hand();
+        let met = streamed(&mut lift, &mut col, 12.0, 0.05, |_| 0.1);
+        assert_eq!(met, 1);
+        assert!(matches!(lift.state(), LiftState::Obstructed { .. }));
+        assert!(col.pressed_s <= PRESS_BOUND_S);
+        (lift, col)
+    }
+
+    #[test]
+    fn a_second_obstruction_at_the_same_place_holds_until_released() {
+        let (mut lift, mut col) = stopped_on_the_hand_once();
+        let before = col.pressed_s;
+        // A plan streaming 0.1 m every 60 ms that, once a second, has one step at 0.3 m
+        // (2 cm above the hold point: "away").
+        let met = streamed(&mut lift, &mut col, 20.0, 0.06, |t| {
+            if t % 1.0 < 0.06 {
+                0.3
+            } else {
+                0.1
+            }
+        });
+        eprintln!(
+            "after the first stop: met the hand {met} more times, pressed {:.3} s more (bound for one press {:.3} s)",
+            col.pressed_s - before,
+            PRESS_BOUND_S
+        );
+        assert_eq!(met, 0, "pressed the hand again {met} times");
+    }
+
+    #[test]
+    fn alternating_goals_stop_on_the_hand_like_any_other() {
+        let (mut lift, mut col) = stopped_on_the_hand_once();
+        let before = col.pressed_s;
+        // One goal at 0.5 m ("away": the hold ends), 0.1 m for 8 periods (the commanded
+        // speed ramps to 7 mm/s down), then 0.5 m and 0.1 m alternately every 10 ms: the
+        // command stays at 6-7 mm/s down, under the 7.5 mm/s below which nothing is
+        // "pushing", so neither the stall current nor the lack of motion is ever looked at.
+        let (mut command, mut met, mut slowest_pressing) = (0.0, 0, f64::INFINITY);
+        for k in 0..6000usize {
+            let goal = if k == 0 || (k > 8 && k % 2 == 1) {
+                0.5
+            } else {
+                0.1
+            };
+            let _ = lift.set_goal(goal);
+            let r = col.step(command, 0.01);
+            let (v, e) = lift.step(&r);
+            command = v;
+            if r.current_a >= 8.0 {
+                slowest_pressing = slowest_pressing.min(v.abs());
+            }
+            met += usize::from(matches!(e, Some(LiftEvent::Obstruction { .. })));
+        }
+        eprintln!(
+            "60 s of alternating goals: obstruction stops {met}, pressed {:.2} s more at {:.1} A, column at {:.4} m, state {:?}, slowest command while pressing {:.4} m/s",
+            col.pressed_s - before,
+            8.0,
+            col.h,
+            lift.state(),
+            slowest_pressing
+        );
+        assert!(
+            col.pressed_s - before <= PRESS_BOUND_S,
+            "pressed {:.2} s more",
+            col.pressed_s - before
+        );
+    }
+
+    #[test]
+    fn a_count_jump_while_held_keeps_the_hold() {
+        // Obstructed (the hand below): the board browns out, its counts restart at 0.
+        let (mut lift, mut col) = stopped_on_the_hand_once();
+        let before = col.pressed_s;
+        col.counts_at_start = col.h;
+        let r = col.step(0.0, 0.01);
+        let (_, e) = lift.step(&r);
+        assert!(matches!(e, Some(LiftEvent::CountsJumped { .. })), "{e:?}");
+        // main.rs: `if matches!(e, LiftEvent::CountsJumped { .. }) { controller.home(); }`
+        lift.home();
+        let (events, _) = run(&mut lift, &mut col, 3.0, true);
+        eprintln!(
+            "Obstructed, counts jump: events {events:?}, pressed {:.3} s more",
+            col.pressed_s - before
+        );
+        let pressed_again = col.pressed_s - before;
+
+        // Jammed (needs the operator's release): a jump of the counts, or a silent board,
+        // homes it with no release.
+        let (mut lift, mut col) = above_a_hand();
+        lift.set_goal(0.1).unwrap();
+        let mut command = 0.0;
+        for _ in 0..2000 {
+            let r = col.step(command, 0.01);
+            let (v, e) = lift.step(&r);
+            command = v;
+            if matches!(e, Some(LiftEvent::Obstruction { .. })) {
+                col.frozen_counts = Some(r.counts);
+            }
+        }
+        assert!(matches!(lift.state(), LiftState::Jammed { .. }));
+        col.frozen_counts = Some(-12_345);
+        let r = col.step(0.0, 0.01);
+        let (_, e) = lift.step(&r);
+        assert!(matches!(e, Some(LiftEvent::CountsJumped { .. })), "{e:?}");
+        lift.home();
+        let state_after = lift.state();
+        let (_, fastest) = run(&mut lift, &mut col, 1.0, true);
+        eprintln!("Jammed, counts jump: state {state_after:?}, then drove at {fastest} m/s without a release");
+        assert!(
+            pressed_again <= 1e-9,
+            "pressed the hand again {pressed_again:.3} s"
+        );
+        assert_eq!(
+            fastest, 0.0,
+            "a jammed column moved without the operator's release"
+        );
+    }
+
+    #[test]
+    fn homing_stopped_by_the_operator_waits_for_a_release() {
+        // Homing (at nori-lift's start; the operator's release of a jammed column and a silent
+        // board take the same path), then `nori stop`, then `nori resume`.
+        let mut lift = LiftController::new(ColumnConfig::A3);
+        let mut col = Column::new(0.3);
+        lift.home();
+        run(&mut lift, &mut col, 1.0, true);
+        assert_eq!(lift.state(), LiftState::Homing);
+        lift.set_travel(Travel::OperatorStop);
+        let mut command = 0.0;
+        for _ in 0..100 {
+            let r = col.step(command, 0.01);
+            command = lift.step(&r).0;
+        }
+        let stood = col.h;
+        lift.set_travel(Travel::Allowed);
+        for _ in 0..300 {
+            let r = col.step(command, 0.01);
+            command = lift.step(&r).0;
+        }
+        eprintln!(
+            "stopped at {stood:.4} m while homing; 3 s after the resume at {:.4} m, {:?}",
+            col.h,
+            lift.state()
+        );
+        assert!(
+            (col.h - stood).abs() < 1e-3,
+            "moved {:.4} m after the resume",
+            stood - col.h
+        );
+    }
+
+    #[test]
+    fn a_count_jump_after_a_long_gap_is_not_believed_either() {
+        // A board whose counts are 0 at the lower switch (started there).
+        let mut lift = LiftController::new(ColumnConfig::A3);
+        let mut col = Column::new(0.0);
+        lift.home();
+        run(&mut lift, &mut col, 1.0, true);
+        lift.set_goal(0.01).unwrap();
+        run(&mut lift, &mut col, 3.0, true);
+        // Standing at the lower soft limit (within its 2 mm hold band: a sag).
+        col.h = 0.0105;
+        run(&mut lift, &mut col, 0.5, true);
+        let at = col.h;
+        // The board browns out: no STATUS for 100 ms (within the 200 ms silence bound), and
+        // its counts start again at 0 here.
+        col.counts_at_start = col.h;
+        let r = col.step(0.0, 0.1);
+        let (_, e) = lift.step(&r);
+        eprintln!(
+            "column at {at:.4} m, counts restarted after 100 ms: event {e:?}, believed height {:?}",
+            lift.height_m(&r)
+        );
+        lift.set_goal(1.0).unwrap();
+        let mut highest: f64 = 0.0;
+        let mut command = 0.0;
+        for _ in 0..3000 {
+            let r = col.step(command, 0.01);
+            command = lift.step(&r).0;
+            highest = highest.max(col.h);
+        }
+        let (_, hi) = ColumnConfig::A3.soft_limits();
+        eprintln!("then a goal of 1 m: the column went to {highest:.4} m (soft limit {hi} m, switch at {} m)", ColumnConfig::A3.travel_m);
+        assert!(
+            highest <= hi + 0.002,
+            "past the soft limit to {highest:.4} m"
+        );
+    }
 }

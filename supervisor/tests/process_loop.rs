@@ -620,3 +620,172 @@ fn a_restart_after_rest_and_running_again_restores_at_least_the_motors_heat() {
         "restored {restored} s of heat for the motor's {heat} s"
     );
 }
+
+/// `nori stop` and `nori resume` taken in the same turn (or in two turns between two periods
+/// of nori-lift, which reads only the newest allowance): the lift is never told of the stop.
+#[test]
+fn a_stop_and_resume_in_one_turn_still_reach_the_lift() {
+    let cmd = |kind| SupervisorCommand {
+        seq: 1,
+        kind,
+        ..SupervisorCommand::default()
+    };
+    let mut p = Process::new(config(), Vec::new(), 7);
+    let mut io = Queues {
+        layout: Some(layout()),
+        ..Queues::default()
+    };
+    p.poll(&mut io, 0).unwrap();
+    io.commands.push_back(cmd(COMMAND_STOP));
+    io.commands.push_back(cmd(COMMAND_RESUME));
+    p.poll(&mut io, MS).unwrap();
+    p.poll(&mut io, 10 * MS).unwrap();
+    // In two turns 1 ms apart: both said, but within one of nori-lift's 10 ms periods, and
+    // nori-lift takes only the newest (`newest(&allowances)`).
+    io.commands.push_back(cmd(COMMAND_STOP));
+    p.poll(&mut io, 21 * MS).unwrap();
+    io.commands.push_back(cmd(COMMAND_RESUME));
+    p.poll(&mut io, 22 * MS).unwrap();
+    p.poll(&mut io, 30 * MS).unwrap();
+    let stops: Vec<_> = io
+        .allowances
+        .iter()
+        .filter(|a| a.refused == LIFT_REFUSED_OPERATOR_STOP)
+        .collect();
+    eprintln!(
+        "allowances: {:?}",
+        io.allowances
+            .iter()
+            .map(|a| (a.timestamp_ns / MS, a.allowed, a.refused))
+            .collect::<Vec<_>>()
+    );
+    assert!(
+        stops.iter().any(|a| a.timestamp_ns < 20 * MS),
+        "no allowance carried the first stop"
+    );
+}
+
+/// A crash loop of the supervisor timed just before its next save of the lift's budget, the
+/// lift moving whenever its newest allowance says so and is at most 200 ms old (nori-lift's
+/// `travel`): the motor's real heat (a budget fed with the real motion) against what the
+/// supervisor allows.
+const TAIL_MS: u64 = 200;
+fn crash_loop(alive_ms: u64, dead_ms: u64, seconds: u64) -> (f64, f64, u32, f64) {
+    use supervisor::duty::DutyBudget;
+    let config = config();
+    let mut real = DutyBudget::new(config.lift.rating());
+    let mut record: Vec<String> = Vec::new();
+    let (mut p, mut io): (Option<Process>, Queues) = (None, Queues::default());
+    let mut seen: Option<LiftAllowance> = None;
+    let mut newest_state: Option<LiftState> = None;
+    let (mut moving, mut over_s, mut ran_s, mut lives) = (false, 0.0, 0.0, 0u32);
+    // The heat as running time without the budget's cap: its peak against the rating's 120 s.
+    let (mut heat, mut peak) = (0.0f64, 0.0f64);
+    let t0 = 1_000_000u64; // ms
+    let cycle = alive_ms + dead_ms;
+    for t in t0..t0 + seconds * 1000 {
+        let phase = (t - t0) % cycle;
+        if phase == 0 {
+            // Started again: the record as last saved; history 1 gives the newest lift state.
+            p = Some(Process::new(config.clone(), record.clone(), lives));
+            io = Queues {
+                record: record.clone(),
+                ..Queues::default()
+            };
+            io.lift_states.extend(newest_state);
+            lives += 1;
+        }
+        if phase == alive_ms {
+            // SIGKILL: what was saved is what the next one reads.
+            record = io.record.clone();
+            p = None;
+        }
+        // nori-lift's period (10 ms): the newest allowance, 200 ms at most.
+        if t % 10 == 0 {
+            moving =
+                seen.is_some_and(|a| a.allowed == 1 && t * MS - a.timestamp_ns <= TAIL_MS * MS);
+            let s = LiftState {
+                timestamp_ns: t * MS,
+                velocity_m_s: if moving { 0.03 } else { 0.0 },
+                ..LiftState::default()
+            };
+            newest_state = Some(s);
+            if p.is_some() {
+                io.lift_states.push_back(s);
+            }
+        }
+        real.update(moving, 0.001);
+        heat = if moving {
+            heat + 0.001
+        } else {
+            (heat - 0.001 / 9.0).max(0.0)
+        };
+        peak = peak.max(heat);
+        if moving {
+            ran_s += 0.001;
+            if real.exhausted() {
+                over_s += 0.001;
+            }
+        }
+        if let Some(p) = p.as_mut() {
+            p.poll(&mut io, t * MS).unwrap();
+            seen = io.allowances.last().copied().or(seen);
+        }
+    }
+    (ran_s, over_s, lives, peak)
+}
+
+#[test]
+fn a_crash_loop_of_the_supervisor_never_runs_the_lift_past_its_rating() {
+    let mut worst = (0, 0.0);
+    for (alive_ms, dead_ms) in [
+        (300, 500),
+        (400, 500),
+        (505, 500),
+        (515, 500),
+        (515, 700),
+        (700, 500),
+        (1005, 500),
+    ] {
+        let (ran, over, lives, peak) = crash_loop(alive_ms, dead_ms, 600);
+        eprintln!(
+            "alive {alive_ms} ms, dead {dead_ms} ms, 600 s: {lives} lives, the lift ran {ran:.1} s, {over:.1} s of it with the motor's real budget spent; peak heat {peak:.1} s of the rated 120 s"
+        );
+        if over > worst.1 {
+            worst = (alive_ms, over);
+        }
+    }
+    assert_eq!(
+        worst.1, 0.0,
+        "alive {} ms: ran {:.1} s past its rating",
+        worst.0, worst.1
+    );
+}
+
+/// A lift state stamped far ahead (nothing bounds the interval between two states) is rest.
+#[test]
+fn a_lift_state_stamped_ahead_rests_no_spent_budget() {
+    let mut p = Process::new(config(), Vec::new(), 1);
+    let mut io = Queues::default();
+    let state = |t_ns: u64, moving: bool| LiftState {
+        timestamp_ns: t_ns,
+        velocity_m_s: if moving { 0.03 } else { 0.0 },
+        ..LiftState::default()
+    };
+    let mut t = 0;
+    while t <= 121_000 {
+        io.lift_states.push_back(state(t * MS, true));
+        p.poll(&mut io, t * MS).unwrap();
+        t += 10;
+    }
+    assert!(!lift_allowed(&io), "spent");
+    io.lift_states.push_back(state(t * MS, false));
+    io.lift_states.push_back(state(u64::MAX / 2, false));
+    p.poll(&mut io, t * MS).unwrap();
+    let a = io.allowances.last().unwrap();
+    eprintln!(
+        "after one state stamped ahead: allowed {} used {} s",
+        a.allowed, a.used_s
+    );
+    assert!(!lift_allowed(&io), "a spent budget granted again");
+}
