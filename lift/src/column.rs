@@ -83,13 +83,24 @@ impl ColumnConfig {
         (self.soft_margin_m, self.travel_m - self.soft_margin_m)
     }
 
-    /// The most the counts can change in `dt_s`: twice the rated speed, and half the soft
-    /// margin (a sag, a reading's jitter; a shift smaller than that keeps the column inside
-    /// its switches). A larger change is not the column moving.
+    /// The most the counts can change in `dt_s` (at most [`MAX_DT_S`]): half again the rated
+    /// speed, and half the soft margin (a sag, a reading's jitter). A larger change is not the
+    /// column moving. It stays under the soft margin, so a shift believed keeps the soft
+    /// limits inside the switches.
     fn plausible_counts(&self, dt_s: f64) -> f64 {
-        (2.0 * self.max_speed_m_s * dt_s + 0.5 * self.soft_margin_m) * self.counts_per_m
+        (1.5 * self.max_speed_m_s * dt_s + 0.5 * self.soft_margin_m) * self.counts_per_m
     }
 }
+
+/// The longest interval a step integrates, s (a reading after a longer silence is judged as
+/// this far from the last).
+const MAX_DT_S: f64 = 0.1;
+
+/// A second obstruction this close to the last one, m, within [`REPEAT_WINDOW_S`], is the same
+/// thing still there: its hold is the operator's to release.
+const REPEAT_M: f64 = 0.02;
+/// s.
+const REPEAT_WINDOW_S: f64 = 60.0;
 
 /// Whether the lift may travel now: the supervisor's word as `nori-lift` last heard it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -114,16 +125,21 @@ pub enum LiftState {
     /// Homed: following goals.
     Ready,
     /// Stopped on an obstruction at `at_m` going up (`up`) or down, backing off and then held;
-    /// no goal toward it is taken until a goal away from it or an operator's release.
+    /// no goal toward it is taken until a goal away from it or an operator's release, and only
+    /// the operator's release once it met the same obstruction again (`repeated`).
     Obstructed {
         /// Where it met it, m.
         at_m: f64,
         /// The direction it was going.
         up: bool,
+        /// It met an obstruction at the same place less than a minute before: a goal away is
+        /// taken, but only the operator's release ends the hold.
+        repeated: bool,
     },
     /// Its back-off from an obstruction at `at_m` got nowhere either (something else in the
-    /// way, or hall counts that no longer count): stopped, nothing taken until an operator's
-    /// release, which homes it again.
+    /// way, or hall counts that no longer count), or a held column lost its position (its
+    /// counts jumped, its board went silent, its controller restarted): stopped, nothing taken
+    /// until an operator's release, which homes it again.
     Jammed {
         /// Where it met the obstruction, m.
         at_m: f64,
@@ -197,6 +213,8 @@ pub struct LiftController {
     stuck_since: Option<f64>,
     /// At its goal (within the tolerance) since it last got there.
     arrived: bool,
+    /// The last obstruction: where, and when, s.
+    last_obstruction: Option<(f64, f64)>,
 }
 
 impl LiftController {
@@ -212,6 +230,7 @@ impl LiftController {
             last: None,
             stuck_since: None,
             arrived: false,
+            last_obstruction: None,
         }
     }
 
@@ -243,12 +262,45 @@ impl LiftController {
         self.goal_m = None;
     }
 
+    /// The board lost (silent, or its counts jumped: it may have restarted): no position is
+    /// trusted. A column free to move is unhomed (`nori-lift` homes it again); a held one stays
+    /// held, jammed, until the operator's release (homing goes down, onto whatever it was
+    /// held off).
+    pub fn board_lost(&mut self) {
+        self.goal_m = None;
+        self.state = match self.state {
+            LiftState::Obstructed { at_m, .. } | LiftState::Jammed { at_m } => {
+                LiftState::Jammed { at_m }
+            }
+            _ => LiftState::Unhomed,
+        };
+    }
+
+    /// Held by a previous controller (its record, after a restart): jammed at `at_m` until
+    /// the operator's release, instead of homing down onto what it was held off.
+    pub fn restore_hold(&mut self, at_m: f64) {
+        self.goal_m = None;
+        self.state = LiftState::Jammed { at_m };
+    }
+
+    /// Where a hold keeps it: the obstruction's height while obstructed or jammed.
+    pub fn held_at_m(&self) -> Option<f64> {
+        match self.state {
+            LiftState::Obstructed { at_m, .. } | LiftState::Jammed { at_m } => Some(at_m),
+            _ => None,
+        }
+    }
+
     /// The supervisor's word on travel, before the commands of a period. An operator's stop
-    /// drops the goal: the column stays where it stops, and nothing it was told before the
-    /// stop moves it after.
+    /// drops the goal and ends homing: the column stays where it stops, and nothing it was
+    /// told or was doing before the stop moves it after (homing again waits for the operator's
+    /// release).
     pub fn set_travel(&mut self, travel: Travel) {
         if travel == Travel::OperatorStop {
             self.goal_m = None;
+            if self.state == LiftState::Homing {
+                self.state = LiftState::Unhomed;
+            }
         }
         self.travel = travel;
     }
@@ -267,7 +319,7 @@ impl LiftController {
         match self.state {
             LiftState::Unhomed | LiftState::Homing => return Err(LiftError::NotHomed),
             LiftState::Jammed { at_m } => return Err(LiftError::Jammed { at_m }),
-            LiftState::Obstructed { at_m, up } => {
+            LiftState::Obstructed { at_m, up, repeated } => {
                 // Away from it means beyond the back-off point: nothing short of it is safe
                 // from pressing again.
                 let away = if up {
@@ -278,7 +330,9 @@ impl LiftController {
                 if !away {
                     return Err(LiftError::TowardObstruction { at_m });
                 }
-                self.state = LiftState::Ready;
+                if !repeated {
+                    self.state = LiftState::Ready;
+                }
             }
             LiftState::Ready => {}
         }
@@ -290,15 +344,15 @@ impl LiftController {
     }
 
     /// An operator's deliberate release: an obstruction's hold ends (the column stays where it
-    /// is, with no goal), a jammed column homes again (its counts may have stopped counting).
+    /// is, with no goal), a jammed or unhomed column homes (its position is not known).
     pub fn release(&mut self) {
         match self.state {
             LiftState::Obstructed { .. } => {
                 self.state = LiftState::Ready;
                 self.goal_m = None;
             }
-            LiftState::Jammed { .. } => self.home(),
-            _ => {}
+            LiftState::Jammed { .. } | LiftState::Unhomed => self.home(),
+            LiftState::Ready | LiftState::Homing => {}
         }
     }
 
@@ -306,14 +360,15 @@ impl LiftController {
     /// positive) and what happened.
     pub fn step(&mut self, r: &LiftReading) -> (f64, Option<LiftEvent>) {
         let c = self.config;
-        let dt = self.last.map_or(0.0, |l| (r.t_s - l.t_s).clamp(0.0, 0.1));
+        let dt = self
+            .last
+            .map_or(0.0, |l| (r.t_s - l.t_s).clamp(0.0, MAX_DT_S));
         let jump = self.last.map_or(0, |l| r.counts - l.counts);
         self.last = Some(*r);
         if jump.unsigned_abs() as f64 > c.plausible_counts(dt) && self.homed() {
             // Not the column moving: the board restarted (its counts with it) or lies. Nothing
             // it says of the height can be trusted until homed again.
-            self.state = LiftState::Unhomed;
-            self.goal_m = None;
+            self.board_lost();
             self.velocity = 0.0;
             return (0.0, Some(LiftEvent::CountsJumped { counts: jump }));
         }
@@ -386,11 +441,11 @@ impl LiftController {
     /// stop and back off; the same while backing off: stop, jammed.
     fn watch_obstruction(&mut self, r: &LiftReading, v: f64, measured: f64) -> Option<LiftEvent> {
         let c = self.config;
+        // Getting nowhere is told apart from the counts' resolution only at a speed; a
+        // stall's current, or the board's own stop, at any speed commanded.
         let pushing = v.abs() >= 0.5 * c.homing_speed_m_s;
-        let stuck = pushing
-            && (measured.abs() < c.obstruction_speed_fraction * v.abs()
-                || r.current_a.abs() >= c.obstruction_current_a
-                || r.over_current);
+        let stuck = (pushing && measured.abs() < c.obstruction_speed_fraction * v.abs())
+            || (v != 0.0 && (r.current_a.abs() >= c.obstruction_current_a || r.over_current));
         if !stuck {
             self.stuck_since = None;
             return None;
@@ -425,8 +480,16 @@ impl LiftController {
                 } else {
                     h + c.back_off_m
                 };
+                let repeated = self.last_obstruction.is_some_and(|(at, t)| {
+                    (at - h).abs() < REPEAT_M && r.t_s - t < REPEAT_WINDOW_S
+                });
+                self.last_obstruction = Some((h, r.t_s));
                 self.goal_m = Some(back.clamp(lo, hi));
-                self.state = LiftState::Obstructed { at_m: h, up };
+                self.state = LiftState::Obstructed {
+                    at_m: h,
+                    up,
+                    repeated,
+                };
                 Some(LiftEvent::Obstruction { at_m: h, up })
             }
         }
@@ -885,7 +948,15 @@ mod tests {
             col.pressed_s - before,
             PRESS_BOUND_S
         );
-        assert_eq!(met, 0, "pressed the hand again {met} times");
+        // Once more at most (the first goal away released it); then only the operator's
+        // release ends the hold.
+        assert!(met <= 1, "pressed the hand again {met} times");
+        assert!(col.pressed_s - before <= PRESS_BOUND_S);
+        assert!(
+            matches!(lift.state(), LiftState::Obstructed { repeated: true, .. }),
+            "{:?}",
+            lift.state()
+        );
     }
 
     #[test]
@@ -936,8 +1007,10 @@ mod tests {
         let r = col.step(0.0, 0.01);
         let (_, e) = lift.step(&r);
         assert!(matches!(e, Some(LiftEvent::CountsJumped { .. })), "{e:?}");
-        // main.rs: `if matches!(e, LiftEvent::CountsJumped { .. }) { controller.home(); }`
-        lift.home();
+        // As nori-lift does after a count jump: home an unhomed column.
+        if lift.state() == LiftState::Unhomed {
+            lift.home();
+        }
         let (events, _) = run(&mut lift, &mut col, 3.0, true);
         eprintln!(
             "Obstructed, counts jump: events {events:?}, pressed {:.3} s more",
@@ -963,7 +1036,9 @@ mod tests {
         let r = col.step(0.0, 0.01);
         let (_, e) = lift.step(&r);
         assert!(matches!(e, Some(LiftEvent::CountsJumped { .. })), "{e:?}");
-        lift.home();
+        if lift.state() == LiftState::Unhomed {
+            lift.home();
+        }
         let state_after = lift.state();
         let (_, fastest) = run(&mut lift, &mut col, 1.0, true);
         eprintln!("Jammed, counts jump: state {state_after:?}, then drove at {fastest} m/s without a release");
@@ -1011,6 +1086,12 @@ mod tests {
     }
 
     #[test]
+    fn no_jump_the_counts_are_allowed_shifts_the_soft_limits_past_a_switch() {
+        let c = ColumnConfig::A3;
+        assert!(c.plausible_counts(MAX_DT_S) < c.soft_margin_m * c.counts_per_m);
+    }
+
+    #[test]
     fn a_count_jump_after_a_long_gap_is_not_believed_either() {
         // A board whose counts are 0 at the lower switch (started there).
         let mut lift = LiftController::new(ColumnConfig::A3);
@@ -1032,7 +1113,7 @@ mod tests {
             "column at {at:.4} m, counts restarted after 100 ms: event {e:?}, believed height {:?}",
             lift.height_m(&r)
         );
-        lift.set_goal(1.0).unwrap();
+        let _ = lift.set_goal(1.0);
         let mut highest: f64 = 0.0;
         let mut command = 0.0;
         for _ in 0..3000 {
@@ -1045,6 +1126,27 @@ mod tests {
         assert!(
             highest <= hi + 0.002,
             "past the soft limit to {highest:.4} m"
+        );
+    }
+
+    #[test]
+    fn a_restarted_controller_keeps_its_predecessors_hold() {
+        let (held, mut col) = stopped_on_the_hand_once();
+        let before = col.pressed_s;
+        let at_m = held.held_at_m().expect("held");
+        // nori-lift killed and restarted three times: each new controller starts from the
+        // hold its predecessor recorded (nori-lift's hold record) instead of homing onto it.
+        for _ in 0..3 {
+            let mut lift = LiftController::new(ColumnConfig::A3);
+            lift.restore_hold(at_m);
+            assert!(matches!(lift.set_goal(0.1), Err(LiftError::Jammed { .. })));
+            let (events, fastest) = run(&mut lift, &mut col, 3.0, true);
+            assert_eq!((events, fastest), (vec![], 0.0));
+        }
+        assert!(
+            col.pressed_s - before <= 1e-9,
+            "pressed {:.3} s more",
+            col.pressed_s - before
         );
     }
 }

@@ -14,9 +14,9 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
 use telemetry::motion::{
-    LiftAllowance, LiftCommand, LiftState, LIFT_COMMAND_GOAL, LIFT_COMMAND_RELEASE, LIFT_HOMING,
-    LIFT_JAMMED, LIFT_LINK_LOST, LIFT_OBSTRUCTED, LIFT_READY, LIFT_REFUSED_OPERATOR_STOP,
-    LIFT_UNHOMED,
+    LiftAllowance, LiftCommand, LiftState, LIFT_ALLOWANCE_LIFE_NS, LIFT_COMMAND_GOAL,
+    LIFT_COMMAND_RELEASE, LIFT_HOMING, LIFT_JAMMED, LIFT_LINK_LOST, LIFT_OBSTRUCTED, LIFT_READY,
+    LIFT_REFUSED_OPERATOR_STOP, LIFT_UNHOMED,
 };
 use telemetry::plane::{self, newest, next, publish, Plane};
 use telemetry::process::{finish, Exit, ProcessArgs, ServiceManager, Started, Ticker};
@@ -32,6 +32,11 @@ struct Args {
     /// Open the board at DIR/lift (the simulator's pseudo-terminal) instead of its device.
     #[arg(long, value_name = "DIR")]
     device_dir: Option<PathBuf>,
+    /// Where a hold (an obstruction, a jam) is kept across restarts, so that a restarted
+    /// nori-lift does not home down onto what it was held off; `<temp dir>/nori-<domain>-lift-hold`
+    /// when absent. Production: /var/lib/nori/lift-hold.
+    #[arg(long, value_name = "FILE")]
+    hold_file: Option<PathBuf>,
 }
 
 fn main() -> std::process::ExitCode {
@@ -78,7 +83,20 @@ fn serve(args: &Args) -> Result<()> {
     let period = Duration::from_secs_f64(1.0 / config.rate_hz);
     let max_age_ns = config.command_max_age.as_nanos() as u64;
     let mut controller = LiftController::new(config.column);
-    controller.home();
+    let hold_path = args.hold_file.clone().unwrap_or_else(|| {
+        std::env::temp_dir().join(format!("nori-{}-lift-hold", args.process.domain))
+    });
+    let mut hold = HoldRecord::load(hold_path)?;
+    match hold.recorded {
+        Some(at_m) => {
+            tracing::warn!(
+                at_m,
+                "the lift was held when its controller stopped: jammed until `nori lift release`"
+            );
+            controller.restore_hold(at_m);
+        }
+        None => controller.home(),
+    }
     let mut decoder = Decoder::new();
     let (mut reading, mut heard) = (None::<LiftReading>, Instant::now());
     let (mut velocity, mut faults) = (0.0, 0u8);
@@ -115,11 +133,16 @@ fn serve(args: &Args) -> Result<()> {
             // The board may have restarted (its counts with it): home again once it is back.
             tracing::warn!("the lift's board went silent: homing again when it answers");
             counters.link_losses += 1;
-            controller.home();
+            position_lost(&mut controller);
         }
         // The supervisor's word first: an operator's stop drops the goal before any command
         // of this period is taken.
         if let Some(a) = newest(&allowances) {
+            // A stop counted since the last one seen drops the goal, even if a resume came
+            // before this period saw it in force.
+            if allowance.is_some_and(|b| b.stops != a.stops) {
+                controller.set_travel(Travel::OperatorStop);
+            }
             allowance = Some(a);
         }
         let (travel, duty_wait_s) = travel(allowance, now_ns);
@@ -146,13 +169,13 @@ fn serve(args: &Args) -> Result<()> {
             if let Some(e) = event {
                 counters.obstructions += u32::from(matches!(e, LiftEvent::Obstruction { .. }));
                 if matches!(e, LiftEvent::CountsJumped { .. }) {
-                    // As after a silent board: its counts started again; home again.
                     counters.count_jumps += 1;
-                    controller.home();
+                    position_lost(&mut controller);
                 }
                 log_event(e);
             }
         }
+        hold.keep(controller.held_at_m());
         if !lost {
             let n = board::drive(velocity, &mut out);
             if port.write_all(&out[..n]).is_ok() {
@@ -209,6 +232,48 @@ fn newest_status(
         });
     }
     fresh
+}
+
+/// The board went silent or its counts jumped (it may have restarted): a free column homes
+/// again (once the board answers); a held one stays jammed until the operator's release.
+fn position_lost(controller: &mut LiftController) {
+    controller.board_lost();
+    if controller.state() == Controller::Unhomed {
+        controller.home();
+    }
+}
+
+/// The hold kept on disk (`telemetry::latch`'s atomic record: one line, the height it is held
+/// at), written only when it changes.
+struct HoldRecord {
+    path: PathBuf,
+    recorded: Option<f64>,
+}
+
+impl HoldRecord {
+    /// The record at `path` (none there: no hold; a line that does not read: held at an
+    /// unknown height, which the operator's release clears like any hold).
+    fn load(path: PathBuf) -> Result<HoldRecord> {
+        let lines = telemetry::latch::load(&path)?;
+        let recorded = lines.first().map(|l| l.parse::<f64>().unwrap_or(f64::NAN));
+        Ok(HoldRecord { path, recorded })
+    }
+
+    /// Records `hold` if it changed; a failure is logged (a restart would then home).
+    fn keep(&mut self, hold: Option<f64>) {
+        let same = match (hold, self.recorded) {
+            (Some(a), Some(b)) => a == b || (a.is_nan() && b.is_nan()),
+            (a, b) => a.is_none() == b.is_none(),
+        };
+        if same {
+            return;
+        }
+        let lines: Vec<String> = hold.iter().map(|h| h.to_string()).collect();
+        match telemetry::latch::save(&self.path, &lines) {
+            Ok(()) => self.recorded = hold,
+            Err(e) => tracing::error!("{e}: a restarted nori-lift would home onto what holds it"),
+        }
+    }
 }
 
 /// What a command did.
@@ -280,7 +345,7 @@ fn state_code(s: Controller) -> u8 {
 /// The supervisor's word on travel (none for 200 ms: no supervisor, no travel, as the driver
 /// holds without one), and with the budget spent the rest it still needs, s.
 fn travel(allowance: Option<LiftAllowance>, now_ns: u64) -> (Travel, f32) {
-    match allowance.filter(|a| now_ns.saturating_sub(a.timestamp_ns) <= 200_000_000) {
+    match allowance.filter(|a| now_ns.saturating_sub(a.timestamp_ns) <= LIFT_ALLOWANCE_LIFE_NS) {
         Some(a) if a.allowed == 1 => (Travel::Allowed, 0.0),
         Some(a) if a.refused == LIFT_REFUSED_OPERATOR_STOP => (Travel::OperatorStop, 0.0),
         Some(a) => (Travel::DutySpent, a.seconds),

@@ -132,11 +132,18 @@ impl DutyBudget {
         )
     }
 
-    /// The budget a record line kept, rested until `now_ns`: since the save, or, when the
-    /// clock has started again since (a reboot), since the boot. The lift does not move without
-    /// a supervisor (it travels only on a live allowance), so the time between is rest; either
-    /// is at most the rest there was. `None` when the line is not a budget's.
-    pub fn restore(rating: DutyRating, line: &str, now_ns: u64) -> Option<DutyBudget> {
+    /// The budget a record line kept, rested until `now_ns`: since the save less
+    /// `unsaved_s` (the running the line covers after its save: up to its next save, and on the
+    /// last allowance after a crash), or, when the clock has started again since (a reboot),
+    /// since the boot. The lift does not move without a live allowance, so the rest of the
+    /// time between is rest; it is at most the rest there was. `None` when the line is not a
+    /// budget's.
+    pub fn restore(
+        rating: DutyRating,
+        line: &str,
+        now_ns: u64,
+        unsaved_s: f64,
+    ) -> Option<DutyBudget> {
         let mut fields = line.strip_prefix(RECORD_PREFIX)?.split_whitespace();
         let used_s: f64 = fields.next()?.parse().ok()?;
         let exhausted = match fields.next()? {
@@ -148,17 +155,20 @@ impl DutyBudget {
         if fields.next().is_some() || !(used_s.is_finite() && used_s >= 0.0) {
             return None;
         }
+        // A line whose heat (with what it covers) reaches the rating is a spent budget, whatever
+        // it was when saved: the motor may have spent it since.
+        let used_s = used_s.min(rating.on_s);
         let mut b = DutyBudget {
             rating,
-            used_s: used_s.min(rating.on_s),
-            exhausted,
+            used_s,
+            exhausted: exhausted || used_s >= rating.on_s - 1e-9,
         };
-        let rested_ns = if at_ns <= now_ns {
+        let since_ns = if at_ns <= now_ns {
             now_ns - at_ns
         } else {
             now_ns
         };
-        b.update(false, rested_ns as f64 * 1e-9);
+        b.update(false, since_ns as f64 * 1e-9 - unsaved_s);
         Some(b)
     }
 }
@@ -230,11 +240,16 @@ mod tests {
         let line = b.record_line(0.5, 1_000_000_000_000);
         assert_eq!(line, "@lift-duty 120.000 1 1000000000000");
         // Back 90 s later: 10 s regained, still spent, 180 s of rest to go.
-        let r = DutyBudget::restore(DutyRating::DESK_COLUMN, &line, 1_090_000_000_000).unwrap();
+        let r =
+            DutyBudget::restore(DutyRating::DESK_COLUMN, &line, 1_090_000_000_000, 0.0).unwrap();
         assert!(r.exhausted() && (r.used_s() - 110.0).abs() < 1e-6, "{r:?}");
         // After a reboot (the clock started again): only the time since the boot is rest.
-        let r = DutyBudget::restore(DutyRating::DESK_COLUMN, &line, 9_000_000_000).unwrap();
+        let r = DutyBudget::restore(DutyRating::DESK_COLUMN, &line, 9_000_000_000, 0.0).unwrap();
         assert!((r.used_s() - 119.0).abs() < 1e-6, "{r:?}");
+        // The running the line covers after its save is no rest: 9 s since it, 0.7 s unsaved.
+        let r =
+            DutyBudget::restore(DutyRating::DESK_COLUMN, &line, 1_009_000_000_000, 0.7).unwrap();
+        assert!((r.used_s() - (120.0 - 8.3 / 9.0)).abs() < 1e-6, "{r:?}");
         // The margin ahead is saved, up to the rating.
         let mut b = DutyBudget::new(DutyRating::DESK_COLUMN);
         run(&mut b, true, 10.0);
@@ -248,7 +263,7 @@ mod tests {
             "@operator-stop",
         ] {
             assert_eq!(
-                DutyBudget::restore(DutyRating::DESK_COLUMN, bad, 5),
+                DutyBudget::restore(DutyRating::DESK_COLUMN, bad, 5, 0.0),
                 None,
                 "{bad}"
             );

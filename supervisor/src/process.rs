@@ -28,8 +28,18 @@ pub const PUBLISH_EVERY: Duration = Duration::from_millis(5);
 /// Poll period of the loop.
 pub const POLL: Duration = Duration::from_millis(1);
 /// The lift's budget is saved with this much running ahead, and again once the motor has run
-/// it: the record never holds less heat than the motor (a crash between saves forgets none).
+/// it; with the lift's last allowance's life after a crash, the running a restore counts as
+/// not rest: the record never holds less heat than the motor (a crash between saves, or a
+/// crash loop, forgets none).
 const DUTY_SAVE_AHEAD_S: f64 = 0.5;
+/// The longest interval between two lift states counted (the lift publishes every 10 ms; a
+/// longer silence is a dead nori-lift, whose board stops the motor in 100 ms), s.
+const MAX_LIFT_GAP_S: f64 = 1.0;
+
+/// The running a record's line covers after it was saved, s.
+fn duty_unsaved_s() -> f64 {
+    DUTY_SAVE_AHEAD_S + telemetry::motion::LIFT_ALLOWANCE_LIFE_NS as f64 * 1e-9
+}
 
 /// The supervisor's plane and its trip record, as its loop uses them. Every call returns at
 /// once.
@@ -100,6 +110,8 @@ pub struct Process {
     duty_saved_spent: bool,
     /// Events of the operator's stop taken before the driver's layout, numbered.
     early_events: u64,
+    /// Operator's stops taken (restored ones too), for the lift's allowance.
+    stops: u16,
 }
 
 impl Process {
@@ -118,6 +130,7 @@ impl Process {
             duty_ahead_s: 0.0,
             duty_saved_spent: false,
             early_events: 0,
+            stops: 0,
             recorded_mask: 0,
             recorded_stop: false,
             heartbeat: Heartbeat {
@@ -185,6 +198,8 @@ impl Process {
         let layout = *s.layout();
         for e in s.drain_events() {
             log_event(&e, &layout, self.last_state.as_ref());
+            let stop = e.kind() == Some(EventKind::OperatorStop);
+            self.stops = self.stops.wrapping_add(u16::from(stop));
             io.event(&e);
         }
         // Trips and stops outlive this process: recorded before the directives that announce
@@ -259,6 +274,9 @@ impl Process {
             if !matches!(event, Event::CommandRefused { .. }) {
                 self.save_record(io, now);
             }
+            if matches!(event, Event::OperatorStop { .. }) {
+                self.stops = self.stops.wrapping_add(1);
+            }
             self.early_events += 1;
             io.event(&event.frame(self.early_events, now));
         }
@@ -269,10 +287,7 @@ impl Process {
         let mut lines = self.trips.clone();
         // A cold motor needs no line (a robot without a lift keeps a record of trips only).
         if self.lift_duty.used_s() > 0.0 || self.lift_duty.exhausted() {
-            // The heat the running ahead adds, and the rest a restore would credit for it.
-            let r = self.config.lift.rating();
-            let ahead = DUTY_SAVE_AHEAD_S * (1.0 + r.on_s / r.off_s);
-            lines.push(self.lift_duty.record_line(ahead, now));
+            lines.push(self.lift_duty.record_line(duty_unsaved_s(), now));
         }
         self.duty_ahead_s = DUTY_SAVE_AHEAD_S;
         self.duty_saved_spent = self.lift_duty.exhausted();
@@ -294,15 +309,16 @@ impl Process {
     /// motor's heat is not known: it rests).
     fn restore_duty(&mut self, line: &str, now: u64) {
         let rating = self.config.lift.rating();
-        self.lift_duty = DutyBudget::restore(rating, line, now).unwrap_or_else(|| {
-            tracing::error!(
-                line,
-                "the lift's duty budget in the trip record does not read: taken as spent"
-            );
-            let mut spent = DutyBudget::new(rating);
-            spent.update(true, rating.on_s);
-            spent
-        });
+        self.lift_duty =
+            DutyBudget::restore(rating, line, now, duty_unsaved_s()).unwrap_or_else(|| {
+                tracing::error!(
+                    line,
+                    "the lift's duty budget in the trip record does not read: taken as spent"
+                );
+                let mut spent = DutyBudget::new(rating);
+                spent.update(true, rating.on_s);
+                spent
+            });
         self.duty_saved_spent = self.lift_duty.exhausted();
     }
 
@@ -311,8 +327,12 @@ impl Process {
     /// period, and at once when it changes.
     fn lift_duty_tier(&mut self, io: &mut impl SupervisorIo, now: u64) {
         while let Some(s) = io.next_lift_state() {
+            // A state stamped ahead of this clock would stop the count of what follows.
+            if s.timestamp_ns > now.saturating_add(1_000_000) {
+                continue;
+            }
             if let Some((t, moving)) = self.last_lift {
-                let dt = s.timestamp_ns.saturating_sub(t) as f64 * 1e-9;
+                let dt = (s.timestamp_ns.saturating_sub(t) as f64 * 1e-9).min(MAX_LIFT_GAP_S);
                 self.lift_duty.update(moving, dt);
                 if moving {
                     self.duty_ahead_s -= dt;
@@ -325,7 +345,12 @@ impl Process {
             Allowance::Allowed { left_s } => (1, 0, left_s),
             Allowance::Refused { wait_s } => (0, LIFT_REFUSED_DUTY, wait_s),
         };
-        let changed = (allowed, refused) != (self.allowance.allowed, self.allowance.refused);
+        let changed = (allowed, refused, self.stops)
+            != (
+                self.allowance.allowed,
+                self.allowance.refused,
+                self.allowance.stops,
+            );
         let due =
             now.saturating_sub(self.allowance.timestamp_ns) >= PUBLISH_EVERY.as_nanos() as u64;
         if changed || due {
@@ -342,6 +367,7 @@ impl Process {
                 refused,
                 seconds: seconds as f32,
                 used_s: self.lift_duty.used_s() as f32,
+                stops: self.stops,
                 ..LiftAllowance::default()
             };
             io.lift_allowance(&self.allowance);

@@ -187,8 +187,9 @@ pub struct LiftAllowance {
     pub allowed: u8,
     /// Why not: `LIFT_REFUSED_*`.
     pub refused: u8,
-    /// Padding.
-    pub reserved: [u8; 2],
+    /// Operator's stops this supervisor has taken (wrapping): a change is a stop, even one
+    /// the lift never saw in force (a stop and a resume between two of its periods).
+    pub stops: u16,
     /// Allowed: running left, s; refused: rest still needed, s.
     pub seconds: f32,
     /// The budget used (heat as running time), s.
@@ -196,6 +197,10 @@ pub struct LiftAllowance {
     /// Padding.
     pub reserved2: u32,
 }
+
+/// The lift travels on an allowance at most this old (no supervisor, no travel), ns: the
+/// longest the lift can run after its supervisor died.
+pub const LIFT_ALLOWANCE_LIFE_NS: u64 = 200_000_000;
 
 /// [`LiftAllowance::refused`]: the motor's duty-cycle budget is spent.
 pub const LIFT_REFUSED_DUTY: u8 = 1;

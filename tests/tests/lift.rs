@@ -10,7 +10,9 @@ use nori_tests::{binary, nori_ok, scratch, wait_for, ArmStack, Proc};
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
 use telemetry::config::ProcessConfig;
-use telemetry::motion::{LiftCommand, LiftState, LIFT_HOMING, LIFT_OBSTRUCTED, LIFT_READY};
+use telemetry::motion::{
+    LiftCommand, LiftState, LIFT_HOMING, LIFT_JAMMED, LIFT_OBSTRUCTED, LIFT_READY,
+};
 use telemetry::plane::{self, newest, Plane};
 
 /// The column's obstruction time (lift.toml) and a control period and a status period of slack.
@@ -40,14 +42,28 @@ fn lift_on_sim(tag: &str, sim_args: &[&str]) -> (ArmStack, Proc) {
     wait_for(Duration::from_secs(10), "the lift's board", || {
         link.exists().then_some(())
     });
+    let lift = spawn_lift(&stack, "lift.log");
+    (stack, lift)
+}
+
+/// `nori-lift` on the simulator's board, its hold record in the stack's directory, logging to
+/// `log` there.
+fn spawn_lift(stack: &ArmStack, log: &str) -> Proc {
     let dev = stack.dir.join("dev").display().to_string();
-    let lift = Proc::spawn(
+    let hold = stack.dir.join("lift-hold").display().to_string();
+    Proc::spawn(
         "nori-lift",
         &binary("nori-lift"),
-        &["--device-dir", &dev, "--domain", &stack.domain],
-        &stack.dir.join("lift.log"),
-    );
-    (stack, lift)
+        &[
+            "--device-dir",
+            &dev,
+            "--domain",
+            &stack.domain,
+            "--hold-file",
+            &hold,
+        ],
+        &stack.dir.join(log),
+    )
 }
 
 /// A goal of `h` m numbered `seq`, made `age_ms` ago.
@@ -261,7 +277,8 @@ fn the_duty_budget_stops_travel_when_spent_and_no_supervisor_means_no_travel() {
 /// `nori stop` stops a column moving up at once, drops its goal and refuses goals until
 /// `nori resume`, after which nothing told before moves it; a goal re-sent every 60 ms onto a
 /// hand at 0.25 m presses it once, within the obstruction time, and leaves the column backed
-/// off and holding; `nori lift release` ends the hold without moving it.
+/// off and holding; `nori lift release` ends the hold without moving it; held again and
+/// SIGKILLed, a restarted nori-lift keeps the hold (jammed) instead of homing onto the hand.
 #[test]
 fn the_operators_stop_stops_the_lift_and_a_streamed_goal_presses_a_hand_once() {
     let (mut stack, mut lift) = lift_on_sim(
@@ -358,6 +375,33 @@ fn the_operators_stop_stops_the_lift_and_a_streamed_goal_presses_a_hand_once() {
     let released = newest(&states).unwrap();
     assert_eq!(released.state, LIFT_READY, "{released:?}");
     assert!(released.goal_m.is_nan() && (released.height_m - s.height_m).abs() < 0.001);
+    // Onto the hand again (a second time at the same place: only a release ends this hold),
+    // then nori-lift killed and started again.
+    for _ in 0..40 {
+        command(0.1);
+        std::thread::sleep(Duration::from_millis(60));
+    }
+    let held = newest(&states).unwrap();
+    assert_eq!(held.state, LIFT_OBSTRUCTED, "{held:?}");
+    let pressed = sim_lift(&stack, "pressed_s");
+    lift.kill();
+    lift = spawn_lift(&stack, "lift-2.log");
+    let jammed = wait_for(Duration::from_secs(5), "the restarted lift jammed", || {
+        newest(&states).filter(|s| s.state == LIFT_JAMMED)
+    });
+    std::thread::sleep(Duration::from_millis(1500));
+    let still = newest(&states).unwrap();
+    assert_eq!(
+        (still.state, still.velocity_m_s),
+        (LIFT_JAMMED, 0.0),
+        "{still:?} after {jammed:?}"
+    );
+    let pressed_after = sim_lift(&stack, "pressed_s");
+    assert!(
+        pressed_after - pressed < 1e-9,
+        "the restarted lift pressed the hand {:.3} s more",
+        pressed_after - pressed
+    );
     let (code, out) = lift.terminate(Duration::from_secs(5));
     assert_eq!(code, Some(0), "{out}");
     drop((commands, states, node));
