@@ -280,11 +280,16 @@ impl Controller {
         let Some((field, max_age_ns)) = &self.config.field else {
             return (requested, None, BASE_FLAG_NO_LIDAR);
         };
-        let fresh =
-            scan.filter(|s| s.point_count > 0 && now_ns.saturating_sub(s.end_ns) <= *max_age_ns);
+        // A revolution stamped ahead of this clock is no fresh one (it would never age), and
+        // one without a single return is a dead or covered lidar, not free space.
+        let fresh = scan.filter(|s| {
+            s.end_ns <= now_ns + FUTURE_NS
+                && now_ns.saturating_sub(s.end_ns) <= *max_age_ns
+                && field.trusted(scan_points(s), 1)
+        });
         let Some(scan) = fresh else {
-            // A lidar that should be there and says nothing (no revolution, a silent or stale
-            // one): no motion at all. Turning sweeps a
+            // A lidar that should be there and says nothing it can be trusted on (no
+            // revolution, a silent, stale or empty one): no motion at all. Turning sweeps a
             // square body's corners outward, into what it cannot see.
             return (Twist::default(), None, BASE_FLAG_FIELD_BLIND);
         };
