@@ -100,6 +100,10 @@ pub enum Refusal {
     /// The driver's newest frame is too old.
     #[error("the driver is not heard (no joint state for 100 ms): nothing is taken")]
     DriverSilent,
+    /// Sent before the driver's last safe state, restart or silence (it waited in the lab's
+    /// queue across it).
+    #[error("sent before the driver's last safe state or restart: not taken")]
+    BeforeInterruption,
     /// Another page controls the robot.
     #[error("another page controls the robot")]
     OtherPage,
@@ -150,6 +154,7 @@ impl Refusal {
             Refusal::SafeState => "safe_state",
             Refusal::NotReady => "not_ready",
             Refusal::DriverSilent => "driver_silent",
+            Refusal::BeforeInterruption => "before_interruption",
             Refusal::OtherPage => "other_page",
             Refusal::UnknownJoint(_) => "unknown_joint",
             Refusal::Wheel(_) => "wheel",
@@ -244,9 +249,12 @@ pub struct Teleop {
     lift_m: f64,
     /// The hold frame owed once teleoperation ends (sent at the next tick).
     hold: Option<Ended>,
-    /// The driver's newest frame number, and a safe state or restart seen since the last tick.
+    /// The driver's newest frame number, a safe state or restart seen since the last tick, and
+    /// when the last one was (its frame's time, or the tick that found the driver silent):
+    /// nothing that arrived before it is taken.
     driver_seq: Option<u64>,
     interrupted: Option<Ended>,
+    interrupted_ns: Option<u64>,
     seq: u64,
     counters: TeleopCounters,
 }
@@ -299,6 +307,7 @@ impl Teleop {
             hold: None,
             driver_seq: None,
             interrupted: None,
+            interrupted_ns: None,
             seq: 0,
             counters: TeleopCounters::default(),
         }
@@ -320,10 +329,10 @@ impl Teleop {
         }
         // The same frame seen again (a command's newest) is not a restart.
         if self.driver_seq.is_some_and(|s| state.seq < s) {
-            self.interrupted = Some(Ended::DriverRestarted);
+            self.interrupt(Ended::DriverRestarted, state.timestamp_ns);
         }
         if state.flags & STATE_FLAG_SAFE_STATE != 0 {
-            self.interrupted = Some(Ended::SafeState);
+            self.interrupt(Ended::SafeState, state.timestamp_ns);
         }
         self.driver_seq = Some(state.seq);
         for (i, j) in state.joints().iter().enumerate() {
@@ -331,6 +340,13 @@ impl Teleop {
                 self.read[i] = Some((f64::from(j.position_rad), state.timestamp_ns));
             }
         }
+    }
+
+    /// The driver interrupted (`why`) at `at_ns`: everything commanded is dropped at the next
+    /// tick, and nothing that arrived before is taken.
+    fn interrupt(&mut self, why: Ended, at_ns: u64) {
+        self.interrupted = Some(why);
+        self.interrupted_ns = Some(self.interrupted_ns.map_or(at_ns, |t| t.max(at_ns)));
     }
 
     /// Joint `i`'s position read within [`READ_MAX_AGE_NS`] before the frame stamped
@@ -420,6 +436,9 @@ impl Teleop {
             return Err(Refusal::DriverSilent);
         }
         self.observe(state);
+        if self.interrupted_ns.is_some_and(|t| now_ns <= t) {
+            return Err(Refusal::BeforeInterruption);
+        }
         let (goals, solved) = match command {
             Command::Joints(by_name) => (self.check_joints(by_name)?, None),
             Command::Tool { arm, target } => {
@@ -606,7 +625,7 @@ impl Teleop {
         };
         self.observe(state);
         if now_ns.saturating_sub(state.timestamp_ns) > READ_MAX_AGE_NS {
-            self.interrupted = Some(Ended::DriverSilent);
+            self.interrupt(Ended::DriverSilent, now_ns);
         }
         if let Some(why) = self.interrupted.take() {
             // The driver holds the robot itself, or is not there to be told: nothing
