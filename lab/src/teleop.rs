@@ -1392,6 +1392,20 @@ pub(crate) mod tests {
         (taken, sent)
     }
 
+    /// A command that waited across `what` was refused and moved nothing after it.
+    fn assert_nothing_sent(taken: &Result<Option<Solved>, Refusal>, sent: &[f64], what: &str) {
+        assert_eq!(
+            taken,
+            &Err(Refusal::BeforeInterruption),
+            "across the {what}"
+        );
+        assert!(
+            sent.is_empty(),
+            "a command from before the {what} moved the elbow to {:?}",
+            sent.last()
+        );
+    }
+
     #[test]
     fn a_command_sent_before_a_short_safe_state_is_refused_after_it() {
         let (taken, sent) = queued_across(|t, s| {
@@ -1403,17 +1417,7 @@ pub(crate) mod tests {
             t.observe(&after);
             after
         });
-        eprintln!(
-            "safe state 4-8 ms, message of 2 ms handled after: {taken:?}; elbow goals sent after it: first {:?} last {:?} ({} frames)",
-            sent.first(),
-            sent.last(),
-            sent.len()
-        );
-        assert!(
-            sent.is_empty(),
-            "a command from before the safe state moved the elbow to {:?}",
-            sent.last()
-        );
+        assert_nothing_sent(&taken, &sent, "safe state");
     }
 
     #[test]
@@ -1431,16 +1435,6 @@ pub(crate) mod tests {
             t.observe(&after);
             after
         });
-        eprintln!(
-            "driver restart, message of 2 ms handled after: {taken:?}; elbow goals sent after it: first {:?} last {:?} ({} frames)",
-            sent.first(),
-            sent.last(),
-            sent.len()
-        );
-        assert!(
-            sent.is_empty(),
-            "a command from before the restart moved the elbow to {:?}",
-            sent.last()
-        );
+        assert_nothing_sent(&taken, &sent, "restart");
     }
 }

@@ -502,6 +502,26 @@ fn an_operators_stop_is_recorded_before_it_is_announced_and_outlives_a_restart()
     assert!(io.calls.iter().any(|c| matches!(c, Call::Event(Some(EventKind::CommandRefused), v) if *v == f32::from(COMMAND_RESUME))));
 }
 
+/// An operator's command of `kind`.
+fn operator(kind: u8) -> SupervisorCommand {
+    SupervisorCommand {
+        seq: 1,
+        kind,
+        ..SupervisorCommand::default()
+    }
+}
+
+/// A supervisor with no record, supervising the driver's layout after its first turn.
+fn supervising() -> (Process, Queues) {
+    let mut p = Process::new(config(), Vec::new(), 7);
+    let mut io = Queues {
+        layout: Some(layout()),
+        ..Queues::default()
+    };
+    p.poll(&mut io, 0).unwrap();
+    (p, io)
+}
+
 /// The newest allowance's word: travel allowed.
 fn lift_allowed(io: &Queues) -> bool {
     io.allowances.last().expect("an allowance").allowed == 1
@@ -512,18 +532,9 @@ fn lift_allowed(io: &Queues) -> bool {
 /// supervisor's first allowance on, until the resume.
 #[test]
 fn an_operators_stop_refuses_the_lift_travel_until_the_resume() {
-    let stop = |kind| SupervisorCommand {
-        seq: 1,
-        kind,
-        ..SupervisorCommand::default()
-    };
+    let stop = operator;
     // With the driver's layout.
-    let mut p = Process::new(config(), Vec::new(), 7);
-    let mut io = Queues {
-        layout: Some(layout()),
-        ..Queues::default()
-    };
-    p.poll(&mut io, 0).unwrap();
+    let (mut p, mut io) = supervising();
     assert!(lift_allowed(&io));
     io.commands.push_back(stop(COMMAND_STOP));
     p.poll(&mut io, MS).unwrap();
@@ -628,17 +639,8 @@ fn a_restart_after_rest_and_running_again_restores_at_least_the_motors_heat() {
 /// (the allowance counts them, and a changed count drops its goal), from the turn it came.
 #[test]
 fn a_stop_and_resume_in_one_turn_still_reach_the_lift() {
-    let cmd = |kind| SupervisorCommand {
-        seq: 1,
-        kind,
-        ..SupervisorCommand::default()
-    };
-    let mut p = Process::new(config(), Vec::new(), 7);
-    let mut io = Queues {
-        layout: Some(layout()),
-        ..Queues::default()
-    };
-    p.poll(&mut io, 0).unwrap();
+    let cmd = operator;
+    let (mut p, mut io) = supervising();
     io.commands.push_back(cmd(COMMAND_STOP));
     io.commands.push_back(cmd(COMMAND_RESUME));
     p.poll(&mut io, MS).unwrap();
