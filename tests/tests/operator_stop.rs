@@ -5,8 +5,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use nori_tests::{binary, check_left_arm_report, nori_ok as nori, wait_for, ArmStack};
-use std::process::Command;
+use nori_tests::{check_left_arm_report, nori_ok as nori, wait_for, ArmStack};
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
 use telemetry::frames::{STATE_FLAG_OPERATOR_STOP, STATE_FLAG_SAFE_STATE};
