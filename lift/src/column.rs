@@ -509,6 +509,8 @@ mod tests {
         t: f64,
         counts_at_start: f64,
         obstacle_m: Option<f64>,
+        /// Something solid above it at this height (a table top the column rises under).
+        ceiling_m: Option<f64>,
         /// Seconds pressed on the obstacle so far.
         pressed_s: f64,
         /// The halls report this count whatever the column does (a lost hall signal, a board
@@ -526,6 +528,7 @@ mod tests {
                 t: 0.0,
                 counts_at_start: h,
                 obstacle_m: None,
+                ceiling_m: None,
                 pressed_s: 0.0,
                 frozen_counts: None,
                 command: 0.0,
@@ -543,7 +546,14 @@ mod tests {
                     self.h = o;
                     self.v = 0.0;
                 }
-                _ => self.h = next,
+                _ => match self.ceiling_m {
+                    Some(o) if self.v > 0.0 && next > o => {
+                        blocked = true;
+                        self.h = o;
+                        self.v = 0.0;
+                    }
+                    _ => self.h = next,
+                },
             }
             self.t += dt;
             if blocked {
@@ -1148,5 +1158,83 @@ mod tests {
             "pressed {:.3} s more",
             col.pressed_s - before
         );
+    }
+
+    #[test]
+    fn rising_under_something_stops_backs_down_and_holds_against_it() {
+        let (mut lift, mut col) = homed();
+        col.ceiling_m = Some(0.5);
+        assert!(lift.held_at_m().is_none());
+        lift.set_goal(0.7).unwrap();
+        let (events, _) = run(&mut lift, &mut col, 25.0, true);
+        assert!(
+            matches!(events.as_slice(), [LiftEvent::Obstruction { at_m, up: true }] if (at_m - 0.5).abs() < 0.002),
+            "{events:?}"
+        );
+        assert!((col.h - 0.49).abs() < 0.002, "backed down to {} m", col.h);
+        let at = lift.held_at_m().expect("held");
+        assert!(
+            (at - 0.5).abs() < 0.002
+                && (lift.height_m(&col.step(0.0, 0.01)).unwrap() - col.h).abs() < 0.001
+        );
+        // Up toward it, or short of the back-off point: refused; down, away: taken.
+        assert!(matches!(
+            lift.set_goal(0.7),
+            Err(LiftError::TowardObstruction { .. })
+        ));
+        assert!(matches!(
+            lift.set_goal(0.495),
+            Err(LiftError::TowardObstruction { .. })
+        ));
+        assert_eq!(lift.set_goal(0.45), Ok(0.45));
+        assert_eq!(lift.state(), LiftState::Ready);
+        assert_eq!(lift.held_at_m(), None);
+    }
+
+    #[test]
+    fn only_a_second_obstruction_near_the_first_and_soon_is_a_repeat() {
+        let repeated = |lift: &LiftController| {
+            matches!(lift.state(), LiftState::Obstructed { repeated: true, .. })
+        };
+        // Elsewhere (the hand moved 3 cm down): a first obstruction again.
+        let (mut lift, mut col) = stopped_on_the_hand_once();
+        lift.set_goal(0.4).unwrap();
+        run(&mut lift, &mut col, 6.0, true);
+        col.obstacle_m = Some(0.22);
+        lift.set_goal(0.1).unwrap();
+        run(&mut lift, &mut col, 8.0, true);
+        assert!(matches!(lift.state(), LiftState::Obstructed { .. }) && !repeated(&lift));
+        // At the same place after more than a minute: a first obstruction again.
+        let (mut lift, mut col) = stopped_on_the_hand_once();
+        lift.set_goal(0.4).unwrap();
+        run(&mut lift, &mut col, 61.0, true);
+        lift.set_goal(0.1).unwrap();
+        run(&mut lift, &mut col, 8.0, true);
+        assert!(matches!(lift.state(), LiftState::Obstructed { .. }) && !repeated(&lift));
+    }
+
+    #[test]
+    fn the_switches_stop_the_motor_and_a_count_jump_while_homing_is_no_event() {
+        let (mut lift, mut col) = homed();
+        lift.set_goal(0.75).unwrap();
+        run(&mut lift, &mut col, 2.0, true);
+        let mut r = col.step(0.03, 0.01);
+        r.at_upper = true;
+        assert_eq!(lift.step(&r).0, 0.0, "driven up into the upper switch");
+        lift.set_goal(0.01).unwrap();
+        run(&mut lift, &mut col, 2.0, true);
+        let mut r = col.step(-0.03, 0.01);
+        r.at_lower = true;
+        assert_eq!(lift.step(&r).0, 0.0, "driven down into the lower switch");
+        // Homing trusts no count: a jump is nothing to it.
+        let mut lift = LiftController::new(ColumnConfig::A3);
+        lift.set_travel(Travel::Allowed);
+        let mut col = Column::new(0.3);
+        lift.home();
+        run(&mut lift, &mut col, 1.0, true);
+        assert_eq!(lift.height_m(&col.step(0.0, 0.01)), None);
+        col.counts_at_start += 0.2;
+        let (events, _) = run(&mut lift, &mut col, 1.0, true);
+        assert_eq!((events, lift.state()), (vec![], LiftState::Homing));
     }
 }
