@@ -424,3 +424,42 @@ fn a_policy_drives_the_base_through_the_gate_and_the_base_stops_when_it_falls_si
     drop(fleet);
     base.stop();
 }
+
+/// A wheel goal published on the joints' goals (`nori/goals`: what `nori goal`, Nori Lab and
+/// the fleet agent send, or any other program on the robot) would drive a wheel with no
+/// protective field, no ramp and no command timeout but the driver's. The wheels take speeds
+/// only from the base's controller, on a path of their own; the driver refuses the rest.
+#[test]
+fn a_wheel_goal_from_anyone_but_the_base_is_refused() {
+    let mut base = Base::start("base-wheel-goals", &[], &[]);
+    let node = Plane::open(&base.stack.domain, "test-rogue").unwrap();
+    let goals = node.publisher(&plane::GOALS).unwrap();
+    let mut fastest = 0f32;
+    for seq in 1..=100u64 {
+        let mut frame = telemetry::GoalFrame {
+            seq,
+            timestamp_ns: monotonic_ns(),
+            joint_count: 2,
+            mask: 0b11,
+            ..Default::default()
+        };
+        frame.position_rad[0] = 3.0;
+        frame.position_rad[1] = -3.0;
+        plane::publish(&goals, &frame).unwrap();
+        std::thread::sleep(Duration::from_millis(10));
+        if let Some(s) = newest(&base.joints) {
+            for j in &s.joints()[..2] {
+                if j.is_valid() {
+                    fastest = fastest.max(j.velocity_rad_s.abs());
+                }
+            }
+        }
+    }
+    let truth = base.truth();
+    assert!(
+        fastest < 0.05,
+        "a wheel turned at {fastest} rad/s on goals from outside the base: {truth}"
+    );
+    drop((goals, node));
+    base.stop();
+}
