@@ -69,7 +69,7 @@ fn serve(args: &Args) -> Result<()> {
     let scans = node.subscriber(&plane::LIDAR_SCAN)?;
     let lifts = node.subscriber(&plane::LIFT_STATE)?;
     let body_frames = node.publisher(&plane::BODY_FRAMES)?;
-    let goals = node.publisher(&plane::GOALS)?;
+    let goals = node.publisher(&plane::WHEEL_GOALS)?;
     let base_state = node.publisher(&plane::BASE_STATE)?;
     if config.controller.field.is_none() {
         tracing::warn!(

@@ -66,6 +66,26 @@ pub enum GoalRejection {
     /// A NaN or infinite goal.
     #[error(transparent)]
     NotFinite(#[from] GoalError),
+    /// A wheel named on the joints' path, or an arm joint on the wheels': the wheels take
+    /// speeds from the base's controller alone (its field, ramp and timeout).
+    #[error("goal mask {mask:#x} names {what} on the {path:?} path")]
+    WrongPath {
+        /// The mask.
+        mask: u32,
+        /// What it named that the path does not carry.
+        what: &'static str,
+        /// The path it came on.
+        path: GoalPath,
+    },
+}
+
+/// Where a goal frame came from: each path carries its own joints.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum GoalPath {
+    /// `nori/goals`: the arms, grippers (and the fleet agent, Nori Lab, `nori goal`).
+    Joints,
+    /// `nori/base/wheel-goals`: the wheels' speeds, from the base's controller.
+    Wheels,
 }
 
 /// A directives frame the driver refused.
@@ -635,8 +655,14 @@ impl<T: Transport> Driver<T> {
 
     /// Applies a goal frame: all of it or, with the reason, none of it. Goals are clamped into
     /// each joint's calibrated range (or the wheel speed limit) here, at the bus layer.
-    pub fn apply_goals(&mut self, frame: &GoalFrame, now_ns: u64) -> Result<(), GoalRejection> {
-        let result = self.check_goals(frame, now_ns);
+    /// A frame on `path` naming a joint the path does not carry is refused whole.
+    pub fn apply_goals(
+        &mut self,
+        frame: &GoalFrame,
+        now_ns: u64,
+        path: GoalPath,
+    ) -> Result<(), GoalRejection> {
+        let result = self.check_goals(frame, now_ns, path);
         let c = &mut self.counters;
         match result {
             Ok(()) => c.goals_accepted += 1,
@@ -652,7 +678,12 @@ impl<T: Transport> Driver<T> {
         result
     }
 
-    fn check_goals(&mut self, frame: &GoalFrame, now_ns: u64) -> Result<(), GoalRejection> {
+    fn check_goals(
+        &mut self,
+        frame: &GoalFrame,
+        now_ns: u64,
+        path: GoalPath,
+    ) -> Result<(), GoalRejection> {
         let n = self.joints.len() as u32;
         if frame.joint_count != n {
             return Err(GoalRejection::WrongJointCount {
@@ -664,6 +695,23 @@ impl<T: Transport> Driver<T> {
             return Err(GoalRejection::MaskOutOfRange {
                 mask: frame.mask,
                 joint_count: n,
+            });
+        }
+        let wheels = self
+            .joints
+            .iter()
+            .enumerate()
+            .filter(|(_, j)| j.role == JointRole::Wheel)
+            .fold(0u32, |m, (i, _)| m | 1 << i);
+        let (foreign, what) = match path {
+            GoalPath::Joints => (frame.mask & wheels, "a wheel"),
+            GoalPath::Wheels => (frame.mask & !wheels, "a joint that is not a wheel"),
+        };
+        if foreign != 0 {
+            return Err(GoalRejection::WrongPath {
+                mask: frame.mask,
+                what,
+                path,
             });
         }
         if frame.timestamp_ns > now_ns + 1_000_000 {

@@ -49,6 +49,7 @@ struct Args {
 /// The driver's side of the state plane.
 struct Ipc {
     goals: Sub<GoalFrame>,
+    wheel_goals: Sub<GoalFrame>,
     directives: Sub<Directives>,
     supervisor: Sub<Heartbeat>,
     state: Pub<JointState>,
@@ -68,6 +69,10 @@ struct Ipc {
 impl LoopIo for Ipc {
     fn goals(&mut self) -> Option<GoalFrame> {
         plane::newest(&self.goals)
+    }
+
+    fn wheel_goals(&mut self) -> Option<GoalFrame> {
+        plane::newest(&self.wheel_goals)
     }
 
     fn directives(&mut self) -> Option<Directives> {
@@ -187,6 +192,7 @@ fn run(args: Args) -> Result<()> {
     apply_trip_record(&mut driver, &config, &trip_file);
     let mut io = Ipc {
         goals: node.subscriber(&plane::GOALS)?,
+        wheel_goals: node.subscriber(&plane::WHEEL_GOALS)?,
         directives: node.subscriber(&plane::DIRECTIVES)?,
         supervisor: node.subscriber(&plane::SUPERVISOR_HEARTBEAT)?,
         state: node.publisher(&plane::JOINT_STATE)?,
@@ -224,9 +230,10 @@ fn run(args: Args) -> Result<()> {
         eeprom_writes = driver.counters.eeprom_writes,
         rate_hz = config.config.rate_hz,
         domain = %args.process.domain,
-        "driving; state on {}, goals from {}",
+        "driving; state on {}, goals from {}, the wheels' from {}",
         plane::JOINT_STATE.name,
-        plane::GOALS.name
+        plane::GOALS.name,
+        plane::WHEEL_GOALS.name
     );
     io.service.ready(&format!(
         "driving {} joints on {} buses at {} Hz",

@@ -2,7 +2,7 @@
 //! supervisor's heartbeat watched. What crosses the process boundary goes through [`LoopIo`], so
 //! tests run the same loop with fakes.
 
-use crate::driver::{Driver, DriverCounters, GoalRejection};
+use crate::driver::{Driver, DriverCounters, GoalPath, GoalRejection};
 use crate::transport::Transport;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
@@ -13,8 +13,13 @@ use telemetry::{GoalFrame, JointState};
 
 /// Everything the loop exchanges with other processes.
 pub trait LoopIo {
-    /// The newest goal frame since the last call.
+    /// The newest goal frame for the arms and grippers since the last call.
     fn goals(&mut self) -> Option<GoalFrame>;
+    /// The newest wheel-speed frame from the base's controller since the last call (a path of
+    /// its own: a wheel goal anywhere else is refused). None without a base.
+    fn wheel_goals(&mut self) -> Option<GoalFrame> {
+        None
+    }
     /// The newest directives since the last call.
     fn directives(&mut self) -> Option<Directives>;
     /// The newest supervisor heartbeat since the last call.
@@ -113,7 +118,7 @@ pub fn run<T: Transport>(
 ) -> RunSummary {
     let start = Instant::now();
     let mut next = start + period;
-    let mut last_rejection: Option<std::mem::Discriminant<GoalRejection>> = None;
+    let mut last_rejection: [Option<std::mem::Discriminant<GoalRejection>>; 2] = [None; 2];
     let mut watchdog = supervisor_timeout.map(Watchdog::new);
     let timeout_ns = supervisor_timeout.map_or(0, |t| t.as_nanos() as u64);
     let fresh = |stamp: u64, now: u64| {
@@ -173,14 +178,18 @@ pub fn run<T: Transport>(
             }
             supervisor = liveness;
         }
-        if let Some(frame) = io.goals() {
-            match driver.apply_goals(&frame, now) {
-                Ok(()) => last_rejection = None,
+        for (path, frame) in [
+            (GoalPath::Joints, io.goals()),
+            (GoalPath::Wheels, io.wheel_goals()),
+        ] {
+            let Some(frame) = frame else { continue };
+            match driver.apply_goals(&frame, now, path) {
+                Ok(()) => last_rejection[path as usize] = None,
                 Err(e) => {
                     let kind = std::mem::discriminant(&e);
-                    if last_rejection != Some(kind) {
-                        tracing::warn!(seq = frame.seq, "goal frame rejected: {e}");
-                        last_rejection = Some(kind);
+                    if last_rejection[path as usize] != Some(kind) {
+                        tracing::warn!(seq = frame.seq, ?path, "goal frame rejected: {e}");
+                        last_rejection[path as usize] = Some(kind);
                     }
                 }
             }

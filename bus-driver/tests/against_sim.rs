@@ -4,6 +4,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
+use bus_driver::driver::GoalPath;
 use bus_driver::{Driver, LoadedConfig, SerialTransport};
 use sim::pty::{serve, ServedRobot};
 use sim::{RobotDescription, SimBus};
@@ -102,6 +103,7 @@ fn goals_are_followed_clamped_and_gated() {
     d.apply_goals(
         &goals(&d, &[(4, 0.8), (12, 100.0), (0, -0.5)]),
         monotonic_ns(),
+        GoalPath::Joints,
     )
     .unwrap();
     run_cycles(&mut d, 600);
@@ -130,15 +132,21 @@ fn goals_are_followed_clamped_and_gated() {
 
     // A NaN anywhere refuses the whole frame: joint 4 keeps its goal.
     let bad = goals(&d, &[(4, 0.0), (5, f32::NAN)]);
-    assert!(d.apply_goals(&bad, monotonic_ns()).is_err());
+    assert!(d
+        .apply_goals(&bad, monotonic_ns(), GoalPath::Joints)
+        .is_err());
     // A stale frame is refused.
     let mut stale = goals(&d, &[(4, 0.0)]);
     stale.timestamp_ns -= 1_000_000_000;
-    assert!(d.apply_goals(&stale, monotonic_ns()).is_err());
+    assert!(d
+        .apply_goals(&stale, monotonic_ns(), GoalPath::Joints)
+        .is_err());
     // A frame for another robot's joint count is refused.
     let mut wrong = goals(&d, &[(4, 0.0)]);
     wrong.joint_count = 7;
-    assert!(d.apply_goals(&wrong, monotonic_ns()).is_err());
+    assert!(d
+        .apply_goals(&wrong, monotonic_ns(), GoalPath::Joints)
+        .is_err());
     run_cycles(&mut d, 50);
     assert!((d.state().joints[4].goal_rad - 0.8).abs() < 1e-3);
     assert_eq!(

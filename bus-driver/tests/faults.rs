@@ -10,7 +10,7 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use bus_driver::config::SafeState;
-use bus_driver::driver::GoalRejection;
+use bus_driver::driver::{GoalPath, GoalRejection};
 use bus_driver::transport::TransportError;
 use bus_driver::{Driver, LoadedConfig, Transport};
 use feetech::registers::{self as reg, FeedbackBlock};
@@ -563,9 +563,10 @@ fn every_bad_goal_frame_is_refused_with_its_reason_and_nothing_reaches_the_wire(
     wrong_count.joint_count = 17;
     let mut beyond_mask = frame(&[(0, 0.3)], now);
     beyond_mask.mask |= 1 << 20;
-    let cases: Vec<(GoalFrame, GoalRejection)> = vec![
+    let cases: Vec<(GoalFrame, GoalPath, GoalRejection)> = vec![
         (
             wrong_count,
+            GoalPath::Joints,
             GoalRejection::WrongJointCount {
                 expected: 18,
                 got: 17,
@@ -573,6 +574,7 @@ fn every_bad_goal_frame_is_refused_with_its_reason_and_nothing_reaches_the_wire(
         ),
         (
             beyond_mask,
+            GoalPath::Joints,
             GoalRejection::MaskOutOfRange {
                 mask: 1 | 1 << 20,
                 joint_count: 18,
@@ -580,6 +582,7 @@ fn every_bad_goal_frame_is_refused_with_its_reason_and_nothing_reaches_the_wire(
         ),
         (
             frame(&[(0, 0.3)], now - 500 * ms),
+            GoalPath::Joints,
             GoalRejection::Stale {
                 age_ms: 500,
                 limit_ms: 100,
@@ -587,10 +590,12 @@ fn every_bad_goal_frame_is_refused_with_its_reason_and_nothing_reaches_the_wire(
         ),
         (
             frame(&[(0, 0.3)], now + 50 * ms),
+            GoalPath::Joints,
             GoalRejection::FromTheFuture { ahead_ms: 50 },
         ),
         (
             frame(&[(0, 0.3), (4, f32::NAN)], now),
+            GoalPath::Joints,
             GoalRejection::NotFinite(bus_driver::calibration::GoalError::NotFinite {
                 joint: 4,
                 value: f32::NAN,
@@ -598,21 +603,43 @@ fn every_bad_goal_frame_is_refused_with_its_reason_and_nothing_reaches_the_wire(
         ),
         (
             frame(&[(0, 0.3), (9, f32::INFINITY)], now),
+            GoalPath::Joints,
             GoalRejection::NotFinite(bus_driver::calibration::GoalError::NotFinite {
                 joint: 9,
                 value: f32::INFINITY,
             }),
         ),
         (
-            frame(&[(0, 0.3), (16, f32::NEG_INFINITY)], now),
+            frame(&[(16, f32::NEG_INFINITY)], now),
+            GoalPath::Wheels,
             GoalRejection::NotFinite(bus_driver::calibration::GoalError::NotFinite {
                 joint: 16,
                 value: f32::NEG_INFINITY,
             }),
         ),
+        // A wheel on the arms' path, an arm joint on the wheels': the wheels take speeds from the
+        // base's controller alone.
+        (
+            frame(&[(0, 0.3), (16, 1.0)], now),
+            GoalPath::Joints,
+            GoalRejection::WrongPath {
+                mask: 1 | 1 << 16,
+                what: "a wheel",
+                path: GoalPath::Joints,
+            },
+        ),
+        (
+            frame(&[(3, 0.3), (17, 1.0)], now),
+            GoalPath::Wheels,
+            GoalRejection::WrongPath {
+                mask: 1 << 3 | 1 << 17,
+                what: "a joint that is not a wheel",
+                path: GoalPath::Wheels,
+            },
+        ),
     ];
-    for (f, want) in &cases {
-        let got = rig.driver.apply_goals(f, now).unwrap_err();
+    for (f, path, want) in &cases {
+        let got = rig.driver.apply_goals(f, now, *path).unwrap_err();
         match (got, want) {
             // NaN != NaN: compare the joint only.
             (
@@ -645,14 +672,21 @@ fn every_bad_goal_frame_is_refused_with_its_reason_and_nothing_reaches_the_wire(
             c.goals_not_finite,
             c.goals_accepted
         ),
-        (2, 2, 3, 0)
+        (4, 2, 3, 0)
     );
 
     // Out of range: applied, clamped into the calibrated range (the speed limit for wheels).
     let cal = rig.config.calibration.joint["left_shoulder_pitch"];
     let cal5 = rig.config.calibration.joint["right_shoulder_pitch"];
     rig.driver
-        .apply_goals(&frame(&[(0, 1e30), (8, -100.0), (17, 1e9)], now), now)
+        .apply_goals(
+            &frame(&[(0, 1e30), (8, -100.0)], now),
+            now,
+            GoalPath::Joints,
+        )
+        .unwrap();
+    rig.driver
+        .apply_goals(&frame(&[(17, 1e9)], now), now, GoalPath::Wheels)
         .unwrap();
     rig.cycle();
     let after = registers(&rig);
@@ -672,19 +706,23 @@ fn every_bad_goal_frame_is_refused_with_its_reason_and_nothing_reaches_the_wire(
     // In the safe state goals are refused; after it, goals made before the recovery too.
     rig.driver.enter_safe_state();
     assert_eq!(
-        rig.driver.apply_goals(&frame(&[(0, 0.3)], now), now),
+        rig.driver
+            .apply_goals(&frame(&[(0, 0.3)], now), now, GoalPath::Joints),
         Err(GoalRejection::SafeState)
     );
     let recovered = monotonic_ns();
     rig.driver.leave_safe_state(recovered);
     assert_eq!(
-        rig.driver
-            .apply_goals(&frame(&[(0, 0.3)], recovered - ms), recovered),
+        rig.driver.apply_goals(
+            &frame(&[(0, 0.3)], recovered - ms),
+            recovered,
+            GoalPath::Joints
+        ),
         Err(GoalRejection::BeforeRecovery)
     );
     assert!(rig
         .driver
-        .apply_goals(&frame(&[(0, 0.3)], recovered), recovered)
+        .apply_goals(&frame(&[(0, 0.3)], recovered), recovered, GoalPath::Joints)
         .is_ok());
     let c = rig.driver.counters;
     assert_eq!((c.goals_in_safe_state, c.goals_stale), (1, 3));
@@ -1213,23 +1251,21 @@ fn a_wheel_whose_command_is_not_renewed_stops() {
     }
     let wheel_speed = |rig: &Rig| rig.buses[2].lock().unwrap().servos[0].get(reg::GOAL_VELOCITY);
     let elbow_goal = |rig: &Rig| rig.buses[0].lock().unwrap().servos[3].get(reg::GOAL_POSITION);
-    let command = |speed: f32, elbow: Option<f32>| {
+    let command = |joint: usize, value: f32| {
         let now = monotonic_ns();
         let mut f = GoalFrame {
             joint_count: 18,
             timestamp_ns: now,
-            mask: 1 << 16,
+            mask: 1 << joint,
             ..GoalFrame::default()
         };
-        f.position_rad[16] = speed;
-        if let Some(q) = elbow {
-            f.mask |= 1 << 3;
-            f.position_rad[3] = q;
-        }
+        f.position_rad[joint] = value;
         (f, now)
     };
-    let (f, now) = command(2.0, Some(-0.5));
-    rig.driver.apply_goals(&f, now).unwrap();
+    let (f, now) = command(16, 2.0);
+    rig.driver.apply_goals(&f, now, GoalPath::Wheels).unwrap();
+    let (f, now) = command(3, -0.5);
+    rig.driver.apply_goals(&f, now, GoalPath::Joints).unwrap();
     rig.cycle();
     assert_ne!(wheel_speed(&rig), 0, "the command reaches the wheel");
     let elbow = elbow_goal(&rig);
@@ -1237,8 +1273,8 @@ fn a_wheel_whose_command_is_not_renewed_stops() {
     // Renewed every 50 ms for three timeouts: it keeps turning.
     let renewing = Instant::now();
     while renewing.elapsed() < 3 * timeout {
-        let (f, now) = command(2.0, None);
-        rig.driver.apply_goals(&f, now).unwrap();
+        let (f, now) = command(16, 2.0);
+        rig.driver.apply_goals(&f, now, GoalPath::Wheels).unwrap();
         let until = Instant::now() + Duration::from_millis(50);
         while Instant::now() < until {
             rig.cycle();
@@ -1253,8 +1289,8 @@ fn a_wheel_whose_command_is_not_renewed_stops() {
 
     // Not renewed: stopped once the last command is the timeout old, the arm left alone.
     let last = Instant::now();
-    let (f, now) = command(2.0, None);
-    rig.driver.apply_goals(&f, now).unwrap();
+    let (f, now) = command(16, 2.0);
+    rig.driver.apply_goals(&f, now, GoalPath::Wheels).unwrap();
     while last.elapsed() < timeout + Duration::from_millis(20) {
         rig.cycle();
         std::thread::sleep(Duration::from_millis(2));

@@ -77,7 +77,8 @@ const fn topic<T>(
 /// Driver → all: one frame per control cycle. A late subscriber gets the newest at once; the
 /// supervisor needs every frame of its stall window, so the buffer spans a few cycles.
 pub const JOINT_STATE: Topic<JointState> = topic("nori/joint-state", 1, 16, 2, 8);
-/// Goals into the driver. Not replayed: a restarted driver starts from present positions.
+/// Goals into the driver for the arms and grippers (a wheel named here is refused). Not
+/// replayed: a restarted driver starts from present positions.
 pub const GOALS: Topic<GoalFrame> = topic("nori/goals", 0, 4, 8, 4);
 /// Driver → all: the joint layout, published at start (history 1).
 pub const LAYOUT: Topic<JointLayout> = topic("nori/layout", 1, 2, 2, 8);
@@ -99,6 +100,9 @@ pub const BUS_HEALTH: Topic<crate::frames::BusHealth> = topic("nori/bus-health",
 /// Tools, the fleet agent → the base controller: velocity commands (a queue: none is lost
 /// between two of the controller's periods; the newest wins).
 pub const BASE_COMMAND: Topic<BaseCommand> = topic("nori/base/command", 0, 8, 4, 2);
+/// Base controller → driver: the wheels' speeds, the only path that drives them (so every
+/// wheel goal has passed the protective field, the ramp and the command timeout).
+pub const WHEEL_GOALS: Topic<GoalFrame> = topic("nori/base/wheel-goals", 0, 4, 2, 4);
 /// Base controller → all: odometry, what it commanded and why, every control period.
 pub const BASE_STATE: Topic<BaseState> = topic("nori/base/state", 1, 4, 1, 8);
 
