@@ -249,3 +249,30 @@ fn every_robot_process_refuses_a_run_time_that_is_no_positive_number() {
         }
     }
 }
+
+/// Nori Lab off loopback would carry its access token and every command over plain `ws://`,
+/// readable and replayable by anyone on the network: it refuses to serve there, even with a
+/// token file, and says how to reach it instead.
+#[test]
+fn nori_lab_refuses_to_serve_beyond_loopback_without_tls() {
+    let dir = scratch("bad-configs-lab");
+    let token = dir.join("token");
+    std::fs::write(&token, "a-token-of-sixteen-or-more\n").unwrap();
+    let (code, stderr) = run(
+        &binary("nori-lab"),
+        &[
+            "--http",
+            "0.0.0.0:0",
+            "--token-file",
+            token.to_str().unwrap(),
+            "--domain",
+            "nori_bad_configs_lab",
+        ],
+        &dir.join("lab.stderr"),
+    );
+    assert_ne!(code, Some(0), "{stderr}");
+    assert!(
+        stderr.contains("0.0.0.0:0") && stderr.contains("ssh -L"),
+        "{stderr}"
+    );
+}
