@@ -37,8 +37,8 @@ struct Args {
     /// State-plane domain.
     #[arg(long, default_value = plane::DEFAULT_DOMAIN)]
     domain: String,
-    /// Where to serve the page. A non-loopback address needs --token-file: the page then moves
-    /// the robot for whoever holds the token.
+    /// Where to serve the page: a loopback address (the link is plain ws://; from another
+    /// machine, through an SSH tunnel).
     #[arg(long, default_value = "127.0.0.1:8765")]
     http: SocketAddr,
     /// A file holding the access token (one line, at least 16 characters); one is generated at
@@ -198,10 +198,11 @@ fn serve(args: &Args) -> Result<()> {
         None => RobotDescription::nori_a3(),
     };
     let body = Body::from_description(&description)?;
-    let loopback = args.http.ip().is_loopback();
-    if !loopback && args.token_file.is_none() {
+    // Plain ws:// would carry the token and every command readable (and replayable) on the
+    // network: the lab has no TLS of its own, so it is reached through a tunnel or a proxy.
+    if !args.http.ip().is_loopback() {
         bail!(
-            "--http {}: serving beyond loopback needs --token-file (an open control port on a network moves the robot for anyone)",
+            "--http {}: Nori Lab serves loopback only (its link is plain ws://: the token and every command would cross the network readable); reach it from another machine through an SSH tunnel (ssh -L 8765:127.0.0.1:8765 <robot>)",
             args.http
         );
     }
@@ -265,7 +266,7 @@ fn serve(args: &Args) -> Result<()> {
     let http = server::serve(
         listener,
         files,
-        Access::new(token.clone(), loopback),
+        Access::new(token.clone()),
         pages.clone(),
         inbound_tx,
         shutdown.clone(),

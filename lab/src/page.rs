@@ -1,11 +1,11 @@
 //! The page's side of the link, pure: the messages a page sends (JSON over its WebSocket), and
 //! who may open that link.
 //!
-//! The lab listens on loopback unless told otherwise, and even there a web page of another
+//! The lab listens on loopback only (its link is plain `ws://`), and even there a web page of another
 //! site, open in the operator's browser, could open a WebSocket to it (WebSockets are not held
 //! to the same-origin rule). So the link needs the lab's access token (generated at each start
 //! unless one is configured; the page carries it in its URL's fragment, which no server or
-//! log sees), its `Origin` must be the lab's own, and on a loopback address its `Host` must be
+//! log sees), its `Origin` must be the lab's own, and its `Host` must be
 //! a loopback name (a DNS-rebinding page names its own host).
 
 use crate::teleop::Command;
@@ -104,7 +104,7 @@ pub enum Denied {
     /// No token, or not the lab's.
     #[error("no valid access token")]
     Token,
-    /// `Host` is missing, or not a loopback name on a loopback address.
+    /// `Host` is missing, or not a loopback name.
     #[error("host {0:?} is not this lab's")]
     Host(String),
     /// `Origin` is not the lab's own.
@@ -116,13 +116,12 @@ pub enum Denied {
 #[derive(Debug, Clone)]
 pub struct Access {
     token: String,
-    loopback: bool,
 }
 
 impl Access {
-    /// `token` opens the link; `loopback`: the lab listens on a loopback address only.
-    pub fn new(token: String, loopback: bool) -> Access {
-        Access { token, loopback }
+    /// `token` opens the link (the lab listens on a loopback address only).
+    pub fn new(token: String) -> Access {
+        Access { token }
     }
 
     /// Checks a request for the link: its `Host` and `Origin` headers and the token it
@@ -134,7 +133,7 @@ impl Access {
         token: Option<&str>,
     ) -> Result<(), Denied> {
         let host = host.ok_or_else(|| Denied::Host(String::new()))?;
-        if self.loopback && !is_loopback_host(host) {
+        if !is_loopback_host(host) {
             return Err(Denied::Host(host.to_string()));
         }
         if let Some(origin) = origin {
@@ -228,7 +227,7 @@ mod tests {
 
     #[test]
     fn only_this_labs_pages_with_its_token_get_the_link() {
-        let local = Access::new("abc123".into(), true);
+        let local = Access::new("abc123".into());
         let ok = |h, o, t| local.check(Some(h), o, Some(t));
         assert_eq!(
             ok("127.0.0.1:8765", Some("http://127.0.0.1:8765"), "abc123"),
@@ -261,20 +260,6 @@ mod tests {
             Err(Denied::Host("evil.example:8765".into()))
         );
         assert!(local.check(None, None, Some("abc123")).is_err());
-        // Exposed: any host name, still the origin and the token.
-        let exposed = Access::new("abc123".into(), false);
-        assert_eq!(
-            exposed.check(
-                Some("nori.local:8765"),
-                Some("http://nori.local:8765"),
-                Some("abc123")
-            ),
-            Ok(())
-        );
-        assert_eq!(
-            exposed.check(Some("nori.local:8765"), None, Some("x")),
-            Err(Denied::Token)
-        );
         assert_eq!(query_value("/ws?a=1&token=ff00", "token"), Some("ff00"));
         assert_eq!(query_value("/ws", "token"), None);
     }
