@@ -756,3 +756,136 @@ pub fn lerobot_check(root: &Path, args: &[&str]) -> Option<serde_json::Value> {
     );
     Some(serde_json::from_slice(&out.stdout).expect("check summary"))
 }
+
+/// `nori-lab` on `domain` and one page's link to it (a WebSocket, spoken as the page speaks
+/// it): what the tests send as an operator would, and the lab's replies.
+pub struct Lab {
+    /// The process.
+    pub proc: Proc,
+    /// `127.0.0.1:port`.
+    pub http: String,
+    token: String,
+    args: Vec<String>,
+    log: PathBuf,
+    starts: u32,
+    link: Option<tungstenite::WebSocket<std::net::TcpStream>>,
+}
+
+impl Lab {
+    /// Starts `nori-lab` (with `extra` arguments) and waits until it serves.
+    pub fn start(domain: &str, dir: &Path, extra: &[&str]) -> Lab {
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .expect("a free port")
+            .port();
+        let token = format!("lab-test-token-{}", std::process::id());
+        let token_file = dir.join("lab-token");
+        std::fs::write(&token_file, &token).expect("token file");
+        let http = format!("127.0.0.1:{port}");
+        let mut args: Vec<String> = ["--domain", domain, "--http", &http, "--token-file"]
+            .iter()
+            .map(|a| a.to_string())
+            .collect();
+        args.push(token_file.display().to_string());
+        args.extend(extra.iter().map(|a| a.to_string()));
+        let mut lab = Lab {
+            proc: Proc::none("nori-lab"),
+            http,
+            token,
+            args,
+            log: dir.join("lab"),
+            starts: 0,
+            link: None,
+        };
+        lab.restart();
+        lab
+    }
+
+    /// (Re)starts the process, as systemd would after a crash, and waits until it serves.
+    pub fn restart(&mut self) {
+        self.proc.kill();
+        self.link = None;
+        self.starts += 1;
+        let log = self.log.with_extension(format!("{}.log", self.starts));
+        self.proc = Proc::spawn_owned("nori-lab", &binary("nori-lab"), &self.args, &log);
+        let http = self.http.clone();
+        wait_for(Duration::from_secs(10), "the lab serving", || {
+            http_get(&http, "/").filter(|(code, _)| *code == 200)
+        });
+    }
+
+    /// Opens the page's link (with the token, the lab's own origin and host).
+    pub fn connect(&mut self) -> std::io::Result<()> {
+        use tungstenite::client::IntoClientRequest;
+        let url = format!("ws://{}/ws?token={}", self.http, self.token);
+        let mut request = url.into_client_request().map_err(std::io::Error::other)?;
+        let origin = format!("http://{}", self.http);
+        request
+            .headers_mut()
+            .insert("Origin", origin.parse().map_err(std::io::Error::other)?);
+        let stream = std::net::TcpStream::connect(&self.http)?;
+        stream.set_read_timeout(Some(Duration::from_millis(20)))?;
+        let (link, _) = tungstenite::client::client(request, stream)
+            .map_err(|e| std::io::Error::other(e.to_string()))?;
+        self.link = Some(link);
+        Ok(())
+    }
+
+    /// Sends one message; an error (the lab gone) drops the link.
+    pub fn send(&mut self, message: &serde_json::Value) -> bool {
+        let Some(link) = self.link.as_mut() else {
+            return false;
+        };
+        let sent = link
+            .send(tungstenite::Message::text(message.to_string()))
+            .is_ok();
+        if !sent {
+            self.link = None;
+        }
+        sent
+    }
+
+    /// The JSON messages received so far (none waits longer than the read timeout); the
+    /// link dropped when the lab is gone.
+    pub fn receive(&mut self) -> Vec<serde_json::Value> {
+        let mut got = Vec::new();
+        while let Some(link) = self.link.as_mut() {
+            match link.read() {
+                Ok(tungstenite::Message::Text(t)) => {
+                    got.extend(serde_json::from_str(t.as_str()).ok());
+                }
+                Ok(_) => {}
+                Err(tungstenite::Error::Io(e))
+                    if matches!(
+                        e.kind(),
+                        std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                    ) =>
+                {
+                    break
+                }
+                Err(_) => self.link = None,
+            }
+        }
+        got
+    }
+
+    /// Whether the link is open.
+    pub fn linked(&self) -> bool {
+        self.link.is_some()
+    }
+
+    /// Waits up to `within` for a reply of the lab's with `"to": to`.
+    pub fn reply_to(&mut self, to: &str, within: Duration) -> Option<serde_json::Value> {
+        let until = Instant::now() + within;
+        while Instant::now() < until {
+            if let Some(r) = self
+                .receive()
+                .into_iter()
+                .find(|m| m["type"] == "reply" && m["to"] == to)
+            {
+                return Some(r);
+            }
+        }
+        None
+    }
+}

@@ -106,3 +106,52 @@ fn a_stop_holds_through_a_supervisor_restart_until_the_operator_resumes() {
     let report = stack.stop();
     check_left_arm_report(&report, 60.0);
 }
+
+/// Nori Lab's stop button answers only what the supervisor showed it heard: with no supervisor
+/// running, a stop is said to be unheard (the operator must not walk up to an arm that still
+/// moves); with one, a stop is confirmed stopped, a second stop too (already stopped), and a
+/// resume resumed.
+#[test]
+fn the_labs_stop_button_says_whether_a_supervisor_heard_it() {
+    let dir = nori_tests::scratch("lab-stop-button");
+    let domain = format!("nori_lab_stop_{}", std::process::id());
+    let mut lab = nori_tests::Lab::start(&domain, &dir, &[]);
+    lab.connect().unwrap();
+    let press = |lab: &mut nori_tests::Lab, to: &str| {
+        assert!(lab.send(&serde_json::json!({ "type": to })));
+        lab.reply_to(to, Duration::from_secs(4))
+            .unwrap_or_else(|| panic!("no reply to {to}"))
+    };
+    let unheard = press(&mut lab, "stop");
+    assert_eq!(unheard["ok"], false, "{unheard}");
+    assert!(
+        unheard["error"].as_str().unwrap().contains("NO SUPERVISOR"),
+        "{unheard}"
+    );
+
+    let mut supervisor = nori_tests::Proc::spawn(
+        "supervisor",
+        &nori_tests::binary("supervisor"),
+        &[
+            "--domain",
+            &domain,
+            "--trip-file",
+            dir.join("trips").to_str().unwrap(),
+        ],
+        &dir.join("supervisor.log"),
+    );
+    std::thread::sleep(Duration::from_millis(500));
+    for _ in 0..2 {
+        let heard = press(&mut lab, "stop");
+        assert_eq!(heard["ok"], true, "{heard}");
+        assert!(
+            heard["text"].as_str().unwrap().contains("stopped"),
+            "{heard}"
+        );
+    }
+    let resumed = press(&mut lab, "resume");
+    assert_eq!(resumed["ok"], true, "{resumed}");
+    assert_eq!(resumed["text"], "resumed", "{resumed}");
+    supervisor.terminate(Duration::from_secs(5));
+    lab.proc.terminate(Duration::from_secs(5));
+}
