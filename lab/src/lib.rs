@@ -8,6 +8,8 @@
 //!   bounded speed, under a dead-man;
 //! - [`scene`] (pure): what the page draws, as JSON;
 //! - [`page`] (pure): the page's messages, and who may connect (token, host, origin);
+//! - [`stop_button`] (pure): a stop or resume press answered only once the supervisor shows it
+//!   heard it;
 //! - [`server`]: HTTP and WebSocket on std's TCP, a thread per page, never blocking the loop;
 //! - [`recording`]: episodes recorded from the page by `nori record` itself;
 //! - the binary `nori-lab` (`nori lab`): the state plane in, goals and the supervisor's
@@ -17,4 +19,5 @@ pub mod page;
 pub mod recording;
 pub mod scene;
 pub mod server;
+pub mod stop_button;
 pub mod teleop;

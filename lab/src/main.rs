@@ -12,6 +12,7 @@ use lab::page::{Access, PageMessage};
 use lab::recording::{outcome_json, Recording, RecordingSettings};
 use lab::scene::Scene;
 use lab::server::{self, Event, Files, Inbound, Outgoing, Pages};
+use lab::stop_button::{Answer, Pending, Press};
 use lab::teleop::{Ended, Teleop, TeleopSettings};
 use serde_json::json;
 use std::collections::VecDeque;
@@ -239,6 +240,7 @@ fn serve(args: &Args) -> Result<()> {
     let lifts = node.subscriber(&plane::LIFT_STATE)?;
     let bases = node.subscriber(&plane::BASE_STATE)?;
     let events = node.subscriber(&plane::EVENTS)?;
+    let allowances = node.subscriber(&plane::LIFT_ALLOWANCE)?;
     let goals = node.publisher(&plane::GOALS)?;
     let commands = node.publisher(&plane::COMMANDS)?;
     let mut cameras = args
@@ -297,6 +299,8 @@ fn serve(args: &Args) -> Result<()> {
     let mut base: Option<BaseState> = None;
     let mut recent: VecDeque<serde_json::Value> = VecDeque::new();
     let mut command_seq = 0u64;
+    // Stop and resume presses waiting for the supervisor to show it heard them.
+    let mut presses: Vec<Pending> = Vec::new();
     let mut counts = Counts::default();
     let say =
         |pages: &Pages, page: u64, v: serde_json::Value| pages.send(page, v.to_string().into());
@@ -332,11 +336,27 @@ fn serve(args: &Args) -> Result<()> {
         for c in &mut cameras {
             c.take();
         }
+        let allowance = newest(&allowances);
+        let mut answers = Vec::new();
         while let Some(e) = next(&events) {
             if recent.len() == RECENT_EVENTS {
                 recent.pop_front();
             }
             recent.push_back(json!({"kind": event_name(e.kind()), "joint": e.joint, "bus": e.bus, "level": e.level, "value": e.value}));
+            answers.extend(presses.iter().filter_map(|p| Some((*p, p.on_event(&e)?))));
+        }
+        let now_ns = monotonic_ns();
+        for p in &presses {
+            let answer = allowance
+                .and_then(|a| p.on_allowance(&a))
+                .or(p.expired(now_ns));
+            answers.extend(answer.map(|a| (*p, a)));
+        }
+        for (p, answer) in answers {
+            if presses.contains(&p) {
+                presses.retain(|q| *q != p);
+                say(&pages, p.page, press_reply(p.press, answer));
+            }
         }
 
         // The pages, until the next tick.
@@ -370,33 +390,40 @@ fn serve(args: &Args) -> Result<()> {
                     );
                 }
                 Event::Message(Ok(m @ (PageMessage::Stop {} | PageMessage::Resume {}))) => {
-                    let stop = matches!(m, PageMessage::Stop {});
-                    command_seq += 1;
-                    let cmd = SupervisorCommand {
-                        seq: command_seq,
-                        timestamp_ns: monotonic_ns(),
-                        kind: if stop { COMMAND_STOP } else { COMMAND_RESUME },
-                        ..SupervisorCommand::default()
-                    };
-                    if stop {
+                    let press = if matches!(m, PageMessage::Stop {}) {
                         counts.stops += 1;
+                        Press::Stop
                     } else {
                         counts.resumes += 1;
-                    }
-                    let sent = publish(&commands, &cmd);
-                    if stop {
+                        Press::Resume
+                    };
+                    command_seq += 1;
+                    let sent_ns = monotonic_ns();
+                    let cmd = SupervisorCommand {
+                        seq: command_seq,
+                        timestamp_ns: sent_ns,
+                        kind: match press {
+                            Press::Stop => COMMAND_STOP,
+                            Press::Resume => COMMAND_RESUME,
+                        },
+                        ..SupervisorCommand::default()
+                    };
+                    if press == Press::Stop {
                         // Teleoperation ends with the press, whatever the supervisor makes of it.
                         if let Some((teleop, ..)) = lab.as_mut() {
                             teleop.let_go();
                         }
                         tracing::warn!(page, "stop pressed");
                     }
-                    say(
-                        &pages,
-                        page,
-                        json!({"type": "reply", "to": if stop { "stop" } else { "resume" }, "ok": sent.is_ok(),
-                        "error": sent.err().map(|e| e.to_string())}),
-                    );
+                    // Answered once the supervisor shows it heard it (or says nobody did).
+                    match publish(&commands, &cmd) {
+                        Ok(()) => presses.push(Pending::new(page, press, sent_ns)),
+                        Err(e) => say(
+                            &pages,
+                            page,
+                            json!({"type": "reply", "to": press_name(press), "ok": false, "error": e.to_string()}),
+                        ),
+                    }
                     acted = true;
                 }
                 Event::Message(Ok(
@@ -547,4 +574,18 @@ fn serve(args: &Args) -> Result<()> {
     summary["denied_links"] = json!(pages.denied.load(Ordering::Relaxed));
     println!("{summary}");
     Ok(())
+}
+
+fn press_name(press: Press) -> &'static str {
+    match press {
+        Press::Stop => "stop",
+        Press::Resume => "resume",
+    }
+}
+
+/// The page's reply to a press, once answered.
+fn press_reply(press: Press, answer: Answer) -> serde_json::Value {
+    let (ok, text) = answer.reply(press);
+    json!({"type": "reply", "to": press_name(press), "ok": ok, "text": text,
+        "error": (!ok).then_some(text)})
 }

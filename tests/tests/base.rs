@@ -431,7 +431,7 @@ fn a_policy_drives_the_base_through_the_gate_and_the_base_stops_when_it_falls_si
 /// only from the base's controller, on a path of their own; the driver refuses the rest.
 #[test]
 fn a_wheel_goal_from_anyone_but_the_base_is_refused() {
-    let mut base = Base::start("base-wheel-goals", &[], &[]);
+    let base = Base::start("base-wheel-goals", &[], &[]);
     let node = Plane::open(&base.stack.domain, "test-rogue").unwrap();
     let goals = node.publisher(&plane::GOALS).unwrap();
     let mut fastest = 0f32;

@@ -464,6 +464,18 @@ fn the_lab_page_shows_the_arm_drives_it_stops_it_and_lets_go_when_the_page_does(
         let text = js(&mut page, "document.getElementById('status').textContent");
         text.as_str()?.contains("STOPPED").then_some(())
     });
+    // Answered once the supervisor showed it heard the press (with none, the page says so).
+    let answered = wait_for(Duration::from_secs(3), "the stop answered", || {
+        let r = js(
+            &mut page,
+            "lab.replies.filter(r => r.to === 'stop').pop() || null",
+        );
+        (r["ok"] == true).then_some(r)
+    });
+    assert!(
+        answered["text"].as_str().unwrap().starts_with("stopped"),
+        "{answered}"
+    );
     // The driver holds (at its hold torque: the arm may settle a little): the goals it sends
     // stay where the stop froze them, whatever the page asks.
     let goals_sent =

@@ -42,7 +42,7 @@ function connect() {
       lab.replies.push(m);
       if (lab.replies.length > 50) lab.replies.shift();
       const r = $("reply");
-      if (m.ok) { r.className = "muted"; r.textContent = m.solved ? `reached within ${(m.solved.position_error_m * 1000).toFixed(2)} mm` : "taken"; }
+      if (m.ok) { r.className = "muted"; r.textContent = m.text || (m.solved ? `reached within ${(m.solved.position_error_m * 1000).toFixed(2)} mm` : "taken"); }
       else { r.className = "bad"; r.textContent = `refused: ${m.error}`; if (lab.target && m.refused === "unreachable") lab.target.unreachable = true; }
     } else if (m.type === "recorded") {
       lab.recorded.push(m.outcome);
