@@ -950,6 +950,33 @@ pub(crate) mod tests {
         );
     }
 
+    /// A joint read beyond its range's end (pushed there, or sagging in a hold) is commanded
+    /// within its range from the first frame: the lead toward its reading never carries a
+    /// goal out of the range. (Seen in the body's chaos run: one goal on the wire outside its
+    /// joint's range.)
+    #[test]
+    fn a_joint_read_beyond_its_range_is_never_commanded_beyond_it() {
+        let [lo, hi] = teleop().layout().joints()[3].range_rad.map(f64::from);
+        for (read, target) in [(hi + 0.3, hi - 0.1), (lo - 0.3, lo + 0.1), (hi + 0.01, hi)] {
+            let mut t2 = teleop();
+            let mut q = [0.0; 7];
+            q[3] = read;
+            let s = state_at(&q);
+            t2.command(1, &joints(&[("left_elbow", target)]), Some(&at(&s, 0)), 0)
+                .unwrap();
+            for k in 0..10 {
+                let now = k * 20 * MS;
+                t2.command(1, &Command::Alive, Some(&at(&s, now)), now)
+                    .unwrap();
+                let g = f64::from(t2.tick(Some(&at(&s, now)), now).0.unwrap().position_rad[3]);
+                assert!(
+                    (lo - 1e-6..=hi + 1e-6).contains(&g),
+                    "read {read}, goal {g} outside [{lo}, {hi}]"
+                );
+            }
+        }
+    }
+
     #[test]
     fn tool_poses_are_solved_where_the_lift_carries_the_shoulders() {
         let body = Body::from_description(&RobotDescription::nori_a3()).unwrap();
