@@ -459,7 +459,8 @@ impl Teleop {
         }
         for &(i, v) in &goals {
             if self.active & (1 << i) == 0 {
-                self.commanded[i] = start[i];
+                let [lo, hi] = self.layout.joints()[i].range_rad.map(f64::from);
+                self.commanded[i] = start[i].clamp(lo, hi);
                 self.active |= 1 << i;
             }
             self.target[i] = v;
@@ -670,6 +671,9 @@ impl Teleop {
                 if info.role() == JointRole::Joint {
                     self.commanded[i] = self.commanded[i].clamp(read - lead, read + lead);
                 }
+                // The range over the lead: a joint read beyond its end is sent back into it.
+                let [lo, hi] = info.range_rad.map(f64::from);
+                self.commanded[i] = self.commanded[i].clamp(lo, hi);
             }
             frame.position_rad[i] = self.commanded[i] as f32;
         }
