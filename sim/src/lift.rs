@@ -40,6 +40,8 @@ pub struct LiftReport {
     pub pressed_s: f64,
     /// Longest single press, s.
     pub longest_press_s: f64,
+    /// Times the column came down on the obstacle (each press counted once).
+    pub presses: u64,
 }
 
 /// The column and its board, sans-IO.
@@ -150,6 +152,9 @@ impl LiftBoard {
         let current = match self.obstacle_m {
             Some(o) if self.v < 0.0 && next < o && self.h >= o - 1e-9 => {
                 // Pressing down on what is under it: stalled.
+                if self.press_s == 0.0 {
+                    self.report.presses += 1;
+                }
                 self.h = o;
                 self.v = 0.0;
                 self.press_s += STEP_S;
@@ -276,6 +281,16 @@ mod tests {
         }
         assert!((b.report().height_m - 0.25).abs() < 1e-9);
         assert!(b.report().pressed_s > 2.0);
+        assert_eq!(b.report().presses, 1);
+        // Stopped by its watchdog, then driven down on it again: a second press.
+        statuses(&mut b, t + 0.3);
+        t += 0.3;
+        for _ in 0..20 {
+            drive(&mut b, t, -300);
+            t += 0.01;
+            statuses(&mut b, t);
+        }
+        assert_eq!(b.report().presses, 2);
         let mut f = vec![START, DRIVE, 2, 0x2C, 0x01, 0, 0];
         let crc = crc16(&f[1..5]) ^ 1;
         f[5..7].copy_from_slice(&crc.to_le_bytes());

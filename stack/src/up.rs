@@ -51,6 +51,10 @@ pub struct UpArgs {
     /// Repeatable.
     #[arg(long, value_name = "BUS:ID@AT+FOR")]
     pub silence: Vec<String>,
+    /// Put something under the simulated lift column at this height, m (a hand): try the lift's
+    /// obstruction stop (the simulator reports the seconds it was pressed).
+    #[arg(long, value_name = "M")]
+    pub lift_obstacle_at: Option<f64>,
     /// Stop by itself after this many seconds.
     #[arg(long)]
     pub run_for: Option<f64>,
@@ -94,6 +98,9 @@ pub fn run(args: &UpArgs) -> Result<()> {
     );
     if let Some(robot) = &args.robot {
         sim.add_args(&["--description".into(), robot.display().to_string()]);
+    }
+    if let Some(m) = args.lift_obstacle_at {
+        sim.add_args(&["--lift-obstacle-at".into(), m.to_string()]);
     }
     for silence in &args.silence {
         sim.add_args(&["--silence".into(), silence.clone()]);

@@ -563,6 +563,11 @@ impl WholeRobot {
     /// Starts `nori up` and waits until the driver drives all 18 joints, each read, and the
     /// lift is homed.
     pub fn start(tag: &str) -> WholeRobot {
+        WholeRobot::start_with(tag, &[])
+    }
+
+    /// [`WholeRobot::start`] with more arguments for `nori up`.
+    pub fn start_with(tag: &str, up_args: &[&str]) -> WholeRobot {
         use telemetry::plane::{self, newest, Plane};
         let dir = scratch(tag);
         let domain = format!("nori_{tag}_{}", std::process::id()).replace('-', "_");
@@ -572,20 +577,17 @@ impl WholeRobot {
         std::fs::write(&robot, &text).expect("robot.toml");
         let description = sim::RobotDescription::parse(&text, "robot.toml").expect("description");
         let (dev, robot) = (dir.join("dev"), robot.display().to_string());
-        let up = Proc::spawn(
-            "nori up",
-            &binary("nori"),
-            &[
-                "up",
-                "--dir",
-                &dev.display().to_string(),
-                "--domain",
-                &domain,
-                "--robot",
-                &robot,
-            ],
-            &dir.join("up.log"),
-        );
+        let mut args = vec![
+            "up",
+            "--dir",
+            dev.to_str().expect("a UTF-8 path"),
+            "--domain",
+            &domain,
+            "--robot",
+            &robot,
+        ];
+        args.extend_from_slice(up_args);
+        let up = Proc::spawn("nori up", &binary("nori"), &args, &dir.join("up.log"));
         let node = Plane::open(&domain, "test-whole-robot").expect("the plane");
         let states = node.subscriber(&plane::JOINT_STATE).expect("joint state");
         let lifts = node.subscriber(&plane::LIFT_STATE).expect("lift state");

@@ -564,15 +564,14 @@ fn child_pid(binary: &str, domain: &str) -> Option<i32> {
         .map(|(pid, _)| *pid as i32)
 }
 
-/// A wild operator of the body until `stop`: twists renewed every 50 ms for a while, within
-/// and beyond the base's limits, now and then NaN, stale or from the future, with silences
-/// longer than the command timeout; lift heights within and beyond its travel, or NaN.
-fn wild_body(domain: String, seed: u64, stop: Arc<AtomicBool>) -> std::thread::JoinHandle<u64> {
+/// A wild driver of the base until `stop`: twists renewed every 50 ms for a while, within and
+/// beyond the base's limits, now and then NaN, stale or from the future, with silences longer
+/// than the command timeout.
+fn wild_base(domain: String, seed: u64, stop: Arc<AtomicBool>) -> std::thread::JoinHandle<u64> {
     std::thread::spawn(move || {
-        use telemetry::motion::{BaseCommand, LiftCommand};
-        let node = Plane::open(&domain, "test-wild-body").unwrap();
+        use telemetry::motion::BaseCommand;
+        let node = Plane::open(&domain, "test-wild-base").unwrap();
         let base = node.publisher(&plane::BASE_COMMAND).unwrap();
-        let lift = node.publisher(&plane::LIFT_COMMAND).unwrap();
         let mut rng = Rng::new(seed);
         let (mut seq, mut sent) = (0, 0);
         while !stop.load(Ordering::Relaxed) {
@@ -588,21 +587,6 @@ fn wild_body(domain: String, seed: u64, stop: Arc<AtomicBool>) -> std::thread::J
                     continue;
                 }
                 _ => {}
-            }
-            if rng.chance(0.3) {
-                let height = match rng.below(5) {
-                    0 => f32::NAN,
-                    1 => rng.range(-0.2, 1.0) as f32,
-                    _ => rng.range(0.0, 0.6) as f32,
-                };
-                seq += 1;
-                let c = LiftCommand {
-                    seq,
-                    timestamp_ns: monotonic_ns(),
-                    height_m: height,
-                    kind: telemetry::motion::LIFT_COMMAND_GOAL,
-                };
-                let _ = publish(&lift, &c);
             }
             let until = Instant::now() + Duration::from_secs_f64(rng.range(0.2, 2.0));
             while Instant::now() < until && !stop.load(Ordering::Relaxed) {
@@ -623,19 +607,333 @@ fn wild_body(domain: String, seed: u64, stop: Arc<AtomicBool>) -> std::thread::J
     })
 }
 
-/// Seeded chaos on the whole body for `NORI_BODY_CHAOS_SECONDS` (default 60 s): `nori up` (both
-/// arms, the wheels, the lift, the base and its lidar), a wild operator of the base and the
-/// lift, and SIGKILLs of nori-base, nori-lift, the driver and the supervisor at random moments
-/// (`nori up` starts each again, as systemd would). Whatever happens: the base never runs into
-/// anything (the simulator counts bumps); it is never driven beyond its limits, nor the lift's
-/// goal outside its soft limits (every state frame seen); after every nori-base kill the
-/// wheels are still within the driver's wheel timeout and a wheel's stopping. A killed driver
-/// leaves the wheels at their last speed until a driver sets them up again (the servos have no
-/// command watchdog): that time is measured and bounded by the restart (500 ms, as systemd's)
-/// and the wheels' set-up coming first, and the protective field counts it in its reaction,
-/// turns included, so the blind travel still ends short of what the lidar saw. (The first run
-/// of this test, before the field counted it and guarded turns, ran the base into a table leg
-/// twice in 40 s, and a dead driver left the wheels turning for up to 2.2 s.)
+/// The hand under the lift column in the body's chaos run, m above its lower switch.
+const LIFT_OBSTACLE_M: f64 = 0.3;
+
+/// A policy streaming the lift's goal until `stop`, every goal re-sent every 60 ms (as a plan
+/// or a teleoperator streams it). First up past the hand (0.55 m, until the lift reads 0.45 m)
+/// and down onto it (0.1 m, 8 s), then `scripted` is raised; then heights held 4–12 s, about
+/// half of them below the hand, now and then NaN or beyond its travel, and before two in five
+/// of the changes the operator's release (`nori lift release`). Returns (goals, releases)
+/// sent.
+fn streamed_lift(
+    domain: String,
+    seed: u64,
+    stop: Arc<AtomicBool>,
+    scripted: Arc<AtomicBool>,
+) -> std::thread::JoinHandle<(u64, u64)> {
+    std::thread::spawn(move || {
+        use telemetry::motion::{LiftCommand, LIFT_COMMAND_GOAL, LIFT_COMMAND_RELEASE};
+        let node = Plane::open(&domain, "test-streamed-lift").unwrap();
+        let lift = node.publisher(&plane::LIFT_COMMAND).unwrap();
+        let states = node.subscriber(&plane::LIFT_STATE).unwrap();
+        let mut rng = Rng::new(seed);
+        let (mut seq, mut goals, mut releases) = (0, 0, 0);
+        let mut send = |height_m: f32, kind: u32| {
+            seq += 1;
+            let c = LiftCommand {
+                seq,
+                timestamp_ns: monotonic_ns(),
+                height_m,
+                kind,
+            };
+            publish(&lift, &c).is_ok()
+        };
+        let running = || !stop.load(Ordering::Relaxed);
+        let up_by = Instant::now() + Duration::from_secs(40);
+        while running() && Instant::now() < up_by {
+            goals += u64::from(send(0.55, LIFT_COMMAND_GOAL));
+            std::thread::sleep(Duration::from_millis(60));
+            if newest(&states).is_some_and(|l| l.height_m >= 0.45) {
+                break;
+            }
+        }
+        let down_until = Instant::now() + Duration::from_secs(8);
+        while running() && Instant::now() < down_until {
+            goals += u64::from(send(0.1, LIFT_COMMAND_GOAL));
+            std::thread::sleep(Duration::from_millis(60));
+        }
+        scripted.store(true, Ordering::Relaxed);
+        while running() {
+            let height = match rng.below(10) {
+                0 => f32::NAN,
+                1 => rng.range(-0.2, 1.0) as f32,
+                2..=5 => rng.range(0.0, LIFT_OBSTACLE_M - 0.05) as f32,
+                _ => rng.range(LIFT_OBSTACLE_M + 0.05, 0.7) as f32,
+            };
+            if rng.chance(0.4) && send(f32::NAN, LIFT_COMMAND_RELEASE) {
+                releases += 1;
+            }
+            let until = Instant::now() + Duration::from_secs_f64(rng.range(4.0, 12.0));
+            while running() && Instant::now() < until {
+                goals += u64::from(send(height, LIFT_COMMAND_GOAL));
+                std::thread::sleep(Duration::from_millis(60));
+            }
+        }
+        (goals, releases)
+    })
+}
+
+/// An operator's stop pressed in Nori Lab: when the press the supervisor heard was sent, and
+/// when the resume was.
+#[derive(Debug, Clone, Copy)]
+struct StopPressed {
+    pressed_ns: u64,
+    resumed_ns: u64,
+}
+
+/// What the teleoperator did and what the lab answered.
+#[derive(Debug, Default)]
+struct Teleoperation {
+    commands: u64,
+    taken: u64,
+    refused: std::collections::BTreeMap<String, u64>,
+    ended: std::collections::BTreeMap<String, u64>,
+    lab_kills: u32,
+    unheard_presses: u32,
+    stops: Vec<StopPressed>,
+}
+
+impl Teleoperation {
+    /// Tallies the lab's messages.
+    fn tally(&mut self, messages: Vec<serde_json::Value>) {
+        for m in messages {
+            match (m["type"].as_str(), m["ok"].as_bool()) {
+                (Some("reply"), Some(true)) if m["to"].is_null() => self.taken += 1,
+                (Some("reply"), Some(false)) => {
+                    let why = m["refused"].as_str().unwrap_or("other").to_string();
+                    *self.refused.entry(why).or_default() += 1;
+                }
+                (Some("ended"), _) => {
+                    let why = m["why"].as_str().unwrap_or("?").to_string();
+                    *self.ended.entry(why).or_default() += 1;
+                }
+                _ => {}
+            }
+        }
+    }
+
+    /// Presses `button` until the supervisor is heard taking it; when the heard press was sent.
+    fn press(&mut self, lab: &mut nori_tests::Lab, button: &str) -> u64 {
+        loop {
+            if !lab.linked() && lab.connect().is_err() {
+                std::thread::sleep(Duration::from_millis(100));
+                continue;
+            }
+            let sent_ns = monotonic_ns();
+            if !lab.send(&serde_json::json!({ "type": button })) {
+                continue;
+            }
+            match lab.reply_to(button, Duration::from_secs(3)) {
+                Some(r) if r["ok"] == true => return sent_ns,
+                _ => self.unheard_presses += 1,
+            }
+        }
+    }
+}
+
+/// A teleoperator in Nori Lab until `stop`: targets for one to three arm joints every 0.2–1 s
+/// (a tenth of them beyond a range's end), the dead-man's `alive` every 100 ms; every 15–25 s
+/// the stop button, held 2 s, then resume (each pressed again until the supervisor is heard);
+/// the lab SIGKILLed whenever `kill` is raised and started again 500 ms later, as systemd
+/// would, and the page linked again.
+fn teleoperator(
+    mut lab: nori_tests::Lab,
+    arms: Vec<(String, [f32; 2])>,
+    seed: u64,
+    stop: Arc<AtomicBool>,
+    kill: Arc<AtomicBool>,
+) -> std::thread::JoinHandle<Teleoperation> {
+    std::thread::spawn(move || {
+        let mut rng = Rng::new(seed);
+        let mut t = Teleoperation::default();
+        let mut next_target = Instant::now();
+        let mut next_stop = Instant::now() + Duration::from_secs_f64(rng.range(8.0, 15.0));
+        while !stop.load(Ordering::Relaxed) {
+            if kill.swap(false, Ordering::Relaxed) {
+                lab.proc.kill();
+                t.lab_kills += 1;
+                std::thread::sleep(Duration::from_millis(500));
+                lab.restart();
+            }
+            if !lab.linked() && lab.connect().is_err() {
+                std::thread::sleep(Duration::from_millis(100));
+                continue;
+            }
+            let received = lab.receive();
+            t.tally(received);
+            lab.send(&serde_json::json!({"type": "alive"}));
+            if Instant::now() >= next_target {
+                let mut goals = serde_json::Map::new();
+                for _ in 0..1 + rng.below(3) {
+                    let (name, [lo, hi]) = &arms[rng.below(arms.len() as u64) as usize];
+                    let beyond = if rng.chance(0.1) { 0.2 } else { -0.05 };
+                    let q = rng.range(f64::from(*lo) - beyond, f64::from(*hi) + beyond);
+                    goals.insert(name.clone(), q.into());
+                }
+                if lab.send(&serde_json::json!({"type": "joints", "goals": goals})) {
+                    t.commands += 1;
+                }
+                next_target = Instant::now() + Duration::from_secs_f64(rng.range(0.2, 1.0));
+            }
+            if Instant::now() >= next_stop {
+                let pressed_ns = t.press(&mut lab, "stop");
+                std::thread::sleep(Duration::from_secs(2));
+                let resumed_ns = t.press(&mut lab, "resume");
+                t.stops.push(StopPressed {
+                    pressed_ns,
+                    resumed_ns,
+                });
+                next_stop = Instant::now() + Duration::from_secs_f64(rng.range(15.0, 25.0));
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        lab.proc.terminate(Duration::from_secs(5));
+        t
+    })
+}
+
+/// The arm joints' names and ranges in `layout` (grippers and wheels left out).
+fn arm_joints(layout: &telemetry::frames::JointLayout) -> Vec<(String, [f32; 2])> {
+    layout
+        .joints()
+        .iter()
+        .filter(|j| j.role == telemetry::frames::JointRole::Joint as u8)
+        .map(|j| (j.name().to_string(), j.range_rad))
+        .collect()
+}
+
+/// The goals outside the calibrated ranges, or naming a wheel, in `frame`: (joint, goal).
+fn goals_out_of_range(
+    frame: &GoalFrame,
+    layout: &telemetry::frames::JointLayout,
+) -> Vec<(String, f32)> {
+    let joints = layout.joints();
+    (0..joints.len())
+        .filter(|&i| frame.mask & (1 << i) != 0)
+        .filter(|&i| {
+            let [lo, hi] = joints[i].range_rad;
+            let q = frame.position_rad[i];
+            joints[i].role == telemetry::frames::JointRole::Wheel as u8
+                || !(lo - 1e-3..=hi + 1e-3).contains(&q)
+        })
+        .map(|i| (joints[i].name().to_string(), frame.position_rad[i]))
+        .collect()
+}
+
+/// The lift's largest travel while each stop was in force (from its height when the stop the
+/// supervisor heard was pressed to the resume's press), m.
+fn lift_travel_in_stops(lift: &[(u64, f32)], stops: &[StopPressed]) -> Vec<f64> {
+    stops
+        .iter()
+        .filter_map(|s| {
+            let at = lift
+                .iter()
+                .rev()
+                .find(|(t, h)| *t <= s.pressed_ns && h.is_finite())?
+                .1;
+            let most = lift
+                .iter()
+                .filter(|(t, h)| *t > s.pressed_ns && *t < s.resumed_ns && h.is_finite())
+                .map(|(_, h)| f64::from((h - at).abs()))
+                .fold(0.0, f64::max);
+            Some(most)
+        })
+        .collect()
+}
+
+/// The victims of the body's chaos run: `nori up`'s children, and the lab the test runs.
+const BODY_VICTIMS: [&str; 6] = [
+    "nori-base",
+    "nori-lift",
+    "bus-driver",
+    "supervisor",
+    "nori-lidar",
+    "nori-lab",
+];
+/// Indices into [`BODY_VICTIMS`] after whose kill the wheels are watched.
+const BASE: usize = 0;
+const DRIVER: usize = 2;
+const LIDAR: usize = 4;
+
+/// What the body's chaos run saw on the state plane.
+#[derive(Debug, Default)]
+struct BodySeen {
+    base_frames: u64,
+    overdriven: u64,
+    most_v: f32,
+    most_w: f32,
+    lift_frames: u64,
+    bad_lift_goals: u64,
+    obstructions: u64,
+    lift: Vec<(u64, f32)>,
+    goal_frames: u64,
+    bad_goals: Vec<(String, f32)>,
+    /// Lift state frames by state.
+    lift_states: std::collections::BTreeMap<&'static str, u64>,
+    /// Largest |goal − reading| of an arm joint outside the safe state, rad.
+    most_lead: f32,
+    driver_seq: u64,
+    lift_state: u8,
+}
+
+impl BodySeen {
+    fn base(&mut self, b: &telemetry::motion::BaseState) {
+        self.base_frames += 1;
+        let (v, w) = (b.commanded_linear_m_s, b.commanded_angular_rad_s);
+        self.most_v = self.most_v.max(v.abs());
+        self.most_w = self.most_w.max(w.abs());
+        if !(v.abs() <= 0.2 + 1e-4 && w.abs() <= 1.0 + 1e-4) {
+            self.overdriven += 1;
+        }
+    }
+
+    fn lift(&mut self, l: &telemetry::motion::LiftState) {
+        self.lift_frames += 1;
+        if !(l.goal_m.is_nan() || (0.01 - 1e-4..=0.75 + 1e-4).contains(&l.goal_m)) {
+            self.bad_lift_goals += 1;
+        }
+        let obstructed = telemetry::motion::LIFT_OBSTRUCTED;
+        if l.state == obstructed && self.lift_state != obstructed {
+            self.obstructions += 1;
+        }
+        self.lift_state = l.state;
+        *self
+            .lift_states
+            .entry(telemetry::motion::lift_state_name(l.state))
+            .or_default() += 1;
+        self.lift.push((l.timestamp_ns, l.height_m));
+    }
+
+    fn arms(&mut self, s: &JointState, layout: &telemetry::frames::JointLayout) {
+        self.driver_seq = s.seq;
+        if s.flags & STATE_FLAG_SAFE_STATE != 0 {
+            return;
+        }
+        for (j, info) in s.joints().iter().zip(layout.joints()) {
+            if j.is_valid() && info.role == telemetry::frames::JointRole::Joint as u8 {
+                self.most_lead = self.most_lead.max((j.goal_rad - j.position_rad).abs());
+            }
+        }
+    }
+}
+
+/// Seeded chaos on the whole body for `NORI_BODY_CHAOS_SECONDS` (default 120 s): `nori up`
+/// (both arms, the wheels, the lift with a hand under it at 0.3 m, the base and its lidar),
+/// Nori Lab with a teleoperator in it who now and then presses the stop button, a wild driver
+/// of the base, a policy streaming the lift's goal onto the hand, and SIGKILLs of nori-base,
+/// nori-lift, the driver, the supervisor, nori-lidar and the lab at random moments (`nori up`
+/// starts each of its own again, as systemd would; the test starts the lab again). Whatever
+/// happens: the base never runs into anything (the simulator counts bumps), it is never driven
+/// beyond its limits, nor the lift's goal outside its soft limits (every state frame seen);
+/// no goal on the wire is outside a calibrated range; the hand is pressed at most one stall
+/// stop at a time (the simulator's own count); the lift does not move while a stop is in
+/// force; after every nori-base or nori-lidar kill the wheels are still within the bound. A
+/// killed driver leaves the wheels at their last speed until a driver sets them up again (the
+/// servos have no command watchdog): that time is measured and bounded by the restart (500
+/// ms, as systemd's) and the wheels' set-up coming first, and the protective field counts it.
+/// (The first run, before the field counted it and guarded turns, ran the base into a table
+/// leg twice in 40 s, and a dead driver left the wheels turning for up to 2.2 s.)
 #[test]
 fn a_seeded_body_chaos_run_keeps_the_base_and_the_lift_safe() {
     let _turn = serial();
@@ -646,78 +944,93 @@ fn a_seeded_body_chaos_run_keeps_the_base_and_the_lift_safe() {
     let seconds: f64 = std::env::var("NORI_BODY_CHAOS_SECONDS")
         .ok()
         .and_then(|s| s.parse().ok())
-        .unwrap_or(60.0);
-    let robot = nori_tests::WholeRobot::start("body-chaos");
+        .unwrap_or(120.0);
+    let hand = LIFT_OBSTACLE_M.to_string();
+    let robot = nori_tests::WholeRobot::start_with("body-chaos", &["--lift-obstacle-at", &hand]);
     let domain = robot.domain.clone();
     let node = Plane::open(&domain, "test").unwrap();
     let states = node.subscriber(&plane::JOINT_STATE).unwrap();
     let bases = node.subscriber(&plane::BASE_STATE).unwrap();
     let lifts = node.subscriber(&plane::LIFT_STATE).unwrap();
+    let goals = node.subscriber(&plane::GOALS).unwrap();
+    let layouts = node.subscriber(&plane::LAYOUT).unwrap();
+    let layout = wait_for(Duration::from_secs(5), "the layout", || newest(&layouts));
     let stop = Arc::new(AtomicBool::new(false));
-    let operator = wild_body(domain.clone(), seed ^ 1, stop.clone());
-    const VICTIMS: [&str; 4] = ["nori-base", "nori-lift", "bus-driver", "supervisor"];
+    let kill_lab = Arc::new(AtomicBool::new(false));
+    let lab = nori_tests::Lab::start(&domain, &robot.dir, &[]);
+    let teleop = teleoperator(
+        lab,
+        arm_joints(&layout),
+        seed ^ 3,
+        stop.clone(),
+        kill_lab.clone(),
+    );
+    let driver = wild_base(domain.clone(), seed ^ 1, stop.clone());
+    // nori-lift is not killed until the policy has brought the lift down on the hand once.
+    let scripted = Arc::new(AtomicBool::new(false));
+    let policy = streamed_lift(domain.clone(), seed ^ 2, stop.clone(), scripted.clone());
     let mut rng = Rng::new(seed);
-    let mut kills = [0u32; 4];
-    // Per kill of nori-base (or the driver): when, the driver's cycle then, and when the wheels
-    // were first seen still (after a driver kill: when the new driver, which stops the wheels
-    // in its set-up before its first cycle, published its first frame; the base is driven
-    // again from then on).
+    let mut kills = [0u32; BODY_VICTIMS.len()];
+    // Per kill of nori-base, the driver or the lidar: which, when, the driver's cycle then,
+    // and when the wheels were first seen still (after a driver kill: when the new driver,
+    // which stops the wheels in its set-up before its first cycle, published its first frame;
+    // the base is driven again from then on).
     let mut wheel_stops: Vec<(usize, u64, u64, Option<u64>)> = Vec::new();
-    let mut driver_seq = 0;
-    let (mut base_frames, mut lift_frames, mut overdriven, mut bad_lift_goals) = (0u64, 0u64, 0, 0);
-    let (mut most_v, mut most_w) = (0f32, 0f32);
+    let mut seen = BodySeen::default();
     let start = Instant::now();
     let mut next_kill = start + Duration::from_secs_f64(rng.range(2.0, 5.0));
     while start.elapsed().as_secs_f64() < seconds {
         std::thread::sleep(Duration::from_millis(5));
         while let Some(b) = next(&bases) {
-            base_frames += 1;
-            let (v, w) = (b.commanded_linear_m_s, b.commanded_angular_rad_s);
-            most_v = most_v.max(v.abs());
-            most_w = most_w.max(w.abs());
-            if !(v.abs() <= 0.2 + 1e-4 && w.abs() <= 1.0 + 1e-4) {
-                overdriven += 1;
-            }
+            seen.base(&b);
         }
         while let Some(l) = next(&lifts) {
-            lift_frames += 1;
-            if !(l.goal_m.is_nan() || (0.01 - 1e-4..=0.75 + 1e-4).contains(&l.goal_m)) {
-                bad_lift_goals += 1;
-            }
+            seen.lift(&l);
+        }
+        while let Some(g) = next(&goals) {
+            seen.goal_frames += 1;
+            seen.bad_goals.extend(goals_out_of_range(&g, &layout));
         }
         if let Some(s) = newest(&states) {
-            driver_seq = s.seq;
+            seen.arms(&s, &layout);
             let still = s.joint_count == 18
                 && s.joints[16].is_valid()
                 && s.joints[17].is_valid()
                 && s.joints[16].velocity_rad_s.abs() < 0.05
                 && s.joints[17].velocity_rad_s.abs() < 0.05;
             for (victim, at, seq, done) in wheel_stops.iter_mut().filter(|w| w.3.is_none()) {
-                let restarted = *victim == 2 && s.seq < *seq;
-                if s.timestamp_ns > *at && (restarted || (*victim == 0 && still)) {
+                let restarted = *victim == DRIVER && s.seq < *seq;
+                if s.timestamp_ns > *at && (restarted || (*victim != DRIVER && still)) {
                     *done = Some(s.timestamp_ns);
                 }
             }
         }
         // No kill in the last 3 s: every one's aftermath is seen.
         if Instant::now() >= next_kill && start.elapsed().as_secs_f64() < seconds - 3.0 {
-            let victim = rng.below(4) as usize;
-            if let Some(pid) = child_pid(VICTIMS[victim], &domain) {
+            let victim = rng.below(BODY_VICTIMS.len() as u64) as usize;
+            if BODY_VICTIMS[victim] == "nori-lift" && !scripted.load(Ordering::Relaxed) {
+                // Not yet (the draw is still made: the seed's sequence stays the same).
+            } else if BODY_VICTIMS[victim] == "nori-lab" {
+                kill_lab.store(true, Ordering::Relaxed);
+                kills[victim] += 1;
+            } else if let Some(pid) = child_pid(BODY_VICTIMS[victim], &domain) {
                 let _ = nix::sys::signal::kill(
                     nix::unistd::Pid::from_raw(pid),
                     nix::sys::signal::Signal::SIGKILL,
                 );
                 kills[victim] += 1;
-                if victim == 0 || victim == 2 {
-                    wheel_stops.push((victim, monotonic_ns(), driver_seq, None));
+                if [BASE, DRIVER, LIDAR].contains(&victim) {
+                    wheel_stops.push((victim, monotonic_ns(), seen.driver_seq, None));
                 }
             }
             next_kill = Instant::now() + Duration::from_secs_f64(rng.range(1.0, 4.0));
         }
     }
     stop.store(true, Ordering::Relaxed);
-    let sent = operator.join().unwrap();
-    drop((states, bases, lifts, node));
+    let sent = driver.join().unwrap();
+    let (lift_goals, releases) = policy.join().unwrap();
+    let teleop = teleop.join().unwrap();
+    drop((states, bases, lifts, goals, layouts, node));
     let report = robot.stop();
     let base = report["buses"]
         .as_array()
@@ -726,39 +1039,86 @@ fn a_seeded_body_chaos_run_keeps_the_base_and_the_lift_safe() {
         .find_map(|b| b["base"].as_object())
         .unwrap()
         .clone();
-    let ms =
-        |(_, at, _, done): &(usize, u64, u64, Option<u64>)| done.map(|t| (t - at) as f64 * 1e-6);
     let after = |who: usize| -> Vec<f64> {
         wheel_stops
             .iter()
             .filter(|w| w.0 == who)
-            .map(|w| ms(w).unwrap_or(f64::INFINITY))
+            .map(|(_, at, _, done)| done.map_or(f64::INFINITY, |t| (t - at) as f64 * 1e-6))
             .collect()
     };
-    let (after_base, after_driver) = (after(0), after(2));
+    let (after_base, after_driver, after_lidar) = (after(BASE), after(DRIVER), after(LIDAR));
+    let stop_travel = lift_travel_in_stops(&seen.lift, &teleop.stops);
+    let lift = &report["lift"];
     eprintln!(
-        "body chaos seed {seed:#x}, {seconds} s: kills {:?} of {VICTIMS:?}; {sent} base commands sent; \
-         {base_frames} base and {lift_frames} lift states seen, most driven {most_v:.3} m/s {most_w:.3} rad/s, \
-         {overdriven} beyond the limits, {bad_lift_goals} lift goals outside the soft limits; base travelled \
-         {:.2} m, bumps {}; wheels still after a nori-base kill (ms) {after_base:?}, stopped by the new driver after a driver kill {after_driver:?}; \
-         lift {}",
-        kills,
+        "body chaos seed {seed:#x}, {seconds} s: kills {kills:?} of {BODY_VICTIMS:?}; {sent} base commands, \
+         {lift_goals} lift goals and {releases} releases sent; teleoperation {teleop:?}; \
+         {} base and {} lift states seen, most driven {:.3} m/s {:.3} rad/s, {} beyond the limits, \
+         {} lift goals outside the soft limits; {} goal frames on the wire, goals outside a range {:?}, \
+         largest arm lead {:.3} rad; base travelled {:.2} m, bumps {}; wheels still after a nori-base kill (ms) \
+         {after_base:?}, after a lidar kill {after_lidar:?}, stopped by the new driver after a driver kill \
+         {after_driver:?}; lift {lift}, {} obstructions seen, lift state frames {:?}; lift travel while stopped (m) {stop_travel:?}",
+        seen.base_frames,
+        seen.lift_frames,
+        seen.most_v,
+        seen.most_w,
+        seen.overdriven,
+        seen.bad_lift_goals,
+        seen.goal_frames,
+        seen.bad_goals,
+        seen.most_lead,
         base["travelled_m"].as_f64().unwrap(),
         base["bumps"],
-        report["lift"],
+        seen.obstructions,
+        seen.lift_states,
     );
     assert!(
         kills.iter().all(|&k| k >= 1),
         "every victim killed: {kills:?}"
     );
+    assert_eq!(teleop.lab_kills, kills[5]);
     assert!(
         base["travelled_m"].as_f64().unwrap() > 1.0,
         "the base was driven"
     );
     assert_eq!(base["bumps"], 0, "the base ran into something: {base:?}");
-    assert_eq!(overdriven, 0);
-    assert_eq!(bad_lift_goals, 0);
-    assert!(most_v > 0.15, "the operator drove the base near its limit");
+    assert_eq!(seen.overdriven, 0);
+    assert_eq!(seen.bad_lift_goals, 0);
+    assert!(
+        seen.most_v > 0.15,
+        "the operator drove the base near its limit"
+    );
+    // The teleoperator drove the arms, and nothing on the wire was outside a range.
+    assert!(teleop.taken > 20 && seen.goal_frames > 100, "{teleop:?}");
+    assert!(
+        seen.bad_goals.is_empty(),
+        "goals outside the calibrated ranges: {:?}",
+        seen.bad_goals
+    );
+    assert!(
+        seen.most_lead < 0.5,
+        "an arm's goal {} rad from its reading",
+        seen.most_lead
+    );
+    // The hand: met, and pressed at most one stall stop (150 ms, a period, the board's 10 ms
+    // report) at a time, by the simulator's count.
+    assert!(
+        lift["presses"].as_u64().unwrap() >= 2 && seen.obstructions >= 1,
+        "the lift came down on the hand too seldom: {lift}, {} obstructions seen",
+        seen.obstructions
+    );
+    assert!(
+        lift["longest_press_s"].as_f64().unwrap() <= 0.25,
+        "the hand pressed too long at once: {lift}"
+    );
+    // Stops: the lift does not move while one is in force (30 mm/s for the allowance's turn
+    // to reach it, a period and the board's deceleration: a few mm).
+    assert!(teleop.stops.len() >= 3, "{teleop:?}");
+    for t in &stop_travel {
+        assert!(
+            *t <= 0.01,
+            "the lift moved {t} m during a stop: {stop_travel:?}"
+        );
+    }
     // The driver's wheel timeout (200 ms), a wheel's stop from 3 rad/s and the feedback's
     // period: 500 ms. A frame from before the kill does not count (the test saw them after).
     for t in &after_base {
@@ -767,12 +1127,21 @@ fn a_seeded_body_chaos_run_keeps_the_base_and_the_lift_safe() {
             "wheels still {t} ms after nori-base died: {after_base:?}"
         );
     }
+    // A dead lidar: the scan's age bound (300 ms), a revolution (100 ms), braking from
+    // 0.2 m/s at 1 m/s² and the wheels' own deceleration.
+    for t in &after_lidar {
+        assert!(
+            *t <= 1000.0,
+            "wheels still {t} ms after the lidar died: {after_lidar:?}"
+        );
+    }
     // A dead driver: the restart's 500 ms, the new driver's start and the wheels' set-up, first
-    // of all (measured about 0.65 s; the field counts 0.7 s, `driver-restart-ms`), with a loaded
-    // machine's slack. Bounded by nothing but the restart: the servos have no watchdog.
+    // of all (about 0.65 s alone; 0.64–1.16 s with the lab and every process on two cores: more
+    // than the 0.7 s the field counts, `driver-restart-ms`, an open item in docs/hazards.md).
+    // Bounded by nothing but the restart: the servos have no watchdog.
     for t in &after_driver {
         assert!(
-            *t <= 1200.0,
+            *t <= 1500.0,
             "wheels stopped only {t} ms after the driver died: {after_driver:?}"
         );
     }
