@@ -514,6 +514,163 @@ mod tests {
         assert_eq!(s.commands_refused, 4);
     }
 
+    /// The bounds themselves: a command stamped at most 1 ms ahead, or exactly the timeout
+    /// old, is taken; a nanosecond more is not (found by the mutation pass).
+    #[test]
+    fn commands_at_the_bounds_of_age_and_of_the_future() {
+        let mut c = ready(false);
+        let now = 10_000 * MS;
+        assert!(c
+            .on_command(&command(now + FUTURE_NS, 0.1, 0.0), now)
+            .is_ok());
+        assert_eq!(
+            c.on_command(&command(now + 3 * FUTURE_NS + 1, 0.1, 0.0), now),
+            Err(CommandRefusal::FromTheFuture { ahead_ms: 3 })
+        );
+        assert!(c
+            .on_command(&command(now - 250 * MS, 0.1, 0.0), now)
+            .is_ok());
+        assert_eq!(
+            c.on_command(&command(now - 250 * MS - 1, 0.1, 0.0), now),
+            Err(CommandRefusal::Stale {
+                age_ms: 250,
+                limit_ms: 250
+            })
+        );
+    }
+
+    /// What goes out each period: the wheels' frame numbered, stamped and sized for the
+    /// driver, the state numbered; no field, no distance (-1).
+    #[test]
+    fn each_period_sends_a_numbered_stamped_frame_and_state() {
+        let mut c = ready(false);
+        let mut goal = GoalFrame::default();
+        for k in 1..=3u64 {
+            let t = k * 20 * MS;
+            let (sent, s) = period(&mut c, t, None, &mut goal);
+            assert!(sent);
+            assert_eq!((goal.seq, goal.timestamp_ns, goal.joint_count), (k, t, 3));
+            assert_eq!(goal.mask, 0b110);
+            assert_eq!(s.seq, k);
+            assert_eq!(s.field_distance_m, -1.0);
+        }
+    }
+
+    /// Both wheels on a lost bus: not driven, nothing sent.
+    #[test]
+    fn wheels_on_a_lost_or_disabled_bus_are_not_driven() {
+        for flag in [JOINT_FLAG_BUS_LOST, JOINT_FLAG_BUS_DISABLED] {
+            for both in [false, true] {
+                let mut c = ready(false);
+                let mut s = state(20 * MS, [0.0; 2], [0.0; 2]);
+                s.joints[2].flags = flag;
+                if both {
+                    s.joints[1].flags = flag;
+                }
+                c.on_state(&s);
+                let (sent, st) = c.tick(20 * MS, None, &mut GoalFrame::default());
+                assert!(
+                    !sent && st.flags & BASE_FLAG_NOT_DRIVEN != 0,
+                    "{flag} {both}"
+                );
+            }
+        }
+    }
+
+    /// A revolution with one table leg off the front-left corner: a turn is judged in its own
+    /// direction (left sweeps the front edge into it at once; right only after 62°), and the
+    /// speed along the path is held to the field's, never more.
+    #[test]
+    fn a_turn_is_judged_in_its_own_direction_and_held_to_the_fields_rate() {
+        let (lx, ly): (f32, f32) = (0.2 - 0.15, 0.38);
+        let leg = |t: u64| {
+            let mut s = LidarScan {
+                end_ns: t,
+                point_count: 1,
+                ..LidarScan::default()
+            };
+            s.points[0] = ScanPoint {
+                angle_rad: ly.atan2(lx),
+                range_m: lx.hypot(ly),
+                quality: 40,
+                reserved: [0; 3],
+            };
+            s
+        };
+        let field = crate::field::tests::A3;
+        let points = [(f64::from(ly.atan2(lx)), f64::from(lx.hypot(ly)))];
+        for (w, free) in [(0.8f32, false), (-0.8, true)] {
+            let left = w > 0.0;
+            let most = field.turn_verdict(points, left, 2.0).max_rate_rad_s;
+            let mut c = ready(true);
+            let mut goal = GoalFrame::default();
+            let mut last = None;
+            for k in 0..50 {
+                let t = k * 20 * MS;
+                c.on_command(&command(t, 0.0, w), t).unwrap();
+                let s = period(&mut c, t, Some(&leg(t)), &mut goal).1;
+                // Free that way: never limited, from the first period on.
+                let limited = s.flags & (BASE_FLAG_FIELD_SLOWING | BASE_FLAG_FIELD_STOPPED);
+                assert!(!free || limited == 0, "w {w}, period {k}: {s:?}");
+                last = Some(s);
+            }
+            let s = last.unwrap();
+            let limited = s.flags & (BASE_FLAG_FIELD_SLOWING | BASE_FLAG_FIELD_STOPPED) != 0;
+            assert_eq!(limited, !free, "w {w}: {s:?}");
+            if free {
+                assert!((s.commanded_angular_rad_s - w).abs() < 1e-6, "{s:?}");
+            } else {
+                assert!(
+                    f64::from(s.commanded_angular_rad_s.abs()) <= most + 1e-6,
+                    "{s:?} beyond {most}"
+                );
+            }
+        }
+        // Along the path: slowed to the verdict's speed, not beyond it.
+        let mut c = ready(true);
+        let mut goal = GoalFrame::default();
+        let most = field
+            .verdict(scan_points(&wall(0.28, 0)), true, 1.0)
+            .max_speed_m_s;
+        assert!(most > 0.0 && most < 0.3);
+        let mut s = None;
+        for k in 0..100 {
+            let t = k * 20 * MS;
+            c.on_command(&command(t, 0.3, 0.0), t).unwrap();
+            s = Some(period(&mut c, t, Some(&wall(0.28, t)), &mut goal).1);
+        }
+        let s = s.unwrap();
+        assert!(
+            (f64::from(s.commanded_linear_m_s) - most).abs() < 1e-4,
+            "{s:?} vs {most}"
+        );
+    }
+
+    /// Stopping (no speed asked for) the field still looks the way the base is moving: its
+    /// distance is the one ahead while it brakes forward, behind while it brakes backward.
+    #[test]
+    fn while_stopping_the_field_looks_the_way_the_base_still_moves() {
+        for v in [0.2f32, -0.2] {
+            let mut c = ready(true);
+            let mut goal = GoalFrame::default();
+            // A wall 1.5 m ahead of the lidar, nothing behind within 10 m.
+            for k in 0..40 {
+                let t = k * 20 * MS;
+                c.on_command(&command(t, v, 0.0), t).unwrap();
+                period(&mut c, t, Some(&wall(1.5, t)), &mut goal);
+            }
+            c.on_command(&command(800 * MS, 0.0, 0.0), 800 * MS)
+                .unwrap();
+            let (_, s) = period(&mut c, 800 * MS, Some(&wall(1.5, 800 * MS)), &mut goal);
+            assert!(s.commanded_linear_m_s * v > 0.0, "still moving: {s:?}");
+            if v > 0.0 {
+                assert!((s.field_distance_m - 1.4).abs() < 1e-3, "{s:?}");
+            } else {
+                assert!(s.field_distance_m > 5.0, "{s:?}");
+            }
+        }
+    }
+
     #[test]
     fn nothing_is_sent_while_the_driver_drives_nothing_and_it_starts_again_from_rest() {
         let mut c = ready(false);

@@ -317,6 +317,47 @@ pub(crate) mod tests {
         assert_eq!(A3.turn_verdict(own, true, 2.0).free_rad, f64::INFINITY);
     }
 
+    /// A lidar mounted off the centre line and sideways, and travel backward: the mount is
+    /// added, not subtracted (found by the mutation pass: every earlier mount was symmetric).
+    #[test]
+    fn a_lidar_mounted_aside_and_sideways_and_travel_backward_are_measured_right() {
+        let aside = FieldConfig {
+            lidar_y_m: 0.1,
+            ..A3
+        };
+        // 1 m ahead and 0.3 m to the right of the lidar: 0.2 m right of the centre line, in
+        // the corridor.
+        let p = [((-0.3f64).atan2(1.0), 1.0f64.hypot(0.3))];
+        assert!((aside.verdict(p, true, 1.0).free_m - 0.9).abs() < 1e-9);
+        let sideways = FieldConfig {
+            lidar_yaw_rad: std::f64::consts::FRAC_PI_2,
+            ..A3
+        };
+        // Its −90° looks forward.
+        let v = sideways.verdict([(-std::f64::consts::FRAC_PI_2, 1.0)], true, 1.0);
+        assert!((v.free_m - 0.9).abs() < 1e-9, "{v:?}");
+        // Backward: a wall 1 m behind the lidar is 0.6 m behind the body.
+        let back = A3.verdict([(std::f64::consts::PI, 1.0)], false, 1.0);
+        assert!((back.free_m - 0.6).abs() < 1e-9, "{back:?}");
+        // A bearing a hair below zero (rem_euclid rounds it to a whole turn) lands in the last
+        // sector, not past it.
+        assert!(!A3.trusted([(-1e-18, 1.0)], MAX_SECTORS));
+        assert!(A3.trusted([(-1e-18, 1.0)], 1));
+        // A lidar at the front edge: a return nearer than its minimum range (dust on its
+        // window) is no obstacle, for travel or for turning.
+        let at_front = FieldConfig {
+            lidar_x_m: A3.front_m,
+            ..A3
+        };
+        for dust in [(0.0, 0.02), (0.3, 0.03)] {
+            assert_eq!(at_front.verdict([dust], true, 1.0).free_m, f64::INFINITY);
+            assert_eq!(
+                at_front.turn_verdict([dust], true, 2.0).free_rad,
+                f64::INFINITY
+            );
+        }
+    }
+
     #[test]
     fn a_lidar_mounted_turned_is_taken_into_account() {
         // Mounted backwards: its 180° looks forward.
