@@ -556,6 +556,60 @@ mod tests {
         }
     }
 
+    /// A revolution is judged where the base stands now, not where it stood when each point
+    /// was measured: turning at 1 rad/s, a post that a revolution 300 ms old saw 1 cm beside
+    /// the corridor is now well inside it (the base turned 0.3 rad toward it).
+    #[test]
+    fn a_revolution_is_judged_where_the_base_stands_now() {
+        let mut c = ready(true);
+        let mut goal = GoalFrame::default();
+        let g = Geometry::new(0.05, 0.36, false, true).unwrap();
+        // Turning left at 1 rad/s on the spot for 0.4 s: wheels at ∓3.6 rad/s.
+        let (mut left, mut right) = (0.0f64, 0.0f64);
+        for k in 0..=80u64 {
+            let t = k * 5 * MS;
+            let dt = if k == 0 { 0.0 } else { 0.005 };
+            left -= 3.6 * dt;
+            right += 3.6 * dt;
+            let [sl, sr] = g.servo_frame([left, right]);
+            let [vl, vr] = g.servo_frame([-3.6, 3.6]);
+            c.on_state(&state(t, [sl as f32, sr as f32], [vl as f32, vr as f32]));
+        }
+        let now = 400 * MS;
+        // Seen 300 ms ago, when the base faced 0.3 rad further right: a post 1.0 m ahead of
+        // the body's centre and 0.26 m to its left (1 cm outside the corridor's 0.25 m).
+        let (px, py): (f64, f64) = (1.0, 0.26);
+        let (then, heading) = (100 * MS, 0.1f64);
+        let (bx, by) = (px - 0.15, py);
+        let mut scan = LidarScan {
+            start_ns: then,
+            end_ns: then,
+            point_count: 1,
+            ..LidarScan::default()
+        };
+        scan.points[0] = ScanPoint {
+            angle_rad: by.atan2(bx) as f32,
+            range_m: bx.hypot(by) as f32,
+            quality: 40,
+            reserved: [0; 3],
+        };
+        // Where it is now: turned by the 0.3 rad the base turned since (it faced `heading`
+        // then and 0.4 rad now).
+        let turned = 0.4 - heading;
+        let (s, co) = (-turned).sin_cos();
+        let now_y = s * px + co * py;
+        assert!(
+            now_y.abs() < 0.25,
+            "the post is in the corridor now: {now_y}"
+        );
+        c.on_command(&command(now, 0.2, 0.0), now).unwrap();
+        let (_, st) = c.tick(now, Some(&scan), &mut goal);
+        assert!(
+            st.field_distance_m.is_finite() && st.field_distance_m < 1.0,
+            "the post is not seen in the path: {st:?}"
+        );
+    }
+
     /// Both wheels on a lost bus: not driven, nothing sent.
     #[test]
     fn wheels_on_a_lost_or_disabled_bus_are_not_driven() {
