@@ -10,6 +10,7 @@
 
 use crate::drive::{Geometry, Twist};
 use crate::field::FieldConfig;
+use crate::history::{moved, PoseHistory};
 use crate::odometry::Odometry;
 use crate::ramp::{Limits, Ramp};
 use telemetry::frames::{
@@ -93,6 +94,8 @@ pub struct Controller {
     wheels_read_ns: u64,
     /// The newest joint-state frame's timestamp.
     state_ns: u64,
+    /// Where the base was lately, to judge each lidar point where the base stands now.
+    history: PoseHistory,
 }
 
 impl Controller {
@@ -111,6 +114,7 @@ impl Controller {
             read: false,
             wheels_read_ns: 0,
             state_ns: 0,
+            history: PoseHistory::default(),
         }
     }
 
@@ -184,7 +188,7 @@ impl Controller {
         self.read = left.is_valid() && right.is_valid();
         if self.read {
             self.wheels_read_ns = s.timestamp_ns;
-            self.odometry.update(
+            let pose = self.odometry.update(
                 s.timestamp_ns,
                 [f64::from(left.position_rad), f64::from(right.position_rad)],
                 [
@@ -192,6 +196,7 @@ impl Controller {
                     f64::from(right.velocity_rad_s),
                 ],
             );
+            self.history.push(s.timestamp_ns, pose);
         }
     }
 
@@ -300,7 +305,7 @@ impl Controller {
         } else {
             self.ramp.twist().linear_m_s >= 0.0
         };
-        let points = || scan_points(scan);
+        let points = || compensated(scan, field, &self.history);
         let limits = &self.config.limits;
         let verdict = field.verdict(points(), forward, limits.linear_brake_m_s2);
         // The turn likewise: the one asked for, or while stopping the one still turning.
@@ -335,6 +340,29 @@ fn scan_points(scan: &LidarScan) -> impl Iterator<Item = (f64, f64)> + '_ {
     scan.points()
         .iter()
         .map(|p| (f64::from(p.angle_rad), f64::from(p.range_m)))
+}
+
+/// A revolution's points, each moved from where the base stood when it was measured (its
+/// time spread evenly over the revolution) to where the base stands now; as measured where
+/// the history cannot place it (a base that has just started, still at rest), and no
+/// return stays no return.
+fn compensated<'a>(
+    scan: &'a LidarScan,
+    field: &'a FieldConfig,
+    history: &'a PoseHistory,
+) -> impl Iterator<Item = (f64, f64)> + 'a {
+    let now = history.newest();
+    let last = scan.points().len().saturating_sub(1).max(1) as u64;
+    let span = scan.end_ns.saturating_sub(scan.start_ns);
+    scan_points(scan).enumerate().map(move |(i, (b, r))| {
+        let t = scan.start_ns + span * i as u64 / last;
+        match (now, history.at(t)) {
+            (Some(now), Some(then)) if b.is_finite() && r.is_finite() && r > 0.0 => {
+                field.from_base(moved(field.to_base(b, r), then, now))
+            }
+            _ => (b, r),
+        }
+    })
 }
 
 #[cfg(test)]

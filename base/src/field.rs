@@ -69,6 +69,21 @@ pub const MAX_SECTORS: usize = 8;
 const TURN_STEP_RAD: f64 = std::f64::consts::PI / 180.0;
 
 impl FieldConfig {
+    /// A return (bearing in the lidar's frame, rad; range, m) as a point in the base's frame.
+    pub fn to_base(&self, bearing: f64, range: f64) -> (f64, f64) {
+        let a = self.lidar_yaw_rad + bearing;
+        (
+            self.lidar_x_m + range * a.cos(),
+            self.lidar_y_m + range * a.sin(),
+        )
+    }
+
+    /// A point in the base's frame as the lidar would see it: (bearing, range).
+    pub fn from_base(&self, (x, y): (f64, f64)) -> (f64, f64) {
+        let (dx, dy) = (x - self.lidar_x_m, y - self.lidar_y_m);
+        (dy.atan2(dx) - self.lidar_yaw_rad, dx.hypot(dy))
+    }
+
     /// Whether a revolution's points (bearing, rad; range, m, 0 for no return) can be judged:
     /// each of `sectors` (1 to [`MAX_SECTORS`]) equal sectors around the lidar holds a return
     /// at or beyond the minimum range. A window covered reads as no return or as the cover
@@ -102,9 +117,7 @@ impl FieldConfig {
             if !(range.is_finite() && range >= self.min_range_m && bearing.is_finite()) {
                 continue;
             }
-            let a = self.lidar_yaw_rad + bearing;
-            let x = self.lidar_x_m + range * a.cos();
-            let y = self.lidar_y_m + range * a.sin();
+            let (x, y) = self.to_base(bearing, range);
             if y.abs() > self.half_width_m {
                 continue;
             }
@@ -140,11 +153,7 @@ impl FieldConfig {
             if !(range.is_finite() && range >= self.min_range_m && bearing.is_finite()) {
                 continue;
             }
-            let a = self.lidar_yaw_rad + bearing;
-            let (x, y) = (
-                self.lidar_x_m + range * a.cos(),
-                self.lidar_y_m + range * a.sin(),
-            );
+            let (x, y) = self.to_base(bearing, range);
             // Beyond the corners' circle, or inside the body itself (its own parts): nothing
             // a turn can strike.
             if x.hypot(y) > reach || within(x, y, self.front_m, self.back_m, self.half_width_m) {

@@ -22,6 +22,7 @@ pub mod controller;
 pub mod drive;
 pub mod field;
 pub mod frames;
+pub mod history;
 pub mod odometry;
 pub mod ramp;
 
