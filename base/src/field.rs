@@ -67,6 +67,10 @@ pub const MAX_SECTORS: usize = 8;
 
 /// The turning field's angular resolution, rad (a degree: 1.7 mm at the A3's corners' 0.35 m).
 const TURN_STEP_RAD: f64 = std::f64::consts::PI / 180.0;
+/// Step along an arc, m.
+const ARC_STEP_M: f64 = 0.01;
+/// Steps along an arc judged (3 m: more than any stop takes).
+const ARC_STEPS: usize = 300;
 
 impl FieldConfig {
     /// A return (bearing in the lidar's frame, rad; range, m) as a point in the base's frame.
@@ -174,6 +178,63 @@ impl FieldConfig {
         TurnVerdict {
             free_rad: free,
             max_rate_rad_s: self.stopping_speed(free, brake_rad_s2),
+        }
+    }
+
+    /// The verdict for travel along an arc of `curvature` (rad/m, counter-clockwise positive,
+    /// as the base sees its path going `forward` or backward), from one revolution's points:
+    /// the body is moved along the arc a centimetre at a time until it would touch a return,
+    /// the distance before that is the free one. A straight corridor misses what the arc
+    /// sweeps outward (a post ahead and beside that a turning base drives its side into).
+    pub fn arc_verdict(
+        &self,
+        points: impl IntoIterator<Item = (f64, f64)>,
+        forward: bool,
+        curvature: f64,
+        brake_m_s2: f64,
+    ) -> Verdict {
+        // The body's pose at each step: (cos θ, sin θ, x, y).
+        let mut poses = [(1.0, 0.0, 0.0, 0.0); ARC_STEPS];
+        let dir = if forward { 1.0 } else { -1.0 };
+        for (k, pose) in poses.iter_mut().enumerate() {
+            let s = dir * (k + 1) as f64 * ARC_STEP_M;
+            let th = curvature * s;
+            let (sin, cos) = th.sin_cos();
+            let (x, y) = if curvature.abs() < 1e-9 {
+                (s, 0.0)
+            } else {
+                (sin / curvature, (1.0 - cos) / curvature)
+            };
+            *pose = (cos, sin, x, y);
+        }
+        let reach = self.front_m.max(self.back_m).hypot(self.half_width_m);
+        let within =
+            |x: f64, y: f64| x <= self.front_m && x >= -self.back_m && y.abs() <= self.half_width_m;
+        let mut free = f64::INFINITY;
+        for (bearing, range) in points {
+            if !(range.is_finite() && range >= self.min_range_m && bearing.is_finite()) {
+                continue;
+            }
+            let (px, py) = self.to_base(bearing, range);
+            // Inside the body (its own parts), or beyond anything the arc reaches.
+            if within(px, py) || px.hypot(py) > reach + ARC_STEPS as f64 * ARC_STEP_M {
+                continue;
+            }
+            for (k, &(c, sn, x, y)) in poses.iter().enumerate() {
+                let d = k as f64 * ARC_STEP_M;
+                if d >= free {
+                    break;
+                }
+                let (dx, dy) = (px - x, py - y);
+                if within(c * dx + sn * dy, -sn * dx + c * dy) {
+                    free = d;
+                    break;
+                }
+            }
+        }
+        Verdict {
+            free_m: free,
+            max_speed_m_s: self.stopping_speed(free - self.stop_margin_m, brake_m_s2),
         }
     }
 
@@ -365,6 +426,48 @@ pub(crate) mod tests {
                 f64::INFINITY
             );
         }
+    }
+
+    /// Driving forward while turning left (0.2 m/s at 0.5 rad/s: a 0.4 m radius), a post
+    /// 0.5 m ahead and 0.6 m left is outside the straight corridor and beyond the corners'
+    /// circle, yet the base's side sweeps into it along the arc.
+    #[test]
+    fn an_arc_sees_what_its_sweep_strikes() {
+        let (x, y): (f64, f64) = (0.5 - A3.lidar_x_m, 0.6);
+        let post = [(y.atan2(x), x.hypot(y))];
+        assert_eq!(A3.verdict(post, true, 1.0).free_m, f64::INFINITY);
+        assert_eq!(A3.turn_verdict(post, true, 2.0).free_rad, f64::INFINITY);
+        let arc = A3.arc_verdict(post, true, 0.5 / 0.2, 1.0);
+        assert!(arc.free_m > 0.05 && arc.free_m < 0.6, "{arc:?}");
+        let room = arc.free_m - A3.stop_margin_m;
+        let v = arc.max_speed_m_s;
+        assert!(
+            (v * A3.reaction_s + v * v / 2.0 - room).abs() < 1e-9,
+            "{arc:?}"
+        );
+        // Turning right instead: away from it, free.
+        assert_eq!(
+            A3.arc_verdict(post, true, -0.5 / 0.2, 1.0).free_m,
+            f64::INFINITY
+        );
+        // Backing up along the same circle reaches it only most of the way round.
+        let backing = A3.arc_verdict(post, false, 0.5 / 0.2, 1.0);
+        assert!(backing.free_m > 1.2, "{backing:?}");
+        // A straight arc is the corridor: a wall 1.1 m ahead of the lidar is 1.0 m ahead,
+        // to the step.
+        let straight = A3.arc_verdict(wall(1.1), true, 0.0, 1.0);
+        assert!((straight.free_m - 0.99).abs() < 1e-9, "{straight:?}");
+        // Backward: a wall 1 m behind the lidar is 0.6 m behind the body.
+        let back = A3.arc_verdict([(std::f64::consts::PI, 1.0)], false, 0.0, 1.0);
+        assert!((back.free_m - 0.59).abs() < 1e-9, "{back:?}");
+        // Its own parts and junk do not count.
+        let own = [
+            (0.0, 0.05),
+            (0.0, 0.0),
+            (f64::NAN, 1.0),
+            (0.0, f64::INFINITY),
+        ];
+        assert_eq!(A3.arc_verdict(own, true, 1.0, 1.0).free_m, f64::INFINITY);
     }
 
     #[test]
