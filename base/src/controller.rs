@@ -307,7 +307,13 @@ impl Controller {
         };
         let points = || compensated(scan, field, &self.history);
         let limits = &self.config.limits;
-        let verdict = field.verdict(points(), forward, limits.linear_brake_m_s2);
+        // Moving and turning at once, the body sweeps an arc: judged along it.
+        let verdict = if v != 0.0 && requested.angular_rad_s != 0.0 {
+            let curvature = requested.angular_rad_s / v.abs();
+            field.arc_verdict(points(), forward, curvature, limits.linear_brake_m_s2)
+        } else {
+            field.verdict(points(), forward, limits.linear_brake_m_s2)
+        };
         // The turn likewise: the one asked for, or while stopping the one still turning.
         let w = requested.angular_rad_s;
         let left = if w != 0.0 {
@@ -318,6 +324,10 @@ impl Controller {
         let turn = field.turn_verdict(points(), left, limits.angular_acc_rad_s2);
         let mut flags = 0;
         let mut target = requested;
+        // Slowed along an arc, the turn slows with it: the arc judged stays the arc driven.
+        if target.linear_m_s.abs() > verdict.max_speed_m_s && target.angular_rad_s != 0.0 {
+            target.angular_rad_s *= verdict.max_speed_m_s / target.linear_m_s.abs();
+        }
         for (value, most) in [
             (&mut target.linear_m_s, verdict.max_speed_m_s),
             (&mut target.angular_rad_s, turn.max_rate_rad_s),
