@@ -692,6 +692,30 @@ mod tests {
         );
     }
 
+    /// Something touching the front edge (a leg, a child leaning on the robot): the lidar's
+    /// range noise puts its returns a few millimetres inside the body's outline. It stops the
+    /// base as surely as the same thing 5 mm outside. (Found by an outside review: returns
+    /// inside the outline were all taken for the body's own parts, and the base drove at
+    /// full speed into what touched it.)
+    #[test]
+    fn something_touching_the_front_edge_stops_the_base() {
+        for at in [0.105f32, 0.095, 0.085] {
+            let mut c = ready(true);
+            let mut goal = GoalFrame::default();
+            let mut fastest = 0f32;
+            for i in 0..=100u64 {
+                let t = i * 10 * MS;
+                c.on_command(&command(t, 0.2, 0.0), t).unwrap();
+                let (_, s) = period(&mut c, t, Some(&wall(at, t)), &mut goal);
+                fastest = fastest.max(s.commanded_linear_m_s.abs());
+            }
+            assert_eq!(
+                fastest, 0.0,
+                "a wall {at} m ahead of the lidar: driven into"
+            );
+        }
+    }
+
     /// Both wheels on a lost bus: not driven, nothing sent.
     #[test]
     fn wheels_on_a_lost_or_disabled_bus_are_not_driven() {

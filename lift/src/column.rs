@@ -764,6 +764,44 @@ mod tests {
         (lift, col)
     }
 
+    /// The operator's stop pressed while the column backs off a hand (someone heard the cry):
+    /// the back-off waits for the resume, then finishes; the hand is not left clamped. The
+    /// operator's release during the back-off finishes it too. (Found by an outside review:
+    /// the stop dropped the back-off goal, and the column stayed on the hand after the
+    /// resume and after a release.)
+    #[test]
+    fn a_stop_or_a_release_during_a_back_off_does_not_leave_the_hand_clamped() {
+        for release in [false, true] {
+            let (mut lift, mut col) = above_a_hand();
+            lift.set_goal(0.1).unwrap();
+            col.until_obstruction(&mut lift, 2000);
+            assert!((col.h - 0.25).abs() < 1e-9, "on the hand at {} m", col.h);
+            let on_the_hand = col.h;
+            for _ in 0..100 {
+                lift.set_travel(Travel::OperatorStop);
+                col.turn(&mut lift);
+            }
+            assert!(
+                col.h - on_the_hand < 1e-3,
+                "moved during the stop: {}",
+                col.h
+            );
+            if release {
+                lift.release();
+            }
+            for _ in 0..500 {
+                lift.set_travel(Travel::Allowed);
+                col.turn(&mut lift);
+            }
+            assert!(
+                col.h >= 0.25 + 0.5 * ColumnConfig::A3.back_off_m,
+                "release {release}: the column still sits on the hand at {} m ({:?})",
+                col.h,
+                lift.state()
+            );
+        }
+    }
+
     /// Runs `seconds` at 100 Hz with `goal(t)` sent every `every_s` (as a policy's plan or a
     /// teleoperator streams it, taken before the step as `nori-lift` does); returns the
     /// obstructions met.
