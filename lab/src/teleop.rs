@@ -954,6 +954,70 @@ pub(crate) mod tests {
         );
     }
 
+    /// The driver silent for exactly the bound is still heard; a nanosecond more is silence:
+    /// a command is refused, and what is commanded is dropped at the next tick (found by the
+    /// mutation pass: no test stood at the bound).
+    #[test]
+    fn the_drivers_silence_is_judged_at_its_bound() {
+        let s = state_at(&HERE);
+        let mut t = teleop();
+        let seen = at(&s, 0);
+        assert!(t
+            .command(
+                1,
+                &joints(&[("left_elbow", -1.0)]),
+                Some(&seen),
+                READ_MAX_AGE_NS
+            )
+            .is_ok());
+        let (frame, ended) = t.tick(Some(&seen), READ_MAX_AGE_NS);
+        assert!(frame.is_some() && ended.is_none());
+        assert_eq!(
+            t.command(
+                1,
+                &joints(&[("left_elbow", -1.1)]),
+                Some(&seen),
+                READ_MAX_AGE_NS + 1
+            ),
+            Err(Refusal::DriverSilent)
+        );
+        let (_, ended) = t.tick(Some(&seen), READ_MAX_AGE_NS + 1);
+        assert_eq!(ended, Some(Ended::DriverSilent));
+    }
+
+    /// A joint already commanded takes a new target even when its own reading is missing from
+    /// the newest frames (a joint not read goes on from its goal; only a joint newly commanded
+    /// needs a recent reading).
+    #[test]
+    fn a_joint_already_commanded_takes_a_new_target_while_unread() {
+        let s = state_at(&HERE);
+        let mut t = teleop();
+        t.command(1, &joints(&[("left_elbow", -1.0)]), Some(&at(&s, 0)), 0)
+            .unwrap();
+        t.tick(Some(&at(&s, 0)), 0);
+        let mut unread = at(&s, 150 * MS);
+        unread.joints[3].valid = 0;
+        t.observe(&unread);
+        assert!(t
+            .command(1, &joints(&[("left_elbow", -1.1)]), Some(&unread), 150 * MS)
+            .is_ok());
+        // Newly commanded and unread: refused, naming it.
+        let wrist = t.layout().joints()[6].name().to_string();
+        let mut u = at(&s, 300 * MS);
+        u.joints[3].valid = 0;
+        u.joints[6].valid = 0;
+        t.observe(&u);
+        assert_eq!(
+            t.command(
+                1,
+                &joints(&[("left_elbow", -1.1), (&wrist, 0.1)]),
+                Some(&u),
+                300 * MS
+            ),
+            Err(Refusal::NotRead(wrist.clone()))
+        );
+    }
+
     /// A joint read beyond its range's end (pushed there, or sagging in a hold) is commanded
     /// within its range from the first frame: the lead toward its reading never carries a
     /// goal out of the range. (Seen in the body's chaos run: one goal on the wire outside its
