@@ -67,6 +67,9 @@ pub const MAX_SECTORS: usize = 8;
 
 /// The turning field's angular resolution, rad (a degree: 1.7 mm at the A3's corners' 0.35 m).
 const TURN_STEP_RAD: f64 = std::f64::consts::PI / 180.0;
+/// A return this far inside the body's outline is something touching it (the lidar's range
+/// noise puts it there), not one of the body's own parts, m.
+const CONTACT_BAND_M: f64 = 0.02;
 /// Step along an arc, m.
 const ARC_STEP_M: f64 = 0.01;
 /// Steps along an arc judged (3 m: more than any stop takes).
@@ -130,8 +133,8 @@ impl FieldConfig {
             } else {
                 -x - self.back_m
             };
-            if ahead >= 0.0 {
-                free = free.min(ahead);
+            if ahead >= -CONTACT_BAND_M {
+                free = free.min(ahead.max(0.0));
             }
         }
         Verdict {
@@ -158,9 +161,11 @@ impl FieldConfig {
                 continue;
             }
             let (x, y) = self.to_base(bearing, range);
-            // Beyond the corners' circle, or inside the body itself (its own parts): nothing
-            // a turn can strike.
-            if x.hypot(y) > reach || within(x, y, self.front_m, self.back_m, self.half_width_m) {
+            // Beyond the corners' circle, or deep inside the body itself (its own parts):
+            // nothing a turn can strike.
+            let band = CONTACT_BAND_M;
+            let (f, b, h) = (self.front_m, self.back_m, self.half_width_m);
+            if x.hypot(y) > reach || within(x, y, f - band, b - band, h - band) {
                 continue;
             }
             // Turning the body by φ turns the return by −φ around the base, as the base sees it.
@@ -216,9 +221,18 @@ impl FieldConfig {
                 continue;
             }
             let (px, py) = self.to_base(bearing, range);
-            // Inside the body (its own parts), or beyond anything the arc reaches.
-            if within(px, py) || px.hypot(py) > reach + ARC_STEPS as f64 * ARC_STEP_M {
+            // Deep inside the body (its own parts), or beyond anything the arc reaches; a
+            // return in the band at its edge is touching it (free 0).
+            let band = CONTACT_BAND_M;
+            let deep = px <= self.front_m - band
+                && px >= -self.back_m + band
+                && py.abs() <= self.half_width_m - band;
+            if deep || px.hypot(py) > reach + ARC_STEPS as f64 * ARC_STEP_M {
                 continue;
+            }
+            if within(px, py) {
+                free = 0.0;
+                break;
             }
             for (k, &(c, sn, x, y)) in poses.iter().enumerate() {
                 let d = k as f64 * ARC_STEP_M;

@@ -294,12 +294,18 @@ impl LiftController {
     /// The supervisor's word on travel, before the commands of a period. An operator's stop
     /// drops the goal and ends homing: the column stays where it stops, and nothing it was
     /// told or was doing before the stop moves it after (homing again waits for the operator's
-    /// release).
+    /// release). Only the back-off from an obstruction is kept, for after the stop.
     pub fn set_travel(&mut self, travel: Travel) {
         if travel == Travel::OperatorStop {
-            self.goal_m = None;
-            if self.state == LiftState::Homing {
-                self.state = LiftState::Unhomed;
+            match self.state {
+                // The back-off from what it pressed is kept: it moves away from the crush,
+                // and finishes once the stop ends (dropped, it would leave a hand clamped).
+                LiftState::Obstructed { .. } => {}
+                LiftState::Homing => {
+                    self.goal_m = None;
+                    self.state = LiftState::Unhomed;
+                }
+                _ => self.goal_m = None,
             }
         }
         self.travel = travel;
@@ -343,14 +349,13 @@ impl LiftController {
         Ok(goal)
     }
 
-    /// An operator's deliberate release: an obstruction's hold ends (the column stays where it
-    /// is, with no goal), a jammed or unhomed column homes (its position is not known).
+    /// An operator's deliberate release: an obstruction's hold ends (the column finishes its
+    /// back-off, if it has not, and takes goals toward it again), a jammed or unhomed column
+    /// homes (its position is not known).
     pub fn release(&mut self) {
         match self.state {
-            LiftState::Obstructed { .. } => {
-                self.state = LiftState::Ready;
-                self.goal_m = None;
-            }
+            // Free to go toward it again; the back-off, if not done yet, still finishes.
+            LiftState::Obstructed { .. } => self.state = LiftState::Ready,
             LiftState::Jammed { .. } | LiftState::Unhomed => self.home(),
             LiftState::Ready | LiftState::Homing => {}
         }

@@ -174,6 +174,8 @@ fn serve(args: &Args) -> Result<()> {
                 }
                 log_event(e);
             }
+        } else {
+            velocity = unread_speed(velocity, heard.elapsed(), period, travel);
         }
         hold.keep(controller.held_at_m());
         if !lost {
@@ -353,6 +355,19 @@ fn travel(allowance: Option<LiftAllowance>, now_ns: u64) -> (Travel, f32) {
     }
 }
 
+/// The speed for the board in a period with no fresh reading: the last one only while the
+/// board was heard within two periods and travel is allowed. Without readings nothing checks
+/// that speed (no obstruction, no switch), and the supervisor's word (a stop, no allowance)
+/// only reaches the board through a step: a board whose STATUS stopped while it still takes
+/// DRIVE would otherwise be driven blind until the link counts as lost.
+fn unread_speed(last: f64, since_heard: Duration, period: Duration, travel: Travel) -> f64 {
+    if since_heard <= 2 * period && travel == Travel::Allowed {
+        last
+    } else {
+        0.0
+    }
+}
+
 /// [`LiftState::held`]'s code.
 fn held_code(travel: Travel) -> u8 {
     match travel {
@@ -369,4 +384,27 @@ fn open_board(config: &LiftConfig) -> Result<serialport::TTYPort> {
         .timeout(Duration::from_millis(1))
         .open_native()
         .with_context(|| format!("the lift's board at {}", config.device.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_board_not_heard_or_a_travel_refused_gets_no_speed_unread() {
+        let p = Duration::from_millis(10);
+        assert_eq!(unread_speed(0.03, p, p, Travel::Allowed), 0.03);
+        assert_eq!(unread_speed(0.03, 2 * p, p, Travel::Allowed), 0.03);
+        assert_eq!(
+            unread_speed(0.03, 2 * p + Duration::from_micros(1), p, Travel::Allowed),
+            0.0
+        );
+        for t in [
+            Travel::OperatorStop,
+            Travel::NoSupervisor,
+            Travel::DutySpent,
+        ] {
+            assert_eq!(unread_speed(-0.03, p, p, t), 0.0, "{t:?}");
+        }
+    }
 }
