@@ -368,13 +368,18 @@ fn the_operators_stop_stops_the_lift_and_a_streamed_goal_presses_a_hand_once() {
         "lift streamed onto a hand: pressed {:.0} ms in all",
         pressed * 1000.0
     );
-    // The hand gone, the operator releases the hold: the column stays, with no goal.
+    // The hand gone, the operator releases the hold: the column stays where its back-off
+    // left it (its goal, if any, is where it stands).
     let said = nori_ok(&["lift", "release"], &stack.domain);
     assert!(said.contains("released"), "{said}");
     std::thread::sleep(Duration::from_millis(500));
     let released = newest(&states).unwrap();
     assert_eq!(released.state, LIFT_READY, "{released:?}");
-    assert!(released.goal_m.is_nan() && (released.height_m - s.height_m).abs() < 0.001);
+    assert!(
+        (released.goal_m.is_nan() || (released.goal_m - released.height_m).abs() < 0.002)
+            && (released.height_m - s.height_m).abs() < 0.001,
+        "{released:?}"
+    );
     // Onto the hand again (a second time at the same place: only a release ends this hold),
     // then nori-lift killed and started again.
     for _ in 0..40 {
