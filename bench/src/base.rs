@@ -101,7 +101,7 @@ fn feed(domain: &str, driving: &AtomicBool, stop: &AtomicBool, goals: &AtomicU64
     let states = node.publisher(&plane::JOINT_STATE)?;
     let scans = node.publisher(&plane::LIDAR_SCAN)?;
     let commands = node.publisher(&plane::BASE_COMMAND)?;
-    let goal_sub = node.subscriber(&plane::GOALS)?;
+    let goal_sub = node.subscriber(&plane::WHEEL_GOALS)?;
     let mut layout = JointLayout {
         joint_count: 2,
         bus_count: 1,
