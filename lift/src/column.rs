@@ -769,6 +769,67 @@ mod tests {
         (lift, col)
     }
 
+    /// Free travel: the speed ramps at the configured acceleration (never a step), reaches
+    /// the rated speed, meets no obstruction on the way (the measured speed keeps up with the
+    /// commanded one) and arrives; the goal in force is what it was told. (Found by the
+    /// mutation pass: the measured speed's formula and the acceleration step were untested.)
+    #[test]
+    fn free_travel_ramps_at_its_acceleration_and_meets_no_obstruction() {
+        let (mut lift, mut col) = homed();
+        assert_eq!(lift.goal_m(), None);
+        assert_eq!(lift.set_goal(0.5), Ok(0.5));
+        assert_eq!(lift.goal_m(), Some(0.5));
+        let c = ColumnConfig::A3;
+        let mut last = col.command;
+        let mut events = Vec::new();
+        let mut fastest: f64 = 0.0;
+        for _ in 0..2500 {
+            let (_, e) = col.turn(&mut lift);
+            assert!(
+                (col.command - last).abs() <= c.accel_m_s2 * 0.01 + 1e-9,
+                "a step of {} m/s in 10 ms",
+                col.command - last
+            );
+            last = col.command;
+            fastest = fastest.max(col.command);
+            events.extend(e);
+        }
+        assert!((fastest - c.max_speed_m_s).abs() < 1e-9, "{fastest}");
+        assert_eq!(events, [LiftEvent::Reached(0.5)], "{events:?}");
+        assert!((col.h - 0.5).abs() <= 0.003, "{}", col.h);
+    }
+
+    /// The lower switch pressed while a ready column is driven down (its counts drifted, or a
+    /// goal at the soft limit): it is not driven into the switch. Homing is, to find it.
+    #[test]
+    fn a_pressed_lower_switch_stops_a_ready_column_going_down() {
+        let (mut lift, mut col) = homed();
+        lift.set_goal(0.3).unwrap();
+        run(&mut lift, &mut col, 15.0, true);
+        lift.set_goal(0.02).unwrap();
+        for _ in 0..50 {
+            col.turn(&mut lift);
+        }
+        assert!(col.command < 0.0);
+        let mut r = col.step(col.command, 0.01);
+        r.at_lower = true;
+        let (v, _) = lift.step(&r);
+        assert_eq!(v, 0.0, "driven into the lower switch");
+        let mut homing = LiftController::new(ColumnConfig::A3);
+        homing.set_travel(Travel::Allowed);
+        homing.home();
+        let mut h = Column::new(0.3);
+        for _ in 0..50 {
+            h.turn(&mut homing);
+        }
+        let mut r = h.step(h.command, 0.01);
+        r.at_lower = false;
+        assert!(
+            homing.step(&r).0 < 0.0,
+            "homing goes down to find the switch"
+        );
+    }
+
     /// The operator's stop pressed while the column backs off a hand (someone heard the cry):
     /// the back-off waits for the resume, then finishes; the hand is not left clamped. The
     /// operator's release during the back-off finishes it too. (Found by an outside review:
