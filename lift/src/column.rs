@@ -799,6 +799,43 @@ mod tests {
         assert!((col.h - 0.5).abs() <= 0.003, "{}", col.h);
     }
 
+    /// Something soft under the column (a cushion, an arm): it still moves, at a fifth of the
+    /// speed commanded, drawing far less than a stall's current. Getting nowhere fast enough
+    /// is an obstruction all the same. (Found by the mutation pass: the speed measured over one
+    /// 10 ms period resolves one hall count, a third of the rated speed; a column at a fifth
+    /// counted 0 or 1 in turn and the rule's timer restarted at every count.)
+    #[test]
+    fn a_column_moving_at_a_fifth_of_its_speed_meets_an_obstruction() {
+        let (mut lift, mut col) = homed();
+        lift.set_goal(0.3).unwrap();
+        run(&mut lift, &mut col, 15.0, true);
+        lift.set_goal(0.1).unwrap();
+        // Driven at full speed first, on nothing.
+        for _ in 0..100 {
+            col.turn(&mut lift);
+        }
+        assert!((col.command + ColumnConfig::A3.max_speed_m_s).abs() < 1e-9);
+        let mut r = col.step(col.command, 0.01);
+        let mut at = col.h;
+        let mut v = col.command;
+        let mut met = None;
+        for k in 0..300 {
+            r.t_s += 0.01;
+            // Now a fifth of the commanded speed, counted in whole halls as a board does.
+            at += 0.2 * v * 0.01;
+            r.counts = ((at - col.counts_at_start) * ColumnConfig::A3.counts_per_m).floor() as i64;
+            r.current_a = 1.0;
+            let (next, e) = lift.step(&r);
+            v = next;
+            if let Some(LiftEvent::Obstruction { .. }) = e {
+                met = Some(k);
+                break;
+            }
+        }
+        let met = met.expect("a column getting nowhere was never stopped");
+        assert!(met <= 40, "stopped only after {met} periods");
+    }
+
     /// The lower switch pressed while a ready column is driven down (its counts drifted, or a
     /// goal at the soft limit): it is not driven into the switch. Homing is, to find it.
     #[test]
