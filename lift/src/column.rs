@@ -96,6 +96,13 @@ impl ColumnConfig {
 /// this far from the last).
 const MAX_DT_S: f64 = 0.1;
 
+/// The speed that tells motion from getting nowhere is measured over this long, s: one
+/// period's hall count (0.01 m/s at 10 ms) is a third of the rated speed, too coarse to see a
+/// column slowed to a fifth.
+const SPEED_WINDOW_S: f64 = 0.1;
+/// Readings kept for it (10 ms apart).
+const SPEED_READINGS: usize = 16;
+
 /// A second obstruction this close to the last one, m, within [`REPEAT_WINDOW_S`], is the same
 /// thing still there: its hold is the operator's to release.
 const REPEAT_M: f64 = 0.02;
@@ -215,6 +222,9 @@ pub struct LiftController {
     arrived: bool,
     /// The last obstruction: where, and when, s.
     last_obstruction: Option<(f64, f64)>,
+    /// Recent (time, counts), oldest first, for the speed over [`SPEED_WINDOW_S`].
+    recent: [(f64, i64); SPEED_READINGS],
+    recent_len: usize,
 }
 
 impl LiftController {
@@ -231,6 +241,31 @@ impl LiftController {
             stuck_since: None,
             arrived: false,
             last_obstruction: None,
+            recent: [(0.0, 0); SPEED_READINGS],
+            recent_len: 0,
+        }
+    }
+
+    /// The speed over the last [`SPEED_WINDOW_S`] (or what of it the readings cover) with
+    /// reading `r` added, m/s; 0 with a single reading.
+    fn windowed_speed(&mut self, r: &LiftReading) -> f64 {
+        if self.recent_len == SPEED_READINGS {
+            self.recent.copy_within(1.., 0);
+            self.recent_len -= 1;
+        }
+        self.recent[self.recent_len] = (r.t_s, r.counts);
+        self.recent_len += 1;
+        let newest = self.recent[self.recent_len - 1];
+        let oldest = self.recent[..self.recent_len]
+            .iter()
+            .find(|(t, _)| newest.0 - t <= SPEED_WINDOW_S + 1e-9)
+            .copied()
+            .unwrap_or(newest);
+        let dt = newest.0 - oldest.0;
+        if dt > 0.0 {
+            (newest.1 - oldest.1) as f64 / self.config.counts_per_m / dt
+        } else {
+            0.0
         }
     }
 
@@ -268,6 +303,7 @@ impl LiftController {
     /// held off).
     pub fn board_lost(&mut self) {
         self.goal_m = None;
+        self.recent_len = 0;
         self.state = match self.state {
             LiftState::Obstructed { at_m, .. } | LiftState::Jammed { at_m } => {
                 LiftState::Jammed { at_m }
@@ -377,11 +413,7 @@ impl LiftController {
             self.velocity = 0.0;
             return (0.0, Some(LiftEvent::CountsJumped { counts: jump }));
         }
-        let measured = if dt > 0.0 {
-            jump as f64 / c.counts_per_m / dt
-        } else {
-            0.0
-        };
+        let measured = self.windowed_speed(r);
         let (want, mut event) = self.wanted(r);
         // Acceleration limit, then the switches, then the supervisor's word.
         let step = c.accel_m_s2 * dt;
