@@ -14,7 +14,9 @@ use telemetry::frames::{
     COMMAND_STOP, DIRECTIVE_FLAG_STOP,
 };
 use telemetry::latch::LatchError;
-use telemetry::motion::{LiftAllowance, LiftState, LIFT_REFUSED_OPERATOR_STOP};
+use telemetry::motion::{
+    LiftAllowance, LiftState, LIFT_REFUSED_OPERATOR_STOP, LIFT_REFUSED_RECORD,
+};
 
 const MS: u64 = 1_000_000;
 
@@ -40,6 +42,8 @@ struct Queues {
     allowances: Vec<LiftAllowance>,
     /// The record as last saved, whole.
     record: Vec<String>,
+    /// Saving the record fails (a full or read-only disk).
+    saves_fail: bool,
 }
 
 impl SupervisorIo for Queues {
@@ -72,6 +76,13 @@ impl SupervisorIo for Queues {
         self.calls.push(Call::Grip);
     }
     fn save_trips(&mut self, joints: &[String]) -> Result<(), LatchError> {
+        if self.saves_fail {
+            return Err(LatchError {
+                path: "trips".into(),
+                action: "writing",
+                source: std::io::Error::other("no space left on device"),
+            });
+        }
         // The lift's budget line aside: the trips and the stop are what most tests look at.
         self.record = joints.to_vec();
         let kept = joints.iter().filter(|l| !l.starts_with("@lift-duty"));
@@ -412,6 +423,42 @@ fn the_lift_moving_past_its_rating_is_refused_travel_and_told_for_how_long() {
     assert!((a.seconds - 2.0).abs() < 0.05, "{a:?}");
     // Published with the heartbeat's period, each newer than the last.
     assert!(io.allowances.windows(2).all(|w| w[1].seq == w[0].seq + 1));
+}
+
+/// The lift's budget must outlive the supervisor: while the record cannot be saved (a full or
+/// read-only disk), a restart would forget what the motor ran, so the lift is refused travel
+/// until a save succeeds again (tried again every second). (Before: a failed save was only
+/// logged, and the lift ran on a budget no restart would remember.)
+#[test]
+fn the_lift_is_refused_travel_while_its_budget_cannot_be_recorded() {
+    let mut p = Process::new(short_lift_rating(), Vec::new(), 1);
+    let mut io = Queues {
+        saves_fail: true,
+        ..Queues::default()
+    };
+    // Moving for 1 s: the budget is saved every 0.5 s of running, and each save fails.
+    let mut t = 0;
+    while t < 1000 {
+        io.lift_states.push_back(lift_state(t, true));
+        p.poll(&mut io, t * MS).unwrap();
+        t += 10;
+    }
+    let a = *io.allowances.last().unwrap();
+    assert_eq!((a.allowed, a.refused), (0, LIFT_REFUSED_RECORD), "{a:?}");
+    // The disk writable again: the next try saves it, travel is allowed again.
+    io.saves_fail = false;
+    while t < 2200 {
+        io.lift_states.push_back(lift_state(t, false));
+        p.poll(&mut io, t * MS).unwrap();
+        t += 10;
+    }
+    let a = *io.allowances.last().unwrap();
+    assert_eq!((a.allowed, a.refused), (1, 0), "{a:?}");
+    assert!(
+        io.record.iter().any(|l| l.starts_with("@lift-duty")),
+        "{:?}",
+        io.record
+    );
 }
 
 /// An operator's stop is recorded before the directives that carry it go out (at once, not at

@@ -206,6 +206,8 @@ pub const LIFT_ALLOWANCE_LIFE_NS: u64 = 200_000_000;
 pub const LIFT_REFUSED_DUTY: u8 = 1;
 /// [`LiftAllowance::refused`]: an operator's stop is in force (the lift drops its goal).
 pub const LIFT_REFUSED_OPERATOR_STOP: u8 = 2;
+/// [`LiftAllowance::refused`]: the budget cannot be recorded (a restart would forget it).
+pub const LIFT_REFUSED_RECORD: u8 = 4;
 
 /// [`LiftState::state`]: not homed (no height is known).
 pub const LIFT_UNHOMED: u8 = 0;
