@@ -20,9 +20,13 @@ use telemetry::frames::{
     SupervisorEvent, COMMAND_REFUSED_NOT_STOPPED, COMMAND_RESUME, COMMAND_STOP,
 };
 use telemetry::latch::{LatchError, OPERATOR_STOP};
-use telemetry::motion::{LiftAllowance, LiftState, LIFT_REFUSED_DUTY, LIFT_REFUSED_OPERATOR_STOP};
+use telemetry::motion::{
+    LiftAllowance, LiftState, LIFT_REFUSED_DUTY, LIFT_REFUSED_OPERATOR_STOP, LIFT_REFUSED_RECORD,
+};
 use telemetry::watchdog::Liveness;
 
+/// A record that failed to save is tried again this often, ns.
+const RECORD_RETRY_NS: u64 = 1_000_000_000;
 /// Directives and heartbeat period.
 pub const PUBLISH_EVERY: Duration = Duration::from_millis(5);
 /// Poll period of the loop.
@@ -108,6 +112,9 @@ pub struct Process {
     /// was spent then.
     duty_ahead_s: f64,
     duty_saved_spent: bool,
+    /// Since when saving the record has failed (the lift gets no travel meanwhile), ns, and
+    /// the last try.
+    record_failing: Option<(u64, u64)>,
     /// Events of the operator's stop taken before the driver's layout, numbered.
     early_events: u64,
     /// Operator's stops taken (restored ones too), for the lift's allowance.
@@ -129,6 +136,7 @@ impl Process {
             duty_line,
             duty_ahead_s: 0.0,
             duty_saved_spent: false,
+            record_failing: None,
             early_events: 0,
             stops: 0,
             recorded_mask: 0,
@@ -291,8 +299,19 @@ impl Process {
         }
         self.duty_ahead_s = DUTY_SAVE_AHEAD_S;
         self.duty_saved_spent = self.lift_duty.exhausted();
-        if let Err(e) = io.save_trips(&lines) {
-            tracing::error!("{e}: a restart would forget the latched trips and the lift's duty budget, and the driver keeps a released bus off");
+        match io.save_trips(&lines) {
+            Ok(()) => {
+                if self.record_failing.take().is_some() {
+                    tracing::warn!("the record is saved again: the lift may travel");
+                }
+            }
+            Err(e) => {
+                if self.record_failing.is_none() {
+                    tracing::error!("{e}: a restart would forget the latched trips and the lift's duty budget, and the driver keeps a released bus off; the lift gets no travel until a save succeeds");
+                }
+                let since = self.record_failing.map_or(now, |(since, _)| since);
+                self.record_failing = Some((since, now));
+            }
         }
     }
 
@@ -300,7 +319,10 @@ impl Process {
     /// restore credits from the save's time is then rest indeed), or its budget turned spent or
     /// allowed.
     fn save_duty(&mut self, io: &mut impl SupervisorIo, now: u64) {
-        if self.duty_ahead_s < 0.0 || self.lift_duty.exhausted() != self.duty_saved_spent {
+        let retry = self
+            .record_failing
+            .is_some_and(|(_, tried)| now.saturating_sub(tried) >= RECORD_RETRY_NS);
+        if retry || self.duty_ahead_s < 0.0 || self.lift_duty.exhausted() != self.duty_saved_spent {
             self.save_record(io, now);
         }
     }
@@ -342,6 +364,7 @@ impl Process {
         }
         let (allowed, refused, seconds) = match self.lift_duty.allowance() {
             _ if self.stopped() => (0, LIFT_REFUSED_OPERATOR_STOP, 0.0),
+            _ if self.record_failing.is_some() => (0, LIFT_REFUSED_RECORD, 0.0),
             Allowance::Allowed { left_s } => (1, 0, left_s),
             Allowance::Refused { wait_s } => (0, LIFT_REFUSED_DUTY, wait_s),
         };
