@@ -36,6 +36,13 @@ pub fn nori_ok(args: &[&str], domain: &str) -> String {
     said
 }
 
+/// One test of this binary at a time, for the tests that run whole stacks and measure their
+/// timing: two stacks at once on a two-core machine starve each other's control loops.
+pub fn serial() -> std::sync::MutexGuard<'static, ()> {
+    static TURN: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    TURN.lock().unwrap_or_else(|e| e.into_inner())
+}
+
 /// Path of a workspace binary, built once per test run in the release profile: the processes
 /// run as deployed. (Unoptimised, the simulator falls behind real time in bursts on a two-core
 /// machine, so a moving joint looks static to the supervisor: a timing artefact no robot has.)

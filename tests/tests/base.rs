@@ -8,7 +8,10 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use nori_tests::{binary, scratch, wait_for, ArmStack, Proc};
+// The tests take turns (`serial`): each runs a whole stack and measures speeds and stopping
+// times; two at once on two cores starved the controllers (a CI run saw a cruise dip in 9 of
+// 40 samples: the driver's wheel timeout stopping wheels whose controller was starved).
+use nori_tests::{binary, scratch, serial, wait_for, ArmStack, Proc};
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
 use telemetry::frames::{EventKind, SupervisorEvent};
@@ -148,6 +151,7 @@ fn assert_cruising(
 
 #[test]
 fn the_base_follows_knows_where_it_went_stops_when_told_nothing_and_short_of_a_wall() {
+    let _turn = serial();
     let mut base = Base::start("base", &[], &[]);
 
     // From where it starts (facing +x, between the legs of the table in front), straight at
@@ -252,6 +256,7 @@ impl Base {
 /// for an arm joint, so the motors do not cook pushing; a new command (backing off) restores it.
 #[test]
 fn a_wheel_pushing_a_wall_stalls_and_its_torque_is_reduced_until_the_command_changes() {
+    let _turn = serial();
     let files = scratch("base-wall-files");
     // Started 0.5 m from the far wall (x = 3.2 m), facing it.
     let robot = files.join("robot.toml");
@@ -341,6 +346,7 @@ fn a_wheel_pushing_a_wall_stalls_and_its_torque_is_reduced_until_the_command_cha
 /// plan's last step, the agent's horizon, the base's command timeout and its braking.
 #[test]
 fn a_policy_drives_the_base_through_the_gate_and_the_base_stops_when_it_falls_silent() {
+    let _turn = serial();
     use fleet_agent::keys::robot_key;
     use fleet_agent::schema::{encode, ActionChunk, SCHEMA_VERSION};
     use fleet_agent::zenoh::Wait;
@@ -431,6 +437,7 @@ fn a_policy_drives_the_base_through_the_gate_and_the_base_stops_when_it_falls_si
 /// only from the base's controller, on a path of their own; the driver refuses the rest.
 #[test]
 fn a_wheel_goal_from_anyone_but_the_base_is_refused() {
+    let _turn = serial();
     let base = Base::start("base-wheel-goals", &[], &[]);
     let node = Plane::open(&base.stack.domain, "test-rogue").unwrap();
     let goals = node.publisher(&plane::GOALS).unwrap();

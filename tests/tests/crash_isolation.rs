@@ -10,18 +10,17 @@
 use fleet_agent::keys::robot_key;
 use fleet_agent::zenoh::Wait;
 use nori_tests::{
-    check_left_arm_report, free_endpoint, plane_files, quantile, scratch, wait_for, ArmStack, Rng,
+    check_left_arm_report, free_endpoint, plane_files, quantile, scratch, serial, wait_for,
+    ArmStack, Rng,
 };
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
 use telemetry::config::ProcessConfig;
 use telemetry::frames::{EventKind, SupervisorEvent, STATE_FLAG_SAFE_STATE};
 use telemetry::plane::{self, newest, next, publish, Plane};
 use telemetry::{GoalFrame, JointState};
-
-static SERIAL: Mutex<()> = Mutex::new(());
 
 /// The driver's supervisor timeout (deploy/config/bus-driver.toml), ms.
 const HEARTBEAT_BOUND_MS: f64 = 50.0;
@@ -34,10 +33,6 @@ const REACTION_CEILING_MS: f64 = HEARTBEAT_BOUND_MS + 5.0 + 5.0 + 40.0;
 const JOINTS: u32 = 8;
 /// The elbow's index in the frame.
 const ELBOW: usize = 3;
-
-fn serial() -> std::sync::MutexGuard<'static, ()> {
-    SERIAL.lock().unwrap_or_else(|e| e.into_inner())
-}
 
 /// Under supervision, every servo answering with torque on.
 fn driving(s: &JointState) -> bool {

@@ -18,22 +18,15 @@ use fleet_agent::keys::robot_key;
 use fleet_agent::schema::{decode, encode, ActionChunk, StateMsg, SCHEMA_VERSION};
 use fleet_agent::zenoh::{self, Wait};
 use nori_tests::{
-    binary, check_left_arm_report, free_endpoint, newest_read, scratch, seeing_robot, wait_for,
-    ArmStack, Proc,
+    binary, check_left_arm_report, free_endpoint, newest_read, scratch, seeing_robot, serial,
+    wait_for, ArmStack, Proc,
 };
-use std::sync::Mutex;
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
 use telemetry::frames::{JointLayout, JointState};
 use telemetry::plane::{self, newest, next, Plane};
 
 const ELBOW: usize = 3;
-
-/// These tests run whole robots; one at a time keeps the two-core machine's timing honest.
-fn serial() -> std::sync::MutexGuard<'static, ()> {
-    static TURN: Mutex<()> = Mutex::new(());
-    TURN.lock().unwrap_or_else(|e| e.into_inner())
-}
 
 fn session(listen: &str) -> zenoh::Session {
     nori_tests::listening_session(listen)

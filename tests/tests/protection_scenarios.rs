@@ -6,17 +6,14 @@
 use nori_tests::binary;
 use serde_json::Value;
 use std::process::Command;
-use std::sync::Mutex;
-
-/// One scenario at a time: each runs three processes on a two-core machine.
-static SERIAL: Mutex<()> = Mutex::new(());
 
 fn scenario(name: &str) -> Value {
     scenario_with(name, &[])
 }
 
 fn scenario_with(name: &str, extra: &[&str]) -> Value {
-    let _one_at_a_time = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    // One scenario at a time: each runs three processes on a two-core machine.
+    let _one_at_a_time = nori_tests::serial();
     let out = Command::new(binary("nori"))
         .args(["sim", "scenario", name, "--json", "--timeout", "120"])
         .args(extra)

@@ -7,25 +7,20 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use nori_tests::{binary, lerobot_check, wait_for, ArmStack, Proc, Rng};
+use nori_tests::{binary, lerobot_check, serial, wait_for, ArmStack, Proc, Rng};
 use std::path::Path;
 use std::process::Command;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 use telemetry::clock::monotonic_ns;
 use telemetry::frames::STATE_FLAG_SAFE_STATE;
 use telemetry::plane::{self, newest, publish, Plane};
 use telemetry::GoalFrame;
 
-static SERIAL: Mutex<()> = Mutex::new(());
 const FPS: u32 = 30;
 const ELBOW: usize = 3;
 const JOINTS: u32 = 8;
-
-fn serial() -> std::sync::MutexGuard<'static, ()> {
-    SERIAL.lock().unwrap_or_else(|e| e.into_inner())
-}
 
 /// Waves the elbow (as a policy would) until `stop`, so the recording has motion in it.
 fn wave(domain: String, stop: Arc<AtomicBool>) -> std::thread::JoinHandle<()> {
