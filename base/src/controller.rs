@@ -456,6 +456,23 @@ mod tests {
         c.tick(t, scan, goal)
     }
 
+    /// A revolution of one return at `(x, y)` in the lidar's frame, measured at `t`.
+    fn one_return(x: f32, y: f32, t: u64) -> LidarScan {
+        let mut s = LidarScan {
+            start_ns: t,
+            end_ns: t,
+            point_count: 1,
+            ..LidarScan::default()
+        };
+        s.points[0] = ScanPoint {
+            angle_rad: y.atan2(x),
+            range_m: x.hypot(y),
+            quality: 40,
+            reserved: [0; 3],
+        };
+        s
+    }
+
     /// A wall `at` metres ahead of the lidar, seen at `t_ns`.
     fn wall(at: f32, t_ns: u64) -> LidarScan {
         let mut s = LidarScan {
@@ -656,21 +673,7 @@ mod tests {
     #[test]
     fn a_base_driving_an_arc_is_slowed_before_its_side_strikes_a_post() {
         let (x, y): (f32, f32) = (0.29 - 0.15, 0.32);
-        let post = |t: u64| {
-            let mut s = LidarScan {
-                start_ns: t,
-                end_ns: t,
-                point_count: 1,
-                ..LidarScan::default()
-            };
-            s.points[0] = ScanPoint {
-                angle_rad: y.atan2(x),
-                range_m: x.hypot(y),
-                quality: 40,
-                reserved: [0; 3],
-            };
-            s
-        };
+        let post = |t: u64| one_return(x, y, t);
         let mut c = ready(true);
         let mut goal = GoalFrame::default();
         let mut s = None;
@@ -743,20 +746,7 @@ mod tests {
     #[test]
     fn a_turn_is_judged_in_its_own_direction_and_held_to_the_fields_rate() {
         let (lx, ly): (f32, f32) = (0.2 - 0.15, 0.38);
-        let leg = |t: u64| {
-            let mut s = LidarScan {
-                end_ns: t,
-                point_count: 1,
-                ..LidarScan::default()
-            };
-            s.points[0] = ScanPoint {
-                angle_rad: ly.atan2(lx),
-                range_m: lx.hypot(ly),
-                quality: 40,
-                reserved: [0; 3],
-            };
-            s
-        };
+        let leg = |t: u64| one_return(lx, ly, t);
         let field = crate::field::tests::A3;
         let points = [(f64::from(ly.atan2(lx)), f64::from(lx.hypot(ly)))];
         for (w, free) in [(0.8f32, false), (-0.8, true)] {

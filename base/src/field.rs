@@ -76,6 +76,12 @@ const ARC_STEP_M: f64 = 0.01;
 const ARC_STEPS: usize = 300;
 
 impl FieldConfig {
+    /// Whether a measurement is a return to judge: finite, and beyond the minimum range (no
+    /// return reads 0; dust on the window reads nearer).
+    fn is_return(&self, bearing: f64, range: f64) -> bool {
+        range.is_finite() && range >= self.min_range_m && bearing.is_finite()
+    }
+
     /// A return (bearing in the lidar's frame, rad; range, m) as a point in the base's frame.
     pub fn to_base(&self, bearing: f64, range: f64) -> (f64, f64) {
         let a = self.lidar_yaw_rad + bearing;
@@ -102,7 +108,7 @@ impl FieldConfig {
         let mut seen = [false; MAX_SECTORS];
         let sector = std::f64::consts::TAU / n as f64;
         for (bearing, range) in points {
-            if range.is_finite() && range >= self.min_range_m && bearing.is_finite() {
+            if self.is_return(bearing, range) {
                 let k = (bearing.rem_euclid(std::f64::consts::TAU) / sector) as usize;
                 seen[k.min(n - 1)] = true;
             }
@@ -121,7 +127,7 @@ impl FieldConfig {
     ) -> Verdict {
         let mut free = f64::INFINITY;
         for (bearing, range) in points {
-            if !(range.is_finite() && range >= self.min_range_m && bearing.is_finite()) {
+            if !self.is_return(bearing, range) {
                 continue;
             }
             let (x, y) = self.to_base(bearing, range);
@@ -157,7 +163,7 @@ impl FieldConfig {
         let within = |x: f64, y: f64, f: f64, b: f64, h: f64| x <= f && x >= -b && y.abs() <= h;
         let mut free = f64::INFINITY;
         for (bearing, range) in points {
-            if !(range.is_finite() && range >= self.min_range_m && bearing.is_finite()) {
+            if !self.is_return(bearing, range) {
                 continue;
             }
             let (x, y) = self.to_base(bearing, range);
@@ -217,7 +223,7 @@ impl FieldConfig {
             |x: f64, y: f64| x <= self.front_m && x >= -self.back_m && y.abs() <= self.half_width_m;
         let mut free = f64::INFINITY;
         for (bearing, range) in points {
-            if !(range.is_finite() && range >= self.min_range_m && bearing.is_finite()) {
+            if !self.is_return(bearing, range) {
                 continue;
             }
             let (px, py) = self.to_base(bearing, range);
