@@ -13,6 +13,7 @@ use crate::field::FieldConfig;
 use crate::history::{moved, PoseHistory};
 use crate::odometry::Odometry;
 use crate::ramp::{Limits, Ramp};
+use telemetry::clock::{in_force, NotInForce};
 use telemetry::frames::{
     JointLayout, JOINT_FLAG_BUS_DISABLED, JOINT_FLAG_BUS_LOST, STATE_FLAG_SAFE_STATE,
 };
@@ -24,8 +25,6 @@ use telemetry::motion::{
 use telemetry::sensors::LidarScan;
 use telemetry::{GoalFrame, JointState};
 
-/// A command ahead of the controller's clock by more than this is from the future.
-const FUTURE_NS: u64 = 1_000_000;
 /// A driver heard from longer ago than this drives nothing (dead, or restarting).
 const STATE_MAX_AGE_NS: u64 = 100_000_000;
 /// Longest interval a period integrates (a stalled process must not ramp in one leap).
@@ -55,20 +54,10 @@ pub enum CommandRefusal {
     /// A speed that is NaN or infinite.
     #[error("a speed is not a finite number")]
     NotFinite,
-    /// Stamped ahead of the controller's clock.
-    #[error("stamped {ahead_ms} ms in the future")]
-    FromTheFuture {
-        /// How far ahead.
-        ahead_ms: u64,
-    },
-    /// Older than the command timeout when it arrived.
-    #[error("{age_ms} ms old, beyond the {limit_ms} ms timeout")]
-    Stale {
-        /// Its age.
-        age_ms: u64,
-        /// The timeout.
-        limit_ms: u64,
-    },
+    /// Stamped ahead of the controller's clock, or older than the command timeout when it
+    /// arrived.
+    #[error(transparent)]
+    NotInForce(#[from] NotInForce),
 }
 
 /// The layout lacks a wheel.
@@ -152,18 +141,7 @@ impl Controller {
         if !(c.linear_m_s.is_finite() && c.angular_rad_s.is_finite()) {
             return Err(CommandRefusal::NotFinite);
         }
-        if c.timestamp_ns > now_ns + FUTURE_NS {
-            return Err(CommandRefusal::FromTheFuture {
-                ahead_ms: (c.timestamp_ns - now_ns) / 1_000_000,
-            });
-        }
-        let age = now_ns.saturating_sub(c.timestamp_ns);
-        if age > self.config.command_timeout_ns {
-            return Err(CommandRefusal::Stale {
-                age_ms: age / 1_000_000,
-                limit_ms: self.config.command_timeout_ns / 1_000_000,
-            });
-        }
+        in_force(c.timestamp_ns, now_ns, self.config.command_timeout_ns)?;
         Ok(())
     }
 
@@ -288,9 +266,7 @@ impl Controller {
         // A revolution stamped ahead of this clock is no fresh one (it would never age), and
         // one without a single return is a dead or covered lidar, not free space.
         let fresh = scan.filter(|s| {
-            s.end_ns <= now_ns + FUTURE_NS
-                && now_ns.saturating_sub(s.end_ns) <= *max_age_ns
-                && field.trusted(scan_points(s), 1)
+            in_force(s.end_ns, now_ns, *max_age_ns).is_ok() && field.trusted(scan_points(s), 1)
         });
         let Some(scan) = fresh else {
             // A lidar that should be there and says nothing it can be trusted on (no
@@ -378,9 +354,8 @@ fn compensated<'a>(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use telemetry::clock::{FUTURE_SLACK_NS, MS};
     use telemetry::sensors::ScanPoint;
-
-    const MS: u64 = 1_000_000;
 
     fn config(field: bool) -> ControllerConfig {
         ControllerConfig {
@@ -555,14 +530,16 @@ mod tests {
         );
         assert!(matches!(
             c.on_command(&command(500 * MS, 0.0, 0.0), 0),
-            Err(CommandRefusal::FromTheFuture { ahead_ms: 500 })
+            Err(CommandRefusal::NotInForce(NotInForce::FromTheFuture {
+                ahead_ms: 500
+            }))
         ));
         assert!(matches!(
             c.on_command(&command(0, -0.2, 0.0), 300 * MS),
-            Err(CommandRefusal::Stale {
+            Err(CommandRefusal::NotInForce(NotInForce::Stale {
                 age_ms: 300,
                 limit_ms: 250
-            })
+            }))
         ));
         let (_, s) = period(&mut c, 100 * MS, None, &mut goal);
         assert_eq!(s.requested_linear_m_s, 0.2, "the command in force stays");
@@ -576,21 +553,23 @@ mod tests {
         let mut c = ready(false);
         let now = 10_000 * MS;
         assert!(c
-            .on_command(&command(now + FUTURE_NS, 0.1, 0.0), now)
+            .on_command(&command(now + FUTURE_SLACK_NS, 0.1, 0.0), now)
             .is_ok());
         assert_eq!(
-            c.on_command(&command(now + 3 * FUTURE_NS + 1, 0.1, 0.0), now),
-            Err(CommandRefusal::FromTheFuture { ahead_ms: 3 })
+            c.on_command(&command(now + 3 * FUTURE_SLACK_NS + 1, 0.1, 0.0), now),
+            Err(CommandRefusal::NotInForce(NotInForce::FromTheFuture {
+                ahead_ms: 3
+            }))
         );
         assert!(c
             .on_command(&command(now - 250 * MS, 0.1, 0.0), now)
             .is_ok());
         assert_eq!(
             c.on_command(&command(now - 250 * MS - 1, 0.1, 0.0), now),
-            Err(CommandRefusal::Stale {
+            Err(CommandRefusal::NotInForce(NotInForce::Stale {
                 age_ms: 250,
                 limit_ms: 250
-            })
+            }))
         );
     }
 

@@ -105,7 +105,7 @@ pub fn moved(p: (f64, f64), then: Pose2, now: Pose2) -> (f64, f64) {
 mod tests {
     use super::*;
 
-    const MS: u64 = 1_000_000;
+    use telemetry::clock::MS;
 
     fn pose(x: f64, y: f64, theta: f64) -> Pose2 {
         Pose2 {

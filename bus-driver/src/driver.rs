@@ -3,8 +3,9 @@
 //!
 //! Per cycle and bus: one SYNC_READ of the feedback block and one SYNC_WRITE of goals (plus a
 //! SYNC_WRITE of torque limits in the rare cycles where one changes). All buses' reads are
-//! started before any is collected, so their wire time overlaps. Nothing here reads a clock for
-//! its decisions: time comes in with the goal frames, so the logic is tested without sleeping.
+//! started before any is collected, so their wire time overlaps. Nothing here reads a clock of
+//! its own: time comes in with the goal frames and as the clock `cycle` is passed, so the
+//! logic is tested without sleeping.
 
 use crate::backstops;
 use crate::bus::{Bus, BusCounters, BusError};
@@ -15,6 +16,7 @@ use crate::plausibility::FeedbackGate;
 use crate::transport::Transport;
 use feetech::registers::{self as reg, FeedbackBlock};
 use feetech::{ServoModel, ServoStatus, AMPS_PER_CURRENT_UNIT};
+use telemetry::clock::{in_force, NotInForce, MS};
 use telemetry::frames::{
     BusHealth, BusHealthEntry, Directives, JointInfo, JointLayout, JointRole, BUS_HEALTH_CONNECTED,
     BUS_HEALTH_DRIVER_TRIP, BUS_HEALTH_ENABLED, BUS_HEALTH_LATCHED, DIRECTIVE_FLAG_STOP,
@@ -43,20 +45,9 @@ pub enum GoalRejection {
         /// Driver's joints.
         joint_count: u32,
     },
-    /// Older than `goal-max-age-ms`.
-    #[error("goal frame {age_ms} ms old (limit {limit_ms} ms)")]
-    Stale {
-        /// Age.
-        age_ms: u64,
-        /// Limit.
-        limit_ms: u64,
-    },
-    /// Timestamped in the future: a clock that is not ours.
-    #[error("goal frame timestamped {ahead_ms} ms in the future")]
-    FromTheFuture {
-        /// How far ahead.
-        ahead_ms: u64,
-    },
+    /// Older than `goal-max-age-ms`, or timestamped in the future (a clock that is not ours).
+    #[error("goal frame {0}")]
+    NotInForce(#[from] NotInForce),
     /// Produced before the driver left its safe state: it was meant for another situation.
     #[error("goal frame older than the end of the safe state")]
     BeforeRecovery,
@@ -370,9 +361,9 @@ impl<T: Transport> Driver<T> {
             buses,
             joints,
             state,
-            goal_max_age_ns: c.goal_max_age_ms * 1_000_000,
+            goal_max_age_ns: c.goal_max_age_ms * MS,
             max_wheel_speed: c.max_wheel_speed_rad_s,
-            wheel_timeout_ns: c.wheel_command_timeout_ms * 1_000_000,
+            wheel_timeout_ns: c.wheel_command_timeout_ms * MS,
             safe_kind: c.safe_state,
             hold_permille: (c.safe_hold_torque_percent * 10.0).round() as u16,
             safe: c.supervisor_timeout_ms > 0,
@@ -666,11 +657,7 @@ impl<T: Transport> Driver<T> {
         let c = &mut self.counters;
         match result {
             Ok(()) => c.goals_accepted += 1,
-            Err(
-                GoalRejection::Stale { .. }
-                | GoalRejection::FromTheFuture { .. }
-                | GoalRejection::BeforeRecovery,
-            ) => c.goals_stale += 1,
+            Err(GoalRejection::NotInForce(_) | GoalRejection::BeforeRecovery) => c.goals_stale += 1,
             Err(GoalRejection::SafeState) => c.goals_in_safe_state += 1,
             Err(GoalRejection::NotFinite(_)) => c.goals_not_finite += 1,
             Err(_) => c.goals_malformed += 1,
@@ -714,18 +701,7 @@ impl<T: Transport> Driver<T> {
                 path,
             });
         }
-        if frame.timestamp_ns > now_ns + 1_000_000 {
-            return Err(GoalRejection::FromTheFuture {
-                ahead_ms: (frame.timestamp_ns - now_ns) / 1_000_000,
-            });
-        }
-        let age = now_ns.saturating_sub(frame.timestamp_ns);
-        if age > self.goal_max_age_ns {
-            return Err(GoalRejection::Stale {
-                age_ms: age / 1_000_000,
-                limit_ms: self.goal_max_age_ns / 1_000_000,
-            });
-        }
+        in_force(frame.timestamp_ns, now_ns, self.goal_max_age_ns)?;
         if self.safe {
             return Err(GoalRejection::SafeState);
         }
@@ -917,12 +893,14 @@ impl<T: Transport> Driver<T> {
     /// One control cycle: read every bus, fill the state frame, write every bus's goals (and any
     /// torque limit that changed). A bus whose device failed is marked lost (its joints flagged
     /// and missing) and reopened every 100 ms; a servo, or a whole bus, silent for 200 ms is
-    /// taken off (the safe state applied to it) and set up again once it answers.
-    pub fn cycle(&mut self) -> &JointState {
+    /// taken off (the safe state applied to it) and set up again once it answers. `clock`
+    /// (CLOCK_MONOTONIC, ns, in the process) is read when the replies come in, for the
+    /// plausibility gate, and once they are all in, for the frame's stamp.
+    pub fn cycle(&mut self, clock: fn() -> u64) -> &JointState {
         // The replies to the read-backs requested in the last period's idle time have had that
         // time to arrive: take them before anything else is sent on the buses.
         self.collect_read_backs(std::time::Duration::ZERO);
-        let now_s = telemetry::clock::monotonic_ns() as f64 * 1e-9;
+        let now_s = clock() as f64 * 1e-9;
         for b in &mut self.buses {
             b.failed = !b.connected || b.bus.request_feedback(&b.ids).is_err();
         }
@@ -986,7 +964,7 @@ impl<T: Transport> Driver<T> {
                 self.watch_silence(bi);
             }
         }
-        self.state.timestamp_ns = telemetry::clock::monotonic_ns();
+        self.state.timestamp_ns = clock();
         self.last_resort_tier();
         self.stop_stale_wheels(self.state.timestamp_ns);
         for bi in 0..self.buses.len() {

@@ -6,7 +6,7 @@ use crate::driver::{Driver, DriverCounters, GoalPath, GoalRejection};
 use crate::transport::Transport;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
-use telemetry::clock::monotonic_ns;
+use telemetry::clock::{in_force, monotonic_ns};
 use telemetry::frames::{BusHealth, Directives, Heartbeat};
 use telemetry::watchdog::{Liveness, Watchdog};
 use telemetry::{GoalFrame, JointState};
@@ -97,9 +97,6 @@ fn apply_directives<T: Transport>(
     }
 }
 
-/// A supervisor frame stamped further ahead of this process's clock than this is not ours.
-const FUTURE_SLACK_NS: u64 = 1_000_000;
-
 /// Runs the loop at `period` until `shutdown` is set (or `max_cycles`), then turns torque off.
 ///
 /// With `supervisor_timeout`, the supervisor's heartbeat is required: until it is first heard,
@@ -121,9 +118,7 @@ pub fn run<T: Transport>(
     let mut last_rejection: [Option<std::mem::Discriminant<GoalRejection>>; 2] = [None; 2];
     let mut watchdog = supervisor_timeout.map(Watchdog::new);
     let timeout_ns = supervisor_timeout.map_or(0, |t| t.as_nanos() as u64);
-    let fresh = |stamp: u64, now: u64| {
-        stamp <= now + FUTURE_SLACK_NS && now.saturating_sub(stamp) <= timeout_ns
-    };
+    let fresh = |stamp: u64, now: u64| in_force(stamp, now, timeout_ns).is_ok();
     let mut supervisor = Liveness::Unknown;
     // A directive of the live supervisor has been applied since it was (last) heard again.
     let mut directed = false;
@@ -194,7 +189,7 @@ pub fn run<T: Transport>(
                 }
             }
         }
-        let state = driver.cycle();
+        let state = driver.cycle(monotonic_ns);
         io.publish(state);
         if driver.counters.cycles % every_100ms == 1 || every_100ms == 1 {
             driver.health(&mut health);

@@ -67,7 +67,7 @@ fn goals(driver: &Driver<SerialTransport>, set: &[(usize, f32)]) -> GoalFrame {
 
 fn run_cycles(d: &mut Driver<SerialTransport>, n: usize) {
     for _ in 0..n {
-        d.cycle();
+        d.cycle(monotonic_ns);
         std::thread::sleep(Duration::from_millis(2));
     }
 }

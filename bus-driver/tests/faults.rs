@@ -20,7 +20,7 @@ use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
-use telemetry::clock::monotonic_ns;
+use telemetry::clock::{monotonic_ns, NotInForce};
 use telemetry::config::ProcessConfig;
 use telemetry::frames::{
     BusHealth, Directives, BUS_HEALTH_DRIVER_TRIP, BUS_HEALTH_ENABLED, BUS_HEALTH_LATCHED,
@@ -158,7 +158,7 @@ fn rig_with(faults: Option<LineFaults>, safe_state: SafeState, supervisor_timeou
 impl Rig {
     /// One cycle, then the mechanics advance 5 ms.
     fn cycle(&mut self) -> telemetry::JointState {
-        let s = *self.driver.cycle();
+        let s = *self.driver.cycle(monotonic_ns);
         for b in &self.buses {
             let mut b = b.lock().unwrap();
             let t = b.time() + 0.005;
@@ -583,15 +583,15 @@ fn every_bad_goal_frame_is_refused_with_its_reason_and_nothing_reaches_the_wire(
         (
             frame(&[(0, 0.3)], now - 500 * ms),
             GoalPath::Joints,
-            GoalRejection::Stale {
+            GoalRejection::NotInForce(NotInForce::Stale {
                 age_ms: 500,
                 limit_ms: 100,
-            },
+            }),
         ),
         (
             frame(&[(0, 0.3)], now + 50 * ms),
             GoalPath::Joints,
-            GoalRejection::FromTheFuture { ahead_ms: 50 },
+            GoalRejection::NotInForce(NotInForce::FromTheFuture { ahead_ms: 50 }),
         ),
         (
             frame(&[(0, 0.3), (4, f32::NAN)], now),

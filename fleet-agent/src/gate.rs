@@ -448,7 +448,7 @@ mod tests {
     use super::*;
     use crate::schema::{encode, SCHEMA_VERSION};
 
-    const MS: u64 = 1_000_000;
+    use telemetry::clock::MS;
     const RANGES: [Range; 2] = [
         Range {
             min: -1.0,

@@ -223,7 +223,7 @@ mod tests {
     use super::*;
     use crate::schema::SCHEMA_VERSION;
 
-    const MS: u64 = 1_000_000;
+    use telemetry::clock::MS;
 
     /// One joint; steps every 20 ms from `start_ms` after the observation at `obs_ms`.
     fn chunk(seq: u64, obs_ms: u64, start_ms: u64, targets: &[f32]) -> ActionChunk {

@@ -22,7 +22,7 @@ use telemetry::frames::{
 use telemetry::motion::{BaseCommand, BaseState, LiftCommand, LiftState, LIFT_READY};
 use telemetry::sensors::{CameraFrameHeader, LidarScan, PixelFormat};
 
-const MS: u64 = 1_000_000;
+use telemetry::clock::MS;
 
 #[derive(Default)]
 struct Queues {

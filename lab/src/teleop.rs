@@ -721,7 +721,7 @@ pub(crate) mod tests {
     use body::RobotDescription;
     use telemetry::frames::JointInfo;
 
-    const MS: u64 = 1_000_000;
+    use telemetry::clock::MS;
 
     /// The A3's left arm as a driver on its bus alone lays it out: its seven joints (ranges
     /// 0.05 rad inside the hard stops) and the gripper.

@@ -12,7 +12,7 @@ use serialport::SerialPort;
 use std::io::{Read, Write};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
-use telemetry::clock::monotonic_ns;
+use telemetry::clock::{in_force, monotonic_ns};
 use telemetry::motion::{
     LiftAllowance, LiftCommand, LiftState, LIFT_ALLOWANCE_LIFE_NS, LIFT_COMMAND_GOAL,
     LIFT_COMMAND_RELEASE, LIFT_HOMING, LIFT_JAMMED, LIFT_LINK_LOST, LIFT_OBSTRUCTED, LIFT_READY,
@@ -294,10 +294,7 @@ fn take_command(
     now_ns: u64,
     max_age_ns: u64,
 ) -> Result<Taken, String> {
-    let age = now_ns.saturating_sub(c.timestamp_ns);
-    if age > max_age_ns || c.timestamp_ns > now_ns + 1_000_000 {
-        return Err(format!("{} ms old", age / 1_000_000));
-    }
+    in_force(c.timestamp_ns, now_ns, max_age_ns).map_err(|e| e.to_string())?;
     match c.kind {
         LIFT_COMMAND_GOAL => controller
             .set_goal(f64::from(c.height_m))

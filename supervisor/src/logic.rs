@@ -624,7 +624,7 @@ mod tests {
     use telemetry::config::ProcessConfig;
     use telemetry::frames::{EventKind, JointInfo};
 
-    const MS: u64 = 1_000_000;
+    use telemetry::clock::MS;
 
     /// Two buses: bus 0 an arm joint (STS3250) and a gripper, bus 1 one joint.
     fn layout() -> JointLayout {

@@ -15,6 +15,7 @@ use crate::logic::{LayoutError, Supervisor};
 use crate::SupervisorConfig;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
+use telemetry::clock::in_force;
 use telemetry::frames::{
     Directives, EventKind, GripFrame, Heartbeat, JointLayout, JointState, Peer, SupervisorCommand,
     SupervisorEvent, COMMAND_REFUSED_NOT_STOPPED, COMMAND_RESUME, COMMAND_STOP,
@@ -350,7 +351,7 @@ impl Process {
     fn lift_duty_tier(&mut self, io: &mut impl SupervisorIo, now: u64) {
         while let Some(s) = io.next_lift_state() {
             // A state stamped ahead of this clock would stop the count of what follows.
-            if s.timestamp_ns > now.saturating_add(1_000_000) {
+            if in_force(s.timestamp_ns, now, u64::MAX).is_err() {
                 continue;
             }
             if let Some((t, moving)) = self.last_lift {

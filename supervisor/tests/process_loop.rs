@@ -18,7 +18,7 @@ use telemetry::motion::{
     LiftAllowance, LiftState, LIFT_REFUSED_OPERATOR_STOP, LIFT_REFUSED_RECORD,
 };
 
-const MS: u64 = 1_000_000;
+use telemetry::clock::MS;
 
 /// One call the loop made, in order.
 #[derive(Debug, Clone, PartialEq)]

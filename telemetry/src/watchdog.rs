@@ -60,7 +60,7 @@ impl Watchdog {
 mod tests {
     use super::*;
 
-    const MS: u64 = 1_000_000;
+    use crate::clock::MS;
 
     #[test]
     fn lost_after_the_bound_and_back_on_a_beat() {
