@@ -193,7 +193,7 @@ pub fn run_bench(a: &BenchArgs) -> Result<()> {
 /// same run: the simulator's servo stepped bare for the same 6 s (no log to follow, no load).
 fn motion_timing() {
     use model_lab::motion::{simulate, MotionParams, MotionRun};
-    use sim::servo::FIRMWARE_PERIOD_S;
+    use sim::servo::{Surroundings, FIRMWARE_PERIOD_S};
     let g = model_lab::generate::generate_motion(Effect::None, 7);
     let robot = sim::RobotDescription::nori_a3();
     let (Ok(d), Some(rating)) = (g.dataset(), robot.rating("sts3250")) else {
@@ -213,7 +213,7 @@ fn motion_timing() {
     for _ in 0..repeats * runs.len() {
         let mut s = sim::servo::Servo::new(1, rating.model, rating, 0.0, 25.0);
         for _ in 0..(6.0 / FIRMWARE_PERIOD_S) as usize {
-            s.step(FIRMWARE_PERIOD_S, 0.0, 0.0, 25.0, 1.0);
+            s.step(FIRMWARE_PERIOD_S, Surroundings::BENCH);
         }
         std::hint::black_box(s.angle);
     }

@@ -33,6 +33,48 @@ impl Default for Limits {
     }
 }
 
+/// What the audit did about a finding.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Action {
+    /// Corrected (an unambiguous unit mistake).
+    Fixed,
+    /// The column emptied: nonsense, or a unit that cannot be told.
+    Refused,
+    /// Some readings dropped (a stuck sensor, a clock jump).
+    Dropped,
+    /// Said, and used as it is (a little beyond the rating: another motor, a harder duty).
+    Flagged,
+}
+
+impl Action {
+    /// Its name, as `--json` writes it.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Action::Fixed => "fixed",
+            Action::Refused => "refused",
+            Action::Dropped => "dropped",
+            Action::Flagged => "flagged",
+        }
+    }
+}
+
+impl std::fmt::Display for Action {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+/// The columns refused, each with why, for the error that says nothing is left to analyse.
+pub fn refused(findings: &[Finding]) -> String {
+    findings
+        .iter()
+        .filter(|f| f.action == Action::Refused)
+        .map(|f| format!("{}: {}", f.column, f.detail))
+        .collect::<Vec<_>>()
+        .join("; ")
+}
+
 /// One thing found wrong with the data.
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct Finding {
@@ -41,8 +83,8 @@ pub struct Finding {
     /// What was found: `milliamps`, `register_counts`, `tenths_of_volts`, `millivolts`,
     /// `kelvin`, `degrees`, `beyond_physics`, `ambiguous_unit`, `stuck`, `clock_jump`.
     pub kind: &'static str,
-    /// What was done: `fixed`, `refused` (the column emptied), `dropped` (some readings).
-    pub action: &'static str,
+    /// What was done.
+    pub action: Action,
     /// The figures, for a reader.
     pub detail: String,
 }
@@ -144,7 +186,7 @@ fn check_scale(
         out.push(Finding {
             column,
             kind: "beyond_rating",
-            action: "flagged",
+            action: Action::Flagged,
             detail: format!(
                 "{} values, 99th percentile of |value| {p99:.4} {unit}, above the servo's \
                  {limit} {unit} but within {tolerance} times it: another motor than \
@@ -177,7 +219,7 @@ fn check_scale(
             out.push(Finding {
                 column,
                 kind: m.kind,
-                action: "fixed",
+                action: Action::Fixed,
                 detail: format!("{seen}: {}; converted to {unit}", m.what),
             });
         }
@@ -186,7 +228,7 @@ fn check_scale(
             out.push(Finding {
                 column,
                 kind: "beyond_physics",
-                action: "refused",
+                action: Action::Refused,
                 detail: format!("{seen}, and no unit mistake explains it: the column is not used"),
             });
         }
@@ -196,7 +238,7 @@ fn check_scale(
             out.push(Finding {
                 column,
                 kind: "ambiguous_unit",
-                action: "refused",
+                action: Action::Refused,
                 detail: format!(
                     "{seen}; it could be {}: the column is not used (convert it and run again)",
                     names.join(" or ")
@@ -252,7 +294,7 @@ fn stuck_temperatures(d: &mut Dataset, out: &mut Vec<Finding>) {
                         out.push(Finding {
                             column: "temperature_c",
                             kind: "stuck",
-                            action: "dropped",
+                            action: Action::Dropped,
                             detail: format!(
                                 "motor {} reads {v} °C unchanged for {span:.0} s (t = {:.0}–{:.0} s) \
                                  while its mean I² over {STUCK_WINDOW_S:.0} s changed by \
@@ -326,7 +368,7 @@ pub fn check(d: &mut Dataset, limits: &Limits) -> Vec<Finding> {
         out.push(Finding {
             column: "current_a",
             kind: "milliamps",
-            action: "fixed",
+            action: Action::Fixed,
             detail: format!(
                 "beyond the stall current ({} A) and every value a multiple of 6.5 (the current \
                  register's step in mA): milliamperes; divided by 1000",
@@ -475,7 +517,9 @@ mod tests {
     }
 
     fn kinds(f: &[Finding]) -> Vec<(&str, &str, &str)> {
-        f.iter().map(|f| (f.column, f.kind, f.action)).collect()
+        f.iter()
+            .map(|f| (f.column, f.kind, f.action.as_str()))
+            .collect()
     }
 
     // The generator's columns: t_s, motor, voltage_v, temperature_c, current_a.

@@ -364,7 +364,7 @@ fn repair_clock(name: &str, rows: &mut [Row]) -> Option<crate::audit::Finding> {
     Some(crate::audit::Finding {
         column: "t_s",
         kind: "clock_jump",
-        action: "fixed",
+        action: crate::audit::Action::Fixed,
         detail: format!(
             "{name}: the clock steps back {back:.3} s after t = {at:.3} s (data row {row}); \
              {} backward step(s) in all (one per motor per jump): each motor's later rows \

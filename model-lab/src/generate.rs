@@ -479,8 +479,8 @@ pub fn generate_motion(effect: Effect, seed: u64) -> GeneratedMotion {
 /// [`generate_motion`] with the effect's size `given` (the value of the parameter that carries
 /// it, signed; the rest drawn from `seed` as there), for what the size alone decides.
 pub fn generate_motion_sized(effect: Effect, seed: u64, given: Option<f64>) -> GeneratedMotion {
-    use crate::motion::{decode, gravity, MotionParams};
-    use sim::servo::{Servo, RAD_PER_STEP};
+    use crate::motion::{decode, MotionParams};
+    use sim::servo::{Servo, Surroundings, RAD_PER_STEP};
     let mut rng = Rng::new(seed ^ 0x6D6F_7469_6F6E_0000);
     let robot = sim::RobotDescription::nori_a3();
     // The description always has the STS3250 (the arms' shoulders).
@@ -579,7 +579,7 @@ pub fn generate_motion_sized(effect: Effect, seed: u64, given: Option<f64>) -> G
                 next_sample += 0.02 + 0.003 * rng.normal().clamp(-1.0, 1.0);
             }
             s.supply = 12.6 - 0.45 * s.current.abs();
-            s.step(h, gravity(m, l, &s, h), m * l * l, 25.0, 1.0);
+            s.step(h, Surroundings::BENCH.pendulum(m, l, &s, h));
             t += h;
         }
         runs.push((format!("{name}.csv"), csv));

@@ -16,6 +16,7 @@
 //! * [`audit`]: data that lie — channels against the servo's physical ranges and unit
 //!   mistakes (fixed when unambiguous, refused when nonsense), stuck sensors, clock jumps.
 //! * [`analysis`]: split, calibrate, misfit statistics, the tests that decide the cause.
+//! * [`verdict`]: why an extension is named or not, as a type.
 //! * [`fit`]: Levenberg–Marquardt aware of per-motor block structure.
 //! * [`stats`]: RMSE, bias, autocorrelation, Ljung–Box, χ².
 //! * [`generate`]: a truth model that hides one effect of random size in measured-like data.
@@ -37,6 +38,7 @@ pub mod register;
 pub mod report;
 pub mod stats;
 pub mod thermal;
+pub mod verdict;
 
 pub use analysis::{analyze, Analysis, AnalysisError, Options, Outcome};
 pub use catalog::{Channel, Effect};

@@ -179,7 +179,7 @@ fn run_analyze(a: &AnalyzeArgs) -> Result<()> {
             "  judged {:?} after {}: {}",
             v.channel,
             v.extension.map_or("none", |e| e.id()),
-            v.judged
+            v.judged()
         );
     }
     if let Some(u) = &an.unexplained {
@@ -210,10 +210,11 @@ fn run_analyze(a: &AnalyzeArgs) -> Result<()> {
     }
     if let Some(m) = &an.motion {
         println!(
-            "motion ({} runs through the simulator's {}): cause {}; {}",
+            "motion ({} runs through the simulator's {}): cause {}; after `{}`: {}",
             m.as_configured.len(),
             m.servo,
             m.cause,
+            m.chosen,
             m.judged
         );
         for (run, mae, rmse) in &m.as_configured {

@@ -17,17 +17,16 @@
 //! Whatever is named, a misfit left beyond the channel's noise floor (the encoder's step and
 //! the positions' own noise, as for the other channels) is `unexplained`.
 
-use crate::analysis::NoiseFloor;
+use crate::analysis::{AgainstFloor, NoiseFloor};
 use crate::catalog::Effect;
 use crate::data::{Dataset, Mechanics};
 use crate::stats;
+use crate::verdict::Verdict;
 use serde::Serialize;
 use sim::description::ServoRating;
 use sim::extension::ServoExtension;
-use sim::servo::{Servo, RAD_PER_STEP, TICK_TOLERANCE_S};
+use sim::servo::{Servo, Surroundings, RAD_PER_STEP, TICK_TOLERANCE_S};
 
-/// Gravity, m/s².
-const G: f64 = 9.81;
 /// An extension must cut the held-out mean absolute error by this fraction to matter ...
 pub const MOTION_PRACTICAL_GAIN: f64 = 0.05;
 /// ... and by at least a sixteenth of an encoder step, rad (a quarter of the mean absolute
@@ -136,7 +135,6 @@ pub fn simulate(rating: &ServoRating, p: &MotionParams, run: &MotionRun) -> Vec<
     s.extension = p.ext;
     s.configure_for_replay(run.mechanics.kp.round().clamp(0.0, 255.0) as u8);
     let (m, l) = (run.mechanics.mass_kg, run.mechanics.length_m);
-    let inertia = m * l * l;
     let mut out = Vec::with_capacity(run.t.len());
     let mut torque = None;
     for k in 0..run.t.len() {
@@ -153,18 +151,11 @@ pub fn simulate(rating: &ServoRating, p: &MotionParams, run: &MotionRun) -> Vec<
         let mut left = (run.t[k + 1] - run.t[k]).max(0.0);
         while left > TICK_TOLERANCE_S {
             let h = left.min(s.until_tick());
-            s.step(h, gravity(m, l, &s, h), inertia, 25.0, 1.0);
+            s.step(h, Surroundings::BENCH.pendulum(m, l, &s, h));
             left -= h;
         }
     }
     out
-}
-
-/// The torque gravity puts on a mass `m` at `l` on the servo's output (toward hanging, angle
-/// 0) over a step of `h`: taken at the step's middle, as the servo holds it over the step (at
-/// the step's start it would pump energy into a free swing, a step's error per swing).
-pub fn gravity(m: f64, l: f64, s: &Servo, h: f64) -> f64 {
-    m * G * l * (s.angle + 0.5 * h * s.speed).sin()
 }
 
 /// Mean absolute and root-mean-square error of `sim` against the run's measured positions.
@@ -558,10 +549,9 @@ pub struct MotionCandidate {
     pub parameters: Vec<crate::analysis::Parameter>,
     /// Every parameter strictly inside its physical range on every fold.
     pub plausible: bool,
-    /// Every test passed.
-    pub supported: bool,
-    /// Why not, when not.
-    pub verdict: String,
+    /// Supported, or the first test it failed.
+    #[serde(flatten)]
+    pub verdict: Verdict,
 }
 
 /// The motion channel's analysis.
@@ -582,8 +572,10 @@ pub struct MotionAnalysis {
     pub nominal_mae_rad: f64,
     /// Mean held-out MAE of the best supported extension (or the nominal model's), rad.
     pub chosen_mae_rad: f64,
-    /// The misfit left with it, against the positions' noise floor.
-    pub judged: String,
+    /// The model the misfit left is judged with: the best supported extension, or `none`.
+    pub chosen: Effect,
+    /// The misfit left with it (the chosen model's), against the positions' noise floor.
+    pub judged: AgainstFloor,
     /// Mean time to simulate one run once, s.
     pub seconds_per_run: f64,
     /// Per run, the series behind the plots.
@@ -805,12 +797,10 @@ pub fn analyze_motion(
             improved_runs: 0,
             parameters,
             plausible,
-            supported: false,
-            verdict: String::new(),
+            verdict: Verdict::Nominal,
         });
     }
     let (nominal, extensions) = tried.split_first_mut()?;
-    nominal.verdict = "the calibrated nominal model (Coulomb and viscous friction)".into();
     for c in extensions.iter_mut() {
         c.gain = 1.0 - c.mae_rad / nominal.mae_rad;
         c.improved_runs = c
@@ -833,53 +823,43 @@ pub fn analyze_motion(
             .flatten()
             .map(|p| (p[0].value, p[1].value));
         c.verdict = if !c.plausible {
-            "a parameter at the edge of (or beyond) what its physics allows".into()
+            Verdict::AtPhysicsEdge
         } else if let Some((p, v)) = size.filter(|(p, v)| v.abs() < p.negligible) {
-            format!(
-                "too small to be a finding: {} {v:.4} {unit} (below {:.4} {unit} counts as none)",
-                p.name,
-                p.negligible,
-                unit = p.unit
-            )
+            Verdict::TooSmall {
+                name: p.name,
+                value: v,
+                below: p.negligible,
+                unit: p.unit,
+            }
         } else if let Some((drive, back)) =
             sides.filter(|(d, b)| (d - b).abs() < DIRECTIONAL_MIN_ASYMMETRY * d.max(*b))
         {
-            format!(
-                "one friction, not a directional one: driving {drive:.3} and back-driven \
-                 {back:.3} differ by {:.0} % of the larger ({:.0} % would be directional)",
-                100.0 * (drive - back).abs() / drive.max(back),
-                100.0 * DIRECTIONAL_MIN_ASYMMETRY
-            )
+            Verdict::OneFriction { drive, back }
         } else if !(c.gain >= MOTION_PRACTICAL_GAIN && step_gain >= MOTION_MIN_MAE_CUT) {
-            format!(
-                "no practical difference: held-out MAE {:.5} → {:.5} rad ({:+.1} %; {:.0} % and a \
-                 sixteenth of an encoder step, {MOTION_MIN_MAE_CUT:.5} rad, would matter)",
-                nominal.mae_rad,
-                c.mae_rad,
-                100.0 * c.gain,
-                100.0 * MOTION_PRACTICAL_GAIN
-            )
+            Verdict::NoPracticalMaeCut {
+                nominal_mae: nominal.mae_rad,
+                mae: c.mae_rad,
+                gain: c.gain,
+            }
         } else if 2 * c.improved_runs <= c.runs.len() {
-            format!(
-                "better on only {} of {} held-out runs",
-                c.improved_runs,
-                c.runs.len()
-            )
+            Verdict::FewRunsBetter {
+                improved: c.improved_runs,
+                runs: c.runs.len(),
+            }
         } else {
-            "supported".into()
+            Verdict::Supported
         };
-        c.supported = c.verdict == "supported";
     }
     let mut best = extensions
         .iter()
-        .filter(|c| c.supported)
+        .filter(|c| c.verdict.supported())
         .max_by(|a, b| a.gain.total_cmp(&b.gain));
     // The directional friction holds the load-proportional one (equal sides): it is named
     // only where it predicts better than that by what matters.
     if let Some(d) = best.filter(|c| c.id == Effect::DirectionalFriction) {
         if let Some(l) = extensions
             .iter()
-            .find(|c| c.id == Effect::LoadFriction && c.supported)
+            .find(|c| c.id == Effect::LoadFriction && c.verdict.supported())
         {
             let cut = l.mae_rad - d.mae_rad;
             if cut < MOTION_PRACTICAL_GAIN * l.mae_rad || cut < MOTION_MIN_MAE_CUT {
@@ -908,7 +888,7 @@ pub fn analyze_motion(
     let rmse = (chosen.runs.iter().map(|h| h.rmse_rad.powi(2)).sum::<f64>()
         / chosen.runs.len() as f64)
         .sqrt();
-    let (significant, judged) = floor.judge(rmse, 0.0, "rad");
+    let judged = floor.judge(rmse, 0.0, "rad");
     let sim_of = |effect: Effect, r: &MotionRun| {
         fitted_on_all
             .iter()
@@ -926,7 +906,7 @@ pub fn analyze_motion(
             chosen: sim_of(chosen_id, r),
         })
         .collect();
-    let cause = match (significant, best.is_some()) {
+    let cause = match (judged.significant, best.is_some()) {
         (true, _) => Effect::Unexplained,
         (false, true) => chosen_id,
         (false, false) => Effect::None,
@@ -942,7 +922,8 @@ pub fn analyze_motion(
         cause,
         nominal_mae_rad: nominal_mae,
         chosen_mae_rad: chosen_mae,
-        judged: format!("after `{chosen_id}`: {judged}"),
+        chosen: chosen_id,
+        judged,
         seconds_per_run,
         traces,
     })

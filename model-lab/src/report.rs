@@ -246,7 +246,7 @@ pub fn render(a: &Analysis, tr: &Traces, source: &str) -> Vec<(String, String)> 
             "- {:?}, after `{}`: {} — **{}**",
             v.channel,
             v.extension.map_or("none", |e| e.id()),
-            v.judged,
+            v.judged(),
             if v.significant {
                 "beyond the noise"
             } else {
@@ -390,12 +390,14 @@ pub fn render(a: &Analysis, tr: &Traces, source: &str) -> Vec<(String, String)> 
     if let Some(m) = &a.motion {
         let _ = writeln!(
             md,
-            "\n## Motion channel ({} runs through the simulator's {})\n\n**Cause: `{}`**; {}.\n\n\
+            "\n## Motion channel ({} runs through the simulator's {})\n\n**Cause: `{}`**; after \
+             `{}`: {}.\n\n\
              The simulator's servo as configured (its rated friction), open loop:\n\n\
              | run | MAE (rad) | RMSE (rad) |\n|---|---|---|",
             m.as_configured.len(),
             m.servo,
             m.cause,
+            m.chosen,
             m.judged
         );
         for (run, mae, rmse) in &m.as_configured {

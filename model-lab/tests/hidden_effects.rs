@@ -8,6 +8,7 @@
 
 #![allow(missing_docs, clippy::unwrap_used, clippy::expect_used)]
 
+use model_lab::audit::Action;
 use model_lab::generate::{generate, Generated, Spec};
 use model_lab::{analyze, Analysis, Effect, Options};
 
@@ -102,7 +103,11 @@ fn data_without_an_effect_give_none() {
         assert_eq!(model.cause, "none");
         // Every extension was tried and refused.
         assert_eq!(a.diagnostics.candidates.len(), Effect::CATALOG.len());
-        assert!(a.diagnostics.candidates.iter().all(|c| !c.supported));
+        assert!(a
+            .diagnostics
+            .candidates
+            .iter()
+            .all(|c| !c.verdict.supported()));
         // The register's noise is recovered from integer readings (the nominal model is the
         // truth here, so its misfit adds nothing).
         let sigma = a.diagnostics.register_noise_c.unwrap();
@@ -221,7 +226,7 @@ fn an_effect_outside_the_catalog_is_unexplained_with_its_structure() {
         assert!(a.parameters.is_empty());
         assert_eq!(model.cause, "unexplained");
         let thermal = &a.diagnostics.verdicts[0];
-        assert!(thermal.significant && thermal.judged.contains("noise floors"));
+        assert!(thermal.significant && thermal.judged().contains("noise floors"));
         let u = a.unexplained.as_ref().unwrap();
         assert_eq!(u.time_course.len(), 10);
         assert_eq!(u.motors.len(), 3);
@@ -257,7 +262,13 @@ fn implausible_and_negligible_extensions_are_refused() {
         .unwrap();
     // Null data: a supply resistance of micro-ohms, below any wiring's.
     assert!(sag.parameter.as_ref().unwrap().value.abs() < 0.005);
-    assert!(!sag.plausible && sag.verdict.contains("outside what its physics allows"));
+    assert!(
+        !sag.plausible
+            && sag
+                .verdict
+                .to_string()
+                .contains("outside what its physics allows")
+    );
     for c in &a.diagnostics.candidates {
         let (lo, hi) = c.bounds.unwrap();
         let v = c.parameter.as_ref().unwrap().value;
@@ -293,7 +304,10 @@ fn a_current_in_milliamps_is_converted_and_the_effect_still_named() {
     let (a, _) = run(&dirty);
     let audit = &a.diagnostics.audit;
     assert_eq!(audit.len(), 1, "{audit:#?}");
-    assert_eq!((audit[0].kind, audit[0].action), ("milliamps", "fixed"));
+    assert_eq!(
+        (audit[0].kind, audit[0].action),
+        ("milliamps", Action::Fixed)
+    );
     assert_eq!(
         a.cause,
         Effect::CurrentOffset,

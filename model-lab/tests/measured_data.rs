@@ -48,7 +48,7 @@ fn the_ur3_misfit_is_unexplained_and_follows_the_neighbours() {
         .diagnostics
         .audit
         .iter()
-        .map(|f| (f.column, f.action))
+        .map(|f| (f.column, f.action.as_str()))
         .collect();
     assert_eq!(audit, [("current_a", "flagged")]);
 }

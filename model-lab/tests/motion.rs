@@ -130,7 +130,7 @@ fn a_load_friction_fitted_a_little_lopsided_is_not_directional() {
         .iter()
         .find(|c| c.id == Effect::DirectionalFriction)
         .unwrap();
-    assert!(!d.supported, "{}", d.verdict);
+    assert!(!d.verdict.supported(), "{}", d.verdict);
 }
 
 #[test]
@@ -194,7 +194,11 @@ fn a_firmware_gain_within_the_motors_tolerance_is_no_finding() {
         (gain.parameters[2].value - 0.05).abs() < 0.0125,
         "{gain:#?}"
     );
-    assert!(gain.verdict.starts_with("too small"), "{}", gain.verdict);
+    assert!(
+        gain.verdict.to_string().starts_with("too small"),
+        "{}",
+        gain.verdict
+    );
 }
 
 /// BAM's four STS3250 runs (1.13 kg on 0.12 m, kp 32, 12 V): the loader finds their

@@ -4,7 +4,7 @@
 
 use crate::arm::{gripper_load, Arm, JointLoads};
 use crate::description::{BusDescription, RobotDescription};
-use crate::servo::Servo;
+use crate::servo::{Servo, Surroundings};
 use feetech::instruction::Instruction;
 use feetech::registers::{FEEDBACK_ADDR, FEEDBACK_LEN, TABLE_SIZE};
 use feetech::timing::wire_time;
@@ -362,7 +362,15 @@ impl SimBus {
                 ),
                 Role::Free => (0.0, 0.0),
             };
-            servo.step(dt, torque, inertia, ambient, speedup);
+            servo.step(
+                dt,
+                Surroundings {
+                    load_torque_n_m: torque,
+                    load_inertia_kg_m2: inertia,
+                    ambient_c: ambient,
+                    thermal_speedup: speedup,
+                },
+            );
         }
         if let Some((motion, wheels)) = &mut self.base {
             let angle = wheels.map(|w| self.servos[w].angle);

@@ -303,7 +303,7 @@ impl From<&ModelExtension> for ServoExtension {
 mod tests {
     #![allow(clippy::unwrap_used, clippy::expect_used)]
     use super::*;
-    use crate::servo::Servo;
+    use crate::servo::{Servo, Surroundings};
     use crate::{RobotDescription, SimBus};
     use feetech::registers as reg;
 
@@ -319,7 +319,7 @@ mod tests {
         s.write(reg::GOAL_POSITION.addr, &(2048u16 + 400).to_le_bytes());
         let steps = (seconds / 0.01) as usize;
         for _ in 0..steps {
-            s.step(0.01, 10.0, 0.0, 25.0, 1.0);
+            s.step(0.01, Surroundings::BENCH.torque(10.0));
         }
         s
     }
@@ -400,7 +400,7 @@ mod tests {
             s.extension = ext;
             let mut t = 0.0;
             while s.angle > 0.0 && t < 5.0 {
-                s.step(0.0005, 9.81 * 0.1 * s.angle.sin(), 0.01, 25.0, 1.0);
+                s.step(0.0005, Surroundings::BENCH.pendulum(1.0, 0.1, &s, 0.0));
                 t += 0.0005;
             }
             t
@@ -432,7 +432,12 @@ mod tests {
                 if k % 20 == 0 {
                     s.command_goal(0.3 * (k as f64 * 0.001 * 3.0).sin());
                 }
-                s.step(0.001, 0.5 * s.angle.sin(), 0.005, 25.0, 1.0);
+                s.step(
+                    0.001,
+                    Surroundings::BENCH
+                        .torque(0.5 * s.angle.sin())
+                        .inertia(0.005),
+                );
                 out.push(s.angle);
             }
             out

@@ -14,6 +14,12 @@
 //! * [`extension`]: model extensions fitted on measured data by the model lab.
 //!
 //! Batch mode is [`bus::SimBus::step`] in a loop: no wall clock, as fast as the CPU goes.
+//!
+//! * `base`, `lift`, `room`: the base in its room, the lift's column and board; `device`: the
+//!   serial devices that are no servo bus, on pseudo-terminals; `render`: the cameras'
+//!   pictures; `aim`: where an object is in a picture (a scripted demonstrator's truth);
+//!   `faults`: line faults injected on a bus; `scenario`: the protection scenarios' set-ups;
+//!   `rng`: the project's one seeded random generator.
 
 pub mod aim;
 pub mod arm;

@@ -145,6 +145,59 @@ struct Firmware {
     overload_time: f64,
 }
 
+/// Standard gravity, m/s².
+pub const GRAVITY_M_S2: f64 = 9.81;
+
+/// What a servo's output meets over a step, and the room it is in.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Surroundings {
+    /// Load torque on the output, N·m (gravity, contacts), opposing positive motion when
+    /// positive.
+    pub load_torque_n_m: f64,
+    /// Load inertia on the output, kg·m², added to the armature's.
+    pub load_inertia_kg_m2: f64,
+    /// Ambient temperature, °C.
+    pub ambient_c: f64,
+    /// How many times faster the thermal node is integrated (accelerated heating scenarios).
+    pub thermal_speedup: f64,
+}
+
+impl Surroundings {
+    /// A free output on a bench at 25 °C, heating in real time.
+    pub const BENCH: Surroundings = Surroundings {
+        load_torque_n_m: 0.0,
+        load_inertia_kg_m2: 0.0,
+        ambient_c: 25.0,
+        thermal_speedup: 1.0,
+    };
+
+    /// These surroundings with a load torque of `n_m`.
+    pub fn torque(self, n_m: f64) -> Surroundings {
+        Surroundings {
+            load_torque_n_m: n_m,
+            ..self
+        }
+    }
+
+    /// These surroundings with a load inertia of `kg_m2`.
+    pub fn inertia(self, kg_m2: f64) -> Surroundings {
+        Surroundings {
+            load_inertia_kg_m2: kg_m2,
+            ..self
+        }
+    }
+
+    /// A point mass `mass_kg` at `arm_m` on the servo's output, hanging at angle 0, over a step
+    /// of `h` s from the servo's state: gravity taken at the step's middle, as the servo holds
+    /// it over the step (at the step's start it would pump energy into a free swing, a step's
+    /// error per swing), and the mass's inertia.
+    pub fn pendulum(self, mass_kg: f64, arm_m: f64, servo: &Servo, h: f64) -> Surroundings {
+        let middle = servo.angle + 0.5 * h * servo.speed;
+        self.torque(mass_kg * GRAVITY_M_S2 * arm_m * middle.sin())
+            .inertia(mass_kg * arm_m * arm_m)
+    }
+}
+
 /// One simulated servo.
 #[derive(Debug, Clone)]
 pub struct Servo {
@@ -554,19 +607,16 @@ impl Servo {
         }
     }
 
-    /// Advances the servo by `dt` seconds given the load on its output: `load_torque` (N·m, e.g.
-    /// gravity and contacts, opposing positive motion when positive), `load_inertia` (kg·m²,
-    /// added to the armature) and the ambient temperature. `thermal_speedup` integrates the
-    /// thermal node that many times faster (for accelerated heating scenarios). The firmware
-    /// runs on its own ticks ([`FIRMWARE_PERIOD_S`]) within `dt`; the load is held over `dt`.
-    pub fn step(
-        &mut self,
-        dt: f64,
-        load_torque: f64,
-        load_inertia: f64,
-        ambient: f64,
-        thermal_speedup: f64,
-    ) {
+    /// Advances the servo by `dt` seconds in `around` (the load on its output, the ambient
+    /// temperature, the thermal speed-up). The firmware runs on its own ticks
+    /// ([`FIRMWARE_PERIOD_S`]) within `dt`; the load is held over `dt`.
+    pub fn step(&mut self, dt: f64, around: Surroundings) {
+        let Surroundings {
+            load_torque_n_m: load_torque,
+            load_inertia_kg_m2: load_inertia,
+            ambient_c: ambient,
+            thermal_speedup,
+        } = around;
         let mut left = dt;
         while left > TICK_TOLERANCE_S {
             if self.since_tick == 0.0 {
@@ -936,19 +986,19 @@ mod tests {
         // A wheel: the base's inertia and its rolling resistance (0.2 N·m·s/rad).
         for _ in 0..1000 {
             let load = 0.2 * s.speed;
-            s.step(0.001, load, 0.05, 25.0, 1.0);
+            s.step(0.001, Surroundings::BENCH.torque(load).inertia(0.05));
         }
         assert!((s.speed - goal).abs() < 0.02 * goal, "{} rad/s", s.speed);
         // Held against nearly its stall torque for a while: the speed is what the torque
         // gives, the integral does not wind up, and a goal of 0 leaves no push behind.
         for _ in 0..500 {
-            s.step(0.001, 2.5, 0.05, 25.0, 1.0);
+            s.step(0.001, Surroundings::BENCH.torque(2.5).inertia(0.05));
         }
         assert!(s.speed < goal / 2.0, "{} rad/s", s.speed);
         write_u16(&mut s, reg::GOAL_VELOCITY, 0);
         for _ in 0..200 {
             let load = 0.2 * s.speed;
-            s.step(0.001, load, 0.05, 25.0, 1.0);
+            s.step(0.001, Surroundings::BENCH.torque(load).inertia(0.05));
         }
         assert!(s.speed.abs() < 0.05, "{} rad/s after a goal of 0", s.speed);
         assert!(s.duty.abs() < 0.05, "still pushing at duty {}", s.duty);
@@ -960,7 +1010,7 @@ mod tests {
         write_u16(&mut s, reg::TORQUE_ENABLE, 1);
         write_u16(&mut s, reg::GOAL_POSITION, 2048 + 300);
         for _ in 0..2000 {
-            s.step(0.001, 0.0, 0.0, 25.0, 1.0);
+            s.step(0.001, Surroundings::BENCH);
         }
         let mut fb = [0u8; 15];
         s.read(reg::FEEDBACK_ADDR, 15, &mut fb);
@@ -991,8 +1041,7 @@ mod tests {
             let mut left = period;
             while left > 1e-12 {
                 let h = left.min(max_step);
-                let middle = s.angle + 0.5 * h * s.speed;
-                s.step(h, m * 9.81 * l * middle.sin(), m * l * l, 25.0, 1.0);
+                s.step(h, Surroundings::BENCH.pendulum(m, l, &s, h));
                 left -= h;
             }
         }
@@ -1058,7 +1107,7 @@ mod tests {
         let mut s = servo("sts3215");
         write_u16(&mut s, reg::GOAL_POSITION, 3000);
         for _ in 0..100 {
-            s.step(0.001, 0.5, 0.0, 25.0, 1.0);
+            s.step(0.001, Surroundings::BENCH.torque(0.5));
         }
         assert_eq!(s.current, 0.0);
     }
@@ -1077,12 +1126,12 @@ mod tests {
         // A load the servo cannot move: it stalls at full duty.
         let mut t = 0.0;
         while !s.protections.over_temperature && t < 3600.0 {
-            s.step(0.01, 10.0, 0.0, 25.0, 1.0);
+            s.step(0.01, Surroundings::BENCH.torque(10.0));
             t += 0.01;
         }
         assert!(s.protections.over_temperature, "never cut off");
         assert!(s.temperature >= 60.0 && s.temperature < 60.5);
-        s.step(0.01, 10.0, 0.0, 25.0, 1.0);
+        s.step(0.01, Surroundings::BENCH.torque(10.0));
         assert_eq!(s.current, 0.0);
         assert_eq!(
             s.status().0,
@@ -1101,12 +1150,12 @@ mod tests {
         write_u16(&mut s, reg::GOAL_POSITION, 2048 + 400);
         let mut steps = 0;
         while !s.protections.over_current && steps < 1000 {
-            s.step(0.001, 10.0, 0.0, 25.0, 1.0);
+            s.step(0.001, Surroundings::BENCH.torque(10.0));
             steps += 1;
         }
         assert!((100..=110).contains(&steps), "tripped after {steps} ms");
         assert!(s.status().over_current());
-        s.step(0.001, 10.0, 0.0, 25.0, 1.0);
+        s.step(0.001, Surroundings::BENCH.torque(10.0));
         assert_eq!(s.current, 0.0);
     }
 
