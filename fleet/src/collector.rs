@@ -459,17 +459,10 @@ impl Collector {
                     .get_or_create(&labels)
                     .set(f64::from(u8::from(b.connected)));
                 bus_cycles.get_or_create(&labels).inc_by(b.counters.cycles);
-                let counts = serde_json::to_value(b.counters).unwrap_or_default();
-                for kind in BUS_ERROR_KINDS {
-                    if let Some(n) = counts[kind].as_u64() {
-                        bus_errors
-                            .get_or_create(&label(&[
-                                ("robot", id),
-                                ("bus", &b.name),
-                                ("kind", kind),
-                            ]))
-                            .inc_by(n);
-                    }
+                for (kind, n) in b.counters.errors() {
+                    bus_errors
+                        .get_or_create(&label(&[("robot", id), ("bus", &b.name), ("kind", kind)]))
+                        .inc_by(n);
                 }
             }
             for c in r.status.iter().flat_map(|s| &s.cameras) {
@@ -647,23 +640,6 @@ pub fn decode_state(key: &str, payload: &[u8]) -> Result<StateMsg, IngestError> 
         error,
     })
 }
-
-/// The [`telemetry::frames::BusCounters`] fields that count something going wrong.
-const BUS_ERROR_KINDS: [&str; 13] = [
-    "missing",
-    "checksum_errors",
-    "garbage_bytes",
-    "framing_errors",
-    "unexpected_replies",
-    "implausible",
-    "status_errors",
-    "transport_errors",
-    "disconnects",
-    "silences",
-    "servos_lost",
-    "read_back_missing",
-    "safety_mismatches",
-];
 
 /// The robot's cameras for the dashboard: each camera of its status (health) in the status's
 /// order, then any other that sent a thumbnail, with its newest thumbnail's figures.

@@ -1,6 +1,6 @@
 //! The fleet's history, as `nori fleet-store` keeps it in PostgreSQL: every journaled event
 //! once, and the joints' telemetry rolled up per robot and period. Pure: messages in, rows out;
-//! the database and zenoh are wired in the binary (`fleet/src/store.rs`).
+//! the database and zenoh are wired in the binary (`fleet/src/bin/nori-fleet/store.rs`).
 //!
 //! Why rolled up, not sampled: what the fleet asks of telemetry is how hot and how loaded each
 //! motor ran and for how long it sat above each warning temperature, and a sample every minute

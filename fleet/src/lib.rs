@@ -1,7 +1,16 @@
-//! The fleet's side, off the robot: the collector behind the dashboard and `/metrics`
-//! ([`collector`], pure: bytes in, state and metrics out) and the reference policies
-//! ([`policy`], scripted, and [`seek`], which sees: both served by `nori policy-server`). Zenoh comes through `fleet_agent`'s
-//! re-export; nothing here runs on the robot.
+//! The fleet's side, off the robot; nothing here runs on the robot, and zenoh comes through
+//! `fleet_agent`'s re-export. The library is pure (bytes and wall time in, state, rows and
+//! text out):
+//!
+//! * [`collector`]: what `nori fleet` knows about every robot, its dashboard JSON and `/metrics`.
+//! * [`history`]: the store's rows: every journaled event once, telemetry rolled up.
+//! * [`journal_seen`]: which events of each robot's journal the store has (each kept once).
+//! * [`report`]: the fleet's statistics over a period (`nori fleet report`).
+//! * [`policy`], [`seek`]: the reference policies `nori policy-server` serves (scripted, and
+//!   one that sees).
+//!
+//! The binary `nori-fleet` (`src/bin/nori-fleet/`) wires them to zenoh, HTTP and PostgreSQL:
+//! the dashboard, the store, the report, the policy server and the router.
 
 pub mod collector;
 pub mod history;

@@ -553,6 +553,39 @@ pub struct BusCounters {
     pub safety_mismatches: u64,
 }
 
+impl BusCounters {
+    /// The counts of something going wrong, each named as its field (the fleet's
+    /// `bus_errors{kind}`): written next to the fields, so a renamed or added field is
+    /// classified here or the build fails.
+    pub fn errors(&self) -> [(&'static str, u64); 13] {
+        [
+            ("missing", self.missing),
+            ("checksum_errors", self.checksum_errors),
+            ("garbage_bytes", self.garbage_bytes),
+            ("framing_errors", self.framing_errors),
+            ("unexpected_replies", self.unexpected_replies),
+            ("implausible", self.implausible),
+            ("status_errors", self.status_errors),
+            ("transport_errors", self.transport_errors),
+            ("disconnects", self.disconnects),
+            ("silences", self.silences),
+            ("servos_lost", self.servos_lost),
+            ("read_back_missing", self.read_back_missing),
+            ("safety_mismatches", self.safety_mismatches),
+        ]
+    }
+
+    /// The counts of work done, not of faults.
+    pub fn work(&self) -> [(&'static str, u64); 4] {
+        [
+            ("cycles", self.cycles),
+            ("replies", self.replies),
+            ("reconnects", self.reconnects),
+            ("read_backs", self.read_backs),
+        ]
+    }
+}
+
 /// One bus's entry of [`BusHealth`].
 #[repr(C)]
 #[derive(
@@ -648,6 +681,63 @@ impl BusHealth {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Every field of the bus counters is either an error or work, under its own name: a
+    /// field added without a place in one of the two lists fails here (the destructuring
+    /// fails to build; the names are checked against the fields' values).
+    #[test]
+    fn every_bus_counter_is_an_error_or_work_under_its_field_s_name() {
+        let mut c = BusCounters::default();
+        let BusCounters {
+            cycles,
+            replies,
+            missing,
+            checksum_errors,
+            garbage_bytes,
+            framing_errors,
+            unexpected_replies,
+            status_errors,
+            implausible,
+            transport_errors,
+            disconnects,
+            reconnects,
+            silences,
+            servos_lost,
+            read_backs,
+            read_back_missing,
+            safety_mismatches,
+        } = &mut c;
+        for (k, f) in [
+            cycles,
+            replies,
+            missing,
+            checksum_errors,
+            garbage_bytes,
+            framing_errors,
+            unexpected_replies,
+            status_errors,
+            implausible,
+            transport_errors,
+            disconnects,
+            reconnects,
+            silences,
+            servos_lost,
+            read_backs,
+            read_back_missing,
+            safety_mismatches,
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            *f = 100 + k as u64;
+        }
+        let json = serde_json::to_value(c).unwrap();
+        let named: Vec<(&str, u64)> = c.errors().into_iter().chain(c.work()).collect();
+        assert_eq!(named.len(), json.as_object().unwrap().len());
+        for (name, value) in named {
+            assert_eq!(json[name], value, "{name}");
+        }
+    }
 
     #[test]
     fn layouts_are_stable() {
