@@ -15,7 +15,6 @@
 
 mod base_tool;
 mod plane_tools;
-mod record;
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
@@ -80,10 +79,11 @@ enum Command {
     #[command(disable_help_flag = true)]
     Model(Passed),
     /// Record demonstrations from the state plane into a LeRobot v3.0 dataset (crash-safe).
-    Record(record::RecordArgs),
+    #[command(disable_help_flag = true)]
+    Record(Passed),
     /// Datasets recorded by `nori record`: recover after a crash, export for the model lab.
-    #[command(subcommand)]
-    Dataset(record::DatasetCommand),
+    #[command(disable_help_flag = true)]
+    Dataset(Passed),
 }
 
 #[derive(Subcommand)]
@@ -146,7 +146,7 @@ fn main() -> Result<()> {
             run_instead("nori-bench", &["model-lab"], &rest)
         }
         Command::Model(p) => run_instead("nori-model", &[], p),
-        Command::Record(a) => record::record(a),
-        Command::Dataset(d) => record::dataset(d),
+        Command::Record(p) => run_instead("nori-record", &["record"], p),
+        Command::Dataset(p) => run_instead("nori-record", &["dataset"], p),
     }
 }

@@ -37,7 +37,7 @@ impl PlaneArgs {
         }
         let node = self.node(tool)?;
         let layouts = node.subscriber(&plane::LAYOUT)?;
-        let layout = wait_for_layout(&layouts, &self.domain, timeout, None)?;
+        let layout = plane::wait_for_layout(&layouts, &self.domain, timeout, None)?;
         Ok((node, layout))
     }
 
@@ -48,30 +48,6 @@ impl PlaneArgs {
             &self.domain,
             &format!("nori-{tool}-{}", std::process::id()),
         )?)
-    }
-}
-
-/// The running driver's layout, waited for up to `timeout` (or until `stop` is set): the one
-/// source of joint and bus names.
-pub fn wait_for_layout(
-    layouts: &plane::Sub<JointLayout>,
-    domain: &str,
-    timeout: Duration,
-    stop: Option<&std::sync::atomic::AtomicBool>,
-) -> Result<JointLayout> {
-    let until = Instant::now() + timeout;
-    loop {
-        if let Some(l) = plane::newest(layouts).filter(|l| l.joint_count > 0) {
-            return Ok(l);
-        }
-        let stopped = stop.is_some_and(|s| s.load(std::sync::atomic::Ordering::Relaxed));
-        if Instant::now() > until || stopped {
-            bail!(
-                "no joint layout on domain {domain:?} within {} s: is the bus-driver running?",
-                timeout.as_secs_f64()
-            );
-        }
-        std::thread::sleep(Duration::from_millis(10));
     }
 }
 

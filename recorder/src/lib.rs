@@ -18,6 +18,13 @@
 //! ```
 //!
 //! Crash safety: see [`dataset`].
+//!
+//! * `sampler`: the state plane sampled at the recording rate (sans-IO); `features`: what a
+//!   dataset holds; `stats`: LeRobot's feature statistics; `video`: a camera's frames.
+//! * `dataset`: the one module on files: the writer, the commit, the recovery; with `pq`
+//!   (its parquet tables), `arrow_schema` (the Arrow schema they carry), `fsutil` (durable
+//!   replacement), `csv` (export for the model lab) and `error` (each error names its file).
+//! * `nori-record` (`src/main.rs`, feature `process`) moves frames from the plane into it.
 
 pub mod arrow_schema;
 pub mod csv;

@@ -494,6 +494,40 @@ pub fn next<T: std::fmt::Debug + ZeroCopySend + Copy + 'static>(subscriber: &Sub
     }
 }
 
+/// No driver published its layout in time.
+#[derive(Debug, Error)]
+#[error("no joint layout on domain {domain:?} within {waited_s} s: is the bus-driver running?")]
+pub struct NoLayout {
+    /// The state plane's domain.
+    pub domain: String,
+    /// How long it was waited for, s.
+    pub waited_s: f64,
+}
+
+/// The running driver's layout on `domain`, waited for up to `timeout` (or until `stop` is
+/// set): the one source of joint and bus names for the tools.
+pub fn wait_for_layout(
+    layouts: &Sub<JointLayout>,
+    domain: &str,
+    timeout: std::time::Duration,
+    stop: Option<&std::sync::atomic::AtomicBool>,
+) -> Result<JointLayout, NoLayout> {
+    let until = std::time::Instant::now() + timeout;
+    loop {
+        if let Some(l) = newest(layouts).filter(|l| l.joint_count > 0) {
+            return Ok(l);
+        }
+        let stopped = stop.is_some_and(|s| s.load(std::sync::atomic::Ordering::Relaxed));
+        if std::time::Instant::now() > until || stopped {
+            return Err(NoLayout {
+                domain: domain.into(),
+                waited_s: timeout.as_secs_f64(),
+            });
+        }
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1,5 +1,5 @@
-//! `nori record`: episodes from the state plane into a LeRobot v3.0 dataset; `nori dataset`:
-//! recover a dataset after a crash, export episodes for the model lab.
+//! `nori-record`, run as `nori record` and `nori dataset`: episodes from the state plane into
+//! a LeRobot v3.0 dataset; recover a dataset after a crash, export episodes for the model lab.
 //!
 //! The process moves frames: joint-state and grip frames into a `recorder::Sampler`, a dataset
 //! frame at every tick of the recording rate into a `recorder::EpisodeWriter`, which stages them
@@ -7,10 +7,10 @@
 //! takes each camera's newest JPEG (from its `mjpeg` stream, stored as the camera sent it), or
 //! holds the last one when none is fresh. With `--lift` and `--base`, the lift's height and the
 //! base's twist widen `observation.state` and `action` (19 wide on the A3) and the base's odometry
-//! is recorded. Everything about files and crash safety lives in the `recorder` crate.
+//! is recorded. Everything about files and crash safety lives in the library.
 
 use anyhow::{bail, Context, Result};
-use clap::{Args, Subcommand};
+use clap::{Args, Parser, Subcommand};
 use recorder::dataset::Settings;
 use recorder::features::CameraMeta;
 use recorder::{Dataset, Features, RecordError, Recovery, Sampler};
@@ -22,7 +22,7 @@ use telemetry::plane::{self, CameraStream, FrameSub, Plane};
 
 /// Options of `nori record`.
 #[derive(Args, Debug)]
-pub struct RecordArgs {
+struct RecordArgs {
     /// Dataset directory (created if absent; an existing one is extended).
     #[arg(long)]
     dataset: PathBuf,
@@ -76,7 +76,7 @@ pub struct RecordArgs {
 
 /// `nori dataset ...`.
 #[derive(Subcommand, Debug)]
-pub enum DatasetCommand {
+enum DatasetCommand {
     /// Repair what a crash left (as `nori record` does at start) and print what was done.
     Recover(RecoverArgs),
     /// Export episodes to the telemetry CSV format the model lab reads (one file per episode).
@@ -85,7 +85,7 @@ pub enum DatasetCommand {
 
 /// Options of `nori dataset recover`.
 #[derive(Args, Debug)]
-pub struct RecoverArgs {
+struct RecoverArgs {
     /// Dataset directory.
     dataset: PathBuf,
     /// Drop an unfinished episode instead of completing it from its flushed parts.
@@ -95,7 +95,7 @@ pub struct RecoverArgs {
 
 /// Options of `nori dataset export-csv`.
 #[derive(Args, Debug)]
-pub struct ExportArgs {
+struct ExportArgs {
     /// Dataset directory.
     dataset: PathBuf,
     /// Output directory (`episode-NNNNNN.csv` + `.meta.json` sidecars).
@@ -106,7 +106,7 @@ pub struct ExportArgs {
 }
 
 /// Runs `nori dataset ...`.
-pub fn dataset(cmd: &DatasetCommand) -> Result<()> {
+fn dataset(cmd: &DatasetCommand) -> Result<()> {
     match cmd {
         DatasetCommand::Recover(a) => {
             let reader = recorder::dataset::DatasetReader::open(&a.dataset)
@@ -285,7 +285,7 @@ fn first_images(
 }
 
 /// Records episodes until done or SIGINT/SIGTERM (which ends the current episode and keeps it).
-pub fn record(args: &RecordArgs) -> Result<()> {
+fn record(args: &RecordArgs) -> Result<()> {
     check(args)?;
     let stop = telemetry::process::stop_flag().context("installing signal handlers")?;
     let node = Plane::open(&args.domain, &format!("nori-record-{}", std::process::id()))?;
@@ -309,7 +309,7 @@ pub fn record(args: &RecordArgs) -> Result<()> {
         .collect::<Result<Vec<_>>>()?;
 
     let wait = Duration::from_secs_f64(args.wait_s);
-    let layout = crate::plane_tools::wait_for_layout(&layouts, &args.domain, wait, Some(&stop))?;
+    let layout = plane::wait_for_layout(&layouts, &args.domain, wait, Some(&stop))?;
     let cameras = first_images(&mut feeds, wait, &stop)?;
     let features = Features::from_layout(&layout)
         .with_cameras(cameras)
@@ -474,4 +474,28 @@ pub fn record(args: &RecordArgs) -> Result<()> {
             "total_episodes": ds.episodes().len(), "total_frames": ds.episodes().last().map_or(0, |e| e.dataset_to_index)})
     );
     Ok(())
+}
+
+/// `nori-record`: demonstrations into LeRobot datasets (run as `nori record` and `nori dataset`).
+#[derive(Parser)]
+#[command(version, about)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Record episodes from the state plane into a LeRobot v3.0 dataset.
+    Record(RecordArgs),
+    /// Work on a recorded dataset.
+    #[command(subcommand)]
+    Dataset(DatasetCommand),
+}
+
+fn main() -> Result<()> {
+    match &Cli::parse().command {
+        Command::Record(a) => record(a),
+        Command::Dataset(d) => dataset(d),
+    }
 }
