@@ -15,6 +15,9 @@
 //!   the lidar sees in its path.
 //! * [`frames`]: the whole body's frames for tools: each arm's shoulder and tool in the room,
 //!   from its joints, the lift's height and the base's odometry.
+//!
+//! * `history`: where the base was lately, each lidar point moved to where it stands now.
+//! * `config` (feature `process`): `nori-base`'s configuration.
 
 #[cfg(feature = "process")]
 pub mod config;

@@ -21,6 +21,8 @@
 //! does not answer is marked missing in that cycle's sample (never its previous value); torque is
 //! turned off when the loop ends, when the driver is dropped (errors, unwinding panics), and on
 //! SIGINT/SIGTERM in the binary.
+//!
+//! * `rt`: real-time preparation of the control thread (memory locked, priority, cores).
 
 pub mod backstops;
 pub mod bus;

@@ -4,6 +4,8 @@
 //! Pure parts, also used by the simulator: [`convert`] (YUYV and MJPEG to RGB, and the reverse
 //! the simulated cameras need), [`mode`] (the limits every camera keeps) and [`stream`] (the framing of a camera on a byte stream). With
 //! the `process` feature: the sources ([`source`], [`v4l2`]), the configuration and the loop.
+//!
+//! * `config`, `process` (feature `process`): the configuration and the loop.
 
 pub mod convert;
 pub mod mode;

@@ -7,6 +7,11 @@
 //! Only what runs on the robot is here; the fleet's side (collector, dashboard, reference
 //! policies, router) is the `fleet` crate. The two are the only crates that use zenoh, through
 //! this crate's re-export [`zenoh`], so there is one zenoh version and one way to open a session.
+//!
+//! * `agent`: the loop's state and one turn of it; `config`: its configuration; `keys`: the zenoh
+//!   key expressions; `schema`: what crosses zenoh (postcard, versioned); `outbound`: plane
+//!   frames to fleet messages and the plan to goal frames; `preview`: camera thumbnails and
+//!   lidar scans for the dashboard.
 
 pub mod agent;
 pub mod config;

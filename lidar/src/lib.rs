@@ -4,6 +4,8 @@
 //! Pure parts: [`protocol`] (the device's serial protocol, sans-IO) and [`scan`] (revolutions
 //! from measurements, each checked). With the `process` feature: the configuration, the serial
 //! link and the loop.
+//!
+//! * `config`, `process` (feature `process`): the configuration and the loop.
 
 pub mod protocol;
 pub mod scan;

@@ -17,6 +17,9 @@
 //! 150 ms, it stops and backs off a centimetre (the home's worst case is a column coming down on
 //! a hand). The motor's duty-cycle limit is the supervisor's (`supervisor::duty`): the
 //! controller is told whether travel is allowed.
+//!
+//! * `board`: the board's serial protocol (sans-IO); `column`: the controller; `config` (feature
+//!   `process`): `nori-lift`'s configuration.
 
 pub mod board;
 pub mod column;

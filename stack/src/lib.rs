@@ -2,6 +2,8 @@
 //! each child ([`child`]), shared by the orchestration commands (`nori up`, `nori sim
 //! scenario`, in this crate's `nori-stack` binary), the benchmarks and the process tests, so
 //! the stack is started one way everywhere.
+//!
+//! * `browser`: headless Chromium over its DevTools protocol, for Nori Lab's page.
 
 pub mod browser;
 pub mod child;

@@ -15,6 +15,8 @@
 //!   against an I/O trait, so the process's own behaviour is tested in process too.
 //!
 //! It depends only on `telemetry`: it must outlive a crashed driver.
+//!
+//! * `config`: its thresholds (stall, thermal tiers, grip calibration), refused whole when wrong.
 
 pub mod config;
 pub mod duty;

@@ -6,6 +6,18 @@
 //! The frames, clock and config parsing do no I/O beyond reading a file the caller names; `plane`
 //! (shared memory), `process` (signals) and `latch` (the trip record on disk) do, which is why
 //! they are a feature that only the processes enable.
+//!
+//! * `clock`: the common time base, and the one rule for a stamped message (in force, stale,
+//!   or from the future).
+//! * `config`: one error and one way to read a process's TOML file.
+//! * `frames`: the state plane's fixed-size frames (joints, goals, directives, heartbeats,
+//!   bus health, events).
+//! * `motion`: the base's and the lift's commands and states.
+//! * `sensors`: camera images and lidar revolutions.
+//! * `stats`: the project's one quantile rule.
+//! * `watchdog`: a peer's liveness from its timestamps.
+//! * With `ipc`: `plane` (the services and their QoS), `process` (start-up, signals, the
+//!   service manager), `latch` (the trip record on disk).
 
 pub mod clock;
 pub mod config;

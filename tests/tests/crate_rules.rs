@@ -28,7 +28,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
     ("model-lab", &["sim"]),
     ("fleet", &["fleet-agent", "telemetry"]),
     ("stack", &["telemetry", "sim", "bus-driver"]),
-    ("nori", &["telemetry", "recorder", "feetech"]),
+    ("nori", &["telemetry", "feetech"]),
     ("lab", &["telemetry", "body"]),
     (
         "bench",
@@ -194,7 +194,8 @@ fn heavy_and_side_effecting_dependencies_stay_in_their_crate() {
         }
     }
     assert!(wrong.is_empty(), "{wrong:?}");
-    // The recorder reads frames, never the shared memory: its tests need no iceoryx2 services.
+    // The recorder's library reads frames, never the shared memory (its process `nori-record`
+    // does, behind its `process` feature): its tests need no iceoryx2 services.
     assert!(
         ws["recorder"].telemetry_features.is_empty(),
         "recorder enables telemetry features {:?}",
@@ -280,4 +281,69 @@ fn rust_files(dir: &Path) -> Vec<PathBuf> {
         }
     }
     out
+}
+
+/// The modules `file` declares (`mod name;`, `pub mod name;`, `pub(crate) mod name;`), in
+/// order: declarations of a file of their own, not inline modules.
+fn declared_modules(text: &str) -> Vec<String> {
+    text.lines()
+        .filter_map(|l| {
+            let l = l.trim_start();
+            let rest = l
+                .strip_prefix("pub mod ")
+                .or_else(|| l.strip_prefix("pub(crate) mod "))
+                .or_else(|| l.strip_prefix("mod "))?;
+            rest.strip_suffix(';').map(str::to_string)
+        })
+        .collect()
+}
+
+/// A library's map (its `//!` docs, in `lib.rs` or a module's `mod.rs`) names every module it
+/// declares, so a reader who opens it finds each room: a module added without a line in its
+/// map fails here.
+#[test]
+fn every_library_s_map_names_each_of_its_modules() {
+    let mut missing = Vec::new();
+    for (_, p) in workspace() {
+        let src = p.manifest.parent().unwrap().join("src");
+        for file in rust_files(&src) {
+            let name = file.file_name().unwrap().to_string_lossy().to_string();
+            if name != "lib.rs" && name != "mod.rs" {
+                continue;
+            }
+            let text = std::fs::read_to_string(&file).unwrap();
+            let map: String = text
+                .lines()
+                .take_while(|l| l.starts_with("//!") || l.is_empty())
+                .collect::<Vec<_>>()
+                .join("\n");
+            for module in declared_modules(&text) {
+                if !map.contains(&format!("`{module}`")) {
+                    missing.push(format!("{}: {module}", file.display()));
+                }
+            }
+        }
+    }
+    assert!(
+        missing.is_empty(),
+        "modules their library's map does not name:\n{}",
+        missing.join("\n")
+    );
+}
+
+/// Positional numbers are named: no function may take more arguments than clippy's
+/// `too_many_arguments` allows (7), and no file may switch the lint off.
+#[test]
+fn no_function_opts_out_of_the_argument_limit() {
+    let lint = ["too_many", "arguments"].join("_");
+    let mut found = Vec::new();
+    for (_, p) in workspace() {
+        for file in rust_files(p.manifest.parent().unwrap()) {
+            let text = std::fs::read_to_string(&file).unwrap();
+            if text.contains(&lint) {
+                found.push(file.display().to_string());
+            }
+        }
+    }
+    assert!(found.is_empty(), "{lint} allowed in {found:?}");
 }
