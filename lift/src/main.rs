@@ -404,4 +404,58 @@ mod tests {
             assert_eq!(unread_speed(-0.03, p, p, t), 0.0, "{t:?}");
         }
     }
+
+    const MS: u64 = 1_000_000;
+
+    fn allowance(timestamp_ns: u64) -> LiftAllowance {
+        LiftAllowance {
+            timestamp_ns,
+            allowed: 1,
+            ..LiftAllowance::default()
+        }
+    }
+
+    /// An allowance is in force 200 ms from its stamp, and one stamped ahead of this clock
+    /// (another clock, or any publisher on the topic) is none: it would let the column travel
+    /// for as long as it is ahead after the supervisor died (hazard L8).
+    #[test]
+    fn the_lift_travels_only_on_an_allowance_in_force() {
+        let now = 100_000 * MS;
+        assert_eq!(
+            travel(Some(allowance(now - 200 * MS)), now).0,
+            Travel::Allowed
+        );
+        assert_eq!(
+            travel(Some(allowance(now - 201 * MS)), now).0,
+            Travel::NoSupervisor
+        );
+        assert_eq!(
+            travel(Some(allowance(now + 10_000 * MS)), now + 5_000 * MS).0,
+            Travel::NoSupervisor
+        );
+        assert_eq!(travel(None, now).0, Travel::NoSupervisor);
+    }
+
+    /// A command is taken only while in force: neither stale nor stamped ahead (hazard L10).
+    #[test]
+    fn a_lift_command_stale_or_from_the_future_is_refused_and_changes_nothing() {
+        let mut c = LiftController::new(lift::column::ColumnConfig::A3);
+        let before = c.state();
+        let now = 100_000 * MS;
+        // The operator's release: taken whatever the column's state, when in force.
+        let release = |timestamp_ns| LiftCommand {
+            seq: 1,
+            timestamp_ns,
+            height_m: 0.0,
+            kind: telemetry::motion::LIFT_COMMAND_RELEASE,
+        };
+        for stamp in [now - 501 * MS, now + 50 * MS] {
+            assert!(take_command(&mut c, &release(stamp), now, 500 * MS).is_err());
+            assert_eq!(c.state(), before);
+        }
+        assert_eq!(
+            take_command(&mut c, &release(now - 500 * MS), now, 500 * MS),
+            Ok(Taken::Released)
+        );
+    }
 }
