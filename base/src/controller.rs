@@ -964,12 +964,16 @@ mod tests {
         let wrapped = wall(5.0, u64::MAX);
         let (_, s) = period(&mut c, 5_000 * MS, Some(&wrapped), &mut goal);
         eprintln!(
-            "5 s with one revolution stamped 10 s ahead: {blind_ticks} blind periods, {fastest} m/s commanded; end_ns = u64::MAX: blind {}",
-            s.flags & BASE_FLAG_FIELD_BLIND != 0
+            "5 s with one revolution stamped 10 s ahead: {blind_ticks} blind periods, {fastest} m/s commanded"
         );
         assert_eq!(
             fastest, 0.0,
             "drove at {fastest} m/s on a revolution nobody renewed"
+        );
+        assert_ne!(
+            s.flags & BASE_FLAG_FIELD_BLIND,
+            0,
+            "a revolution stamped at u64::MAX is no fresh one"
         );
     }
 

@@ -1050,8 +1050,16 @@ fn a_latched_bus_gets_no_torque_until_the_record_releases_it() {
 /// A supervisor seen through the loop's eyes: heartbeats stamped `beat_age_ns` before they are
 /// read, and `directives` (stamped fresh) if any.
 struct FakeSupervisor {
-    beat_age_ns: u64,
+    /// The heartbeat's age when read, ns (negative: stamped ahead of the driver's clock).
+    beat_age_ns: i64,
     directives: Option<Directives>,
+    /// The directives' age when read, ns (negative: stamped ahead).
+    directives_age_ns: i64,
+}
+
+/// A stamp `age_ns` before now (after it, when negative).
+fn stamped(age_ns: i64) -> u64 {
+    monotonic_ns().saturating_add_signed(-age_ns)
 }
 
 impl bus_driver::LoopIo for FakeSupervisor {
@@ -1060,14 +1068,14 @@ impl bus_driver::LoopIo for FakeSupervisor {
     }
     fn directives(&mut self) -> Option<Directives> {
         self.directives.map(|d| Directives {
-            timestamp_ns: monotonic_ns(),
+            timestamp_ns: stamped(self.directives_age_ns),
             ..d
         })
     }
     fn supervisor_heartbeat(&mut self) -> Option<telemetry::frames::Heartbeat> {
         Some(telemetry::frames::Heartbeat {
             pid: 42,
-            timestamp_ns: monotonic_ns().saturating_sub(self.beat_age_ns),
+            timestamp_ns: stamped(self.beat_age_ns),
             ..Default::default()
         })
     }
@@ -1076,8 +1084,9 @@ impl bus_driver::LoopIo for FakeSupervisor {
 
 /// The loop leaves its safe state only for a supervisor that is alive by its heartbeat's own
 /// timestamp and whose directives it has applied: stale heartbeats (a hung or dead sender's
-/// last one, kept by the plane's history), heartbeats without directives, and directives it
-/// refuses all keep the safe state.
+/// last one, kept by the plane's history), heartbeats or directives stamped ahead (another
+/// clock's: they would never age), stale directives, heartbeats without directives, and
+/// directives it refuses all keep the safe state.
 #[test]
 fn the_safe_state_is_left_only_for_a_live_supervisor_whose_directives_were_applied() {
     let run = |io: &mut FakeSupervisor| {
@@ -1095,28 +1104,27 @@ fn the_safe_state_is_left_only_for_a_live_supervisor_whose_directives_were_appli
         (rig.driver.in_safe_state(), rig.driver.counters)
     };
     let good = Some(directives(0b111, &[]));
-    let (safe, counters) = run(&mut FakeSupervisor {
-        beat_age_ns: 200_000_000,
-        directives: good,
-    });
+    let fresh = |beat_age_ns, directives, directives_age_ns| FakeSupervisor {
+        beat_age_ns,
+        directives,
+        directives_age_ns,
+    };
+    let (safe, counters) = run(&mut fresh(200_000_000, good, 0));
     assert!(safe, "a heartbeat stamped 200 ms ago proves nothing");
     assert!(counters.stale_supervisor_frames >= 40);
-    let (safe, _) = run(&mut FakeSupervisor {
-        beat_age_ns: 0,
-        directives: None,
-    });
+    let (safe, _) = run(&mut fresh(-1_000_000_000, good, 0));
+    assert!(safe, "a heartbeat stamped 1 s ahead is another clock's");
+    let (safe, _) = run(&mut fresh(1_000_000, good, 200_000_000));
+    assert!(safe, "directives stamped 200 ms ago");
+    let (safe, _) = run(&mut fresh(1_000_000, good, -1_000_000_000));
+    assert!(safe, "directives stamped 1 s ahead");
+    let (safe, _) = run(&mut fresh(0, None, 0));
     assert!(safe, "heartbeats without directives");
     let mut wrong = directives(0b111, &[]);
     wrong.joint_count = 8;
-    let (safe, _) = run(&mut FakeSupervisor {
-        beat_age_ns: 0,
-        directives: Some(wrong),
-    });
+    let (safe, _) = run(&mut fresh(0, Some(wrong), 0));
     assert!(safe, "directives the driver refuses");
-    let (safe, counters) = run(&mut FakeSupervisor {
-        beat_age_ns: 1_000_000,
-        directives: good,
-    });
+    let (safe, counters) = run(&mut fresh(1_000_000, good, 0));
     assert!(!safe, "a live supervisor directing");
     assert_eq!(counters.safe_state_entries, 0);
 }

@@ -341,10 +341,11 @@ fn state_code(s: Controller) -> u8 {
     }
 }
 
-/// The supervisor's word on travel (none for 200 ms: no supervisor, no travel, as the driver
-/// holds without one), and with the budget spent the rest it still needs, s.
+/// The supervisor's word on travel, in force for 200 ms from its stamp (none: no supervisor,
+/// no travel, as the driver holds without one), and with the budget spent the rest it still
+/// needs, s.
 fn travel(allowance: Option<LiftAllowance>, now_ns: u64) -> (Travel, f32) {
-    match allowance.filter(|a| now_ns.saturating_sub(a.timestamp_ns) <= LIFT_ALLOWANCE_LIFE_NS) {
+    match allowance.filter(|a| in_force(a.timestamp_ns, now_ns, LIFT_ALLOWANCE_LIFE_NS).is_ok()) {
         Some(a) if a.allowed == 1 => (Travel::Allowed, 0.0),
         Some(a) if a.refused == LIFT_REFUSED_OPERATOR_STOP => (Travel::OperatorStop, 0.0),
         Some(a) => (Travel::DutySpent, a.seconds),

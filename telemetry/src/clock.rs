@@ -77,7 +77,13 @@ mod tests {
                 limit_ms: 250
             })
         );
-        assert_eq!(in_force(now + FUTURE_SLACK_NS, now, 250 * MS), Ok(()));
+        // The slack is 1 ms: two processes read the clock a moment apart, not more.
+        assert_eq!(FUTURE_SLACK_NS, MS);
+        assert_eq!(in_force(now + MS, now, 250 * MS), Ok(()));
+        assert_eq!(
+            in_force(now + MS + 1, now, 250 * MS),
+            Err(NotInForce::FromTheFuture { ahead_ms: 1 })
+        );
         assert_eq!(
             in_force(now + 3 * MS + 1, now, 250 * MS),
             Err(NotInForce::FromTheFuture { ahead_ms: 3 })

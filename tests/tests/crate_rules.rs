@@ -331,11 +331,11 @@ fn every_library_s_map_names_each_of_its_modules() {
     );
 }
 
-/// Positional numbers are named: no function may take more arguments than clippy's
-/// `too_many_arguments` allows (7), and no file may switch the lint off.
+/// Positional numbers are named: no function may take more arguments than clippy's limit on
+/// them allows (7), and no file may switch that lint off.
 #[test]
 fn no_function_opts_out_of_the_argument_limit() {
-    let lint = ["too_many", "arguments"].join("_");
+    let lint = ["clippy::too_many", "arguments"].join("_");
     let mut found = Vec::new();
     for (_, p) in workspace() {
         for file in rust_files(p.manifest.parent().unwrap()) {
