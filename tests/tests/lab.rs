@@ -142,6 +142,47 @@ fn pixel(shot: &(usize, usize, Vec<u8>), at: [f64; 2]) -> [f64; 3] {
     ]
 }
 
+/// A screenshot taken while the arm stood still and driven, with the state it stood in: the
+/// page draws a frame that may be a few hundred milliseconds old, and a loaded machine's
+/// driver may miss a reply (drawn hollow grey, as it should be), so every frame from 300 ms
+/// before to just after the shot must be driven and within a hundredth of a radian of it.
+/// Tried at most five times, saying what moved.
+fn steady_screenshot(
+    page: &mut Browser,
+    states: &plane::Sub<JointState>,
+    driving: impl Fn(&JointState) -> bool,
+) -> (JointState, (usize, usize, Vec<u8>)) {
+    let drain = || std::iter::from_fn(|| plane::next(states)).collect::<Vec<_>>();
+    for attempt in 1..=5 {
+        drain();
+        std::thread::sleep(Duration::from_millis(300));
+        let mut window = drain();
+        let Some(s) = window.last().copied() else {
+            continue;
+        };
+        std::thread::sleep(Duration::from_millis(200));
+        let shot = screenshot(page);
+        std::thread::sleep(Duration::from_millis(50));
+        window.extend(drain());
+        let still = |f: &JointState| {
+            driving(f)
+                && f.joints()
+                    .iter()
+                    .zip(s.joints())
+                    .all(|(a, b)| (a.position_rad - b.position_rad).abs() < 0.01)
+        };
+        match window.iter().position(|f| !still(f)) {
+            None => return (s, shot),
+            Some(i) => eprintln!(
+                "attempt {attempt}: frame {i} of {} not still and driven (a reply missed, or moved): flags {:#x}",
+                window.len(),
+                window[i].flags
+            ),
+        }
+    }
+    panic!("the arm never stood still and driven for half a second");
+}
+
 fn near(a: [f64; 3], b: [f64; 3], tol: f64) -> bool {
     a.iter().zip(&b).all(|(x, y)| (x - y).abs() <= tol)
 }
@@ -288,10 +329,7 @@ fn the_lab_page_shows_the_arm_drives_it_stops_it_and_lets_go_when_the_page_does(
     // description's kinematics put it for the angles on the plane.
     let body = Body::from_description(&RobotDescription::nori_a3()).unwrap();
     let view = js(&mut page, "lab.view()");
-    let s = newest(&states)
-        .unwrap_or_else(|| wait_for(Duration::from_secs(1), "a frame", || newest(&states)));
-    std::thread::sleep(Duration::from_millis(200));
-    let shot = screenshot(&mut page);
+    let (s, shot) = steady_screenshot(&mut page, &states, driving);
     let q: Vec<f64> = s.joints()[..7]
         .iter()
         .map(|j| f64::from(j.position_rad))
