@@ -149,6 +149,12 @@ impl Proc {
         self.0.kill();
     }
 
+    /// SIGTERM, then SIGKILL after `within` if it still runs; asserts nothing (a failed test's
+    /// unwinding stops what it started this way).
+    pub fn stop_within(&mut self, within: Duration) {
+        let _ = self.0.stop(within);
+    }
+
     /// Whether it is still running.
     pub fn running(&mut self) -> bool {
         self.0.running()
@@ -595,6 +601,13 @@ impl WholeRobot {
         ];
         args.extend_from_slice(up_args);
         let up = Proc::spawn("nori up", &binary("nori"), &args, &dir.join("up.log"));
+        // Owned from here, so a wait below that fails stops the stack too.
+        let robot = WholeRobot {
+            dir: dir.clone(),
+            domain: domain.clone(),
+            up,
+            description,
+        };
         let node = Plane::open(&domain, "test-whole-robot").expect("the plane");
         let states = node.subscriber(&plane::JOINT_STATE).expect("joint state");
         let lifts = node.subscriber(&plane::LIFT_STATE).expect("lift state");
@@ -608,12 +621,7 @@ impl WholeRobot {
         wait_for(Duration::from_secs(20), "the lift homed", || {
             newest(&lifts).filter(|l| l.state == telemetry::motion::LIFT_READY)
         });
-        WholeRobot {
-            dir,
-            domain,
-            up,
-            description,
-        }
+        robot
     }
 
     /// The simulator's newest report (written every second).
@@ -631,6 +639,15 @@ impl WholeRobot {
         let report = self.report();
         let _ = std::fs::remove_dir_all(&self.dir);
         report
+    }
+}
+
+/// A test that fails before [`WholeRobot::stop`] still stops the stack: `nori up` killed
+/// would leave its children running (each its own process group), loading the machine for
+/// every later test.
+impl Drop for WholeRobot {
+    fn drop(&mut self) {
+        self.up.stop_within(Duration::from_secs(10));
     }
 }
 

@@ -720,23 +720,39 @@ fn the_whole_body_is_recorded_nineteen_wide_with_the_lift_rising_and_the_base_dr
         "the lift only rises"
     );
     assert!(rows.iter().all(|r| r.frame.action[16] == 0.2), "its goal");
-    // The base at its commanded twist once the ramp is through, measured by the wheels over
-    // the last second (one frame's twist is from one control period of the wheels' positions,
-    // a few encoder counts: ±0.07 rad/s of turn rate), judged as a loaded machine allows (seen
-    // in CI: a late control period's 0.68 rad/s in one frame; a starved lidar's hold in a few).
-    let cruising = &rows[rows.len() - FPS as usize..];
+    // The base at its commanded twist where it was let drive, measured by the wheels: the
+    // action is what went to the wheels after the limits and the field, so a frame whose
+    // action was the operator's twist for the 0.3 s before it (the ramp through) is judged; a
+    // loaded machine's starved lidar holds the base, rightly, and restarts the ramp. At least
+    // a second of the episode must be so (a base that never drove fails). One frame's twist is
+    // from one control period of the wheels' positions, a few encoder counts: ±0.07 rad/s of
+    // turn rate (seen in CI: a late control period's 0.68 rad/s in one frame).
+    let asked =
+        |r: &recorder::pq::DataRow| (r.frame.action[17], r.frame.action[18]) == (-0.15, 0.3);
+    let settle = (0.3 * FPS as f64).ceil() as usize;
+    let driven: Vec<usize> = (settle..rows.len())
+        .filter(|&k| rows[k - settle..=k].iter().all(asked))
+        .collect();
+    assert!(
+        driven.len() >= FPS as usize,
+        "the base let drive in {} of {} frames",
+        driven.len(),
+        rows.len()
+    );
+    assert!(
+        rows.iter().all(|r| r.frame.action[17] <= 0.0
+            && r.frame.action[17] >= -0.15
+            && (0.0..=0.3).contains(&r.frame.action[18])),
+        "the wheels never sent more than the operator asked"
+    );
     let frames = |i: usize| -> Vec<(f32, usize)> {
-        cruising
+        driven
             .iter()
-            .enumerate()
-            .map(|(k, r)| (r.frame.state[i], rows.len() - FPS as usize + k))
+            .map(|&k| (rows[k].frame.state[i], k))
             .collect()
     };
     nori_tests::assert_cruising(&frames(17), -0.15, 0.02);
     nori_tests::assert_cruising(&frames(18), 0.3, 0.05);
-    for r in cruising {
-        assert_eq!((r.frame.action[17], r.frame.action[18]), (-0.15, 0.3));
-    }
     // The odometry: backwards, to the right, and turned left by about the twist's integral.
     let (x0, y0, h0) = (first.odometry[0], first.odometry[1], first.odometry[2]);
     let (x1, y1, h1) = (last.odometry[0], last.odometry[1], last.odometry[2]);
