@@ -8,14 +8,19 @@
 //!   bounded speed, under a dead-man;
 //! - [`scene`] (pure): what the page draws, as JSON;
 //! - [`page`] (pure): the page's messages, and who may connect (token, host, origin);
+//! - [`messages`] (pure): what the lab sends a page, typed;
 //! - [`stop_button`] (pure): a stop or resume press answered only once the supervisor shows it
 //!   heard it;
 //! - [`server`]: HTTP and WebSocket on std's TCP, a thread per page, never blocking the loop;
 //! - [`recording`]: episodes recorded from the page by `nori record` itself;
+//! - [`process`]: the lab's loop against a [`process::LabIo`] (the binary's plane, pages,
+//!   cameras and recorder; a test's queues), time read from it;
 //! - the binary `nori-lab` (`nori lab`): the state plane in, goals and the supervisor's
 //!   commands out.
 
+pub mod messages;
 pub mod page;
+pub mod process;
 pub mod recording;
 pub mod scene;
 pub mod server;

@@ -8,7 +8,9 @@
 
 use nix::sys::signal::{kill, Signal};
 use nix::unistd::Pid;
-use serde_json::{json, Value};
+use serde::ser::SerializeMap;
+use serde::{Serialize, Serializer};
+use serde_json::Value;
 use std::path::PathBuf;
 use std::process::{Command, Stdio};
 use std::sync::mpsc::{self, Receiver, Sender};
@@ -194,20 +196,57 @@ impl Recording {
     }
 
     /// For the page.
-    pub fn status(&self) -> Value {
+    pub fn status(&self) -> RecordingStatus {
         let (state, task, seconds) = match &self.phase {
-            Phase::Idle => ("idle", None, None),
+            Phase::Idle => (RecordingState::Idle, None, None),
             Phase::Recording { task, since, .. } => (
-                "recording",
-                Some(task.as_str()),
+                RecordingState::Recording,
+                Some(task.clone()),
                 Some(since.elapsed().as_secs_f64()),
             ),
-            Phase::Ending { discard: true } => ("discarding", None, None),
-            Phase::Ending { discard: false } => ("saving", None, None),
+            Phase::Ending { discard: true } => (RecordingState::Discarding, None, None),
+            Phase::Ending { discard: false } => (RecordingState::Saving, None, None),
         };
-        json!({"state": state, "task": task, "seconds": seconds, "episodes": self.episodes,
-            "dataset": self.settings.dataset, "last": self.last.as_ref().map(outcome_json)})
+        RecordingStatus {
+            state,
+            task,
+            seconds,
+            episodes: self.episodes,
+            dataset: self.settings.dataset.clone(),
+            last: self.last.clone(),
+        }
     }
+}
+
+/// What the page's recording is doing.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RecordingState {
+    /// Nothing.
+    Idle,
+    /// Recording an episode.
+    Recording,
+    /// Ending an episode to keep it.
+    Saving,
+    /// Ending an episode to throw it away.
+    Discarding,
+}
+
+/// The page's recording, for the page.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct RecordingStatus {
+    /// What it does.
+    pub state: RecordingState,
+    /// The task being recorded.
+    pub task: Option<String>,
+    /// For how long, s.
+    pub seconds: Option<f64>,
+    /// Episodes in the dataset.
+    pub episodes: u64,
+    /// The dataset's directory.
+    pub dataset: PathBuf,
+    /// How the last episode ended.
+    pub last: Option<Outcome>,
 }
 
 /// The episode `nori record` reports on stdout.
@@ -222,14 +261,21 @@ fn committed(stdout: &[u8]) -> Outcome {
     }
 }
 
-/// An outcome for the page.
-pub fn outcome_json(o: &Outcome) -> Value {
-    match o {
-        Outcome::Committed { episode, frames } => {
-            json!({"saved": true, "episode": episode, "frames": frames})
+/// For the page: `{"saved": true, "episode", "frames"}`, `{"discarded": true}` or
+/// `{"failed": why}`.
+impl Serialize for Outcome {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        let mut m = s.serialize_map(None)?;
+        match self {
+            Outcome::Committed { episode, frames } => {
+                m.serialize_entry("saved", &true)?;
+                m.serialize_entry("episode", episode)?;
+                m.serialize_entry("frames", frames)?;
+            }
+            Outcome::Discarded => m.serialize_entry("discarded", &true)?,
+            Outcome::Failed(why) => m.serialize_entry("failed", why)?,
         }
-        Outcome::Discarded => json!({"discarded": true}),
-        Outcome::Failed(why) => json!({"failed": why}),
+        m.end()
     }
 }
 

@@ -4,6 +4,7 @@
 //! temperature, current and protection flags, and the robot's safe state.
 
 use body::kinematics::{Body, Pose2};
+use serde::Serialize;
 use serde_json::{json, Value};
 use telemetry::frames::{JointLayout, JointRole, STATE_FLAG_OPERATOR_STOP, STATE_FLAG_SAFE_STATE};
 use telemetry::JointState;
@@ -120,7 +121,7 @@ impl Scene {
 
     /// One state frame for the page: the arms posed from the joints read (the lift at
     /// `lift_m`), each joint's figures, the safe state, and `extra` (teleoperation, events).
-    pub fn frame(&self, state: &JointState, lift_m: f64, extra: Value) -> Value {
+    pub fn frame(&self, state: &JointState, lift_m: f64, extra: &impl Serialize) -> Value {
         let joints = state.joints();
         let arms: Vec<Value> = self
             .arms
@@ -223,7 +224,7 @@ mod tests {
             j.position_rad = q.get(i).copied().unwrap_or(0.0) as f32;
             j.temperature_c = 40.0 + i as f32;
         }
-        let frame = scene.frame(&state, 0.3, json!(null));
+        let frame = scene.frame(&state, 0.3, &());
         let tool = body.arm_pose(0, &q, 0.3, Pose2::default()).unwrap().tool;
         let drawn = &frame["arms"][0]["points"][8];
         for i in 0..3 {
@@ -237,9 +238,6 @@ mod tests {
         assert_eq!(frame["joints"][5]["t"], 45.0);
         assert_eq!(frame["arms"][0]["valid"], true);
         state.joints[2].valid = 0;
-        assert_eq!(
-            scene.frame(&state, 0.3, json!(null))["arms"][0]["valid"],
-            false
-        );
+        assert_eq!(scene.frame(&state, 0.3, &())["arms"][0]["valid"], false);
     }
 }

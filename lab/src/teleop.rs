@@ -169,7 +169,7 @@ impl Refusal {
 }
 
 /// What a taken tool command solved to.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 pub struct Solved {
     /// m.
     pub position_error_m: f64,
@@ -196,8 +196,28 @@ pub enum Ended {
     DriverSilent,
 }
 
+impl Ended {
+    /// Its name, for the log and the page.
+    pub fn name(self) -> &'static str {
+        match self {
+            Ended::DeadMan => "dead_man",
+            Ended::PageClosed => "page_closed",
+            Ended::Released => "released",
+            Ended::SafeState => "safe_state",
+            Ended::DriverRestarted => "driver_restarted",
+            Ended::DriverSilent => "driver_silent",
+        }
+    }
+}
+
+impl serde::Serialize for Ended {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(self.name())
+    }
+}
+
 /// Counts, for the page and the log.
-#[derive(Debug, Clone, Default, PartialEq)]
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
 pub struct TeleopCounters {
     /// Commands taken.
     pub taken: u64,
