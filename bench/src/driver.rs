@@ -159,56 +159,156 @@ fn rate_run(buses: &[String], rate_hz: f64, seconds: f64, read_back: bool) -> Re
 pub fn driver_rate(args: &DriverRateArgs) -> Result<()> {
     bus_driver::rt::prepare_control_thread();
     let jitter = wakeup_jitter(Duration::from_secs(1));
-    let robot = RobotDescription::nori_a3();
-    let slowest = args
-        .buses
-        .iter()
-        .filter_map(|b| robot.bus(b))
-        .map(|b| b.servo.len())
-        .max()
-        .unwrap_or(0);
-    let bytes = cycle_bytes(slowest, reg::FEEDBACK_LEN as usize, 2);
-    let wire_limited_hz = 1.0 / wire_time(bytes, 1_000_000).as_secs_f64();
+    let wire = WireLimit::of(&args.buses);
     // The baseline and the variant in the same run, in alternating halves so that a slow
     // stretch of this shared machine hits both alike. The variant is the background read-back
     // (the stack as deployed), or with --cameras the cameras streaming (both halves as deployed).
-    let half = args.seconds / 2.0;
     let domain = format!("nori_bench_sensors_{}", std::process::id());
     let sensors = args.cameras > 0 || args.lidar || args.base;
-    let base = if args.base {
-        Some(BaseLoad::start(&domain)?)
+    let loads = SensorLoads::start(args, &domain)?;
+    let halves = run_halves(args, &loads, sensors)?;
+    let load = load_figures(loads, args, &domain, &halves);
+    let without = rate_figures(&halves.runs[0], wire.hz);
+    let with = rate_figures(&halves.runs[1], wire.hz);
+    let out = serde_json::json!({
+        "buses": args.buses.len(),
+        "servos_per_bus": wire.slowest,
+        "rate_hz_set": args.rate_hz,
+        "cycle_bytes_per_bus": wire.bytes,
+        "wire_limited_hz": wire.hz,
+        "baseline": if sensors { "as deployed, sensors idle" } else { "no background read-back" },
+        "variant": if sensors { "as deployed, sensors streaming" } else { "as deployed (background read-back)" },
+        "baseline_figures": without,
+        "variant_figures": with,
+        "camera_load": load.cameras,
+        "lidar_load": load.lidar,
+        "base_load": load.base,
+        "rate_ratio_variant_to_baseline": measured_hz(&with) / measured_hz(&without).max(1e-9),
+        "machine_wakeup_overshoot_p99_us": jitter.0,
+        "machine_wakeup_overshoot_max_us": jitter.1,
+    });
+    if args.json {
+        println!("{out}");
     } else {
-        None
+        print_rate_report(&out, args, &wire, sensors, jitter);
+    }
+    Ok(())
+}
+
+/// The rate the wire allows the slowest of the buses driven.
+struct WireLimit {
+    /// Servos on the busiest bus.
+    slowest: usize,
+    /// Bytes of its cycle.
+    bytes: usize,
+    /// Cycles a second at 1 Mbps, Hz.
+    hz: f64,
+}
+
+impl WireLimit {
+    fn of(buses: &[String]) -> WireLimit {
+        let robot = RobotDescription::nori_a3();
+        let slowest = buses
+            .iter()
+            .filter_map(|b| robot.bus(b))
+            .map(|b| b.servo.len())
+            .max()
+            .unwrap_or(0);
+        let bytes = cycle_bytes(slowest, reg::FEEDBACK_LEN as usize, 2);
+        let hz = 1.0 / wire_time(bytes, 1_000_000).as_secs_f64();
+        WireLimit { slowest, bytes, hz }
+    }
+}
+
+/// The sensor loads the driver is compared against, each only when asked for.
+struct SensorLoads {
+    cameras: Option<CameraLoad>,
+    lidar: Option<LidarLoad>,
+    base: Option<BaseLoad>,
+}
+
+/// CPU time the loads' processes used, s.
+#[derive(Debug, Default, Clone, Copy)]
+struct LoadCpu {
+    cameras: f64,
+    lidar: f64,
+    base: f64,
+}
+
+impl SensorLoads {
+    /// Starts the loads asked for on `domain` (the base's, the lidar's, then the cameras').
+    fn start(args: &DriverRateArgs, domain: &str) -> Result<SensorLoads> {
+        let base = if args.base {
+            Some(BaseLoad::start(domain)?)
+        } else {
+            None
+        };
+        let lidar = if args.lidar {
+            Some(LidarLoad::start(domain)?)
+        } else {
+            None
+        };
+        let cameras = match args.cameras {
+            0 => None,
+            n => Some(CameraLoad::start(
+                n,
+                args.camera_width,
+                args.camera_height,
+                args.camera_fps,
+                domain,
+            )?),
+        };
+        Ok(SensorLoads {
+            cameras,
+            lidar,
+            base,
+        })
+    }
+
+    /// Streams every load (or idles it).
+    fn feed(&self, on: bool) {
+        if let Some(load) = &self.cameras {
+            load.feed(on);
+        }
+        if let Some(load) = &self.lidar {
+            load.feed(on);
+        }
+        if let Some(load) = &self.base {
+            load.feed(on);
+        }
+    }
+
+    /// CPU time each load used so far.
+    fn cpu_seconds(&self) -> LoadCpu {
+        LoadCpu {
+            cameras: self.cameras.as_ref().map_or(0.0, CameraLoad::cpu_seconds),
+            lidar: self.lidar.as_ref().map_or(0.0, LidarLoad::cpu_seconds),
+            base: self.base.as_ref().map_or(0.0, BaseLoad::cpu_seconds),
+        }
+    }
+}
+
+/// The runs of the baseline's halves (`runs[0]`) and the variant's (`runs[1]`), and what the
+/// loads cost during the variant's.
+struct Halves {
+    runs: [Vec<RateRun>; 2],
+    /// CPU time of the loads while they streamed.
+    cpu: LoadCpu,
+    /// Time they streamed, s.
+    streaming_s: f64,
+}
+
+/// Runs the driver in four alternating halves: baseline, variant, baseline, variant.
+fn run_halves(args: &DriverRateArgs, loads: &SensorLoads, sensors: bool) -> Result<Halves> {
+    let half = args.seconds / 2.0;
+    let mut halves = Halves {
+        runs: [Vec::new(), Vec::new()],
+        cpu: LoadCpu::default(),
+        streaming_s: 0.0,
     };
-    let lidar = if args.lidar {
-        Some(LidarLoad::start(&domain)?)
-    } else {
-        None
-    };
-    let cameras = match args.cameras {
-        0 => None,
-        n => Some(CameraLoad::start(
-            n,
-            args.camera_width,
-            args.camera_height,
-            args.camera_fps,
-            &domain,
-        )?),
-    };
-    let mut runs: [Vec<RateRun>; 2] = [Vec::new(), Vec::new()];
-    let (mut camera_cpu_s, mut lidar_cpu_s, mut streaming_s) = (0.0, 0.0, 0.0);
-    let mut base_cpu_s = 0.0;
     for variant in [false, true, false, true] {
         let read_back = variant || sensors;
-        if let Some(load) = &cameras {
-            load.feed(variant);
-        }
-        if let Some(load) = &lidar {
-            load.feed(variant);
-        }
-        if let Some(load) = &base {
-            load.feed(variant);
-        }
+        loads.feed(variant);
         if sensors {
             // Let the sensors reach (or leave) their steady rate before timing.
             let settle = if args.lidar {
@@ -218,20 +318,42 @@ pub fn driver_rate(args: &DriverRateArgs) -> Result<()> {
             };
             std::thread::sleep(settle);
         }
-        let camera_before = cameras.as_ref().map_or(0.0, CameraLoad::cpu_seconds);
-        let lidar_before = lidar.as_ref().map_or(0.0, LidarLoad::cpu_seconds);
-        let base_before = base.as_ref().map_or(0.0, BaseLoad::cpu_seconds);
+        let before = loads.cpu_seconds();
         let run = rate_run(&args.buses, args.rate_hz, half, read_back)?;
         if variant {
-            camera_cpu_s += cameras.as_ref().map_or(0.0, CameraLoad::cpu_seconds) - camera_before;
-            lidar_cpu_s += lidar.as_ref().map_or(0.0, LidarLoad::cpu_seconds) - lidar_before;
-            base_cpu_s += base.as_ref().map_or(0.0, BaseLoad::cpu_seconds) - base_before;
-            streaming_s += run.summary.elapsed_s;
+            let after = loads.cpu_seconds();
+            halves.cpu.cameras += after.cameras - before.cameras;
+            halves.cpu.lidar += after.lidar - before.lidar;
+            halves.cpu.base += after.base - before.base;
+            halves.streaming_s += run.summary.elapsed_s;
         }
-        runs[usize::from(variant)].push(run);
+        halves.runs[usize::from(variant)].push(run);
     }
+    Ok(halves)
+}
+
+/// Each load's figures (none for a load not asked for).
+struct LoadFigures {
+    cameras: Option<serde_json::Value>,
+    lidar: Option<serde_json::Value>,
+    base: Option<serde_json::Value>,
+}
+
+/// The loads' figures; each load is stopped once its own are taken.
+fn load_figures(
+    loads: SensorLoads,
+    args: &DriverRateArgs,
+    domain: &str,
+    halves: &Halves,
+) -> LoadFigures {
+    let SensorLoads {
+        cameras,
+        lidar,
+        base,
+    } = loads;
+    let (cpu, streaming_s) = (halves.cpu, halves.streaming_s);
     let camera_figures = cameras.as_ref().map(|load| {
-        let published = camera_frames_published(&domain, args.cameras);
+        let published = camera_frames_published(domain, args.cameras);
         serde_json::json!({
             "cameras": args.cameras,
             "width": args.camera_width,
@@ -240,16 +362,16 @@ pub fn driver_rate(args: &DriverRateArgs) -> Result<()> {
             "jpeg_bytes": load.jpeg_bytes,
             "frames_published": published,
             "streaming_seconds": streaming_s,
-            "cpu_per_camera_percent_of_a_core": 100.0 * camera_cpu_s / streaming_s.max(1e-9) / args.cameras as f64,
+            "cpu_per_camera_percent_of_a_core": 100.0 * cpu.cameras / streaming_s.max(1e-9) / args.cameras as f64,
             "peak_rss_mb": load.peak_rss_mb(),
         })
     });
     drop(cameras);
     let lidar_figures = lidar.as_ref().map(|load| {
         serde_json::json!({
-            "scans_published": crate::lidar::scans_published(&domain),
+            "scans_published": crate::lidar::scans_published(domain),
             "scanning_seconds": streaming_s,
-            "cpu_percent_of_a_core": 100.0 * lidar_cpu_s / streaming_s.max(1e-9),
+            "cpu_percent_of_a_core": 100.0 * cpu.lidar / streaming_s.max(1e-9),
             "peak_rss_mb": load.peak_rss_mb(),
         })
     });
@@ -258,93 +380,98 @@ pub fn driver_rate(args: &DriverRateArgs) -> Result<()> {
         serde_json::json!({
             "goals_sent": load.goals_sent(),
             "driving_seconds": streaming_s,
-            "cpu_percent_of_a_core": 100.0 * base_cpu_s / streaming_s.max(1e-9),
+            "cpu_percent_of_a_core": 100.0 * cpu.base / streaming_s.max(1e-9),
             "peak_rss_mb": load.peak_rss_mb(),
         })
     });
     drop(base);
-    let figures = |r: &[RateRun]| {
-        let cycles: u64 = r.iter().map(|x| x.summary.counters.cycles).sum();
-        let elapsed: f64 = r.iter().map(|x| x.summary.elapsed_s).sum();
-        let misses: u64 = r.iter().map(|x| x.summary.counters.deadline_misses).sum();
-        serde_json::json!({
-            "measured_hz": cycles as f64 / elapsed.max(1e-9),
-            "ratio_to_wire_limited": cycles as f64 / elapsed.max(1e-9) / wire_limited_hz,
-            "cycles": cycles,
-            "deadline_misses": misses,
-            "deadline_miss_ratio": misses as f64 / cycles.max(1) as f64,
-            "replies": r.iter().map(|x| x.replies).sum::<u64>(),
-            "missing_replies": r.iter().map(|x| x.missing).sum::<u64>(),
-            "read_backs": r.iter().map(|x| x.read_backs).sum::<u64>(),
-            "sim_late_bursts": r.iter().map(|x| x.late_bursts).sum::<u64>(),
-            "sim_max_lateness_us": r.iter().map(|x| x.max_lateness_us).fold(0.0, f64::max),
-        })
-    };
-    let (without, with) = (figures(&runs[0]), figures(&runs[1]));
-    let hz = |v: &serde_json::Value| v["measured_hz"].as_f64().unwrap_or(0.0);
-    let out = serde_json::json!({
-        "buses": args.buses.len(),
-        "servos_per_bus": slowest,
-        "rate_hz_set": args.rate_hz,
-        "cycle_bytes_per_bus": bytes,
-        "wire_limited_hz": wire_limited_hz,
-        "baseline": if sensors { "as deployed, sensors idle" } else { "no background read-back" },
-        "variant": if sensors { "as deployed, sensors streaming" } else { "as deployed (background read-back)" },
-        "baseline_figures": without,
-        "variant_figures": with,
-        "camera_load": camera_figures,
-        "lidar_load": lidar_figures,
-        "base_load": base_figures,
-        "rate_ratio_variant_to_baseline": hz(&with) / hz(&without).max(1e-9),
-        "machine_wakeup_overshoot_p99_us": jitter.0,
-        "machine_wakeup_overshoot_max_us": jitter.1,
-    });
-    if args.json {
-        println!("{out}");
-    } else {
-        let line = |name: &str, v: &serde_json::Value| {
-            format!(
-                "{name}: {:.1} Hz (ratio to the wire-limited {:.3}), deadline misses {} of {} ({:.4}), {} replies, {} missing, {} read-backs",
-                hz(v), v["ratio_to_wire_limited"].as_f64().unwrap_or(0.0), v["deadline_misses"], v["cycles"],
-                v["deadline_miss_ratio"].as_f64().unwrap_or(0.0), v["replies"], v["missing_replies"], v["read_backs"]
-            )
-        };
-        let (base, variant) = if sensors {
-            (
-                "as deployed, sensors idle",
-                "as deployed, sensors streaming",
-            )
-        } else {
-            ("baseline, no background read-back", "as deployed")
-        };
-        println!(
-            "driver loop, {} buses × {slowest} servos in parallel at a {} Hz set-point; {wire_limited_hz:.1} Hz wire-limited ({bytes} bytes a cycle at 1 Mbps)\n  {}\n  {}\n  rate {variant} / {base}: {:.3}; this machine wakes a 200 µs sleep up to {:.0} µs late at p99 ({:.0} µs max)",
-            args.buses.len(), args.rate_hz, line(base, &without), line(variant, &with),
-            hz(&with) / hz(&without).max(1e-9), jitter.0, jitter.1
-        );
-        if let Some(c) = out["camera_load"].as_object() {
-            println!(
-                "  cameras: {} × {}×{} MJPEG at {} fps into nori-camera (JPEG {} bytes): {} frames published, {:.1} % of a core per camera while streaming, peak RSS {} MB",
-                c["cameras"], c["width"], c["height"], c["fps"], c["jpeg_bytes"], c["frames_published"],
-                c["cpu_per_camera_percent_of_a_core"].as_f64().unwrap_or(f64::NAN), c["peak_rss_mb"]
-            );
-        }
-        if let Some(b) = out["base_load"].as_object() {
-            println!(
-                "  base: nori-base driving (wheel readings at 200 Hz, commands at 20 Hz): {} wheel goal frames sent, {:.1} % of a core while driving, peak RSS {} MB",
-                b["goals_sent"],
-                b["cpu_percent_of_a_core"].as_f64().unwrap_or(f64::NAN), b["peak_rss_mb"]
-            );
-        }
-        if let Some(l) = out["lidar_load"].as_object() {
-            println!(
-                "  lidar: the simulated C1 (5000 measurements/s, 10 Hz) into nori-lidar: {} revolutions published, {:.1} % of a core while scanning, peak RSS {} MB",
-                l["scans_published"],
-                l["cpu_percent_of_a_core"].as_f64().unwrap_or(f64::NAN), l["peak_rss_mb"]
-            );
-        }
+    LoadFigures {
+        cameras: camera_figures,
+        lidar: lidar_figures,
+        base: base_figures,
     }
-    Ok(())
+}
+
+/// The figures of one side's runs, summed over its halves.
+fn rate_figures(r: &[RateRun], wire_limited_hz: f64) -> serde_json::Value {
+    let cycles: u64 = r.iter().map(|x| x.summary.counters.cycles).sum();
+    let elapsed: f64 = r.iter().map(|x| x.summary.elapsed_s).sum();
+    let misses: u64 = r.iter().map(|x| x.summary.counters.deadline_misses).sum();
+    serde_json::json!({
+        "measured_hz": cycles as f64 / elapsed.max(1e-9),
+        "ratio_to_wire_limited": cycles as f64 / elapsed.max(1e-9) / wire_limited_hz,
+        "cycles": cycles,
+        "deadline_misses": misses,
+        "deadline_miss_ratio": misses as f64 / cycles.max(1) as f64,
+        "replies": r.iter().map(|x| x.replies).sum::<u64>(),
+        "missing_replies": r.iter().map(|x| x.missing).sum::<u64>(),
+        "read_backs": r.iter().map(|x| x.read_backs).sum::<u64>(),
+        "sim_late_bursts": r.iter().map(|x| x.late_bursts).sum::<u64>(),
+        "sim_max_lateness_us": r.iter().map(|x| x.max_lateness_us).fold(0.0, f64::max),
+    })
+}
+
+/// The rate a side's figures measured, Hz.
+fn measured_hz(v: &serde_json::Value) -> f64 {
+    v["measured_hz"].as_f64().unwrap_or(0.0)
+}
+
+/// Prints `nori bench driver-rate`'s result (`out`, its JSON) for a reader.
+fn print_rate_report(
+    out: &serde_json::Value,
+    args: &DriverRateArgs,
+    wire: &WireLimit,
+    sensors: bool,
+    jitter: (f64, f64),
+) {
+    let (without, with) = (&out["baseline_figures"], &out["variant_figures"]);
+    let hz = measured_hz;
+    let line = |name: &str, v: &serde_json::Value| {
+        format!(
+            "{name}: {:.1} Hz (ratio to the wire-limited {:.3}), deadline misses {} of {} ({:.4}), {} replies, {} missing, {} read-backs",
+            hz(v), v["ratio_to_wire_limited"].as_f64().unwrap_or(0.0), v["deadline_misses"], v["cycles"],
+            v["deadline_miss_ratio"].as_f64().unwrap_or(0.0), v["replies"], v["missing_replies"], v["read_backs"]
+        )
+    };
+    let (base, variant) = if sensors {
+        (
+            "as deployed, sensors idle",
+            "as deployed, sensors streaming",
+        )
+    } else {
+        ("baseline, no background read-back", "as deployed")
+    };
+    let WireLimit {
+        slowest,
+        bytes,
+        hz: wire_limited_hz,
+    } = wire;
+    println!(
+        "driver loop, {} buses × {slowest} servos in parallel at a {} Hz set-point; {wire_limited_hz:.1} Hz wire-limited ({bytes} bytes a cycle at 1 Mbps)\n  {}\n  {}\n  rate {variant} / {base}: {:.3}; this machine wakes a 200 µs sleep up to {:.0} µs late at p99 ({:.0} µs max)",
+        args.buses.len(), args.rate_hz, line(base, without), line(variant, with),
+        hz(with) / hz(without).max(1e-9), jitter.0, jitter.1
+    );
+    if let Some(c) = out["camera_load"].as_object() {
+        println!(
+            "  cameras: {} × {}×{} MJPEG at {} fps into nori-camera (JPEG {} bytes): {} frames published, {:.1} % of a core per camera while streaming, peak RSS {} MB",
+            c["cameras"], c["width"], c["height"], c["fps"], c["jpeg_bytes"], c["frames_published"],
+            c["cpu_per_camera_percent_of_a_core"].as_f64().unwrap_or(f64::NAN), c["peak_rss_mb"]
+        );
+    }
+    if let Some(b) = out["base_load"].as_object() {
+        println!(
+            "  base: nori-base driving (wheel readings at 200 Hz, commands at 20 Hz): {} wheel goal frames sent, {:.1} % of a core while driving, peak RSS {} MB",
+            b["goals_sent"],
+            b["cpu_percent_of_a_core"].as_f64().unwrap_or(f64::NAN), b["peak_rss_mb"]
+        );
+    }
+    if let Some(l) = out["lidar_load"].as_object() {
+        println!(
+            "  lidar: the simulated C1 (5000 measurements/s, 10 Hz) into nori-lidar: {} revolutions published, {:.1} % of a core while scanning, peak RSS {} MB",
+            l["scans_published"],
+            l["cpu_percent_of_a_core"].as_f64().unwrap_or(f64::NAN), l["peak_rss_mb"]
+        );
+    }
 }
 
 /// Frames each camera process published so far: the newest frame's sequence number + 1. (A

@@ -477,109 +477,7 @@ pub fn policy_latency(args: &PolicyLatencyArgs) -> Result<()> {
     };
     let mut rows = serde_json::Map::new();
     for server in ["rust", "python"] {
-        let (server_ep, bench_ep) = (free_endpoint()?, free_endpoint()?);
-        // The bench watches the observations on its own link to the agent.
-        let session = zenoh_session(vec![bench_ep.clone()], vec![], "peer")
-            .context("opening a zenoh session")?;
-        let arm = ArmOnFleet::start(
-            &format!("policy-{server}"),
-            &[server_ep.clone(), bench_ep.clone()],
-            &session,
-        )?;
-        let seen = Arc::new(Mutex::new(Vec::new()));
-        let s = seen.clone();
-        let _observations = session
-            .declare_subscriber(robot_key(ROBOT, "observation"))
-            .callback(move |sample: Sample| {
-                if let Ok(o) = decode::<ObservationMsg>(&sample.payload().to_bytes()) {
-                    s.lock()
-                        .unwrap_or_else(|p| p.into_inner())
-                        .push(o.timestamp_ns);
-                }
-            })
-            .wait()
-            .map_err(|e| anyhow!("{e}"))?;
-        let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
-        // Until killed after the flips (a generous bound, should the bench be stopped).
-        let run_for = args.flips as f64 * FLIP_NS as f64 / 1e9 + 60.0;
-        let (thread, mut child) = if server == "rust" {
-            let server_session = zenoh_session(vec![server_ep.clone()], vec![], "peer")?;
-            (
-                Some(rust_flip(
-                    server_session,
-                    arm.joints,
-                    arm.joint,
-                    stop.clone(),
-                )?),
-                None,
-            )
-        } else {
-            let child = Command::new(&python)
-                .args([
-                    "-m",
-                    "nori_client.flip",
-                    "--listen",
-                    &server_ep,
-                    "--robot",
-                    ROBOT,
-                ])
-                .args(["--joint", JOINT, "--run-for", &format!("{run_for:.0}")])
-                .stdout(Stdio::null())
-                .stderr(std::fs::File::create(arm.dir.join("python.log"))?)
-                .spawn()
-                .with_context(|| {
-                    format!(
-                        "running {} -m nori_client.flip (python/nori_client/install.sh)",
-                        python.display()
-                    )
-                })?;
-            (None, Some(child))
-        };
-        // The server answering (the register flipped twice: a Python server first waits for
-        // the agent's layout, sent every 5 s) before the trials count.
-        let warm = Instant::now() + Duration::from_secs(30);
-        let (mut last, mut flipped) = (arm.goal_register(), 0);
-        while flipped < 2 {
-            if Instant::now() > warm {
-                bail!(
-                    "{server}: the policy server never answered (logs in {})",
-                    arm.dir.display()
-                );
-            }
-            std::thread::sleep(Duration::from_millis(5));
-            let now = arm.goal_register();
-            if now != last {
-                (last, flipped) = (now, flipped + 1);
-            }
-        }
-        let mut ms = flips_through(&arm, &seen, args.flips);
-        stop.store(true, std::sync::atomic::Ordering::Relaxed);
-        if let Some(t) = thread {
-            let _ = t.join();
-        }
-        if let Some(c) = child.as_mut() {
-            let _ = c.kill();
-            let _ = c.wait();
-        }
-        let dir = arm.dir.clone();
-        arm.stop();
-        if ms.len() < args.flips / 2 {
-            bail!(
-                "{server}: {} of {} flips reached the wire (logs in {})",
-                ms.len(),
-                args.flips,
-                dir.display()
-            );
-        }
-        ms.sort_by(f64::total_cmp);
-        rows.insert(
-            server.into(),
-            serde_json::json!({
-                "flips": args.flips, "measured": ms.len(),
-                "p50_ms": quantile_sorted(&ms, 0.5), "p99_ms": quantile_sorted(&ms, 0.99),
-                "max_ms": ms.last(),
-            }),
-        );
+        rows.insert(server.into(), server_latency(server, args, &python)?);
     }
     let f = |k: &str, q: &str| rows[k][q].as_f64().unwrap_or(f64::NAN);
     let out = serde_json::json!({
@@ -599,6 +497,145 @@ pub fn policy_latency(args: &PolicyLatencyArgs) -> Result<()> {
             out["ratio_p50"].as_f64().unwrap_or(f64::NAN),
             out["ratio_p99"].as_f64().unwrap_or(f64::NAN),
         );
+    }
+    Ok(())
+}
+
+/// One server's row of `nori bench policy-latency`: an arm on a fleet of its own, the
+/// server flipping its joint, the flips timed from observation to wire.
+fn server_latency(
+    server: &str,
+    args: &PolicyLatencyArgs,
+    python: &std::path::Path,
+) -> Result<serde_json::Value> {
+    let (server_ep, bench_ep) = (free_endpoint()?, free_endpoint()?);
+    // The bench watches the observations on its own link to the agent.
+    let session =
+        zenoh_session(vec![bench_ep.clone()], vec![], "peer").context("opening a zenoh session")?;
+    let arm = ArmOnFleet::start(
+        &format!("policy-{server}"),
+        &[server_ep.clone(), bench_ep.clone()],
+        &session,
+    )?;
+    let seen = Arc::new(Mutex::new(Vec::new()));
+    let s = seen.clone();
+    let _observations = session
+        .declare_subscriber(robot_key(ROBOT, "observation"))
+        .callback(move |sample: Sample| {
+            if let Ok(o) = decode::<ObservationMsg>(&sample.payload().to_bytes()) {
+                s.lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .push(o.timestamp_ns);
+            }
+        })
+        .wait()
+        .map_err(|e| anyhow!("{e}"))?;
+    let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    // Until killed after the flips (a generous bound, should the bench be stopped).
+    let run_for = args.flips as f64 * FLIP_NS as f64 / 1e9 + 60.0;
+    let flipper = FlipServer::start(server, python, &server_ep, &arm, &stop, run_for)?;
+    await_first_flips(server, &arm)?;
+    let mut ms = flips_through(&arm, &seen, args.flips);
+    flipper.stop(&stop);
+    let dir = arm.dir.clone();
+    arm.stop();
+    if ms.len() < args.flips / 2 {
+        bail!(
+            "{server}: {} of {} flips reached the wire (logs in {})",
+            ms.len(),
+            args.flips,
+            dir.display()
+        );
+    }
+    ms.sort_by(f64::total_cmp);
+    Ok(serde_json::json!({
+        "flips": args.flips, "measured": ms.len(),
+        "p50_ms": quantile_sorted(&ms, 0.5), "p99_ms": quantile_sorted(&ms, 0.99),
+        "max_ms": ms.last(),
+    }))
+}
+
+/// The policy server under test: the Rust reference in a thread of this process, or the
+/// Python client's in a child process.
+enum FlipServer {
+    Rust(std::thread::JoinHandle<()>),
+    Python(std::process::Child),
+}
+
+impl FlipServer {
+    /// Starts `server` ("rust", else Python's) listening on `endpoint`, flipping the arm's
+    /// joint until `stop` (the thread) or for `run_for` s (the child).
+    fn start(
+        server: &str,
+        python: &std::path::Path,
+        endpoint: &str,
+        arm: &ArmOnFleet,
+        stop: &Arc<std::sync::atomic::AtomicBool>,
+        run_for: f64,
+    ) -> Result<FlipServer> {
+        if server == "rust" {
+            let server_session = zenoh_session(vec![endpoint.to_string()], vec![], "peer")?;
+            return Ok(FlipServer::Rust(rust_flip(
+                server_session,
+                arm.joints,
+                arm.joint,
+                stop.clone(),
+            )?));
+        }
+        let child = Command::new(python)
+            .args([
+                "-m",
+                "nori_client.flip",
+                "--listen",
+                endpoint,
+                "--robot",
+                ROBOT,
+            ])
+            .args(["--joint", JOINT, "--run-for", &format!("{run_for:.0}")])
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(arm.dir.join("python.log"))?)
+            .spawn()
+            .with_context(|| {
+                format!(
+                    "running {} -m nori_client.flip (python/nori_client/install.sh)",
+                    python.display()
+                )
+            })?;
+        Ok(FlipServer::Python(child))
+    }
+
+    /// Stops the server: `stop` set (the thread's word), the thread joined or the child killed.
+    fn stop(self, stop: &std::sync::atomic::AtomicBool) {
+        stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        match self {
+            FlipServer::Rust(thread) => {
+                let _ = thread.join();
+            }
+            FlipServer::Python(mut child) => {
+                let _ = child.kill();
+                let _ = child.wait();
+            }
+        }
+    }
+}
+
+/// Waits for the server to answer (the register flipped twice: a Python server first waits
+/// for the agent's layout, sent every 5 s) before the trials count.
+fn await_first_flips(server: &str, arm: &ArmOnFleet) -> Result<()> {
+    let warm = Instant::now() + Duration::from_secs(30);
+    let (mut last, mut flipped) = (arm.goal_register(), 0);
+    while flipped < 2 {
+        if Instant::now() > warm {
+            bail!(
+                "{server}: the policy server never answered (logs in {})",
+                arm.dir.display()
+            );
+        }
+        std::thread::sleep(Duration::from_millis(5));
+        let now = arm.goal_register();
+        if now != last {
+            (last, flipped) = (now, flipped + 1);
+        }
     }
     Ok(())
 }

@@ -14,7 +14,7 @@ use stack::browser::{chromium, Browser};
 use stack::{sibling, supervisor_and_driver, Managed, Run};
 use std::time::{Duration, Instant};
 use telemetry::clock::monotonic_ns;
-use telemetry::frames::GoalFrame;
+use telemetry::frames::{GoalFrame, JointLayout};
 use telemetry::plane::{self, newest, Plane};
 use telemetry::stats::quantile_sorted;
 
@@ -94,6 +94,165 @@ fn summary(ms: &mut [f64]) -> (f64, f64) {
     (quantile_sorted(ms, 0.5), quantile_sorted(ms, 0.99))
 }
 
+/// Trials of one path: how long each took to reach the wire, and how many never did.
+struct Trials {
+    ms: Vec<f64>,
+    missed: usize,
+}
+
+impl Trials {
+    fn with_capacity(trials: usize) -> Trials {
+        Trials {
+            ms: Vec::with_capacity(trials),
+            missed: 0,
+        }
+    }
+
+    /// One trial: once the arm is still, `act` (given when it starts, ns) and the wait for
+    /// the registers to change. Gives what `act` gave.
+    fn run<T>(
+        &mut self,
+        served: &sim::pty::ServedRobot,
+        act: impl FnOnce(u64) -> Result<T>,
+    ) -> Result<T> {
+        settle(served);
+        let before = registers(served);
+        let now = monotonic_ns();
+        let acted = act(now)?;
+        match changed(served, &before, now) {
+            Some(ms) => self.ms.push(ms),
+            None => self.missed += 1,
+        }
+        Ok(acted)
+    }
+}
+
+/// Waits (30 s at most) for the driver to drive every joint out of its safe state; gives
+/// the layout it published.
+fn wait_for_arm(
+    states: &plane::Sub<telemetry::JointState>,
+    layouts: &plane::Sub<JointLayout>,
+    dir: &std::path::Path,
+) -> Result<JointLayout> {
+    let until = Instant::now() + Duration::from_secs(30);
+    loop {
+        let driving = newest(states).is_some_and(|s| {
+            s.flags & telemetry::frames::STATE_FLAG_SAFE_STATE == 0
+                && s.joints().iter().all(|j| j.is_valid())
+        });
+        if let Some(l) = newest(layouts).filter(|_| driving) {
+            return Ok(l);
+        }
+        if Instant::now() > until {
+            bail!("the arm did not come up (logs in {})", dir.display());
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// The baseline: a goal straight on the plane, the elbow moved 0.02 rad (toward the middle
+/// of its range: a goal beyond it would be clamped to where it is) and back.
+fn plane_trials(
+    served: &sim::pty::ServedRobot,
+    states: &plane::Sub<telemetry::JointState>,
+    goals: &plane::Pub<GoalFrame>,
+    layout: &JointLayout,
+    elbow: usize,
+    trials: usize,
+) -> Result<Trials> {
+    let here = wait_state(states)?.joints()[elbow].position_rad;
+    let [lo, hi] = layout.joints()[elbow].range_rad;
+    let step = if here > (lo + hi) / 2.0 { -0.02 } else { 0.02 };
+    let mut out = Trials::with_capacity(trials);
+    for trial in 0..trials {
+        out.run(served, |now| {
+            let mut frame = GoalFrame {
+                seq: trial as u64 + 1,
+                timestamp_ns: now,
+                joint_count: layout.joint_count,
+                mask: 1 << elbow,
+                ..GoalFrame::default()
+            };
+            frame.position_rad[elbow] = here + if trial % 2 == 0 { step } else { 0.0 };
+            Ok(plane::publish(goals, &frame)?)
+        })?;
+    }
+    Ok(out)
+}
+
+/// Starts `nori-lab` on `domain` with a token of its own; gives it and its page's address.
+fn start_lab(domain: &str, dir: &std::path::Path, pid: u32) -> Result<(Managed, String)> {
+    let token = format!("bench-{pid}-{:016x}", monotonic_ns());
+    let token_file = dir.join("token");
+    std::fs::write(&token_file, &token)?;
+    let port = std::net::TcpListener::bind("127.0.0.1:0")?
+        .local_addr()?
+        .port();
+    let http = format!("127.0.0.1:{port}");
+    let mut lab = Managed::new(
+        "nori-lab",
+        &sibling("nori-lab")?,
+        &[
+            "--domain".into(),
+            domain.to_string(),
+            "--http".into(),
+            http.clone(),
+            "--token-file".into(),
+            token_file.display().to_string(),
+        ],
+    );
+    lab.log_to(&dir.join("lab.log"))?;
+    lab.capture_stdout();
+    lab.start()?;
+    std::thread::sleep(Duration::from_millis(500));
+    Ok((lab, format!("http://{http}/#token={token}")))
+}
+
+/// Opens the lab's page at `url` and, once its model is drawn, takes control of the left
+/// arm with the target where the tool is.
+fn open_page(chromium: &std::path::Path, url: &str, dir: &std::path::Path) -> Result<Browser> {
+    let mut page = Browser::open(chromium, url, dir)?;
+    let until = Instant::now() + Duration::from_secs(30);
+    while page
+        .eval("typeof lab !== 'undefined' && !!lab.model && lab.frames > 5")
+        .ok()
+        != Some(json!(true))
+    {
+        if Instant::now() > until {
+            bail!("the page did not come up (logs in {})", dir.display());
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    // In control: the target where the tool is.
+    page.eval(
+        "lab.setTool('left_arm', lab.state.arms[0].points[lab.state.arms[0].points.length - 1])",
+    )?;
+    std::thread::sleep(Duration::from_millis(500));
+    Ok(page)
+}
+
+/// The page's path: 5 mm forward, then back, by key presses, each a new target the arm's IK
+/// solves.
+fn page_trials(
+    served: &sim::pty::ServedRobot,
+    page: &mut Browser,
+    trials: usize,
+) -> Result<Trials> {
+    let mut out = Trials::with_capacity(trials);
+    for trial in 0..trials {
+        let key = if trial % 2 == 0 {
+            "ArrowUp"
+        } else {
+            "ArrowDown"
+        };
+        let ids = out.run(served, |_| Ok(page.send_key(key)?))?;
+        for id in ids {
+            page.answer(id, "Input.dispatchKeyEvent")?;
+        }
+    }
+    Ok(out)
+}
+
 /// Runs `nori bench lab-latency`.
 pub fn run(args: &LabLatencyArgs) -> Result<()> {
     let chromium = chromium().context("no chromium: deploy/install-build-deps.sh installs it")?;
@@ -120,111 +279,18 @@ pub fn run(args: &LabLatencyArgs) -> Result<()> {
     let states = node.subscriber(&plane::JOINT_STATE)?;
     let goals = node.publisher(&plane::GOALS)?;
     let layouts = node.subscriber(&plane::LAYOUT)?;
-    let until = Instant::now() + Duration::from_secs(30);
-    let layout = loop {
-        let driving = newest(&states).is_some_and(|s| {
-            s.flags & telemetry::frames::STATE_FLAG_SAFE_STATE == 0
-                && s.joints().iter().all(|j| j.is_valid())
-        });
-        if let Some(l) = newest(&layouts).filter(|_| driving) {
-            break l;
-        }
-        if Instant::now() > until {
-            bail!("the arm did not come up (logs in {})", dir.display());
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    };
+    let layout = wait_for_arm(&states, &layouts, &dir)?;
     let elbow = layout.joint_index("left_elbow").context("no left_elbow")?;
     let rate_without = driver_rate(&states, 3.0)?;
-
-    // The baseline: a goal straight on the plane, the elbow moved 0.02 rad (toward the middle
-    // of its range: a goal beyond it would be clamped to where it is) and back.
-    let here = wait_state(&states)?.joints()[elbow].position_rad;
-    let [lo, hi] = layout.joints()[elbow].range_rad;
-    let step = if here > (lo + hi) / 2.0 { -0.02 } else { 0.02 };
-    let mut plane_ms = Vec::with_capacity(args.trials);
-    let mut missed = 0;
-    for trial in 0..args.trials {
-        settle(&served);
-        let before = registers(&served);
-        let now = monotonic_ns();
-        let mut frame = GoalFrame {
-            seq: trial as u64 + 1,
-            timestamp_ns: now,
-            joint_count: layout.joint_count,
-            mask: 1 << elbow,
-            ..GoalFrame::default()
-        };
-        frame.position_rad[elbow] = here + if trial % 2 == 0 { step } else { 0.0 };
-        plane::publish(&goals, &frame)?;
-        match changed(&served, &before, now) {
-            Some(ms) => plane_ms.push(ms),
-            None => missed += 1,
-        }
-    }
+    let mut plane_trials = plane_trials(&served, &states, &goals, &layout, elbow, args.trials)?;
     drop(goals);
 
     // The lab and its page, in control of the left arm.
-    let token = format!("bench-{pid}-{:016x}", monotonic_ns());
-    let token_file = dir.join("token");
-    std::fs::write(&token_file, &token)?;
-    let port = std::net::TcpListener::bind("127.0.0.1:0")?
-        .local_addr()?
-        .port();
-    let http = format!("127.0.0.1:{port}");
-    let mut lab = Managed::new(
-        "nori-lab",
-        &sibling("nori-lab")?,
-        &[
-            "--domain".into(),
-            domain.clone(),
-            "--http".into(),
-            http.clone(),
-            "--token-file".into(),
-            token_file.display().to_string(),
-        ],
-    );
-    lab.log_to(&dir.join("lab.log"))?;
-    lab.capture_stdout();
-    lab.start()?;
-    std::thread::sleep(Duration::from_millis(500));
-    let mut page = Browser::open(&chromium, &format!("http://{http}/#token={token}"), &dir)?;
-    let until = Instant::now() + Duration::from_secs(30);
-    while page
-        .eval("typeof lab !== 'undefined' && !!lab.model && lab.frames > 5")
-        .ok()
-        != Some(json!(true))
-    {
-        if Instant::now() > until {
-            bail!("the page did not come up (logs in {})", dir.display());
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    // In control: the target where the tool is.
-    page.eval(
-        "lab.setTool('left_arm', lab.state.arms[0].points[lab.state.arms[0].points.length - 1])",
-    )?;
-    std::thread::sleep(Duration::from_millis(500));
+    let (mut lab, url) = start_lab(&domain, &dir, pid)?;
+    let mut page = open_page(&chromium, &url, &dir)?;
     let rate_started = (wait_state(&states)?.seq, Instant::now());
-    let mut page_ms = Vec::with_capacity(args.trials);
-    for trial in 0..args.trials {
-        settle(&served);
-        let before = registers(&served);
-        let now = monotonic_ns();
-        // 5 mm forward, then back: each a new target the arm's IK solves.
-        let ids = page.send_key(if trial % 2 == 0 {
-            "ArrowUp"
-        } else {
-            "ArrowDown"
-        })?;
-        match changed(&served, &before, now) {
-            Some(ms) => page_ms.push(ms),
-            None => missed += 1,
-        }
-        for id in ids {
-            page.answer(id, "Input.dispatchKeyEvent")?;
-        }
-    }
+    let mut page_trials = page_trials(&served, &mut page, args.trials)?;
+    let missed = plane_trials.missed + page_trials.missed;
     let last = wait_state(&states)?.seq;
     let rate_with = (last - rate_started.0) as f64 / rate_started.1.elapsed().as_secs_f64();
     let refused = page.eval("lab.replies.filter(r => !r.ok).map(r => r.error)")?;
@@ -241,8 +307,9 @@ pub fn run(args: &LabLatencyArgs) -> Result<()> {
     drop(served.stop());
     telemetry::plane::Plane::remove_unused_domain(&domain)?;
 
-    let (l50, l99) = summary(&mut page_ms);
-    let (p50, p99) = summary(&mut plane_ms);
+    let (page_ms, plane_ms) = (&mut page_trials.ms, &mut plane_trials.ms);
+    let (l50, l99) = summary(page_ms);
+    let (p50, p99) = summary(plane_ms);
     let out = json!({
         "trials_per_path": args.trials,
         "no_goal_within_500ms": missed,

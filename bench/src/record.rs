@@ -133,6 +133,66 @@ fn dir_bytes(dir: &Path) -> u64 {
         .unwrap_or(0)
 }
 
+/// `nori record` recording one episode of `args.seconds` from the `cameras` named into
+/// `dataset`.
+fn record_command(
+    args: &RecordVideoArgs,
+    domain: &str,
+    dataset: &Path,
+    cameras: &[String],
+) -> Result<Command> {
+    let mut cmd = Command::new(stack::sibling("nori")?);
+    cmd.args([
+        "record",
+        "--domain",
+        domain,
+        "--task",
+        "bench",
+        "--episodes",
+        "1",
+    ])
+    .args([
+        "--fps",
+        &args.fps.to_string(),
+        "--episode-s",
+        &args.seconds.to_string(),
+    ])
+    .arg("--dataset")
+    .arg(dataset);
+    for n in cameras {
+        cmd.args(["--camera", n]);
+    }
+    Ok(cmd)
+}
+
+/// The memory the recorder and its FFmpegs held at their peaks.
+struct RecordingPeaks {
+    /// The recorder's peak RSS, MB.
+    recorder_rss: f64,
+    /// Per FFmpeg: (peak RSS, peak anonymous RSS), MB.
+    ffmpeg: std::collections::BTreeMap<u32, (f64, f64)>,
+}
+
+/// Samples the recorder's and its FFmpegs' memory every 20 ms until the recorder exits.
+fn watch_recording(rec: &mut std::process::Child) -> Result<RecordingPeaks> {
+    let mut peaks = RecordingPeaks {
+        recorder_rss: 0.0,
+        ffmpeg: std::collections::BTreeMap::new(),
+    };
+    while rec.try_wait()?.is_none() {
+        peaks.recorder_rss = peaks
+            .recorder_rss
+            .max(bench::peak_rss_mb(rec.id()).unwrap_or(0.0));
+        for pid in bench::children_of(rec.id()) {
+            let e = peaks.ffmpeg.entry(pid).or_insert((0.0, 0.0));
+            e.0 = e.0.max(bench::peak_rss_mb(pid).unwrap_or(0.0));
+            e.1 = e.1.max(bench::rss_anon_mb(pid).unwrap_or(0.0));
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    Ok(peaks)
+}
+
 pub fn run(args: &RecordVideoArgs) -> Result<()> {
     if args.cameras == 0 || args.seconds.is_nan() || args.seconds < 2.0 {
         bail!("--cameras must be at least 1 and --seconds at least 2");
@@ -164,27 +224,7 @@ pub fn run(args: &RecordVideoArgs) -> Result<()> {
     // One episode recorded from every camera.
     let dataset = std::env::temp_dir().join(format!("nori-bench-record-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dataset);
-    let mut cmd = Command::new(stack::sibling("nori")?);
-    cmd.args([
-        "record",
-        "--domain",
-        &domain,
-        "--task",
-        "bench",
-        "--episodes",
-        "1",
-    ])
-    .args([
-        "--fps",
-        &args.fps.to_string(),
-        "--episode-s",
-        &args.seconds.to_string(),
-    ])
-    .arg("--dataset")
-    .arg(&dataset);
-    for n in &names {
-        cmd.args(["--camera", n]);
-    }
+    let mut cmd = record_command(args, &domain, &dataset, &names)?;
     let children_before = bench::children_cpu_seconds().context("/proc/self/stat")?;
     let (c1, t1) = (load.cpu_seconds(), Instant::now());
     let mut rec = cmd
@@ -192,18 +232,10 @@ pub fn run(args: &RecordVideoArgs) -> Result<()> {
         .stderr(Stdio::null())
         .spawn()
         .context("starting nori record")?;
-    let mut recorder_rss = 0.0f64;
-    // Per FFmpeg: (peak RSS, peak anonymous RSS), MB.
-    let mut ffmpeg = std::collections::BTreeMap::<u32, (f64, f64)>::new();
-    while rec.try_wait()?.is_none() {
-        recorder_rss = recorder_rss.max(bench::peak_rss_mb(rec.id()).unwrap_or(0.0));
-        for pid in bench::children_of(rec.id()) {
-            let e = ffmpeg.entry(pid).or_insert((0.0, 0.0));
-            e.0 = e.0.max(bench::peak_rss_mb(pid).unwrap_or(0.0));
-            e.1 = e.1.max(bench::rss_anon_mb(pid).unwrap_or(0.0));
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    let RecordingPeaks {
+        recorder_rss,
+        ffmpeg,
+    } = watch_recording(&mut rec)?;
     let wall = t1.elapsed().as_secs_f64();
     let capture_while_recording = (load.cpu_seconds() - c1) / wall;
     let output = rec.wait_with_output()?;

@@ -5,7 +5,7 @@
 
 use feetech::ServoModel;
 use serde::Deserialize;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashSet};
 use std::path::Path;
 use thiserror::Error;
 
@@ -395,174 +395,253 @@ impl RobotDescription {
         self.bus.iter().find(|b| b.name == name)
     }
 
+    /// Checks the description read from `origin` (and normalizes what it can, such as the
+    /// joints' axes); the first fault found is the error.
     fn validate(&mut self, origin: &str) -> Result<(), DescriptionError> {
-        let invalid = |key: String, reason: String| DescriptionError::Invalid {
-            path: origin.to_string(),
-            key,
-            reason,
-        };
-        for (key, rating) in &mut self.servo_models {
-            rating.model = match key.as_str() {
-                "sts3215" => ServoModel::Sts3215,
-                "sts3250" => ServoModel::Sts3250,
-                "sts3095" => ServoModel::Sts3095,
-                other => {
-                    return Err(invalid(
-                        format!("servo-models.{other}"),
-                        "unknown model (sts3215, sts3250, sts3095)".into(),
-                    ))
-                }
+        validate_servo_models(&mut self.servo_models, origin)?;
+        let mut names = HashSet::new();
+        for (index, bus) in self.bus.iter_mut().enumerate() {
+            let site = BusSite {
+                origin,
+                index,
+                name: &bus.name,
             };
-            let positive = [
-                ("rated-voltage", rating.rated_voltage),
-                ("stall-torque-kgcm", rating.stall_torque_kgcm),
-                ("stall-current-a", rating.stall_current_a),
-                ("no-load-speed-rad-s", rating.no_load_speed_rad_s),
-                ("gear-ratio", rating.gear_ratio),
-                ("armature-kgm2", rating.armature_kgm2),
-                ("heat-capacity-j-per-k", rating.heat_capacity_j_per_k),
-                (
-                    "thermal-resistance-k-per-w",
-                    rating.thermal_resistance_k_per_w,
-                ),
-            ];
-            for (name, v) in positive {
-                if !(v.is_finite() && v > 0.0) {
-                    return Err(invalid(
-                        format!("servo-models.{key}.{name}"),
-                        format!("must be > 0, got {v}"),
-                    ));
-                }
-            }
-        }
-        let mut names = std::collections::HashSet::new();
-        for (b, bus) in self.bus.iter_mut().enumerate() {
-            let at = |k: &str| format!("bus[{b}] ({}).{k}", bus.name);
             if !names.insert(bus.name.clone()) {
-                return Err(invalid(at("name"), "duplicate bus name".into()));
+                return Err(site.invalid("name", "duplicate bus name".into()));
             }
-            if feetech::timing::baud_code(bus.baud).is_none() {
-                return Err(invalid(
-                    at("baud"),
-                    format!("{} is not a baud rate the servos support", bus.baud),
-                ));
-            }
-            if !(bus.supply_v.is_finite() && bus.supply_v > 0.0) {
-                return Err(invalid(at("supply-v"), "must be > 0".into()));
-            }
-            let mut ids = std::collections::HashSet::new();
-            for s in &bus.servo {
-                if s.id > feetech::MAX_ID || !ids.insert(s.id) {
-                    return Err(invalid(
-                        at("servo.id"),
-                        format!("id {} is invalid or duplicated", s.id),
-                    ));
-                }
-                if !self.servo_models.contains_key(&s.model) {
-                    return Err(invalid(
-                        at("servo.model"),
-                        format!("unknown model {:?} for id {}", s.model, s.id),
-                    ));
-                }
-            }
-            let known = |id: u8| ids.contains(&id);
+            let ids = validate_bus_servos(bus, &self.servo_models, &site)?;
             if let Some(arm) = &mut bus.arm {
-                for j in &mut arm.joint {
-                    if !known(j.servo) {
-                        return Err(invalid(
-                            at("arm.joint.servo"),
-                            format!("servo {} is not on this bus", j.servo),
-                        ));
-                    }
-                    let n = (j.axis[0].powi(2) + j.axis[1].powi(2) + j.axis[2].powi(2)).sqrt();
-                    if !(n > 1e-9 && n.is_finite()) {
-                        return Err(invalid(
-                            at("arm.joint.axis"),
-                            "axis must be a non-zero vector".into(),
-                        ));
-                    }
-                    j.axis = j.axis.map(|c| c / n);
-                    if j.lower_rad >= j.upper_rad {
-                        return Err(invalid(
-                            at("arm.joint.lower-rad"),
-                            "lower stop must be below upper stop".into(),
-                        ));
-                    }
-                }
-                if let Some(g) = &arm.gripper {
-                    if !known(g.servo) {
-                        return Err(invalid(
-                            at("arm.gripper.servo"),
-                            format!("servo {} is not on this bus", g.servo),
-                        ));
-                    }
-                }
+                validate_arm(arm, &ids, &site)?;
             }
             if let Some(w) = &bus.wheels {
-                if let Some(&id) = w.servos.iter().find(|&&id| !known(id)) {
-                    return Err(invalid(
-                        at("wheels.servos"),
-                        format!("servo {id} is not on this bus"),
-                    ));
-                }
-                let geometry = [("wheel-radius-m", w.wheel_radius_m), ("track-m", w.track_m)];
-                if let Some((key, value)) = geometry
-                    .iter()
-                    .find(|(_, v)| v.is_some_and(|v| !(v.is_finite() && v > 0.0)))
-                {
-                    return Err(invalid(
-                        at(&format!("wheels.{key}")),
-                        format!("{value:?} m: a positive length"),
-                    ));
-                }
-                if w.wheel_radius_m.is_some() && (w.servos.len() != 2 || w.track_m.is_none()) {
-                    return Err(invalid(
-                        at("wheels"),
-                        "a moving base has two wheel servos (left, right) and a track-m".into(),
-                    ));
-                }
-                let footprint = w.footprint_m;
-                if !footprint
-                    .iter()
-                    .all(|v| v.is_finite() && *v > 0.0 && *v < 5.0)
-                {
-                    return Err(invalid(
-                        at("wheels.footprint-m"),
-                        format!("{footprint:?} m: two lengths above 0 and below 5 m"),
-                    ));
-                }
-                if !w.start.iter().all(|v| v.is_finite()) {
-                    return Err(invalid(at("wheels.start"), "a finite pose".into()));
-                }
+                validate_wheels(w, &ids, &site)?;
             }
         }
         if let Some(l) = &self.lidar {
-            let checks = [
-                ("lidar.rotation-hz", l.rotation_hz, 1.0, 20.0),
-                ("lidar.sample-rate-hz", l.sample_rate_hz, 100.0, 20_000.0),
-                ("lidar.range-m", l.range_m, 0.1, 100.0),
-                ("lidar.noise-m", l.noise_m, 0.0, 1.0),
-                ("lidar.yaw-deg", l.yaw_deg, -360.0, 360.0),
-            ];
-            for (key, v, lo, hi) in checks {
-                if !(v.is_finite() && (lo..=hi).contains(&v)) {
-                    return Err(invalid(key.into(), format!("{v}: {lo} to {hi}")));
-                }
-            }
-            if !l.position.iter().all(|v| v.is_finite()) {
-                return Err(invalid("lidar.position".into(), "must be finite".into()));
-            }
+            validate_lidar(l, origin)?;
         }
         if let Some(room) = &self.room {
-            if room.walls.len() < 3 || !room.walls.iter().flatten().all(|v| v.is_finite()) {
-                return Err(invalid(
-                    "room.walls".into(),
-                    "a closed polygon needs at least three finite corners".into(),
-                ));
-            }
+            validate_room(room, origin)?;
         }
         Ok(())
     }
+}
+
+/// The error for `key` of the description read from `origin`.
+fn invalid(origin: &str, key: String, reason: String) -> DescriptionError {
+    DescriptionError::Invalid {
+        path: origin.to_string(),
+        key,
+        reason,
+    }
+}
+
+/// Where a bus's faults are reported: its file and its `bus[i] (name)` key.
+struct BusSite<'a> {
+    origin: &'a str,
+    index: usize,
+    name: &'a str,
+}
+
+impl BusSite<'_> {
+    /// The error for `key` within this bus.
+    fn invalid(&self, key: &str, reason: String) -> DescriptionError {
+        invalid(
+            self.origin,
+            format!("bus[{}] ({}).{key}", self.index, self.name),
+            reason,
+        )
+    }
+
+    /// The error for a servo `id` that `key` names but the bus does not carry.
+    fn not_on_bus(&self, key: &str, id: u8) -> DescriptionError {
+        self.invalid(key, format!("servo {id} is not on this bus"))
+    }
+}
+
+/// Each servo model is one this stack knows (its key sets the rating's model) and its
+/// ratings are positive.
+fn validate_servo_models(
+    servo_models: &mut BTreeMap<String, ServoRating>,
+    origin: &str,
+) -> Result<(), DescriptionError> {
+    for (key, rating) in servo_models {
+        rating.model = match key.as_str() {
+            "sts3215" => ServoModel::Sts3215,
+            "sts3250" => ServoModel::Sts3250,
+            "sts3095" => ServoModel::Sts3095,
+            other => {
+                return Err(invalid(
+                    origin,
+                    format!("servo-models.{other}"),
+                    "unknown model (sts3215, sts3250, sts3095)".into(),
+                ))
+            }
+        };
+        let positive = [
+            ("rated-voltage", rating.rated_voltage),
+            ("stall-torque-kgcm", rating.stall_torque_kgcm),
+            ("stall-current-a", rating.stall_current_a),
+            ("no-load-speed-rad-s", rating.no_load_speed_rad_s),
+            ("gear-ratio", rating.gear_ratio),
+            ("armature-kgm2", rating.armature_kgm2),
+            ("heat-capacity-j-per-k", rating.heat_capacity_j_per_k),
+            (
+                "thermal-resistance-k-per-w",
+                rating.thermal_resistance_k_per_w,
+            ),
+        ];
+        for (name, v) in positive {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(invalid(
+                    origin,
+                    format!("servo-models.{key}.{name}"),
+                    format!("must be > 0, got {v}"),
+                ));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// A bus's line (baud, supply) and its servos: ids unique and in range, models known.
+/// Gives the ids on the bus, which its arm and wheels may name.
+fn validate_bus_servos(
+    bus: &BusDescription,
+    servo_models: &BTreeMap<String, ServoRating>,
+    site: &BusSite,
+) -> Result<HashSet<u8>, DescriptionError> {
+    if feetech::timing::baud_code(bus.baud).is_none() {
+        return Err(site.invalid(
+            "baud",
+            format!("{} is not a baud rate the servos support", bus.baud),
+        ));
+    }
+    if !(bus.supply_v.is_finite() && bus.supply_v > 0.0) {
+        return Err(site.invalid("supply-v", "must be > 0".into()));
+    }
+    let mut ids = HashSet::new();
+    for s in &bus.servo {
+        if s.id > feetech::MAX_ID || !ids.insert(s.id) {
+            return Err(site.invalid("servo.id", format!("id {} is invalid or duplicated", s.id)));
+        }
+        if !servo_models.contains_key(&s.model) {
+            return Err(site.invalid(
+                "servo.model",
+                format!("unknown model {:?} for id {}", s.model, s.id),
+            ));
+        }
+    }
+    Ok(ids)
+}
+
+/// An arm's joints (servo on the bus, a non-zero axis, made unit here, stops in order) and
+/// its gripper's servo.
+fn validate_arm(
+    arm: &mut ArmDescription,
+    ids: &HashSet<u8>,
+    site: &BusSite,
+) -> Result<(), DescriptionError> {
+    for j in &mut arm.joint {
+        if !ids.contains(&j.servo) {
+            return Err(site.not_on_bus("arm.joint.servo", j.servo));
+        }
+        let n = (j.axis[0].powi(2) + j.axis[1].powi(2) + j.axis[2].powi(2)).sqrt();
+        if !(n > 1e-9 && n.is_finite()) {
+            return Err(site.invalid("arm.joint.axis", "axis must be a non-zero vector".into()));
+        }
+        j.axis = j.axis.map(|c| c / n);
+        if j.lower_rad >= j.upper_rad {
+            return Err(site.invalid(
+                "arm.joint.lower-rad",
+                "lower stop must be below upper stop".into(),
+            ));
+        }
+    }
+    if let Some(g) = &arm.gripper {
+        if !ids.contains(&g.servo) {
+            return Err(site.not_on_bus("arm.gripper.servo", g.servo));
+        }
+    }
+    Ok(())
+}
+
+/// A base's wheels: servos on the bus, a positive geometry, two wheels and a track when it
+/// moves, a footprint and a finite start pose.
+fn validate_wheels(
+    w: &WheelsDescription,
+    ids: &HashSet<u8>,
+    site: &BusSite,
+) -> Result<(), DescriptionError> {
+    if let Some(&id) = w.servos.iter().find(|&&id| !ids.contains(&id)) {
+        return Err(site.not_on_bus("wheels.servos", id));
+    }
+    let geometry = [("wheel-radius-m", w.wheel_radius_m), ("track-m", w.track_m)];
+    if let Some((key, value)) = geometry
+        .iter()
+        .find(|(_, v)| v.is_some_and(|v| !(v.is_finite() && v > 0.0)))
+    {
+        return Err(site.invalid(
+            &format!("wheels.{key}"),
+            format!("{value:?} m: a positive length"),
+        ));
+    }
+    if w.wheel_radius_m.is_some() && (w.servos.len() != 2 || w.track_m.is_none()) {
+        return Err(site.invalid(
+            "wheels",
+            "a moving base has two wheel servos (left, right) and a track-m".into(),
+        ));
+    }
+    let footprint = w.footprint_m;
+    if !footprint
+        .iter()
+        .all(|v| v.is_finite() && *v > 0.0 && *v < 5.0)
+    {
+        return Err(site.invalid(
+            "wheels.footprint-m",
+            format!("{footprint:?} m: two lengths above 0 and below 5 m"),
+        ));
+    }
+    if !w.start.iter().all(|v| v.is_finite()) {
+        return Err(site.invalid("wheels.start", "a finite pose".into()));
+    }
+    Ok(())
+}
+
+/// The lidar's rates, range, noise and yaw within their bounds, and a finite position.
+fn validate_lidar(l: &LidarDescription, origin: &str) -> Result<(), DescriptionError> {
+    let checks = [
+        ("lidar.rotation-hz", l.rotation_hz, 1.0, 20.0),
+        ("lidar.sample-rate-hz", l.sample_rate_hz, 100.0, 20_000.0),
+        ("lidar.range-m", l.range_m, 0.1, 100.0),
+        ("lidar.noise-m", l.noise_m, 0.0, 1.0),
+        ("lidar.yaw-deg", l.yaw_deg, -360.0, 360.0),
+    ];
+    for (key, v, lo, hi) in checks {
+        if !(v.is_finite() && (lo..=hi).contains(&v)) {
+            return Err(invalid(origin, key.into(), format!("{v}: {lo} to {hi}")));
+        }
+    }
+    if !l.position.iter().all(|v| v.is_finite()) {
+        return Err(invalid(
+            origin,
+            "lidar.position".into(),
+            "must be finite".into(),
+        ));
+    }
+    Ok(())
+}
+
+/// The room's walls: a closed polygon of finite corners.
+fn validate_room(room: &RoomDescription, origin: &str) -> Result<(), DescriptionError> {
+    if room.walls.len() < 3 || !room.walls.iter().flatten().all(|v| v.is_finite()) {
+        return Err(invalid(
+            origin,
+            "room.walls".into(),
+            "a closed polygon needs at least three finite corners".into(),
+        ));
+    }
+    Ok(())
 }
 
 #[cfg(test)]

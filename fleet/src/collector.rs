@@ -392,223 +392,44 @@ impl Collector {
 
     /// The Prometheus text exposition of the fleet.
     pub fn metrics(&self) -> String {
-        type Labels = Vec<(String, String)>;
-        let gauge = || Family::<Labels, Gauge<f64, AtomicU64>>::default();
-        let counter = || Family::<Labels, Counter>::default();
-        let (online, safe, temperature, current, valid) =
-            (gauge(), gauge(), gauge(), gauge(), gauge());
-        let (misses, states, events, accepted, rejected, undecodable, refused) = (
-            counter(),
-            counter(),
-            counter(),
-            counter(),
-            counter(),
-            counter(),
-            counter(),
-        );
-        let (bus_connected, bus_cycles, bus_errors) = (gauge(), counter(), counter());
-        let (camera_frames, camera_lost, camera_age) = (counter(), counter(), gauge());
-        let (lidar_scans, lidar_lost, lidar_age, lidar_hz) =
-            (counter(), counter(), gauge(), gauge());
-        let label = |pairs: &[(&str, &str)]| -> Labels {
-            pairs
-                .iter()
-                .map(|(k, v)| (k.to_string(), v.to_string()))
-                .collect()
-        };
+        let robot = RobotMetrics::default();
+        let joints = JointMetrics::default();
+        let buses = BusMetrics::default();
+        let cameras = CameraMetrics::default();
+        let lidar = LidarMetrics::default();
         for (id, r) in &self.robots {
-            let robot = label(&[("robot", id)]);
-            online
-                .get_or_create(&robot)
-                .set(f64::from(u8::from(r.alive)));
-            states.get_or_create(&robot).inc_by(r.states_received);
-            for (kind, n) in &r.event_counts {
-                events
-                    .get_or_create(&label(&[("robot", id), ("kind", kind)]))
-                    .inc_by(*n);
-            }
-            // An offline robot's last readings are not exported as live: a dashboard or an
-            // alert would read a motor that may have cooled, or cooked, since.
-            if let Some(s) = r.last_state.as_ref().filter(|_| !r.offline) {
-                safe.get_or_create(&robot)
-                    .set(f64::from(u8::from(s.safe_state)));
-                misses.get_or_create(&robot).inc_by(s.deadline_misses);
-                let names = joint_names(r);
-                for (i, j) in s.joints.iter().enumerate() {
-                    let fallback = format!("joint{i}");
-                    let name = names.get(i).map_or(fallback.as_str(), |n| n.as_str());
-                    let joint = label(&[("robot", id), ("joint", name)]);
-                    valid
-                        .get_or_create(&joint)
-                        .set(f64::from(u8::from(j.valid)));
-                    // A servo missing this cycle has no temperature or current: no sample
-                    // rather than a made-up one.
-                    if j.valid && j.temperature_c.is_finite() {
-                        temperature
-                            .get_or_create(&joint)
-                            .set(f64::from(j.temperature_c));
-                    }
-                    if j.valid && j.current_a.is_finite() {
-                        current.get_or_create(&joint).set(f64::from(j.current_a));
-                    }
-                }
-            }
-            for b in r.status.iter().flat_map(|s| &s.buses) {
-                let labels = label(&[("robot", id), ("bus", &b.name)]);
-                bus_connected
-                    .get_or_create(&labels)
-                    .set(f64::from(u8::from(b.connected)));
-                bus_cycles.get_or_create(&labels).inc_by(b.counters.cycles);
-                for (kind, n) in b.counters.errors() {
-                    bus_errors
-                        .get_or_create(&label(&[("robot", id), ("bus", &b.name), ("kind", kind)]))
-                        .inc_by(n);
-                }
-            }
-            for c in r.status.iter().flat_map(|s| &s.cameras) {
-                let labels = label(&[("robot", id), ("camera", &c.name)]);
-                camera_frames.get_or_create(&labels).inc_by(c.frames);
-                for (kind, n) in [
-                    ("dropped", c.dropped),
-                    ("corrupt", c.corrupt),
-                    ("late", c.late),
-                ] {
-                    camera_lost
-                        .get_or_create(&label(&[
-                            ("robot", id),
-                            ("camera", &c.name),
-                            ("kind", kind),
-                        ]))
-                        .inc_by(n);
-                }
-                if let Some(ms) = c.age_ms {
-                    camera_age.get_or_create(&labels).set(ms * 1e-3);
-                }
-            }
-            if let Some(l) = r.status.as_ref().and_then(|s| s.lidar.as_ref()) {
-                lidar_scans.get_or_create(&robot).inc_by(l.scans);
-                for (kind, n) in [
-                    ("bad_points", l.bad_points),
-                    ("resyncs", l.resyncs),
-                    ("short_scans", l.short_scans),
-                ] {
-                    lidar_lost
-                        .get_or_create(&label(&[("robot", id), ("kind", kind)]))
-                        .inc_by(n);
-                }
-                if let Some(ms) = l.age_ms {
-                    lidar_age.get_or_create(&robot).set(ms * 1e-3);
-                }
-                if let Some(hz) = l.rotation_hz {
-                    lidar_hz.get_or_create(&robot).set(hz);
-                }
-            }
-            if let Some(c) = r.status.as_ref().map(|s| &s.counters) {
-                accepted.get_or_create(&robot).inc_by(c.actions_accepted);
-                for (reason, n) in &c.actions_rejected {
-                    rejected
-                        .get_or_create(&label(&[("robot", id), ("reason", reason)]))
-                        .inc_by(*n);
-                }
-            }
+            robot.observe(id, r);
+            joints.observe(id, r);
+            buses.observe(id, r);
+            cameras.observe(id, r);
+            lidar.observe(id, r);
         }
+        // The families are written in the order they are registered.
+        let mut registry = Registry::with_prefix("nori");
+        robot.register(&mut registry);
+        joints.register(&mut registry);
+        buses.register(&mut registry);
+        cameras.register(&mut registry);
+        lidar.register(&mut registry);
+        self.register_collector_metrics(&mut registry);
+        let mut text = String::new();
+        // Writing into a String cannot fail.
+        let _ = encode(&mut text, &registry);
+        text
+    }
+
+    /// The collector's own counts: messages undecodable, copies of events, messages refused.
+    fn register_collector_metrics(&self, registry: &mut Registry) {
+        let undecodable = Counters::default();
         for (kind, n) in &self.undecodable {
             undecodable
-                .get_or_create(&label(&[("key", kind)]))
+                .get_or_create(&labels(&[("key", kind)]))
                 .inc_by(*n);
         }
+        let refused = Counters::default();
         for (kind, n) in &self.refused {
-            refused.get_or_create(&label(&[("key", kind)])).inc_by(*n);
+            refused.get_or_create(&labels(&[("key", kind)])).inc_by(*n);
         }
-        let mut registry = Registry::with_prefix("nori");
-        registry.register(
-            "robot_online",
-            "1 while the robot's liveliness token is present",
-            online,
-        );
-        registry.register(
-            "robot_safe_state",
-            "1 while the driver holds its safe state",
-            safe,
-        );
-        registry.register(
-            "robot_deadline_misses",
-            "control cycles that missed their deadline (driver's count)",
-            misses,
-        );
-        registry.register(
-            "robot_state_messages",
-            "telemetry messages received from the robot",
-            states,
-        );
-        registry.register(
-            "robot_events",
-            "journaled events by kind (supervisor and agent), each counted once",
-            events,
-        );
-        registry.register(
-            "robot_actions_accepted",
-            "action chunks the robot's gate accepted",
-            accepted,
-        );
-        registry.register(
-            "robot_actions_rejected",
-            "action chunks the robot's gate rejected, by reason",
-            rejected,
-        );
-        registry.register(
-            "joint_temperature_celsius",
-            "servo temperature register",
-            temperature,
-        );
-        registry.register("joint_current_amperes", "servo current", current);
-        registry.register(
-            "joint_valid",
-            "1 when the servo answered in the last telemetry frame",
-            valid,
-        );
-        registry.register(
-            "bus_connected",
-            "1 while the robot's bus device is open (driver's view, from the agent's status)",
-            bus_connected,
-        );
-        registry.register("bus_cycles", "feedback transactions on the bus", bus_cycles);
-        registry.register(
-            "bus_errors",
-            "the driver's error counts on the bus, by kind (see telemetry::frames::BusCounters)",
-            bus_errors,
-        );
-        registry.register(
-            "camera_frames",
-            "frames the robot's camera process published (agent's status)",
-            camera_frames,
-        );
-        registry.register(
-            "camera_frames_lost",
-            "camera frames dropped, refused as corrupt, or published late (over two periods), by kind",
-            camera_lost,
-        );
-        registry.register(
-            "camera_frame_age_seconds",
-            "age of the camera's newest frame when the agent answered",
-            camera_age,
-        );
-        registry.register(
-            "lidar_scans",
-            "revolutions the robot's lidar process published",
-            lidar_scans,
-        );
-        registry.register(
-            "lidar_faults",
-            "lidar measurements unconfirmed, stream resyncs, revolutions dropped as short, by kind",
-            lidar_lost,
-        );
-        registry.register(
-            "lidar_scan_age_seconds",
-            "age of the lidar's newest revolution when the agent answered",
-            lidar_age,
-        );
-        registry.register("lidar_rotation_hz", "revolutions per second", lidar_hz);
         registry.register(
             "fleet_undecodable_messages",
             "messages the collector could not decode, by key",
@@ -626,10 +447,308 @@ impl Collector {
             "messages that decoded but were refused (a thumbnail that is no JPEG, a broken scan), by key",
             refused,
         );
-        let mut text = String::new();
-        // Writing into a String cannot fail.
-        let _ = encode(&mut text, &registry);
-        text
+    }
+}
+
+/// A metric's labels, as name and value.
+type Labels = Vec<(String, String)>;
+/// A family of gauges, one per set of labels.
+type Gauges = Family<Labels, Gauge<f64, AtomicU64>>;
+/// A family of counters, one per set of labels.
+type Counters = Family<Labels, Counter>;
+
+/// Labels from borrowed pairs.
+fn labels(pairs: &[(&str, &str)]) -> Labels {
+    pairs
+        .iter()
+        .map(|(k, v)| (k.to_string(), v.to_string()))
+        .collect()
+}
+
+/// A flag as a gauge's value: 1 when set.
+fn flag(set: bool) -> f64 {
+    f64::from(u8::from(set))
+}
+
+/// The robot's last state, unless the robot is offline. An offline robot's last readings are
+/// not exported as live: a dashboard or an alert would read a motor that may have cooled, or
+/// cooked, since.
+fn live_state(r: &Robot) -> Option<&StateMsg> {
+    r.last_state.as_ref().filter(|_| !r.offline)
+}
+
+/// Each robot's liveliness, safe state, messages, events and the gate's verdicts.
+#[derive(Default)]
+struct RobotMetrics {
+    online: Gauges,
+    safe: Gauges,
+    misses: Counters,
+    states: Counters,
+    events: Counters,
+    accepted: Counters,
+    rejected: Counters,
+}
+
+impl RobotMetrics {
+    fn observe(&self, id: &str, r: &Robot) {
+        let robot = labels(&[("robot", id)]);
+        self.online.get_or_create(&robot).set(flag(r.alive));
+        self.states.get_or_create(&robot).inc_by(r.states_received);
+        for (kind, n) in &r.event_counts {
+            self.events
+                .get_or_create(&labels(&[("robot", id), ("kind", kind)]))
+                .inc_by(*n);
+        }
+        if let Some(s) = live_state(r) {
+            self.safe.get_or_create(&robot).set(flag(s.safe_state));
+            self.misses.get_or_create(&robot).inc_by(s.deadline_misses);
+        }
+        if let Some(c) = r.status.as_ref().map(|s| &s.counters) {
+            self.accepted
+                .get_or_create(&robot)
+                .inc_by(c.actions_accepted);
+            for (reason, n) in &c.actions_rejected {
+                self.rejected
+                    .get_or_create(&labels(&[("robot", id), ("reason", reason)]))
+                    .inc_by(*n);
+            }
+        }
+    }
+
+    fn register(self, registry: &mut Registry) {
+        registry.register(
+            "robot_online",
+            "1 while the robot's liveliness token is present",
+            self.online,
+        );
+        registry.register(
+            "robot_safe_state",
+            "1 while the driver holds its safe state",
+            self.safe,
+        );
+        registry.register(
+            "robot_deadline_misses",
+            "control cycles that missed their deadline (driver's count)",
+            self.misses,
+        );
+        registry.register(
+            "robot_state_messages",
+            "telemetry messages received from the robot",
+            self.states,
+        );
+        registry.register(
+            "robot_events",
+            "journaled events by kind (supervisor and agent), each counted once",
+            self.events,
+        );
+        registry.register(
+            "robot_actions_accepted",
+            "action chunks the robot's gate accepted",
+            self.accepted,
+        );
+        registry.register(
+            "robot_actions_rejected",
+            "action chunks the robot's gate rejected, by reason",
+            self.rejected,
+        );
+    }
+}
+
+/// Each live robot's servos: temperature, current, whether they answered.
+#[derive(Default)]
+struct JointMetrics {
+    temperature: Gauges,
+    current: Gauges,
+    valid: Gauges,
+}
+
+impl JointMetrics {
+    fn observe(&self, id: &str, r: &Robot) {
+        let Some(s) = live_state(r) else {
+            return;
+        };
+        let names = joint_names(r);
+        for (i, j) in s.joints.iter().enumerate() {
+            let fallback = format!("joint{i}");
+            let name = names.get(i).map_or(fallback.as_str(), |n| n.as_str());
+            let joint = labels(&[("robot", id), ("joint", name)]);
+            self.valid.get_or_create(&joint).set(flag(j.valid));
+            // A servo missing this cycle has no temperature or current: no sample
+            // rather than a made-up one.
+            if j.valid && j.temperature_c.is_finite() {
+                self.temperature
+                    .get_or_create(&joint)
+                    .set(f64::from(j.temperature_c));
+            }
+            if j.valid && j.current_a.is_finite() {
+                self.current
+                    .get_or_create(&joint)
+                    .set(f64::from(j.current_a));
+            }
+        }
+    }
+
+    fn register(self, registry: &mut Registry) {
+        registry.register(
+            "joint_temperature_celsius",
+            "servo temperature register",
+            self.temperature,
+        );
+        registry.register("joint_current_amperes", "servo current", self.current);
+        registry.register(
+            "joint_valid",
+            "1 when the servo answered in the last telemetry frame",
+            self.valid,
+        );
+    }
+}
+
+/// Each robot's buses, from its agent's status: connected, cycles, errors by kind.
+#[derive(Default)]
+struct BusMetrics {
+    connected: Gauges,
+    cycles: Counters,
+    errors: Counters,
+}
+
+impl BusMetrics {
+    fn observe(&self, id: &str, r: &Robot) {
+        for b in r.status.iter().flat_map(|s| &s.buses) {
+            let bus = labels(&[("robot", id), ("bus", &b.name)]);
+            self.connected.get_or_create(&bus).set(flag(b.connected));
+            self.cycles.get_or_create(&bus).inc_by(b.counters.cycles);
+            for (kind, n) in b.counters.errors() {
+                self.errors
+                    .get_or_create(&labels(&[("robot", id), ("bus", &b.name), ("kind", kind)]))
+                    .inc_by(n);
+            }
+        }
+    }
+
+    fn register(self, registry: &mut Registry) {
+        registry.register(
+            "bus_connected",
+            "1 while the robot's bus device is open (driver's view, from the agent's status)",
+            self.connected,
+        );
+        registry.register(
+            "bus_cycles",
+            "feedback transactions on the bus",
+            self.cycles,
+        );
+        registry.register(
+            "bus_errors",
+            "the driver's error counts on the bus, by kind (see telemetry::frames::BusCounters)",
+            self.errors,
+        );
+    }
+}
+
+/// Each robot's cameras, from its agent's status: frames, frames lost by kind, age.
+#[derive(Default)]
+struct CameraMetrics {
+    frames: Counters,
+    lost: Counters,
+    age: Gauges,
+}
+
+impl CameraMetrics {
+    fn observe(&self, id: &str, r: &Robot) {
+        for c in r.status.iter().flat_map(|s| &s.cameras) {
+            let camera = labels(&[("robot", id), ("camera", &c.name)]);
+            self.frames.get_or_create(&camera).inc_by(c.frames);
+            for (kind, n) in [
+                ("dropped", c.dropped),
+                ("corrupt", c.corrupt),
+                ("late", c.late),
+            ] {
+                self.lost
+                    .get_or_create(&labels(&[
+                        ("robot", id),
+                        ("camera", &c.name),
+                        ("kind", kind),
+                    ]))
+                    .inc_by(n);
+            }
+            if let Some(ms) = c.age_ms {
+                self.age.get_or_create(&camera).set(ms * 1e-3);
+            }
+        }
+    }
+
+    fn register(self, registry: &mut Registry) {
+        registry.register(
+            "camera_frames",
+            "frames the robot's camera process published (agent's status)",
+            self.frames,
+        );
+        registry.register(
+            "camera_frames_lost",
+            "camera frames dropped, refused as corrupt, or published late (over two periods), by kind",
+            self.lost,
+        );
+        registry.register(
+            "camera_frame_age_seconds",
+            "age of the camera's newest frame when the agent answered",
+            self.age,
+        );
+    }
+}
+
+/// Each robot's lidar, from its agent's status: scans, faults by kind, age, rotation.
+#[derive(Default)]
+struct LidarMetrics {
+    scans: Counters,
+    faults: Counters,
+    age: Gauges,
+    rotation_hz: Gauges,
+}
+
+impl LidarMetrics {
+    fn observe(&self, id: &str, r: &Robot) {
+        let Some(l) = r.status.as_ref().and_then(|s| s.lidar.as_ref()) else {
+            return;
+        };
+        let robot = labels(&[("robot", id)]);
+        self.scans.get_or_create(&robot).inc_by(l.scans);
+        for (kind, n) in [
+            ("bad_points", l.bad_points),
+            ("resyncs", l.resyncs),
+            ("short_scans", l.short_scans),
+        ] {
+            self.faults
+                .get_or_create(&labels(&[("robot", id), ("kind", kind)]))
+                .inc_by(n);
+        }
+        if let Some(ms) = l.age_ms {
+            self.age.get_or_create(&robot).set(ms * 1e-3);
+        }
+        if let Some(hz) = l.rotation_hz {
+            self.rotation_hz.get_or_create(&robot).set(hz);
+        }
+    }
+
+    fn register(self, registry: &mut Registry) {
+        registry.register(
+            "lidar_scans",
+            "revolutions the robot's lidar process published",
+            self.scans,
+        );
+        registry.register(
+            "lidar_faults",
+            "lidar measurements unconfirmed, stream resyncs, revolutions dropped as short, by kind",
+            self.faults,
+        );
+        registry.register(
+            "lidar_scan_age_seconds",
+            "age of the lidar's newest revolution when the agent answered",
+            self.age,
+        );
+        registry.register(
+            "lidar_rotation_hz",
+            "revolutions per second",
+            self.rotation_hz,
+        );
     }
 }
 

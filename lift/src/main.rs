@@ -76,7 +76,6 @@ fn serve(args: &Args) -> Result<()> {
     node.cleanup_dead();
     let commands = node.subscriber(&plane::LIFT_COMMAND)?;
     let allowances = node.subscriber(&plane::LIFT_ALLOWANCE)?;
-    let mut allowance = None::<LiftAllowance>;
     let states = node.publisher(&plane::LIFT_STATE)?;
     let mut service = ServiceManager::from_env();
     service.ready("homing the lift");
@@ -98,10 +97,7 @@ fn serve(args: &Args) -> Result<()> {
         None => controller.home(),
     }
     let mut decoder = Decoder::new();
-    let (mut reading, mut heard) = (None::<LiftReading>, Instant::now());
-    let (mut velocity, mut faults) = (0.0, 0u8);
-    let mut counters = Counters::default();
-    let mut refusing = None::<String>;
+    let mut lift = LiftLoop::new(controller);
     let mut out = [0u8; 21];
     let mut buf = [0u8; 256];
     let started = Instant::now();
@@ -111,111 +107,211 @@ fn serve(args: &Args) -> Result<()> {
     {
         service.keepalive(Instant::now());
         let now_ns = monotonic_ns();
-        let t_s = now_ns as f64 * 1e-9;
-        let fresh = newest_status(&mut port, &mut decoder, &mut buf);
-        if let Some(s) = fresh {
-            counters.statuses += 1;
-            heard = Instant::now();
-            faults = s.faults;
-            let over_current = s.faults & board::FAULT_OVER_CURRENT != 0;
-            counters.board_over_current += u64::from(over_current);
-            reading = Some(LiftReading {
-                t_s,
-                counts: i64::from(s.counts),
-                current_a: f64::from(s.current_ma) * 1e-3,
-                at_lower: s.switches & 1 != 0,
-                at_upper: s.switches & 2 != 0,
-                over_current,
-            });
-        }
-        let lost = heard.elapsed() > config.silence;
-        if lost && reading.take().is_some() {
-            // The board may have restarted (its counts with it): home again once it is back.
-            tracing::warn!("the lift's board went silent: homing again when it answers");
-            counters.link_losses += 1;
-            position_lost(&mut controller);
-        }
+        let fresh = lift.read_board(&mut port, &mut decoder, &mut buf, now_ns as f64 * 1e-9);
+        let lost = lift.check_link(config.silence);
         // The supervisor's word first: an operator's stop drops the goal before any command
         // of this period is taken.
-        if let Some(a) = newest(&allowances) {
-            // A stop counted since the last one seen drops the goal, even if a resume came
-            // before this period saw it in force.
-            if allowance.is_some_and(|b| b.stops != a.stops) {
-                controller.set_travel(Travel::OperatorStop);
-            }
-            allowance = Some(a);
-        }
-        let (travel, duty_wait_s) = travel(allowance, now_ns);
-        controller.set_travel(travel);
-        while let Some(c) = next(&commands) {
-            counters.commands += 1;
-            let outcome = take_command(&mut controller, &c, now_ns, max_age_ns);
-            counters.releases += u32::from(outcome == Ok(Taken::Released));
-            match outcome {
-                Ok(_) => refusing = None,
-                Err(why) => {
-                    counters.commands_refused += 1;
-                    // Said once per reason, not at the rate a plan streams it.
-                    if refusing.as_ref() != Some(&why) {
-                        tracing::warn!(seq = c.seq, "lift command refused: {why}");
-                        refusing = Some(why);
-                    }
-                }
-            }
-        }
-        if let (Some(r), Some(_)) = (reading, fresh) {
-            let (v, event) = controller.step(&r);
-            velocity = v;
-            if let Some(e) = event {
-                counters.obstructions += u32::from(matches!(e, LiftEvent::Obstruction { .. }));
-                if matches!(e, LiftEvent::CountsJumped { .. }) {
-                    counters.count_jumps += 1;
-                    position_lost(&mut controller);
-                }
-                log_event(e);
-            }
-        } else {
-            velocity = unread_speed(velocity, heard.elapsed(), period, travel);
-        }
-        hold.keep(controller.held_at_m());
+        let word = lift.take_allowance(&allowances, now_ns);
+        lift.take_commands(&commands, now_ns, max_age_ns);
+        lift.step(fresh, period, word.travel);
+        hold.keep(lift.controller.held_at_m());
         if !lost {
-            let n = board::drive(velocity, &mut out);
-            if port.write_all(&out[..n]).is_ok() {
-                counters.drives += 1;
-            }
+            lift.drive(&mut port, &mut out);
         }
-        let state = LiftState {
-            seq: counters.periods + 1,
-            timestamp_ns: now_ns,
-            height_m: reading
-                .and_then(|r| controller.height_m(&r))
-                .map_or(f32::NAN, |h| h as f32),
-            goal_m: controller.goal_m().map_or(f32::NAN, |g| g as f32),
-            velocity_m_s: velocity as f32,
-            current_a: reading.map_or(0.0, |r| r.current_a as f32),
-            state: if lost {
-                LIFT_LINK_LOST
-            } else {
-                state_code(controller.state())
-            },
-            switches: reading.map_or(0, |r| u8::from(r.at_lower) | (u8::from(r.at_upper) << 1)),
-            held: held_code(travel),
-            board_faults: faults,
-            duty_wait_s,
-            obstructions: counters.obstructions,
-            commands_refused: counters.commands_refused,
-            bad_frames: decoder.bad_frames as u32,
-        };
+        let state = lift.state(now_ns, lost, word, &decoder);
         let _ = publish(&states, &state);
-        counters.periods += 1;
+        lift.counters.periods += 1;
         ticker.wait();
     }
     // Stop the motor on the way out (the board's watchdog would, 100 ms later).
     let n = board::drive(0.0, &mut out);
     let _ = port.write_all(&out[..n]);
     service.stopping();
-    println!("{}", serde_json::json!({ "counters": counters }));
+    println!("{}", serde_json::json!({ "counters": lift.counters }));
     Ok(())
+}
+
+/// The supervisor's word on travel as it stands in one period.
+#[derive(Debug, Clone, Copy)]
+struct TravelWord {
+    travel: Travel,
+    /// What the duty budget still needs before travel, s.
+    duty_wait_s: f32,
+}
+
+/// What the serve loop carries from one period to the next. Each phase of a period is one
+/// method, called in the loop in the order that matters; none allocates or logs more than the
+/// loop did inline.
+struct LiftLoop {
+    controller: LiftController,
+    /// The board's last reading, none while its link is lost.
+    reading: Option<LiftReading>,
+    /// When the board last sent a status.
+    heard: Instant,
+    /// The speed last driven, m/s.
+    velocity: f64,
+    /// The board's fault bits in its last status.
+    faults: u8,
+    /// The supervisor's newest allowance seen.
+    allowance: Option<LiftAllowance>,
+    /// Why commands are being refused, so that each reason is logged once.
+    refusing: Option<String>,
+    counters: Counters,
+}
+
+impl LiftLoop {
+    fn new(controller: LiftController) -> LiftLoop {
+        LiftLoop {
+            controller,
+            reading: None,
+            heard: Instant::now(),
+            velocity: 0.0,
+            faults: 0,
+            allowance: None,
+            refusing: None,
+            counters: Counters::default(),
+        }
+    }
+
+    /// Takes the board's newest status, if it sent one this period, as the reading at `t_s`;
+    /// true when it did (only a fresh reading steps the controller).
+    fn read_board(
+        &mut self,
+        port: &mut serialport::TTYPort,
+        decoder: &mut Decoder,
+        buf: &mut [u8],
+        t_s: f64,
+    ) -> bool {
+        let Some(s) = newest_status(port, decoder, buf) else {
+            return false;
+        };
+        self.counters.statuses += 1;
+        self.heard = Instant::now();
+        self.faults = s.faults;
+        let over_current = s.faults & board::FAULT_OVER_CURRENT != 0;
+        self.counters.board_over_current += u64::from(over_current);
+        self.reading = Some(LiftReading {
+            t_s,
+            counts: i64::from(s.counts),
+            current_a: f64::from(s.current_ma) * 1e-3,
+            at_lower: s.switches & 1 != 0,
+            at_upper: s.switches & 2 != 0,
+            over_current,
+        });
+        true
+    }
+
+    /// Whether the board has been silent longer than `silence`; on the period it goes
+    /// silent, the reading is dropped and the position counts as lost.
+    fn check_link(&mut self, silence: Duration) -> bool {
+        let lost = self.heard.elapsed() > silence;
+        if lost && self.reading.take().is_some() {
+            // The board may have restarted (its counts with it): home again once it is back.
+            tracing::warn!("the lift's board went silent: homing again when it answers");
+            self.counters.link_losses += 1;
+            position_lost(&mut self.controller);
+        }
+        lost
+    }
+
+    /// Takes the supervisor's newest allowance and sets the travel it gives.
+    fn take_allowance(
+        &mut self,
+        allowances: &plane::Sub<LiftAllowance>,
+        now_ns: u64,
+    ) -> TravelWord {
+        if let Some(a) = newest(allowances) {
+            // A stop counted since the last one seen drops the goal, even if a resume came
+            // before this period saw it in force.
+            if self.allowance.is_some_and(|b| b.stops != a.stops) {
+                self.controller.set_travel(Travel::OperatorStop);
+            }
+            self.allowance = Some(a);
+        }
+        let (travel, duty_wait_s) = travel(self.allowance, now_ns);
+        self.controller.set_travel(travel);
+        TravelWord {
+            travel,
+            duty_wait_s,
+        }
+    }
+
+    /// Takes every command that came since the last period, in order.
+    fn take_commands(&mut self, commands: &plane::Sub<LiftCommand>, now_ns: u64, max_age_ns: u64) {
+        while let Some(c) = next(commands) {
+            self.counters.commands += 1;
+            let outcome = take_command(&mut self.controller, &c, now_ns, max_age_ns);
+            self.counters.releases += u32::from(outcome == Ok(Taken::Released));
+            match outcome {
+                Ok(_) => self.refusing = None,
+                Err(why) => {
+                    self.counters.commands_refused += 1;
+                    // Said once per reason, not at the rate a plan streams it.
+                    if self.refusing.as_ref() != Some(&why) {
+                        tracing::warn!(seq = c.seq, "lift command refused: {why}");
+                        self.refusing = Some(why);
+                    }
+                }
+            }
+        }
+    }
+
+    /// Steps the controller on a fresh reading; without one, keeps or drops the last speed.
+    fn step(&mut self, fresh: bool, period: Duration, travel: Travel) {
+        match self.reading {
+            Some(r) if fresh => {
+                let (v, event) = self.controller.step(&r);
+                self.velocity = v;
+                if let Some(e) = event {
+                    self.counters.obstructions +=
+                        u32::from(matches!(e, LiftEvent::Obstruction { .. }));
+                    if matches!(e, LiftEvent::CountsJumped { .. }) {
+                        self.counters.count_jumps += 1;
+                        position_lost(&mut self.controller);
+                    }
+                    log_event(e);
+                }
+            }
+            _ => {
+                self.velocity = unread_speed(self.velocity, self.heard.elapsed(), period, travel);
+            }
+        }
+    }
+
+    /// Sends the board this period's speed.
+    fn drive(&mut self, port: &mut serialport::TTYPort, out: &mut [u8; 21]) {
+        let n = board::drive(self.velocity, out);
+        if port.write_all(&out[..n]).is_ok() {
+            self.counters.drives += 1;
+        }
+    }
+
+    /// This period's state, as published.
+    fn state(&self, now_ns: u64, lost: bool, word: TravelWord, decoder: &Decoder) -> LiftState {
+        let reading = self.reading;
+        LiftState {
+            seq: self.counters.periods + 1,
+            timestamp_ns: now_ns,
+            height_m: reading
+                .and_then(|r| self.controller.height_m(&r))
+                .map_or(f32::NAN, |h| h as f32),
+            goal_m: self.controller.goal_m().map_or(f32::NAN, |g| g as f32),
+            velocity_m_s: self.velocity as f32,
+            current_a: reading.map_or(0.0, |r| r.current_a as f32),
+            state: if lost {
+                LIFT_LINK_LOST
+            } else {
+                state_code(self.controller.state())
+            },
+            switches: reading.map_or(0, |r| u8::from(r.at_lower) | (u8::from(r.at_upper) << 1)),
+            held: held_code(word.travel),
+            board_faults: self.faults,
+            duty_wait_s: word.duty_wait_s,
+            obstructions: self.counters.obstructions,
+            commands_refused: self.counters.commands_refused,
+            bad_frames: decoder.bad_frames as u32,
+        }
+    }
 }
 
 /// The newest status the board sent since the last call (older ones are superseded).

@@ -289,28 +289,11 @@ fn record(args: &RecordArgs) -> Result<()> {
     check(args)?;
     let stop = telemetry::process::stop_flag().context("installing signal handlers")?;
     let node = Plane::open(&args.domain, &format!("nori-record-{}", std::process::id()))?;
-    let states = node.subscriber(&plane::JOINT_STATE)?;
-    let layouts = node.subscriber(&plane::LAYOUT)?;
-    let grips = node.subscriber(&plane::GRIP)?;
-    let lifts = node.subscriber(&plane::LIFT_STATE)?;
-    let bases = node.subscriber(&plane::BASE_STATE)?;
-
-    let mut feeds = args
-        .cameras
-        .iter()
-        .map(|name| {
-            Ok(CameraFeed {
-                name: name.clone(),
-                jpegs: node.camera_subscriber(name, CameraStream::Mjpeg)?,
-                newest: Vec::new(),
-                refused: 0,
-            })
-        })
-        .collect::<Result<Vec<_>>>()?;
+    let mut inputs = Inputs::open(&node, &args.cameras)?;
 
     let wait = Duration::from_secs_f64(args.wait_s);
-    let layout = plane::wait_for_layout(&layouts, &args.domain, wait, Some(&stop))?;
-    let cameras = first_images(&mut feeds, wait, &stop)?;
+    let layout = plane::wait_for_layout(&inputs.layouts, &args.domain, wait, Some(&stop))?;
+    let cameras = first_images(&mut inputs.feeds, wait, &stop)?;
     let features = Features::from_layout(&layout)
         .with_cameras(cameras)
         .with_body(args.lift, args.base);
@@ -328,111 +311,234 @@ fn record(args: &RecordArgs) -> Result<()> {
     .with_context(|| format!("opening the dataset {}", args.dataset.display()))?;
     report_recovery(&recovery);
 
-    let period_ns = 1_000_000_000 / u64::from(args.fps);
-    let mut sampler = Sampler::new(features.clone(), period_ns)
-        .with_camera_staleness(u64::from(args.camera_stale_ms) * 1_000_000);
-    let flush_every = ((u64::from(args.fps) * u64::from(args.flush_ms)) / 1000).max(1) as usize;
-    let frames_per_episode = (args.episode_s * f64::from(args.fps)).round().max(1.0) as usize;
-    eprintln!(
-        "nori record: {} joints ({}){}, {} camera(s) ({}), {} fps, {} episode(s) of {} frames into {} (staged every {} frames, in the background)",
-        features.joints.len(),
-        features.joint_names().join(", "),
-        features
-            .body
-            .iter()
-            .map(|a| format!(" + {}", a.name()))
-            .collect::<String>(),
-        features.cameras.len(),
-        features
-            .cameras
-            .iter()
-            .map(|c| format!("{} {}x{} {}", c.name, c.width, c.height, c.pix_fmt))
-            .collect::<Vec<_>>()
-            .join(", "),
-        args.fps,
-        args.episodes,
-        frames_per_episode,
-        args.dataset.display(),
-        flush_every
+    let mut recording = Recording::new(args, &stop, inputs, features);
+    recording.announce();
+    let mut summary = Vec::new();
+    for episode in 0..args.episodes {
+        if recording.stopped() {
+            break;
+        }
+        if episode > 0 && args.reset_s > 0.0 {
+            recording.pause_for_reset();
+        }
+        recording.await_first_reads(episode)?;
+        if recording.stopped() {
+            break;
+        }
+        if let Some(row) = recording.record_episode(&mut ds)? {
+            summary.push(row);
+        }
+    }
+    println!(
+        "{}",
+        serde_json::json!({"dataset": args.dataset, "episodes": summary,
+            "total_episodes": ds.episodes().len(), "total_frames": ds.episodes().last().map_or(0, |e| e.dataset_to_index)})
     );
-    let drain = |sampler: &mut Sampler, feeds: &mut [CameraFeed]| {
-        while let Some(s) = plane::next(&states) {
+    Ok(())
+}
+
+/// What is recorded, as the plane carries it: the joints' state and layout, grip forces,
+/// the lift's and the base's state, and the cameras' JPEGs.
+struct Inputs {
+    states: plane::Sub<telemetry::JointState>,
+    layouts: plane::Sub<telemetry::frames::JointLayout>,
+    grips: plane::Sub<telemetry::frames::GripFrame>,
+    lifts: plane::Sub<telemetry::motion::LiftState>,
+    bases: plane::Sub<telemetry::motion::BaseState>,
+    feeds: Vec<CameraFeed>,
+}
+
+impl Inputs {
+    /// Subscribes to all of it, with the cameras named.
+    fn open(node: &Plane, cameras: &[String]) -> Result<Inputs> {
+        let states = node.subscriber(&plane::JOINT_STATE)?;
+        let layouts = node.subscriber(&plane::LAYOUT)?;
+        let grips = node.subscriber(&plane::GRIP)?;
+        let lifts = node.subscriber(&plane::LIFT_STATE)?;
+        let bases = node.subscriber(&plane::BASE_STATE)?;
+        let feeds = cameras
+            .iter()
+            .map(|name| {
+                Ok(CameraFeed {
+                    name: name.clone(),
+                    jpegs: node.camera_subscriber(name, CameraStream::Mjpeg)?,
+                    newest: Vec::new(),
+                    refused: 0,
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Inputs {
+            states,
+            layouts,
+            grips,
+            lifts,
+            bases,
+            feeds,
+        })
+    }
+
+    /// Hands the sampler all that came since the last call (the cameras described by
+    /// `cameras`); the newest layout, if one came.
+    fn drain(
+        &mut self,
+        sampler: &mut Sampler,
+        cameras: &[CameraMeta],
+    ) -> Option<telemetry::frames::JointLayout> {
+        while let Some(s) = plane::next(&self.states) {
             sampler.on_state(&s);
         }
-        while let Some(g) = plane::next(&grips) {
+        while let Some(g) = plane::next(&self.grips) {
             sampler.on_grip(&g);
         }
-        while let Some(l) = plane::next(&lifts) {
+        while let Some(l) = plane::next(&self.lifts) {
             sampler.on_lift(&l);
         }
-        while let Some(b) = plane::next(&bases) {
+        while let Some(b) = plane::next(&self.bases) {
             sampler.on_base(&b);
         }
-        for (i, (feed, meta)) in feeds.iter_mut().zip(&features.cameras).enumerate() {
+        for (i, (feed, meta)) in self.feeds.iter_mut().zip(cameras).enumerate() {
             if let Some(captured) = feed.drain(Some(meta)) {
                 sampler.on_camera(i, captured);
             }
         }
-        plane::newest(&layouts)
-    };
-    let mut summary = Vec::new();
-    for episode in 0..args.episodes {
-        if stop.load(Ordering::Relaxed) {
-            break;
+        plane::newest(&self.layouts)
+    }
+}
+
+/// A recording under way: what it records, the sampler that makes frames of it, and its
+/// rhythm.
+struct Recording<'a> {
+    args: &'a RecordArgs,
+    stop: &'a AtomicBool,
+    inputs: Inputs,
+    features: Features,
+    sampler: Sampler,
+    period_ns: u64,
+    /// Frames between flushes of an episode's data (staged in the background).
+    flush_every: usize,
+    frames_per_episode: usize,
+}
+
+impl<'a> Recording<'a> {
+    fn new(
+        args: &'a RecordArgs,
+        stop: &'a AtomicBool,
+        inputs: Inputs,
+        features: Features,
+    ) -> Recording<'a> {
+        let period_ns = 1_000_000_000 / u64::from(args.fps);
+        let sampler = Sampler::new(features.clone(), period_ns)
+            .with_camera_staleness(u64::from(args.camera_stale_ms) * 1_000_000);
+        let flush_every = ((u64::from(args.fps) * u64::from(args.flush_ms)) / 1000).max(1) as usize;
+        let frames_per_episode = (args.episode_s * f64::from(args.fps)).round().max(1.0) as usize;
+        Recording {
+            args,
+            stop,
+            inputs,
+            features,
+            sampler,
+            period_ns,
+            flush_every,
+            frames_per_episode,
         }
-        if episode > 0 && args.reset_s > 0.0 {
-            let resume = Instant::now() + Duration::from_secs_f64(args.reset_s);
-            while Instant::now() < resume && !stop.load(Ordering::Relaxed) {
-                drain(&mut sampler, &mut feeds);
-                std::thread::sleep(Duration::from_millis(1));
-            }
+    }
+
+    /// Whether SIGINT or SIGTERM came.
+    fn stopped(&self) -> bool {
+        self.stop.load(Ordering::Relaxed)
+    }
+
+    /// Hands the sampler what came; the newest layout, if one came.
+    fn drain(&mut self) -> Option<telemetry::frames::JointLayout> {
+        self.inputs.drain(&mut self.sampler, &self.features.cameras)
+    }
+
+    /// Says what is recorded, how and where.
+    fn announce(&self) {
+        let (args, features) = (self.args, &self.features);
+        eprintln!(
+            "nori record: {} joints ({}){}, {} camera(s) ({}), {} fps, {} episode(s) of {} frames into {} (staged every {} frames, in the background)",
+            features.joints.len(),
+            features.joint_names().join(", "),
+            features
+                .body
+                .iter()
+                .map(|a| format!(" + {}", a.name()))
+                .collect::<String>(),
+            features.cameras.len(),
+            features
+                .cameras
+                .iter()
+                .map(|c| format!("{} {}x{} {}", c.name, c.width, c.height, c.pix_fmt))
+                .collect::<Vec<_>>()
+                .join(", "),
+            args.fps,
+            args.episodes,
+            self.frames_per_episode,
+            args.dataset.display(),
+            self.flush_every
+        );
+    }
+
+    /// The pause between episodes (`--reset-s`), the inputs kept drained meanwhile.
+    fn pause_for_reset(&mut self) {
+        let resume = Instant::now() + Duration::from_secs_f64(self.args.reset_s);
+        while Instant::now() < resume && !self.stopped() {
+            self.drain();
+            std::thread::sleep(Duration::from_millis(1));
         }
-        // An episode starts once every joint and grip force was read: a held value needs a
-        // first read to hold.
-        let deadline = Instant::now() + wait;
+    }
+
+    /// Waits until every joint and grip force was read (or a stop): an episode starts only
+    /// then, as a held value needs a first read to hold.
+    fn await_first_reads(&mut self, episode: u32) -> Result<()> {
+        let deadline = Instant::now() + Duration::from_secs_f64(self.args.wait_s);
         loop {
-            drain(&mut sampler, &mut feeds);
-            let unread = sampler.unread();
-            if unread.is_empty() || stop.load(Ordering::Relaxed) {
-                break;
+            self.drain();
+            let unread = self.sampler.unread();
+            if unread.is_empty() || self.stopped() {
+                return Ok(());
             }
             if Instant::now() >= deadline {
                 bail!(
                     "never read within --wait-s {} s: {} (a servo not answering, no supervisor publishing grip force, a camera silent, or the lift or base not running); nothing recorded for episode {episode}",
-                    args.wait_s,
+                    self.args.wait_s,
                     unread.join(", ")
                 );
             }
             std::thread::sleep(Duration::from_millis(5));
         }
-        if stop.load(Ordering::Relaxed) {
-            break;
-        }
-        let mut writer = ds.begin_episode(&args.task, flush_every)?;
+    }
+
+    /// Records one episode into `ds`, a frame every period, until it is long enough, a stop,
+    /// or the video falling behind; its summary once committed.
+    fn record_episode(&mut self, ds: &mut Dataset) -> Result<Option<serde_json::Value>> {
+        let mut writer = ds.begin_episode(&self.args.task, self.flush_every)?;
         let start = monotonic_ns();
         let mut late_max_ns = 0u64;
         let mut missing = 0usize;
         let mut held = 0usize;
         let mut flush_max = Duration::ZERO;
-        while writer.len() < frames_per_episode && !stop.load(Ordering::Relaxed) {
-            if let Some(l) = drain(&mut sampler, &mut feeds) {
-                if Features::from_layout(&l).joints != features.joints {
+        while writer.len() < self.frames_per_episode && !self.stopped() {
+            if let Some(l) = self.drain() {
+                if Features::from_layout(&l).joints != self.features.joints {
                     bail!("the driver's joint layout changed during the recording (driver restarted with another configuration?)");
                 }
             }
-            let tick = start + writer.len() as u64 * period_ns;
+            let tick = start + writer.len() as u64 * self.period_ns;
             let now = monotonic_ns();
             if now < tick {
                 std::thread::sleep(Duration::from_nanos((tick - now).min(1_000_000)));
                 continue;
             }
             late_max_ns = late_max_ns.max(now - tick);
-            let frame = sampler
+            let frame = self
+                .sampler
                 .frame(now)
                 .context("a joint read before the episode began is no longer known")?;
             missing += frame.missing_joints();
             held += frame.held_images();
-            let images = feeds.iter().map(|f| f.newest.clone()).collect();
+            let images = self.inputs.feeds.iter().map(|f| f.newest.clone()).collect();
             let t0 = Instant::now();
             match writer.push_with_images(frame, images) {
                 Ok(true) => flush_max = flush_max.max(t0.elapsed()),
@@ -448,32 +554,27 @@ fn record(args: &RecordArgs) -> Result<()> {
         let t0 = Instant::now();
         let row = writer.finish()?;
         let commit = t0.elapsed();
-        if let Some(row) = row {
-            eprintln!(
-                "nori record: episode {} committed: {} frames, latest tick {:.1} ms late, {} missing joint samples, {} held images, slowest flush hand-over {:.1} ms, commit {:.1} ms",
-                row.episode_index,
-                frames,
-                late_max_ns as f64 * 1e-6,
-                missing,
-                held,
-                flush_max.as_secs_f64() * 1e3,
-                commit.as_secs_f64() * 1e3
-            );
-            summary.push(serde_json::json!({
-                "episode": row.episode_index, "frames": frames, "max_tick_late_ms": late_max_ns as f64 * 1e-6,
-                "missing_joint_samples": missing, "held_images": held,
-                "refused_images": feeds.iter().map(|f| f.refused).sum::<u64>(),
-                "max_flush_ms": flush_max.as_secs_f64() * 1e3,
-                "commit_ms": commit.as_secs_f64() * 1e3,
-            }));
-        }
+        let Some(row) = row else {
+            return Ok(None);
+        };
+        eprintln!(
+            "nori record: episode {} committed: {} frames, latest tick {:.1} ms late, {} missing joint samples, {} held images, slowest flush hand-over {:.1} ms, commit {:.1} ms",
+            row.episode_index,
+            frames,
+            late_max_ns as f64 * 1e-6,
+            missing,
+            held,
+            flush_max.as_secs_f64() * 1e3,
+            commit.as_secs_f64() * 1e3
+        );
+        Ok(Some(serde_json::json!({
+            "episode": row.episode_index, "frames": frames, "max_tick_late_ms": late_max_ns as f64 * 1e-6,
+            "missing_joint_samples": missing, "held_images": held,
+            "refused_images": self.inputs.feeds.iter().map(|f| f.refused).sum::<u64>(),
+            "max_flush_ms": flush_max.as_secs_f64() * 1e3,
+            "commit_ms": commit.as_secs_f64() * 1e3,
+        })))
     }
-    println!(
-        "{}",
-        serde_json::json!({"dataset": args.dataset, "episodes": summary,
-            "total_episodes": ds.episodes().len(), "total_frames": ds.episodes().last().map_or(0, |e| e.dataset_to_index)})
-    );
-    Ok(())
 }
 
 /// `nori-record`: demonstrations into LeRobot datasets (run as `nori record` and `nori dataset`).

@@ -144,6 +144,68 @@ fn main() -> Result<()> {
 
 /// Serves until SIGINT/SIGTERM or `--run-for`.
 fn run(args: &ServeArgs) -> Result<()> {
+    let robot = load_robot(args)?;
+    check_settings(args, &robot)?;
+    let faults = line_faults(args)?;
+    let mut schedule = fault_schedule(args, &robot)?;
+    let shutdown = telemetry::process::stop_flag()?;
+    let buses = sim_buses(args, &robot, &faults);
+    let lidar_faults = sensor_faults(args)?;
+    let served = serve(buses, args.dt)?;
+    let devices = Devices {
+        lidar: serve_lidar(args, &robot, lidar_faults)?,
+        lift: serve_lift(args, &robot)?,
+    };
+    // Cameras render only while a reader is connected: a run without nori-camera pays nothing.
+    let cameras = sim::camera::serve(
+        &robot,
+        served.shared_buses(),
+        &args.dir,
+        sim::camera::CameraFaults {
+            truncate_rate: args.camera_truncate_rate,
+            garbage_rate: args.camera_garbage_rate,
+            seed: args.fault_seed,
+        },
+    )?;
+    announce(args, &robot, &served, &cameras, &faults);
+    let start = Instant::now();
+    let mut last_report = Instant::now();
+    while !shutdown.load(Ordering::Relaxed)
+        && args
+            .run_for
+            .is_none_or(|t| start.elapsed().as_secs_f64() < t)
+    {
+        std::thread::sleep(Duration::from_millis(20));
+        let t = start.elapsed().as_secs_f64();
+        devices.follow(args, &served, t);
+        for (s, active) in schedule.advance(t) {
+            apply_fault(s, active, t, &served, devices.lidar.as_ref());
+        }
+        if let Some(path) = &args.report {
+            if last_report.elapsed() >= Duration::from_secs(1) {
+                write_report(path, &served.reports(), devices.reports())?;
+                last_report = Instant::now();
+            }
+        }
+    }
+    drop(cameras);
+    let final_lidar = devices.reports();
+    drop(devices);
+    let reports = served.stop();
+    if let Some(path) = &args.report {
+        write_report(path, &reports, final_lidar)?;
+    }
+    let hottest = reports
+        .iter()
+        .flat_map(|b| b.servos.iter())
+        .map(|s| s.max_temperature_c)
+        .fold(f64::NAN, f64::max);
+    eprintln!("nori sim: stopped; hottest servo reached {hottest:.1} °C");
+    Ok(())
+}
+
+/// The robot described (`--description`, else the Nori A3), with the scenarios set up on it.
+fn load_robot(args: &ServeArgs) -> Result<RobotDescription> {
     let mut robot = match &args.description {
         Some(p) => RobotDescription::load(p)?,
         None => RobotDescription::nori_a3(),
@@ -155,6 +217,12 @@ fn run(args: &ServeArgs) -> Result<()> {
             sim::scenario::SCENARIO_BUS
         );
     }
+    Ok(robot)
+}
+
+/// The thermal speed-up, the mechanics step and the buses asked for are ones the simulator
+/// can serve.
+fn check_settings(args: &ServeArgs, robot: &RobotDescription) -> Result<()> {
     if !(args.thermal_speedup.is_finite() && args.thermal_speedup >= 1.0) {
         anyhow::bail!(
             "--thermal-speedup must be ≥ 1, got {}",
@@ -177,6 +245,16 @@ fn run(args: &ServeArgs) -> Result<()> {
             );
         }
     }
+    Ok(())
+}
+
+/// Whether bus `name` is served: every bus when `--bus` names none.
+fn serves_bus(args: &ServeArgs, name: &str) -> bool {
+    args.buses.is_empty() || args.buses.iter().any(|b| b == name)
+}
+
+/// The servo lines' faults asked for.
+fn line_faults(args: &ServeArgs) -> Result<sim::faults::LineFaults> {
     let faults = sim::faults::LineFaults {
         seed: args.fault_seed,
         bit_flip_rate: args.bit_flip_rate,
@@ -189,6 +267,12 @@ fn run(args: &ServeArgs) -> Result<()> {
     faults
         .validate()
         .map_err(|e| anyhow::anyhow!("line faults: {e}"))?;
+    Ok(faults)
+}
+
+/// The unplugs and silences in time (`--unplug`, `--silence`), each on a bus served and a
+/// servo it has, or on the lidar the description has.
+fn fault_schedule(args: &ServeArgs, robot: &RobotDescription) -> Result<Schedule> {
     let mut faults_in_time = Vec::new();
     for text in &args.unplug {
         faults_in_time.push(Scheduled::parse(text, false).context("--unplug")?);
@@ -197,8 +281,7 @@ fn run(args: &ServeArgs) -> Result<()> {
         faults_in_time.push(Scheduled::parse(text, true).context("--silence")?);
     }
     for s in faults_in_time.iter().filter(|s| !is_lidar(s)) {
-        let served_bus = args.buses.is_empty() || args.buses.contains(&s.bus);
-        let bus = robot.bus(&s.bus).filter(|_| served_bus);
+        let bus = robot.bus(&s.bus).filter(|_| serves_bus(args, &s.bus));
         let Some(bus) = bus else {
             anyhow::bail!("scheduled fault on bus {:?}, which is not served", s.bus);
         };
@@ -214,23 +297,35 @@ fn run(args: &ServeArgs) -> Result<()> {
     if faults_in_time.iter().any(is_lidar) && robot.lidar.is_none() {
         anyhow::bail!("--unplug lidar: the description has no lidar");
     }
-    let mut schedule = Schedule::new(faults_in_time);
-    let shutdown = telemetry::process::stop_flag()?;
+    Ok(Schedule::new(faults_in_time))
+}
+
+/// The buses served, each with its line's faults (a seed of its own) and its device's path.
+fn sim_buses(
+    args: &ServeArgs,
+    robot: &RobotDescription,
+    faults: &sim::faults::LineFaults,
+) -> Vec<(SimBus, PathBuf)> {
     let mut buses = Vec::new();
     for (i, bus) in robot
         .bus
         .iter()
-        .filter(|b| args.buses.is_empty() || args.buses.contains(&b.name))
+        .filter(|b| serves_bus(args, &b.name))
         .enumerate()
     {
-        let mut sim_bus = SimBus::new(&robot, bus);
+        let mut sim_bus = SimBus::new(robot, bus);
         sim_bus.thermal_speedup = args.thermal_speedup;
         sim_bus.set_line_faults(Some(sim::faults::LineFaults {
             seed: faults.seed.wrapping_add(i as u64),
-            ..faults
+            ..*faults
         }));
         buses.push((sim_bus, args.dir.join(&bus.name)));
     }
+    buses
+}
+
+/// Checks the cameras' fault rates; gives the lidar's faults.
+fn sensor_faults(args: &ServeArgs) -> Result<sim::lidar::LidarFaults> {
     for (name, rate) in [
         ("--camera-truncate-rate", args.camera_truncate_rate),
         ("--camera-garbage-rate", args.camera_garbage_rate),
@@ -246,54 +341,102 @@ fn run(args: &ServeArgs) -> Result<()> {
         seed: args.fault_seed,
     };
     lidar_faults.validate().map_err(|e| anyhow::anyhow!(e))?;
-    let served = serve(buses, args.dt)?;
-    let lidar = match sim::lidar::LidarDevice::new(&robot, lidar_faults) {
-        Some(mut device) => {
-            device.protection_stop = args.lidar_protection_stop;
-            let served = sim::lidar::serve(device, args.dir.join("lidar"))?;
-            eprintln!(
-                "nori sim: serving the lidar (RPLIDAR C1 protocol) on {}",
-                served.device.display()
-            );
-            Some(served)
-        }
-        None => None,
+    Ok(lidar_faults)
+}
+
+/// Serves the lidar, if the description has one.
+fn serve_lidar(
+    args: &ServeArgs,
+    robot: &RobotDescription,
+    faults: sim::lidar::LidarFaults,
+) -> Result<Option<sim::lidar::ServedLidar>> {
+    let Some(mut device) = sim::lidar::LidarDevice::new(robot, faults) else {
+        return Ok(None);
     };
-    let lift = match &robot.lift {
-        Some(d) => {
-            let mut board = sim::lift::LiftBoard::new(d);
-            if args.lift_obstacle_from <= 0.0 {
-                board.obstacle_m = args.lift_obstacle_at;
-            }
-            let served = sim::device::serve("lift", board, args.dir.join("lift"))?;
-            eprintln!(
-                "nori sim: serving the lift's board (column at {} m of {} m) on {}",
-                d.start_m,
-                d.travel_m,
-                served.device.display()
-            );
-            Some(served)
-        }
-        None => None,
+    device.protection_stop = args.lidar_protection_stop;
+    let served = sim::lidar::serve(device, args.dir.join("lidar"))?;
+    eprintln!(
+        "nori sim: serving the lidar (RPLIDAR C1 protocol) on {}",
+        served.device.display()
+    );
+    Ok(Some(served))
+}
+
+/// Serves the lift's board, if the description has a lift; the obstacle is under it from
+/// the start unless `--lift-obstacle-from` says later.
+fn serve_lift(
+    args: &ServeArgs,
+    robot: &RobotDescription,
+) -> Result<Option<sim::device::Served<sim::lift::LiftBoard>>> {
+    let Some(d) = &robot.lift else {
+        return Ok(None);
     };
-    let device_reports = || {
+    let mut board = sim::lift::LiftBoard::new(d);
+    if args.lift_obstacle_from <= 0.0 {
+        board.obstacle_m = args.lift_obstacle_at;
+    }
+    let served = sim::device::serve("lift", board, args.dir.join("lift"))?;
+    eprintln!(
+        "nori sim: serving the lift's board (column at {} m of {} m) on {}",
+        d.start_m,
+        d.travel_m,
+        served.device.display()
+    );
+    Ok(Some(served))
+}
+
+/// The devices served beside the buses (dropped in this order: the lidar, then the lift).
+struct Devices {
+    lidar: Option<sim::lidar::ServedLidar>,
+    lift: Option<sim::device::Served<sim::lift::LiftBoard>>,
+}
+
+impl Devices {
+    /// The lidar's and the lift's reports, for those served.
+    fn reports(
+        &self,
+    ) -> (
+        Option<sim::lidar::LidarReport>,
+        Option<sim::lift::LiftReport>,
+    ) {
         (
-            lidar.as_ref().map(sim::lidar::ServedLidar::report),
-            lift.as_ref()
+            self.lidar.as_ref().map(sim::lidar::ServedLidar::report),
+            self.lift
+                .as_ref()
                 .and_then(|l| l.with_device(|b: &mut sim::lift::LiftBoard| b.report())),
         )
-    };
-    // Cameras render only while a reader is connected: a run without nori-camera pays nothing.
-    let cameras = sim::camera::serve(
-        &robot,
-        served.shared_buses(),
-        &args.dir,
-        sim::camera::CameraFaults {
-            truncate_rate: args.camera_truncate_rate,
-            garbage_rate: args.camera_garbage_rate,
-            seed: args.fault_seed,
-        },
-    )?;
+    }
+
+    /// Keeps the devices' world up to date at `t` s: the obstacle under the lift once it is
+    /// due, the lidar where the base is.
+    fn follow(&self, args: &ServeArgs, served: &sim::pty::ServedRobot, t: f64) {
+        if let (Some(l), Some(m)) = (&self.lift, args.lift_obstacle_at) {
+            if args.lift_obstacle_from > 0.0 && t >= args.lift_obstacle_from {
+                l.with_device(|b: &mut sim::lift::LiftBoard| b.obstacle_m = Some(m));
+            }
+        }
+        // The lidar rides on the base (every 20 ms: 6 mm at the base's 0.3 m/s).
+        if let Some(l) = &self.lidar {
+            let pose = served
+                .shared_buses()
+                .lock()
+                .ok()
+                .and_then(|b| b.iter().find_map(SimBus::base_pose));
+            if let Some(pose) = pose {
+                l.with_device(|d| d.set_base_pose(pose));
+            }
+        }
+    }
+}
+
+/// Says what is served where: the cameras, the buses, the robot, the line's faults.
+fn announce(
+    args: &ServeArgs,
+    robot: &RobotDescription,
+    served: &sim::pty::ServedRobot,
+    cameras: &sim::camera::ServedCameras,
+    faults: &sim::faults::LineFaults,
+) {
     for (camera, socket) in robot.camera.iter().zip(&cameras.sockets) {
         eprintln!(
             "nori sim: serving camera {} ({} {}×{} at {} fps) on {}",
@@ -305,12 +448,11 @@ fn run(args: &ServeArgs) -> Result<()> {
             socket.display()
         );
     }
-    for (device, bus) in served.devices.iter().zip(
-        robot
-            .bus
-            .iter()
-            .filter(|b| args.buses.is_empty() || args.buses.contains(&b.name)),
-    ) {
+    for (device, bus) in served
+        .devices
+        .iter()
+        .zip(robot.bus.iter().filter(|b| serves_bus(args, &b.name)))
+    {
         let target = std::fs::read_link(device).unwrap_or_default();
         eprintln!(
             "nori sim: serving bus {} ({} servos, {} baud) on {} -> {}",
@@ -338,84 +480,46 @@ fn run(args: &ServeArgs) -> Result<()> {
             faults.seed
         );
     }
-    let start = Instant::now();
-    let mut last_report = Instant::now();
-    while !shutdown.load(Ordering::Relaxed)
-        && args
-            .run_for
-            .is_none_or(|t| start.elapsed().as_secs_f64() < t)
-    {
-        std::thread::sleep(Duration::from_millis(20));
-        let t = start.elapsed().as_secs_f64();
-        if let (Some(l), Some(m)) = (&lift, args.lift_obstacle_at) {
-            if args.lift_obstacle_from > 0.0 && t >= args.lift_obstacle_from {
-                l.with_device(|b: &mut sim::lift::LiftBoard| b.obstacle_m = Some(m));
-            }
+}
+
+/// A scheduled fault starting (`active`) or ending at `t` s: the lidar unplugged or plugged
+/// in, a bus unplugged or plugged in, a servo silent or answering again.
+fn apply_fault(
+    s: &Scheduled,
+    active: bool,
+    t: f64,
+    served: &sim::pty::ServedRobot,
+    lidar: Option<&sim::lidar::ServedLidar>,
+) {
+    if is_lidar(s) {
+        if let Some(l) = lidar {
+            l.set_plugged(!active);
         }
-        // The lidar rides on the base (every 20 ms: 6 mm at the base's 0.3 m/s).
-        if let Some(l) = &lidar {
-            let pose = served
-                .shared_buses()
-                .lock()
-                .ok()
-                .and_then(|b| b.iter().find_map(SimBus::base_pose));
-            if let Some(pose) = pose {
-                l.with_device(|d| d.set_base_pose(pose));
-            }
+        eprintln!(
+            "nori sim: t = {t:.2} s: lidar {}",
+            if active { "unplugged" } else { "plugged in" }
+        );
+        return;
+    }
+    match s.id {
+        None if active => {
+            served.unplug(&s.bus);
         }
-        for (s, active) in schedule.advance(t) {
-            if is_lidar(s) {
-                if let Some(l) = &lidar {
-                    l.set_plugged(!active);
-                }
-                eprintln!(
-                    "nori sim: t = {t:.2} s: lidar {}",
-                    if active { "unplugged" } else { "plugged in" }
-                );
-                continue;
-            }
-            match s.id {
-                None if active => {
-                    served.unplug(&s.bus);
-                }
-                None => {
-                    served.replug(&s.bus);
-                }
-                Some(id) => {
-                    served.with_bus(&s.bus, |b| {
-                        if let Some(servo) = b.servo_mut(id) {
-                            servo.answering = !active;
-                        }
-                    });
-                }
-            }
-            eprintln!(
-                "nori sim: t = {t:.2} s: {} {}{}",
-                if active { "fault on" } else { "fault over" },
-                s.bus,
-                s.id.map(|i| format!(" servo {i}")).unwrap_or_default()
-            );
+        None => {
+            served.replug(&s.bus);
         }
-        if let Some(path) = &args.report {
-            if last_report.elapsed() >= Duration::from_secs(1) {
-                write_report(path, &served.reports(), device_reports())?;
-                last_report = Instant::now();
-            }
+        Some(id) => {
+            served.with_bus(&s.bus, |b| {
+                if let Some(servo) = b.servo_mut(id) {
+                    servo.answering = !active;
+                }
+            });
         }
     }
-    drop(cameras);
-    let final_lidar = device_reports();
-    drop(lidar);
-    drop(lift);
-    let reports = served.stop();
-    if let Some(path) = &args.report {
-        write_report(path, &reports, final_lidar)?;
-    }
-    let hottest = reports
-        .iter()
-        .flat_map(|b| b.servos.iter())
-        .map(|s| s.max_temperature_c)
-        .fold(f64::NAN, f64::max);
-    eprintln!("nori sim: stopped; hottest servo reached {hottest:.1} °C");
-    Ok(())
+    eprintln!(
+        "nori sim: t = {t:.2} s: {} {}{}",
+        if active { "fault on" } else { "fault over" },
+        s.bus,
+        s.id.map(|i| format!(" servo {i}")).unwrap_or_default()
+    );
 }

@@ -10,8 +10,10 @@ use clap::Args;
 use fleet::collector::Collector;
 use fleet_agent::agent::wall_ms;
 use fleet_agent::keys::robots_matching;
+use fleet_agent::zenoh::pubsub::Subscriber;
 use fleet_agent::zenoh::query::{ConsolidationMode, QueryTarget};
 use fleet_agent::zenoh::sample::{Sample, SampleKind};
+use fleet_agent::zenoh::Session;
 use fleet_agent::zenoh::Wait;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -92,83 +94,26 @@ fn lock(c: &Mutex<Collector>) -> MutexGuard<'_, Collector> {
 /// Runs the collector and the dashboard until Ctrl-C (or `--run-for`).
 pub fn run(args: &FleetArgs) -> Result<()> {
     telemetry::process::init_logging();
-    type Ingest = fn(&mut Collector, &str, &[u8], u64) -> Result<(), fleet::collector::IngestError>;
     // Made before anything is opened: a bad pattern is a configuration error.
-    let keys = |leaf: &str| robots_matching(&args.robots, leaf);
-    let (state_keys, alive_keys, status_keys) = (keys("state")?, keys("alive")?, keys("status")?);
-    let mut leaf_keys = Vec::new();
-    for (leaf, ingest) in [
-        ("layout", Collector::layout as Ingest),
-        ("events", Collector::event),
-        ("preview", Collector::preview),
-        ("scan", Collector::scan),
-    ] {
-        for key in keys(leaf)? {
-            leaf_keys.push((key, ingest));
-        }
-    }
+    let FleetKeys {
+        state,
+        alive,
+        status,
+        leaves,
+    } = FleetKeys::new(&args.robots)?;
     let stop = telemetry::process::stop_flag()?;
     let session = args
         .zenoh
         .open(DEFAULT_LISTEN)
         .context("opening the fleet collector's zenoh session")?;
-    let z = |e: fleet_agent::zenoh::Error| anyhow!("{e}");
 
     // Two samples a second for the plots.
     let collector = Arc::new(Mutex::new(Collector::new(
         (args.history_s * 2) as usize,
         500,
     )));
-    let mut subscribers = Vec::new();
-    // Telemetry, the bulk, is decoded before the collector is locked.
-    for key in state_keys {
-        let c = collector.clone();
-        subscribers.push(
-            session
-                .declare_subscriber(key)
-                .callback(move |s: Sample| {
-                    let key = s.key_expr().as_str();
-                    let msg = fleet::collector::decode_state(key, &s.payload().to_bytes());
-                    if let Err(e) = lock(&c).decoded_state(key, msg, wall_ms()) {
-                        tracing::debug!("{e}");
-                    }
-                })
-                .wait()
-                .map_err(z)?,
-        );
-    }
-    for (key, ingest) in leaf_keys {
-        let c = collector.clone();
-        subscribers.push(
-            session
-                .declare_subscriber(key)
-                .callback(move |s: Sample| {
-                    let bytes = s.payload().to_bytes();
-                    if let Err(e) = ingest(&mut lock(&c), s.key_expr().as_str(), &bytes, wall_ms())
-                    {
-                        tracing::debug!("{e}");
-                    }
-                })
-                .wait()
-                .map_err(z)?,
-        );
-    }
-    let mut _alive = Vec::new();
-    for key in alive_keys {
-        let c = collector.clone();
-        _alive.push(
-            session
-                .liveliness()
-                .declare_subscriber(key)
-                .history(true)
-                .callback(move |s: Sample| {
-                    let alive = s.kind() == SampleKind::Put;
-                    let _ = lock(&c).alive(s.key_expr().as_str(), alive, wall_ms());
-                })
-                .wait()
-                .map_err(z)?,
-        );
-    }
+    let _subscribers = subscribe_messages(&session, &collector, state, leaves)?;
+    let _alive = watch_liveliness(&session, &collector, alive)?;
 
     let server = tiny_http::Server::http(&args.http)
         .map_err(|e| anyhow!("serving HTTP on {}: {e}", args.http))?;
@@ -193,32 +138,156 @@ pub fn run(args: &FleetArgs) -> Result<()> {
             .is_none_or(|s| started.elapsed().as_secs_f64() < s)
     {
         if Instant::now() >= next_status {
-            next_status += Duration::from_millis(args.status_every_ms.max(100));
-            for key in &status_keys {
-                let c = collector.clone();
-                // Every robot answers for itself: all queryables, no consolidation.
-                let asked = session
-                    .get(key)
-                    .target(QueryTarget::All)
-                    .consolidation(ConsolidationMode::None)
-                    .timeout(Duration::from_millis(args.status_every_ms.max(100)))
-                    .callback(move |reply| {
-                        if let Ok(s) = reply.result() {
-                            let bytes = s.payload().to_bytes();
-                            let _ = lock(&c).status(s.key_expr().as_str(), &bytes, wall_ms());
-                        }
-                    })
-                    .wait();
-                if let Err(e) = asked {
-                    tracing::warn!("asking the robots' status: {e}");
-                }
-            }
+            let every = Duration::from_millis(args.status_every_ms.max(100));
+            next_status += every;
+            ask_status(&session, &status, &collector, every);
         }
         std::thread::sleep(Duration::from_millis(50));
     }
     stop.store(true, Ordering::Relaxed);
     let _ = http.join();
     Ok(())
+}
+
+/// How a message of one leaf is taken into the collector.
+type Ingest = fn(&mut Collector, &str, &[u8], u64) -> Result<(), fleet::collector::IngestError>;
+
+/// The key expressions `nori fleet` listens to and asks, for the robots it serves.
+struct FleetKeys {
+    state: Vec<String>,
+    alive: Vec<String>,
+    status: Vec<String>,
+    /// The other leaves (layout, events, thumbnails, scans), each with how it is taken.
+    leaves: Vec<(String, Ingest)>,
+}
+
+impl FleetKeys {
+    /// The keys of the robots `patterns` name.
+    fn new(patterns: &[String]) -> Result<FleetKeys> {
+        let keys = |leaf: &str| robots_matching(patterns, leaf);
+        let (state, alive, status) = (keys("state")?, keys("alive")?, keys("status")?);
+        let mut leaves = Vec::new();
+        for (leaf, ingest) in [
+            ("layout", Collector::layout as Ingest),
+            ("events", Collector::event),
+            ("preview", Collector::preview),
+            ("scan", Collector::scan),
+        ] {
+            for key in keys(leaf)? {
+                leaves.push((key, ingest));
+            }
+        }
+        Ok(FleetKeys {
+            state,
+            alive,
+            status,
+            leaves,
+        })
+    }
+}
+
+/// zenoh's error, which is no `std::error::Error` anyhow can take.
+pub(crate) fn zenoh_error(e: fleet_agent::zenoh::Error) -> anyhow::Error {
+    anyhow!("{e}")
+}
+
+/// Subscribes the collector to the robots' telemetry and other leaves; the subscriptions
+/// last as long as what is returned is kept.
+fn subscribe_messages(
+    session: &Session,
+    collector: &Arc<Mutex<Collector>>,
+    state: Vec<String>,
+    leaves: Vec<(String, Ingest)>,
+) -> Result<Vec<Subscriber<()>>> {
+    let mut subscribers = Vec::new();
+    // Telemetry, the bulk, is decoded before the collector is locked.
+    for key in state {
+        let c = collector.clone();
+        subscribers.push(
+            session
+                .declare_subscriber(key)
+                .callback(move |s: Sample| {
+                    let key = s.key_expr().as_str();
+                    let msg = fleet::collector::decode_state(key, &s.payload().to_bytes());
+                    if let Err(e) = lock(&c).decoded_state(key, msg, wall_ms()) {
+                        tracing::debug!("{e}");
+                    }
+                })
+                .wait()
+                .map_err(zenoh_error)?,
+        );
+    }
+    for (key, ingest) in leaves {
+        let c = collector.clone();
+        subscribers.push(
+            session
+                .declare_subscriber(key)
+                .callback(move |s: Sample| {
+                    let bytes = s.payload().to_bytes();
+                    if let Err(e) = ingest(&mut lock(&c), s.key_expr().as_str(), &bytes, wall_ms())
+                    {
+                        tracing::debug!("{e}");
+                    }
+                })
+                .wait()
+                .map_err(zenoh_error)?,
+        );
+    }
+    Ok(subscribers)
+}
+
+/// Follows the robots' liveliness tokens (those already there too); it lasts as long as what
+/// is returned is kept.
+fn watch_liveliness(
+    session: &Session,
+    collector: &Arc<Mutex<Collector>>,
+    alive: Vec<String>,
+) -> Result<Vec<Subscriber<()>>> {
+    let mut watching = Vec::new();
+    for key in alive {
+        let c = collector.clone();
+        watching.push(
+            session
+                .liveliness()
+                .declare_subscriber(key)
+                .history(true)
+                .callback(move |s: Sample| {
+                    let alive = s.kind() == SampleKind::Put;
+                    let _ = lock(&c).alive(s.key_expr().as_str(), alive, wall_ms());
+                })
+                .wait()
+                .map_err(zenoh_error)?,
+        );
+    }
+    Ok(watching)
+}
+
+/// Asks every robot's status; the replies reach the collector within `timeout`.
+fn ask_status(
+    session: &Session,
+    status_keys: &[String],
+    collector: &Arc<Mutex<Collector>>,
+    timeout: Duration,
+) {
+    for key in status_keys {
+        let c = collector.clone();
+        // Every robot answers for itself: all queryables, no consolidation.
+        let asked = session
+            .get(key)
+            .target(QueryTarget::All)
+            .consolidation(ConsolidationMode::None)
+            .timeout(timeout)
+            .callback(move |reply| {
+                if let Ok(s) = reply.result() {
+                    let bytes = s.payload().to_bytes();
+                    let _ = lock(&c).status(s.key_expr().as_str(), &bytes, wall_ms());
+                }
+            })
+            .wait();
+        if let Err(e) = asked {
+            tracing::warn!("asking the robots' status: {e}");
+        }
+    }
 }
 
 fn serve_http(
