@@ -345,26 +345,45 @@ fn heating_change(d: &Dataset, m: usize, a: usize, b: usize) -> f64 {
 /// when reading first).
 pub fn check(d: &mut Dataset, limits: &Limits) -> Vec<Finding> {
     let mut out = d.clock_findings.clone();
-    let counts = |kind, factor, what| Mistake {
-        kind,
-        factor,
-        offset: 0.0,
-        integers: true,
-        what,
-    };
-    let plain = |kind, factor, what| Mistake {
-        kind,
-        factor,
-        offset: 0.0,
-        integers: false,
-        what,
-    };
-    // Current: mA (a multiple of the register's 6.5 mA step when converted from it) or raw
-    // counts of 6.5 mA; far beyond the stall current only.
-    if spread(&d.current).is_some_and(|(p99, _, _)| p99 > BEYOND_RATING * limits.stall_current_a)
-        && multiples_of(&d.current, 6.5)
+    check_current(&mut d.current, limits, &mut out);
+    check_voltage(&mut d.voltage, limits, &mut out);
+    check_temperature(&mut d.temperature, limits, &mut out);
+    check_motion(d, limits, &mut out);
+    stuck_temperatures(d, &mut out);
+    out
+}
+
+impl Mistake {
+    /// A raw register's whole counts, `factor` of the unit each.
+    const fn counts(kind: &'static str, factor: f64, what: &'static str) -> Mistake {
+        Mistake {
+            kind,
+            factor,
+            offset: 0.0,
+            integers: true,
+            what,
+        }
+    }
+
+    /// A unit `factor` of the right one.
+    const fn plain(kind: &'static str, factor: f64, what: &'static str) -> Mistake {
+        Mistake {
+            kind,
+            factor,
+            offset: 0.0,
+            integers: false,
+            what,
+        }
+    }
+}
+
+/// The current: mA (a multiple of the register's 6.5 mA step when converted from it) or raw
+/// counts of 6.5 mA; far beyond the stall current only.
+fn check_current(current: &mut [Vec<f64>], limits: &Limits, out: &mut Vec<Finding>) {
+    if spread(current).is_some_and(|(p99, _, _)| p99 > BEYOND_RATING * limits.stall_current_a)
+        && multiples_of(current, 6.5)
     {
-        scale(&mut d.current, |x| x / 1000.0);
+        scale(current, |x| x / 1000.0);
         out.push(Finding {
             column: "current_a",
             kind: "milliamps",
@@ -377,7 +396,7 @@ pub fn check(d: &mut Dataset, limits: &Limits) -> Vec<Finding> {
         });
     }
     check_scale(
-        &mut d.current,
+        current,
         "current_a",
         Physical {
             unit: "A",
@@ -386,13 +405,17 @@ pub fn check(d: &mut Dataset, limits: &Limits) -> Vec<Finding> {
             plausible: (-limits.stall_current_a, limits.stall_current_a),
         },
         &[
-            counts("register_counts", 0.0065, "raw register counts of 6.5 mA"),
-            plain("milliamps", 0.001, "milliamperes"),
+            Mistake::counts("register_counts", 0.0065, "raw register counts of 6.5 mA"),
+            Mistake::plain("milliamps", 0.001, "milliamperes"),
         ],
-        &mut out,
+        out,
     );
+}
+
+/// The supply voltage: the register's raw 0.1 V counts, or millivolts.
+fn check_voltage(voltage: &mut [Vec<f64>], limits: &Limits, out: &mut Vec<Finding>) {
     check_scale(
-        &mut d.voltage,
+        voltage,
         "voltage_v",
         Physical {
             unit: "V",
@@ -401,15 +424,19 @@ pub fn check(d: &mut Dataset, limits: &Limits) -> Vec<Finding> {
             plausible: (3.0, limits.max_supply_v),
         },
         &[
-            counts(
+            Mistake::counts(
                 "tenths_of_volts",
                 0.1,
                 "the voltage register's raw 0.1 V counts",
             ),
-            plain("millivolts", 0.001, "millivolts"),
+            Mistake::plain("millivolts", 0.001, "millivolts"),
         ],
-        &mut out,
+        out,
     );
+}
+
+/// The temperature: kelvin.
+fn check_temperature(temperature: &mut [Vec<f64>], limits: &Limits, out: &mut Vec<Finding>) {
     let kelvin = Mistake {
         kind: "kelvin",
         factor: 1.0,
@@ -418,7 +445,7 @@ pub fn check(d: &mut Dataset, limits: &Limits) -> Vec<Finding> {
         what: "kelvin",
     };
     check_scale(
-        &mut d.temperature,
+        temperature,
         "temperature_c",
         Physical {
             unit: "°C",
@@ -427,8 +454,12 @@ pub fn check(d: &mut Dataset, limits: &Limits) -> Vec<Finding> {
             plausible: (-20.0, limits.max_temperature_c),
         },
         &[kelvin],
-        &mut out,
+        out,
     );
+}
+
+/// The positions, goals and velocities: raw encoder counts, or degrees.
+fn check_motion(d: &mut Dataset, limits: &Limits, out: &mut Vec<Finding>) {
     let turn = 2.0 * std::f64::consts::PI;
     let angle_mistakes = [
         Mistake {
@@ -438,7 +469,7 @@ pub fn check(d: &mut Dataset, limits: &Limits) -> Vec<Finding> {
             integers: true,
             what: "raw position counts (4096 a turn, 2048 the middle)",
         },
-        plain("degrees", turn / 360.0, "degrees"),
+        Mistake::plain("degrees", turn / 360.0, "degrees"),
     ];
     for (col, name) in [(&mut d.position, "position_rad"), (&mut d.goal, "goal_rad")] {
         check_scale(
@@ -451,7 +482,7 @@ pub fn check(d: &mut Dataset, limits: &Limits) -> Vec<Finding> {
                 plausible: (-turn, turn),
             },
             &angle_mistakes,
-            &mut out,
+            out,
         );
     }
     check_scale(
@@ -464,17 +495,15 @@ pub fn check(d: &mut Dataset, limits: &Limits) -> Vec<Finding> {
             plausible: (-limits.max_speed_rad_s, limits.max_speed_rad_s),
         },
         &[
-            counts(
+            Mistake::counts(
                 "register_counts",
                 turn / 4096.0,
                 "raw speed counts (steps/s)",
             ),
-            plain("degrees", turn / 360.0, "degrees per second"),
+            Mistake::plain("degrees", turn / 360.0, "degrees per second"),
         ],
-        &mut out,
+        out,
     );
-    stuck_temperatures(d, &mut out);
-    out
 }
 
 #[cfg(test)]

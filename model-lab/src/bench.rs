@@ -40,6 +40,17 @@ pub struct Settings {
     pub rows: Vec<String>,
 }
 
+impl Settings {
+    /// `spec` recorded at these settings' length and period.
+    fn spec(&self, spec: Spec) -> Spec {
+        Spec {
+            duration_s: self.duration_s,
+            period_s: self.period_s,
+            ..spec
+        }
+    }
+}
+
 impl Default for Settings {
     fn default() -> Self {
         Settings {
@@ -194,12 +205,7 @@ fn motion_score(
     let mut runs = out.into_inner().unwrap_or_default();
     runs.sort_by_key(|r| r.seed);
     let n = runs.len().max(1) as f64;
-    let mut errors: Vec<f64> = runs
-        .iter()
-        .filter(|r| r.named == effect)
-        .filter_map(|r| r.recovered.map(|v| ((v - r.size) / r.size).abs()))
-        .collect();
-    errors.sort_by(f64::total_cmp);
+    let errors = parameter_errors(runs.iter().filter(|r| r.named == effect));
     let confusions = confusions(&runs, |r| r.named != effect);
     let score = EffectScore {
         hidden: if effect == Effect::None {
@@ -211,11 +217,11 @@ fn motion_score(
         size_range: crate::generate::motion_size_range(effect),
         unit: effect.parameter().map_or("", |p| p.1),
         runs: runs.len(),
-        accuracy: runs.iter().filter(|r| r.named == effect).count() as f64 / n,
+        accuracy: fraction(&runs, |r| r.named == effect),
         recovered: errors.iter().filter(|e| **e <= PARAMETER_TOLERANCE).count() as f64 / n,
         median_parameter_error: errors.get(errors.len() / 2).copied(),
         confusions,
-        mean_seconds: runs.iter().map(|r| r.seconds).sum::<f64>() / n,
+        mean_seconds: mean_seconds(&runs),
         sweep: Vec::new(),
         detection_limit: None,
         detail: runs,
@@ -232,11 +238,7 @@ fn motion_score(
 
 /// `spec` (with the settings' length and period) over the settings' seeds.
 fn seeded(settings: &Settings, spec: Spec) -> Vec<Run> {
-    let spec = Spec {
-        duration_s: settings.duration_s,
-        period_s: settings.period_s,
-        ..spec
-    };
+    let spec = settings.spec(spec);
     let jobs: Vec<(Spec, u64)> = (0..settings.seeds).map(|s| (spec.clone(), s)).collect();
     run_many(&jobs, settings.jobs)
 }
@@ -375,200 +377,23 @@ pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
         {
             continue;
         }
-        let spec = Spec {
-            duration_s: settings.duration_s,
-            period_s: settings.period_s,
-            ..Spec::new(effect)
-        };
-        let jobs: Vec<(Spec, u64)> = (0..settings.seeds).map(|s| (spec.clone(), s)).collect();
-        let runs = run_many(&jobs, settings.jobs);
-        let n = runs.len().max(1) as f64;
-        let correct: Vec<&Run> = runs.iter().filter(|r| r.answer() == effect).collect();
-        let mut errors: Vec<f64> = correct
-            .iter()
-            .filter_map(|r| r.recovered.map(|v| ((v - r.size) / r.size).abs()))
-            .collect();
-        errors.sort_by(f64::total_cmp);
-        let confusions = confusions(&runs, |r| r.answer() != effect);
-        // Detection-limit sweep: from the range's lower end, halve while the effect is still
-        // found reliably; when it is not found there, double until it is.
-        let mut sweep: Vec<(f64, f64)> = Vec::new();
-        if effect != Effect::None && settings.sweep_seeds > 0 {
-            let rate_at = |size: f64| {
-                let jobs: Vec<(Spec, u64)> = (0..settings.sweep_seeds)
-                    .map(|s| {
-                        (
-                            Spec {
-                                size: Some(size),
-                                ..spec.clone()
-                            },
-                            1000 + s,
-                        )
-                    })
-                    .collect();
-                let r = run_many(&jobs, settings.jobs);
-                r.iter().filter(|r| r.answer() == effect).count() as f64 / r.len().max(1) as f64
-            };
-            let lo = size_range(effect).0;
-            let first = rate_at(lo);
-            sweep.push((lo, first));
-            let factor = if first >= DETECTION_RATE { 0.5 } else { 2.0 };
-            let mut size = lo;
-            for _ in 1..settings.sweep_steps {
-                size *= factor;
-                let rate = rate_at(size);
-                sweep.push((size, rate));
-                if (rate >= DETECTION_RATE) != (first >= DETECTION_RATE) {
-                    break;
-                }
-            }
-            sweep.sort_by(|a, b| b.0.total_cmp(&a.0));
-        }
-        // The smallest size found reliably, with every larger size of the sweep also found.
-        let detection_limit = sweep
-            .iter()
-            .take_while(|(_, r)| *r >= DETECTION_RATE)
-            .last()
-            .map(|(s, _)| *s);
-        let score = EffectScore {
-            hidden: effect.id().into(),
-            effect,
-            size_range: size_range(effect),
-            unit: effect.parameter().map_or("", |p| p.1),
-            runs: runs.len(),
-            accuracy: correct.len() as f64 / n,
-            recovered: errors.iter().filter(|e| **e <= PARAMETER_TOLERANCE).count() as f64 / n,
-            median_parameter_error: errors.get(errors.len() / 2).copied(),
-            confusions,
-            mean_seconds: runs.iter().map(|r| r.seconds).sum::<f64>() / n,
-            sweep,
-            detection_limit,
-            detail: runs,
-        };
-        progress(&format!(
-            "{:18} accuracy {:5.1} %  parameter within {:.0} %: {:5.1} %  limit {:?}",
-            effect.id(),
-            100.0 * score.accuracy,
-            100.0 * PARAMETER_TOLERANCE,
-            100.0 * score.recovered,
-            score.detection_limit
-        ));
-        effects.push(score);
+        effects.push(catalog_score(effect, settings, progress));
     }
-    // Effects outside the catalog: the right answer is `unexplained`, never a catalog name.
     if wants("foreign")
         && (settings.effects.is_empty() || settings.effects.contains(&Effect::Unexplained))
     {
         for foreign in Foreign::ALL {
-            let runs = seeded(
-                settings,
-                Spec {
-                    foreign: Some(foreign),
-                    ..Spec::new(Effect::None)
-                },
-            );
-            let n = runs.len().max(1) as f64;
-            let confusions = confusions(&runs, |r| r.answer() != Effect::Unexplained);
-            let score = EffectScore {
-                hidden: foreign.id().into(),
-                effect: Effect::Unexplained,
-                size_range: (0.0, 0.0),
-                unit: "",
-                runs: runs.len(),
-                accuracy: runs
-                    .iter()
-                    .filter(|r| r.answer() == Effect::Unexplained)
-                    .count() as f64
-                    / n,
-                recovered: 0.0,
-                median_parameter_error: None,
-                confusions,
-                mean_seconds: runs.iter().map(|r| r.seconds).sum::<f64>() / n,
-                sweep: Vec::new(),
-                detection_limit: None,
-                detail: runs,
-            };
-            progress(&format!(
-                "{:18} unexplained {:5.1} %  a catalog name {:5.1} %",
-                foreign.id(),
-                100.0 * score.accuracy,
-                100.0 * score.wrong_name()
-            ));
-            effects.push(score);
+            effects.push(foreign_score(foreign, settings, progress));
         }
     }
-    // Two effects at once: both must be named (the score's `effect` is the first).
     if wants("pairs") && settings.effects.is_empty() {
         for (first, second) in PAIRS {
-            let runs = seeded(
-                settings,
-                Spec {
-                    second: Some(second),
-                    ..Spec::new(first)
-                },
-            );
-            let n = runs.len().max(1) as f64;
-            let both = runs.iter().filter(|r| r.both_named).count();
-            let confusions = confusions(&runs, |r| !r.both_named);
-            let score = EffectScore {
-                hidden: format!("{}+{}", first.id(), second.id()),
-                effect: first,
-                size_range: size_range(first),
-                unit: first.parameter().map_or("", |p| p.1),
-                runs: runs.len(),
-                accuracy: both as f64 / n,
-                recovered: runs.iter().filter(|r| r.both_recovered).count() as f64 / n,
-                median_parameter_error: None,
-                confusions,
-                mean_seconds: runs.iter().map(|r| r.seconds).sum::<f64>() / n,
-                sweep: Vec::new(),
-                detection_limit: None,
-                detail: runs,
-            };
-            progress(&format!(
-                "{:18} both named {:5.1} %  both parameters within {:.0} %: {:5.1} %",
-                score.hidden,
-                100.0 * score.accuracy,
-                100.0 * PARAMETER_TOLERANCE,
-                100.0 * score.recovered
-            ));
-            effects.push(score);
+            effects.push(pair_score(first, second, settings, progress));
         }
     }
-    // Data that lie: the audit must find each kind (the score's accuracy), and the analysis
-    // still answer `none` on the null data behind it (its `recovered`).
     if wants("dirty") && settings.effects.is_empty() {
         for dirty in Dirty::ALL {
-            let runs = seeded(
-                settings,
-                Spec {
-                    dirty: Some(dirty),
-                    ..Spec::new(Effect::None)
-                },
-            );
-            let n = runs.len().max(1) as f64;
-            let score = EffectScore {
-                hidden: format!("dirty: {}", dirty.id()),
-                effect: Effect::None,
-                size_range: (0.0, 0.0),
-                unit: "",
-                runs: runs.len(),
-                accuracy: runs.iter().filter(|r| r.flagged).count() as f64 / n,
-                recovered: runs.iter().filter(|r| r.answer() == Effect::None).count() as f64 / n,
-                median_parameter_error: None,
-                confusions: Vec::new(),
-                mean_seconds: runs.iter().map(|r| r.seconds).sum::<f64>() / n,
-                sweep: Vec::new(),
-                detection_limit: None,
-                detail: runs,
-            };
-            progress(&format!(
-                "{:18} flagged {:5.1} %  still none {:5.1} %",
-                score.hidden,
-                100.0 * score.accuracy,
-                100.0 * score.recovered
-            ));
-            effects.push(score);
+            effects.push(dirty_score(dirty, settings, progress));
         }
     }
     // The motion channel: generated runs hiding one mechanical effect (or none).
@@ -587,4 +412,222 @@ pub fn run(settings: &Settings, progress: &mut dyn FnMut(&str)) -> Report {
         effects,
         seconds: start.elapsed().as_secs_f64(),
     }
+}
+
+/// Scores the lab on one hidden catalog effect (or `none`): named, its parameter recovered,
+/// and its detection limit.
+fn catalog_score(
+    effect: Effect,
+    settings: &Settings,
+    progress: &mut dyn FnMut(&str),
+) -> EffectScore {
+    let runs = seeded(settings, Spec::new(effect));
+    let n = runs.len().max(1) as f64;
+    let correct: Vec<&Run> = runs.iter().filter(|r| r.answer() == effect).collect();
+    let errors = parameter_errors(correct.iter().copied());
+    let confusions = confusions(&runs, |r| r.answer() != effect);
+    let sweep = detection_sweep(effect, settings);
+    // The smallest size found reliably, with every larger size of the sweep also found.
+    let detection_limit = sweep
+        .iter()
+        .take_while(|(_, r)| *r >= DETECTION_RATE)
+        .last()
+        .map(|(s, _)| *s);
+    let score = EffectScore {
+        hidden: effect.id().into(),
+        effect,
+        size_range: size_range(effect),
+        unit: effect.parameter().map_or("", |p| p.1),
+        runs: runs.len(),
+        accuracy: correct.len() as f64 / n,
+        recovered: errors.iter().filter(|e| **e <= PARAMETER_TOLERANCE).count() as f64 / n,
+        median_parameter_error: errors.get(errors.len() / 2).copied(),
+        confusions,
+        mean_seconds: mean_seconds(&runs),
+        sweep,
+        detection_limit,
+        detail: runs,
+    };
+    progress(&format!(
+        "{:18} accuracy {:5.1} %  parameter within {:.0} %: {:5.1} %  limit {:?}",
+        effect.id(),
+        100.0 * score.accuracy,
+        100.0 * PARAMETER_TOLERANCE,
+        100.0 * score.recovered,
+        score.detection_limit
+    ));
+    score
+}
+
+/// The detection-limit sweep of `effect`, (size, detection rate) by decreasing size: from the
+/// range's lower end, halve while the effect is still found reliably; when it is not found
+/// there, double until it is. Empty for `none` or without sweep seeds.
+fn detection_sweep(effect: Effect, settings: &Settings) -> Vec<(f64, f64)> {
+    let mut sweep: Vec<(f64, f64)> = Vec::new();
+    if effect == Effect::None || settings.sweep_seeds == 0 {
+        return sweep;
+    }
+    let spec = settings.spec(Spec::new(effect));
+    let rate_at = |size: f64| {
+        let jobs: Vec<(Spec, u64)> = (0..settings.sweep_seeds)
+            .map(|s| {
+                (
+                    Spec {
+                        size: Some(size),
+                        ..spec.clone()
+                    },
+                    1000 + s,
+                )
+            })
+            .collect();
+        let r = run_many(&jobs, settings.jobs);
+        r.iter().filter(|r| r.answer() == effect).count() as f64 / r.len().max(1) as f64
+    };
+    let lo = size_range(effect).0;
+    let first = rate_at(lo);
+    sweep.push((lo, first));
+    let factor = if first >= DETECTION_RATE { 0.5 } else { 2.0 };
+    let mut size = lo;
+    for _ in 1..settings.sweep_steps {
+        size *= factor;
+        let rate = rate_at(size);
+        sweep.push((size, rate));
+        if (rate >= DETECTION_RATE) != (first >= DETECTION_RATE) {
+            break;
+        }
+    }
+    sweep.sort_by(|a, b| b.0.total_cmp(&a.0));
+    sweep
+}
+
+/// Scores an effect outside the catalog: the right answer is `unexplained`, never a catalog
+/// name.
+fn foreign_score(
+    foreign: Foreign,
+    settings: &Settings,
+    progress: &mut dyn FnMut(&str),
+) -> EffectScore {
+    let runs = seeded(
+        settings,
+        Spec {
+            foreign: Some(foreign),
+            ..Spec::new(Effect::None)
+        },
+    );
+    let confusions = confusions(&runs, |r| r.answer() != Effect::Unexplained);
+    let score = EffectScore {
+        hidden: foreign.id().into(),
+        effect: Effect::Unexplained,
+        size_range: (0.0, 0.0),
+        unit: "",
+        runs: runs.len(),
+        accuracy: fraction(&runs, |r| r.answer() == Effect::Unexplained),
+        recovered: 0.0,
+        median_parameter_error: None,
+        confusions,
+        mean_seconds: mean_seconds(&runs),
+        sweep: Vec::new(),
+        detection_limit: None,
+        detail: runs,
+    };
+    progress(&format!(
+        "{:18} unexplained {:5.1} %  a catalog name {:5.1} %",
+        foreign.id(),
+        100.0 * score.accuracy,
+        100.0 * score.wrong_name()
+    ));
+    score
+}
+
+/// Scores two effects hidden at once: both must be named (the score's `effect` is the first).
+fn pair_score(
+    first: Effect,
+    second: Effect,
+    settings: &Settings,
+    progress: &mut dyn FnMut(&str),
+) -> EffectScore {
+    let runs = seeded(
+        settings,
+        Spec {
+            second: Some(second),
+            ..Spec::new(first)
+        },
+    );
+    let confusions = confusions(&runs, |r| !r.both_named);
+    let score = EffectScore {
+        hidden: format!("{}+{}", first.id(), second.id()),
+        effect: first,
+        size_range: size_range(first),
+        unit: first.parameter().map_or("", |p| p.1),
+        runs: runs.len(),
+        accuracy: fraction(&runs, |r| r.both_named),
+        recovered: fraction(&runs, |r| r.both_recovered),
+        median_parameter_error: None,
+        confusions,
+        mean_seconds: mean_seconds(&runs),
+        sweep: Vec::new(),
+        detection_limit: None,
+        detail: runs,
+    };
+    progress(&format!(
+        "{:18} both named {:5.1} %  both parameters within {:.0} %: {:5.1} %",
+        score.hidden,
+        100.0 * score.accuracy,
+        100.0 * PARAMETER_TOLERANCE,
+        100.0 * score.recovered
+    ));
+    score
+}
+
+/// Scores data that lie: the audit must find each kind (the score's accuracy), and the
+/// analysis still answer `none` on the null data behind it (its `recovered`).
+fn dirty_score(dirty: Dirty, settings: &Settings, progress: &mut dyn FnMut(&str)) -> EffectScore {
+    let runs = seeded(
+        settings,
+        Spec {
+            dirty: Some(dirty),
+            ..Spec::new(Effect::None)
+        },
+    );
+    let score = EffectScore {
+        hidden: format!("dirty: {}", dirty.id()),
+        effect: Effect::None,
+        size_range: (0.0, 0.0),
+        unit: "",
+        runs: runs.len(),
+        accuracy: fraction(&runs, |r| r.flagged),
+        recovered: fraction(&runs, |r| r.answer() == Effect::None),
+        median_parameter_error: None,
+        confusions: Vec::new(),
+        mean_seconds: mean_seconds(&runs),
+        sweep: Vec::new(),
+        detection_limit: None,
+        detail: runs,
+    };
+    progress(&format!(
+        "{:18} flagged {:5.1} %  still none {:5.1} %",
+        score.hidden,
+        100.0 * score.accuracy,
+        100.0 * score.recovered
+    ));
+    score
+}
+
+/// The fraction of `runs` that `pick` picks (0 of no runs).
+fn fraction(runs: &[Run], pick: impl Fn(&Run) -> bool) -> f64 {
+    runs.iter().filter(|r| pick(r)).count() as f64 / runs.len().max(1) as f64
+}
+
+/// The runs' mean analysis time, s.
+fn mean_seconds(runs: &[Run]) -> f64 {
+    runs.iter().map(|r| r.seconds).sum::<f64>() / runs.len().max(1) as f64
+}
+
+/// The relative errors of the parameters recovered by `runs`, ascending.
+fn parameter_errors<'a>(runs: impl Iterator<Item = &'a Run>) -> Vec<f64> {
+    let mut errors: Vec<f64> = runs
+        .filter_map(|r| r.recovered.map(|v| ((v - r.size) / r.size).abs()))
+        .collect();
+    errors.sort_by(f64::total_cmp);
+    errors
 }

@@ -374,6 +374,59 @@ fn repair_clock(name: &str, rows: &mut [Row]) -> Option<crate::audit::Finding> {
     })
 }
 
+/// The motor ids of `runs`, ascending; an error when there are none or more than
+/// [`MAX_MOTORS`].
+fn motor_ids(runs: &[(String, Vec<Row>)], origin: &str) -> Result<Vec<i64>, DataError> {
+    let mut motors: Vec<i64> = runs
+        .iter()
+        .flat_map(|(_, r)| r.iter().map(|r| r.motor))
+        .collect();
+    motors.sort_unstable();
+    motors.dedup();
+    if motors.is_empty() {
+        return Err(DataError::Empty {
+            path: origin.into(),
+        });
+    }
+    if motors.len() > MAX_MOTORS {
+        return Err(DataError::TooManyMotors {
+            path: origin.into(),
+            count: motors.len(),
+        });
+    }
+    Ok(motors)
+}
+
+impl Meta {
+    /// The daisy chains as indices into `motors`: the sidecar's, else one chain of consecutive
+    /// ids (the README's convention).
+    fn chains_of(&self, motors: &[i64]) -> Vec<Vec<usize>> {
+        match &self.chains {
+            Some(chains) => chains
+                .iter()
+                .map(|c| {
+                    c.iter()
+                        .filter_map(|id| motors.binary_search(id).ok())
+                        .collect()
+                })
+                .collect(),
+            None => vec![(0..motors.len()).collect()],
+        }
+    }
+
+    /// The servo model of each of `motors`, where the sidecar names it.
+    fn servo_models_of(&self, motors: &[i64]) -> Vec<Option<String>> {
+        motors
+            .iter()
+            .map(|id| {
+                self.servo
+                    .as_ref()
+                    .and_then(|s| s.get(&id.to_string()).cloned())
+            })
+            .collect()
+    }
+}
+
 /// Measured data on one time grid: `[motor][sample]`, NaN where a value is missing.
 #[derive(Debug, Clone, Default)]
 pub struct Dataset {
@@ -434,148 +487,36 @@ impl Dataset {
                 (name, rows)
             })
             .collect();
-        let mut motors: Vec<i64> = runs
-            .iter()
-            .flat_map(|(_, r)| r.iter().map(|r| r.motor))
-            .collect();
-        motors.sort_unstable();
-        motors.dedup();
-        if motors.is_empty() {
-            return Err(DataError::Empty {
-                path: origin.into(),
-            });
-        }
-        if motors.len() > MAX_MOTORS {
-            return Err(DataError::TooManyMotors {
-                path: origin.into(),
-                count: motors.len(),
-            });
-        }
+        let motors = motor_ids(&runs, origin)?;
         let nm = motors.len();
         let mut d = Dataset {
             motors: motors.clone(),
             clock_findings,
+            temperature: vec![Vec::new(); nm],
+            current: vec![Vec::new(); nm],
+            voltage: vec![Vec::new(); nm],
+            goal: vec![Vec::new(); nm],
+            position: vec![Vec::new(); nm],
+            velocity: vec![Vec::new(); nm],
+            torque_enabled: vec![Vec::new(); nm],
             ..Default::default()
         };
-        let mut offset = 0.0;
         let mut run_starts = Vec::new();
         for (name, rows) in &runs {
             if rows.is_empty() {
                 continue;
             }
-            // Group rows by time (µs key: a millisecond would move a sample of a joint at
-            // 2 rad/s by up to a step of the encoder); BTreeMap keeps them sorted.
-            let mut by_t: BTreeMap<i64, Vec<&Row>> = BTreeMap::new();
-            for r in rows {
-                by_t.entry((r.t * TIME_KEYS_PER_S).round() as i64)
-                    .or_default()
-                    .push(r);
-            }
-            let first = by_t
-                .keys()
-                .next()
-                .map_or(0.0, |&k| k as f64 / TIME_KEYS_PER_S);
-            let shift = if d.t.is_empty() {
-                0.0
-            } else {
-                // Runs are laid end to end, one second apart; the gap starts a segment anyway.
-                offset + 1.0 - first
-            };
-            if !d.t.is_empty() {
-                d.notes.push(format!(
-                    "run {name} appended at t = {:.1} s (own clock shifted by {shift:.1} s)",
-                    first + shift
-                ));
-            }
             run_starts.push(d.t.len());
-            d.runs.push(RunInfo {
-                name: name.clone(),
-                start: d.t.len(),
-                end: d.t.len() + by_t.len(),
-                mechanics: None,
-            });
-            for (k, group) in by_t {
-                let t = k as f64 / TIME_KEYS_PER_S + shift;
-                d.t.push(t);
-                let mut cells = vec![[f64::NAN; 7]; nm];
-                for r in group {
-                    if let Ok(i) = motors.binary_search(&r.motor) {
-                        cells[i] = [
-                            r.temperature,
-                            r.current,
-                            r.voltage,
-                            r.goal,
-                            r.position,
-                            r.velocity,
-                            r.torque,
-                        ];
-                    }
-                }
-                for (i, c) in cells.iter().enumerate() {
-                    if d.temperature.len() < nm {
-                        d.temperature = vec![Vec::new(); nm];
-                        d.current = vec![Vec::new(); nm];
-                        d.voltage = vec![Vec::new(); nm];
-                        d.goal = vec![Vec::new(); nm];
-                        d.position = vec![Vec::new(); nm];
-                        d.velocity = vec![Vec::new(); nm];
-                        d.torque_enabled = vec![Vec::new(); nm];
-                    }
-                    d.temperature[i].push(c[0]);
-                    d.current[i].push(c[1]);
-                    d.voltage[i].push(c[2]);
-                    d.goal[i].push(c[3]);
-                    d.position[i].push(c[4]);
-                    d.velocity[i].push(c[5]);
-                    d.torque_enabled[i].push(c[6]);
-                }
-            }
-            offset = d.t.last().copied().unwrap_or(0.0);
+            d.append_run(name, rows);
         }
         if d.t.len() < 2 {
             return Err(DataError::Empty {
                 path: origin.into(),
             });
         }
-        // Segments: every run start, and every long gap.
-        let mut dts: Vec<f64> = d.t.windows(2).map(|w| w[1] - w[0]).collect();
-        dts.sort_by(f64::total_cmp);
-        let median_dt = dts[dts.len() / 2];
-        let gap = (SEGMENT_GAP_PERIODS * median_dt).max(MIN_SEGMENT_GAP_S);
-        let mut starts = run_starts;
-        for k in 1..d.t.len() {
-            let dt = d.t[k] - d.t[k - 1];
-            if dt > gap {
-                starts.push(k);
-                d.notes.push(format!(
-                    "logging gap of {dt:.0} s at t = {:.0} s: new segment",
-                    d.t[k - 1]
-                ));
-            }
-        }
-        starts.sort_unstable();
-        starts.dedup();
-        d.segment_starts = starts;
-        // Chains: the sidecar's, else one chain of consecutive ids (the README's convention).
-        d.chains = match &meta.chains {
-            Some(chains) => chains
-                .iter()
-                .map(|c| {
-                    c.iter()
-                        .filter_map(|id| motors.binary_search(id).ok())
-                        .collect()
-                })
-                .collect(),
-            None => vec![(0..nm).collect()],
-        };
-        d.servo_models = motors
-            .iter()
-            .map(|id| {
-                meta.servo
-                    .as_ref()
-                    .and_then(|s| s.get(&id.to_string()).cloned())
-            })
-            .collect();
+        d.mark_segments(run_starts);
+        d.chains = meta.chains_of(&motors);
+        d.servo_models = meta.servo_models_of(&motors);
         d.temperature_quantum = quantum(&d.temperature);
         for (name, col) in [
             ("temperature_c", &d.temperature),
@@ -587,6 +528,91 @@ impl Dataset {
             }
         }
         Ok(d)
+    }
+
+    /// Lays one run's rows onto the grid after the runs before it (its own clock shifted to
+    /// start one second after their last sample), one sample per time.
+    fn append_run(&mut self, name: &str, rows: &[Row]) {
+        // Group rows by time (µs key: a millisecond would move a sample of a joint at
+        // 2 rad/s by up to a step of the encoder); BTreeMap keeps them sorted.
+        let mut by_t: BTreeMap<i64, Vec<&Row>> = BTreeMap::new();
+        for r in rows {
+            by_t.entry((r.t * TIME_KEYS_PER_S).round() as i64)
+                .or_default()
+                .push(r);
+        }
+        let first = by_t
+            .keys()
+            .next()
+            .map_or(0.0, |&k| k as f64 / TIME_KEYS_PER_S);
+        // Runs are laid end to end, one second apart; the gap starts a segment anyway.
+        let shift = self.t.last().map_or(0.0, |offset| offset + 1.0 - first);
+        if !self.t.is_empty() {
+            self.notes.push(format!(
+                "run {name} appended at t = {:.1} s (own clock shifted by {shift:.1} s)",
+                first + shift
+            ));
+        }
+        self.runs.push(RunInfo {
+            name: name.to_string(),
+            start: self.t.len(),
+            end: self.t.len() + by_t.len(),
+            mechanics: None,
+        });
+        for (k, group) in by_t {
+            self.push_sample(k as f64 / TIME_KEYS_PER_S + shift, &group);
+        }
+    }
+
+    /// Appends the sample at `t` made of `rows` (one per motor; a motor without one is
+    /// missing there).
+    fn push_sample(&mut self, t: f64, rows: &[&Row]) {
+        self.t.push(t);
+        let mut cells = vec![[f64::NAN; 7]; self.motors.len()];
+        for r in rows {
+            if let Ok(i) = self.motors.binary_search(&r.motor) {
+                cells[i] = [
+                    r.temperature,
+                    r.current,
+                    r.voltage,
+                    r.goal,
+                    r.position,
+                    r.velocity,
+                    r.torque,
+                ];
+            }
+        }
+        for (i, c) in cells.iter().enumerate() {
+            self.temperature[i].push(c[0]);
+            self.current[i].push(c[1]);
+            self.voltage[i].push(c[2]);
+            self.goal[i].push(c[3]);
+            self.position[i].push(c[4]);
+            self.velocity[i].push(c[5]);
+            self.torque_enabled[i].push(c[6]);
+        }
+    }
+
+    /// Starts a segment at every run start and at every long gap (said in the notes).
+    fn mark_segments(&mut self, run_starts: Vec<usize>) {
+        let mut dts: Vec<f64> = self.t.windows(2).map(|w| w[1] - w[0]).collect();
+        dts.sort_by(f64::total_cmp);
+        let median_dt = dts[dts.len() / 2];
+        let gap = (SEGMENT_GAP_PERIODS * median_dt).max(MIN_SEGMENT_GAP_S);
+        let mut starts = run_starts;
+        for k in 1..self.t.len() {
+            let dt = self.t[k] - self.t[k - 1];
+            if dt > gap {
+                starts.push(k);
+                self.notes.push(format!(
+                    "logging gap of {dt:.0} s at t = {:.0} s: new segment",
+                    self.t[k - 1]
+                ));
+            }
+        }
+        starts.sort_unstable();
+        starts.dedup();
+        self.segment_starts = starts;
     }
 
     /// Number of samples on the grid.

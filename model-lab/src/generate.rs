@@ -191,37 +191,8 @@ pub fn generate(spec: &Spec, seed: u64) -> Generated {
     let v0 = rng.range(11.5, 12.5);
     let v_off: Vec<f64> = (0..n).map(|_| rng.range(-0.1, 0.1)).collect();
     let steps = (spec.duration_s / spec.period_s).round() as usize;
-
-    // Duty profile: phases of rest, back-and-forth moves and holds.
-    let mut current = vec![vec![0.0; steps]; n];
-    for cur in current.iter_mut() {
-        let mut k = 0;
-        while k < steps {
-            let len = (rng.range(60.0, 480.0) / spec.period_s).max(1.0) as usize;
-            let rest = rng.chance(0.3);
-            let amp = rng.range(0.3, 1.5);
-            let moving = rng.chance(0.6);
-            let mut sign = rng.sign();
-            let mut next_flip = k + (rng.range(2.0, 8.0) / spec.period_s).max(1.0) as usize;
-            for (j, c) in cur.iter_mut().enumerate().skip(k).take(len) {
-                if moving && j >= next_flip {
-                    sign = -sign;
-                    next_flip = j + (rng.range(2.0, 8.0) / spec.period_s).max(1.0) as usize;
-                }
-                *c = if rest {
-                    0.0
-                } else {
-                    sign * amp * (1.0 + 0.1 * rng.normal())
-                };
-            }
-            k += len;
-        }
-    }
-
-    // The truth ODE: winding w, sensor s per motor.
+    let current = duty_profile(&mut rng, n, steps, spec.period_s);
     let warm: Vec<f64> = (0..n).map(|_| rng.range(0.0, 3.0)).collect();
-    let mut w: Vec<f64> = (0..n).map(|m| idle[m] + warm[m]).collect();
-    let mut s = w.clone();
     // The foreign effect and the second one draw from a generator of their own: the same seed
     // without them gives the same data as before they existed.
     let mut frng = Rng::new(seed ^ 0x666F_7265_6967_6E00);
@@ -239,140 +210,33 @@ pub fn generate(spec: &Spec, seed: u64) -> Generated {
         _ => 0.0,
     };
     let duration = steps as f64 * spec.period_s;
-    let (loss_from_s, loss) = match spec.foreign {
-        Some(Foreign::CoolingLoss) => (frng.range(0.5, 0.9) * duration, frng.range(0.4, 0.8)),
-        _ => (f64::INFINITY, 0.0),
+    let plant = Plant {
+        tau: &tau,
+        gain: &gain,
+        idle: &idle,
+        current: &current,
+        lag: size_of(Effect::SensorLag),
+        kappa: size_of(Effect::NeighborCoupling),
+        alpha: size_of(Effect::CopperTempco) / 100.0,
+        drift_h: size_of(Effect::AmbientDrift),
+        foreign: ForeignHeat::draw(spec.foreign, &mut frng, duration, n),
     };
-    let (heated, heater_k, heater_period_s) = match spec.foreign {
-        Some(Foreign::HiddenHeater) => (
-            frng.int(0, n - 1),
-            frng.range(6.0, 12.0),
-            frng.range(1200.0, 3600.0),
-        ),
-        _ => (usize::MAX, 0.0, 1.0),
+    let winding: Vec<f64> = (0..n).map(|m| idle[m] + warm[m]).collect();
+    let readings = plant.readings(winding, steps, spec.period_s);
+    let registers = Registers {
+        period_s: spec.period_s,
+        steps,
+        current: &current,
+        readings: &readings,
+        noise,
+        offset: size_of(Effect::CurrentOffset),
+        sag_ohm: size_of(Effect::SupplySag),
+        v0,
+        v_off: &v_off,
+        faults: Faults::draw(spec.dirty, &mut frng, duration, n),
+        milliamps: spec.dirty == Some(Dirty::Milliamps),
     };
-    let (lag, kappa, alpha, drift_h) = (
-        size_of(Effect::SensorLag),
-        size_of(Effect::NeighborCoupling),
-        size_of(Effect::CopperTempco) / 100.0,
-        size_of(Effect::AmbientDrift),
-    );
-    let deriv = |t: f64, w: &[f64], s: &[f64], k: usize, dw: &mut [f64], ds: &mut [f64]| {
-        for m in 0..n {
-            let i = current[m][k];
-            let cooling = if t >= loss_from_s { 1.0 + loss } else { 1.0 };
-            let mut heat = idle[m]
-                + drift_h * t / 3600.0
-                + cooling * gain[m] * (1.0 + alpha * (w[m] - 25.0)) * i * i
-                - w[m];
-            if m == heated && (t / heater_period_s).fract() < 0.5 {
-                heat += heater_k;
-            }
-            if kappa != 0.0 {
-                if m > 0 {
-                    heat += kappa * (w[m - 1] - w[m]);
-                }
-                if m + 1 < n {
-                    heat += kappa * (w[m + 1] - w[m]);
-                }
-            }
-            dw[m] = heat / tau[m];
-            ds[m] = if lag > 0.0 { (w[m] - s[m]) / lag } else { 0.0 };
-        }
-    };
-    let sub = 4;
-    let h = spec.period_s / sub as f64;
-    let mut readings = vec![vec![0.0; steps]; n];
-    let (mut k1w, mut k1s) = (vec![0.0; n], vec![0.0; n]);
-    let (mut k2w, mut k2s) = (vec![0.0; n], vec![0.0; n]);
-    let (mut k3w, mut k3s) = (vec![0.0; n], vec![0.0; n]);
-    let (mut k4w, mut k4s) = (vec![0.0; n], vec![0.0; n]);
-    let (mut tw, mut ts) = (vec![0.0; n], vec![0.0; n]);
-    for k in 0..steps {
-        for (m, r) in readings.iter_mut().enumerate() {
-            r[k] = if lag > 0.0 { s[m] } else { w[m] };
-        }
-        for j in 0..sub {
-            let t = k as f64 * spec.period_s + j as f64 * h;
-            deriv(t, &w, &s, k, &mut k1w, &mut k1s);
-            for m in 0..n {
-                tw[m] = w[m] + 0.5 * h * k1w[m];
-                ts[m] = s[m] + 0.5 * h * k1s[m];
-            }
-            deriv(t + 0.5 * h, &tw, &ts, k, &mut k2w, &mut k2s);
-            for m in 0..n {
-                tw[m] = w[m] + 0.5 * h * k2w[m];
-                ts[m] = s[m] + 0.5 * h * k2s[m];
-            }
-            deriv(t + 0.5 * h, &tw, &ts, k, &mut k3w, &mut k3s);
-            for m in 0..n {
-                tw[m] = w[m] + h * k3w[m];
-                ts[m] = s[m] + h * k3s[m];
-            }
-            deriv(t + h, &tw, &ts, k, &mut k4w, &mut k4s);
-            for m in 0..n {
-                w[m] += h / 6.0 * (k1w[m] + 2.0 * k2w[m] + 2.0 * k3w[m] + k4w[m]);
-                s[m] += h / 6.0 * (k1s[m] + 2.0 * k2s[m] + 2.0 * k3s[m] + k4s[m]);
-            }
-        }
-    }
-
-    // The registers, and what a dirty channel does to them.
-    let offset = size_of(Effect::CurrentOffset);
-    let rs = size_of(Effect::SupplySag);
-    let (stuck_motor, stuck_from, stuck_until) = match spec.dirty {
-        Some(Dirty::StuckSensor) => {
-            let from = frng.range(0.05, 0.6) * duration;
-            (frng.int(0, n - 1), from, from + frng.range(1800.0, 3600.0))
-        }
-        _ => (usize::MAX, 0.0, 0.0),
-    };
-    let (jump_from, jump_s) = match spec.dirty {
-        Some(Dirty::ClockJump) => (frng.range(0.3, 0.7) * duration, frng.range(120.0, 900.0)),
-        _ => (f64::INFINITY, 0.0),
-    };
-    let mut stuck_reading: Option<String> = None;
-    let mut csv = String::from("t_s,motor,voltage_v,temperature_c,current_a\n");
-    for k in 0..steps {
-        let true_t = k as f64 * spec.period_s;
-        let t = if true_t >= jump_from {
-            true_t - jump_s
-        } else {
-            true_t
-        };
-        let bus: f64 = (0..n).map(|m| current[m][k].abs()).sum();
-        for m in 0..n {
-            if rng.chance(0.003) {
-                continue; // dropped row
-            }
-            let mut temp = if rng.chance(0.003) {
-                String::new()
-            } else if rng.chance(0.002) {
-                if rng.chance(0.5) { "0" } else { "150" }.to_string()
-            } else {
-                format!("{}", (readings[m][k] + noise * rng.normal()).round())
-            };
-            if m == stuck_motor && (stuck_from..stuck_until).contains(&true_t) {
-                // Stuck on its first good reading of the interval.
-                match &stuck_reading {
-                    Some(r) => temp.clone_from(r),
-                    None if !temp.is_empty() && temp != "0" && temp != "150" => {
-                        stuck_reading = Some(temp.clone());
-                    }
-                    None => {}
-                }
-            }
-            let i_reg = ((current[m][k] + offset + 0.01 * rng.normal()) / CURRENT_LSB_A).round()
-                * CURRENT_LSB_A;
-            let v = ((v0 + v_off[m] - rs * bus + 0.03 * rng.normal()) * 10.0).round() / 10.0;
-            if spec.dirty == Some(Dirty::Milliamps) {
-                let ma = 1000.0 * i_reg;
-                let _ = writeln!(csv, "{t:.3},{},{v:.1},{temp},{ma:.1}", m + 1);
-            } else {
-                let _ = writeln!(csv, "{t:.3},{},{v:.1},{temp},{i_reg:.4}", m + 1);
-            }
-        }
-    }
+    let csv = registers.csv(&mut rng);
     let chain: Vec<String> = (1..=n).map(|m| m.to_string()).collect();
     let meta = format!("{{\"chains\": [[{}]]}}", chain.join(","));
     Generated {
@@ -403,6 +267,302 @@ pub fn generate(spec: &Spec, seed: u64) -> Generated {
             gain_k_per_a2: gain,
             sensor_noise_c: noise,
         },
+    }
+}
+
+/// Per motor, the current of a duty profile: phases of rest, back-and-forth moves and holds,
+/// `steps` samples `period_s` apart.
+fn duty_profile(rng: &mut Rng, n: usize, steps: usize, period_s: f64) -> Vec<Vec<f64>> {
+    let mut current = vec![vec![0.0; steps]; n];
+    for cur in current.iter_mut() {
+        let mut k = 0;
+        while k < steps {
+            let len = (rng.range(60.0, 480.0) / period_s).max(1.0) as usize;
+            let rest = rng.chance(0.3);
+            let amp = rng.range(0.3, 1.5);
+            let moving = rng.chance(0.6);
+            let mut sign = rng.sign();
+            let mut next_flip = k + (rng.range(2.0, 8.0) / period_s).max(1.0) as usize;
+            for (j, c) in cur.iter_mut().enumerate().skip(k).take(len) {
+                if moving && j >= next_flip {
+                    sign = -sign;
+                    next_flip = j + (rng.range(2.0, 8.0) / period_s).max(1.0) as usize;
+                }
+                *c = if rest {
+                    0.0
+                } else {
+                    sign * amp * (1.0 + 0.1 * rng.normal())
+                };
+            }
+            k += len;
+        }
+    }
+    current
+}
+
+/// The heat of an effect outside the catalog: cooling lost from a time on, or a hidden heater
+/// switched on and off under one motor.
+struct ForeignHeat {
+    /// From this time, s, the cooling is worse ...
+    loss_from_s: f64,
+    /// ... by this fraction (the heating through the winding's losses grows by it).
+    loss: f64,
+    /// The heated motor (none: `usize::MAX`) ...
+    heated: usize,
+    /// ... its heater's heat, K ...
+    heater_k: f64,
+    /// ... on for the first half of every period of this length, s.
+    heater_period_s: f64,
+}
+
+impl ForeignHeat {
+    /// `foreign`'s heat in a record of `duration` s of `n` motors, drawn from `frng`.
+    fn draw(foreign: Option<Foreign>, frng: &mut Rng, duration: f64, n: usize) -> ForeignHeat {
+        let (loss_from_s, loss) = match foreign {
+            Some(Foreign::CoolingLoss) => (frng.range(0.5, 0.9) * duration, frng.range(0.4, 0.8)),
+            _ => (f64::INFINITY, 0.0),
+        };
+        let (heated, heater_k, heater_period_s) = match foreign {
+            Some(Foreign::HiddenHeater) => (
+                frng.int(0, n - 1),
+                frng.range(6.0, 12.0),
+                frng.range(1200.0, 3600.0),
+            ),
+            _ => (usize::MAX, 0.0, 1.0),
+        };
+        ForeignHeat {
+            loss_from_s,
+            loss,
+            heated,
+            heater_k,
+            heater_period_s,
+        }
+    }
+}
+
+/// The truth: per motor a winding and its sensor, heated by the current, with the hidden
+/// effects' sizes (0: absent).
+struct Plant<'a> {
+    /// Time constants, s.
+    tau: &'a [f64],
+    /// Heating per A², K.
+    gain: &'a [f64],
+    /// Idle temperatures, °C.
+    idle: &'a [f64],
+    /// Currents per motor per sample, A.
+    current: &'a [Vec<f64>],
+    /// Sensor lag, s.
+    lag: f64,
+    /// Neighbour coupling.
+    kappa: f64,
+    /// Copper's temperature coefficient, 1/K.
+    alpha: f64,
+    /// Ambient drift, K/h.
+    drift_h: f64,
+    /// Heat from outside the catalog.
+    foreign: ForeignHeat,
+}
+
+impl Plant<'_> {
+    /// The truth ODE's derivatives of windings `w` and sensors `s` at time `t` in sample `k`.
+    fn deriv(&self, t: f64, w: &[f64], s: &[f64], k: usize, dw: &mut [f64], ds: &mut [f64]) {
+        let n = self.idle.len();
+        let f = &self.foreign;
+        for m in 0..n {
+            let i = self.current[m][k];
+            let cooling = if t >= f.loss_from_s {
+                1.0 + f.loss
+            } else {
+                1.0
+            };
+            let mut heat = self.idle[m]
+                + self.drift_h * t / 3600.0
+                + cooling * self.gain[m] * (1.0 + self.alpha * (w[m] - 25.0)) * i * i
+                - w[m];
+            if m == f.heated && (t / f.heater_period_s).fract() < 0.5 {
+                heat += f.heater_k;
+            }
+            if self.kappa != 0.0 {
+                if m > 0 {
+                    heat += self.kappa * (w[m - 1] - w[m]);
+                }
+                if m + 1 < n {
+                    heat += self.kappa * (w[m + 1] - w[m]);
+                }
+            }
+            dw[m] = heat / self.tau[m];
+            ds[m] = if self.lag > 0.0 {
+                (w[m] - s[m]) / self.lag
+            } else {
+                0.0
+            };
+        }
+    }
+
+    /// The sensors' true readings per motor at `steps` samples `period_s` apart, from windings
+    /// (and sensors) at `w` (RK4, four sub-steps per sample).
+    fn readings(&self, mut w: Vec<f64>, steps: usize, period_s: f64) -> Vec<Vec<f64>> {
+        let n = w.len();
+        let mut s = w.clone();
+        let sub = 4;
+        let h = period_s / sub as f64;
+        let mut readings = vec![vec![0.0; steps]; n];
+        let (mut k1w, mut k1s) = (vec![0.0; n], vec![0.0; n]);
+        let (mut k2w, mut k2s) = (vec![0.0; n], vec![0.0; n]);
+        let (mut k3w, mut k3s) = (vec![0.0; n], vec![0.0; n]);
+        let (mut k4w, mut k4s) = (vec![0.0; n], vec![0.0; n]);
+        let (mut tw, mut ts) = (vec![0.0; n], vec![0.0; n]);
+        for k in 0..steps {
+            for (m, r) in readings.iter_mut().enumerate() {
+                r[k] = if self.lag > 0.0 { s[m] } else { w[m] };
+            }
+            for j in 0..sub {
+                let t = k as f64 * period_s + j as f64 * h;
+                self.deriv(t, &w, &s, k, &mut k1w, &mut k1s);
+                for m in 0..n {
+                    tw[m] = w[m] + 0.5 * h * k1w[m];
+                    ts[m] = s[m] + 0.5 * h * k1s[m];
+                }
+                self.deriv(t + 0.5 * h, &tw, &ts, k, &mut k2w, &mut k2s);
+                for m in 0..n {
+                    tw[m] = w[m] + 0.5 * h * k2w[m];
+                    ts[m] = s[m] + 0.5 * h * k2s[m];
+                }
+                self.deriv(t + 0.5 * h, &tw, &ts, k, &mut k3w, &mut k3s);
+                for m in 0..n {
+                    tw[m] = w[m] + h * k3w[m];
+                    ts[m] = s[m] + h * k3s[m];
+                }
+                self.deriv(t + h, &tw, &ts, k, &mut k4w, &mut k4s);
+                for m in 0..n {
+                    w[m] += h / 6.0 * (k1w[m] + 2.0 * k2w[m] + 2.0 * k3w[m] + k4w[m]);
+                    s[m] += h / 6.0 * (k1s[m] + 2.0 * k2s[m] + 2.0 * k3s[m] + k4s[m]);
+                }
+            }
+        }
+        readings
+    }
+}
+
+/// What a dirty channel does to the registers: a temperature sensor stuck for a while, the
+/// clock stepping back.
+struct Faults {
+    /// The stuck motor (none: `usize::MAX`) ...
+    stuck_motor: usize,
+    /// ... stuck over this span of time, s.
+    stuck: std::ops::Range<f64>,
+    /// From this time, s, the clock reads ...
+    jump_from: f64,
+    /// ... this much early, s.
+    jump_s: f64,
+}
+
+impl Faults {
+    /// `dirty`'s faults in a record of `duration` s of `n` motors, drawn from `frng`.
+    fn draw(dirty: Option<Dirty>, frng: &mut Rng, duration: f64, n: usize) -> Faults {
+        let (stuck_motor, stuck_from, stuck_until) = match dirty {
+            Some(Dirty::StuckSensor) => {
+                let from = frng.range(0.05, 0.6) * duration;
+                (frng.int(0, n - 1), from, from + frng.range(1800.0, 3600.0))
+            }
+            _ => (usize::MAX, 0.0, 0.0),
+        };
+        let (jump_from, jump_s) = match dirty {
+            Some(Dirty::ClockJump) => (frng.range(0.3, 0.7) * duration, frng.range(120.0, 900.0)),
+            _ => (f64::INFINITY, 0.0),
+        };
+        Faults {
+            stuck_motor,
+            stuck: stuck_from..stuck_until,
+            jump_from,
+            jump_s,
+        }
+    }
+}
+
+/// The registers the truth is read through: the integer °C register with noise and glitches,
+/// the 0.1 V supply register sagging with the bus current, the 6.5 mA current register.
+struct Registers<'a> {
+    /// Sample period, s.
+    period_s: f64,
+    /// Samples.
+    steps: usize,
+    /// Currents per motor per sample, A.
+    current: &'a [Vec<f64>],
+    /// The sensors' true readings per motor per sample, °C.
+    readings: &'a [Vec<f64>],
+    /// The temperature sensor's noise, °C.
+    noise: f64,
+    /// The current register's offset, A.
+    offset: f64,
+    /// The supply's resistance, Ω.
+    sag_ohm: f64,
+    /// The supply's voltage, V ...
+    v0: f64,
+    /// ... and each motor's reading's offset from it.
+    v_off: &'a [f64],
+    /// A dirty channel's faults.
+    faults: Faults,
+    /// The current written in mA.
+    milliamps: bool,
+}
+
+impl Registers<'_> {
+    /// The CSV text, rows dropped and cells emptied at random (from `rng`).
+    fn csv(&self, rng: &mut Rng) -> String {
+        let n = self.readings.len();
+        let f = &self.faults;
+        let mut stuck_reading: Option<String> = None;
+        let mut csv = String::from("t_s,motor,voltage_v,temperature_c,current_a\n");
+        for k in 0..self.steps {
+            let true_t = k as f64 * self.period_s;
+            let t = if true_t >= f.jump_from {
+                true_t - f.jump_s
+            } else {
+                true_t
+            };
+            let bus: f64 = (0..n).map(|m| self.current[m][k].abs()).sum();
+            for m in 0..n {
+                if rng.chance(0.003) {
+                    continue; // dropped row
+                }
+                let mut temp = if rng.chance(0.003) {
+                    String::new()
+                } else if rng.chance(0.002) {
+                    if rng.chance(0.5) { "0" } else { "150" }.to_string()
+                } else {
+                    format!(
+                        "{}",
+                        (self.readings[m][k] + self.noise * rng.normal()).round()
+                    )
+                };
+                if m == f.stuck_motor && f.stuck.contains(&true_t) {
+                    // Stuck on its first good reading of the interval.
+                    match &stuck_reading {
+                        Some(r) => temp.clone_from(r),
+                        None if !temp.is_empty() && temp != "0" && temp != "150" => {
+                            stuck_reading = Some(temp.clone());
+                        }
+                        None => {}
+                    }
+                }
+                let i_reg = ((self.current[m][k] + self.offset + 0.01 * rng.normal())
+                    / CURRENT_LSB_A)
+                    .round()
+                    * CURRENT_LSB_A;
+                let v = ((self.v0 + self.v_off[m] - self.sag_ohm * bus + 0.03 * rng.normal())
+                    * 10.0)
+                    .round()
+                    / 10.0;
+                if self.milliamps {
+                    let ma = 1000.0 * i_reg;
+                    let _ = writeln!(csv, "{t:.3},{},{v:.1},{temp},{ma:.1}", m + 1);
+                } else {
+                    let _ = writeln!(csv, "{t:.3},{},{v:.1},{temp},{i_reg:.4}", m + 1);
+                }
+            }
+        }
+        csv
     }
 }
 

@@ -6,7 +6,8 @@ use anyhow::{bail, Context, Result};
 use clap::{Args, Parser};
 use model_lab::electrical::CurrentEstimator;
 use model_lab::generate::{generate, Spec};
-use model_lab::{analyze, Effect, Options};
+use model_lab::motion::MotionAnalysis;
+use model_lab::{analyze, Analysis, Effect, Options, Outcome};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -94,7 +95,40 @@ fn write(path: &Path, text: &str) -> Result<()> {
     std::fs::write(path, text).with_context(|| format!("cannot write {}", path.display()))
 }
 
+/// `nori model analyze`: the analysis, its report and model file, and its summary or JSON.
 fn run_analyze(a: &AnalyzeArgs) -> Result<()> {
+    let opts = options(a)?;
+    let data = model_lab::load(&a.data)?;
+    let start = Instant::now();
+    let out = analyze(data, &opts, &mut |line| {
+        eprintln!("[{:6.1} s] {line}", start.elapsed().as_secs_f64())
+    })?;
+    let an = &out.analysis;
+    let source = a.data.display().to_string();
+    let model_text = format!(
+        "# Model extension fitted by `nori model analyze {source}`.\n{}",
+        out.model.to_toml()
+    );
+    if let Some(dir) = &a.report {
+        write_report(dir, &out, &source, &model_text)?;
+    }
+    if let Some(path) = &a.model_out {
+        write(path, &model_text)?;
+    }
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(an)?);
+        return Ok(());
+    }
+    print_summary(an, &source);
+    if let Some(m) = &an.motion {
+        print_motion(m);
+    }
+    Ok(())
+}
+
+/// The analysis options of the arguments: the servo's rating estimates the currents and
+/// bounds what the data may read.
+fn options(a: &AnalyzeArgs) -> Result<Options> {
     let robot = sim::RobotDescription::nori_a3();
     let Some(rating) = robot.rating(&a.servo) else {
         bail!(
@@ -102,7 +136,7 @@ fn run_analyze(a: &AnalyzeArgs) -> Result<()> {
             a.servo
         );
     };
-    let opts = Options {
+    Ok(Options {
         fit_fraction: a.fit_fraction,
         estimator: Some(CurrentEstimator {
             kp: a.kp,
@@ -119,37 +153,27 @@ fn run_analyze(a: &AnalyzeArgs) -> Result<()> {
         },
         servo: a.servo.clone(),
         ..Options::default()
-    };
-    let data = model_lab::load(&a.data)?;
-    let start = Instant::now();
-    let out = analyze(data, &opts, &mut |line| {
-        eprintln!("[{:6.1} s] {line}", start.elapsed().as_secs_f64())
-    })?;
-    let an = &out.analysis;
-    let source = a.data.display().to_string();
-    let model_text = format!(
-        "# Model extension fitted by `nori model analyze {source}`.\n{}",
-        out.model.to_toml()
-    );
-    if let Some(dir) = &a.report {
-        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-        for (name, text) in model_lab::report::render(an, &out.traces, &source) {
-            write(&dir.join(name), &text)?;
-        }
-        write(&dir.join("extended-model.toml"), &model_text)?;
-        write(
-            &dir.join("analysis.json"),
-            &serde_json::to_string_pretty(an)?,
-        )?;
-        eprintln!("report written to {}", dir.join("report.md").display());
+    })
+}
+
+/// Writes the report's files, the extended model and the analysis as JSON into `dir`.
+fn write_report(dir: &Path, out: &Outcome, source: &str, model_text: &str) -> Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    for (name, text) in model_lab::report::render(&out.analysis, &out.traces, source) {
+        write(&dir.join(name), &text)?;
     }
-    if let Some(path) = &a.model_out {
-        write(path, &model_text)?;
-    }
-    if a.json {
-        println!("{}", serde_json::to_string_pretty(an)?);
-        return Ok(());
-    }
+    write(&dir.join("extended-model.toml"), model_text)?;
+    write(
+        &dir.join("analysis.json"),
+        &serde_json::to_string_pretty(&out.analysis)?,
+    )?;
+    eprintln!("report written to {}", dir.join("report.md").display());
+    Ok(())
+}
+
+/// Prints the cause with its figures, what the audit did, the verdicts, what is left
+/// unexplained and every extension tried.
+fn print_summary(an: &Analysis, source: &str) {
     println!("data: {source}");
     println!(
         "cause: {} ({})\nheld-out RMSE ({:?}): nominal {:.4} {u}, extended {:.4} {u}, gain {:.1} %",
@@ -208,38 +232,39 @@ fn run_analyze(a: &AnalyzeArgs) -> Result<()> {
             c.verdict
         );
     }
-    if let Some(m) = &an.motion {
-        println!(
-            "motion ({} runs through the simulator's {}): cause {}; after `{}`: {}",
-            m.as_configured.len(),
-            m.servo,
-            m.cause,
-            m.chosen,
-            m.judged
-        );
-        for (run, mae, rmse) in &m.as_configured {
-            println!("  as configured  {run}: MAE {mae:.4} rad, RMSE {rmse:.4} rad");
-        }
-        if !m.always_fitted.is_empty() {
-            println!(
-                "  never held out (the only run with the load free of the position loop): {}",
-                m.always_fitted.join(", ")
-            );
-        }
-        for c in &m.candidates {
-            let runs: Vec<String> = c.runs.iter().map(|h| format!("{:.4}", h.mae_rad)).collect();
-            println!(
-                "  {:20} held-out MAE {:.4} rad ({}) gain {:+6.1} %  {}",
-                c.id.id(),
-                c.mae_rad,
-                runs.join(" "),
-                100.0 * c.gain,
-                c.verdict
-            );
-        }
-        println!("  one run simulated in {:.1} ms", 1e3 * m.seconds_per_run);
+}
+
+/// Prints the motion channel: its cause, the servo as configured and each model held out.
+fn print_motion(m: &MotionAnalysis) {
+    println!(
+        "motion ({} runs through the simulator's {}): cause {}; after `{}`: {}",
+        m.as_configured.len(),
+        m.servo,
+        m.cause,
+        m.chosen,
+        m.judged
+    );
+    for (run, mae, rmse) in &m.as_configured {
+        println!("  as configured  {run}: MAE {mae:.4} rad, RMSE {rmse:.4} rad");
     }
-    Ok(())
+    if !m.always_fitted.is_empty() {
+        println!(
+            "  never held out (the only run with the load free of the position loop): {}",
+            m.always_fitted.join(", ")
+        );
+    }
+    for c in &m.candidates {
+        let runs: Vec<String> = c.runs.iter().map(|h| format!("{:.4}", h.mae_rad)).collect();
+        println!(
+            "  {:20} held-out MAE {:.4} rad ({}) gain {:+6.1} %  {}",
+            c.id.id(),
+            c.mae_rad,
+            runs.join(" "),
+            100.0 * c.gain,
+            c.verdict
+        );
+    }
+    println!("  one run simulated in {:.1} ms", 1e3 * m.seconds_per_run);
 }
 
 fn run_generate(a: &GenerateArgs) -> Result<()> {

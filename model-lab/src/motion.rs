@@ -683,6 +683,80 @@ pub fn analyze_motion(
     if runs.len() < 2 {
         return None;
     }
+    let (as_configured, seconds_per_run) = as_configured(rating, runs);
+    let models: Vec<Effect> = std::iter::once(Effect::None)
+        .chain(
+            MOTION_CATALOG
+                .into_iter()
+                .filter(|e| candidates.contains(e)),
+        )
+        .collect();
+    let held_out = held_out_runs(runs);
+    if held_out.is_empty() {
+        return None;
+    }
+    progress(&format!(
+        "motion: fitting {} models on {} training sets",
+        models.len(),
+        held_out.len() + 1
+    ));
+    let fits = fit_training_sets(rating, &models, runs, &held_out);
+    let fitted = |set: usize, effect: Effect| -> Vec<f64> {
+        fits.get(set)
+            .and_then(|f| f.iter().find(|(e, _)| *e == effect))
+            .map_or_else(Vec::new, |(_, x)| x.clone())
+    };
+    let mut tried: Vec<MotionCandidate> = models
+        .iter()
+        .map(|&effect| {
+            let held = held_out
+                .iter()
+                .enumerate()
+                .map(|(set, &k)| held_out_run(rating, effect, fitted(set, effect), &runs[k]))
+                .collect();
+            MotionCandidate::of(effect, held, &fitted(held_out.len(), effect))
+        })
+        .collect();
+    let (nominal, extensions) = tried.split_first_mut()?;
+    for c in extensions.iter_mut() {
+        c.judge_against(nominal);
+    }
+    let best = best_supported(extensions);
+    let chosen = best.unwrap_or(&*nominal);
+    let (chosen_id, chosen_mae, nominal_mae) = (chosen.id, chosen.mae_rad, nominal.mae_rad);
+    // The misfit left, against the positions' noise floor (pooled over held-out runs).
+    let rmse = (chosen.runs.iter().map(|h| h.rmse_rad.powi(2)).sum::<f64>()
+        / chosen.runs.len() as f64)
+        .sqrt();
+    let judged = position_floor(runs, &held_out).judge(rmse, 0.0, "rad");
+    let cause = match (judged.significant, best.is_some()) {
+        (true, _) => Effect::Unexplained,
+        (false, true) => chosen_id,
+        (false, false) => Effect::None,
+    };
+    let on_all = |effect: Effect| decode(effect, &fitted(held_out.len(), effect));
+    let traces = traces(rating, runs, &on_all(Effect::None), &on_all(chosen_id));
+    Some(MotionAnalysis {
+        servo: servo.into(),
+        as_configured,
+        always_fitted: (0..runs.len())
+            .filter(|k| !held_out.contains(k))
+            .map(|k| runs[k].name.clone())
+            .collect(),
+        candidates: tried,
+        cause,
+        nominal_mae_rad: nominal_mae,
+        chosen_mae_rad: chosen_mae,
+        chosen: chosen_id,
+        judged,
+        seconds_per_run,
+        traces,
+    })
+}
+
+/// The simulator's servo as configured (its rated friction) on each run: its name, MAE and
+/// RMSE, rad; and the mean time one run's replay took, s.
+fn as_configured(rating: &ServoRating, runs: &[MotionRun]) -> (Vec<(String, f64, f64)>, f64) {
     let nominal_rated = MotionParams {
         coulomb_nm: rating.coulomb_nm,
         viscous_nms: rating.viscous_nms,
@@ -697,34 +771,29 @@ pub fn analyze_motion(
         })
         .collect();
     let seconds_per_run = t.elapsed().as_secs_f64() / runs.len() as f64;
-    let mut tried = Vec::new();
-    let mut fitted_on_all: Vec<(Effect, Vec<f64>)> = Vec::new();
-    let models: Vec<Effect> = std::iter::once(Effect::None)
-        .chain(
-            MOTION_CATALOG
-                .into_iter()
-                .filter(|e| candidates.contains(e)),
-        )
-        .collect();
-    // Friction shows where the load moves free of the position loop (torque released): with
-    // the loop stiff, it hides behind the loop's gain. A run is held out only if the runs left
-    // to fit on still include such a run; the only one is never held out (its figures are then
-    // missing, and the report says so).
+    (as_configured, seconds_per_run)
+}
+
+/// The runs that are held out, in turn. Friction shows where the load moves free of the
+/// position loop (torque released): with the loop stiff, it hides behind the loop's gain. A
+/// run is held out only if the runs left to fit on still include such a run; the only one is
+/// never held out (its figures are then missing, and the report says so).
+fn held_out_runs(runs: &[MotionRun]) -> Vec<usize> {
     let free: Vec<bool> = runs.iter().map(moves_free).collect();
     let free_count = free.iter().filter(|f| **f).count();
-    let held_out: Vec<usize> = (0..runs.len())
+    (0..runs.len())
         .filter(|&k| free_count == 0 || free_count > usize::from(free[k]))
-        .collect();
-    if held_out.is_empty() {
-        return None;
-    }
-    // Every training set (each held-out run's complement, then all runs), fitted on two
-    // threads: the sets are independent.
-    progress(&format!(
-        "motion: fitting {} models on {} training sets",
-        models.len(),
-        held_out.len() + 1
-    ));
+        .collect()
+}
+
+/// `models` fitted on every training set: each held-out run's complement, then all runs (the
+/// last), on two threads (the sets are independent).
+fn fit_training_sets(
+    rating: &ServoRating,
+    models: &[Effect],
+    runs: &[MotionRun],
+    held_out: &[usize],
+) -> Vec<Vec<(Effect, Vec<f64>)>> {
     let sets: Vec<Vec<&MotionRun>> = held_out
         .iter()
         .map(|&k| {
@@ -745,51 +814,45 @@ pub fn analyze_motion(
                 let Some(set) = sets.get(i) else {
                     break;
                 };
-                let f = fit_models(rating, &models, set);
+                let f = fit_models(rating, models, set);
                 if let Ok(mut all) = fits.lock() {
                     all[i] = f;
                 }
             });
         }
     });
-    let fits = fits.into_inner().unwrap_or_default();
-    let fitted = |set: usize, effect: Effect| -> Vec<f64> {
-        fits.get(set)
-            .and_then(|f| f.iter().find(|(e, _)| *e == effect))
-            .map_or_else(Vec::new, |(_, x)| x.clone())
-    };
-    for &effect in &models {
+    fits.into_inner().unwrap_or_default()
+}
+
+/// The held-out `run` predicted by `effect`'s model with parameters `x` (fitted without it).
+fn held_out_run(rating: &ServoRating, effect: Effect, x: Vec<f64>, run: &MotionRun) -> HeldOutRun {
+    let (mae, rmse) = errors(&simulate(rating, &decode(effect, &x), run), run);
+    HeldOutRun {
+        run: run.name.clone(),
+        mae_rad: mae,
+        rmse_rad: rmse,
+        parameters: x,
+    }
+}
+
+impl MotionCandidate {
+    /// `effect`'s model on its held-out runs `held`, with its parameters `x` fitted on all runs;
+    /// not yet judged.
+    fn of(effect: Effect, held: Vec<HeldOutRun>, x: &[f64]) -> MotionCandidate {
         let params = model_params(effect);
-        let held: Vec<HeldOutRun> = held_out
-            .iter()
-            .enumerate()
-            .map(|(set, &k)| {
-                let x = fitted(set, effect);
-                let (mae, rmse) =
-                    errors(&simulate(rating, &decode(effect, &x), &runs[k]), &runs[k]);
-                HeldOutRun {
-                    run: runs[k].name.clone(),
-                    mae_rad: mae,
-                    rmse_rad: rmse,
-                    parameters: x,
-                }
-            })
-            .collect();
-        let x = fitted(held_out.len(), effect);
         let parameters = params
             .iter()
-            .zip(&x)
+            .zip(x)
             .map(|(p, v)| crate::analysis::Parameter {
                 name: p.name.into(),
                 value: *v,
                 unit: p.unit.into(),
             })
             .collect();
-        let plausible = within_physics(&params, &x)
+        let plausible = within_physics(&params, x)
             && held.iter().all(|h| within_physics(&params, &h.parameters));
-        fitted_on_all.push((effect, x.clone()));
         let mae = held.iter().map(|h| h.mae_rad).sum::<f64>() / held.len() as f64;
-        tried.push(MotionCandidate {
+        MotionCandidate {
             id: effect,
             runs: held,
             mae_rad: mae,
@@ -798,31 +861,33 @@ pub fn analyze_motion(
             parameters,
             plausible,
             verdict: Verdict::Nominal,
-        });
+        }
     }
-    let (nominal, extensions) = tried.split_first_mut()?;
-    for c in extensions.iter_mut() {
-        c.gain = 1.0 - c.mae_rad / nominal.mae_rad;
-        c.improved_runs = c
+
+    /// Its gain over the calibrated `nominal` model, the runs it improved, and the first test
+    /// of the module docs it fails (or `Supported`).
+    fn judge_against(&mut self, nominal: &MotionCandidate) {
+        self.gain = 1.0 - self.mae_rad / nominal.mae_rad;
+        self.improved_runs = self
             .runs
             .iter()
             .zip(&nominal.runs)
             .filter(|(e, n)| e.mae_rad < n.mae_rad)
             .count();
-        let step_gain = nominal.mae_rad - c.mae_rad;
+        let step_gain = nominal.mae_rad - self.mae_rad;
         // Its size: the largest of its parameters that measure one, against what is negligible.
-        let size = extension_params(c.id)
+        let size = extension_params(self.id)
             .iter()
-            .zip(c.parameters.iter().skip(2))
+            .zip(self.parameters.iter().skip(2))
             .filter(|(p, _)| p.negligible > 0.0)
             .map(|(p, v)| (p, v.value))
             .max_by(|a, b| (a.1.abs() / a.0.negligible).total_cmp(&(b.1.abs() / b.0.negligible)));
         // A directional friction's two sides (driving, back-driven).
-        let sides = (c.id == Effect::DirectionalFriction)
-            .then(|| c.parameters.get(2..4))
+        let sides = (self.id == Effect::DirectionalFriction)
+            .then(|| self.parameters.get(2..4))
             .flatten()
             .map(|p| (p[0].value, p[1].value));
-        c.verdict = if !c.plausible {
+        self.verdict = if !self.plausible {
             Verdict::AtPhysicsEdge
         } else if let Some((p, v)) = size.filter(|(p, v)| v.abs() < p.negligible) {
             Verdict::TooSmall {
@@ -835,27 +900,31 @@ pub fn analyze_motion(
             sides.filter(|(d, b)| (d - b).abs() < DIRECTIONAL_MIN_ASYMMETRY * d.max(*b))
         {
             Verdict::OneFriction { drive, back }
-        } else if !(c.gain >= MOTION_PRACTICAL_GAIN && step_gain >= MOTION_MIN_MAE_CUT) {
+        } else if !(self.gain >= MOTION_PRACTICAL_GAIN && step_gain >= MOTION_MIN_MAE_CUT) {
             Verdict::NoPracticalMaeCut {
                 nominal_mae: nominal.mae_rad,
-                mae: c.mae_rad,
-                gain: c.gain,
+                mae: self.mae_rad,
+                gain: self.gain,
             }
-        } else if 2 * c.improved_runs <= c.runs.len() {
+        } else if 2 * self.improved_runs <= self.runs.len() {
             Verdict::FewRunsBetter {
-                improved: c.improved_runs,
-                runs: c.runs.len(),
+                improved: self.improved_runs,
+                runs: self.runs.len(),
             }
         } else {
             Verdict::Supported
         };
     }
-    let mut best = extensions
+}
+
+/// The supported extension with the largest gain. The directional friction holds the
+/// load-proportional one (equal sides): it is named only where it predicts better than that
+/// by what matters.
+fn best_supported(extensions: &[MotionCandidate]) -> Option<&MotionCandidate> {
+    let best = extensions
         .iter()
         .filter(|c| c.verdict.supported())
         .max_by(|a, b| a.gain.total_cmp(&b.gain));
-    // The directional friction holds the load-proportional one (equal sides): it is named
-    // only where it predicts better than that by what matters.
     if let Some(d) = best.filter(|c| c.id == Effect::DirectionalFriction) {
         if let Some(l) = extensions
             .iter()
@@ -863,70 +932,48 @@ pub fn analyze_motion(
         {
             let cut = l.mae_rad - d.mae_rad;
             if cut < MOTION_PRACTICAL_GAIN * l.mae_rad || cut < MOTION_MIN_MAE_CUT {
-                best = Some(l);
+                return Some(l);
             }
         }
     }
-    let chosen = best.unwrap_or(&*nominal);
-    let (chosen_id, chosen_mae, nominal_mae) = (chosen.id, chosen.mae_rad, nominal.mae_rad);
-    // The misfit left, against the positions' noise floor (pooled over held-out runs).
-    let floor = {
-        let series: Vec<Vec<f64>> = held_out.iter().map(|&k| runs[k].position.clone()).collect();
-        let segments: Vec<(usize, usize)> = series.iter().map(|s| (0, s.len())).collect();
-        let per: Vec<NoiseFloor> = series
-            .iter()
-            .zip(&segments)
-            .map(|(s, seg)| NoiseFloor::of(std::slice::from_ref(s), RAD_PER_STEP, &[*seg]))
-            .collect();
-        let mean_sq = per.iter().map(|f| f.readings_noise.powi(2)).sum::<f64>() / per.len() as f64;
-        NoiseFloor {
-            quantum: RAD_PER_STEP,
-            readings_noise: mean_sq.sqrt(),
-            floor: (RAD_PER_STEP * RAD_PER_STEP / 12.0 + mean_sq).sqrt(),
-        }
-    };
-    let rmse = (chosen.runs.iter().map(|h| h.rmse_rad.powi(2)).sum::<f64>()
-        / chosen.runs.len() as f64)
-        .sqrt();
-    let judged = floor.judge(rmse, 0.0, "rad");
-    let sim_of = |effect: Effect, r: &MotionRun| {
-        fitted_on_all
-            .iter()
-            .find(|(e, _)| *e == effect)
-            .map(|(_, x)| simulate(rating, &decode(effect, x), r))
-            .unwrap_or_default()
-    };
-    let traces = runs
+    best
+}
+
+/// The positions' noise floor on the held-out runs: the encoder's step and each run's own
+/// readings noise, pooled.
+fn position_floor(runs: &[MotionRun], held_out: &[usize]) -> NoiseFloor {
+    let series: Vec<Vec<f64>> = held_out.iter().map(|&k| runs[k].position.clone()).collect();
+    let segments: Vec<(usize, usize)> = series.iter().map(|s| (0, s.len())).collect();
+    let per: Vec<NoiseFloor> = series
         .iter()
+        .zip(&segments)
+        .map(|(s, seg)| NoiseFloor::of(std::slice::from_ref(s), RAD_PER_STEP, &[*seg]))
+        .collect();
+    let mean_sq = per.iter().map(|f| f.readings_noise.powi(2)).sum::<f64>() / per.len() as f64;
+    NoiseFloor {
+        quantum: RAD_PER_STEP,
+        readings_noise: mean_sq.sqrt(),
+        floor: (RAD_PER_STEP * RAD_PER_STEP / 12.0 + mean_sq).sqrt(),
+    }
+}
+
+/// Each run's positions: measured, and replayed by the calibrated nominal model and the
+/// chosen one (both fitted on all runs).
+fn traces(
+    rating: &ServoRating,
+    runs: &[MotionRun],
+    nominal: &MotionParams,
+    chosen: &MotionParams,
+) -> Vec<MotionTrace> {
+    runs.iter()
         .map(|r| MotionTrace {
             run: r.name.clone(),
             t: r.t.clone(),
             measured: r.position.clone(),
-            nominal: sim_of(Effect::None, r),
-            chosen: sim_of(chosen_id, r),
+            nominal: simulate(rating, nominal, r),
+            chosen: simulate(rating, chosen, r),
         })
-        .collect();
-    let cause = match (judged.significant, best.is_some()) {
-        (true, _) => Effect::Unexplained,
-        (false, true) => chosen_id,
-        (false, false) => Effect::None,
-    };
-    Some(MotionAnalysis {
-        servo: servo.into(),
-        as_configured,
-        always_fitted: (0..runs.len())
-            .filter(|k| !held_out.contains(k))
-            .map(|k| runs[k].name.clone())
-            .collect(),
-        candidates: tried,
-        cause,
-        nominal_mae_rad: nominal_mae,
-        chosen_mae_rad: chosen_mae,
-        chosen: chosen_id,
-        judged,
-        seconds_per_run,
-        traces,
-    })
+        .collect()
 }
 
 #[cfg(test)]

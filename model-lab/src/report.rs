@@ -2,7 +2,10 @@
 //! caller to write. The plots are drawn by hand (a few polylines and ticks) rather than with a
 //! plotting crate: it keeps the lab free of font and image dependencies.
 
-use crate::analysis::{Analysis, Traces, LJUNG_BOX_LAGS};
+use crate::analysis::{
+    Analysis, Candidate, Diagnostics, MotorFigures, Trace, Traces, Unexplained, LJUNG_BOX_LAGS,
+};
+use crate::motion::MotionAnalysis;
 use crate::stats;
 use std::fmt::Write as _;
 
@@ -47,146 +50,222 @@ fn fmt_tick(v: f64) -> String {
     }
 }
 
-fn plot(title: &str, xlabel: &str, ylabel: &str, series: &[Series], vline: Option<f64>) -> String {
-    let (w, h) = (900.0, 360.0);
-    let (l, r, t, b) = (70.0, 20.0, 30.0, 50.0);
-    let pts = || {
-        series
+/// Where a plot's points land: the canvas (width, height, margins left, right, top, bottom)
+/// and the data's ranges on it.
+struct Frame {
+    w: f64,
+    h: f64,
+    l: f64,
+    r: f64,
+    t: f64,
+    b: f64,
+    x0: f64,
+    x1: f64,
+    y0: f64,
+    y1: f64,
+}
+
+impl Frame {
+    /// The canvas around `series`' finite points (the y range padded by 5 %; the unit square
+    /// when there are none).
+    fn around(series: &[Series]) -> Frame {
+        let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+        for &(x, y) in series
             .iter()
             .flat_map(|s| s.points.iter())
             .filter(|p| p.1.is_finite())
-    };
-    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
-    for &(x, y) in pts() {
-        x0 = x0.min(x);
-        x1 = x1.max(x);
-        y0 = y0.min(y);
-        y1 = y1.max(y);
+        {
+            x0 = x0.min(x);
+            x1 = x1.max(x);
+            y0 = y0.min(y);
+            y1 = y1.max(y);
+        }
+        if x0 > x1 {
+            (x0, x1, y0, y1) = (0.0, 1.0, 0.0, 1.0);
+        }
+        let pad = 0.05 * (y1 - y0).max(1e-6);
+        Frame {
+            w: 900.0,
+            h: 360.0,
+            l: 70.0,
+            r: 20.0,
+            t: 30.0,
+            b: 50.0,
+            x0,
+            x1,
+            y0: y0 - pad,
+            y1: y1 + pad,
+        }
     }
-    if x0 > x1 {
-        (x0, x1, y0, y1) = (0.0, 1.0, 0.0, 1.0);
+
+    /// The canvas x of data x.
+    fn sx(&self, x: f64) -> f64 {
+        self.l + (x - self.x0) / (self.x1 - self.x0).max(1e-12) * (self.w - self.l - self.r)
     }
-    let pad = 0.05 * (y1 - y0).max(1e-6);
-    let (y0, y1) = (y0 - pad, y1 + pad);
-    let sx = |x: f64| l + (x - x0) / (x1 - x0).max(1e-12) * (w - l - r);
-    let sy = |y: f64| h - b - (y - y0) / (y1 - y0).max(1e-12) * (h - t - b);
-    let mut s = String::new();
-    let _ = writeln!(
-        s,
-        r#"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" font-family="sans-serif" font-size="12">"#
-    );
-    let _ = writeln!(s, r#"<rect width="{w}" height="{h}" fill="white"/>"#);
-    let _ = writeln!(
-        s,
-        r#"<text x="{}" y="18" text-anchor="middle" font-size="14">{}</text>"#,
-        w / 2.0,
-        esc(title)
-    );
-    for tx in ticks(x0, x1) {
-        let x = sx(tx);
+
+    /// The canvas y of data y.
+    fn sy(&self, y: f64) -> f64 {
+        self.h
+            - self.b
+            - (y - self.y0) / (self.y1 - self.y0).max(1e-12) * (self.h - self.t - self.b)
+    }
+
+    /// The SVG's start: its size, a white background and the title.
+    fn open(&self, s: &mut String, title: &str) {
+        let (w, h) = (self.w, self.h);
         let _ = writeln!(
             s,
-            r##"<line x1="{x:.1}" y1="{t}" x2="{x:.1}" y2="{}" stroke="#eee"/><text x="{x:.1}" y="{}" text-anchor="middle">{}</text>"##,
-            h - b,
-            h - b + 16.0,
-            fmt_tick(tx)
+            r#"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" font-family="sans-serif" font-size="12">"#
         );
-    }
-    for ty in ticks(y0, y1) {
-        let y = sy(ty);
+        let _ = writeln!(s, r#"<rect width="{w}" height="{h}" fill="white"/>"#);
         let _ = writeln!(
             s,
-            r##"<line x1="{l}" y1="{y:.1}" x2="{}" y2="{y:.1}" stroke="#eee"/><text x="{}" y="{:.1}" text-anchor="end">{}</text>"##,
-            w - r,
-            l - 6.0,
-            y + 4.0,
-            fmt_tick(ty)
+            r#"<text x="{}" y="18" text-anchor="middle" font-size="14">{}</text>"#,
+            w / 2.0,
+            esc(title)
         );
     }
-    let _ = writeln!(
-        s,
-        r#"<rect x="{l}" y="{t}" width="{}" height="{}" fill="none" stroke="black"/>"#,
-        w - l - r,
-        h - t - b
-    );
-    let _ = writeln!(
-        s,
-        r#"<text x="{}" y="{}" text-anchor="middle">{}</text>"#,
-        (l + w - r) / 2.0,
-        h - 12.0,
-        esc(xlabel)
-    );
-    let _ = writeln!(
-        s,
-        r#"<text x="16" y="{}" text-anchor="middle" transform="rotate(-90 16 {})">{}</text>"#,
-        h / 2.0,
-        h / 2.0,
-        esc(ylabel)
-    );
-    if let Some(v) = vline {
-        let x = sx(v);
-        let _ = writeln!(
-            s,
-            r##"<line x1="{x:.1}" y1="{t}" x2="{x:.1}" y2="{}" stroke="#888" stroke-dasharray="4 4"/><text x="{:.1}" y="{}" fill="#666">held out →</text>"##,
-            h - b,
-            x + 4.0,
-            t + 14.0
-        );
-    }
-    for (i, se) in series.iter().enumerate() {
-        if se.dots {
-            for &(x, y) in se.points.iter().filter(|p| p.1.is_finite()) {
-                let _ = write!(
-                    s,
-                    r#"<circle cx="{:.1}" cy="{:.1}" r="1.2" fill="{}"/>"#,
-                    sx(x),
-                    sy(y),
-                    se.color
-                );
-            }
-            let _ = writeln!(s);
-        } else {
-            // Missing values and logging gaps break the line.
-            let mut dx: Vec<f64> = se.points.windows(2).map(|w| w[1].0 - w[0].0).collect();
-            dx.sort_by(f64::total_cmp);
-            let gap = 20.0 * dx.get(dx.len() / 2).copied().unwrap_or(f64::INFINITY);
-            let mut d = String::new();
-            let mut pen_up = true;
-            let mut last_x = f64::NEG_INFINITY;
-            for &(x, y) in &se.points {
-                if !y.is_finite() || x - last_x > gap {
-                    pen_up = true;
-                }
-                last_x = x;
-                if !y.is_finite() {
-                    continue;
-                }
-                let _ = write!(
-                    d,
-                    "{}{:.1},{:.1} ",
-                    if pen_up { "M" } else { "L" },
-                    sx(x),
-                    sy(y)
-                );
-                pen_up = false;
-            }
+
+    /// The grid lines with their tick labels, the plot's box and the axis labels.
+    fn axes(&self, s: &mut String, xlabel: &str, ylabel: &str) {
+        let Frame {
+            w, h, l, r, t, b, ..
+        } = *self;
+        for tx in ticks(self.x0, self.x1) {
+            let x = self.sx(tx);
             let _ = writeln!(
                 s,
-                r#"<path d="{d}" fill="none" stroke="{}" stroke-width="1.5"/>"#,
+                r##"<line x1="{x:.1}" y1="{t}" x2="{x:.1}" y2="{}" stroke="#eee"/><text x="{x:.1}" y="{}" text-anchor="middle">{}</text>"##,
+                h - b,
+                h - b + 16.0,
+                fmt_tick(tx)
+            );
+        }
+        for ty in ticks(self.y0, self.y1) {
+            let y = self.sy(ty);
+            let _ = writeln!(
+                s,
+                r##"<line x1="{l}" y1="{y:.1}" x2="{}" y2="{y:.1}" stroke="#eee"/><text x="{}" y="{:.1}" text-anchor="end">{}</text>"##,
+                w - r,
+                l - 6.0,
+                y + 4.0,
+                fmt_tick(ty)
+            );
+        }
+        let _ = writeln!(
+            s,
+            r#"<rect x="{l}" y="{t}" width="{}" height="{}" fill="none" stroke="black"/>"#,
+            w - l - r,
+            h - t - b
+        );
+        let _ = writeln!(
+            s,
+            r#"<text x="{}" y="{}" text-anchor="middle">{}</text>"#,
+            (l + w - r) / 2.0,
+            h - 12.0,
+            esc(xlabel)
+        );
+        let _ = writeln!(
+            s,
+            r#"<text x="16" y="{}" text-anchor="middle" transform="rotate(-90 16 {})">{}</text>"#,
+            h / 2.0,
+            h / 2.0,
+            esc(ylabel)
+        );
+    }
+
+    /// A dashed line at data x `v`, where the held-out part starts.
+    fn held_out_from(&self, s: &mut String, v: f64) {
+        let x = self.sx(v);
+        let _ = writeln!(
+            s,
+            r##"<line x1="{x:.1}" y1="{}" x2="{x:.1}" y2="{}" stroke="#888" stroke-dasharray="4 4"/><text x="{:.1}" y="{}" fill="#666">held out →</text>"##,
+            self.t,
+            self.h - self.b,
+            x + 4.0,
+            self.t + 14.0
+        );
+    }
+
+    /// A series as dots (readings).
+    fn dots(&self, s: &mut String, se: &Series) {
+        for &(x, y) in se.points.iter().filter(|p| p.1.is_finite()) {
+            let _ = write!(
+                s,
+                r#"<circle cx="{:.1}" cy="{:.1}" r="1.2" fill="{}"/>"#,
+                self.sx(x),
+                self.sy(y),
                 se.color
             );
         }
-        let ly = t + 14.0 + 16.0 * i as f64;
+        let _ = writeln!(s);
+    }
+
+    /// A series as a line, broken at missing values and logging gaps.
+    fn line(&self, s: &mut String, se: &Series) {
+        let mut dx: Vec<f64> = se.points.windows(2).map(|w| w[1].0 - w[0].0).collect();
+        dx.sort_by(f64::total_cmp);
+        let gap = 20.0 * dx.get(dx.len() / 2).copied().unwrap_or(f64::INFINITY);
+        let mut d = String::new();
+        let mut pen_up = true;
+        let mut last_x = f64::NEG_INFINITY;
+        for &(x, y) in &se.points {
+            if !y.is_finite() || x - last_x > gap {
+                pen_up = true;
+            }
+            last_x = x;
+            if !y.is_finite() {
+                continue;
+            }
+            let _ = write!(
+                d,
+                "{}{:.1},{:.1} ",
+                if pen_up { "M" } else { "L" },
+                self.sx(x),
+                self.sy(y)
+            );
+            pen_up = false;
+        }
+        let _ = writeln!(
+            s,
+            r#"<path d="{d}" fill="none" stroke="{}" stroke-width="1.5"/>"#,
+            se.color
+        );
+    }
+
+    /// The legend's entry of the `i`-th series.
+    fn legend(&self, s: &mut String, i: usize, se: &Series) {
+        let ly = self.t + 14.0 + 16.0 * i as f64;
         let _ = writeln!(
             s,
             r#"<rect x="{}" y="{}" width="12" height="4" fill="{}"/><text x="{}" y="{}">{}</text>"#,
-            l + 10.0,
+            self.l + 10.0,
             ly - 4.0,
             se.color,
-            l + 28.0,
+            self.l + 28.0,
             ly,
             esc(se.name)
         );
+    }
+}
+
+/// An SVG plot of `series` (dots or lines, with a legend), a dashed line at `vline` where the
+/// held-out part starts.
+fn plot(title: &str, xlabel: &str, ylabel: &str, series: &[Series], vline: Option<f64>) -> String {
+    let frame = Frame::around(series);
+    let mut s = String::new();
+    frame.open(&mut s, title);
+    frame.axes(&mut s, xlabel, ylabel);
+    if let Some(v) = vline {
+        frame.held_out_from(&mut s, v);
+    }
+    for (i, se) in series.iter().enumerate() {
+        if se.dots {
+            frame.dots(&mut s, se);
+        } else {
+            frame.line(&mut s, se);
+        }
+        frame.legend(&mut s, i, se);
     }
     s.push_str("</svg>\n");
     s
@@ -213,48 +292,79 @@ fn f(v: Option<f64>, digits: usize) -> String {
 
 /// The report's files: `report.md`, one SVG per motor and `residual-acf.svg`.
 pub fn render(a: &Analysis, tr: &Traces, source: &str) -> Vec<(String, String)> {
-    let mut files = Vec::new();
-    let mut md = String::new();
-    let d = &a.diagnostics;
-    let _ = writeln!(md, "# Model lab report: {}\n", esc(source));
-    if a.causes.len() > 1 {
-        let all: Vec<String> = a.causes.iter().map(|c| format!("`{c}`")).collect();
-        let _ = writeln!(md, "**Effects named together: {}.**\n", all.join(" + "));
+    let mut r = Draft::default();
+    r.summary(a, source);
+    if let Some(u) = &a.unexplained {
+        r.unexplained(u, a.unit, tr);
     }
-    let _ = writeln!(
-        md,
-        "**Cause: `{}`** ({}).\n\nHeld-out error on the {:?} channel: nominal {:.4} {u}, \
-         extended {:.4} {u}, gain {:.1} %.\n",
-        a.cause,
-        a.description,
-        a.channel,
-        a.baseline_rmse,
-        a.extended_rmse,
-        100.0 * a.gain,
-        u = a.unit
-    );
-    for p in &a.parameters {
-        let _ = writeln!(md, "- `{}` = {:.4} {}", p.name, p.value, p.unit);
+    r.data(&a.diagnostics);
+    r.nominal_misfits(&a.diagnostics);
+    r.extensions_tried(&a.diagnostics.candidates);
+    if let Some(m) = &a.motion {
+        r.motion(m);
     }
-    let _ = writeln!(
-        md,
-        "\nHow it was judged (the misfit left on each channel against its noise floor):\n"
-    );
-    for v in &d.verdicts {
+    r.per_motor(&a.motors);
+    r.plots(a, tr);
+    let mut files = r.files;
+    files.insert(0, ("report.md".into(), r.md));
+    files
+}
+
+/// A report being written: its Markdown and the plots it links, in the order linked.
+#[derive(Default)]
+struct Draft {
+    md: String,
+    files: Vec<(String, String)>,
+}
+
+impl Draft {
+    /// The title, the cause with its figures and parameters, and how each channel was judged.
+    fn summary(&mut self, a: &Analysis, source: &str) {
+        let md = &mut self.md;
+        let _ = writeln!(md, "# Model lab report: {}\n", esc(source));
+        if a.causes.len() > 1 {
+            let all: Vec<String> = a.causes.iter().map(|c| format!("`{c}`")).collect();
+            let _ = writeln!(md, "**Effects named together: {}.**\n", all.join(" + "));
+        }
         let _ = writeln!(
             md,
-            "- {:?}, after `{}`: {} — **{}**",
-            v.channel,
-            v.extension.map_or("none", |e| e.id()),
-            v.judged(),
-            if v.significant {
-                "beyond the noise"
-            } else {
-                "within the noise"
-            }
+            "**Cause: `{}`** ({}).\n\nHeld-out error on the {:?} channel: nominal {:.4} {u}, \
+             extended {:.4} {u}, gain {:.1} %.\n",
+            a.cause,
+            a.description,
+            a.channel,
+            a.baseline_rmse,
+            a.extended_rmse,
+            100.0 * a.gain,
+            u = a.unit
         );
+        for p in &a.parameters {
+            let _ = writeln!(md, "- `{}` = {:.4} {}", p.name, p.value, p.unit);
+        }
+        let _ = writeln!(
+            md,
+            "\nHow it was judged (the misfit left on each channel against its noise floor):\n"
+        );
+        for v in &a.diagnostics.verdicts {
+            let _ = writeln!(
+                md,
+                "- {:?}, after `{}`: {} — **{}**",
+                v.channel,
+                v.extension.map_or("none", |e| e.id()),
+                v.judged(),
+                if v.significant {
+                    "beyond the noise"
+                } else {
+                    "within the noise"
+                }
+            );
+        }
     }
-    if let Some(u) = &a.unexplained {
+
+    /// What is left unexplained (in `unit`): the extensions that reduce it, what it follows,
+    /// per motor and over time, and a plot of the nominal model's held-out residual.
+    fn unexplained(&mut self, u: &Unexplained, unit: &str, tr: &Traces) {
+        let md = &mut self.md;
         let _ = writeln!(
             md,
             "\n## What is left unexplained ({:?} channel)\n",
@@ -277,15 +387,11 @@ pub fn render(a: &Analysis, tr: &Traces, source: &str) -> Vec<(String, String)> 
         }
         let _ = writeln!(md, "\n| motor | held-out RMSE | bias |\n|---|---|---|");
         for (m, r, b) in &u.motors {
-            let _ = writeln!(md, "| {m} | {r:.3} {u} | {b:+.3} {u} |", u = a.unit);
+            let _ = writeln!(md, "| {m} | {r:.3} {unit} | {b:+.3} {unit} |");
         }
         let _ = writeln!(md, "\n| held-out span (s) | RMSE | bias |\n|---|---|---|");
         for (t0, t1, r, b) in &u.time_course {
-            let _ = writeln!(
-                md,
-                "| {t0:.0}–{t1:.0} | {r:.3} {u} | {b:+.3} {u} |",
-                u = a.unit
-            );
+            let _ = writeln!(md, "| {t0:.0}–{t1:.0} | {r:.3} {unit} | {b:+.3} {unit} |");
         }
         let names: Vec<String> = tr
             .series
@@ -298,7 +404,7 @@ pub fn render(a: &Analysis, tr: &Traces, source: &str) -> Vec<(String, String)> 
             .enumerate()
             .map(|(i, s)| Series {
                 name: &names[i],
-                color: PALETTE[i % PALETTE.len()],
+                color: motor_color(i),
                 points: thin(
                     (tr.split..tr.t.len())
                         .map(|k| (tr.t[k], s.nominal[k] - s.measured[k]))
@@ -316,78 +422,97 @@ pub fn render(a: &Analysis, tr: &Traces, source: &str) -> Vec<(String, String)> 
             None,
         );
         let _ = writeln!(md, "\n![held-out residual](residual.svg)\n");
-        files.push(("residual.svg".into(), svg));
+        self.files.push(("residual.svg".into(), svg));
     }
-    let _ = writeln!(
-        md,
-        "\n{} samples of {} motors, {:.0} s in {} segment(s); held out from t = {:.0} s. \
-         Glitches rejected: {}, missing readings: {}. Temperature register step {:.4} °C{}.\n",
-        d.samples,
-        d.motors,
-        d.duration_s,
-        d.segments,
-        d.split_t_s,
-        d.cleaning.temperature_glitches,
-        d.cleaning.temperature_missing,
-        d.temperature_quantum_c,
-        d.register_noise_c.map_or(String::new(), |s| format!(
-            ", noise before rounding σ = {s:.3} °C (estimated with the nominal model)"
-        ))
-    );
-    for n in &d.notes {
-        let _ = writeln!(md, "- note: {n}");
+
+    /// The data's shape, what was cleaned, the temperature register, and the notes.
+    fn data(&mut self, d: &Diagnostics) {
+        let md = &mut self.md;
+        let _ = writeln!(
+            md,
+            "\n{} samples of {} motors, {:.0} s in {} segment(s); held out from t = {:.0} s. \
+             Glitches rejected: {}, missing readings: {}. Temperature register step {:.4} °C{}.\n",
+            d.samples,
+            d.motors,
+            d.duration_s,
+            d.segments,
+            d.split_t_s,
+            d.cleaning.temperature_glitches,
+            d.cleaning.temperature_missing,
+            d.temperature_quantum_c,
+            d.register_noise_c.map_or(String::new(), |s| format!(
+                ", noise before rounding σ = {s:.3} °C (estimated with the nominal model)"
+            ))
+        );
+        for n in &d.notes {
+            let _ = writeln!(md, "- note: {n}");
+        }
     }
-    for (name, m) in [("thermal", &d.thermal), ("electrical", &d.electrical)] {
-        if let Some(m) = m {
-            let _ = writeln!(
-                md,
-                "\n## Nominal misfit, {name} channel\n\nHeld-out RMSE {:.4} {u}, bias {:+.4} {u}, \
-                 lag-1 autocorrelation {:.3}, Ljung–Box Q({LJUNG_BOX_LAGS}/motor) = {:.0} \
-                 (p = {:.2e}).\n\n| regressor | correlation with residual |\n|---|---|",
-                m.rmse,
-                m.bias,
-                m.lag1_autocorrelation,
-                m.ljung_box_q,
-                m.ljung_box_p,
-                u = m.unit
-            );
-            for (k, v) in &m.correlations {
-                let _ = writeln!(md, "| {k} | {v:+.3} |");
+
+    /// The nominal model's held-out misfit on the thermal and electrical channels.
+    fn nominal_misfits(&mut self, d: &Diagnostics) {
+        let md = &mut self.md;
+        for (name, m) in [("thermal", &d.thermal), ("electrical", &d.electrical)] {
+            if let Some(m) = m {
+                let _ = writeln!(
+                    md,
+                    "\n## Nominal misfit, {name} channel\n\nHeld-out RMSE {:.4} {u}, bias {:+.4} {u}, \
+                     lag-1 autocorrelation {:.3}, Ljung–Box Q({LJUNG_BOX_LAGS}/motor) = {:.0} \
+                     (p = {:.2e}).\n\n| regressor | correlation with residual |\n|---|---|",
+                    m.rmse,
+                    m.bias,
+                    m.lag1_autocorrelation,
+                    m.ljung_box_q,
+                    m.ljung_box_p,
+                    u = m.unit
+                );
+                for (k, v) in &m.correlations {
+                    let _ = writeln!(md, "| {k} | {v:+.3} |");
+                }
             }
         }
     }
-    let _ = writeln!(
-        md,
-        "\n## Extensions tried\n\n| id | parameter | physics allows | LR | p | ΔBIC | held-out RMSE | gain | held-out slope (t) | correction (matters from) | verdict |\n|---|---|---|---|---|---|---|---|---|---|---|"
-    );
-    for c in &d.candidates {
-        let par = c
-            .parameter
-            .as_ref()
-            .map_or("–".into(), |p| format!("{:.4} {}", p.value, p.unit));
-        let range = c
-            .bounds
-            .map_or("–".into(), |(lo, hi)| format!("{lo} to {hi}"));
+
+    /// Every extension tried on the thermal and electrical channels, with its tests.
+    fn extensions_tried(&mut self, candidates: &[Candidate]) {
+        let md = &mut self.md;
         let _ = writeln!(
             md,
-            "| {} | {par} | {range} | {:.1} | {:.1e} | {:.1} | {:.4} | {:+.1} % | {:.2} ({:.2}) | {:.4} ({:.4}) | {} |",
-            match c.with {
-                Some(w) => format!("`{}` beside `{w}`", c.id),
-                None => format!("`{}`", c.id),
-            },
-            c.lr,
-            c.p_value,
-            c.delta_bic,
-            c.heldout_rmse,
-            100.0 * c.gain,
-            c.heldout_slope,
-            c.heldout_slope_t,
-            c.heldout_change,
-            c.required_change,
-            c.verdict
+            "\n## Extensions tried\n\n| id | parameter | physics allows | LR | p | ΔBIC | held-out RMSE | gain | held-out slope (t) | correction (matters from) | verdict |\n|---|---|---|---|---|---|---|---|---|---|---|"
         );
+        for c in candidates {
+            let par = c
+                .parameter
+                .as_ref()
+                .map_or("–".into(), |p| format!("{:.4} {}", p.value, p.unit));
+            let range = c
+                .bounds
+                .map_or("–".into(), |(lo, hi)| format!("{lo} to {hi}"));
+            let _ = writeln!(
+                md,
+                "| {} | {par} | {range} | {:.1} | {:.1e} | {:.1} | {:.4} | {:+.1} % | {:.2} ({:.2}) | {:.4} ({:.4}) | {} |",
+                match c.with {
+                    Some(w) => format!("`{}` beside `{w}`", c.id),
+                    None => format!("`{}`", c.id),
+                },
+                c.lr,
+                c.p_value,
+                c.delta_bic,
+                c.heldout_rmse,
+                100.0 * c.gain,
+                c.heldout_slope,
+                c.heldout_slope_t,
+                c.heldout_change,
+                c.required_change,
+                c.verdict
+            );
+        }
     }
-    if let Some(m) = &a.motion {
+
+    /// The motion channel: the servo as configured, the models held out run by run, and a
+    /// plot per run.
+    fn motion(&mut self, m: &MotionAnalysis) {
+        let md = &mut self.md;
         let _ = writeln!(
             md,
             "\n## Motion channel ({} runs through the simulator's {})\n\n**Cause: `{}`**; after \
@@ -437,9 +562,6 @@ pub fn render(a: &Analysis, tr: &Traces, source: &str) -> Vec<(String, String)> 
             );
         }
         for (k, tr) in m.traces.iter().enumerate() {
-            let xy = |v: &[f64]| -> Vec<(f64, f64)> {
-                tr.t.iter().copied().zip(v.iter().copied()).collect()
-            };
             let name = format!("motion-{k}.svg");
             let svg = plot(
                 &format!("{}: measured vs nominal vs {}", tr.run, m.cause),
@@ -449,148 +571,182 @@ pub fn render(a: &Analysis, tr: &Traces, source: &str) -> Vec<(String, String)> 
                     Series {
                         name: "measured",
                         color: "#999",
-                        points: thin(xy(&tr.measured), 3000),
+                        points: thin(xy(&tr.t, &tr.measured), 3000),
                         dots: true,
                     },
                     Series {
                         name: "nominal (calibrated)",
                         color: "#1f77b4",
-                        points: thin(xy(&tr.nominal), 3000),
+                        points: thin(xy(&tr.t, &tr.nominal), 3000),
                         dots: false,
                     },
                     Series {
                         name: "chosen",
                         color: "#d62728",
-                        points: thin(xy(&tr.chosen), 3000),
+                        points: thin(xy(&tr.t, &tr.chosen), 3000),
                         dots: false,
                     },
                 ],
                 None,
             );
-            let _ = writeln!(md, "\n![{}]({name})", esc(&tr.run));
-            files.push((name, svg));
+            let _ = writeln!(self.md, "\n![{}]({name})", esc(&tr.run));
+            self.files.push((name, svg));
         }
     }
-    let _ = writeln!(
-        md,
-        "\n## Per motor\n\n| motor | τ (s) | k (K/A²) | idle (°C) | readings fit/held | nominal RMSE (°C) | extended RMSE (°C) | bias (°C) | nominal RMSE (V) | extended RMSE (V) |\n|---|---|---|---|---|---|---|---|---|---|"
-    );
-    for m in &a.motors {
+
+    /// Per motor: the nominal thermal model's constants and the held-out errors.
+    fn per_motor(&mut self, motors: &[MotorFigures]) {
+        let md = &mut self.md;
         let _ = writeln!(
             md,
-            "| {} | {} | {} | {} | {}/{} | {} | {} | {} | {} | {} |",
-            m.motor,
-            f(m.tau_s, 0),
-            f(m.gain_k_per_a2, 3),
-            f(m.idle_c, 2),
-            m.readings.0,
-            m.readings.1,
-            f(m.baseline_rmse_c, 3),
-            f(m.extended_rmse_c, 3),
-            f(m.baseline_bias_c, 3),
-            f(m.baseline_rmse_v, 4),
-            f(m.extended_rmse_v, 4)
+            "\n## Per motor\n\n| motor | τ (s) | k (K/A²) | idle (°C) | readings fit/held | nominal RMSE (°C) | extended RMSE (°C) | bias (°C) | nominal RMSE (V) | extended RMSE (V) |\n|---|---|---|---|---|---|---|---|---|---|"
         );
+        for m in motors {
+            let _ = writeln!(
+                md,
+                "| {} | {} | {} | {} | {}/{} | {} | {} | {} | {} | {} |",
+                m.motor,
+                f(m.tau_s, 0),
+                f(m.gain_k_per_a2, 3),
+                f(m.idle_c, 2),
+                m.readings.0,
+                m.readings.1,
+                f(m.baseline_rmse_c, 3),
+                f(m.extended_rmse_c, 3),
+                f(m.baseline_bias_c, 3),
+                f(m.baseline_rmse_v, 4),
+                f(m.extended_rmse_v, 4)
+            );
+        }
     }
-    let _ = writeln!(md, "\n## Plots\n");
-    let split_t = tr.t.get(tr.split).copied();
-    let mut acf_series = Vec::new();
-    for (i, s) in tr.series.iter().enumerate() {
-        let xy = |v: &[f64]| -> Vec<(f64, f64)> {
-            tr.t.iter().copied().zip(v.iter().copied()).collect()
-        };
-        let name = format!("motor-{}.svg", s.motor);
-        let svg = plot(
-            &format!("motor {}: measured vs nominal vs {}", s.motor, a.cause),
-            "t (s)",
-            tr.unit,
-            &[
-                Series {
-                    name: "measured",
-                    color: "#999",
-                    points: thin(xy(&s.measured), 3000),
-                    dots: true,
-                },
-                Series {
-                    name: "nominal",
-                    color: "#1f77b4",
-                    points: thin(xy(&s.nominal), 2000),
-                    dots: false,
-                },
-                Series {
-                    name: a.cause.id(),
-                    color: "#d62728",
-                    points: thin(xy(&s.extended), 2000),
-                    dots: false,
-                },
-            ],
-            split_t,
-        );
-        let _ = writeln!(md, "![motor {}]({name})\n", s.motor);
-        files.push((name, svg));
-        // Held-out residual autocorrelation (nominal), by lag in samples.
-        let res: Vec<f64> = (tr.split..tr.t.len())
-            .map(|k| s.nominal[k] - s.measured[k])
-            .collect();
-        let lags = 200.min(res.len().saturating_sub(2));
-        let acf = stats::autocorrelation(&res, lags);
-        let ext: Vec<f64> = (tr.split..tr.t.len())
-            .map(|k| s.extended[k] - s.measured[k])
-            .collect();
-        let acf_e = stats::autocorrelation(&ext, lags);
-        acf_series.push((
-            s.motor,
-            PALETTE[i % PALETTE.len()],
-            acf.into_iter()
-                .enumerate()
-                .map(|(k, v)| (k as f64, v))
-                .collect::<Vec<_>>(),
-            acf_e
-                .into_iter()
-                .enumerate()
-                .map(|(k, v)| (k as f64, v))
-                .collect::<Vec<_>>(),
-        ));
+
+    /// Per motor its measured and predicted series, then the held-out residual's
+    /// autocorrelation (mean over motors) of the nominal and the chosen model.
+    fn plots(&mut self, a: &Analysis, tr: &Traces) {
+        let _ = writeln!(self.md, "\n## Plots\n");
+        let split_t = tr.t.get(tr.split).copied();
+        let mut acf_series = Vec::new();
+        for s in &tr.series {
+            let name = format!("motor-{}.svg", s.motor);
+            let svg = plot(
+                &format!("motor {}: measured vs nominal vs {}", s.motor, a.cause),
+                "t (s)",
+                tr.unit,
+                &[
+                    Series {
+                        name: "measured",
+                        color: "#999",
+                        points: thin(xy(&tr.t, &s.measured), 3000),
+                        dots: true,
+                    },
+                    Series {
+                        name: "nominal",
+                        color: "#1f77b4",
+                        points: thin(xy(&tr.t, &s.nominal), 2000),
+                        dots: false,
+                    },
+                    Series {
+                        name: a.cause.id(),
+                        color: "#d62728",
+                        points: thin(xy(&tr.t, &s.extended), 2000),
+                        dots: false,
+                    },
+                ],
+                split_t,
+            );
+            let _ = writeln!(self.md, "![motor {}]({name})\n", s.motor);
+            self.files.push((name, svg));
+            acf_series.push(held_out_acf(tr, s));
+        }
+        if let Some(svg) = mean_acf_plot(&acf_series, a.cause.id()) {
+            let _ = writeln!(self.md, "![residual autocorrelation](residual-acf.svg)\n");
+            self.files.push(("residual-acf.svg".into(), svg));
+        }
     }
-    if let Some((_, _, nominal, extended)) = acf_series.first() {
-        // Mean over motors, nominal vs extended.
-        let len = nominal.len().min(extended.len());
-        let mean = |extended: bool| -> Vec<(f64, f64)> {
-            (0..len)
-                .map(|k| {
-                    let v: Vec<f64> = acf_series
-                        .iter()
-                        .filter_map(|s| if extended { &s.3 } else { &s.2 }.get(k).map(|p| p.1))
-                        .collect();
-                    (k as f64, stats::mean(&v))
-                })
-                .collect()
-        };
-        let svg = plot(
-            "held-out residual autocorrelation (mean over motors)",
-            "lag (samples)",
-            "autocorrelation",
-            &[
-                Series {
-                    name: "nominal",
-                    color: "#1f77b4",
-                    points: mean(false),
-                    dots: false,
-                },
-                Series {
-                    name: a.cause.id(),
-                    color: "#d62728",
-                    points: mean(true),
-                    dots: false,
-                },
-            ],
-            None,
-        );
-        let _ = writeln!(md, "![residual autocorrelation](residual-acf.svg)\n");
-        files.push(("residual-acf.svg".into(), svg));
+}
+
+/// One motor's held-out residual autocorrelation, (lag in samples, value): the nominal
+/// model's and the chosen model's.
+struct HeldOutAcf {
+    nominal: Vec<(f64, f64)>,
+    chosen: Vec<(f64, f64)>,
+}
+
+/// Motor `s`'s held-out residual autocorrelations.
+fn held_out_acf(tr: &Traces, s: &Trace) -> HeldOutAcf {
+    let res: Vec<f64> = (tr.split..tr.t.len())
+        .map(|k| s.nominal[k] - s.measured[k])
+        .collect();
+    let lags = 200.min(res.len().saturating_sub(2));
+    let acf = stats::autocorrelation(&res, lags);
+    let ext: Vec<f64> = (tr.split..tr.t.len())
+        .map(|k| s.extended[k] - s.measured[k])
+        .collect();
+    let acf_e = stats::autocorrelation(&ext, lags);
+    HeldOutAcf {
+        nominal: by_lag(acf),
+        chosen: by_lag(acf_e),
     }
-    files.insert(0, ("report.md".into(), md));
-    files
+}
+
+/// The plot of the motors' held-out residual autocorrelation, mean over motors, nominal vs
+/// the chosen model (`chosen` its id); none without motors.
+fn mean_acf_plot(acf_series: &[HeldOutAcf], chosen: &str) -> Option<String> {
+    let first = acf_series.first()?;
+    let len = first.nominal.len().min(first.chosen.len());
+    let mean = |extended: bool| -> Vec<(f64, f64)> {
+        (0..len)
+            .map(|k| {
+                let v: Vec<f64> = acf_series
+                    .iter()
+                    .filter_map(|s| {
+                        if extended { &s.chosen } else { &s.nominal }
+                            .get(k)
+                            .map(|p| p.1)
+                    })
+                    .collect();
+                (k as f64, stats::mean(&v))
+            })
+            .collect()
+    };
+    Some(plot(
+        "held-out residual autocorrelation (mean over motors)",
+        "lag (samples)",
+        "autocorrelation",
+        &[
+            Series {
+                name: "nominal",
+                color: "#1f77b4",
+                points: mean(false),
+                dots: false,
+            },
+            Series {
+                name: chosen,
+                color: "#d62728",
+                points: mean(true),
+                dots: false,
+            },
+        ],
+        None,
+    ))
+}
+
+/// The colour of the `i`-th motor's series.
+fn motor_color(i: usize) -> &'static str {
+    PALETTE[i % PALETTE.len()]
+}
+
+/// The points (t, v) of a series `v` sampled at times `t`.
+fn xy(t: &[f64], v: &[f64]) -> Vec<(f64, f64)> {
+    t.iter().copied().zip(v.iter().copied()).collect()
+}
+
+/// Autocorrelations as points (lag, value).
+fn by_lag(acf: Vec<f64>) -> Vec<(f64, f64)> {
+    acf.into_iter()
+        .enumerate()
+        .map(|(k, v)| (k as f64, v))
+        .collect()
 }
 
 #[cfg(test)]

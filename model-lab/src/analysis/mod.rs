@@ -505,27 +505,15 @@ pub fn analyze(
         ),
     };
     let (baseline, extended) = (baseline.unwrap_or(f64::NAN), extended.unwrap_or(f64::NAN));
-    let segs = d.segments();
-    let diagnostics = Diagnostics {
-        samples: d.t.len(),
-        motors: d.motors.len(),
-        duration_s: segs.iter().map(|&(s, e)| d.t[e - 1] - d.t[s]).sum(),
-        split_t_s: d.t[split],
-        segments: segs.len(),
-        channels: channels.iter().map(|c| c.verdict.channel).collect(),
-        current_source: ed.as_ref().map(|e| e.current_source),
+    let diagnostics = Diagnostics::of(
+        &d,
+        split,
+        &channels,
+        thermal.as_ref().map(|t| t.register_noise),
+        ed.as_ref().map(|e| e.current_source),
         audit,
         cleaning,
-        temperature_quantum_c: d.temperature_quantum,
-        register_noise_c: thermal.as_ref().map(|t| t.register_noise),
-        thermal: thermal.as_ref().map(|t| t.channel.misfit.clone()),
-        electrical: electrical.as_ref().map(|e| e.channel.misfit.clone()),
-        candidates: channels.iter().flat_map(|c| c.candidates.clone()).collect(),
-        verdicts: channels.iter().map(|c| c.verdict.clone()).collect(),
-        alpha_per_test: ALPHA / Effect::CATALOG.len() as f64,
-        min_heldout_t: MIN_HELDOUT_T,
-        notes: d.notes.clone(),
-    };
+    );
     let analysis = Analysis {
         cause: decision.cause,
         description: decision.cause.describe(),
@@ -552,6 +540,48 @@ pub fn analyze(
         traces: figures.traces,
         model,
     })
+}
+
+impl Diagnostics {
+    /// The run's diagnostics: the data's shape, what the audit and the cleaning did, each
+    /// channel's nominal misfit, every candidate tried and each channel's verdict.
+    fn of(
+        d: &Dataset,
+        split: usize,
+        channels: &[&ChannelOutcome],
+        register_noise_c: Option<f64>,
+        current_source: Option<&'static str>,
+        audit: Vec<Finding>,
+        cleaning: Cleaning,
+    ) -> Diagnostics {
+        let segs = d.segments();
+        let misfit_of = |channel: Channel| {
+            channels
+                .iter()
+                .find(|c| c.verdict.channel == channel)
+                .map(|c| c.misfit.clone())
+        };
+        Diagnostics {
+            samples: d.t.len(),
+            motors: d.motors.len(),
+            duration_s: segs.iter().map(|&(s, e)| d.t[e - 1] - d.t[s]).sum(),
+            split_t_s: d.t[split],
+            segments: segs.len(),
+            channels: channels.iter().map(|c| c.verdict.channel).collect(),
+            current_source,
+            audit,
+            cleaning,
+            temperature_quantum_c: d.temperature_quantum,
+            register_noise_c,
+            thermal: misfit_of(Channel::Thermal),
+            electrical: misfit_of(Channel::Electrical),
+            candidates: channels.iter().flat_map(|c| c.candidates.clone()).collect(),
+            verdicts: channels.iter().map(|c| c.verdict.clone()).collect(),
+            alpha_per_test: ALPHA / Effect::CATALOG.len() as f64,
+            min_heldout_t: MIN_HELDOUT_T,
+            notes: d.notes.clone(),
+        }
+    }
 }
 
 /// The cause across channels.

@@ -242,7 +242,7 @@ pub(super) fn judge(e: Evidence, against: &Yardstick) -> Candidate {
     let Yardstick {
         before: nominal,
         floor,
-        hours,
+        ..
     } = *against;
     let base_held = stats::rmse(&base_res.concat());
     let held = stats::rmse(&res.concat());
@@ -256,19 +256,11 @@ pub(super) fn judge(e: Evidence, against: &Yardstick) -> Candidate {
         with_heldout,
     } = test;
     let delta_bic = lr - params * n_eff.ln();
-    // The held-out test can only refute an extension where it has the power to see it: with a
-    // block standard error of the slope above [`MAX_INFORMATIVE_SE`], a correction the readings
-    // follow fully (β = 1) would not reach [`MIN_HELDOUT_T`] most of the time (the correction is
-    // far below the register's rounding noise there). Such a held-out part is uninformative:
-    // the extension then stands on the fitting part, provided the held-out readings do not go
-    // significantly against it and its held-out error is not significantly worse.
-    let informative = heldout_slope_se.is_finite() && heldout_slope_se <= MAX_INFORMATIVE_SE;
     let gain = if base_held > 0.0 {
         1.0 - held / base_held
     } else {
         0.0
     };
-    let alpha = ALPHA / Effect::CATALOG.len() as f64;
     let heldout_change = stats::rmse(
         &base_res
             .iter()
@@ -285,58 +277,7 @@ pub(super) fn judge(e: Evidence, against: &Yardstick) -> Candidate {
     let bounds = effect.bounds();
     let value = parameter.as_ref().map_or(f64::NAN, |p| p.value);
     let plausible = bounds.is_none_or(|(lo, hi, _)| value >= lo && value <= hi);
-    let verdict = if !plausible {
-        let (lo, hi, why) = bounds.unwrap_or((f64::NAN, f64::NAN, ""));
-        Verdict::OutsidePhysics { value, lo, hi, why }
-    } else if let Some((below, why)) = effect
-        .negligible(hours, floor)
-        .filter(|(s, _)| value.abs() < *s)
-    {
-        Verdict::Negligible { value, below, why }
-    } else if p_value >= alpha {
-        Verdict::NotSignificant { p: p_value, alpha }
-    } else if with_heldout && !HELDOUT_SIZE.contains(&heldout_slope) {
-        Verdict::HeldOutSize {
-            slope: heldout_slope,
-        }
-    } else if !with_heldout && delta_bic <= 0.0 {
-        Verdict::NoBicGain { delta_bic }
-    } else if informative && (heldout_slope_t.is_nan() || heldout_slope_t < MIN_HELDOUT_T) {
-        Verdict::NotFollowed {
-            slope: heldout_slope,
-            t: heldout_slope_t,
-        }
-    } else if !informative
-        && (heldout_slope_t.is_nan()
-            || heldout_slope_t <= -MIN_HELDOUT_T
-            || heldout_t <= -MIN_HELDOUT_T
-            || held.is_nan())
-    {
-        Verdict::Against {
-            slope_se: heldout_slope_se,
-            slope_t: heldout_slope_t,
-            error_t: heldout_t,
-        }
-    } else if informative && (held.is_nan() || held > base_held) {
-        Verdict::HeldOutWorse {
-            gain,
-            slope: heldout_slope,
-        }
-    } else if heldout_change.is_nan() || heldout_change < required_change {
-        Verdict::NoPracticalChange {
-            change: heldout_change,
-            required: required_change,
-            floor,
-        }
-    } else if gain.is_nan() || gain < required_gain {
-        Verdict::ExplainsTooLittle {
-            gain,
-            required: required_gain,
-        }
-    } else {
-        Verdict::Supported
-    };
-    Candidate {
+    let mut c = Candidate {
         id: effect,
         with: None,
         channel: effect.channel(),
@@ -359,8 +300,78 @@ pub(super) fn judge(e: Evidence, against: &Yardstick) -> Candidate {
         required_gain,
         bounds: bounds.map(|(lo, hi, _)| (lo, hi)),
         plausible,
-        verdict,
+        verdict: Verdict::Supported,
         iterations,
+    };
+    c.verdict = first_failed(&c, heldout_slope_se, against);
+    c
+}
+
+/// The first test `c` fails (`docs/model-lab.md`, "Name the cause"), or `Supported`;
+/// `slope_se` is its held-out slope's block standard error.
+///
+/// The held-out test can only refute an extension where it has the power to see it: with a
+/// block standard error of the slope above [`MAX_INFORMATIVE_SE`], a correction the readings
+/// follow fully (β = 1) would not reach [`MIN_HELDOUT_T`] most of the time (the correction is
+/// far below the register's rounding noise there). Such a held-out part is uninformative:
+/// the extension then stands on the fitting part, provided the held-out readings do not go
+/// significantly against it and its held-out error is not significantly worse.
+fn first_failed(c: &Candidate, slope_se: f64, against: &Yardstick) -> Verdict {
+    let Yardstick { floor, hours, .. } = *against;
+    let informative = slope_se.is_finite() && slope_se <= MAX_INFORMATIVE_SE;
+    let alpha = ALPHA / Effect::CATALOG.len() as f64;
+    let value = c.parameter.as_ref().map_or(f64::NAN, |p| p.value);
+    let (slope, slope_t, held) = (c.heldout_slope, c.heldout_slope_t, c.heldout_rmse);
+    if !c.plausible {
+        let (lo, hi, why) = c.id.bounds().unwrap_or((f64::NAN, f64::NAN, ""));
+        Verdict::OutsidePhysics { value, lo, hi, why }
+    } else if let Some((below, why)) =
+        c.id.negligible(hours, floor)
+            .filter(|(s, _)| value.abs() < *s)
+    {
+        Verdict::Negligible { value, below, why }
+    } else if c.p_value >= alpha {
+        Verdict::NotSignificant {
+            p: c.p_value,
+            alpha,
+        }
+    } else if c.with_heldout && !HELDOUT_SIZE.contains(&slope) {
+        Verdict::HeldOutSize { slope }
+    } else if !c.with_heldout && c.delta_bic <= 0.0 {
+        Verdict::NoBicGain {
+            delta_bic: c.delta_bic,
+        }
+    } else if informative && (slope_t.is_nan() || slope_t < MIN_HELDOUT_T) {
+        Verdict::NotFollowed { slope, t: slope_t }
+    } else if !informative
+        && (slope_t.is_nan()
+            || slope_t <= -MIN_HELDOUT_T
+            || c.heldout_t <= -MIN_HELDOUT_T
+            || held.is_nan())
+    {
+        Verdict::Against {
+            slope_se,
+            slope_t,
+            error_t: c.heldout_t,
+        }
+    } else if informative && (held.is_nan() || held > c.baseline_heldout_rmse) {
+        Verdict::HeldOutWorse {
+            gain: c.gain,
+            slope,
+        }
+    } else if c.heldout_change.is_nan() || c.heldout_change < c.required_change {
+        Verdict::NoPracticalChange {
+            change: c.heldout_change,
+            required: c.required_change,
+            floor,
+        }
+    } else if c.gain.is_nan() || c.gain < c.required_gain {
+        Verdict::ExplainsTooLittle {
+            gain: c.gain,
+            required: c.required_gain,
+        }
+    } else {
+        Verdict::Supported
     }
 }
 
