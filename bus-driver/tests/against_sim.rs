@@ -87,6 +87,10 @@ fn the_layout_names_the_buses_the_driver_runs_in_its_order() {
 }
 
 #[test]
+#[allow(
+    clippy::too_many_lines,
+    reason = "one scenario read start to end; to be split into phases (#37)"
+)]
 fn goals_are_followed_clamped_and_gated() {
     let rig = rig("follow");
     let mut d = driver(&rig.config);

@@ -34,6 +34,10 @@ fn changed_pixels(a: &[u8], b: &[u8]) -> usize {
 }
 
 #[test]
+#[allow(
+    clippy::too_many_lines,
+    reason = "one scenario read start to end; to be split into phases (#37)"
+)]
 fn the_head_camera_sees_the_arm_move_refuses_corrupt_jpegs_and_dies_alone() {
     let dir = nori_tests::scratch("cameras-files");
     let (robot, cameras) = small_camera_files(&dir);

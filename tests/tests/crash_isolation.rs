@@ -282,6 +282,10 @@ fn event_counts(events: &[SupervisorEvent]) -> std::collections::BTreeMap<String
 /// servo within 100 ms (or was overtaken within that time by a kill, a restore or the bus
 /// going off, each counted).
 #[test]
+#[allow(
+    clippy::too_many_lines,
+    reason = "one scenario read start to end; to be split into phases (#37)"
+)]
 fn a_seeded_chaos_run_keeps_every_invariant() {
     let _turn = serial();
     let seed = std::env::var("NORI_CHAOS_SEED")
@@ -930,6 +934,10 @@ impl BodySeen {
 /// (The first run, before the field counted it and guarded turns, ran the base into a table
 /// leg twice in 40 s, and a dead driver left the wheels turning for up to 2.2 s.)
 #[test]
+#[allow(
+    clippy::too_many_lines,
+    reason = "one scenario read start to end; to be split into phases (#37)"
+)]
 fn a_seeded_body_chaos_run_keeps_the_base_and_the_lift_safe() {
     let _turn = serial();
     let seed = std::env::var("NORI_CHAOS_SEED")

@@ -347,3 +347,35 @@ fn no_function_opts_out_of_the_argument_limit() {
     }
     assert!(found.is_empty(), "{lint} allowed in {found:?}");
 }
+
+/// A function fits on a screen or two: clippy's limit on a function's lines is 120 in every
+/// crate (`clippy.toml`, the workspace's lints), and no function of a crate's `src/` switches
+/// it off (a scenario test may, saying why, until it is split into phases).
+#[test]
+fn no_function_of_the_product_runs_past_120_lines() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap();
+    let top = std::fs::read_to_string(root.join("Cargo.toml")).unwrap();
+    assert!(
+        top.contains("too_many_lines = \"warn\""),
+        "the lint is gone"
+    );
+    let clippy = std::fs::read_to_string(root.join("clippy.toml")).unwrap();
+    assert!(
+        clippy.contains("too-many-lines-threshold = 120"),
+        "the limit moved: {clippy}"
+    );
+    let lint = ["clippy::too_many", "lines"].join("_");
+    let mut found = Vec::new();
+    for (name, p) in workspace() {
+        if name == "nori-tests" {
+            continue;
+        }
+        for file in rust_files(&p.manifest.parent().unwrap().join("src")) {
+            let text = std::fs::read_to_string(&file).unwrap();
+            if text.contains(&lint) {
+                found.push(file.display().to_string());
+            }
+        }
+    }
+    assert!(found.is_empty(), "{lint} allowed in {found:?}");
+}

@@ -90,6 +90,10 @@ impl Window {
 }
 
 #[test]
+#[allow(
+    clippy::too_many_lines,
+    reason = "one scenario read start to end; to be split into phases (#37)"
+)]
 fn corrupted_replies_a_silent_servo_and_an_unplugged_bus() {
     let dir = scratch("faults");
     let domain = format!("nori_faults_{}", std::process::id());

@@ -185,6 +185,10 @@ fn elbow_chunk(
 }
 
 #[test]
+#[allow(
+    clippy::too_many_lines,
+    reason = "one scenario read start to end; to be split into phases (#37)"
+)]
 fn bad_actions_are_refused_with_their_reason_and_a_killed_agent_leaves_nothing_queued() {
     let _turn = serial();
     let endpoint = free_endpoint();

@@ -97,6 +97,10 @@ struct Robot {
 }
 
 #[test]
+#[allow(
+    clippy::too_many_lines,
+    reason = "one scenario read start to end; to be split into phases (#37)"
+)]
 fn robots_booted_offline_or_cut_off_by_a_site_router_lose_no_event_and_no_identity_reaches_another_robot(
 ) {
     let robot_count: usize = std::env::var("NORI_ROUTER_ROBOTS").map_or(12, |n| n.parse().unwrap());

@@ -280,6 +280,10 @@ fn the_duty_budget_stops_travel_when_spent_and_no_supervisor_means_no_travel() {
 /// off and holding; `nori lift release` ends the hold without moving it; held again and
 /// SIGKILLed, a restarted nori-lift keeps the hold (jammed) instead of homing onto the hand.
 #[test]
+#[allow(
+    clippy::too_many_lines,
+    reason = "one scenario read start to end; to be split into phases (#37)"
+)]
 fn the_operators_stop_stops_the_lift_and_a_streamed_goal_presses_a_hand_once() {
     let (mut stack, mut lift) = lift_on_sim(
         "lift-stop",

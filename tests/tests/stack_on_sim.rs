@@ -27,6 +27,10 @@ fn two_arm_config(dir: &std::path::Path) -> std::path::PathBuf {
 }
 
 #[test]
+#[allow(
+    clippy::too_many_lines,
+    reason = "one scenario read start to end; to be split into phases (#37)"
+)]
 fn sixteen_servos_follow_goals_and_nothing_outside_a_range_reaches_the_wire() {
     let dir = scratch("stack");
     let domain = format!("nori_it_{}", std::process::id());
