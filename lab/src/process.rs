@@ -737,6 +737,44 @@ mod tests {
         );
     }
 
+    /// Found by review: a stop only released control, so a command another page sent before
+    /// the press (queued behind it) or while its answer was awaited took control again until
+    /// the driver's safe state showed on the plane.
+    #[test]
+    fn no_command_sent_before_a_stop_or_while_it_is_awaited_drives_the_arm() {
+        let (mut lab, mut io) = ready();
+        io.page_does(1, elbow_to(-0.5));
+        run(&mut lab, &mut io, 100);
+        // Page 2's command, sent 5 ms before page 1's stop, reaches the loop after it.
+        io.page_does(1, Event::Message(Ok(PageMessage::Stop {})));
+        io.inbound.push_back(Inbound {
+            page: 2,
+            event: elbow_to(-1.2),
+            at_ns: io.now - 5 * MS,
+        });
+        run(&mut lab, &mut io, 50);
+        // And one sent while the stop waits for the supervisor.
+        io.page_does(2, elbow_to(-1.2));
+        run(&mut lab, &mut io, 50);
+        let refused: Vec<Value> = io
+            .taken("reply")
+            .into_iter()
+            .filter(|(p, _)| *p == Some(2))
+            .map(|(_, m)| m["refused"].clone())
+            .collect();
+        assert_eq!(refused, ["before_interruption", "stopping"], "{refused:?}");
+        let stop_ns = io.commands[0].timestamp_ns;
+        let elbow = 3;
+        let goals_after: Vec<f32> = io
+            .goals
+            .iter()
+            .filter(|g| g.timestamp_ns > stop_ns && g.mask & (1 << elbow) != 0)
+            .map(|g| g.position_rad[elbow])
+            .collect();
+        // At most the hold where the arm stands: nothing toward page 2's target.
+        assert!(goals_after.iter().all(|g| *g > -0.3), "{goals_after:?}");
+    }
+
     #[test]
     fn a_stop_nobody_hears_is_said_so_after_its_wait_and_one_unsent_at_once() {
         let (mut lab, mut io) = ready();
