@@ -18,7 +18,7 @@ use crate::recording::{Outcome, RecordingStatus};
 use crate::scene::Scene;
 use crate::server::{Event, Inbound, Outgoing};
 use crate::stop_button::{Pending, Press};
-use crate::teleop::{Teleop, TeleopCounters, TeleopSettings};
+use crate::teleop::{Refusal, Teleop, TeleopCounters, TeleopSettings};
 use body::kinematics::Body;
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -361,7 +361,7 @@ impl Lab {
         };
         if press == Press::Stop {
             if let Some(d) = self.driven.as_mut() {
-                d.teleop.let_go();
+                d.teleop.let_go(sent_ns);
             }
             tracing::warn!(page, "stop pressed");
         }
@@ -383,9 +383,13 @@ impl Lab {
     /// refused, and are no action.
     fn on_teleop(&mut self, io: &mut impl LabIo, page: u64, m: &PageMessage, at_ns: u64) -> bool {
         let alive = matches!(m, PageMessage::Alive {});
+        // A stop awaiting its answer may be one the supervisor never heard: nothing moves the
+        // arm until it is answered (done, or said unheard).
+        let stopping = self.presses.iter().any(|p| p.press == Press::Stop);
         let outcome = match (self.driven.as_mut(), m.command()) {
+            (Some(_), Some(_)) if stopping && !alive => Err(Refusal::Stopping),
             (Some(d), Some(c)) => d.teleop.command(page, &c, self.state.as_ref(), at_ns),
-            _ => Err(crate::teleop::Refusal::NotReady),
+            _ => Err(Refusal::NotReady),
         };
         if !(alive && outcome.is_ok()) {
             self.say(io, page, ToPage::Reply(Reply::teleop(outcome)));
@@ -737,24 +741,33 @@ mod tests {
         );
     }
 
-    /// Found by review: a stop only released control, so a command another page sent before
-    /// the press (queued behind it) or while its answer was awaited took control again until
-    /// the driver's safe state showed on the plane.
+    /// Found by review: a stop only released control, so a command another page sent while
+    /// its answer was awaited, or before the press (queued behind it, or late), took control
+    /// again until the driver's safe state showed on the plane.
     #[test]
     fn no_command_sent_before_a_stop_or_while_it_is_awaited_drives_the_arm() {
         let (mut lab, mut io) = ready();
         io.page_does(1, elbow_to(-0.5));
         run(&mut lab, &mut io, 100);
-        // Page 2's command, sent 5 ms before page 1's stop, reaches the loop after it.
         io.page_does(1, Event::Message(Ok(PageMessage::Stop {})));
+        run(&mut lab, &mut io, 20);
+        // Page 2's command while the stop waits for the supervisor.
+        io.page_does(2, elbow_to(-1.2));
+        run(&mut lab, &mut io, 50);
+        // The supervisor answers; the driver's safe state has not reached the plane yet, and
+        // page 2's command sent 5 ms before the press arrives now.
+        let stop_ns = io.commands[0].timestamp_ns;
+        io.events.push_back(SupervisorEvent {
+            timestamp_ns: stop_ns + MS,
+            kind: EventKind::OperatorStop as u8,
+            ..SupervisorEvent::default()
+        });
+        run(&mut lab, &mut io, 20);
         io.inbound.push_back(Inbound {
             page: 2,
             event: elbow_to(-1.2),
-            at_ns: io.now - 5 * MS,
+            at_ns: stop_ns - 5 * MS,
         });
-        run(&mut lab, &mut io, 50);
-        // And one sent while the stop waits for the supervisor.
-        io.page_does(2, elbow_to(-1.2));
         run(&mut lab, &mut io, 50);
         let refused: Vec<Value> = io
             .taken("reply")
@@ -762,8 +775,7 @@ mod tests {
             .filter(|(p, _)| *p == Some(2))
             .map(|(_, m)| m["refused"].clone())
             .collect();
-        assert_eq!(refused, ["before_interruption", "stopping"], "{refused:?}");
-        let stop_ns = io.commands[0].timestamp_ns;
+        assert_eq!(refused, ["stopping", "before_interruption"], "{refused:?}");
         let elbow = 3;
         let goals_after: Vec<f32> = io
             .goals

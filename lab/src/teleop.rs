@@ -100,10 +100,13 @@ pub enum Refusal {
     /// The driver's newest frame is too old.
     #[error("the driver is not heard (no joint state for 100 ms): nothing is taken")]
     DriverSilent,
-    /// Sent before the driver's last safe state, restart or silence (it waited in the lab's
-    /// queue across it).
-    #[error("sent before the driver's last safe state or restart: not taken")]
+    /// Sent before the driver's last safe state, restart or silence, or before an operator's
+    /// stop pressed on a page (it waited in the lab's queue across it).
+    #[error("sent before the driver's last safe state, restart or an operator's stop: not taken")]
     BeforeInterruption,
+    /// A stop was pressed and the supervisor has not yet answered it.
+    #[error("a stop was pressed and is not answered yet: nothing is taken")]
+    Stopping,
     /// Another page controls the robot.
     #[error("another page controls the robot")]
     OtherPage,
@@ -155,6 +158,7 @@ impl Refusal {
             Refusal::NotReady => "not_ready",
             Refusal::DriverSilent => "driver_silent",
             Refusal::BeforeInterruption => "before_interruption",
+            Refusal::Stopping => "stopping",
             Refusal::OtherPage => "other_page",
             Refusal::UnknownJoint(_) => "unknown_joint",
             Refusal::Wheel(_) => "wheel",
@@ -613,9 +617,11 @@ impl Teleop {
     }
 
     /// Ends teleoperation, whichever page controls: the arm is held where it is at the next
-    /// tick (the stop button, pressed on any page).
-    pub fn let_go(&mut self) {
+    /// tick (the stop button, pressed on any page at `at_ns`). A command sent at or before the
+    /// press is refused as sent before an interruption, wherever it waited.
+    pub fn let_go(&mut self, at_ns: u64) {
         self.end(Ended::Released);
+        self.interrupted_ns = Some(self.interrupted_ns.map_or(at_ns, |t| t.max(at_ns)));
     }
 
     fn end(&mut self, why: Ended) {
@@ -1290,7 +1296,7 @@ pub(crate) mod tests {
         assert_eq!(t.owner(), Some(1));
         assert_eq!(t.counters().closed_releases, 1);
         // The stop button, pressed on any page, lets go of whichever controls.
-        t.let_go();
+        t.let_go(435 * MS);
         let (frame, ended) = t.tick(Some(&at(&s, 440 * MS)), 440 * MS);
         assert_eq!(
             (frame.map(|f| f.mask), ended),
