@@ -639,6 +639,42 @@ fn cameras_are_recorded_as_video_frame_for_frame_and_a_dead_camera_is_held_and_m
     stack.stop();
 }
 
+/// The base at its commanded twist where it was let drive, measured by the wheels: the
+/// action is what went to the wheels after the limits and the field, so a frame whose
+/// action was the operator's twist for the 0.3 s before it (the ramp through) is judged; a
+/// loaded machine's starved lidar holds the base, rightly, and restarts the ramp. At least
+/// a second of the episode must be so (a base that never drove fails). One frame's twist is
+/// from one control period of the wheels' positions, a few encoder counts: ±0.07 rad/s of
+/// turn rate (seen in CI: a late control period's 0.68 rad/s in one frame).
+fn assert_the_base_drove_as_asked(rows: &[recorder::pq::DataRow]) {
+    let asked =
+        |r: &recorder::pq::DataRow| (r.frame.action[17], r.frame.action[18]) == (-0.15, 0.3);
+    let settle = (0.3 * FPS as f64).ceil() as usize;
+    let driven: Vec<usize> = (settle..rows.len())
+        .filter(|&k| rows[k - settle..=k].iter().all(asked))
+        .collect();
+    assert!(
+        driven.len() >= FPS as usize,
+        "the base let drive in {} of {} frames",
+        driven.len(),
+        rows.len()
+    );
+    assert!(
+        rows.iter().all(|r| r.frame.action[17] <= 0.0
+            && r.frame.action[17] >= -0.15
+            && (0.0..=0.3).contains(&r.frame.action[18])),
+        "the wheels never sent more than the operator asked"
+    );
+    let frames = |i: usize| -> Vec<(f32, usize)> {
+        driven
+            .iter()
+            .map(|&k| (rows[k].frame.state[i], k))
+            .collect()
+    };
+    nori_tests::assert_cruising(&frames(17), -0.15, 0.02);
+    nori_tests::assert_cruising(&frames(18), 0.3, 0.05);
+}
+
 /// The whole body recorded: `nori up` (both arms, the wheels, the lift, the base), the lift
 /// rising and the base backing along a curve while `nori record --lift --base` records. The state and
 /// the action are 19 wide (16 arm joints, the lift's height, the base's twist) and named; the
@@ -724,39 +760,7 @@ fn the_whole_body_is_recorded_nineteen_wide_with_the_lift_rising_and_the_base_dr
         "the lift only rises"
     );
     assert!(rows.iter().all(|r| r.frame.action[16] == 0.2), "its goal");
-    // The base at its commanded twist where it was let drive, measured by the wheels: the
-    // action is what went to the wheels after the limits and the field, so a frame whose
-    // action was the operator's twist for the 0.3 s before it (the ramp through) is judged; a
-    // loaded machine's starved lidar holds the base, rightly, and restarts the ramp. At least
-    // a second of the episode must be so (a base that never drove fails). One frame's twist is
-    // from one control period of the wheels' positions, a few encoder counts: ±0.07 rad/s of
-    // turn rate (seen in CI: a late control period's 0.68 rad/s in one frame).
-    let asked =
-        |r: &recorder::pq::DataRow| (r.frame.action[17], r.frame.action[18]) == (-0.15, 0.3);
-    let settle = (0.3 * FPS as f64).ceil() as usize;
-    let driven: Vec<usize> = (settle..rows.len())
-        .filter(|&k| rows[k - settle..=k].iter().all(asked))
-        .collect();
-    assert!(
-        driven.len() >= FPS as usize,
-        "the base let drive in {} of {} frames",
-        driven.len(),
-        rows.len()
-    );
-    assert!(
-        rows.iter().all(|r| r.frame.action[17] <= 0.0
-            && r.frame.action[17] >= -0.15
-            && (0.0..=0.3).contains(&r.frame.action[18])),
-        "the wheels never sent more than the operator asked"
-    );
-    let frames = |i: usize| -> Vec<(f32, usize)> {
-        driven
-            .iter()
-            .map(|&k| (rows[k].frame.state[i], k))
-            .collect()
-    };
-    nori_tests::assert_cruising(&frames(17), -0.15, 0.02);
-    nori_tests::assert_cruising(&frames(18), 0.3, 0.05);
+    assert_the_base_drove_as_asked(&rows);
     // The odometry: backwards, to the right, and turned left by about the twist's integral.
     let (x0, y0, h0) = (first.odometry[0], first.odometry[1], first.odometry[2]);
     let (x1, y1, h1) = (last.odometry[0], last.odometry[1], last.odometry[2]);
