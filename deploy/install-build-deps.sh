@@ -5,7 +5,11 @@
 # - postgresql: the fleet's history (`nori fleet store`); its tests start scratch servers with
 #   deploy/fleet-db/scratch-postgres.sh (Debian's package also starts a cluster of its own,
 #   which they leave alone);
-# - chromium: Nori Lab's page and the fleet dashboard are tested in a real (headless) browser.
+# - chromium: Nori Lab's page and the fleet dashboard are tested in a real (headless) browser;
+# - prometheus: promtool checks and unit-tests the fleet's rules (deploy/prometheus/), and a test
+#   has a real server scrape `nori fleet` (it starts its own on loopback; Debian's package also
+#   enables a server of its own on :9090, which it leaves alone). Without its recommended node
+#   exporter, which would be one more service on the machine.
 # Installs only what is missing (nothing to do: nothing asked of apt), with sudo unless root.
 set -euo pipefail
 missing=()
@@ -13,9 +17,16 @@ ls /usr/lib/llvm-*/lib/libclang.so* >/dev/null 2>&1 || missing+=(libclang-dev)
 command -v ffmpeg >/dev/null || missing+=(ffmpeg)
 ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || missing+=(postgresql)
 command -v chromium >/dev/null || missing+=(chromium)
-if ((${#missing[@]})); then
+lean=()
+command -v promtool >/dev/null && command -v prometheus >/dev/null || lean+=(prometheus)
+if ((${#missing[@]} + ${#lean[@]})); then
   as_root=()
   [ "$(id -u)" = 0 ] || as_root=(sudo)
   "${as_root[@]}" apt-get update -qq
-  "${as_root[@]}" env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${missing[@]}" >/dev/null
+  if ((${#missing[@]})); then
+    "${as_root[@]}" env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${missing[@]}" >/dev/null
+  fi
+  if ((${#lean[@]})); then
+    "${as_root[@]}" env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${lean[@]}" >/dev/null
+  fi
 fi

@@ -73,6 +73,10 @@ pub struct FleetIngestArgs {
     /// Seconds each fleet size streams.
     #[arg(long, default_value_t = 5.0)]
     seconds: f64,
+    /// Processes the robots' sessions are spread over (each its own zenoh runtime), as a
+    /// fleet's robots are over machines.
+    #[arg(long, default_value_t = 4)]
+    publisher_processes: usize,
     /// The robots reach the collector through a zenoh router (`nori router`, its own process),
     /// as a fleet's site routers make them: one link into the collector instead of one per
     /// robot. The router's CPU is reported beside the collector's.
@@ -101,7 +105,9 @@ impl Router {
             &config,
             format!(
                 "{{ mode: \"router\", listen: {{ endpoints: [\"{endpoint}\"] }}, \
-                 scouting: {{ multicast: {{ enabled: false }} }} }}"
+                 scouting: {{ multicast: {{ enabled: false }} }}, \
+                 transport: {{ unicast: {{ max_sessions: {} }} }} }}",
+                fleet_agent::net::FLEET_NODE_MAX_SESSIONS
             ),
         )?;
         let child = Command::new(stack::sibling("nori-fleet")?)
@@ -121,6 +127,11 @@ impl Router {
     /// Its CPU seconds so far (user + system, from /proc).
     fn cpu_seconds(&self) -> f64 {
         bench::cpu_seconds(self.child.id()).unwrap_or(0.0)
+    }
+
+    /// Its peak resident memory so far, MB.
+    fn peak_rss_mb(&self) -> f64 {
+        bench::peak_rss_mb(self.child.id()).unwrap_or(0.0)
     }
 }
 
@@ -648,17 +659,114 @@ fn cpu_seconds() -> f64 {
     })
 }
 
+/// The publishing robots, spread over processes as a fleet is over machines: each process's
+/// sessions open, waiting for the word to stream.
+struct Publishers {
+    children: Vec<(
+        std::process::Child,
+        std::io::BufReader<std::process::ChildStdout>,
+    )>,
+    /// Seconds from the first spawn until every session was open.
+    setup_s: f64,
+}
+
+impl Publishers {
+    fn start(
+        publisher: &std::path::Path,
+        endpoint: &str,
+        robots: usize,
+        args: &FleetIngestArgs,
+    ) -> Result<Publishers> {
+        use std::io::BufRead;
+        let started = Instant::now();
+        let processes = args.publisher_processes.clamp(1, robots.max(1));
+        let mut children = Vec::new();
+        for k in 0..processes {
+            let (first, end) = (robots * k / processes, robots * (k + 1) / processes);
+            let mut child = Command::new(publisher)
+                .args(["--connect", endpoint, "--hz", &args.hz.to_string()])
+                .args([
+                    "--robots",
+                    &(end - first).to_string(),
+                    "--first",
+                    &first.to_string(),
+                ])
+                .args(["--seconds", &args.seconds.to_string()])
+                .stdin(Stdio::piped())
+                .stdout(Stdio::piped())
+                .stderr(Stdio::inherit())
+                .spawn()
+                .context("running the publishers")?;
+            let stdout = child.stdout.take().context("the publisher's output")?;
+            children.push((child, std::io::BufReader::new(stdout)));
+        }
+        for (_, out) in &mut children {
+            let mut line = String::new();
+            out.read_line(&mut line)?;
+            anyhow::ensure!(
+                line.trim() == "ready",
+                "a publisher failed before streaming"
+            );
+        }
+        Ok(Publishers {
+            children,
+            setup_s: started.elapsed().as_secs_f64(),
+        })
+    }
+
+    /// Streams; returns each robot's messages sent.
+    fn stream(self) -> Result<Vec<u64>> {
+        use std::io::{Read, Write};
+        let mut children = self.children;
+        for (child, _) in &mut children {
+            child
+                .stdin
+                .as_mut()
+                .context("the publisher's input")?
+                .write_all(b"go\n")?;
+        }
+        let mut sent = Vec::new();
+        for (mut child, mut out) in children {
+            let mut json = String::new();
+            out.read_to_string(&mut json)?;
+            anyhow::ensure!(child.wait()?.success(), "the publishers failed");
+            sent.extend(serde_json::from_str::<Vec<u64>>(&json)?);
+        }
+        Ok(sent)
+    }
+}
+
+/// One stream's figures.
+struct Stream {
+    sent: Vec<u64>,
+    received: Vec<u64>,
+    /// This process's CPU seconds over the stream.
+    cpu: f64,
+    /// The router's CPU seconds over the stream.
+    router_cpu: f64,
+    /// The publishers' CPU seconds, their sessions' opening included.
+    publishers_cpu: f64,
+    /// The stream's wall seconds (the publishers' pacing, and what is still in flight).
+    stream_s: f64,
+    /// Seconds until every robot's session was open.
+    setup_s: f64,
+}
+
+/// Robot `r`'s number from its state key (`nori/r00042/state`).
+fn robot_number(key: &str) -> Option<usize> {
+    key.get(6..11).and_then(|r| r.parse().ok())
+}
+
 /// One stream of `robots` robots' telemetry into this process: `raw` only counts what zenoh
 /// delivers (the baseline); otherwise the collector ingests it as `nori fleet` does (decoded
-/// outside the lock). Returns each robot's messages sent and received, and this process's CPU
-/// seconds over the stream.
+/// outside the lock). CPU is measured over the stream only, not the sessions' opening.
 fn ingest_run(
     publisher: &std::path::Path,
     robots: usize,
     args: &FleetIngestArgs,
     raw: bool,
     router: Option<&Router>,
-) -> Result<(Vec<u64>, Vec<u64>, f64)> {
+) -> Result<Stream> {
     let (endpoint, session) = match router {
         Some(r) => (
             r.endpoint.clone(),
@@ -677,44 +785,32 @@ fn ingest_run(
     let _states = session
         .declare_subscriber(all_robots("state"))
         .callback(move |s: Sample| {
+            let key = s.key_expr().as_str();
             if raw {
                 // What zenoh costs: the sample delivered, its bytes looked at, counted.
-                let key = s.key_expr().as_str();
                 let bytes = s.payload().to_bytes();
-                let robot = key
-                    .get(6..10)
-                    .and_then(|r| r.parse::<usize>().ok())
-                    .filter(|_| !bytes.is_empty());
+                let robot = robot_number(key).filter(|_| !bytes.is_empty());
                 if let Some(k) = robot.and_then(|r| n.get(r)) {
                     k.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                 }
                 return;
             }
-            let key = s.key_expr().as_str();
             let msg = fleet::collector::decode_state(key, &s.payload().to_bytes());
             let mut c = c.lock().unwrap_or_else(|p| p.into_inner());
             let _ = c.decoded_state(key, msg, 0);
         })
         .wait()
         .map_err(|e| anyhow!("{e}"))?;
-    let cpu_before = cpu_seconds();
-    let output = Command::new(publisher)
-        .args(["--connect", &endpoint])
-        .args([
-            "--robots",
-            &robots.to_string(),
-            "--hz",
-            &args.hz.to_string(),
-        ])
-        .args(["--seconds", &args.seconds.to_string()])
-        .stderr(Stdio::inherit())
-        .output()
-        .context("running the publishers")?;
-    anyhow::ensure!(output.status.success(), "the publishers failed");
-    let sent: Vec<u64> = serde_json::from_slice(&output.stdout)?;
+    let children_before = bench::children_cpu_seconds().unwrap_or(0.0);
+    let publishers = Publishers::start(publisher, &endpoint, robots, args)?;
+    let router_cpu = || router.map_or(0.0, Router::cpu_seconds);
+    let (cpu_before, router_before, started) = (cpu_seconds(), router_cpu(), Instant::now());
+    let setup_s = publishers.setup_s;
+    let sent = publishers.stream()?;
+    let publishers_cpu = bench::children_cpu_seconds().unwrap_or(0.0) - children_before;
     // Whatever is still in flight arrives within a moment.
     std::thread::sleep(Duration::from_millis(500));
-    let cpu = cpu_seconds() - cpu_before;
+    let (cpu, router_cpu) = (cpu_seconds() - cpu_before, router_cpu() - router_before);
     let received = if raw {
         counts
             .iter()
@@ -723,10 +819,59 @@ fn ingest_run(
     } else {
         let c = collector.lock().unwrap_or_else(|p| p.into_inner());
         (0..robots)
-            .map(|r| c.states_received(&format!("r{r:04}")))
+            .map(|r| c.states_received(&format!("r{r:05}")))
             .collect()
     };
-    Ok((sent, received, cpu))
+    Ok(Stream {
+        sent,
+        received,
+        cpu,
+        router_cpu,
+        publishers_cpu,
+        stream_s: started.elapsed().as_secs_f64(),
+        setup_s,
+    })
+}
+
+/// One fleet size's figures: the collector's stream against zenoh's own delivery (`raw`).
+fn ingest_row(
+    robots: usize,
+    args: &FleetIngestArgs,
+    raw: &Stream,
+    run: &Stream,
+    router: Option<&Router>,
+) -> serde_json::Value {
+    let (sent_total, received_total) = (
+        run.sent.iter().sum::<u64>(),
+        run.received.iter().sum::<u64>(),
+    );
+    let raw_total = raw.received.iter().sum::<u64>();
+    let offered = robots as f64 * args.hz * args.seconds;
+    let per_message_us = |cpu: f64, n: u64| if n == 0 { 0.0 } else { cpu / n as f64 * 1e6 };
+    serde_json::json!({
+        "robots": robots,
+        "publisher_processes": args.publisher_processes.clamp(1, robots.max(1)),
+        "offered": offered,
+        "sent": sent_total,
+        "received": received_total,
+        "lost": sent_total.saturating_sub(received_total),
+        "worst_robot_received_ratio": run.sent.iter().zip(&run.received)
+            .map(|(&s, &r)| if s == 0 { 1.0 } else { r as f64 / s as f64 })
+            .fold(1.0, f64::min),
+        "sent_vs_offered": sent_total as f64 / offered,
+        "sessions_open_s": run.setup_s,
+        "stream_s": run.stream_s,
+        "collector_cpu_share_of_a_core": run.cpu / run.stream_s,
+        "raw_received": raw_total,
+        "raw_cpu_share_of_a_core": raw.cpu / raw.stream_s,
+        "collector_us_per_message": per_message_us(run.cpu, received_total),
+        "raw_us_per_message": per_message_us(raw.cpu, raw_total),
+        "collector_vs_raw": if raw.cpu > 0.0 { run.cpu / raw.cpu } else { 0.0 },
+        "router_cpu_share_of_a_core": run.router_cpu / run.stream_s,
+        "router_us_per_message": per_message_us(run.router_cpu, received_total),
+        "router_peak_rss_mb": router.map_or(0.0, Router::peak_rss_mb),
+        "publishers_cpu_share_of_a_core": run.publishers_cpu / (run.setup_s + run.stream_s),
+    })
 }
 
 /// Runs `nori bench fleet-ingest`.
@@ -740,34 +885,9 @@ pub fn fleet_ingest(args: &FleetIngestArgs) -> Result<()> {
         } else {
             None
         };
-        let router_cpu = |r: &Option<Router>| r.as_ref().map_or(0.0, Router::cpu_seconds);
-        let (_, raw_received, raw_cpu) =
-            ingest_run(&publisher, robots, args, true, router.as_ref())?;
-        let r1 = router_cpu(&router);
-        let (sent, received, cpu) = ingest_run(&publisher, robots, args, false, router.as_ref())?;
-        let router_cpu_s = router_cpu(&router) - r1;
-        let (sent_total, received_total) = (sent.iter().sum::<u64>(), received.iter().sum::<u64>());
-        let raw_total = raw_received.iter().sum::<u64>();
-        let offered = robots as f64 * args.hz * args.seconds;
-        let per_message_us = |cpu: f64, n: u64| if n == 0 { 0.0 } else { cpu / n as f64 * 1e6 };
-        rows.push(serde_json::json!({
-            "robots": robots,
-            "offered": offered,
-            "sent": sent_total,
-            "received": received_total,
-            "lost": sent_total.saturating_sub(received_total),
-            "worst_robot_received_ratio": sent.iter().zip(&received)
-                .map(|(&s, &r)| if s == 0 { 1.0 } else { r as f64 / s as f64 })
-                .fold(1.0, f64::min),
-            "sent_vs_offered": sent_total as f64 / offered,
-            "collector_cpu_share_of_a_core": cpu / (args.seconds + 0.5),
-            "raw_received": raw_total,
-            "raw_cpu_share_of_a_core": raw_cpu / (args.seconds + 0.5),
-            "collector_us_per_message": per_message_us(cpu, received_total),
-            "raw_us_per_message": per_message_us(raw_cpu, raw_total),
-            "collector_vs_raw": if raw_cpu > 0.0 { cpu / raw_cpu } else { 0.0 },
-            "router_cpu_share_of_a_core": router_cpu_s / (args.seconds + 0.5),
-        }));
+        let raw = ingest_run(&publisher, robots, args, true, router.as_ref())?;
+        let run = ingest_run(&publisher, robots, args, false, router.as_ref())?;
+        rows.push(ingest_row(robots, args, &raw, &run, router.as_ref()));
     }
     let out = serde_json::json!({"hz": args.hz, "seconds": args.seconds, "via_router": args.via_router, "runs": rows});
     if args.json {
@@ -788,10 +908,19 @@ pub fn fleet_ingest(args: &FleetIngestArgs) -> Result<()> {
                 f(r, "raw_cpu_share_of_a_core") * 100.0, f(r, "raw_us_per_message"), r["raw_received"],
                 f(r, "collector_vs_raw"),
             );
+            println!(
+                "        the publishers ({} processes): {:.0} % of a core",
+                r["publisher_processes"],
+                f(r, "publishers_cpu_share_of_a_core") * 100.0
+            );
             if args.via_router {
                 println!(
-                    "        the router: {:.0} % of a core while the collector ingested",
-                    f(r, "router_cpu_share_of_a_core") * 100.0
+                    "        the router: {:.0} % of a core, {:.1} µs a message, while the collector ingested; peak RSS {:.0} MB ({:.0} kB a robot); sessions open in {:.1} s",
+                    f(r, "router_cpu_share_of_a_core") * 100.0,
+                    f(r, "router_us_per_message"),
+                    f(r, "router_peak_rss_mb"),
+                    f(r, "router_peak_rss_mb") * 1000.0 / f(r, "robots").max(1.0),
+                    f(r, "sessions_open_s")
                 );
             }
         }

@@ -8,7 +8,7 @@
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use fleet::history::{EventRow, INSERT_EVENT_SQL, SCHEMA_SQL};
+use fleet::history::{EventColumns, EventRow, INSERT_EVENTS_SQL, INSERT_EVENT_SQL, SCHEMA_SQL};
 use fleet_agent::keys::{robot_key, robot_of};
 use fleet_agent::schema::{decode, encode, AckMsg, EventMsg, EventRecord, SCHEMA_VERSION};
 use fleet_agent::zenoh::qos::CongestionControl;
@@ -54,19 +54,45 @@ fn record(seq: u64) -> EventRecord {
     }
 }
 
+/// How the baseline writes a transaction's rows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Statement {
+    /// One `INSERT` a row (`INSERT_EVENT_SQL`, the store's until #38).
+    PerRow,
+    /// One statement a transaction (`INSERT_EVENTS_SQL`, the store's now).
+    Batch,
+}
+
 /// The baseline: `rows` events of `robots` robots straight into the database, `BATCH` to a
 /// transaction. Returns the seconds it took.
-fn raw_inserts(db: &mut postgres::Client, run: &str, robots: usize, events: u64) -> Result<f64> {
+fn raw_inserts(
+    db: &mut postgres::Client,
+    run: &str,
+    robots: usize,
+    events: u64,
+    statement: Statement,
+) -> Result<f64> {
     let started = Instant::now();
     let rows: Vec<(String, u64)> = (0..robots)
         .flat_map(|r| (1..=events).map(move |seq| (format!("{run}-{r}"), seq)))
         .collect();
     for batch in rows.chunks(BATCH) {
         let mut tx = db.transaction()?;
-        let insert = tx.prepare(INSERT_EVENT_SQL)?;
-        for (robot, seq) in batch {
-            let e = record(*seq);
-            tx.execute(&insert, &EventRow::new(robot, 1, *seq, &e).params())?;
+        match statement {
+            Statement::PerRow => {
+                let insert = tx.prepare(INSERT_EVENT_SQL)?;
+                for (robot, seq) in batch {
+                    let e = record(*seq);
+                    tx.execute(&insert, &EventRow::new(robot, 1, *seq, &e).params())?;
+                }
+            }
+            Statement::Batch => {
+                let mut columns = EventColumns::default();
+                for (robot, seq) in batch {
+                    columns.push(robot, 1, *seq, &record(*seq));
+                }
+                tx.execute(INSERT_EVENTS_SQL, &columns.params())?;
+            }
         }
         tx.commit()?;
     }
@@ -176,6 +202,63 @@ fn through_store(
     Ok((started.elapsed().as_secs_f64(), resent))
 }
 
+/// The database alone, the same rows with each statement: seconds, before and after the
+/// store's run (the table grows).
+#[derive(Debug, Default)]
+struct Alone {
+    per_row: [f64; 2],
+    batch: [f64; 2],
+}
+
+impl Alone {
+    fn measure(
+        &mut self,
+        db: &mut postgres::Client,
+        run: &str,
+        when: usize,
+        args: &FleetStoreArgs,
+    ) -> Result<()> {
+        let tag = ["before", "after"][when];
+        self.per_row[when] = raw_inserts(
+            db,
+            &format!("{run}-{tag}-row"),
+            args.robots,
+            args.events,
+            Statement::PerRow,
+        )?;
+        self.batch[when] = raw_inserts(
+            db,
+            &format!("{run}-{tag}-batch"),
+            args.robots,
+            args.events,
+            Statement::Batch,
+        )?;
+        Ok(())
+    }
+}
+
+/// The store's run, in its own process: seconds, events sent again, the store's CPU seconds.
+fn store_run(args: &FleetStoreArgs, run: &str) -> Result<(f64, u64, f64)> {
+    let endpoint = crate::fleet::free_endpoint()?;
+    let mut store = Command::new(stack::sibling("nori-fleet")?)
+        .args(["store", "--database", &args.database, "--listen", &endpoint])
+        .args(["--robots", &format!("{run}-store-$*")])
+        .stderr(Stdio::null())
+        .spawn()
+        .context("starting nori fleet store")?;
+    let result = (|| {
+        // A peer connecting: it opens at once and links up when the store listens.
+        let session = bench::zenoh_session(vec![], vec![endpoint.clone()], "peer")?;
+        let cpu = || bench::cpu_seconds(store.id()).unwrap_or(0.0);
+        let cpu_before = cpu();
+        let (store_s, resent) = through_store(&session, run, args.robots, args.events)?;
+        Ok::<_, anyhow::Error>((store_s, resent, cpu() - cpu_before))
+    })();
+    let _ = store.kill();
+    let _ = store.wait();
+    result
+}
+
 pub fn run(args: &FleetStoreArgs) -> Result<()> {
     if args.robots == 0 || args.events == 0 {
         bail!("--robots and --events: at least 1");
@@ -191,35 +274,22 @@ pub fn run(args: &FleetStoreArgs) -> Result<()> {
             .as_secs()
     );
     let total = args.robots as u64 * args.events;
-    let raw_before_s = raw_inserts(&mut db, &format!("{run}-before"), args.robots, args.events)?;
-
-    let endpoint = crate::fleet::free_endpoint()?;
-    let mut store = Command::new(stack::sibling("nori-fleet")?)
-        .args(["store", "--database", &args.database, "--listen", &endpoint])
-        .args(["--robots", &format!("{run}-store-$*")])
-        .stderr(Stdio::null())
-        .spawn()
-        .context("starting nori fleet store")?;
-    let result = (|| {
-        // A peer connecting: it opens at once and links up when the store listens.
-        let session = bench::zenoh_session(vec![], vec![endpoint.clone()], "peer")?;
-        let cpu = || bench::cpu_seconds(store.id()).unwrap_or(0.0);
-        let cpu_before = cpu();
-        let (store_s, resent) = through_store(&session, &run, args.robots, args.events)?;
-        Ok::<_, anyhow::Error>((store_s, resent, cpu() - cpu_before))
-    })();
-    let _ = store.kill();
-    let _ = store.wait();
-    let (store_s, resent, store_cpu_s) = result?;
-    let raw_after_s = raw_inserts(&mut db, &format!("{run}-after"), args.robots, args.events)?;
-    let raw_s = (raw_before_s + raw_after_s) / 2.0;
+    let mut alone = Alone::default();
+    alone.measure(&mut db, &run, 0, args)?;
+    let (store_s, resent, store_cpu_s) = store_run(args, &run)?;
+    alone.measure(&mut db, &run, 1, args)?;
     let stored: i64 = db
         .query_one(
             "SELECT count(*) FROM events WHERE robot LIKE $1 || '-store-%'",
             &[&run],
         )?
         .get(0);
-    let (raw_rate, store_rate) = (total as f64 / raw_s, total as f64 / store_s);
+    let rate = |s: [f64; 2]| 2.0 * total as f64 / (s[0] + s[1]);
+    let (row_rate, batch_rate, store_rate) = (
+        rate(alone.per_row),
+        rate(alone.batch),
+        total as f64 / store_s,
+    );
     // A fleet of 1 000 robots whose journals all filled (1 MiB each, the records ~100 B).
     let backlog_1000 = 1_000.0 * (1024.0 * 1024.0 / 100.0);
     if args.json {
@@ -227,24 +297,30 @@ pub fn run(args: &FleetStoreArgs) -> Result<()> {
             "{}",
             serde_json::json!({
                 "robots": args.robots, "events": total, "stored": stored, "resent": resent,
-                "raw_before_s": raw_before_s, "raw_after_s": raw_after_s, "raw_rows_per_s": raw_rate,
+                "per_row_s": alone.per_row, "per_row_rows_per_s": row_rate,
+                "batch_s": alone.batch, "batch_rows_per_s": batch_rate,
                 "store_s": store_s, "store_events_per_s": store_rate,
-                "store_cpu_s": store_cpu_s, "ratio": raw_rate / store_rate,
+                "store_cpu_s": store_cpu_s,
+                "store_over_per_row": store_rate / row_rate, "store_over_batch": store_rate / batch_rate,
             })
         );
     } else {
+        let [row_b, row_a] = alone.per_row;
+        let [batch_b, batch_a] = alone.batch;
         println!(
             "fleet store: {} robots × {} events = {total}\n  \
-             database alone (the store's INSERT, {BATCH} to a transaction): {raw_before_s:.2} s before, \
-             {raw_after_s:.2} s after, {raw_rate:.0} rows/s\n  \
+             database alone, {BATCH} to a transaction (before, after the store's run):\n    \
+             one INSERT a row:     {row_b:.2} s, {row_a:.2} s: {row_rate:.0} rows/s\n    \
+             one statement (unnest): {batch_b:.2} s, {batch_a:.2} s: {batch_rate:.0} rows/s\n  \
              through nori fleet store (zenoh, 256 in flight per robot, acknowledged after commit): \
              {store_s:.2} s, {store_rate:.0} events/s, {store_cpu_s:.2} s of the store's CPU; \
              {stored} stored, {resent} sent again\n  \
-             store / database alone: {:.2}× the time\n  \
-             a 1 000-robot fleet's full journals ({:.1} M events) would take {:.0} min to store",
+             store's rate / one INSERT a row: {:.2}×; / one statement: {:.2}×\n  \
+             a 1 000-robot fleet's full journals ({:.1} M events) would take {:.1} min to store",
             args.robots,
             args.events,
-            raw_rate / store_rate,
+            store_rate / row_rate,
+            store_rate / batch_rate,
             backlog_1000 / 1e6,
             backlog_1000 / store_rate / 60.0
         );

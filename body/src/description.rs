@@ -14,13 +14,13 @@ pub const NORI_A3_TOML: &str = include_str!("../robots/nori-a3.toml");
 
 /// A description that cannot be used.
 #[derive(Debug, Error)]
+#[allow(missing_docs, reason = "each field is shown in its variant's message")]
 pub enum DescriptionError {
     /// The file could not be read.
     #[error("cannot read robot description {path}: {source}")]
     Io {
         /// File path.
         path: String,
-        /// Cause.
         source: std::io::Error,
     },
     /// TOML syntax, a wrong type or an unknown key (the message names the key and line).
@@ -28,7 +28,6 @@ pub enum DescriptionError {
     Parse {
         /// File path.
         path: String,
-        /// Cause.
         source: toml::de::Error,
     },
     /// A value that parses but is physically impossible or inconsistent.
@@ -38,7 +37,6 @@ pub enum DescriptionError {
         path: String,
         /// The offending key.
         key: String,
-        /// Why.
         reason: String,
     },
 }
@@ -246,7 +244,7 @@ pub struct RobotDescription {
     pub gravity: [f64; 3],
     /// Ratings by model key (`sts3215`, `sts3250`, `sts3095`).
     pub servo_models: BTreeMap<String, ServoRating>,
-    /// Buses.
+    /// The servo buses (`[[bus]]` tables): each one's servos and the arm or wheels it drives.
     pub bus: Vec<BusDescription>,
     /// Cameras the simulator renders (served at `<device dir>/camera-<name>`).
     #[serde(default)]

@@ -39,7 +39,8 @@ pub enum BusError {
     Encode {
         /// Register name.
         register: &'static str,
-        /// Value.
+        /// The value asked for, in the register's units before encoding (0 when `register` is
+        /// `instruction`: the packet itself did not encode).
         value: i32,
     },
 }

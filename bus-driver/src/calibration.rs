@@ -44,10 +44,10 @@ pub enum GoalError {
 /// A calibration that cannot be used.
 #[derive(Debug, Clone, PartialEq, Eq, Error)]
 #[error("calibration of joint {joint}: {reason}")]
+#[allow(missing_docs, reason = "each field is shown in the error's message")]
 pub struct CalibrationError {
     /// Joint name.
     pub joint: String,
-    /// Why.
     pub reason: String,
 }
 

@@ -142,7 +142,7 @@ pub struct DriverConfig {
     pub calibration_file: Option<PathBuf>,
     /// Backstops by model key.
     pub backstops: BTreeMap<String, Backstops>,
-    /// Buses.
+    /// The servo buses (`[[bus]]` tables), each with its device, mode and servos.
     pub bus: Vec<BusConfig>,
 }
 

@@ -100,7 +100,7 @@ pub enum SetupError {
     WrongModel {
         /// Servo id.
         id: u8,
-        /// Configured.
+        /// The model the configuration names.
         expected: ServoModel,
         /// `Model_Number` read.
         found: i32,
@@ -280,7 +280,7 @@ pub struct Driver<T: Transport> {
     /// No setup before this cycle (one slow setup at a time, spaced out).
     next_setup_any: u64,
     next_retry: usize,
-    /// Counters.
+    /// Counts since the driver started (cycles, goals taken and refused, setups…).
     pub counters: DriverCounters,
 }
 

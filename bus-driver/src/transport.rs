@@ -6,6 +6,7 @@ use thiserror::Error;
 
 /// A failure of the byte transport itself (never a servo's status bits).
 #[derive(Debug, Error)]
+#[allow(missing_docs, reason = "each field is shown in its variant's message")]
 pub enum TransportError {
     /// The device could not be opened.
     #[error("cannot open {device} at {baud} baud: {source}")]
@@ -14,7 +15,6 @@ pub enum TransportError {
         device: PathBuf,
         /// Line rate asked for.
         baud: u32,
-        /// Cause.
         source: serialport::Error,
     },
     /// Reading or writing failed; the device may be gone.
@@ -22,7 +22,6 @@ pub enum TransportError {
     Io {
         /// Device path.
         device: PathBuf,
-        /// Cause.
         source: std::io::Error,
     },
 }

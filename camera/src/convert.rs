@@ -17,9 +17,9 @@ pub enum FrameError {
     Short {
         /// The format.
         format: PixelFormat,
-        /// Width.
+        /// Width in pixels.
         width: u32,
-        /// Height.
+        /// Height in pixels.
         height: u32,
         /// Bytes needed.
         needed: usize,
@@ -44,9 +44,9 @@ pub enum FrameError {
     /// The output buffer does not fit width × height × 3.
     #[error("output of {got} bytes for a {width}×{height} RGB image")]
     Output {
-        /// Width.
+        /// Width in pixels.
         width: u32,
-        /// Height.
+        /// Height in pixels.
         height: u32,
         /// Bytes of the output.
         got: usize,

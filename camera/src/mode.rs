@@ -11,9 +11,9 @@ pub const MAX_PIXELS: u32 = 1920 * 1080;
 pub struct Mode {
     /// Pixel format asked of the device.
     pub format: PixelFormat,
-    /// Width.
+    /// Width in pixels.
     pub width: u32,
-    /// Height.
+    /// Height in pixels.
     pub height: u32,
     /// Frames per second.
     pub fps: u32,

@@ -17,9 +17,9 @@ pub use crate::mode::Mode;
 pub struct RawFrame<'a> {
     /// The format of `bytes`.
     pub format: PixelFormat,
-    /// Width.
+    /// Width in pixels.
     pub width: u32,
-    /// Height.
+    /// Height in pixels.
     pub height: u32,
     /// Bytes per row (packed formats).
     pub stride: u32,
@@ -33,6 +33,7 @@ pub struct RawFrame<'a> {
 
 /// A source that failed.
 #[derive(Debug, Error)]
+#[allow(missing_docs, reason = "each field is shown in its variant's message")]
 pub enum SourceError {
     /// No device at the path.
     #[error("no camera at {0}")]
@@ -40,7 +41,7 @@ pub enum SourceError {
     /// The device cannot deliver the configured mode.
     #[error("{path}: the camera cannot deliver {wanted}: {detail}")]
     Mode {
-        /// Device.
+        /// The device's path.
         path: PathBuf,
         /// The configured mode.
         wanted: String,
@@ -50,15 +51,14 @@ pub enum SourceError {
     /// The device stopped delivering (unplugged, the simulator gone).
     #[error("{path}: {source}")]
     Io {
-        /// Device.
+        /// The device's path.
         path: PathBuf,
-        /// Cause.
         source: std::io::Error,
     },
     /// A frame of a format or size other than the configured one.
     #[error("{path}: a frame of {got}, the camera is set to {wanted}")]
     Unexpected {
-        /// Device.
+        /// The device's path.
         path: PathBuf,
         /// The configured mode.
         wanted: String,

@@ -28,9 +28,9 @@ pub const MAGIC: [u8; 4] = *b"NCAM";
 pub struct StreamHeader {
     /// V4L2 four-character code.
     pub fourcc: [u8; 4],
-    /// Width.
+    /// Width in pixels.
     pub width: u32,
-    /// Height.
+    /// Height in pixels.
     pub height: u32,
     /// The device's sequence number.
     pub sequence: u32,

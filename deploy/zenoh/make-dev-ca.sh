@@ -94,7 +94,11 @@ for id in "${robots[@]}" inference dashboard store; do
   connect: { endpoints: [$connect] },
   scouting: { multicast: { enabled: false } },
   transport: {
+    // A router that accepts the connection but does not answer (frozen) is given up after 2 s,
+    // and the next endpoint tried (docs/fleet-sizing.md, "Leases").
+    unicast: { open_timeout: 2000 },
     link: {
+      tx: { lease: 5000, keep_alive: 4 },
       tls: {
         root_ca_certificate: "$out/ca.pem",
         connect_certificate: "$out/$id.pem",
@@ -163,7 +167,9 @@ all='"put", "delete", "declare_subscriber", "query", "declare_queryable", "reply
   listen: { endpoints: ["$endpoint"] },
   scouting: { multicast: { enabled: false } },
   transport: {
+    unicast: { max_sessions: 10000 },
     link: {
+      tx: { lease: 5000, keep_alive: 4 },
       tls: {
         root_ca_certificate: "$out/ca.pem",
         listen_certificate: "$out/router.pem",

@@ -58,7 +58,7 @@ pub enum Unit {
 pub struct Register {
     /// Name as in Feetech's documentation.
     pub name: &'static str,
-    /// Address.
+    /// Address in the control table (of the low byte, for a 2-byte register).
     pub addr: u8,
     /// Size in bytes (1 or 2).
     pub size: u8,
@@ -162,15 +162,15 @@ registers! {
     TORQUE_LIMIT = "Torque_Limit", 48, 2, Sram, U, PerMille;
     /// 1 = EEPROM locked.
     LOCK = "Lock", 55, 1, Sram, U, None;
-    /// Position.
+    /// Present position, steps (4096 a turn) less `Homing_Offset`; sign-magnitude, sign at bit 15.
     PRESENT_POSITION = "Present_Position", 56, 2, ReadOnly, Encoding::SignMagnitude(15), Steps;
-    /// Velocity.
+    /// Present velocity, steps/s; sign-magnitude, sign at bit 15.
     PRESENT_VELOCITY = "Present_Velocity", 58, 2, ReadOnly, Encoding::SignMagnitude(15), StepsPerSecond;
     /// Output duty.
     PRESENT_LOAD = "Present_Load", 60, 2, ReadOnly, Encoding::SignMagnitude(10), PerMille;
     /// Supply voltage.
     PRESENT_VOLTAGE = "Present_Voltage", 62, 1, ReadOnly, U, DeciVolt;
-    /// Temperature.
+    /// Present temperature, whole °C.
     PRESENT_TEMPERATURE = "Present_Temperature", 63, 1, ReadOnly, U, Celsius;
     /// Status bits.
     STATUS = "Status", 65, 1, ReadOnly, U, None;

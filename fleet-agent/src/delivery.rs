@@ -57,7 +57,7 @@ pub enum AckRefused {
     OtherJournal {
         /// The journal it names.
         got: u64,
-        /// Ours.
+        /// This robot's journal.
         ours: u64,
     },
     /// It acknowledges events never journaled.

@@ -111,11 +111,11 @@ pub enum Rejection {
         step: usize,
         /// [`BODY_AXES`] name.
         axis: &'static str,
-        /// Target.
+        /// The target, in the axis's unit (m, m/s or rad/s, as its name ends).
         value: f32,
-        /// Limit.
+        /// The axis's lower limit, in the same unit.
         min: f32,
-        /// Limit.
+        /// The axis's upper limit, in the same unit.
         max: f32,
     },
     /// Outside the calibrated range.
@@ -125,11 +125,11 @@ pub enum Rejection {
         step: usize,
         /// Joint index.
         joint: usize,
-        /// Target.
+        /// The target, rad.
         value: f32,
-        /// Range.
+        /// The calibrated range's lower end, rad.
         min: f32,
-        /// Range.
+        /// The calibrated range's upper end, rad.
         max: f32,
     },
     /// Computed from an observation too old.

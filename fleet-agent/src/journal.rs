@@ -37,13 +37,13 @@ pub const MIN_BOUND: u64 = 2 * (HEADER + MAX_PAYLOAD) as u64;
 
 /// What the journal could not do.
 #[derive(Debug, Error)]
+#[allow(missing_docs, reason = "each field is shown in its variant's message")]
 pub enum JournalError {
     /// Reading, writing, syncing or listing the journal's files failed.
     #[error("event journal {path}: {source}")]
     Io {
         /// The file or directory.
         path: String,
-        /// Cause.
         source: std::io::Error,
     },
     /// A payload over [`MAX_PAYLOAD`].

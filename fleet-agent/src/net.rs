@@ -4,6 +4,18 @@
 use crate::config::ZenohConfig;
 use thiserror::Error;
 
+/// Sessions a node of the fleet tier accepts (zenoh's `transport/unicast/max_sessions`, 1 000
+/// by default, past which a robot is refused): a site router's robots, a cloud router's sites
+/// and services, a fleet-side process's robots when they connect to it straight. The rule
+/// and its figures (file descriptors, memory per session): `docs/fleet-sizing.md`.
+pub const FLEET_NODE_MAX_SESSIONS: usize = 10_000;
+
+/// File descriptors a fleet node needs for `max_sessions` sessions: one socket each, and what
+/// the process holds besides (listeners, its own links, files, the runtime's).
+pub fn descriptors_for(max_sessions: usize) -> u64 {
+    max_sessions as u64 + 512
+}
+
 /// A session that could not be opened.
 #[derive(Debug, Error)]
 pub enum NetError {
@@ -61,7 +73,7 @@ pub fn open_fleet_side(
     if let Some(file) = zenoh_config {
         return open_file(file);
     }
-    open(&ZenohConfig {
+    let mut config = self::zenoh_config(&ZenohConfig {
         mode: "peer".into(),
         listen: if listen.is_empty() && connect.is_empty() {
             vec![default_listen.into()]
@@ -70,7 +82,25 @@ pub fn open_fleet_side(
         },
         connect: connect.to_vec(),
         config_file: None,
-    })
+    })?;
+    // Robots connect to it straight: every one of them a session.
+    let key = "transport/unicast/max_sessions";
+    config
+        .insert_json5(key, &FLEET_NODE_MAX_SESSIONS.to_string())
+        .map_err(|e| NetError::Config(format!("{key}: {e}")))?;
+    use zenoh::Wait;
+    zenoh::open(config)
+        .wait()
+        .map_err(|e| NetError::Open(e.to_string()))
+}
+
+/// The sessions `config` accepts (`transport/unicast/max_sessions`).
+pub fn max_sessions(config: &zenoh::Config) -> Option<usize> {
+    config
+        .get_json("transport/unicast/max_sessions")
+        .ok()?
+        .parse()
+        .ok()
 }
 
 /// Opens a session (blocking; zenoh runs its own runtime).

@@ -30,7 +30,7 @@ pub enum PreviewError {
         camera: String,
         /// Pixels per row.
         width: u32,
-        /// Rows.
+        /// Rows (the height in pixels).
         height: u32,
         /// Bytes per row.
         stride: u32,

@@ -204,7 +204,7 @@ pub struct ImageMsg {
     pub capture_ns: u64,
     /// Pixels per row.
     pub width: u32,
-    /// Rows.
+    /// Rows (the height in pixels).
     pub height: u32,
     /// `"jpeg"`: the camera's own JPEG, untouched (what a dataset's video holds too).
     pub encoding: String,

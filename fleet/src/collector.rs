@@ -16,6 +16,7 @@ use prometheus_client::registry::Registry;
 use serde_json::{json, Value};
 use std::collections::{BTreeMap, VecDeque};
 use std::sync::atomic::AtomicU64;
+use telemetry::frames::EventKind;
 use thiserror::Error;
 
 /// Events kept per robot for the dashboard.
@@ -25,12 +26,23 @@ const EVENTS_KEPT: usize = 50;
 /// grow the collector without bound.
 const PREVIEW_CAMERAS: usize = 8;
 
+/// The events that latch a bus off until an operator re-enables it (a trip): the supervisor's
+/// software tier, a firmware protection, the driver's last-resort tier. Exported at 0 for every
+/// robot from its first message, so that a rule's `increase()` counts a robot's first trip too
+/// (a series that first appears at 1 shows no increase).
+const TRIP_KINDS: [EventKind; 3] = [
+    EventKind::ThermalTrip,
+    EventKind::FirmwareProtection,
+    EventKind::DriverTrip,
+];
+
 /// The largest thumbnail kept, bytes (a 160×90 one is ~3 KB; this allows 640 px at quality 100).
 pub const MAX_PREVIEW_BYTES: usize = 256 * 1024;
 
 /// A message the collector could not use. Counted by kind, never fatal: one robot speaking
 /// another schema version must not blind the dashboard to the rest of the fleet.
 #[derive(Debug, Error, PartialEq)]
+#[allow(missing_docs, reason = "each field is shown in its variant's message")]
 pub enum IngestError {
     /// The key is not `nori/<robot-id>/...`.
     #[error("key {0:?} names no robot")]
@@ -40,7 +52,6 @@ pub enum IngestError {
     Decode {
         /// The key it came on.
         key: String,
-        /// Why.
         error: DecodeError,
     },
     /// The payload decodes but cannot be what it claims (a thumbnail that is no JPEG, a scan
@@ -49,7 +60,6 @@ pub enum IngestError {
     Refused {
         /// The key it came on.
         key: String,
-        /// Why.
         reason: String,
     },
 }
@@ -494,6 +504,11 @@ impl RobotMetrics {
         let robot = labels(&[("robot", id)]);
         self.online.get_or_create(&robot).set(flag(r.alive));
         self.states.get_or_create(&robot).inc_by(r.states_received);
+        for kind in TRIP_KINDS {
+            self.events
+                .get_or_create(&labels(&[("robot", id), ("kind", &format!("{kind:?}"))]))
+                .inc_by(0);
+        }
         for (kind, n) in &r.event_counts {
             self.events
                 .get_or_create(&labels(&[("robot", id), ("kind", kind)]))
@@ -538,7 +553,7 @@ impl RobotMetrics {
         );
         registry.register(
             "robot_events",
-            "journaled events by kind (supervisor and agent), each counted once",
+            "journaled events by kind (supervisor and agent), each counted once; the trips (ThermalTrip, FirmwareProtection, DriverTrip) from 0",
             self.events,
         );
         registry.register(
@@ -745,7 +760,7 @@ impl LidarMetrics {
             self.age,
         );
         registry.register(
-            "lidar_rotation_hz",
+            "lidar_rotation_hertz",
             "revolutions per second",
             self.rotation_hz,
         );
@@ -953,7 +968,24 @@ mod tests {
             (Some(2), Some(1))
         );
         assert_eq!(snap["robots"][0]["events"].as_array().unwrap().len(), 3);
-        assert!(c.metrics().contains("nori_fleet_event_copies_total 2"));
+        let text = c.metrics();
+        assert!(text.contains("nori_fleet_event_copies_total 2"));
+        assert!(text.contains(r#"nori_robot_events_total{robot="r1",kind="ThermalTrip"} 1"#));
+    }
+
+    #[test]
+    fn every_robot_exports_its_trips_at_zero_before_the_first() {
+        let mut c = Collector::new(10, 0);
+        c.state("nori/r1/state", &state(1, &[30.0]), 0).unwrap();
+        let text = c.metrics();
+        for kind in ["ThermalTrip", "FirmwareProtection", "DriverTrip"] {
+            let zero = format!(r#"nori_robot_events_total{{robot="r1",kind="{kind}"}} 0"#);
+            assert!(text.contains(&zero), "no {zero} in:\n{text}");
+        }
+        assert!(
+            !text.contains(r#"kind="Stall""#),
+            "only the trips start at 0"
+        );
     }
 
     #[test]
@@ -1139,7 +1171,7 @@ mod tests {
             r#"nori_lidar_faults_total{robot="r4",kind="bad_points"} 12"#,
             r#"nori_lidar_faults_total{robot="r4",kind="short_scans"} 1"#,
             r#"nori_lidar_scan_age_seconds{robot="r4"} 0.02"#,
-            r#"nori_lidar_rotation_hz{robot="r4"} 10.0"#,
+            r#"nori_lidar_rotation_hertz{robot="r4"} 10.0"#,
         ] {
             assert!(text.contains(line), "{line} not in\n{text}");
         }

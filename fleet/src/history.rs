@@ -58,7 +58,50 @@ CREATE TABLE IF NOT EXISTS telemetry (
     PRIMARY KEY (robot, at)
 );
 CREATE INDEX IF NOT EXISTS telemetry_at ON telemetry USING brin (at);
+-- A journaled event the store could not keep in `events` (`fleet::admission`): acknowledged to
+-- its robot all the same, so kept here with the reason, as the robot sent it (JSON, NULs
+-- escaped), once.
+CREATE TABLE IF NOT EXISTS quarantine (
+    robot      text        NOT NULL,
+    journal    bigint      NOT NULL,
+    seq        bigint      NOT NULL,
+    reason     text        NOT NULL,
+    event      text        NOT NULL,
+    stored_at  timestamptz NOT NULL DEFAULT now()
+);
+CREATE UNIQUE INDEX IF NOT EXISTS quarantine_once ON quarantine (robot, journal, seq) WHERE seq > 0;
+-- Each robot's messages refused, per message and reason kind: how many, and the last reason.
+CREATE TABLE IF NOT EXISTS refusals (
+    robot       text        NOT NULL,
+    what        text        NOT NULL,
+    kind        text        NOT NULL,
+    count       bigint      NOT NULL,
+    last_reason text        NOT NULL,
+    first_at    timestamptz NOT NULL DEFAULT now(),
+    last_at     timestamptz NOT NULL DEFAULT now(),
+    PRIMARY KEY (robot, what, kind)
+);
 ";
+
+/// A batch of events into `events` in one statement (copies already there skipped; the rows
+/// affected are the events new to the table): the columns of [`EventColumns`], as arrays.
+pub const INSERT_EVENTS_SQL: &str = "INSERT INTO events \
+     (robot, journal, seq, at, robot_ns, origin_seq, kind, joint, detail, bus, level, value) \
+     SELECT r, j, s, to_timestamp(w / 1000.0), ns, o, k, jt, d, b, l, v FROM unnest(\
+     $1::text[], $2::bigint[], $3::bigint[], $4::float8[], $5::bigint[], $6::bigint[], \
+     $7::text[], $8::text[], $9::text[], $10::int2[], $11::int2[], $12::float4[]) \
+     AS t(r, j, s, w, ns, o, k, jt, d, b, l, v) ON CONFLICT DO NOTHING";
+
+/// One event into `quarantine`: robot, journal, seq, reason, the event (a copy already there
+/// is skipped).
+pub const QUARANTINE_SQL: &str = "INSERT INTO quarantine (robot, journal, seq, reason, event) \
+     VALUES ($1, $2, $3, $4, $5) ON CONFLICT DO NOTHING";
+
+/// Adds robot, message, kind, count, last reason to `refusals`.
+pub const COUNT_REFUSALS_SQL: &str =
+    "INSERT INTO refusals (robot, what, kind, count, last_reason) \
+     VALUES ($1, $2, $3, $4, $5) ON CONFLICT (robot, what, kind) DO UPDATE SET \
+     count = refusals.count + excluded.count, last_reason = excluded.last_reason, last_at = now()";
 
 /// One event into `events` (a copy already there is skipped): robot, journal, seq, wall ms,
 /// robot ns, origin seq, kind, joint, detail, bus, level, value. The store's statement, and
@@ -112,6 +155,69 @@ impl<'a> EventRow<'a> {
             bus,
             level,
             &e.value,
+        ]
+    }
+}
+
+/// A batch of events as [`INSERT_EVENTS_SQL`] takes them: one array per column.
+#[derive(Debug, Default)]
+pub struct EventColumns {
+    robot: Vec<String>,
+    journal: Vec<i64>,
+    seq: Vec<i64>,
+    wall_ms: Vec<f64>,
+    robot_ns: Vec<i64>,
+    origin_seq: Vec<i64>,
+    kind: Vec<String>,
+    joint: Vec<String>,
+    detail: Vec<String>,
+    bus: Vec<i16>,
+    level: Vec<i16>,
+    value: Vec<f32>,
+}
+
+impl EventColumns {
+    /// Adds robot `robot`'s journal `journal`, number `seq`.
+    pub fn push(&mut self, robot: &str, journal: u64, seq: u64, e: &EventRecord) {
+        self.robot.push(robot.to_string());
+        self.journal.push(journal as i64);
+        self.seq.push(seq as i64);
+        self.wall_ms.push(e.wall_ms as f64);
+        self.robot_ns.push(e.timestamp_ns as i64);
+        self.origin_seq.push(e.origin_seq as i64);
+        self.kind.push(e.kind.clone());
+        self.joint.push(e.joint.clone());
+        self.detail.push(e.detail.clone());
+        self.bus.push(i16::from(e.bus));
+        self.level.push(i16::from(e.level));
+        self.value.push(e.value);
+    }
+
+    /// Events in the batch.
+    pub fn len(&self) -> usize {
+        self.robot.len()
+    }
+
+    /// No event in the batch.
+    pub fn is_empty(&self) -> bool {
+        self.robot.is_empty()
+    }
+
+    /// The statement's twelve parameters, in order.
+    pub fn params(&self) -> [&(dyn postgres::types::ToSql + Sync); 12] {
+        [
+            &self.robot,
+            &self.journal,
+            &self.seq,
+            &self.wall_ms,
+            &self.robot_ns,
+            &self.origin_seq,
+            &self.kind,
+            &self.joint,
+            &self.detail,
+            &self.bus,
+            &self.level,
+            &self.value,
         ]
     }
 }

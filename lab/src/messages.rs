@@ -30,12 +30,12 @@ pub enum ToPage<'a> {
     Reply(Reply),
     /// Teleoperation ended by itself.
     Ended {
-        /// Why.
+        /// What ended it.
         why: Ended,
     },
     /// An episode recorded from a page ended.
     Recorded {
-        /// How.
+        /// How it ended: committed (with its index and frames), discarded, or the recorder failed.
         outcome: &'a Outcome,
     },
 }
@@ -74,7 +74,7 @@ pub struct Reply {
     /// What it answers (absent: a teleoperation command, or a message not understood).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub to: Option<Subject>,
-    /// Taken.
+    /// Whether the message was taken (when not, `error` says why).
     pub ok: bool,
     /// What the page shows when taken.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -220,9 +220,9 @@ impl From<&SupervisorEvent> for EventView {
 pub struct CameraStatus {
     /// Its name.
     pub name: String,
-    /// Its newest image's size, pixels (0 before one).
+    /// Its newest image's width, pixels (0 before one).
     pub width: u32,
-    /// Height.
+    /// Its newest image's height, pixels (0 before one).
     pub height: u32,
     /// Images sent to the pages.
     pub images: u64,

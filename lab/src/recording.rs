@@ -222,7 +222,7 @@ impl Recording {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum RecordingState {
-    /// Nothing.
+    /// Not recording: no episode under way.
     Idle,
     /// Recording an episode.
     Recording,

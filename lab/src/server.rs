@@ -33,7 +33,7 @@ pub struct Inbound {
     pub page: u64,
     /// What happened.
     pub event: Event,
-    /// When.
+    /// When it arrived, CLOCK_MONOTONIC ns.
     pub at_ns: u64,
 }
 

@@ -21,6 +21,7 @@ const AFTER_RESET: Duration = Duration::from_millis(700);
 
 /// A failure of the byte link (never of the device's answers).
 #[derive(Debug, thiserror::Error)]
+#[allow(missing_docs, reason = "each field is shown in its variant's message")]
 pub enum LinkError {
     /// The device could not be opened.
     #[error("cannot open {device} at {baud} baud: {source}")]
@@ -29,7 +30,6 @@ pub enum LinkError {
         device: PathBuf,
         /// Line rate.
         baud: u32,
-        /// Cause.
         source: serialport::Error,
     },
     /// Reading or writing failed: the device may be gone.
@@ -37,7 +37,6 @@ pub enum LinkError {
     Io {
         /// Device path.
         device: PathBuf,
-        /// Cause.
         source: std::io::Error,
     },
 }

@@ -200,7 +200,7 @@ impl DeviceInfo {
 /// The device's own verdict on itself.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum HealthStatus {
-    /// Working.
+    /// Working, no problem reported (status 0).
     Good,
     /// Working, with a problem reported in the error code.
     Warning,

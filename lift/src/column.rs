@@ -195,7 +195,7 @@ pub enum LiftError {
         /// Where it met it, m.
         at_m: f64,
     },
-    /// Jammed.
+    /// Jammed: its back-off from an obstruction got nowhere; `nori lift release` homes it again.
     #[error("the lift is jammed (its back-off from an obstruction at {at_m:.3} m got nowhere): `nori lift release` homes it again")]
     Jammed {
         /// Where it met the obstruction, m.

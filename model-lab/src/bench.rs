@@ -79,7 +79,7 @@ pub const PAIRS: [(Effect, Effect); 4] = [
 /// One run.
 #[derive(Debug, Clone, Serialize)]
 pub struct Run {
-    /// Seed.
+    /// The seed its data set was generated from.
     pub seed: u64,
     /// Hidden size.
     pub size: f64,
@@ -90,7 +90,7 @@ pub struct Run {
     pub extra: Option<Effect>,
     /// Recovered parameter (when the named cause is the hidden one).
     pub recovered: Option<f64>,
-    /// Motors.
+    /// Motors in its data set.
     pub motors: usize,
     /// Analysis wall time, s.
     pub seconds: f64,
@@ -114,7 +114,7 @@ pub struct EffectScore {
     pub size_range: (f64, f64),
     /// Unit of the sizes.
     pub unit: &'static str,
-    /// Runs.
+    /// Runs scored (one generated data set each).
     pub runs: usize,
     /// Fraction named correctly.
     pub accuracy: f64,

@@ -14,13 +14,13 @@ use thiserror::Error;
 
 /// Data that cannot be read.
 #[derive(Debug, Error)]
+#[allow(missing_docs, reason = "each field is shown in its variant's message")]
 pub enum DataError {
     /// A file or directory could not be read.
     #[error("cannot read {path}: {source}")]
     Io {
         /// The path.
         path: String,
-        /// Cause.
         source: std::io::Error,
     },
     /// A required column is absent from the header.
@@ -50,7 +50,6 @@ pub enum DataError {
     Meta {
         /// The sidecar file.
         path: String,
-        /// Cause.
         source: serde_json::Error,
     },
     /// Nothing usable: no rows, or no timestamps.

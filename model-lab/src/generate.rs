@@ -137,7 +137,7 @@ pub struct Truth {
     pub second: Option<(Effect, Parameter)>,
     /// Its parameter, named like the lab names it.
     pub parameter: Option<Parameter>,
-    /// Motors.
+    /// Motors in the generated data.
     pub motors: usize,
     /// Per motor τ, s.
     pub tau_s: Vec<f64>,
@@ -485,7 +485,7 @@ impl Faults {
 struct Registers<'a> {
     /// Sample period, s.
     period_s: f64,
-    /// Samples.
+    /// Samples per motor, `period_s` apart.
     steps: usize,
     /// Currents per motor per sample, A.
     current: &'a [Vec<f64>],

@@ -58,7 +58,7 @@ struct GenerateArgs {
     /// Hidden effect: a catalog id or `none`.
     #[arg(long, default_value = "none")]
     effect: String,
-    /// Seed.
+    /// Seed of the generator's random draws: the same seed and options, the same data.
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// Effect size in the catalog unit (random in the generator's range when absent).

@@ -174,9 +174,9 @@ pub fn errors(sim: &[f64], run: &MotionRun) -> (f64, f64) {
 /// bounds) and its nominal value.
 #[derive(Debug, Clone, Copy)]
 pub struct MotionParam {
-    /// Name.
+    /// Its name, as the report and the catalog give it, e.g. `coulomb_friction`.
     pub name: &'static str,
-    /// Unit.
+    /// The unit of all its values, e.g. `N·m`, `N·m·s/rad` (`1`: dimensionless).
     pub unit: &'static str,
     /// Lowest physical value.
     pub lo: f64,
@@ -591,7 +591,7 @@ pub struct MotionTrace {
     pub run: String,
     /// Sample times, s.
     pub t: Vec<f64>,
-    /// Measured.
+    /// The measured positions, rad.
     pub measured: Vec<f64>,
     /// The calibrated nominal model.
     pub nominal: Vec<f64>,

@@ -38,7 +38,7 @@ pub enum Verdict {
         lo: f64,
         /// The range allowed.
         hi: f64,
-        /// Why.
+        /// What its physics allows, in words (why the range is what it is).
         why: &'static str,
     },
     /// Its size is within the model's own tolerances or the readings' noise.
@@ -47,7 +47,7 @@ pub enum Verdict {
         value: f64,
         /// Below this counts as none.
         below: f64,
-        /// Why.
+        /// Why a size below `below` is none, in words (the tolerances or the noise it is within).
         why: &'static str,
     },
     /// The fitting part's test falls short.
@@ -136,9 +136,9 @@ pub enum Verdict {
     },
     /// Motion: a directional friction whose sides are one friction.
     OneFriction {
-        /// Driving.
+        /// The fitted friction ratio while driving the load (`drive_friction_ratio`).
         drive: f64,
-        /// Back-driven.
+        /// The fitted friction ratio while back-driven by it (`back_friction_ratio`).
         back: f64,
     },
     /// Motion: the held-out error does not drop by what matters.

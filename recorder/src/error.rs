@@ -5,6 +5,7 @@ use thiserror::Error;
 
 /// What can go wrong while recording, recovering or exporting.
 #[derive(Debug, Error)]
+#[allow(missing_docs, reason = "each field is shown in its variant's message")]
 pub enum RecordError {
     /// A file or directory operation failed.
     #[error("{path}: {what}: {source}")]
@@ -13,7 +14,6 @@ pub enum RecordError {
         path: PathBuf,
         /// What was being done.
         what: &'static str,
-        /// Cause.
         source: std::io::Error,
     },
     /// A parquet file could not be written or read.
@@ -21,7 +21,6 @@ pub enum RecordError {
     Parquet {
         /// The file.
         path: PathBuf,
-        /// Cause.
         source: parquet::errors::ParquetError,
     },
     /// A JSON metadata file is not what this recorder wrote.
@@ -29,7 +28,6 @@ pub enum RecordError {
     Json {
         /// The file.
         path: PathBuf,
-        /// Cause.
         source: serde_json::Error,
     },
     /// The file parses but its content is not a dataset this recorder can extend.

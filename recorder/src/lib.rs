@@ -21,8 +21,12 @@
 //!
 //! * `sampler`: the state plane sampled at the recording rate (sans-IO); `features`: what a
 //!   dataset holds; `stats`: LeRobot's feature statistics; `video`: a camera's frames.
-//! * `dataset`: the one module on files: the writer, the commit, the recovery; with `pq`
-//!   (its parquet tables), `arrow_schema` (the Arrow schema they carry), `fsutil` (durable
+//! * `dataset` (`src/dataset/`): the one module on files, a room each: `writer` (an episode's
+//!   frames staged as parts), `commit` (an episode made durable: data, video, episode table,
+//!   summaries), `recovery` (`Dataset::open`: lock, checks, repair after a crash), `meta`
+//!   (`info.json`, `nori.json`, `episode.json`, the summaries), `reader` (a dataset read without
+//!   lock) and `layout` (where each file is); its map is in `dataset/mod.rs`. With it: `pq` (its
+//!   parquet tables), `arrow_schema` (the Arrow schema they carry), `fsutil` (durable
 //!   replacement), `csv` (export for the model lab) and `error` (each error names its file).
 //! * `nori-record` (`src/main.rs`, feature `process`) moves frames from the plane into it.
 

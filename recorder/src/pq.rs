@@ -35,11 +35,11 @@ pub struct DataRow {
     pub timestamp: f32,
     /// Frame number within the episode.
     pub frame_index: i64,
-    /// Episode.
+    /// The episode's index in the dataset.
     pub episode_index: i64,
     /// Frame number within the dataset.
     pub index: i64,
-    /// Task.
+    /// The task's index (`meta/tasks.parquet`).
     pub task_index: i64,
 }
 
@@ -418,11 +418,11 @@ pub fn read_data(path: &Path, features: &Features) -> Result<Vec<DataRow>, Recor
 /// One row of the episode table (`meta/episodes/chunk-*/file-*.parquet`).
 #[derive(Debug, Clone, PartialEq)]
 pub struct EpisodeRow {
-    /// Episode.
+    /// The episode's index in the dataset.
     pub episode_index: i64,
     /// Its tasks (one: a recorder episode has one task).
     pub tasks: Vec<String>,
-    /// Frames.
+    /// Frames in the episode.
     pub length: i64,
     /// Data file chunk.
     pub data_chunk_index: i64,

@@ -31,13 +31,13 @@ pub const STAT_NAMES: [&str; 10] = [
 pub struct FeatureStats {
     /// Minimum per dimension (NaN when a dimension has no finite value).
     pub min: Vec<f64>,
-    /// Maximum.
+    /// Maximum per dimension (NaN as for `min`).
     pub max: Vec<f64>,
-    /// Mean.
+    /// Mean per dimension, of its finite values.
     pub mean: Vec<f64>,
     /// Population standard deviation.
     pub std: Vec<f64>,
-    /// Frames.
+    /// Frames the statistics cover (of an image feature: the images sampled).
     pub count: u64,
     /// Quantiles in [`QUANTILES`] order, each per dimension.
     pub quantiles: [Vec<f64>; 5],

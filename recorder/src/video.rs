@@ -47,13 +47,13 @@ pub fn pick(newest_capture_ns: Option<u64>, tick_ns: u64, stale_after_ns: u64) -
 
 /// Why a video could not be written.
 #[derive(Debug, Error)]
+#[allow(missing_docs, reason = "each field is shown in its variant's message")]
 pub enum VideoError {
     /// FFmpeg could not be started.
     #[error("cannot start ffmpeg for {path} (deploy/install-build-deps.sh installs it): {source}")]
     Start {
         /// The video being written.
         path: PathBuf,
-        /// Cause.
         source: std::io::Error,
     },
     /// The staged stream of an episode could not be written.

@@ -90,7 +90,7 @@ pub struct BusReport {
     pub torque_off_broadcasts_s: Vec<f64>,
     /// Protocol counters.
     pub line: LineStats,
-    /// Servos.
+    /// One report per servo, in description order.
     pub servos: Vec<ServoReport>,
     /// Every change of a servo's Torque_Limit, in order (at most
     /// [`MAX_TORQUE_LIMIT_CHANGES`]).

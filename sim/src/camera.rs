@@ -24,23 +24,16 @@ use thiserror::Error;
 
 /// A camera description that cannot be served.
 #[derive(Debug, Error)]
+#[allow(missing_docs, reason = "each field is shown in its variant's message")]
 pub enum CameraError {
     /// A value that cannot be right.
     #[error("camera {camera}: {reason}")]
-    Invalid {
-        /// Camera.
-        camera: String,
-        /// Why.
-        reason: String,
-    },
+    Invalid { camera: String, reason: String },
     /// Its socket could not be made.
     #[error("camera {camera}: socket {path}: {source}")]
     Socket {
-        /// Camera.
         camera: String,
-        /// Path.
         path: PathBuf,
-        /// Cause.
         source: std::io::Error,
     },
 }
@@ -250,7 +243,7 @@ pub struct CameraFaults {
     pub truncate_rate: f64,
     /// Probability per frame of garbage bytes.
     pub garbage_rate: f64,
-    /// Seed.
+    /// Seed of the frame faults (each camera adds its index).
     pub seed: u64,
 }
 

@@ -24,13 +24,13 @@ pub const FORMAT: u32 = 1;
 
 /// A model extension file that cannot be used.
 #[derive(Debug, Error)]
+#[allow(missing_docs, reason = "each field is shown in its variant's message")]
 pub enum ExtensionError {
     /// The file could not be read.
     #[error("cannot read model extension {path}: {source}")]
     Io {
         /// File path.
         path: String,
-        /// Cause.
         source: std::io::Error,
     },
     /// TOML syntax, a wrong type or an unknown key.
@@ -38,7 +38,6 @@ pub enum ExtensionError {
     Parse {
         /// File path.
         path: String,
-        /// Cause.
         source: toml::de::Error,
     },
     /// A value that parses but cannot be simulated.
@@ -48,7 +47,6 @@ pub enum ExtensionError {
         path: String,
         /// Offending key.
         key: String,
-        /// Why.
         reason: String,
     },
 }

@@ -41,7 +41,7 @@ pub struct LidarFaults {
     pub truncate_rate: f64,
     /// Probability per turn of a burst of random bytes between two measurements.
     pub garbage_rate: f64,
-    /// Seed.
+    /// Seed of the line faults.
     pub seed: u64,
 }
 

@@ -105,7 +105,7 @@ struct ServeArgs {
 /// The simulator's report: one entry per bus, the lidar's and the lift's.
 #[derive(serde::Serialize)]
 struct SimReport {
-    /// Buses.
+    /// Each bus's report (its servos, line counters, torque-limit changes).
     buses: Vec<BusReport>,
     /// The lidar, if served.
     lidar: Option<sim::lidar::LidarReport>,

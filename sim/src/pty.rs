@@ -33,6 +33,7 @@ const HANGUP_BACKOFF: f64 = 0.005;
 
 /// Why the robot could not be served.
 #[derive(Debug, Error)]
+#[allow(missing_docs, reason = "each field is shown in its variant's message")]
 pub enum ServeError {
     /// Creating or configuring a pseudo-terminal failed.
     #[error("pseudo-terminal for bus {bus}: {what}: {source}")]
@@ -41,7 +42,6 @@ pub enum ServeError {
         bus: String,
         /// The step that failed.
         what: &'static str,
-        /// Cause.
         source: nix::Error,
     },
     /// Creating the device link failed.
@@ -49,7 +49,6 @@ pub enum ServeError {
     Link {
         /// Link path.
         path: PathBuf,
-        /// Cause.
         source: std::io::Error,
     },
 }

@@ -203,7 +203,7 @@ impl Surroundings {
 pub struct Servo {
     /// Bus id.
     pub id: u8,
-    /// Model.
+    /// Its model, which its `Model_Number` register reports.
     pub model: ServoModel,
     /// When the instruction being executed arrived (simulated s), for the log.
     pub now: f64,

@@ -14,6 +14,7 @@ use thiserror::Error;
 
 /// Why a child could not be started.
 #[derive(Debug, Error)]
+#[allow(missing_docs, reason = "each field is shown in its variant's message")]
 pub enum ChildError {
     /// A sibling executable cannot be found.
     #[error(transparent)]
@@ -23,7 +24,6 @@ pub enum ChildError {
     Log {
         /// The log file.
         path: String,
-        /// Cause.
         source: std::io::Error,
     },
     /// The process could not be spawned.
@@ -31,7 +31,6 @@ pub enum ChildError {
     Spawn {
         /// The child's name.
         name: String,
-        /// Cause.
         source: std::io::Error,
     },
     /// Its state could not be read.
@@ -39,7 +38,6 @@ pub enum ChildError {
     Wait {
         /// The child's name.
         name: String,
-        /// Cause.
         source: std::io::Error,
     },
 }

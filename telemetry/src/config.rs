@@ -7,20 +7,18 @@ use thiserror::Error;
 
 /// A configuration that cannot be used.
 #[derive(Debug, Error)]
+#[allow(missing_docs, reason = "each field is shown in its variant's message")]
 pub enum ConfigError {
     /// The file could not be read.
     #[error("cannot read {path}: {source}")]
     Io {
-        /// File.
         path: String,
-        /// Cause.
         source: std::io::Error,
     },
     /// Syntax, a wrong type or an unknown key; the message names the key and position. (Not a
     /// `source`: the message already carries it, and error chains would print it twice.)
     #[error("{path}: {detail}")]
     Parse {
-        /// File.
         path: String,
         /// The parser's message (line, column, key, what was expected).
         detail: toml::de::Error,
@@ -28,11 +26,9 @@ pub enum ConfigError {
     /// A value that parses but cannot be right.
     #[error("{path}: {key}: {reason}")]
     Invalid {
-        /// File.
         path: String,
         /// Offending key.
         key: String,
-        /// Why.
         reason: String,
     },
 }

@@ -18,6 +18,8 @@
 //! * `watchdog`: a peer's liveness from its timestamps.
 //! * With `ipc`: `plane` (the services and their QoS), `process` (start-up, signals, the
 //!   service manager), `latch` (the trip record on disk).
+//! * In tests with `ipc`: `versions` (each frame's layout against `frame-layouts.txt`, so a
+//!   changed layout is a deliberate, reviewed edit).
 
 pub mod clock;
 pub mod config;
@@ -32,5 +34,8 @@ pub mod process;
 pub mod sensors;
 pub mod stats;
 pub mod watchdog;
+
+#[cfg(all(test, feature = "ipc"))]
+mod versions;
 
 pub use frames::{GoalFrame, JointSample, JointState, MAX_JOINTS};

@@ -95,7 +95,8 @@ pub struct BaseState {
     pub flags: u32,
     /// Commands refused so far (non-finite, from the future, or older than the timeout).
     pub commands_refused: u32,
-    /// Padding.
+    /// Zero: the padding to the frame's 8-byte alignment, made a field so that every byte of the
+    /// shared frame is defined.
     pub reserved: u32,
 }
 
@@ -194,7 +195,8 @@ pub struct LiftAllowance {
     pub seconds: f32,
     /// The budget used (heat as running time), s.
     pub used_s: f32,
-    /// Padding.
+    /// Zero: the padding to the frame's 8-byte alignment, made a field so that every byte of the
+    /// shared frame is defined.
     pub reserved2: u32,
 }
 
@@ -273,7 +275,8 @@ pub struct ArmFrame {
     /// 1: every joint of the arm was read in the frame and the lift's height is known; 0: the
     /// values are not to be used.
     pub valid: u8,
-    /// Padding.
+    /// Zero: the padding to the arm's 4-byte alignment, made a field so that every byte of the
+    /// shared frame is defined.
     pub reserved: [u8; 3],
 }
 
@@ -301,7 +304,8 @@ pub struct BodyFrames {
     pub arms: [ArmFrame; 2],
     /// Arms in `arms`.
     pub arm_count: u32,
-    /// Padding.
+    /// Zero: the padding to the frame's 8-byte alignment, made a field so that every byte of the
+    /// shared frame is defined.
     pub reserved: u32,
 }
 

@@ -15,8 +15,12 @@ use iceoryx2::port::publisher::{Publisher, PublisherCreateError};
 use iceoryx2::port::subscriber::{Subscriber, SubscriberCreateError};
 use iceoryx2::port::{LoanError, SendError};
 use iceoryx2::prelude::*;
-use iceoryx2::service::builder::publish_subscribe::PublishSubscribeOpenOrCreateError;
+use iceoryx2::service::builder::publish_subscribe::{
+    PublishSubscribeOpenError, PublishSubscribeOpenOrCreateError,
+};
 use iceoryx2::service::service_name::ServiceNameError;
+use iceoryx2::service::static_config::message_type_details::{TypeDetail, TypeVariant};
+use iceoryx2::service::static_config::messaging_pattern::MessagingPattern as ServicePattern;
 use std::marker::PhantomData;
 use thiserror::Error;
 
@@ -55,7 +59,7 @@ pub struct Topic<T> {
     payload: PhantomData<fn() -> T>,
 }
 
-const fn topic<T>(
+pub(crate) const fn topic<T>(
     name: &'static str,
     history: usize,
     buffer: usize,
@@ -171,6 +175,11 @@ where
     }
 }
 
+/// The type name a frame type carries on the plane (`nori::JointState/1`).
+pub(crate) fn type_name(detail: &TypeDetail) -> String {
+    String::from_utf8_lossy(detail.type_name().as_bytes_const()).into_owned()
+}
+
 /// A state-plane operation that failed, with iceoryx2's own error as its source.
 #[derive(Debug, Error)]
 pub enum PlaneError {
@@ -206,6 +215,21 @@ pub enum PlaneError {
     /// `/dev/shm` could not be read.
     #[error("state plane: reading /dev/shm")]
     SharedMemory(#[source] std::io::Error),
+    /// A service already carries another version of its frame: a process of another version
+    /// of the stack holds it (an upgrade that did not stop the whole stack first).
+    #[error(
+        "state plane: service {service} carries {theirs}, and this build speaks {ours}: \
+         a process of another version of the stack is running; stop the whole stack \
+         (systemctl stop nori.target) before starting this version"
+    )]
+    OtherVersion {
+        /// The service.
+        service: String,
+        /// This build's frame type, with its version.
+        ours: String,
+        /// The running service's frame type, with its version.
+        theirs: String,
+    },
     /// A service could not be opened or created (another QoS, another payload type).
     #[error("state plane: opening service {service}")]
     Service {
@@ -339,10 +363,54 @@ impl Plane {
             .publish_subscribe::<T>()
             .with_qos(topic.qos)
             .open_or_create()
-            .map_err(|source| PlaneError::Service {
-                service: topic.name.into(),
-                source,
+            .map_err(|source| {
+                let ours = type_name(&TypeDetail::new::<T>(TypeVariant::FixedSize));
+                self.service_error(topic.name, &ours, source)
             })
+    }
+
+    /// The error of opening `service` for frames of `ours`: another version's frame named.
+    fn service_error(
+        &self,
+        service: &str,
+        ours: &str,
+        source: PublishSubscribeOpenOrCreateError,
+    ) -> PlaneError {
+        let incompatible = PublishSubscribeOpenOrCreateError::PublishSubscribeOpenError(
+            PublishSubscribeOpenError::IncompatibleTypes,
+        );
+        let theirs = (source == incompatible)
+            .then(|| self.payload_type(service))
+            .flatten();
+        match theirs {
+            Some(theirs) if theirs != ours => PlaneError::OtherVersion {
+                service: service.into(),
+                ours: ours.into(),
+                theirs,
+            },
+            _ => PlaneError::Service {
+                service: service.into(),
+                source,
+            },
+        }
+    }
+
+    /// The payload type `service` was created with, if it exists.
+    fn payload_type(&self, service: &str) -> Option<String> {
+        let name = ServiceName::new(service).ok()?;
+        let details = <ipc::Service as iceoryx2::service::Service>::details(
+            &name,
+            self.node.config(),
+            iceoryx2::service::messaging_pattern::MessagingPattern::PublishSubscribe,
+        )
+        .ok()??;
+        match details.static_details.messaging_pattern() {
+            ServicePattern::PublishSubscribe(c) => {
+                let payload = &c.message_type_details().payload;
+                Some(type_name(payload))
+            }
+            _ => None,
+        }
     }
 
     /// A publisher on `topic`.

@@ -73,7 +73,7 @@ pub struct CameraFrameHeader {
     pub fourcc: [u8; 4],
     /// Pixels per row.
     pub width: u32,
-    /// Rows.
+    /// Rows (the height in pixels).
     pub height: u32,
     /// Bytes per row in the slice.
     pub stride: u32,
@@ -83,7 +83,8 @@ pub struct CameraFrameHeader {
     pub corrupt: u32,
     /// Frames so far published more than two frame periods after their capture.
     pub late: u32,
-    /// Padding.
+    /// Zero: the padding to the frame's 8-byte alignment, made a field so that every byte of the
+    /// shared frame is defined.
     pub reserved: u32,
 }
 
@@ -125,7 +126,8 @@ pub struct ScanPoint {
     pub range_m: f32,
     /// The device's signal quality, 0..63 (0: no return).
     pub quality: u8,
-    /// Padding.
+    /// Zero: the padding to the point's 4-byte alignment, made a field so that every byte of the
+    /// shared frame is defined.
     pub reserved: [u8; 3],
 }
 

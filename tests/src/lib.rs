@@ -216,6 +216,20 @@ pub fn listening_session(endpoint: &str) -> fleet_agent::zenoh::Session {
     .expect("a zenoh session on loopback")
 }
 
+/// A zenoh session of `mode` (`peer`, or `client` as a robot's agent is) connecting to
+/// `endpoint`.
+pub fn connecting_session(
+    endpoint: &str,
+    mode: &str,
+) -> Result<fleet_agent::zenoh::Session, fleet_agent::net::NetError> {
+    fleet_agent::net::open(&fleet_agent::config::ZenohConfig {
+        mode: mode.into(),
+        connect: vec![endpoint.into()],
+        listen: vec![],
+        config_file: None,
+    })
+}
+
 /// Robot `robot`'s fleet agent's status, asked on `session` (retried for up to 10 s).
 pub fn agent_status(
     session: &fleet_agent::zenoh::Session,

@@ -379,3 +379,67 @@ fn no_function_of_the_product_runs_past_120_lines() {
     }
     assert!(found.is_empty(), "{lint} allowed in {found:?}");
 }
+
+/// A doc comment says what the name does not: none is one capitalised word and a full stop
+/// (`/// Width.` over `width`, `/// Cause.` over `source`), written only to quiet
+/// `missing_docs`. Give the unit, what a count counts, the range, why the padding is there;
+/// where the name and an error's message already say it all, allow `missing_docs` on the
+/// item instead, with the reason. A doc comment is a run of `///` (or `//!`) lines: one
+/// wrapped line of a longer comment (`/// Repeatable.`) is prose, not a one-word doc.
+#[test]
+fn no_doc_comment_is_a_single_word() {
+    let mut found = Vec::new();
+    for (_, p) in workspace() {
+        for file in rust_files(p.manifest.parent().unwrap()) {
+            let text = std::fs::read_to_string(&file).unwrap();
+            let lines: Vec<&str> = text.lines().collect();
+            let mut i = 0;
+            while i < lines.len() {
+                let Some(marker) = doc_marker(lines[i]) else {
+                    i += 1;
+                    continue;
+                };
+                let first = i;
+                let mut words = Vec::new();
+                while i < lines.len() && doc_marker(lines[i]) == Some(marker) {
+                    words.push(lines[i].trim_start()[marker.len()..].trim());
+                    i += 1;
+                }
+                if is_one_capitalised_word(words.join(" ").trim()) {
+                    found.push(format!("{}:{}", file.display(), first + 1));
+                }
+            }
+        }
+    }
+    assert!(
+        found.is_empty(),
+        "one-word doc comments (say what the name does not, or allow missing_docs on the item \
+         with the reason):\n{}",
+        found.join("\n")
+    );
+}
+
+/// The doc comment marker a line starts with (`///` or `//!`; `////` is a plain comment).
+fn doc_marker(line: &str) -> Option<&'static str> {
+    let line = line.trim_start();
+    if line.starts_with("////") {
+        None
+    } else if line.starts_with("///") {
+        Some("///")
+    } else if line.starts_with("//!") {
+        Some("//!")
+    } else {
+        None
+    }
+}
+
+/// Whether `text` is one capitalised word and a full stop: `Width.`, `Padding.`.
+fn is_one_capitalised_word(text: &str) -> bool {
+    let Some(word) = text.strip_suffix('.') else {
+        return false;
+    };
+    let mut chars = word.chars();
+    chars.next().is_some_and(|c| c.is_ascii_uppercase())
+        && !chars.as_str().is_empty()
+        && chars.all(|c| c.is_ascii_lowercase())
+}

@@ -71,7 +71,7 @@ fn the_systemd_units_verify() {
     let bin_dir = binary("bus-driver").parent().unwrap().to_path_buf();
     for entry in std::fs::read_dir(&units).unwrap().flatten() {
         let text = std::fs::read_to_string(entry.path()).unwrap();
-        let text = text.replace("/usr/local/bin", bin_dir.to_str().unwrap());
+        let text = text.replace("/usr/bin", bin_dir.to_str().unwrap());
         std::fs::write(dir.join(entry.file_name()), text).unwrap();
     }
     // A template is verified as one of its instances.

@@ -1,10 +1,17 @@
 //! The fleet's history on a real PostgreSQL server (started by the project's own script,
 //! `deploy/fleet-db/scratch-postgres.sh`): the robot's event journal reaches `nori fleet store`
 //! at least once and is stored exactly once, through SIGKILLs of the agent, the database down,
-//! the store killed, and the journal torn by a power cut.
+//! the store killed, and the journal torn by a power cut; and one robot's garbage holds up no
+//! other robot.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
+use fleet_agent::keys::{robot_key, robot_of};
+use fleet_agent::schema::{
+    decode, encode, AckMsg, EventMsg, EventRecord, JointInfoMsg, JointMsg, LayoutMsg, StateMsg,
+    SCHEMA_VERSION,
+};
+use fleet_agent::zenoh::Wait;
 use nori_tests::{binary, free_endpoint, wait_for, ArmStack, Proc, ScratchPostgres};
 use std::time::Duration;
 use telemetry::frames::{SupervisorCommand, COMMAND_REENABLE_BUS};
@@ -56,18 +63,30 @@ fn wait_stored(db: &ScratchPostgres, kind: &str, n: i64, what: &str) {
 }
 
 fn start_store(dir: &std::path::Path, url: &str, endpoint: &str, n: u32) -> Proc {
+    start_store_with(dir, url, endpoint, n, &[])
+}
+
+fn start_store_with(
+    dir: &std::path::Path,
+    url: &str,
+    endpoint: &str,
+    n: u32,
+    more: &[&str],
+) -> Proc {
+    let mut args = vec![
+        "store",
+        "--database",
+        url,
+        "--listen",
+        endpoint,
+        "--rollup-s",
+        "1",
+    ];
+    args.extend(more);
     Proc::spawn(
         "nori-fleet store",
         &binary("nori-fleet"),
-        &[
-            "store",
-            "--database",
-            url,
-            "--listen",
-            endpoint,
-            "--rollup-s",
-            "1",
-        ],
+        &args,
         &dir.join(format!("store-{n}.log")),
     )
 }
@@ -427,4 +446,263 @@ fn the_report_gives_rates_per_robot_day_the_hottest_motors_stalls_and_drift() {
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("connecting to the fleet's database"), "{err}");
+}
+
+/// A robot as the store sees it, played by the test: its journal's events sent again every
+/// half second until acknowledged, with its state and layout.
+struct FakeRobot {
+    id: &'static str,
+    journal: u64,
+    events: Vec<EventRecord>,
+    acked: u64,
+}
+
+impl FakeRobot {
+    fn send(&self, session: &fleet_agent::zenoh::Session, layout: &LayoutMsg, state: &StateMsg) {
+        let put = |leaf: &str, bytes: Vec<u8>| {
+            session.put(robot_key(self.id, leaf), bytes).wait().unwrap();
+        };
+        put("layout", encode(layout));
+        put("state", encode(state));
+        for (i, event) in self.events.iter().enumerate() {
+            let seq = i as u64 + 1;
+            if seq > self.acked {
+                let msg = EventMsg {
+                    version: SCHEMA_VERSION,
+                    journal: self.journal,
+                    seq,
+                    held_from: self.acked + 1,
+                    event: event.clone(),
+                };
+                put("events", encode(&msg));
+            }
+        }
+    }
+}
+
+fn fake_event(seq: u64, detail: &str, wall_ms: u64) -> EventRecord {
+    EventRecord {
+        timestamp_ns: seq * 1_000_000,
+        wall_ms,
+        origin_seq: 0,
+        kind: "ActionsRefused".into(),
+        joint: String::new(),
+        detail: detail.into(),
+        bus: 0,
+        level: 0,
+        value: 0.0,
+    }
+}
+
+fn fake_state(wall_ms: u64, names: &[&str]) -> (LayoutMsg, StateMsg) {
+    let layout = LayoutMsg {
+        version: SCHEMA_VERSION,
+        joints: names
+            .iter()
+            .map(|n| JointInfoMsg {
+                name: (*n).into(),
+                min: -1.0,
+                max: 1.0,
+            })
+            .collect(),
+    };
+    let joint = JointMsg {
+        position: 0.0,
+        velocity: 0.0,
+        temperature_c: 40.0,
+        current_a: 0.2,
+        goal: 0.0,
+        valid: true,
+        torque: true,
+        flags: 0,
+    };
+    let state = StateMsg {
+        version: SCHEMA_VERSION,
+        seq: 1,
+        timestamp_ns: 1,
+        wall_ms,
+        safe_state: false,
+        deadline_misses: 0,
+        joints: vec![joint; names.len()],
+        lift: None,
+        base: None,
+    };
+    (layout, state)
+}
+
+/// One robot's garbage (a NUL in a joint's name, which PostgreSQL refuses in text; a wall time
+/// outside its timestamps; a NUL in an event) is refused or quarantined and counted for that
+/// robot, and holds up no other robot's events or telemetry; its own good events are stored,
+/// and every event acknowledged is in the database, stored or quarantined.
+#[test]
+fn one_robot_s_malformed_messages_hold_up_no_other_robot() {
+    let dir = nori_tests::scratch("fleet-store-poison");
+    let db = ScratchPostgres::start(&dir.join("postgres"));
+    // A limit the store's checks do not know, as an operator's constraint: the database itself
+    // refuses that row, and only that row is quarantined.
+    let mut c = postgres::Client::connect(&db.url, postgres::NoTls).unwrap();
+    c.batch_execute(fleet::history::SCHEMA_SQL).unwrap();
+    c.batch_execute("ALTER TABLE events ADD CONSTRAINT not_this CHECK (detail <> 'refused here')")
+        .unwrap();
+    // The store's bound on wall times is the server's own.
+    let end = fleet::admission::WALL_MS_END;
+    let stamp = |c: &mut postgres::Client, ms: u64| {
+        c.query_one("SELECT to_timestamp($1::float8 / 1000.0)", &[&(ms as f64)])
+    };
+    assert!(
+        stamp(&mut c, end - 1).is_ok(),
+        "the last wall time the store admits"
+    );
+    assert!(
+        stamp(&mut c, end + 1000).is_err(),
+        "a second later, the server's own end"
+    );
+    let store_at = free_endpoint();
+    let _store = start_store(&dir, &db.url, &store_at, 1);
+    let session = nori_tests::connecting_session(&store_at, "peer").unwrap();
+    let acks = session.declare_subscriber("nori/*/acks").wait().unwrap();
+    let now = fleet_agent::agent::wall_ms();
+    let mut good = FakeRobot {
+        id: "good-r",
+        journal: 11,
+        events: (1..=30).map(|s| fake_event(s, "", now + s)).collect(),
+        acked: 0,
+    };
+    let mut poison = FakeRobot {
+        id: "poison-r",
+        journal: 7,
+        events: vec![
+            fake_event(1, "bad\0detail", now),
+            fake_event(2, "", u64::MAX / 2),
+            fake_event(3, "", now),
+            fake_event(4, "refused here", now),
+        ],
+        acked: 0,
+    };
+    let good_telemetry = fake_state(now, &["left_elbow", "left_wrist"]);
+    let (bad_layout, _) = fake_state(now, &["left\0elbow", "left_wrist"]);
+    let (_, bad_state) = fake_state(u64::MAX / 2, &["a", "b"]);
+    let started = std::time::Instant::now();
+    while (good.acked < 30 || poison.acked < 4) && started.elapsed() < Duration::from_secs(30) {
+        good.send(&session, &good_telemetry.0, &good_telemetry.1);
+        poison.send(&session, &bad_layout, &bad_state);
+        poison.send(&session, &bad_layout, &good_telemetry.1);
+        let until = std::time::Instant::now() + Duration::from_millis(500);
+        while let Ok(Some(s)) =
+            acks.recv_timeout(until.saturating_duration_since(std::time::Instant::now()))
+        {
+            let ack: AckMsg = decode(&s.payload().to_bytes()).unwrap();
+            match robot_of(s.key_expr().as_str()) {
+                Some("good-r") if ack.journal == 11 => {
+                    good.acked = good.acked.max(ack.stored_through)
+                }
+                Some("poison-r") if ack.journal == 7 => {
+                    poison.acked = poison.acked.max(ack.stored_through)
+                }
+                other => panic!("an acknowledgement for {other:?} journal {}", ack.journal),
+            }
+        }
+    }
+    assert_eq!(
+        (good.acked, poison.acked),
+        (30, 4),
+        "every event of both robots acknowledged within 30 s (see {})",
+        dir.display()
+    );
+    let stored = |c: &mut postgres::Client, robot: &str| {
+        count(
+            c,
+            &format!("SELECT count(*) FROM events WHERE robot = '{robot}'"),
+        )
+    };
+    assert_eq!(
+        stored(&mut c, "good-r"),
+        30,
+        "the good robot's events, once each"
+    );
+    assert_eq!(
+        stored(&mut c, "poison-r"),
+        1,
+        "the poisoned robot's good event"
+    );
+    let quarantined: Vec<(i64, String)> = c
+        .query(
+            "SELECT seq, reason FROM quarantine WHERE robot = 'poison-r' ORDER BY seq",
+            &[],
+        )
+        .unwrap()
+        .iter()
+        .map(|r| (r.get(0), r.get(1)))
+        .collect();
+    assert_eq!(
+        quarantined.len(),
+        3,
+        "its bad events kept aside: {quarantined:?}"
+    );
+    assert!(quarantined[0].1.contains("NUL"), "{quarantined:?}");
+    assert!(quarantined[1].1.contains("time"), "{quarantined:?}");
+    assert!(quarantined[2].1.contains("23514"), "{quarantined:?}");
+    // Its layout and its bad state refused and counted; its good state still rolled up.
+    let refused = |c: &mut postgres::Client, what: &str| {
+        count(c, &format!("SELECT coalesce(sum(count), 0)::bigint FROM refusals WHERE robot = 'poison-r' AND what = '{what}'"))
+    };
+    wait_for(
+        Duration::from_secs(10),
+        "the refusals counted and telemetry written",
+        || {
+            let mut c = postgres::Client::connect(&db.url, postgres::NoTls).ok()?;
+            let (layouts, states) = (refused(&mut c, "layout"), refused(&mut c, "state"));
+            let rows = count(
+                &mut c,
+                "SELECT count(*) FROM telemetry WHERE robot = 'good-r'",
+            );
+            let poison_rows = count(
+                &mut c,
+                "SELECT count(*) FROM telemetry WHERE robot = 'poison-r'",
+            );
+            (layouts >= 1 && states >= 1 && rows >= 1 && poison_rows >= 1).then_some(())
+        },
+    );
+}
+
+/// A store that hears no robot for its bound opens its zenoh session again (its routes may be
+/// stale after a router froze), and what robots send afterwards is stored and acknowledged.
+#[test]
+fn a_store_that_hears_no_robot_opens_its_session_again_and_still_stores() {
+    let dir = nori_tests::scratch("fleet-store-deaf");
+    let db = ScratchPostgres::start(&dir.join("postgres"));
+    let store_at = free_endpoint();
+    let _store = start_store_with(&dir, &db.url, &store_at, 1, &["--deaf-after-s", "1"]);
+    let log = dir.join("store-1.log");
+    let reopened = |n: usize| {
+        let said = std::fs::read_to_string(&log).unwrap_or_default();
+        (said.matches("opening the zenoh session again").count() >= n).then_some(())
+    };
+    wait_for(
+        Duration::from_secs(20),
+        "the deaf store reopening twice",
+        || reopened(2),
+    );
+    let session = nori_tests::connecting_session(&store_at, "peer").unwrap();
+    let acks = session.declare_subscriber("nori/*/acks").wait().unwrap();
+    let now = fleet_agent::agent::wall_ms();
+    let mut robot = FakeRobot {
+        id: "late-r",
+        journal: 3,
+        events: (1..=5).map(|s| fake_event(s, "", now + s)).collect(),
+        acked: 0,
+    };
+    let (layout, state) = fake_state(now, &["left_elbow"]);
+    let started = std::time::Instant::now();
+    while robot.acked < 5 && started.elapsed() < Duration::from_secs(30) {
+        robot.send(&session, &layout, &state);
+        if let Ok(Some(s)) = acks.recv_timeout(Duration::from_millis(300)) {
+            let ack: AckMsg = decode(&s.payload().to_bytes()).unwrap();
+            robot.acked = robot.acked.max(ack.stored_through);
+        }
+    }
+    assert_eq!(
+        robot.acked, 5,
+        "the robot's events acknowledged after the store reopened"
+    );
 }

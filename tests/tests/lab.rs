@@ -143,42 +143,50 @@ fn pixel(shot: &(usize, usize, Vec<u8>), at: [f64; 2]) -> [f64; 3] {
 }
 
 /// A screenshot taken while the arm stood still and driven, with the state it stood in: the
-/// page draws a frame that may be a few hundred milliseconds old, and a loaded machine's
-/// driver may miss a reply (drawn hollow grey, as it should be), so every frame from 300 ms
-/// before to just after the shot must be driven and within a hundredth of a radian of it.
-/// Tried at most five times, saying what moved.
+/// page draws a frame that may be a few hundred milliseconds old, so every frame from 300 ms
+/// before to just after the shot must be within a hundredth of a radian of it. A loaded
+/// machine's driver may miss a cycle's replies (drawn hollow grey, as it should be): such a
+/// frame on the plane is passed over, but the page must not have received one meanwhile.
+/// Tried at most twenty times, saying what moved.
 fn steady_screenshot(
     page: &mut Browser,
     states: &plane::Sub<JointState>,
     driving: impl Fn(&JointState) -> bool,
 ) -> (JointState, (usize, usize, Vec<u8>)) {
     let drain = || std::iter::from_fn(|| plane::next(states)).collect::<Vec<_>>();
-    for attempt in 1..=5 {
+    let all_read = |f: &JointState| f.joints().iter().all(|j| j.is_valid());
+    for attempt in 1..=20 {
         drain();
+        let missed_before = js(page, "lab.missed");
         std::thread::sleep(Duration::from_millis(300));
         let mut window = drain();
-        let Some(s) = window.last().copied() else {
+        let Some(s) = window.iter().rev().find(|f| all_read(f)).copied() else {
             continue;
         };
         std::thread::sleep(Duration::from_millis(200));
         let shot = screenshot(page);
         std::thread::sleep(Duration::from_millis(50));
+        let missed_after = js(page, "lab.missed");
         window.extend(drain());
         let still = |f: &JointState| {
-            driving(f)
-                && f.joints()
-                    .iter()
-                    .zip(s.joints())
-                    .all(|(a, b)| (a.position_rad - b.position_rad).abs() < 0.01)
+            !all_read(f)
+                || driving(f)
+                    && f.joints()
+                        .iter()
+                        .zip(s.joints())
+                        .all(|(a, b)| (a.position_rad - b.position_rad).abs() < 0.01)
         };
-        match window.iter().position(|f| !still(f)) {
-            None => return (s, shot),
-            Some(i) => eprintln!(
-                "attempt {attempt}: frame {i} of {} not still and driven (a reply missed, or moved): flags {:#x}",
-                window.len(),
-                window[i].flags
-            ),
+        let moved = window.iter().position(|f| !still(f));
+        if moved.is_none() && missed_before == missed_after {
+            return (s, shot);
         }
+        let missed = window.iter().filter(|f| !all_read(f)).count();
+        eprintln!(
+            "attempt {attempt}: of {} frames {missed} had a reply missed (the page got {} such), \
+             frame {moved:?} moved or stopped",
+            window.len(),
+            missed_after.as_u64().unwrap_or(0) - missed_before.as_u64().unwrap_or(0),
+        );
     }
     panic!("the arm never stood still and driven for half a second");
 }

@@ -11,7 +11,9 @@ const ctx = canvas.getContext("2d");
 const $ = (id) => document.getElementById(id);
 
 const lab = {
-  connected: false, page: null, model: null, state: null, frames: 0, replies: [], ended: [], recorded: [],
+  connected: false, page: null, model: null, state: null, frames: 0,
+  missed: 0, // state frames with a joint whose reply the driver missed (drawn hollow grey)
+  replies: [], ended: [], recorded: [],
   target: null, // {arm, position, rotation}
   camera: { az: 0.9, el: 0.35, dist: 2.2, center: [0.15, 0, 0.85], fov: 0.8 },
 };
@@ -37,7 +39,11 @@ function connect() {
     const m = JSON.parse(ev.data);
     if (m.type === "hello") { lab.page = m.page; buildCameras(m.cameras); }
     else if (m.type === "model") { lab.model = m; buildJoints(); }
-    else if (m.type === "state") { lab.state = m; lab.frames++; update(); redraw(); }
+    else if (m.type === "state") {
+      lab.state = m; lab.frames++;
+      if (m.joints.some((j) => !j.v)) lab.missed++;
+      update(); redraw();
+    }
     else if (m.type === "reply") {
       lab.replies.push(m);
       if (lab.replies.length > 50) lab.replies.shift();

@@ -95,11 +95,11 @@ impl Default for Options {
 /// A named parameter with its unit.
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct Parameter {
-    /// Name.
+    /// Its name as the catalog gives it, e.g. `sensor_time_constant`, `coulomb_friction`.
     pub name: String,
-    /// Value.
+    /// Its value, in `unit`.
     pub value: f64,
-    /// Unit.
+    /// The unit of `value`, e.g. `s`, `ohm`, `N·m` (`1`: dimensionless).
     pub unit: String,
 }
 
@@ -173,7 +173,7 @@ pub struct Candidate {
     /// Tried on top of this extension (a pair, fitted together; the tests then weigh what
     /// `id` adds to it).
     pub with: Option<Effect>,
-    /// Channel.
+    /// The channel the extension predicts (thermal, electrical or motion).
     pub channel: Channel,
     /// Fitted parameter.
     pub parameter: Option<Parameter>,
@@ -300,7 +300,7 @@ pub struct Analysis {
     pub causes: Vec<Effect>,
     /// The motion channel, when the data carry runs it can replay.
     pub motion: Option<MotionAnalysis>,
-    /// Diagnostics.
+    /// The rest worth knowing: the data's size and segments, the audit, the glitch rejection.
     pub diagnostics: Diagnostics,
 }
 
