@@ -182,6 +182,8 @@ pub struct Agent {
     /// Refusals per reason since they were last journaled.
     refusals: Vec<u64>,
     refusals_every: Every,
+    /// The package version the robot runs, if it was installed from one (`installed`).
+    installed_version: Option<String>,
 }
 
 /// A rate from a period in seconds, 0 meaning never.
@@ -250,8 +252,17 @@ impl Agent {
             thumbnailer: Thumbnailer::new(config.preview.width, config.preview.quality),
             scan_every: every_s(config.preview.scan_every_s),
             scan_pending: false,
+            installed_version: None,
             config: config.clone(),
         }
+    }
+
+    /// The agent of a robot installed from the `nori-robot` package at `version` (`None`: a
+    /// build from source): its status says so, and its start's event carries it, so the
+    /// fleet's store keeps which version ran when.
+    pub fn installed(mut self, version: Option<String>) -> Agent {
+        self.installed_version = version;
+        self
     }
 
     /// One turn of the loop at robot time `now` (CLOCK_MONOTONIC ns) and wall time `wall_ms`
@@ -264,9 +275,10 @@ impl Agent {
             self.layout_every = Every::hz(1.0 / self.config.telemetry.layout_every_s);
         }
         if let Some(cut_bytes) = self.starting.take() {
+            let version = self.installed_version.clone().unwrap_or_default();
             self.journal(
                 io,
-                agent_record(now, wall_ms, AGENT_STARTED, "", cut_bytes as f32),
+                agent_record(now, wall_ms, AGENT_STARTED, &version, cut_bytes as f32),
             );
         }
         self.take_layout(io, now);
@@ -597,6 +609,7 @@ impl Agent {
             version: SCHEMA_VERSION,
             robot_id: self.config.robot_id.clone(),
             agent_version: env!("CARGO_PKG_VERSION").into(),
+            installed_version: self.installed_version.clone(),
             config: StatusConfig {
                 state_hz: self.config.telemetry.state_hz,
                 observation_hz: self.config.telemetry.observation_hz,

@@ -32,7 +32,8 @@ const RECENT: usize = 64;
 pub const SUPERVISOR_STARTED: &str = "SupervisorStarted";
 /// The agent's `DriverStarted` event kind (`value`: the driver's process id).
 pub const DRIVER_STARTED: &str = "DriverStarted";
-/// The agent's own start (`value`: bytes of a torn journal tail cut at open).
+/// The agent's own start (`detail`: the `nori-robot` package version it runs, empty for a build
+/// from source; `value`: bytes of a torn journal tail cut at open).
 pub const AGENT_STARTED: &str = "AgentStarted";
 /// Action chunks refused for one reason since the last such event (`detail`: the reason,
 /// `value`: how many).

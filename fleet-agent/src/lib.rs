@@ -11,12 +11,13 @@
 //! * `agent`: the loop's state and one turn of it; `config`: its configuration; `keys`: the zenoh
 //!   key expressions; `schema`: what crosses zenoh (postcard, versioned); `outbound`: plane
 //!   frames to fleet messages and the plan to goal frames; `preview`: camera thumbnails and
-//!   lidar scans for the dashboard.
+//!   lidar scans for the dashboard; `installed`: the package version the robot runs.
 
 pub mod agent;
 pub mod config;
 pub mod delivery;
 pub mod gate;
+pub mod installed;
 pub mod journal;
 pub mod keys;
 pub mod net;

@@ -45,6 +45,9 @@ struct Args {
     /// unit passes /var/lib/nori/journal).
     #[arg(long)]
     journal_dir: Option<PathBuf>,
+    /// The file the `nori-robot` package writes its version to (absent: a build from source).
+    #[arg(long, default_value = fleet_agent::installed::VERSION_FILE)]
+    version_file: PathBuf,
 }
 
 /// The agent's two planes: iceoryx2 ports, and zenoh declarations once the fleet is reached.
@@ -342,7 +345,8 @@ fn run(args: Args) -> Result<()> {
         "joining the fleet: telemetry on {}, actions from {}", robot_key(&id, "state"), robot_key(&id, "actions"));
     let mut service = ServiceManager::from_env();
     service.ready(&format!("robot {id} joining the fleet"));
-    let mut agent = Agent::resuming(&config, start);
+    let mut agent =
+        Agent::resuming(&config, start).installed(installed_version(&args.version_file));
     let run_for = args.process.run_for()?;
     fleet_agent::agent::run(&mut agent, &mut io, &shutdown, run_for, &mut |t| {
         service.keepalive(t)
@@ -351,6 +355,33 @@ fn run(args: Args) -> Result<()> {
     tracing::info!(robot = %id, accepted = agent.accepted(), forwarded = agent.goals_forwarded(), "leaving the fleet");
     // The token, publishers and session close on drop: the fleet sees the robot leave.
     Ok(())
+}
+
+/// The package version from `path`: `None`, said once, when there is no such file (a build
+/// from source) or it is not one version (the status then names no version rather than a
+/// wrong one; the agent runs on, as it serves the fleet and guards nothing).
+fn installed_version(path: &std::path::Path) -> Option<String> {
+    let text = match std::fs::read_to_string(path) {
+        Ok(text) => text,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            tracing::info!("no {}: not installed from a package", path.display());
+            return None;
+        }
+        Err(e) => {
+            tracing::warn!("the installed version is unknown: {}: {e}", path.display());
+            return None;
+        }
+    };
+    match fleet_agent::installed::parse_version_file(&text) {
+        Ok(v) => {
+            tracing::info!("running nori-robot {v}");
+            Some(v)
+        }
+        Err(e) => {
+            tracing::warn!("the installed version is unknown: {}: {e}", path.display());
+            None
+        }
+    }
 }
 
 /// Opens the event journal and reads what it keeps. A journal that cannot be opened (its

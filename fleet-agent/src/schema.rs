@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 /// The schema version this build speaks.
-pub const SCHEMA_VERSION: u16 = 6;
+pub const SCHEMA_VERSION: u16 = 7;
 
 /// Joint telemetry for dashboards, rate-limited (`nori/<robot>/state`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -299,6 +299,9 @@ pub struct StatusMsg {
     pub robot_id: String,
     /// The fleet agent's version (its crate version).
     pub agent_version: String,
+    /// The `nori-robot` package's version the robot runs (read at the agent's start); `None`:
+    /// not installed from a package (a build from source).
+    pub installed_version: Option<String>,
     /// The agent's rates and action limits.
     pub config: StatusConfig,
     /// The robot as the agent sees it now.

@@ -1061,3 +1061,30 @@ fn an_event_the_journal_cannot_keep_still_goes_out_once_unnumbered_and_counted()
     let st = status(&mut agent, &mut io, now + 60_001 * MS);
     assert_eq!(st.counters.events_unjournaled, 1);
 }
+
+#[test]
+fn the_package_version_the_robot_runs_is_in_its_status_and_its_start_s_event() {
+    let mut io = Queues {
+        layout: Some(layout()),
+        ..Queues::default()
+    };
+    let config = AgentConfig::embedded().unwrap();
+    let mut agent = Agent::new(&config).installed(Some("0.1.0+57".into()));
+    let st = status(&mut agent, &mut io, 1_000 * MS);
+    assert_eq!(st.installed_version.as_deref(), Some("0.1.0+57"));
+    assert_eq!(st.agent_version, env!("CARGO_PKG_VERSION"));
+    let start = &journaled(&io)[0];
+    assert_eq!(
+        (start.kind.as_str(), start.detail.as_str()),
+        ("AgentStarted", "0.1.0+57")
+    );
+
+    // A build from source claims no package.
+    let mut io = Queues::default();
+    let mut agent = Agent::new(&config);
+    assert_eq!(
+        status(&mut agent, &mut io, 1_000 * MS).installed_version,
+        None
+    );
+    assert_eq!(journaled(&io)[0].detail, "");
+}

@@ -389,6 +389,7 @@ impl Collector {
                     "actions_accepted": counters.map(|c| c.actions_accepted),
                     "actions_rejected": counters.map(|c| &c.actions_rejected),
                     "last_rejection": r.status.as_ref().map(|s| s.last_rejection.clone()),
+                    "running": r.status.as_ref().map(running),
                     "buses": r.status.as_ref().map(|s| s.buses.iter().map(|b| json!({
                         "bus": b.name, "connected": b.connected, "enabled": b.enabled, "counters": b.counters,
                     })).collect::<Vec<_>>()),
@@ -497,6 +498,7 @@ struct RobotMetrics {
     events: Counters,
     accepted: Counters,
     rejected: Counters,
+    version: Gauges,
 }
 
 impl RobotMetrics {
@@ -517,6 +519,16 @@ impl RobotMetrics {
         if let Some(s) = live_state(r) {
             self.safe.get_or_create(&robot).set(flag(s.safe_state));
             self.misses.get_or_create(&robot).inc_by(s.deadline_misses);
+        }
+        if let Some(s) = &r.status {
+            let installed = s.installed_version.as_deref().unwrap_or("");
+            self.version
+                .get_or_create(&labels(&[
+                    ("robot", id),
+                    ("installed", installed),
+                    ("agent", &s.agent_version),
+                ]))
+                .set(1.0);
         }
         if let Some(c) = r.status.as_ref().map(|s| &s.counters) {
             self.accepted
@@ -566,6 +578,19 @@ impl RobotMetrics {
             "action chunks the robot's gate rejected, by reason",
             self.rejected,
         );
+        registry.register(
+            "robot_version",
+            "1, labelled with the nori-robot package version the robot runs (empty: a build from source) and its agent's crate version (from the agent's status)",
+            self.version,
+        );
+    }
+}
+
+/// What a robot runs, as its status says: the package's version, or a build from source.
+fn running(s: &StatusMsg) -> String {
+    match &s.installed_version {
+        Some(v) => format!("nori-robot {v}"),
+        None => format!("built from source (agent {})", s.agent_version),
     }
 }
 
@@ -1012,6 +1037,7 @@ mod tests {
             version: SCHEMA_VERSION,
             robot_id: "r".into(),
             agent_version: "0".into(),
+            installed_version: Some("0.1.0+57".into()),
             config: StatusConfig {
                 state_hz: 50.0,
                 observation_hz: 50.0,
@@ -1060,6 +1086,35 @@ mod tests {
             .status("nori/r2/status", b"{\"counters\": {}}", 6)
             .is_err());
         assert_eq!(c.snapshot(6)["undecodable"]["status"], 1);
+    }
+
+    #[test]
+    fn the_version_each_robot_runs_is_on_the_dashboard_and_in_the_metrics() {
+        let mut c = Collector::new(1, 0);
+        c.status(
+            "nori/r2/status",
+            &status(AgentCounters::default(), vec![]),
+            0,
+        )
+        .unwrap();
+        let mut source: StatusMsg =
+            fleet_agent::schema::decode(&status(AgentCounters::default(), vec![])).unwrap();
+        source.installed_version = None;
+        c.status("nori/r3/status", &encode(&source), 0).unwrap();
+        let text = c.metrics();
+        assert!(
+            text.contains(r#"nori_robot_version{robot="r2",installed="0.1.0+57",agent="0"} 1.0"#),
+            "{text}"
+        );
+        assert!(text.contains(r#"nori_robot_version{robot="r3",installed="",agent="0"} 1.0"#));
+        let snap = c.snapshot(0);
+        assert_eq!(snap["robots"][0]["running"], "nori-robot 0.1.0+57");
+        assert_eq!(snap["robots"][1]["running"], "built from source (agent 0)");
+        c.layout("nori/r4/layout", &layout(), 0).unwrap();
+        assert!(
+            c.snapshot(0)["robots"][2]["running"].is_null(),
+            "no status yet"
+        );
     }
 
     #[test]

@@ -81,6 +81,13 @@ CREATE TABLE IF NOT EXISTS refusals (
     last_at     timestamptz NOT NULL DEFAULT now(),
     PRIMARY KEY (robot, what, kind)
 );
+-- What each robot runs: its agent's newest start (`AgentStarted`, whose detail is the
+-- nori-robot package version, empty for a build from source); its history is those events.
+-- Newest by arrival (a robot delivers its journal oldest first), not by the robot's wall clock,
+-- which a Pi without a real-time clock may have set ahead before NTP corrected it.
+CREATE OR REPLACE VIEW robot_versions AS
+    SELECT DISTINCT ON (robot) robot, detail AS installed_version, at AS running_since
+    FROM events WHERE kind = 'AgentStarted' ORDER BY robot, id DESC;
 ";
 
 /// A batch of events into `events` in one statement (copies already there skipped; the rows

@@ -706,3 +706,81 @@ fn a_store_that_hears_no_robot_opens_its_session_again_and_still_stores() {
         "the robot's events acknowledged after the store reopened"
     );
 }
+
+/// What the robot runs, through an upgrade: the package's version file read at the agent's
+/// start reaches its status and the store (`robot_versions`, from the starts' events), a newer
+/// one replaces it when the agent restarts on it, and a file that is not one version is
+/// reported as no version, the agent running on.
+#[test]
+fn the_version_a_robot_runs_reaches_its_status_and_the_store_across_an_upgrade() {
+    let mut stack = ArmStack::start("fleet-version", &[]);
+    let db = ScratchPostgres::start(&stack.dir.join("postgres"));
+    let (store_at, watch_at) = (free_endpoint(), free_endpoint());
+    let _store = start_store(&stack.dir, &db.url, &store_at, 1);
+    let watcher = nori_tests::listening_session(&watch_at);
+    let version_file = stack.dir.join("version");
+    let file = version_file.display().to_string();
+    let journal = stack.dir.join("journal").display().to_string();
+    let args = [
+        "--robot-id",
+        ROBOT,
+        "--connect",
+        &store_at,
+        "--connect",
+        &watch_at,
+        "--journal-dir",
+        &journal,
+        "--version-file",
+        &file,
+    ];
+    let stored = |want: &str| {
+        wait_for(Duration::from_secs(30), &format!("{want} stored"), || {
+            let mut c = postgres::Client::connect(&db.url, postgres::NoTls).ok()?;
+            let row = c
+                .query_opt(
+                    "SELECT installed_version FROM robot_versions WHERE robot = $1",
+                    &[&ROBOT],
+                )
+                .ok()??;
+            (row.get::<_, String>(0) == want).then_some(())
+        });
+    };
+    let status_says = |want: Option<&str>| {
+        wait_for(Duration::from_secs(20), "the status's version", || {
+            let st = nori_tests::agent_status(&watcher, ROBOT);
+            (st.installed_version.as_deref() == want).then_some(())
+        });
+    };
+
+    std::fs::write(&version_file, "0.1.0+41\n").unwrap();
+    stack.restart_agent_with(&args);
+    status_says(Some("0.1.0+41"));
+    stored("0.1.0+41");
+
+    // The upgrade: the package's file replaced, the agent restarted by the maintainer scripts.
+    std::fs::write(&version_file, "0.1.0+42\n").unwrap();
+    stack.restart_agent_with(&args);
+    status_says(Some("0.1.0+42"));
+    stored("0.1.0+42");
+
+    // Not a version: none is claimed, and the agent serves the fleet all the same.
+    std::fs::write(&version_file, "0.1.0+43 amd64\n").unwrap();
+    stack.restart_agent_with(&args);
+    status_says(None);
+    stored("");
+    let mut c = db.client();
+    let history: Vec<String> = c
+        .query(
+            "SELECT detail FROM events WHERE robot = $1 AND kind = 'AgentStarted' ORDER BY id",
+            &[&ROBOT],
+        )
+        .unwrap()
+        .iter()
+        .map(|r| r.get(0))
+        .collect();
+    assert_eq!(
+        history,
+        ["0.1.0+41", "0.1.0+42", ""],
+        "which version ran when"
+    );
+}
