@@ -681,9 +681,27 @@ pub fn processes(matching: impl Fn(&[String]) -> bool) -> Vec<(u32, Vec<String>)
                 .filter(|a| !a.is_empty())
                 .map(|a| String::from_utf8_lossy(a).into_owned())
                 .collect();
+            let args = without_emulator(args);
             matching(&args).then_some((pid, args))
         })
         .collect()
+}
+
+/// A process's arguments as it was started, without the emulator that runs it: an arm64
+/// binary run on another machine through binfmt_misc (deploy/arm64/cross.sh) shows
+/// `qemu-aarch64 /path/program [argv0] args…` in `/proc/<pid>/cmdline` (argv0 again when the
+/// interpreter is registered to preserve it).
+fn without_emulator(mut args: Vec<String>) -> Vec<String> {
+    let base = |a: &str| a.rsplit('/').next().unwrap_or(a).to_string();
+    let emulator = |a: &String| base(a).starts_with("qemu-") || a.contains("/qemu-binfmt/");
+    if !args.first().is_some_and(emulator) {
+        return args;
+    }
+    args.remove(0);
+    if args.len() >= 2 && base(&args[0]) == base(&args[1]) {
+        args.remove(1);
+    }
+    args
 }
 
 /// A scratch PostgreSQL server on loopback (`deploy/fleet-db/scratch-postgres.sh`), stopped when
@@ -927,5 +945,51 @@ impl Lab {
             }
         }
         None
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::without_emulator;
+
+    fn v(a: &[&str]) -> Vec<String> {
+        a.iter().map(|s| s.to_string()).collect()
+    }
+
+    #[test]
+    fn a_process_under_qemu_is_known_by_its_own_program_and_arguments() {
+        let native = v(&["/t/release/bus-driver", "--domain", "d"]);
+        assert_eq!(without_emulator(native.clone()), native);
+        for raw in [
+            v(&[
+                "/usr/libexec/qemu-binfmt/aarch64-binfmt-P",
+                "/t/release/bus-driver",
+                "bus-driver",
+                "--domain",
+                "d",
+            ]),
+            v(&[
+                "/usr/bin/qemu-aarch64",
+                "/t/release/bus-driver",
+                "--domain",
+                "d",
+            ]),
+            v(&[
+                "qemu-aarch64-static",
+                "/t/release/bus-driver",
+                "/t/release/bus-driver",
+                "--domain",
+                "d",
+            ]),
+            v(&[
+                "/usr/bin/qemu-aarch64",
+                "/t/release/bus-driver",
+                "bus-driver",
+                "--domain",
+                "d",
+            ]),
+        ] {
+            assert_eq!(without_emulator(raw.clone()), native, "{raw:?}");
+        }
     }
 }
