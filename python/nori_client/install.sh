@@ -8,7 +8,10 @@ here=$(cd "$(dirname "$0")" && pwd)
 venv=${NORI_CLIENT_VENV:-$HOME/.cache/nori/client-venv}
 python=${PYTHON:-python3}
 stamp="$venv/.nori-client-$(sha256sum "$here/pyproject.toml" | cut -c1-16)"
-if [ -f "$stamp" ] && "$venv/bin/python" -c "import nori_client, pytest" 2>/dev/null; then
+# Up to date only if it is this checkout's client (an editable install of another clone, a CI
+# run's say, would test that clone's code).
+if [ -f "$stamp" ] && "$venv/bin/python" -c "import nori_client, pytest, sys
+sys.exit(not nori_client.__file__.startswith('$here/'))" 2>/dev/null; then
   exit 0
 fi
 if ! "$python" -m venv --help >/dev/null 2>&1; then
