@@ -8,16 +8,18 @@
 #   VERSION  the packages' version; by default 0.1.0+<commits on HEAD>, so a later commit's
 #            packages upgrade an earlier one's
 #   NORI_DEB_COMPRESSION  xz (the default) or gzip or none (quicker, for checks)
+#   NORI_DEB_CONFIG  the folder of /etc/nori's defaults (deploy/config; check.sh changes one)
 #
-# makes OUT_DIR/nori-robot_VERSION_ARCH.deb (the on-robot binaries, the systemd units, the udev
-# rules, the nori user, /etc/nori's configuration as conffiles, /var/lib/nori) and
+# makes OUT_DIR/nori-robot_VERSION_ARCH.deb (the on-robot binaries, nori-upgrade, the systemd
+# units, the udev rules, the nori user, /usr/lib/nori/version, /etc/nori's configuration as
+# conffiles, /var/lib/nori) and
 # OUT_DIR/nori-sim_VERSION_ARCH.deb (the simulator and `nori up`). What the maintainer scripts
 # promise on an upgrade (the stack stopped whole before any file changes, started again after,
 # the trip record and edited configuration kept): deploy/README.md, "Packages and upgrades".
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 repo=$(pwd)
-[ $# -ge 3 ] || { sed -n '2,16p' "$0" | sed 's/^# \{0,1\}//' >&2; exit 2; }
+[ $# -ge 3 ] || { sed -n '2,18p' "$0" | sed 's/^# \{0,1\}//' >&2; exit 2; }
 arch=$1 bin_dir=$(realpath "$2") out=$3
 version=${4:-0.1.0+$(git -C "$repo" rev-list --count HEAD)}
 case $arch in
@@ -98,10 +100,15 @@ robot_package() {
   install_bins "$root" "${robot_bins[@]}"
   install -d "$root/etc/nori" "$root/usr/lib/systemd/system" "$root/usr/lib/udev/rules.d" \
     "$root/usr/lib/sysusers.d" "$root/usr/lib/tmpfiles.d"
-  install -m 644 deploy/config/*.toml "$root/etc/nori/"
+  install -m 644 "${NORI_DEB_CONFIG:-deploy/config}"/*.toml "$root/etc/nori/"
   install -m 644 deploy/systemd/*.service deploy/systemd/nori.target "$root/usr/lib/systemd/system/"
   install -m 644 deploy/udev/*.rules "$root/usr/lib/udev/rules.d/"
   install -m 644 deploy/systemd/nori.sysusers.conf "$root/usr/lib/sysusers.d/nori.conf"
+  # What the fleet agent reports the robot runs (fleet_agent::installed), and the upgrade from
+  # the fleet's repository (deploy/apt).
+  install -d "$root/usr/lib/nori" "$root/usr/sbin"
+  echo "$version" >"$root/usr/lib/nori/version"
+  install -m 755 deploy/apt/nori-upgrade "$root/usr/sbin/nori-upgrade"
   # /var/lib/nori (the trip record, the lift's hold, the journal) is made by tmpfiles, owned by
   # nori: the package never ships a file there, so no upgrade or removal touches what is in it.
   echo 'd /var/lib/nori 0750 nori nori -' >"$root/usr/lib/tmpfiles.d/nori.conf"
@@ -113,7 +120,11 @@ robot_package() {
     " Nori A3 bimanual mobile manipulator, with their systemd units" \
     " (nori.target), udev rules and default configuration."
   (cd "$root" && find etc -type f | sed 's|^|/|' | sort) >"$root/DEBIAN/conffiles"
-  for s in preinst postinst prerm postrm; do install -m 755 "deploy/deb/nori-robot.$s" "$root/DEBIAN/$s"; done
+  for s in preinst postinst prerm postrm; do
+    # One rule for stopping the stack, in each script that needs it (as debhelper's #DEBHELPER#).
+    sed -e '/^#NORI_STOP_STACK#$/{r deploy/deb/stop-stack.sh' -e 'd}' "deploy/deb/nori-robot.$s" >"$root/DEBIAN/$s"
+    chmod 755 "$root/DEBIAN/$s"
+  done
   dpkg-deb --root-owner-group "-Z${NORI_DEB_COMPRESSION:-xz}" --build "$root" "$out/nori-robot_${version}_$arch.deb" >/dev/null
 }
 

@@ -12,12 +12,18 @@
 #   2. the packaged binaries run the stack on the simulator (`nori up --run-for`);
 #   3. an edited /etc/nori file and a trip record are written, N+1 is installed over N: both
 #      are kept byte for byte, and the new version is the installed one;
-#   4. N is installed over N+1 (a downgrade): it says what it keeps, and keeps it.
+#   4. N is installed over N+1 (a downgrade): it says what it keeps, and keeps it;
+#   5. from the fleet's signed repository (deploy/apt/repo.sh, served by nginx on loopback):
+#      N on stable, N+1 on beta; beta's index served as stable, a tampered index and a
+#      tampered package are refused and change nothing; a plain apt-get upgrade leaves the
+#      held stack alone; on stable nori-upgrade finds nothing to do; on beta it upgrades to
+#      N+1, keeping what step 3 kept and naming the new default, and the packaged agent says
+#      it runs N+1.
 # Needs root (debootstrap, chroot, mounts). The pristine root is cached in
 # $NORI_DEB_CHECK_CACHE (/var/tmp/nori-deb-check); each run starts from a fresh copy.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
-[ $# -eq 2 ] || { sed -n '2,17p' "$0" | sed 's/^# \{0,1\}//' >&2; exit 2; }
+[ $# -eq 2 ] || { sed -n '2,23p' "$0" | sed 's/^# \{0,1\}//' >&2; exit 2; }
 arch=$1 bin_dir=$2
 cache=${NORI_DEB_CHECK_CACHE:-/var/tmp/nori-deb-check}
 mirror=${NORI_DEBIAN_MIRROR:-http://deb.debian.org/debian}
@@ -30,18 +36,24 @@ if [ ! -s "$pristine" ]; then
   say "debootstrap bookworm $arch (once; cached in $pristine)"
   tmp=$(mktemp -d)
   debootstrap --variant=minbase --arch="$arch" --include=systemd,udev bookworm "$tmp" "$mirror" >/dev/null
-  mkdir -p "$cache" && tar -C "$tmp" -cf "$pristine" . && rm -rf "$tmp"
+  mkdir -p "$cache" && tar -C "$tmp" -cf "$pristine.part" . && mv "$pristine.part" "$pristine"
+  rm -rf "$tmp"
 fi
 
 work=$(mktemp -d)
 root=$work/root
 mounts=()
+server=
 cleanup() {
+  [ -z "$server" ] || kill "$server" 2>/dev/null || true
   for m in "${mounts[@]}"; do umount "$m" 2>/dev/null || true; done
   rm -rf "$work"
 }
 trap cleanup EXIT
 mkdir "$root" && tar -C "$root" -xf "$pristine"
+# A robot's / is 755 (debootstrap's folder was mktemp's 700): apt's _apt user and nginx's
+# workers (step 5) must get through it and through $work.
+chmod 755 "$root" "$work"
 for m in proc dev dev/pts; do
   case $m in proc) mount -t proc proc "$root/proc" ;; *) mount --bind "/$m" "$root/$m" ;; esac
   mounts=("$root/$m" "${mounts[@]}")
@@ -52,7 +64,11 @@ n=0.1.0+$(git rev-list --count HEAD)
 next=$n.1
 export NORI_DEB_COMPRESSION=${NORI_DEB_COMPRESSION:-gzip}
 deploy/deb/build.sh "$arch" "$bin_dir" "$work/n" "$n"
-deploy/deb/build.sh "$arch" "$bin_dir" "$work/next" "$next"
+# N+1 changes the default of the file the robot edits (step 3), so dpkg has a conffile to decide
+# on; its binaries are N's (what is checked is the packaging, not a change of code).
+cp -r deploy/config "$work/config-next"
+printf '\n# a default changed in %s\n' "$next" >>"$work/config-next/supervisor.toml"
+NORI_DEB_CONFIG="$work/config-next" deploy/deb/build.sh "$arch" "$bin_dir" "$work/next" "$next"
 mkdir "$root/debs" && cp "$work"/n/*.deb "$work"/next/*.deb "$root/debs/"
 
 say "0. lintian"
@@ -99,9 +115,13 @@ printf 'left_elbow\n' >"$root/var/lib/nori/trips"
 in_root systemctl disable nori-lift.service >/dev/null 2>&1
 sum() { (cd "$root" && sha256sum etc/nori/supervisor.toml var/lib/nori/trips); }
 before=$(sum)
-in_root dpkg -i "/debs/nori-robot_${next}_$arch.deb" "/debs/nori-sim_${next}_$arch.deb" >"$work/upgrade.log" 2>&1 \
+# --force-confold, as a fleet upgrades (nori-upgrade): the package's supervisor.toml changed
+# and so did the robot's; the robot's is kept, the new default left beside it.
+in_root dpkg -i --force-confold "/debs/nori-robot_${next}_$arch.deb" "/debs/nori-sim_${next}_$arch.deb" >"$work/upgrade.log" 2>&1 \
   || { cat "$work/upgrade.log" >&2; fail "upgrade"; }
 [ "$(sum)" = "$before" ] || fail "the upgrade changed the edited configuration or the trip record"
+cmp -s "$root/etc/nori/supervisor.toml.dpkg-dist" "$work/config-next/supervisor.toml" \
+  || fail "the new default is not left beside the kept file (supervisor.toml.dpkg-dist)"
 [ "$(in_root dpkg-query -W -f '${Version}' nori-robot)" = "$next" ] || fail "not upgraded"
 ! grep -q "downgrading" "$work/upgrade.log" || fail "an upgrade called itself a downgrade"
 [ ! -e "$root/etc/systemd/system/nori.target.wants/nori-lift.service" ] || fail "the upgrade enabled the lift again"
@@ -109,9 +129,96 @@ in_root dpkg -i "/debs/nori-robot_${next}_$arch.deb" "/debs/nori-sim_${next}_$ar
 say "   kept byte for byte, the lift still disabled; nori-robot $next installed"
 
 say "4. downgrade $next -> $n"
-in_root dpkg -i "/debs/nori-robot_${n}_$arch.deb" "/debs/nori-sim_${n}_$arch.deb" >"$work/downgrade.log" 2>&1 \
+rm "$root/etc/nori/supervisor.toml.dpkg-dist"
+in_root dpkg -i --force-confold "/debs/nori-robot_${n}_$arch.deb" "/debs/nori-sim_${n}_$arch.deb" >"$work/downgrade.log" 2>&1 \
   || { cat "$work/downgrade.log" >&2; fail "downgrade"; }
 grep -q "kept: /var/lib/nori" "$work/downgrade.log" || fail "the downgrade did not say what it keeps"
 [ "$(sum)" = "$before" ] || fail "the downgrade changed the edited configuration or the trip record"
 say "   said what it keeps, and kept it"
+
+say "5. from the fleet's repository: $n on stable, $next on beta"
+repo=$work/repo
+deploy/apt/repo.sh init "$repo"
+deploy/apt/repo.sh publish "$repo" "$work"/n/*.deb
+deploy/apt/repo.sh promote "$repo" "$n"
+deploy/apt/repo.sh publish "$repo" "$work"/next/*.deb
+port=$(python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
+command -v nginx >/dev/null || { apt-get update -qq && apt-get install -y -qq nginx-light >/dev/null; }
+deploy/apt/repo.sh serve "$repo" "127.0.0.1:$port" 2>"$work/nginx.log" &
+server=$!
+python3 - "$port" <<'PY' || { cat "$work/nginx.log" >&2; fail "the repository is not served"; }
+import sys, time, urllib.request as u
+for _ in range(100):
+    try:
+        u.urlopen(f"http://127.0.0.1:{sys.argv[1]}/nori-archive-keyring.gpg", timeout=1); sys.exit(0)
+    except OSError:
+        time.sleep(0.1)
+sys.exit(1)
+PY
+# As a robot is provisioned (deploy/README.md): the fleet's key, its channel, the stack held;
+# no Debian mirror (the root's own is a snapshot here, and the check needs only the fleet's).
+mv "$root/etc/apt/sources.list" "$work/debian.list"
+cp "$repo/public/nori-archive-keyring.gpg" "$root/usr/share/keyrings/"
+channel() { deploy/apt/repo.sh sources "http://127.0.0.1:$port" "$1" >"$root/etc/nori/fleet-repository.sources"; }
+installed() { in_root dpkg-query -W -f '${Version}' nori-robot; }
+upgrade() { in_root nori-upgrade "$@" >"$work/nori-upgrade.log" 2>&1; }
+log() { cat "$work/nori-upgrade.log" "$work/nginx.log" >&2; }
+in_root apt-mark hold nori-robot nori-sim >/dev/null
+dists=$repo/public/dists
+# HTTP dates are in seconds: a file put back within the second it was swapped would be taken
+# for the one apt already refused (If-Modified-Since), so each swap back waits.
+put_back() { sleep 1.1; rm -rf "$2"; cp -r "$1" "$2"; find "$2" -exec touch {} +; }
+
+# A fresh robot on stable, served beta's index (signed by the same key) in stable's place.
+cp -r "$dists/stable" "$work/stable"
+rm -rf "$dists/stable" && cp -r "$dists/beta" "$dists/stable"
+channel stable
+if upgrade; then log; fail "an index signed for beta was taken for stable"; fi
+grep -q "signed for beta: not upgrading" "$work/nori-upgrade.log" || { log; fail "no word of the channel's mix-up"; }
+[ "$(installed)" = "$n" ] || fail "an index of another channel changed what is installed"
+put_back "$work/stable" "$dists/stable"
+upgrade --check || { log; fail "nori-upgrade --check on stable"; }
+[ ! -s "$work/nori-upgrade.log" ] || { log; fail "stable holds $n, which is installed: nothing to do"; }
+channel beta
+upgrade --check || { log; fail "nori-upgrade --check on beta"; }
+grep -q "would upgrade: nori-robot \[$n\] ($next nori:beta" "$work/nori-upgrade.log" || { log; fail "beta offers no $next"; }
+say "   a fresh robot refuses beta's index served as stable; stable: nothing to do; beta: $next"
+
+# An owner's plain apt, even with the fleet's source among apt's own: the stack is held.
+cp "$root/etc/nori/fleet-repository.sources" "$root/etc/apt/sources.list.d/nori.sources"
+in_root apt-get update -qq >"$work/apt.log" 2>&1 && in_root apt-get upgrade -y -q >>"$work/apt.log" 2>&1 \
+  || { cat "$work/apt.log" >&2; fail "apt-get upgrade"; }
+[ "$(installed)" = "$n" ] || fail "a plain apt-get upgrade moved the held stack"
+rm "$root/etc/apt/sources.list.d/nori.sources"
+say "   a plain apt-get upgrade leaves the held stack alone"
+
+# Tampered on the way (or on the server): the channel's signed index, then a package.
+index=$dists/beta/InRelease
+cp -p "$index" "$work/InRelease"
+sed -i 's/beta channel/other channel/' "$index"
+if upgrade; then log; fail "an index whose signature fails was used"; fi
+grep -q BADSIG "$work/nori-upgrade.log" || { log; fail "no word of the bad signature"; }
+[ "$(installed)" = "$n" ] || fail "a tampered index changed what is installed"
+sleep 1.1 && cp "$work/InRelease" "$index" && touch "$index"
+deb=$(find "$repo/public/pool" -name "nori-robot_*${next}_$arch.deb")
+cp -p "$deb" "$work/good.deb"
+cp "$work"/n/nori-robot_*.deb "$deb"
+in_root apt-get clean # nothing of beta fetched before, but no cache may hide the swap
+if upgrade; then log; fail "a package that is not the one the index names was installed"; fi
+grep -qi "hash sum mismatch\|unexpected size" "$work/nori-upgrade.log" || { log; fail "no word of the package's mismatch"; }
+[ "$(installed)" = "$n" ] || fail "a tampered package changed what is installed"
+cp "$work/good.deb" "$deb"
+say "   a tampered index (BADSIG) and a tampered package (mismatch) refused; $n still installed"
+
+upgrade || { log; fail "nori-upgrade from beta"; }
+[ "$(installed)" = "$next" ] || fail "nori-upgrade did not install $next"
+[ "$(cat "$root/usr/lib/nori/version")" = "$next" ] || fail "/usr/lib/nori/version does not say $next"
+[ "$(sum)" = "$before" ] || fail "the upgrade from the repository changed the edited configuration or the trip record"
+grep -q "review: /etc/nori/supervisor.toml is yours, kept" "$work/nori-upgrade.log" || { log; fail "the kept file with a new default is not named"; }
+[ "$(in_root apt-mark showhold | sort | tr '\n' ' ')" = "nori-robot nori-sim " ] || fail "the stack is not held after the upgrade"
+in_root nori up --dir /tmp/nori-up2 --domain "nori_debcheck2_$$" --run-for 8 >"$work/up2.log" 2>&1 \
+  || { tail -30 "$work/up2.log" >&2; fail "nori up after the upgrade"; }
+grep -qF "running nori-robot $next" "$work/up2.log" || { tail -30 "$work/up2.log" >&2; fail "the agent does not say it runs $next"; }
+say "   upgraded to $next from beta, edits kept and the new default named, held; the packaged agent runs nori-robot $next"
+
 say "every check passed ($arch)"
