@@ -361,18 +361,15 @@ fn run(args: Args) -> Result<()> {
 /// from source) or it is not one version (the status then names no version rather than a
 /// wrong one; the agent runs on, as it serves the fleet and guards nothing).
 fn installed_version(path: &std::path::Path) -> Option<String> {
-    let text = match std::fs::read_to_string(path) {
-        Ok(text) => text,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            tracing::info!("no {}: not installed from a package", path.display());
-            return None;
-        }
-        Err(e) => {
-            tracing::warn!("the installed version is unknown: {}: {e}", path.display());
-            return None;
-        }
-    };
-    match fleet_agent::installed::parse_version_file(&text) {
+    let read = std::fs::read_to_string(path);
+    if matches!(&read, Err(e) if e.kind() == std::io::ErrorKind::NotFound) {
+        tracing::info!("no {}: not installed from a package", path.display());
+        return None;
+    }
+    let parsed = read.map_err(|e| e.to_string()).and_then(|text| {
+        fleet_agent::installed::parse_version_file(&text).map_err(|e| e.to_string())
+    });
+    match parsed {
         Ok(v) => {
             tracing::info!("running nori-robot {v}");
             Some(v)
