@@ -9,8 +9,10 @@
 #   deploy/arm64/cross.sh build   the robot's and the simulator's binaries for aarch64; prints
 #                                 each one's size and the glibc it needs, and fails if one needs
 #                                 more than the oldest supported Raspberry Pi OS has
-#   deploy/arm64/cross.sh test    the robot crates' unit tests and the process tests that matter
-#                                 most on the Pi, as arm64 processes (timings are not taken)
+#   deploy/arm64/cross.sh test [unit|process]
+#                                 the robot crates' unit tests and the process tests that matter
+#                                 most on the Pi, as arm64 processes (timings are not taken);
+#                                 both unless one is named
 #   deploy/arm64/cross.sh all     the three in turn
 #
 # The root lives in $NORI_CROSS_ROOT (/var/tmp/nori-cross/root); the sources are the working
@@ -157,23 +159,29 @@ build() {
 }
 
 run_tests() {
+  local which=${1:-both}
+  case $which in both | unit | process) ;; *) say "test: unit, process or neither (both)"; exit 2 ;; esac
   register_qemu
   copy_sources
-  local args=()
-  for c in "${unit_tested[@]}"; do args+=(-p "$c"); done
-  say "unit tests of ${unit_tested[*]} as arm64 processes"
-  in_root sh -c "cd /build/src && cargo test --locked --release ${args[*]} --lib --bins"
-  local tests=()
-  for t in "${process_tests[@]}"; do tests+=(--test "$t"); done
-  say "process tests ${process_tests[*]} as arm64 processes"
-  in_root sh -c "cd /build/src && cargo test --locked --release --no-fail-fast -p nori-tests ${tests[*]}"
+  if [ "$which" != process ]; then
+    local args=()
+    for c in "${unit_tested[@]}"; do args+=(-p "$c"); done
+    say "unit tests of ${unit_tested[*]} as arm64 processes"
+    in_root sh -c "cd /build/src && cargo test --locked --release ${args[*]} --lib --bins"
+  fi
+  if [ "$which" != unit ]; then
+    local tests=()
+    for t in "${process_tests[@]}"; do tests+=(--test "$t"); done
+    say "process tests ${process_tests[*]} as arm64 processes"
+    in_root sh -c "cd /build/src && cargo test --locked --release --no-fail-fast -p nori-tests ${tests[*]}"
+  fi
   say "every test above ran as an arm64 process under qemu-aarch64"
 }
 
 case "${1:-}" in
   root) make_root ;;
   build) build ;;
-  test) run_tests ;;
+  test) run_tests "${2:-both}" ;;
   all) make_root && build && run_tests ;;
   *) sed -n '2,20p' "$0" | sed 's/^# \{0,1\}//' >&2; exit 2 ;;
 esac
