@@ -186,7 +186,7 @@ impl<'a> Instruction<'a> {
     pub fn expects_reply(&self) -> bool {
         match self {
             Instruction::SyncWrite { .. } | Instruction::Reboot { .. } => false,
-            Instruction::SyncRead { .. } => true,
+            Instruction::SyncRead { .. } | Instruction::Ping { .. } => true,
             other => other.id() != BROADCAST_ID,
         }
     }
@@ -194,10 +194,9 @@ impl<'a> Instruction<'a> {
     /// Encodes the packet into `out`, returning its length.
     pub fn encode(&self, out: &mut [u8]) -> Result<usize, EncodeError> {
         let id = self.id();
-        let broadcast_ok = !matches!(
-            self,
-            Instruction::Ping { .. } | Instruction::Read { .. } | Instruction::Reboot { .. }
-        );
+        // A broadcast PING is answered by each servo that hears it: Feetech documents it for
+        // one servo alone on the bus (docs/commissioning.md); a broadcast READ has no meaning.
+        let broadcast_ok = !matches!(self, Instruction::Read { .. } | Instruction::Reboot { .. });
         if id > MAX_ID && !(id == BROADCAST_ID && broadcast_ok) {
             return Err(EncodeError::InvalidId(id));
         }
@@ -423,6 +422,16 @@ mod tests {
         };
         let records: Vec<_> = sw.sync_write_records().collect();
         assert_eq!(records, [(1, &[0u8, 8][..]), (2, &[0x10, 8][..])]);
+    }
+
+    #[test]
+    fn a_broadcast_ping_is_the_packet_the_sdks_send_and_expects_replies() {
+        // LeRobot's `_broadcast_ping` and Feetech's C++ `Ping(0xFE)`.
+        let mut buf = [0u8; 8];
+        let ping = Instruction::Ping { id: BROADCAST_ID };
+        assert_eq!(ping.encode(&mut buf), Ok(6));
+        assert_eq!(buf[..6], [0xFF, 0xFF, 0xFE, 0x02, 0x01, 0xFE]);
+        assert!(ping.expects_reply());
     }
 
     #[test]

@@ -209,6 +209,26 @@ impl ServoModel {
         }
     }
 
+    /// Its key in configuration files and the robot description (`sts3215`, ...).
+    pub const fn key(self) -> &'static str {
+        match self {
+            ServoModel::Sts3215 => "sts3215",
+            ServoModel::Sts3250 => "sts3250",
+            ServoModel::Sts3095 => "sts3095",
+        }
+    }
+
+    /// The model of a key (see [`ServoModel::key`]).
+    pub fn from_key(key: &str) -> Option<Self> {
+        [
+            ServoModel::Sts3215,
+            ServoModel::Sts3250,
+            ServoModel::Sts3095,
+        ]
+        .into_iter()
+        .find(|m| m.key() == key)
+    }
+
     /// The model of a `Model_Number` value.
     pub const fn from_model_number(n: u16) -> Option<Self> {
         match n {

@@ -121,15 +121,17 @@ pub struct TorqueLimitChange {
 pub struct SimBus {
     /// Bus name.
     pub name: String,
-    /// Line rate.
+    /// Line rate of the description (the servos' factory rate is 1 Mbps).
     pub baud: u32,
+    /// The line rate the host talks at now: a servo set to another rate hears garbage and
+    /// answers nothing (set from the pseudo-terminal's line settings when served).
+    host_baud: u32,
     supply_v: f64,
     supply_resistance: f64,
     /// The servos, in description order.
     pub servos: Vec<Servo>,
     joints: Vec<String>,
     roles: Vec<Role>,
-    index: [Option<u8>; 256],
     arm: Option<Arm>,
     arm_servos: Vec<usize>,
     wheel_load: (f64, f64),
@@ -210,13 +212,13 @@ impl SimBus {
         SimBus {
             name: d.name.clone(),
             baud: d.baud,
+            host_baud: d.baud,
             supply_v: d.supply_v,
             supply_resistance: d.supply_resistance_ohm,
             joints: d.servo.iter().map(|s| s.joint.clone()).collect(),
             registered: vec![None; servos.len()],
             servos,
             roles,
-            index,
             arm: d.arm.as_ref().map(|a| Arm::new(a, robot.gravity)),
             arm_servos,
             wheel_load,
@@ -266,8 +268,54 @@ impl SimBus {
     /// The feedback block (registers 56–70) servo `id` really answered to the last feedback
     /// SYNC_READ, before any line fault; `None` if it did not answer (silent or absent).
     pub fn feedback_truth(&self, id: u8) -> Option<&[u8]> {
-        let i = usize::from(self.index[id as usize]?);
+        let i = self.position(id)?;
         self.truth.get(i)?.as_ref().map(|b| &b[..])
+    }
+
+    /// Where servo `id` is in `servos` (the first, if the id is duplicated).
+    fn position(&self, id: u8) -> Option<usize> {
+        self.servos.iter().position(|s| s.id == id)
+    }
+
+    /// The host now talks at `baud` (its serial line's setting).
+    pub fn set_host_baud(&mut self, baud: u32) {
+        self.host_baud = baud;
+    }
+
+    /// The positions of the servos that hear a request to `id` (a duplicated id: each of them).
+    fn addressed(&self, id: u8) -> Vec<usize> {
+        (0..self.servos.len())
+            .filter(|&i| self.hears(i) && (id == BROADCAST_ID || self.servos[i].id == id))
+            .collect()
+    }
+
+    /// Whether the servo at position `i` hears the host: powered and at the host's rate.
+    fn hears(&self, i: usize) -> bool {
+        let s = &self.servos[i];
+        s.answering && s.line_baud() == Some(self.host_baud)
+    }
+
+    /// Puts a factory-fresh servo of the same model where `joint`'s servo was (a burnt one
+    /// replaced): id 1, 1 Mbps, the factory's EEPROM, at the joint's angle, its horn fitted
+    /// `horn_steps` off the old one's. False if the bus has no such joint.
+    pub fn fit_fresh_servo(
+        &mut self,
+        robot: &RobotDescription,
+        joint: &str,
+        horn_steps: f64,
+    ) -> bool {
+        let Some(i) = self.joints.iter().position(|j| j == joint) else {
+            return false;
+        };
+        let old = &self.servos[i];
+        let Some(rating) = robot.rating(old.model.key()) else {
+            return false;
+        };
+        let mut fresh = Servo::new(1, old.model, rating, old.angle, self.ambient);
+        fresh.supply = old.supply;
+        fresh.fit_horn(old.horn_steps + horn_steps);
+        self.servos[i] = fresh;
+        true
     }
 
     /// The pose of the base these wheels move (x, y in m, heading in rad), if they move one.
@@ -282,8 +330,8 @@ impl SimBus {
 
     /// The servo with bus id `id`.
     pub fn servo_mut(&mut self, id: u8) -> Option<&mut Servo> {
-        let i = self.index[id as usize]?;
-        self.servos.get_mut(usize::from(i))
+        let i = self.position(id)?;
+        self.servos.get_mut(i)
     }
 
     /// The arm's mechanics, if this bus drives an arm (to place obstacles or objects).
@@ -517,12 +565,14 @@ impl SimBus {
         // The request occupies the line first; replies follow it back to back.
         let request_bytes = frame.params().len() + 6;
         let start = self.line_free_at.max(self.arrival);
-        self.line_free_at = start + wire_time(request_bytes, self.baud).as_secs_f64();
-        let targets = |id: u8, s: &Servo| id == BROADCAST_ID || s.id == id;
+        self.line_free_at = start + wire_time(request_bytes, self.host_baud).as_secs_f64();
         match instruction {
-            Instruction::Ping { id } => self.reply_from(id, &[], instruction_number),
+            Instruction::Ping { id: BROADCAST_ID } => {
+                self.answer_broadcast_ping(instruction_number)
+            }
+            Instruction::Ping { id } => self.answer(id, None, instruction_number),
             Instruction::Read { id, addr, len } => {
-                self.read_reply(id, addr, len, instruction_number)
+                self.answer(id, Some((addr, len)), instruction_number)
             }
             Instruction::Write { id, addr, data } => {
                 let torque_off = feetech::registers::TORQUE_ENABLE.addr;
@@ -532,117 +582,122 @@ impl SimBus {
                     }
                     self.torque_off_broadcasts.push_back(self.arrival);
                 }
-                for s in self.servos.iter_mut() {
-                    if targets(id, s) && s.answering {
-                        s.write(addr, data);
-                    }
+                // The reply goes out under the id the request named, even when it changed it.
+                let at = self.addressed(id);
+                for &i in &at {
+                    self.servos[i].write(addr, data);
                 }
-                self.reply_from(id, &[], instruction_number);
+                if id != BROADCAST_ID {
+                    self.answer_from(&at, Some(id), None, instruction_number);
+                }
             }
             Instruction::RegWrite { id, addr, data } => {
-                for (i, s) in self.servos.iter().enumerate() {
-                    if targets(id, s) && s.answering {
-                        self.registered[i] = Some((addr, data.to_vec()));
-                    }
+                for i in self.addressed(id) {
+                    self.registered[i] = Some((addr, data.to_vec()));
                 }
-                self.reply_from(id, &[], instruction_number);
+                self.answer(id, None, instruction_number);
             }
             Instruction::Action { id } => {
-                for (i, s) in self.servos.iter_mut().enumerate() {
-                    if targets(id, s) {
-                        if let Some((addr, data)) = self.registered[i].take() {
-                            s.write(addr, &data);
-                        }
+                for i in self.addressed(id) {
+                    if let Some((addr, data)) = self.registered[i].take() {
+                        self.servos[i].write(addr, &data);
                     }
                 }
-                self.reply_from(id, &[], instruction_number);
+                self.answer(id, None, instruction_number);
             }
-            Instruction::FactoryReset { id } => self.reply_from(id, &[], instruction_number),
+            Instruction::FactoryReset { id } => self.answer(id, None, instruction_number),
             Instruction::Reboot { id } => {
-                for s in self
-                    .servos
-                    .iter_mut()
-                    .filter(|s| s.id == id || id == BROADCAST_ID)
-                {
-                    s.reboot();
+                for i in self.addressed(id) {
+                    self.servos[i].reboot();
                 }
             }
             Instruction::SyncRead { addr, len, ids } => {
                 self.stats.sync_reads += 1;
-                let feedback = addr == FEEDBACK_ADDR && len == FEEDBACK_LEN;
-                if feedback {
+                if (addr, len) == (FEEDBACK_ADDR, FEEDBACK_LEN) {
                     self.truth.iter_mut().for_each(|t| *t = None);
                 }
                 for &id in ids {
-                    self.read_reply(id, addr, len, instruction_number);
+                    self.answer(id, Some((addr, len)), instruction_number);
                 }
             }
             Instruction::SyncWrite { addr, .. } => {
                 self.stats.sync_writes += 1;
                 for (id, data) in instruction.sync_write_records() {
-                    if let Some(s) = self.servo_mut(id) {
-                        if s.answering {
-                            s.write(addr, data);
-                        }
+                    for i in self.addressed(id) {
+                        self.servos[i].write(addr, data);
                     }
                 }
             }
         }
     }
 
-    fn read_reply(&mut self, id: u8, addr: u8, len: u8, instruction: u64) {
-        let mut data = [0u8; TABLE_SIZE];
-        let ok = match self.servo_mut(id) {
-            Some(s) if s.answering => s.read(addr, len, &mut data),
-            _ => return,
-        };
-        if ok && addr == FEEDBACK_ADDR && len == FEEDBACK_LEN {
-            if let Some(i) = self.index[id as usize].map(usize::from) {
+    /// The status packets of every servo that hears the request and has id `id` (nothing for
+    /// broadcast), each after its return delay: with `read`, the registers read. Two servos
+    /// with one id talk at once and garble each other (see [`crate::line`]).
+    fn answer(&mut self, id: u8, read: Option<(u8, u8)>, instruction: u64) {
+        if id == BROADCAST_ID {
+            return;
+        }
+        let at = self.addressed(id);
+        self.answer_from(&at, Some(id), read, instruction);
+    }
+
+    /// The status packets of the servos at `positions`, under `id` (`None`: each its own).
+    fn answer_from(
+        &mut self,
+        positions: &[usize],
+        id: Option<u8>,
+        read: Option<(u8, u8)>,
+        instruction: u64,
+    ) {
+        let start = self.line_free_at;
+        let byte_s = wire_time(1, self.host_baud).as_secs_f64();
+        let mut line = crate::line::Line::default();
+        for &i in positions {
+            let mut data = [0u8; TABLE_SIZE];
+            let servo = &mut self.servos[i];
+            let params = match read {
+                None => &data[..0],
+                Some((addr, len)) if servo.read(addr, len, &mut data) => &data[..usize::from(len)],
+                Some(_) => continue,
+            };
+            let at = start + servo.return_delay_s();
+            let packet = StatusPacket {
+                id: id.unwrap_or(servo.id),
+                status: servo.status(),
+                params,
+            };
+            let mut out = [0u8; MAX_PACKET];
+            let Some(n) = packet.encode(&mut out) else {
+                continue;
+            };
+            if read == Some((FEEDBACK_ADDR, FEEDBACK_LEN)) {
                 let mut block = [0u8; FEEDBACK_LEN as usize];
                 block.copy_from_slice(&data[..FEEDBACK_LEN as usize]);
                 self.truth[i] = Some(block);
             }
+            line.put(at, &out[..n], byte_s);
         }
-        if ok {
-            self.reply_from(id, &data[..len as usize], instruction);
-        }
+        self.put_on_line(line, instruction);
     }
 
-    /// Schedules the status packet of servo `id` (nothing for broadcast or an absent servo).
-    fn reply_from(&mut self, id: u8, params: &[u8], instruction: u64) {
-        if id == BROADCAST_ID {
-            return;
-        }
-        let Some(servo) = self.servo_mut(id) else {
+    /// Schedules what the servos put on the line, through the line faults.
+    fn put_on_line(&mut self, line: crate::line::Line, instruction: u64) {
+        self.stats.replies += line.packets() as u64;
+        let Some((mut out, due)) = line.finish() else {
             return;
         };
-        if !servo.answering {
-            return;
-        }
-        let delay = f64::from(servo.get(feetech::registers::RETURN_DELAY_TIME)) * 2e-6;
-        let packet = StatusPacket {
-            id,
-            status: servo.status(),
-            params,
-        };
-        let mut out = [0u8; MAX_PACKET];
-        let Some(n) = packet.encode(&mut out) else {
-            return;
-        };
-        let due = self.line_free_at + delay + wire_time(n, self.baud).as_secs_f64();
         self.line_free_at = due;
-        self.stats.replies += 1;
         let fault = match self.faults.as_mut() {
             Some(f) => {
-                let fault = f.draw(n);
+                let fault = f.draw(out.len());
                 self.stats.faults = f.counts;
                 fault
             }
             None => crate::faults::Fault::None,
         };
-        let bytes = crate::faults::apply(fault, &mut out[..n]);
-        let n = bytes.len();
-        if n == 0 {
+        let bytes = crate::faults::apply(fault, &mut out);
+        if bytes.is_empty() {
             return;
         }
         if let Some(last) = self
@@ -650,15 +705,26 @@ impl SimBus {
             .back_mut()
             .filter(|r| r.instruction == instruction)
         {
-            last.bytes.extend_from_slice(&out[..n]);
+            last.bytes.extend_from_slice(bytes);
             last.due = due;
             return;
         }
+        let bytes = bytes.to_vec();
         self.pending.push_back(Reply {
             due,
-            bytes: out[..n].to_vec(),
+            bytes,
             instruction,
         });
+    }
+
+    /// A broadcast PING. Feetech documents it for one servo alone on the bus ("broadcast is
+    /// only applicable when there is only one servo", their SMS_STS Ping example), which then
+    /// answers under its own id after its return delay (their C++ `ping` takes a reply from any
+    /// id to 0xFE); nothing documents a stagger between several servos, so here each answers
+    /// as the lone one would, and answers that overlap collide (see `docs/commissioning.md`).
+    fn answer_broadcast_ping(&mut self, instruction: u64) {
+        let at = self.addressed(BROADCAST_ID);
+        self.answer_from(&at, None, None, instruction);
     }
 }
 
@@ -752,6 +818,120 @@ mod tests {
         );
         let s7 = bus.servo_mut(7).unwrap();
         assert_eq!(s7.log.goal_max, Some(0x700));
+    }
+
+    fn frames(bytes: &[u8]) -> Vec<Result<u8, feetech::DecodeError>> {
+        let mut d = Decoder::new();
+        d.push(bytes);
+        std::iter::from_fn(|| d.finish())
+            .map(|f| f.map(|f| f.id))
+            .collect()
+    }
+
+    fn alone(bus: &mut SimBus, id: u8) {
+        for s in &mut bus.servos {
+            s.answering = s.id == id;
+        }
+    }
+
+    #[test]
+    fn a_lone_servo_answers_a_broadcast_ping_under_its_own_id() {
+        let mut bus = left_arm();
+        alone(&mut bus, 6);
+        send(&mut bus, Instruction::Ping { id: BROADCAST_ID });
+        let reply = bus.pop_due(f64::MAX).unwrap();
+        // 6 bytes request + the factory 500 µs return delay + 6 bytes reply.
+        assert!((reply.due - 620e-6).abs() < 1e-9, "{}", reply.due);
+        assert_eq!(reply.bytes, [0xFF, 0xFF, 6, 2, 0, 0xF7]);
+    }
+
+    #[test]
+    fn servos_answering_a_broadcast_ping_together_garble_the_line() {
+        let mut bus = left_arm();
+        send(&mut bus, Instruction::Ping { id: BROADCAST_ID });
+        let reply = bus.pop_due(f64::MAX).unwrap();
+        assert_eq!(bus.stats.replies, 8);
+        assert!(frames(&reply.bytes).iter().all(Result::is_err));
+    }
+
+    #[test]
+    fn a_duplicated_id_answers_twice_or_garbled() {
+        let mut bus = left_arm();
+        let write = |bus: &mut SimBus, id: u8, r: reg::Register, value: u8| {
+            let data = [value];
+            send(
+                bus,
+                Instruction::Write {
+                    id,
+                    addr: r.addr,
+                    data: &data,
+                },
+            );
+            bus.pop_due(f64::MAX).map(|r| frames(&r.bytes))
+        };
+        // The bicep's servo (an STS3250) becomes a second id 1 beside the shoulder's STS3095,
+        // both at the factory's return delay.
+        let ack = write(&mut bus, 3, reg::ID, 1);
+        assert_eq!(ack, Some(vec![Ok(3)]), "acknowledged under the old id");
+        send(&mut bus, Instruction::Ping { id: 3 });
+        assert!(bus.pop_due(f64::MAX).is_none(), "id 3 is gone");
+        // The same bytes at the same time: one packet to the host.
+        send(&mut bus, Instruction::Ping { id: 1 });
+        assert_eq!(frames(&bus.pop_due(f64::MAX).unwrap().bytes), [Ok(1)]);
+        // Different data at the same time: garbled.
+        let model = Instruction::Read {
+            id: 1,
+            addr: reg::MODEL_NUMBER.addr,
+            len: 2,
+        };
+        send(&mut bus, model);
+        let garbled = frames(&bus.pop_due(f64::MAX).unwrap().bytes);
+        assert!(garbled.iter().all(Result::is_err), "{garbled:?}");
+        // Different return delays: two intact packets, the quicker first.
+        // (One of the two set directly: a request to id 1 reaches both.)
+        assert!(bus.servos[0].write(reg::RETURN_DELAY_TIME.addr, &[0]));
+        send(&mut bus, model);
+        let reply = bus.pop_due(f64::MAX).unwrap();
+        let models: Vec<u16> = reply
+            .bytes
+            .chunks(8)
+            .map(|p| u16::from_le_bytes([p[5], p[6]]))
+            .collect();
+        assert_eq!(frames(&reply.bytes), [Ok(1), Ok(1)]);
+        assert_eq!(
+            models,
+            [2569, 2825],
+            "the shoulder's STS3095 (delay 0) first"
+        );
+    }
+
+    #[test]
+    fn a_servo_at_another_rate_hears_nothing_until_the_host_talks_at_its_rate() {
+        let mut bus = left_arm();
+        alone(&mut bus, 4);
+        send(
+            &mut bus,
+            Instruction::Write {
+                id: 4,
+                addr: reg::BAUD_RATE.addr,
+                data: &[6],
+            },
+        );
+        assert_eq!(
+            frames(&bus.pop_due(f64::MAX).unwrap().bytes),
+            [Ok(4)],
+            "acknowledged first"
+        );
+        send(&mut bus, Instruction::Ping { id: 4 });
+        assert!(bus.pop_due(f64::MAX).is_none());
+        bus.set_host_baud(57_600);
+        bus.advance_to(1.0, 0.001);
+        let t0 = bus.time();
+        send(&mut bus, Instruction::Ping { id: 4 });
+        let reply = bus.pop_due(f64::MAX).unwrap();
+        assert_eq!(frames(&reply.bytes), [Ok(4)]);
+        // 12 bytes at 57 600 baud and the 500 µs delay.
+        assert!((reply.due - t0 - (12.0 * 10.0 / 57_600.0 + 500e-6)).abs() < 1e-6);
     }
 
     #[test]

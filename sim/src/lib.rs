@@ -7,7 +7,10 @@
 //!   compliant TPU gripper.
 //! * [`bus`]: one bus, sans-IO: the device side of the `feetech` codec with the line's timing
 //!   (replies complete `bytes × 10 / baud` after the request, plus the return delay).
-//! * [`pty`]: serving buses on pseudo-terminals in real time for the unmodified driver.
+//! * [`line`]: what the servos put on the shared half-duplex line: each answer after its own
+//!   return delay, overlapping answers garbled (duplicated ids, a broadcast PING).
+//! * [`pty`]: serving buses on pseudo-terminals in real time for the unmodified driver (the
+//!   host's line rate read from the pty: a servo at another rate hears nothing).
 //! * [`camera`], [`lidar`]: the sensors, rendered and ray-cast from the simulated robot and
 //!   its room, served as the devices `nori-camera` and `nori-lidar` read.
 //! * [`description`]: the robot description file; the A3's is embedded.
@@ -34,6 +37,7 @@ pub mod extension;
 pub mod faults;
 pub mod lidar;
 pub mod lift;
+pub mod line;
 pub mod pty;
 pub mod render;
 pub mod rng;

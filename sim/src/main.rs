@@ -100,6 +100,11 @@ struct ServeArgs {
     /// The obstacle under the lift appears this many seconds after start.
     #[arg(long, value_name = "S", default_value_t = 0.0)]
     pub lift_obstacle_from: f64,
+    /// A factory-fresh servo of the same model where a joint's servo was (a burnt one
+    /// replaced, before `nori servo setup`): id 1, 1 Mbps, the factory's EEPROM. BUS:JOINT,
+    /// e.g. `left_arm:left_elbow`; repeatable.
+    #[arg(long, value_name = "BUS:JOINT")]
+    pub fresh_servo: Vec<String>,
 }
 
 /// The simulator's report: one entry per bus, the lidar's and the lift's.
@@ -149,7 +154,7 @@ fn run(args: &ServeArgs) -> Result<()> {
     let faults = line_faults(args)?;
     let mut schedule = fault_schedule(args, &robot)?;
     let shutdown = telemetry::process::stop_flag()?;
-    let buses = sim_buses(args, &robot, &faults);
+    let buses = sim_buses(args, &robot, &faults)?;
     let lidar_faults = sensor_faults(args)?;
     let served = serve(buses, args.dt)?;
     let devices = Devices {
@@ -305,7 +310,8 @@ fn sim_buses(
     args: &ServeArgs,
     robot: &RobotDescription,
     faults: &sim::faults::LineFaults,
-) -> Vec<(SimBus, PathBuf)> {
+) -> Result<Vec<(SimBus, PathBuf)>> {
+    let fresh = fresh_servos(args, robot)?;
     let mut buses = Vec::new();
     for (i, bus) in robot
         .bus
@@ -319,9 +325,46 @@ fn sim_buses(
             seed: faults.seed.wrapping_add(i as u64),
             ..*faults
         }));
+        for (_, joint) in fresh.iter().filter(|(b, _)| *b == bus.name) {
+            // A horn goes on the spline at any of its teeth: seeded by the joint, so a run is
+            // repeatable; never where the old one was.
+            let seed = joint
+                .bytes()
+                .fold(args.fault_seed, |h, b| h.wrapping_mul(31) ^ u64::from(b));
+            let horn = sim::rng::Rng::new(seed).range(40.0, 400.0).round();
+            sim_bus.fit_fresh_servo(robot, joint, horn);
+            eprintln!(
+                "nori sim: a factory-fresh servo (id 1) at {joint} on {}, its horn {horn} \
+                 steps off the old one's",
+                bus.name
+            );
+        }
         buses.push((sim_bus, args.dir.join(&bus.name)));
     }
-    buses
+    Ok(buses)
+}
+
+/// `--fresh-servo BUS:JOINT`, each a joint of a bus served.
+fn fresh_servos<'a>(
+    args: &'a ServeArgs,
+    robot: &RobotDescription,
+) -> Result<Vec<(&'a str, &'a str)>> {
+    args.fresh_servo
+        .iter()
+        .map(|text| {
+            let (bus, joint) = text
+                .split_once(':')
+                .with_context(|| format!("--fresh-servo {text:?}: BUS:JOINT"))?;
+            let served = robot.bus(bus).filter(|_| serves_bus(args, bus));
+            let Some(described) = served else {
+                anyhow::bail!("--fresh-servo {text:?}: no bus {bus:?} served");
+            };
+            if !described.servo.iter().any(|s| s.joint == joint) {
+                anyhow::bail!("--fresh-servo {text:?}: bus {bus} has no joint {joint:?}");
+            }
+            Ok((bus, joint))
+        })
+        .collect()
 }
 
 /// Checks the cameras' fault rates; gives the lidar's faults.

@@ -253,6 +253,9 @@ pub struct Servo {
     pub sensor_temperature: f64,
     /// Heat flowing in from neighbouring servos, W (set by the bus before each step).
     pub external_heat_w: f64,
+    /// Where its encoder reads, less 2048 steps, when its joint is at zero: the spline tooth
+    /// its horn was fitted on (0 on the simulated A3 as delivered).
+    pub horn_steps: f64,
     fw: Firmware,
 }
 
@@ -286,6 +289,7 @@ impl Servo {
             extension: Default::default(),
             sensor_temperature: ambient,
             external_heat_w: 0.0,
+            horn_steps: 0.0,
             fw: Firmware::default(),
         };
         let factory: &[(Register, i32)] = &[
@@ -374,7 +378,14 @@ impl Servo {
 
     /// Raw position (steps) of the output shaft, before the homing offset.
     fn raw_position(&self) -> f64 {
-        CENTER_STEP + self.angle / RAD_PER_STEP
+        CENTER_STEP + self.horn_steps + self.angle / RAD_PER_STEP
+    }
+
+    /// Fits its horn `steps` off the joint's zero (a new servo's); its goal follows, so it
+    /// holds where it is.
+    pub fn fit_horn(&mut self, steps: f64) {
+        self.horn_steps = steps;
+        self.set_goal_to_present();
     }
 
     fn present_position(&self) -> i32 {
@@ -388,6 +399,19 @@ impl Servo {
         self.setpoint = f64::from(p);
         self.setpoint_speed = 0.0;
         self.fw.goal = f64::from(p);
+    }
+
+    /// The line rate it listens and answers at (its `Baud_Rate` register; an undefined code is
+    /// no rate any host can set, so the servo hears nobody).
+    pub fn line_baud(&self) -> Option<u32> {
+        feetech::timing::BAUD_CODES
+            .get(usize::try_from(self.get(reg::BAUD_RATE)).ok()?)
+            .copied()
+    }
+
+    /// Its reply delay, s (`Return_Delay_Time`, 2 µs a count).
+    pub fn return_delay_s(&self) -> f64 {
+        f64::from(self.get(reg::RETURN_DELAY_TIME)) * 2e-6
     }
 
     /// The Torque_Limit register, 0.1 %.
@@ -405,6 +429,7 @@ impl Servo {
     /// Power cycle: SRAM back to defaults, EEPROM from flash, protections cleared.
     pub fn reboot(&mut self) {
         self.regs[..40].copy_from_slice(&self.flash[..40]);
+        self.id = self.get(reg::ID) as u8;
         self.set(reg::TORQUE_ENABLE, 0);
         let max_torque = self.get(reg::MAX_TORQUE_LIMIT);
         self.set(reg::TORQUE_LIMIT, max_torque);
@@ -444,6 +469,9 @@ impl Servo {
             }
             self.regs[at] = b;
         }
+        // A new id (and a new line rate) takes effect at once; the flash keeps it only when
+        // the EEPROM was unlocked.
+        self.id = self.get(reg::ID) as u8;
         self.refresh_firmware();
         let touches = |r: Register| a <= r.addr as usize && (r.addr as usize) < a + data.len();
         if touches(reg::GOAL_POSITION) {
@@ -829,7 +857,7 @@ impl Servo {
     /// Writes the goal position for joint angle `angle_rad` (rounded to a step, within the
     /// register's range).
     pub fn command_goal(&mut self, angle_rad: f64) {
-        let raw = (CENTER_STEP + angle_rad / RAD_PER_STEP)
+        let raw = (CENTER_STEP + self.horn_steps + angle_rad / RAD_PER_STEP)
             .round()
             .clamp(0.0, f64::from(STEPS_PER_TURN - 1)) as u16;
         self.write(reg::GOAL_POSITION.addr, &raw.to_le_bytes());
@@ -842,7 +870,8 @@ impl Servo {
 
     /// Joint angle of a raw Present_Position value for this servo (homing offset applied).
     pub fn angle_of_present(&self, present: i32) -> f64 {
-        (f64::from(present + self.get(reg::HOMING_OFFSET)) - CENTER_STEP) * RAD_PER_STEP
+        (f64::from(present + self.get(reg::HOMING_OFFSET)) - CENTER_STEP - self.horn_steps)
+            * RAD_PER_STEP
     }
 }
 
@@ -1172,5 +1201,48 @@ mod tests {
         assert_eq!(s.log.eeprom_writes, 1);
         s.reboot();
         assert_eq!(s.get(reg::MAX_TEMPERATURE_LIMIT), 60);
+    }
+
+    #[test]
+    fn a_horn_on_another_tooth_moves_the_reading_not_the_joint() {
+        let mut s = servo("sts3215");
+        s.fit_horn(300.0);
+        let mut feedback = [0u8; 2];
+        assert!(s.read(reg::PRESENT_POSITION.addr, 2, &mut feedback));
+        assert_eq!(u16::from_le_bytes(feedback), 2348);
+        assert!((s.angle_of_present(2348)).abs() < 1e-12);
+        // Torque on at the goal it was fitted with: it holds where it is.
+        write_u16(&mut s, reg::TORQUE_ENABLE, 1);
+        for _ in 0..500 {
+            s.step(0.001, Surroundings::BENCH);
+        }
+        assert!(s.angle.abs() < 0.01, "{}", s.angle);
+        s.command_goal(0.5);
+        for _ in 0..2000 {
+            s.step(0.001, Surroundings::BENCH);
+        }
+        assert!((s.angle - 0.5).abs() < 0.02, "{}", s.angle);
+    }
+
+    #[test]
+    fn a_new_id_and_rate_act_at_once_and_last_only_when_unlocked() {
+        let mut s = servo("sts3215");
+        assert_eq!((s.id, s.line_baud()), (1, Some(1_000_000)));
+        write_u16(&mut s, reg::ID, 9);
+        write_u16(&mut s, reg::BAUD_RATE, 6);
+        assert_eq!((s.id, s.line_baud()), (9, Some(57_600)));
+        s.reboot();
+        assert_eq!(
+            (s.id, s.line_baud()),
+            (1, Some(1_000_000)),
+            "locked: not flashed"
+        );
+        write_u16(&mut s, reg::LOCK, 0);
+        write_u16(&mut s, reg::ID, 9);
+        s.reboot();
+        assert_eq!(s.id, 9);
+        write_u16(&mut s, reg::LOCK, 0);
+        write_u16(&mut s, reg::BAUD_RATE, 8);
+        assert_eq!(s.line_baud(), None, "code 8 is no rate");
     }
 }
