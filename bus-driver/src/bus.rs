@@ -368,6 +368,36 @@ impl<T: Transport> Bus<T> {
         Err(last)
     }
 
+    /// Sends `instruction` once and listens for the whole `window` after its wire time,
+    /// keeping everything that comes back: a scan's evidence (a second servo with the same id
+    /// answers after the first, or over it). Not retried.
+    pub fn listen(
+        &mut self,
+        instruction: Instruction,
+        window: Duration,
+    ) -> Result<Heard, BusError> {
+        self.start()?;
+        let before = self.counters;
+        self.send(instruction)?;
+        // `send` encoded it into `tx`; its length sets the wire time.
+        let request = instruction.encode(&mut self.tx).unwrap_or(0);
+        let deadline = Instant::now() + wire_time(request, self.transport.baud()) + window;
+        let mut heard = Heard::default();
+        self.collect_until(deadline, |_, status| {
+            heard.replies.push(Reply {
+                id: status.id,
+                status: status.status,
+                data: status.params.to_vec(),
+            });
+            false
+        })?;
+        let after = &self.counters;
+        heard.damaged = (after.checksum_errors - before.checksum_errors)
+            + (after.framing_errors - before.framing_errors)
+            + u64::from(after.garbage_bytes > before.garbage_bytes);
+        Ok(heard)
+    }
+
     /// PING: the servo's status bits, or why it did not answer.
     pub fn ping(&mut self, id: u8) -> Result<ServoStatus, BusError> {
         Ok(self.transact(id, Instruction::Ping { id }, 0)?.0)
@@ -404,6 +434,27 @@ impl<T: Transport> Bus<T> {
         };
         Ok(self.transact(id, write, 0)?.0)
     }
+}
+
+/// One intact status packet heard by [`Bus::listen`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct Reply {
+    /// The id it came from.
+    pub id: u8,
+    /// Its status bits.
+    pub status: ServoStatus,
+    /// Its data (empty for a PING or WRITE).
+    pub data: Vec<u8>,
+}
+
+/// What came back to one instruction within a listening window.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Heard {
+    /// Every intact status packet, in arrival order.
+    pub replies: Vec<Reply>,
+    /// Damaged packets (bad checksum or framing) and runs of bytes that were no packet: on a
+    /// clean line, two servos that talked at once.
+    pub damaged: u64,
 }
 
 /// Bytes of a READ request: header, id, length, instruction, address, count, checksum.

@@ -361,7 +361,7 @@ impl DriverConfig {
     fn validate_backstops(&self, origin: &str) -> Result<(), ConfigError> {
         for (model, b) in &self.backstops {
             let key = |k: &str| format!("backstops.{model}.{k}");
-            if !matches!(model.as_str(), "sts3215" | "sts3250" | "sts3095") {
+            if feetech::ServoModel::from_key(model).is_none() {
                 return Err(invalid(
                     origin,
                     format!("backstops.{model}"),

@@ -284,14 +284,6 @@ pub struct Driver<T: Transport> {
     pub counters: DriverCounters,
 }
 
-fn model_of(key: &str) -> ServoModel {
-    match key {
-        "sts3250" => ServoModel::Sts3250,
-        "sts3095" => ServoModel::Sts3095,
-        _ => ServoModel::Sts3215,
-    }
-}
-
 impl<T: Transport> Driver<T> {
     /// A driver for a validated configuration, with one transport per configured bus, in order.
     /// It starts in its safe state when a supervisor is required (until one is heard from).
@@ -306,7 +298,8 @@ impl<T: Transport> Driver<T> {
                 joints.push(Joint {
                     name: s.joint.clone(),
                     id: s.id,
-                    model: model_of(&s.model),
+                    // Validated at load: a servo's model has backstops, known models only.
+                    model: ServoModel::from_key(&s.model).unwrap_or(ServoModel::Sts3215),
                     role: match (bus_config.mode, s.role) {
                         (Mode::Speed, _) => JointRole::Wheel,
                         (_, Role::Gripper) => JointRole::Gripper,

@@ -1,5 +1,5 @@
 //! `nori`: the operator's command. Its own commands look at and move the robot (`state`,
-//! `goal`, `reenable`, `stop`, `resume`) and record demonstrations (`record`, `dataset`); every other command is
+//! `goal`, `reenable`, `stop`, `resume`), commission its servo buses (`servo scan`) and record demonstrations (`record`, `dataset`); every other command is
 //! a program of its own, installed next to it, that `nori` runs in its place (same process,
 //! same arguments), so the one command name reaches all of them:
 //!
@@ -15,6 +15,7 @@
 
 mod base_tool;
 mod plane_tools;
+mod servo_tool;
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
@@ -52,6 +53,9 @@ enum Command {
     /// The lift: `nori lift release` ends an obstruction's hold or a jam (heights: `nori goal
     /// lift=M`).
     Lift(plane_tools::LiftArgs),
+    /// Commissioning and service of the servo buses (`nori servo scan`); the stack stopped.
+    #[command(subcommand)]
+    Servo(servo_tool::ServoCommand),
     /// Ask the supervisor to re-enable a bus it tripped (granted once the bus has cooled).
     Reenable(plane_tools::ReenableArgs),
     /// Stop the robot: its safe state, no goal from any source, until `nori resume` (no
@@ -125,6 +129,7 @@ fn main() -> Result<()> {
         Command::Stop(a) => plane_tools::stop(a),
         Command::Resume(a) => plane_tools::resume(a),
         Command::Base(a) => base_tool::base(a),
+        Command::Servo(c) => servo_tool::servo(c),
         Command::Lab(p) => run_instead("nori-lab", &[], p),
         Command::PolicyServer(p) => run_instead("nori-fleet", &["policy-server"], p),
         // `nori fleet store` and `nori fleet report` are commands of their own; plain `nori fleet`

@@ -28,7 +28,11 @@ const ALLOWED: &[(&str, &[&str])] = &[
     ("model-lab", &["sim"]),
     ("fleet", &["fleet-agent", "telemetry"]),
     ("stack", &["telemetry", "sim", "bus-driver"]),
-    ("nori", &["telemetry", "feetech"]),
+    ("commission", &["feetech", "bus-driver"]),
+    (
+        "nori",
+        &["telemetry", "feetech", "bus-driver", "commission"],
+    ),
     ("lab", &["telemetry", "body"]),
     (
         "bench",
@@ -95,6 +99,7 @@ const ROBOT: &[&str] = &[
     "base",
     "lift",
     "nori",
+    "commission",
     "lab",
 ];
 const OFF_ROBOT: &[&str] = &["fleet", "stack", "bench", "nori-tests", "model-lab", "sim"];

@@ -1,0 +1,289 @@
+//! A scan judged against the driver's configuration: every configured servo at its id, rate
+//! and model, no other servo on the bus, and the EEPROM the driver would find.
+
+use crate::scan::{BusScan, Duplicate, Found};
+use bus_driver::backstops;
+use bus_driver::config::{BusConfig, LoadedConfig, Mode};
+use feetech::ServoModel;
+use serde::Serialize;
+
+/// How much a finding matters.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Severity {
+    /// The driver writes it right at start: nothing to do.
+    Note,
+    /// The driver would refuse the servo or drive the wrong one: service needed.
+    Fault,
+}
+
+/// One thing a scan found wrong or worth knowing.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(tag = "finding", rename_all = "kebab-case")]
+pub enum Finding {
+    /// A configured servo answered at no rate.
+    Missing {
+        /// Its joint.
+        joint: String,
+        /// Its id.
+        id: u8,
+    },
+    /// A servo answers only at a rate that is not the bus's.
+    WrongRate {
+        /// The joint configured at its id, if any.
+        joint: Option<String>,
+        /// Its id.
+        id: u8,
+        /// The rate it answers at.
+        baud: u32,
+        /// The bus's rate.
+        bus_baud: u32,
+    },
+    /// The servo at a joint's id is another model.
+    WrongModel {
+        /// The joint.
+        joint: String,
+        /// Its id.
+        id: u8,
+        /// The model the configuration names.
+        expected: ServoModelName,
+        /// The `Model_Number` read.
+        model_number: u16,
+    },
+    /// More than one servo answers at an id.
+    Duplicated {
+        /// The joint configured at it, if any.
+        joint: Option<String>,
+        /// The id.
+        id: u8,
+        /// How it showed.
+        evidence: Duplicate,
+    },
+    /// A servo no joint is configured at.
+    Unexpected {
+        /// Its id.
+        id: u8,
+        /// Its `Model_Number`, if it was read.
+        model_number: Option<u16>,
+    },
+    /// A servo answered its PING but never its table.
+    Unreadable {
+        /// The joint configured at its id, if any.
+        joint: Option<String>,
+        /// Its id.
+        id: u8,
+    },
+    /// EEPROM settings that differ from what the driver writes at start (and will write).
+    Settings {
+        /// The joint.
+        joint: String,
+        /// Its id.
+        id: u8,
+        /// Each setting that differs.
+        changes: Vec<SettingChange>,
+    },
+}
+
+/// One EEPROM setting the driver will change.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SettingChange {
+    /// The register.
+    pub register: &'static str,
+    /// What the servo holds.
+    pub found: i32,
+    /// What the driver writes.
+    pub driver_writes: i32,
+}
+
+/// A model's configuration key, for reports.
+pub type ServoModelName = &'static str;
+
+impl Finding {
+    /// How much it matters.
+    pub fn severity(&self) -> Severity {
+        match self {
+            Finding::Settings { .. } => Severity::Note,
+            _ => Severity::Fault,
+        }
+    }
+}
+
+impl std::fmt::Display for Finding {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let at = |joint: &Option<String>, id: &u8| match joint {
+            Some(j) => format!("{j} (id {id})"),
+            None => format!("id {id}"),
+        };
+        match self {
+            Finding::Missing { joint, id } => write!(
+                f,
+                "{joint} (id {id}) answers at no rate: unplugged, unpowered, or a new servo not \
+                 yet given its id"
+            ),
+            Finding::WrongRate {
+                joint,
+                id,
+                baud,
+                bus_baud,
+            } => write!(
+                f,
+                "{} answers at {baud} baud, the bus runs at {bus_baud}: its rate must be set \
+                 again",
+                at(joint, id)
+            ),
+            Finding::WrongModel {
+                joint,
+                id,
+                expected,
+                model_number,
+            } => write!(
+                f,
+                "{joint} (id {id}) is a {} where the configuration says {expected}: the driver \
+                 refuses it; fit the right servo",
+                model_name(*model_number)
+            ),
+            Finding::Duplicated {
+                joint,
+                id,
+                evidence,
+            } => write!(
+                f,
+                "more than one servo answers at {} ({}): connect one at a time and give each \
+                 its id",
+                at(joint, id),
+                match evidence {
+                    Duplicate::AnsweredTwice { answers } =>
+                        format!("{answers} answers to one request"),
+                    Duplicate::Garbled { attempts } =>
+                        format!("{attempts} of {attempts} reads garbled"),
+                }
+            ),
+            Finding::Unexpected { id, model_number } => write!(
+                f,
+                "id {id} ({}) is no joint of this bus (a factory-fresh servo answers at id 1)",
+                model_number.map_or("model unread".into(), model_name)
+            ),
+            Finding::Unreadable { joint, id } => write!(
+                f,
+                "{} answers a PING but never its table: a damaged line or servo",
+                at(joint, id)
+            ),
+            Finding::Settings { joint, id, changes } => {
+                write!(f, "{joint} (id {id}): the driver will write")?;
+                for (i, c) in changes.iter().enumerate() {
+                    let sep = if i == 0 { " " } else { ", " };
+                    write!(f, "{sep}{} {} → {}", c.register, c.found, c.driver_writes)?;
+                }
+                Ok(())
+            }
+        }
+    }
+}
+
+/// A `Model_Number` as a model's name where known.
+pub fn model_name(model_number: u16) -> String {
+    match ServoModel::from_model_number(model_number) {
+        Some(m) => m.key().to_string(),
+        None => format!("model number {model_number}"),
+    }
+}
+
+/// Judges a bus's scan against its configuration (in `loaded`).
+pub fn judge(loaded: &LoadedConfig, bus: &BusConfig, scan: &BusScan) -> Vec<Finding> {
+    let joint_at = |id: u8| {
+        bus.servo
+            .iter()
+            .find(|s| s.id == id)
+            .map(|s| s.joint.clone())
+    };
+    let at_bus_rate = |f: &&Found| f.baud == bus.baud;
+    let mut findings = Vec::new();
+    for s in &bus.servo {
+        let here: Vec<&Found> = scan.found().filter(|f| f.id == s.id).collect();
+        if here.is_empty() {
+            findings.push(Finding::Missing {
+                joint: s.joint.clone(),
+                id: s.id,
+            });
+        }
+    }
+    for f in scan.found() {
+        let joint = joint_at(f.id);
+        if let Some(evidence) = f.duplicate {
+            findings.push(Finding::Duplicated {
+                joint,
+                id: f.id,
+                evidence,
+            });
+            continue;
+        }
+        if !at_bus_rate(&f) {
+            findings.push(Finding::WrongRate {
+                joint,
+                id: f.id,
+                baud: f.baud,
+                bus_baud: bus.baud,
+            });
+            continue;
+        }
+        let Some(settings) = f.settings else {
+            findings.push(Finding::Unreadable { joint, id: f.id });
+            continue;
+        };
+        let Some(servo) = bus.servo.iter().find(|s| s.id == f.id) else {
+            findings.push(Finding::Unexpected {
+                id: f.id,
+                model_number: Some(settings.model_number),
+            });
+            continue;
+        };
+        let expected = ServoModel::from_key(&servo.model);
+        if settings.model() != expected || expected.is_none() {
+            findings.push(Finding::WrongModel {
+                joint: servo.joint.clone(),
+                id: f.id,
+                expected: expected.map_or("unknown", ServoModel::key),
+                model_number: settings.model_number,
+            });
+            continue;
+        }
+        let changes = settings_against_driver(loaded, bus, &servo.joint, &servo.model, &settings);
+        if !changes.is_empty() {
+            findings.push(Finding::Settings {
+                joint: servo.joint.clone(),
+                id: f.id,
+                changes,
+            });
+        }
+    }
+    findings.sort_by_key(|f| std::cmp::Reverse(f.severity()));
+    findings
+}
+
+/// What the driver's read-compare-write at start would change in this servo's EEPROM.
+fn settings_against_driver(
+    loaded: &LoadedConfig,
+    bus: &BusConfig,
+    joint: &str,
+    model: &str,
+    settings: &crate::settings::Settings,
+) -> Vec<SettingChange> {
+    let Some(b) = loaded.config.backstops.get(model) else {
+        return Vec::new();
+    };
+    let calibration = match bus.mode {
+        Mode::Position => loaded.calibration.joint.get(joint).copied(),
+        Mode::Speed => None,
+    };
+    backstops::desired(b, bus.mode, calibration.as_ref())
+        .into_iter()
+        .filter_map(|want| {
+            let found = settings.value_of(want.register)?;
+            (found != want.value).then_some(SettingChange {
+                register: want.register.name,
+                found,
+                driver_writes: want.value,
+            })
+        })
+        .collect()
+}

@@ -1,0 +1,15 @@
+//! Commissioning and service of the servo buses, as the end of the production line and a
+//! customer with a replacement servo use them (`nori servo …`). Nothing here runs while the
+//! driver has the bus: the serial port is opened exclusively, so one of the two is refused.
+//!
+//! * [`scan`]: what is on a bus: every servo's id, model, firmware, line rate and the EEPROM
+//!   settings the stack relies on, found by unicast and broadcast ping at every rate the
+//!   servos support; duplicated ids and servos at the wrong rate found and named.
+//! * [`settings`]: the control table a servo answered, decoded (identity and EEPROM).
+//! * [`findings`]: a scan judged against the driver's configuration: what is missing, at the
+//!   wrong rate or id, of the wrong model, and which EEPROM setting differs from what the
+//!   driver writes.
+
+pub mod findings;
+pub mod scan;
+pub mod settings;
