@@ -8,59 +8,43 @@
 /// What is on the line in answer to one instruction.
 #[derive(Debug, Default)]
 pub struct Line {
-    begin: f64,
-    end: f64,
-    bytes: Vec<u8>,
-    packets: usize,
+    /// Each packet and when its first byte starts, s.
+    packets: Vec<(f64, Vec<u8>)>,
+    byte_s: f64,
 }
 
 impl Line {
     /// A packet whose first byte starts at `at` (s); each byte takes `byte_s`.
     pub fn put(&mut self, at: f64, packet: &[u8], byte_s: f64) {
-        let packet_end = at + packet.len() as f64 * byte_s;
-        self.packets += 1;
-        if self.packets == 1 {
-            (self.begin, self.end) = (at, packet_end);
-            self.bytes = packet.to_vec();
-            return;
-        }
-        let (first_at, mut merged, second_at, second) = if at < self.begin {
-            (
-                at,
-                packet.to_vec(),
-                self.begin,
-                std::mem::take(&mut self.bytes),
-            )
-        } else {
-            (
-                self.begin,
-                std::mem::take(&mut self.bytes),
-                at,
-                packet.to_vec(),
-            )
-        };
-        let offset = ((second_at - first_at) / byte_s).round().max(0.0) as usize;
-        for (k, b) in second.into_iter().enumerate() {
-            match merged.get_mut(offset + k) {
-                Some(on_line) => *on_line &= b,
-                // After the first packet has ended (an idle gap carries no bytes).
-                None => merged.push(b),
-            }
-        }
-        self.begin = first_at;
-        self.end = self.end.max(packet_end);
-        self.bytes = merged;
+        self.packets.push((at, packet.to_vec()));
+        self.byte_s = byte_s;
     }
 
     /// The packets put on the line.
     pub fn packets(&self) -> usize {
-        self.packets
+        self.packets.len()
     }
 
-    /// The bytes the host receives and when the last of them has arrived (s); `None` if no
-    /// servo answered.
-    pub fn finish(self) -> Option<(Vec<u8>, f64)> {
-        (self.packets > 0).then_some((self.bytes, self.end))
+    /// The bytes the host receives, in time order, and when the last of them has arrived (s);
+    /// `None` if no servo answered. A packet that starts before the one ahead of it has ended
+    /// is AND-ed into its tail; one that starts after is appended (the idle gap carries no
+    /// bytes).
+    pub fn finish(mut self) -> Option<(Vec<u8>, f64)> {
+        self.packets.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let mut packets = self.packets.into_iter();
+        let (first_at, mut bytes) = packets.next()?;
+        let mut end = first_at + bytes.len() as f64 * self.byte_s;
+        for (at, packet) in packets {
+            let overlap = ((end - at) / self.byte_s).round().max(0.0) as usize;
+            let overlap = overlap.min(bytes.len()).min(packet.len());
+            let start = bytes.len() - overlap;
+            for (on_line, b) in bytes[start..].iter_mut().zip(&packet) {
+                *on_line &= b;
+            }
+            bytes.extend_from_slice(&packet[overlap..]);
+            end = end.max(at + packet.len() as f64 * self.byte_s);
+        }
+        Some((bytes, end))
     }
 }
 
@@ -88,6 +72,23 @@ mod tests {
         assert_eq!(bytes[2], 1);
         assert_eq!(bytes[8], 2);
         assert!((end - 560e-6).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_packet_between_two_apart_in_time_arrives_intact_in_its_place() {
+        // Put out of time order; the middle one starts after the first has ended.
+        let ping = |id: u8| [0xFF, 0xFF, id, 2, 0, !(id + 2)];
+        let mut line = Line::default();
+        line.put(0.0, &ping(1), BYTE);
+        line.put(500e-6, &ping(2), BYTE);
+        line.put(100e-6, &ping(3), BYTE);
+        let (bytes, _) = line.finish().unwrap();
+        let mut d = feetech::Decoder::new();
+        d.push(&bytes);
+        let ids: Vec<u8> = std::iter::from_fn(|| d.finish())
+            .map(|f| f.unwrap().id)
+            .collect();
+        assert_eq!(ids, [1, 3, 2]);
     }
 
     #[test]
