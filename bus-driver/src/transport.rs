@@ -17,6 +17,12 @@ pub enum TransportError {
         baud: u32,
         source: serialport::Error,
     },
+    /// Another process holds the device (the driver, or a commissioning tool).
+    #[error("{device} is held by another process (the driver, or a `nori servo` command): stop it first")]
+    Busy {
+        /// Device path.
+        device: PathBuf,
+    },
     /// Reading or writing failed; the device may be gone.
     #[error("i/o on {device}: {source}")]
     Io {
@@ -42,6 +48,17 @@ pub trait Transport {
     /// nothing.
     fn reopen(&mut self) -> Result<(), TransportError> {
         Ok(())
+    }
+    /// Talks at `baud` from now on, on the same open device (a scan tries every rate the
+    /// servos support). The default, for links with one rate, refuses.
+    fn set_baud(&mut self, baud: u32) -> Result<(), TransportError> {
+        Err(TransportError::Io {
+            device: PathBuf::from("(a link with one rate)"),
+            source: std::io::Error::new(
+                std::io::ErrorKind::Unsupported,
+                format!("cannot change the line rate to {baud} baud"),
+            ),
+        })
     }
 }
 
@@ -94,6 +111,7 @@ impl SerialTransport {
 }
 
 fn open_port(device: &Path, baud: u32) -> Result<serialport::TTYPort, TransportError> {
+    refuse_if_held(device)?;
     serialport::new(device.to_string_lossy(), baud)
         .timeout(Duration::from_millis(1))
         .open_native()
@@ -102,6 +120,35 @@ fn open_port(device: &Path, baud: u32) -> Result<serialport::TTYPort, TransportE
             baud,
             source,
         })
+}
+
+/// Refuses a device another process holds, asking its lock on a plain descriptor first.
+/// serialport's exclusive open takes the same lock, but when it is refused it closes its
+/// descriptor with TIOCNXCL, which clears the holder's exclusive flag for the whole tty
+/// (as root, whose open TIOCEXCL does not stop): one refused `nori servo` run would leave a
+/// running driver's bus open to any program. A device that cannot be opened here is left to
+/// serialport's open, which says why.
+fn refuse_if_held(device: &Path) -> Result<(), TransportError> {
+    use nix::errno::Errno;
+    use nix::fcntl::{Flock, FlockArg, OFlag};
+    use std::os::unix::fs::OpenOptionsExt;
+    let busy = || TransportError::Busy {
+        device: device.into(),
+    };
+    let probe = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .custom_flags((OFlag::O_NOCTTY | OFlag::O_NONBLOCK).bits())
+        .open(device);
+    match probe {
+        Ok(file) => match Flock::lock(file, FlockArg::LockExclusiveNonblock) {
+            Err((_, Errno::EWOULDBLOCK)) => Err(busy()),
+            // Released at once: serialport takes it for as long as the port is open.
+            Ok(_) | Err(_) => Ok(()),
+        },
+        Err(e) if e.raw_os_error() == Some(Errno::EBUSY as i32) => Err(busy()),
+        Err(_) => Ok(()),
+    }
 }
 
 impl Transport for SerialTransport {
@@ -114,6 +161,15 @@ impl Transport for SerialTransport {
 
     fn baud(&self) -> u32 {
         self.baud
+    }
+
+    fn set_baud(&mut self, baud: u32) -> Result<(), TransportError> {
+        use serialport::SerialPort;
+        self.port
+            .set_baud_rate(baud)
+            .map_err(|e| self.io(std::io::Error::other(e)))?;
+        self.baud = baud;
+        Ok(())
     }
 
     fn send(&mut self, bytes: &[u8]) -> Result<(), TransportError> {
