@@ -115,6 +115,13 @@ impl<T: Transport> Bus<T> {
         self.transport.baud()
     }
 
+    /// Talks at `baud` from now on (the device stays open), with no partial input kept.
+    pub fn set_baud(&mut self, baud: u32) -> Result<(), BusError> {
+        self.transport.set_baud(baud)?;
+        self.decoder.clear();
+        Ok(())
+    }
+
     /// Opens the transport's device again and forgets any partial input.
     pub fn reopen(&mut self) -> Result<(), BusError> {
         self.transport.reopen()?;

@@ -532,6 +532,15 @@ impl LoadedConfig {
         })
     }
 
+    /// A joint's calibration as the driver uses it: position-mode joints only (a wheel has
+    /// none).
+    pub fn calibration_for(&self, bus: &BusConfig, joint: &str) -> Option<JointCalibration> {
+        match bus.mode {
+            Mode::Position => self.calibration.joint.get(joint).copied(),
+            Mode::Speed => None,
+        }
+    }
+
     /// Points every bus at `dir/<bus name>` (the simulator's device links).
     pub fn with_device_dir(mut self, dir: &Path) -> Self {
         for bus in &mut self.config.bus {

@@ -312,10 +312,7 @@ impl<T: Transport> Driver<T> {
                         max_torque_limit_percent: 50.0,
                         max_temperature_c: 60,
                     }),
-                    calibration: match bus_config.mode {
-                        Mode::Position => config.calibration.joint.get(&s.joint).copied(),
-                        Mode::Speed => None,
-                    },
+                    calibration: config.calibration_for(bus_config, &s.joint),
                     ready: false,
                     goal: 0,
                     goal_at_ns: 0,

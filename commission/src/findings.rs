@@ -1,9 +1,9 @@
 //! A scan judged against the driver's configuration: every configured servo at its id, rate
 //! and model, no other servo on the bus, and the EEPROM the driver would find.
 
-use crate::scan::{BusScan, Duplicate, Found};
+use crate::scan::{BroadcastAnswer, BusScan, Duplicate, Found};
 use bus_driver::backstops;
-use bus_driver::config::{BusConfig, LoadedConfig, Mode};
+use bus_driver::config::{BusConfig, LoadedConfig};
 use feetech::ServoModel;
 use serde::Serialize;
 
@@ -66,6 +66,24 @@ pub enum Finding {
         /// Its `Model_Number`, if it was read.
         model_number: Option<u16>,
     },
+    /// A servo at its joint's id that this stack never set up (the factory's EEPROM): a new
+    /// servo, whose horn the joint's calibration knows nothing of.
+    NotSetUp {
+        /// The joint.
+        joint: String,
+        /// Its id.
+        id: u8,
+        /// Its over-temperature cutoff, °C (the factory's).
+        max_temperature_c: u8,
+    },
+    /// A servo answered a broadcast PING at an id the sweep did not find (beyond 252, or one
+    /// that answers now and then).
+    HeardOnlyByBroadcast {
+        /// The id it answered under.
+        id: u8,
+        /// The rate.
+        baud: u32,
+    },
     /// A servo answered its PING but never its table.
     Unreadable {
         /// The joint configured at its id, if any.
@@ -117,8 +135,8 @@ impl std::fmt::Display for Finding {
         match self {
             Finding::Missing { joint, id } => write!(
                 f,
-                "{joint} (id {id}) answers at no rate: unplugged, unpowered, or a new servo not \
-                 yet given its id"
+                "{joint} (id {id}) answers at no rate tried: unplugged, unpowered, or a new \
+                 servo not yet given its id"
             ),
             Finding::WrongRate {
                 joint,
@@ -154,14 +172,30 @@ impl std::fmt::Display for Finding {
                 match evidence {
                     Duplicate::AnsweredTwice { answers } =>
                         format!("{answers} answers to one request"),
-                    Duplicate::Garbled { attempts } =>
-                        format!("{attempts} of {attempts} reads garbled"),
+                    Duplicate::Garbled { garbled, attempts } =>
+                        format!("{garbled} of {attempts} reads garbled"),
                 }
             ),
             Finding::Unexpected { id, model_number } => write!(
                 f,
                 "id {id} ({}) is no joint of this bus (a factory-fresh servo answers at id 1)",
                 model_number.map_or("model unread".into(), model_name)
+            ),
+            Finding::NotSetUp {
+                joint,
+                id,
+                max_temperature_c,
+            } => write!(
+                f,
+                "{joint} (id {id}) was never set up by this stack (its over-temperature cutoff \
+                 is the factory's {max_temperature_c} °C): a new servo, to set up and calibrate \
+                 before the driver drives it (on a robot never started, the driver's first \
+                 start sets it up)"
+            ),
+            Finding::HeardOnlyByBroadcast { id, baud } => write!(
+                f,
+                "id {id} answered a broadcast PING at {baud} baud but not its own PING: an id \
+                 beyond the sweep, or a servo that answers now and then"
             ),
             Finding::Unreadable { joint, id } => write!(
                 f,
@@ -190,74 +224,86 @@ pub fn model_name(model_number: u16) -> String {
 
 /// Judges a bus's scan against its configuration (in `loaded`).
 pub fn judge(loaded: &LoadedConfig, bus: &BusConfig, scan: &BusScan) -> Vec<Finding> {
-    let joint_at = |id: u8| {
-        bus.servo
-            .iter()
-            .find(|s| s.id == id)
-            .map(|s| s.joint.clone())
-    };
-    let at_bus_rate = |f: &&Found| f.baud == bus.baud;
-    let mut findings = Vec::new();
-    for s in &bus.servo {
-        let here: Vec<&Found> = scan.found().filter(|f| f.id == s.id).collect();
-        if here.is_empty() {
-            findings.push(Finding::Missing {
-                joint: s.joint.clone(),
-                id: s.id,
-            });
-        }
-    }
-    for f in scan.found() {
-        let joint = joint_at(f.id);
-        if let Some(evidence) = f.duplicate {
-            findings.push(Finding::Duplicated {
-                joint,
-                id: f.id,
-                evidence,
-            });
-            continue;
-        }
-        if !at_bus_rate(&f) {
-            findings.push(Finding::WrongRate {
-                joint,
-                id: f.id,
-                baud: f.baud,
-                bus_baud: bus.baud,
-            });
-            continue;
-        }
-        let Some(settings) = f.settings else {
-            findings.push(Finding::Unreadable { joint, id: f.id });
-            continue;
+    let mut findings: Vec<Finding> = bus
+        .servo
+        .iter()
+        .filter(|s| !scan.found().any(|f| f.id == s.id))
+        .map(|s| Finding::Missing {
+            joint: s.joint.clone(),
+            id: s.id,
+        })
+        .collect();
+    findings.extend(scan.found().filter_map(|f| judge_found(loaded, bus, f)));
+    for rate in &scan.rates {
+        let heard = match &rate.broadcast {
+            BroadcastAnswer::One { id } => std::slice::from_ref(id),
+            BroadcastAnswer::Several { ids, .. } => ids.as_slice(),
+            BroadcastAnswer::Silent => &[],
         };
-        let Some(servo) = bus.servo.iter().find(|s| s.id == f.id) else {
-            findings.push(Finding::Unexpected {
-                id: f.id,
-                model_number: Some(settings.model_number),
-            });
-            continue;
-        };
-        let expected = ServoModel::from_key(&servo.model);
-        if settings.model() != expected || expected.is_none() {
-            findings.push(Finding::WrongModel {
-                joint: servo.joint.clone(),
-                id: f.id,
-                expected: expected.map_or("unknown", ServoModel::key),
-                model_number: settings.model_number,
-            });
-            continue;
-        }
-        let changes = settings_against_driver(loaded, bus, &servo.joint, &servo.model, &settings);
-        if !changes.is_empty() {
-            findings.push(Finding::Settings {
-                joint: servo.joint.clone(),
-                id: f.id,
-                changes,
-            });
-        }
+        findings.extend(
+            heard
+                .iter()
+                .filter(|id| !rate.found.iter().any(|f| f.id == **id))
+                .map(|&id| Finding::HeardOnlyByBroadcast {
+                    id,
+                    baud: rate.baud,
+                }),
+        );
     }
     findings.sort_by_key(|f| std::cmp::Reverse(f.severity()));
     findings
+}
+
+/// What one id found says: at most one finding (the first that applies).
+fn judge_found(loaded: &LoadedConfig, bus: &BusConfig, f: &Found) -> Option<Finding> {
+    let servo = bus.servo.iter().find(|s| s.id == f.id);
+    let joint = servo.map(|s| s.joint.clone());
+    if let Some(evidence) = f.duplicate {
+        return Some(Finding::Duplicated {
+            joint,
+            id: f.id,
+            evidence,
+        });
+    }
+    if f.baud != bus.baud {
+        return Some(Finding::WrongRate {
+            joint,
+            id: f.id,
+            baud: f.baud,
+            bus_baud: bus.baud,
+        });
+    }
+    let Some(settings) = f.settings else {
+        return Some(Finding::Unreadable { joint, id: f.id });
+    };
+    let Some(servo) = servo else {
+        return Some(Finding::Unexpected {
+            id: f.id,
+            model_number: Some(settings.model_number),
+        });
+    };
+    let expected = ServoModel::from_key(&servo.model);
+    if settings.model() != expected || expected.is_none() {
+        return Some(Finding::WrongModel {
+            joint: servo.joint.clone(),
+            id: f.id,
+            expected: expected.map_or("unknown", ServoModel::key),
+            model_number: settings.model_number,
+        });
+    }
+    if !settings.set_up_here() {
+        return Some(Finding::NotSetUp {
+            joint: servo.joint.clone(),
+            id: f.id,
+            max_temperature_c: settings.max_temperature_c,
+        });
+    }
+    let changes = settings_against_driver(loaded, bus, &servo.joint, &servo.model, &settings);
+    (!changes.is_empty()).then(|| Finding::Settings {
+        joint: servo.joint.clone(),
+        id: f.id,
+        changes,
+    })
 }
 
 /// What the driver's read-compare-write at start would change in this servo's EEPROM.
@@ -271,10 +317,7 @@ fn settings_against_driver(
     let Some(b) = loaded.config.backstops.get(model) else {
         return Vec::new();
     };
-    let calibration = match bus.mode {
-        Mode::Position => loaded.calibration.joint.get(joint).copied(),
-        Mode::Speed => None,
-    };
+    let calibration = loaded.calibration_for(bus, joint);
     backstops::desired(b, bus.mode, calibration.as_ref())
         .into_iter()
         .filter_map(|want| {

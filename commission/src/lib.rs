@@ -6,6 +6,9 @@
 //!   settings the stack relies on, found by unicast and broadcast ping at every rate the
 //!   servos support; duplicated ids and servos at the wrong rate found and named.
 //! * [`settings`]: the control table a servo answered, decoded (identity and EEPROM).
+//! * [`setup`]: a new servo given its joint's id, the bus's rate and the driver's EEPROM,
+//!   found alone or at the factory's id; refused when the id is taken, the servo not alone, at
+//!   another joint's id, or the wrong model.
 //! * [`findings`]: a scan judged against the driver's configuration: what is missing, at the
 //!   wrong rate or id, of the wrong model, and which EEPROM setting differs from what the
 //!   driver writes.
@@ -13,3 +16,4 @@
 pub mod findings;
 pub mod scan;
 pub mod settings;
+pub mod setup;

@@ -79,6 +79,12 @@ impl Settings {
         })
     }
 
+    /// Whether this stack set it up: it holds the temperature backstop the stack writes, at
+    /// most the hardware ceiling (a servo leaves the factory above it, at 70 or 80 °C).
+    pub fn set_up_here(&self) -> bool {
+        self.max_temperature_c <= bus_driver::config::HARDWARE_TEMPERATURE_CEILING_C
+    }
+
     /// The model, if the stack knows its number.
     pub fn model(&self) -> Option<ServoModel> {
         ServoModel::from_model_number(self.model_number)
@@ -123,5 +129,29 @@ mod tests {
         assert_eq!(got.present_position, 2048);
         assert_eq!(got.value_of(reg::RETURN_DELAY_TIME), Some(250));
         assert!(Settings::parse(&table[..70]).is_none());
+    }
+
+    #[test]
+    fn every_register_the_driver_writes_is_compared() {
+        use bus_driver::config::{Backstops, Mode};
+        let backstops = Backstops {
+            protection_current_a: 2.0,
+            over_current_protection_time_ms: 1000,
+            max_torque_limit_percent: 80.0,
+            max_temperature_c: 60,
+        };
+        let calibration: bus_driver::calibration::JointCalibration =
+            toml::from_str("homing-offset = 12\nrange-min = 100\nrange-max = 4000").unwrap();
+        let table = [0u8; 71];
+        let settings = Settings::parse(&table).unwrap();
+        for mode in [Mode::Position, Mode::Speed] {
+            for want in bus_driver::backstops::desired(&backstops, mode, Some(&calibration)) {
+                assert!(
+                    settings.value_of(want.register).is_some(),
+                    "{}",
+                    want.register.name
+                );
+            }
+        }
     }
 }

@@ -3,79 +3,21 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use bus_driver::transport::{Transport, TransportError};
+mod common;
+
+use common::{as_set_up_by_the_driver, left_arm, plan};
+
 use bus_driver::LoadedConfig;
 use commission::findings::{judge, Finding, SettingChange, Severity};
-use commission::scan::{scan, BroadcastAnswer, BusScan, Duplicate, Plan};
+use commission::scan::{scan, BroadcastAnswer, BusScan, Duplicate};
 use feetech::registers as reg;
 use sim::{RobotDescription, SimBus};
 use std::cell::RefCell;
-use std::collections::VecDeque;
-use std::time::Duration;
 use telemetry::config::ProcessConfig;
-
-/// The host's end of a simulated bus, opened at a rate.
-struct Line<'a> {
-    bus: &'a RefCell<SimBus>,
-    inbox: VecDeque<u8>,
-    baud: u32,
-}
-
-impl Transport for Line<'_> {
-    fn baud(&self) -> u32 {
-        self.baud
-    }
-    fn send(&mut self, bytes: &[u8]) -> Result<(), TransportError> {
-        let mut bus = self.bus.borrow_mut();
-        let t = bus.time();
-        bus.receive(t, bytes);
-        Ok(())
-    }
-    fn receive(&mut self, buf: &mut [u8], _timeout: Duration) -> Result<usize, TransportError> {
-        while let Some(r) = self.bus.borrow_mut().pop_due(f64::MAX) {
-            self.inbox.extend(r.bytes);
-        }
-        let n = buf.len().min(self.inbox.len());
-        for (b, v) in buf.iter_mut().zip(self.inbox.drain(..n)) {
-            *b = v;
-        }
-        Ok(n)
-    }
-    fn discard_input(&mut self) -> Result<(), TransportError> {
-        self.inbox.clear();
-        Ok(())
-    }
-}
-
-fn left_arm() -> SimBus {
-    let d = RobotDescription::nori_a3();
-    SimBus::new(&d, d.bus("left_arm").unwrap())
-}
-
-/// Ids 0–12 at the bus's rate and at 57 600 baud (a whole scan is every id at eight rates;
-/// the in-memory line makes these few enough for a unit test).
-fn plan() -> Plan {
-    Plan {
-        ids: 0..=12,
-        rates: vec![1_000_000, 57_600],
-        window: Duration::from_micros(600),
-        attempts: 3,
-    }
-}
 
 fn run(bus: &mut SimBus) -> (BusScan, Vec<Finding>) {
     let line = RefCell::new(std::mem::replace(bus, left_arm()));
-    let result = scan(
-        |baud| {
-            line.borrow_mut().set_host_baud(baud);
-            Ok(Line {
-                bus: &line,
-                inbox: VecDeque::new(),
-                baud,
-            })
-        },
-        &plan(),
-    );
+    let result = scan(common::line(&line), &plan());
     let found = result.unwrap();
     let loaded = LoadedConfig::embedded().unwrap();
     let config = loaded
@@ -101,27 +43,17 @@ fn write(bus: &mut SimBus, id: u8, r: reg::Register, value: u8) {
 }
 
 #[test]
-fn the_arm_as_built_has_no_fault_and_the_driver_s_settings_are_named() {
-    let mut bus = left_arm();
+fn the_arm_as_the_driver_set_it_up_has_no_fault_and_no_change_to_make() {
+    let mut bus = as_set_up_by_the_driver(left_arm());
     let (found, findings) = run(&mut bus);
     let ids: Vec<u8> = found.found().map(|f| f.id).collect();
     assert_eq!(ids, [1, 2, 3, 4, 5, 6, 7, 8]);
     assert!(found
         .found()
         .all(|f| f.settings.is_some() && f.duplicate.is_none()));
-    assert!(faults(&findings).is_empty(), "{findings:#?}");
-    // Factory EEPROM: the driver will set the return delay and its backstops.
-    let elbow = findings.iter().find_map(|f| match f {
-        Finding::Settings { joint, changes, .. } if joint == "left_elbow" => Some(changes),
-        _ => None,
-    });
-    let delay = SettingChange {
-        register: "Return_Delay_Time",
-        found: 250,
-        driver_writes: 0,
-    };
-    assert!(elbow.unwrap().contains(&delay), "{findings:#?}");
-    // Eight servos answering a broadcast PING together: not one intact answer.
+    assert!(findings.is_empty(), "{findings:#?}");
+    // Eight servos answering a broadcast PING together: not one intact answer; at another
+    // rate nothing answers, so its ids are not swept.
     match &found.rates[0].broadcast {
         BroadcastAnswer::Several { ids, damaged } => assert!(ids.is_empty() && *damaged > 0),
         other => panic!("{other:?}"),
@@ -130,8 +62,46 @@ fn the_arm_as_built_has_no_fault_and_the_driver_s_settings_are_named() {
 }
 
 #[test]
-fn a_servo_at_another_rate_is_named_and_not_missing() {
+fn servos_never_set_up_are_each_a_fault_and_the_driver_s_changes_named_once_set_up() {
     let mut bus = left_arm();
+    let (_, findings) = run(&mut bus);
+    let not_set_up = findings
+        .iter()
+        .filter(|f| {
+            matches!(
+                f,
+                Finding::NotSetUp {
+                    max_temperature_c: 70,
+                    ..
+                }
+            )
+        })
+        .count();
+    assert_eq!(not_set_up, 8, "{findings:#?}");
+    // Set up, with the return delay back at the factory's: that is a change the driver makes.
+    let mut bus = as_set_up_by_the_driver(left_arm());
+    write(&mut bus, 4, reg::LOCK, 0);
+    write(&mut bus, 4, reg::RETURN_DELAY_TIME, 250);
+    let (_, findings) = run(&mut bus);
+    let delay = SettingChange {
+        register: "Return_Delay_Time",
+        found: 250,
+        driver_writes: 0,
+    };
+    assert_eq!(
+        findings,
+        [Finding::Settings {
+            joint: "left_elbow".into(),
+            id: 4,
+            changes: vec![delay]
+        }]
+    );
+}
+
+#[test]
+fn a_servo_at_another_rate_is_named_and_not_missing() {
+    let mut bus = as_set_up_by_the_driver(left_arm());
+    write(&mut bus, 4, reg::LOCK, 0);
     write(&mut bus, 4, reg::BAUD_RATE, 6);
     let (_, findings) = run(&mut bus);
     assert_eq!(
@@ -147,14 +117,29 @@ fn a_servo_at_another_rate_is_named_and_not_missing() {
 
 #[test]
 fn a_factory_fresh_servo_in_a_joint_s_place_is_a_duplicate_at_id_1_and_the_joint_is_missing() {
-    let mut bus = left_arm();
-    // The elbow's servo replaced by a fresh one: id 1, the factory's return delay (as id 1's,
-    // which has not been set up either), so both answer at once; its horn on another tooth.
+    // The elbow's servo replaced by a fresh one: id 1, the factory's return delay, its horn on
+    // another tooth. Beside a set-up shoulder (return delay 0) both answer a PING, one after
+    // the other; beside one never set up, at once.
     let d = RobotDescription::nori_a3();
+    let mut bus = as_set_up_by_the_driver(left_arm());
+    assert!(bus.fit_fresh_servo(&d, "left_elbow", 180.0));
+    let (found, _) = run(&mut bus);
+    let at_1 = found.found().find(|f| f.id == 1).unwrap();
+    assert_eq!(
+        at_1.duplicate,
+        Some(Duplicate::AnsweredTwice { answers: 2 })
+    );
+    let mut bus = left_arm();
     assert!(bus.fit_fresh_servo(&d, "left_elbow", 180.0));
     let (found, findings) = run(&mut bus);
     let at_1 = found.found().find(|f| f.id == 1).unwrap();
-    assert_eq!(at_1.duplicate, Some(Duplicate::Garbled { attempts: 3 }));
+    assert_eq!(
+        at_1.duplicate,
+        Some(Duplicate::Garbled {
+            garbled: 3,
+            attempts: 3
+        })
+    );
     let faults = faults(&findings);
     assert!(
         faults.contains(&&Finding::Missing {
@@ -186,7 +171,7 @@ fn a_duplicate_with_another_return_delay_answers_twice() {
 
 #[test]
 fn the_wrong_model_at_a_joint_is_named() {
-    let mut bus = left_arm();
+    let mut bus = as_set_up_by_the_driver(left_arm());
     // An STS3215 where the configuration says STS3095 (the elbow).
     let d = RobotDescription::nori_a3();
     let r = d.rating("sts3215").unwrap();
@@ -209,7 +194,7 @@ fn the_wrong_model_at_a_joint_is_named() {
 
 #[test]
 fn a_servo_alone_answers_the_broadcast_ping() {
-    let mut bus = left_arm();
+    let mut bus = as_set_up_by_the_driver(left_arm());
     for s in &mut bus.servos {
         s.answering = s.id == 6;
     }
@@ -219,5 +204,24 @@ fn a_servo_alone_answers_the_broadcast_ping() {
         faults(&findings).len(),
         7,
         "the seven others are missing: {findings:#?}"
+    );
+}
+
+#[test]
+fn a_servo_only_the_broadcast_hears_is_named() {
+    // Alone, at an id the sweep does not reach in this plan (ids 0-12).
+    let mut bus = as_set_up_by_the_driver(left_arm());
+    for s in &mut bus.servos {
+        s.answering = s.id == 7;
+    }
+    write(&mut bus, 7, reg::LOCK, 0);
+    write(&mut bus, 7, reg::ID, 40);
+    let (_, findings) = run(&mut bus);
+    assert!(
+        findings.contains(&Finding::HeardOnlyByBroadcast {
+            id: 40,
+            baud: 1_000_000
+        }),
+        "{findings:#?}"
     );
 }

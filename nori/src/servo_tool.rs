@@ -1,5 +1,5 @@
-//! `nori servo scan`: what is on the servo buses, for commissioning and service. It opens each
-//! bus itself, so the stack must be stopped first: the port is opened exclusively (a lock the
+//! `nori servo scan` (what is on the servo buses) and `nori servo setup` (a new servo given its
+//! joint's id and settings), for commissioning and service. Each opens a bus itself, so the stack must be stopped first: the port is opened exclusively (a lock the
 //! driver holds too), and whichever comes second is refused.
 
 use anyhow::{bail, Context, Result};
@@ -7,6 +7,7 @@ use bus_driver::config::BusConfig;
 use bus_driver::{LoadedConfig, SerialTransport};
 use commission::findings::{judge, model_name, Finding, Severity};
 use commission::scan::{scan, AtRate, BroadcastAnswer, BusScan, Plan};
+use commission::setup::{set_up as set_up_servo, Target};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 use telemetry::config::ProcessConfig;
@@ -21,13 +22,16 @@ pub enum ServoCommand {
     /// duplicated ids, servos at the wrong rate, missing and unexpected servos named. Reads
     /// only. Exits 1 when a fault is found.
     Scan(ScanArgs),
+    /// Set up a new servo for a joint: connected alone, or at the factory's id 1 (1 Mbps)
+    /// among servos that do not use it, it gets the joint's id, the bus's rate, the driver's
+    /// EEPROM settings and Lock (torque off). Refused when the joint's id already answers, the
+    /// servo is not alone, or it is the wrong model. Calibrate the joint afterwards.
+    Setup(SetupArgs),
 }
 
-/// `nori servo scan`.
+/// Where the buses are: the driver's configuration and devices.
 #[derive(clap::Args)]
-pub struct ScanArgs {
-    /// The bus (a name in the driver's configuration); every bus when absent.
-    bus: Option<String>,
+pub struct Buses {
     /// The driver's configuration: /etc/nori/bus-driver.toml when it exists, else the embedded
     /// default (the simulated A3).
     #[arg(long)]
@@ -35,6 +39,37 @@ pub struct ScanArgs {
     /// Open every bus at DIR/<bus name> (where `nori sim serve` links its pseudo-terminals).
     #[arg(long, value_name = "DIR")]
     device_dir: Option<PathBuf>,
+}
+
+impl Buses {
+    /// The configuration, its devices moved to `--device-dir`, and where it came from.
+    fn load(&self) -> Result<(LoadedConfig, String)> {
+        let (loaded, origin) = load_config(self.config.as_deref())?;
+        Ok(match &self.device_dir {
+            Some(dir) => (loaded.with_device_dir(dir), origin),
+            None => (loaded, origin),
+        })
+    }
+}
+
+/// `nori servo setup`.
+#[derive(clap::Args)]
+pub struct SetupArgs {
+    /// The bus.
+    bus: String,
+    /// The joint whose servo this is.
+    joint: String,
+    #[command(flatten)]
+    buses: Buses,
+}
+
+/// `nori servo scan`.
+#[derive(clap::Args)]
+pub struct ScanArgs {
+    /// The bus (a name in the driver's configuration); every bus when absent.
+    bus: Option<String>,
+    #[command(flatten)]
+    buses: Buses,
     /// Only at the bus's own rate (a servo at another rate is not found).
     #[arg(long)]
     bus_rate_only: bool,
@@ -47,15 +82,42 @@ pub struct ScanArgs {
 pub fn servo(command: &ServoCommand) -> Result<()> {
     match command {
         ServoCommand::Scan(args) => scan_buses(args),
+        ServoCommand::Setup(args) => set_up(args),
     }
 }
 
-fn scan_buses(args: &ScanArgs) -> Result<()> {
-    let (loaded, origin) = load_config(args.config.as_deref())?;
-    let loaded = match &args.device_dir {
-        Some(dir) => loaded.with_device_dir(dir),
-        None => loaded,
+fn set_up(args: &SetupArgs) -> Result<()> {
+    let (loaded, origin) = args.buses.load()?;
+    let Some(bus) = loaded.config.bus.iter().find(|b| b.name == args.bus) else {
+        bail!("no bus {:?} in {origin}", args.bus);
     };
+    let target = Target::of(&loaded, bus, &args.joint)?;
+    let plan = plan_for(&loaded, bus);
+    let line = SerialTransport::open(&bus.device, bus.baud)?;
+    let report = set_up_servo(line, &target, &plan).with_context(|| {
+        format!(
+            "setting up {} on bus {} ({})",
+            args.joint,
+            bus.name,
+            bus.device.display()
+        )
+    })?;
+    println!(
+        "found the servo at id {} at {} baud; wrote:",
+        report.found.id, report.found.baud
+    );
+    for s in &report.written {
+        println!("  {} = {}", s.register.name, s.value);
+    }
+    println!(
+        "{} is id {} at {} baud, its EEPROM locked. Next: calibrate the joint.",
+        args.joint, target.id, target.baud
+    );
+    Ok(())
+}
+
+fn scan_buses(args: &ScanArgs) -> Result<()> {
+    let (loaded, origin) = args.buses.load()?;
     let buses: Vec<&BusConfig> = loaded
         .config
         .bus
@@ -66,22 +128,15 @@ fn scan_buses(args: &ScanArgs) -> Result<()> {
         let names: Vec<&str> = loaded.config.bus.iter().map(|b| b.name.as_str()).collect();
         bail!("no bus {:?} in {origin} (its buses: {names:?})", args.bus);
     }
-    let latency = Duration::from_micros(loaded.config.reply_timeout_margin_us);
     let mut reports = Vec::new();
     for bus in buses {
-        let mut plan = Plan::full(bus.baud, latency);
+        let mut plan = plan_for(&loaded, bus);
         if args.bus_rate_only {
             plan.rates.truncate(1);
         }
-        let scanned =
-            scan(|baud| SerialTransport::open(&bus.device, baud), &plan).with_context(|| {
-                format!(
-                    "scanning bus {} on {} (a bus the driver holds is refused: stop the \
-                     stack first)",
-                    bus.name,
-                    bus.device.display()
-                )
-            })?;
+        let line = SerialTransport::open(&bus.device, bus.baud)?;
+        let scanned = scan(line, &plan)
+            .with_context(|| format!("scanning bus {} on {}", bus.name, bus.device.display()))?;
         let findings = judge(&loaded, bus, &scanned);
         reports.push((bus, scanned, findings));
     }
@@ -95,12 +150,14 @@ fn scan_buses(args: &ScanArgs) -> Result<()> {
             .iter()
             .map(|(bus, scan, findings)| {
                 serde_json::json!({ "bus": bus.name, "device": bus.device, "baud": bus.baud,
-                    "scan": scan, "findings": findings })
+                    "calibration": calibration_origin(&loaded), "scan": scan,
+                    "findings": findings })
             })
             .collect();
         println!("{}", serde_json::to_string_pretty(&json)?);
     } else {
         println!("configuration: {origin}");
+        println!("calibration: {}", calibration_origin(&loaded));
         for (bus, scan, findings) in &reports {
             print_bus(bus, scan, findings);
         }
@@ -110,6 +167,23 @@ fn scan_buses(args: &ScanArgs) -> Result<()> {
         std::process::exit(1);
     }
     Ok(())
+}
+
+/// Every id at every rate, the bus's first, each joint's id tried again when silent; the
+/// adapter's latency is the driver's reply margin.
+fn plan_for(loaded: &LoadedConfig, bus: &BusConfig) -> Plan {
+    let latency = Duration::from_micros(loaded.config.reply_timeout_margin_us);
+    Plan::full(bus.baud, latency, bus.servo.iter().map(|s| s.id).collect())
+}
+
+/// Where the calibration the scan compares with comes from.
+fn calibration_origin(loaded: &LoadedConfig) -> String {
+    match &loaded.config.calibration_file {
+        Some(file) => file.display().to_string(),
+        None => "the embedded one of the simulated A3 (no `calibration-file`: wrong for any \
+                 real robot)"
+            .to_string(),
+    }
 }
 
 /// The configuration asked for, the installed one, or the embedded default; and what it was.

@@ -332,7 +332,12 @@ fn sim_buses(
                 .bytes()
                 .fold(args.fault_seed, |h, b| h.wrapping_mul(31) ^ u64::from(b));
             let horn = sim::rng::Rng::new(seed).range(40.0, 400.0).round();
-            sim_bus.fit_fresh_servo(robot, joint, horn);
+            if !sim_bus.fit_fresh_servo(robot, joint, horn) {
+                anyhow::bail!(
+                    "--fresh-servo: cannot fit a servo at {joint} on {}",
+                    bus.name
+                );
+            }
             eprintln!(
                 "nori sim: a factory-fresh servo (id 1) at {joint} on {}, its horn {horn} \
                  steps off the old one's",
