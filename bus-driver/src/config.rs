@@ -203,6 +203,11 @@ impl DriverConfig {
         parse(text, origin)
     }
 
+    /// A bus by name.
+    pub fn bus(&self, name: &str) -> Option<&BusConfig> {
+        self.bus.iter().find(|b| b.name == name)
+    }
+
     /// Joints in the order of the state frame.
     pub fn joints(&self) -> impl Iterator<Item = (&BusConfig, &ServoConfig)> {
         self.bus

@@ -20,12 +20,7 @@ fn run(bus: &mut SimBus) -> (BusScan, Vec<Finding>) {
     let result = scan(common::line(&line), &plan());
     let found = result.unwrap();
     let loaded = LoadedConfig::embedded().unwrap();
-    let config = loaded
-        .config
-        .bus
-        .iter()
-        .find(|b| b.name == "left_arm")
-        .unwrap();
+    let config = loaded.config.bus("left_arm").unwrap();
     let findings = judge(&loaded, config, &found);
     (found, findings)
 }

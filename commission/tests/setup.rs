@@ -16,12 +16,7 @@ use telemetry::config::ProcessConfig;
 
 fn target(joint: &str) -> Target {
     let loaded = LoadedConfig::embedded().unwrap();
-    let bus = loaded
-        .config
-        .bus
-        .iter()
-        .find(|b| b.name == "left_arm")
-        .unwrap();
+    let bus = loaded.config.bus("left_arm").unwrap();
     Target::of(&loaded, bus, joint).unwrap()
 }
 

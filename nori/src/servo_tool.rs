@@ -88,7 +88,7 @@ pub fn servo(command: &ServoCommand) -> Result<()> {
 
 fn set_up(args: &SetupArgs) -> Result<()> {
     let (loaded, origin) = args.buses.load()?;
-    let Some(bus) = loaded.config.bus.iter().find(|b| b.name == args.bus) else {
+    let Some(bus) = loaded.config.bus(&args.bus) else {
         bail!("no bus {:?} in {origin}", args.bus);
     };
     let target = Target::of(&loaded, bus, &args.joint)?;

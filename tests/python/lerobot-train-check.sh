@@ -15,16 +15,8 @@ here="$(cd "$(dirname "$0")" && pwd)"
 venv="${NORI_LEROBOT_VENV:-$HOME/.cache/nori/lerobot-venv}"
 lerobot_version="${NORI_LEROBOT_VERSION:-0.6.1}"
 
-find_python312() {
-  # pyenv's shim for python3.12 exists but fails unless 3.12 is selected: try each for real.
-  for p in "$HOME"/.pyenv/versions/3.12*/bin/python3.12 python3.12; do
-    if "$p" -c 'import sys; assert sys.version_info[:2] == (3, 12)' >/dev/null 2>&1; then
-      echo "$p"; return
-    fi
-  done
-  echo "no Python 3.12 found (LeRobot $lerobot_version needs >= 3.12): install one with pyenv" >&2
-  exit 2
-}
+# shellcheck source=python312.sh
+. "$here/python312.sh"
 
 install() {
   if [ ! -x "$venv/bin/python" ]; then

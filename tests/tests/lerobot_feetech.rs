@@ -17,12 +17,7 @@ fn script() -> std::path::PathBuf {
 /// The left arm's servos as the driver's configuration has them: `ID:MODEL,...`.
 fn left_arm_motors() -> (String, Vec<(u8, u16)>) {
     let loaded = bus_driver::LoadedConfig::embedded().unwrap();
-    let bus = loaded
-        .config
-        .bus
-        .iter()
-        .find(|b| b.name == "left_arm")
-        .unwrap();
+    let bus = loaded.config.bus("left_arm").unwrap();
     let text: Vec<String> = bus
         .servo
         .iter()

@@ -80,12 +80,7 @@ pub fn line(bus: &RefCell<SimBus>) -> Line<'_> {
 pub fn as_set_up_by_the_driver(mut bus: SimBus) -> SimBus {
     use telemetry::config::ProcessConfig;
     let loaded = bus_driver::LoadedConfig::embedded().unwrap();
-    let config = loaded
-        .config
-        .bus
-        .iter()
-        .find(|b| b.name == bus.name)
-        .unwrap();
+    let config = loaded.config.bus(&bus.name).unwrap();
     for s in &config.servo {
         let backstops = &loaded.config.backstops[&s.model];
         let calibration = loaded.calibration_for(config, &s.joint);
