@@ -233,7 +233,14 @@ pub fn judge(loaded: &LoadedConfig, bus: &BusConfig, scan: &BusScan) -> Vec<Find
             id: s.id,
         })
         .collect();
-    findings.extend(scan.found().filter_map(|f| judge_found(loaded, bus, f)));
+    // A servo answers at one rate; an id also heard at another (a line that does not follow
+    // the host's rate, as a pseudo-terminal) is judged where the bus runs.
+    let at_bus_rate = |id: u8| scan.found().any(|f| f.id == id && f.baud == bus.baud);
+    findings.extend(
+        scan.found()
+            .filter(|f| f.baud == bus.baud || !at_bus_rate(f.id))
+            .filter_map(|f| judge_found(loaded, bus, f)),
+    );
     for rate in &scan.rates {
         let heard = match &rate.broadcast {
             BroadcastAnswer::One { id } => std::slice::from_ref(id),

@@ -124,7 +124,8 @@ pub struct SimBus {
     /// Line rate of the description (the servos' factory rate is 1 Mbps).
     pub baud: u32,
     /// The line rate the host talks at now: a servo set to another rate hears garbage and
-    /// answers nothing (set from the pseudo-terminal's line settings when served).
+    /// answers nothing (set by a link that knows it; the pseudo-terminals do not follow the
+    /// host's rate yet, docs/commissioning.md).
     host_baud: u32,
     supply_v: f64,
     supply_resistance: f64,

@@ -9,8 +9,7 @@
 //!   (replies complete `bytes × 10 / baud` after the request, plus the return delay).
 //! * [`line`]: what the servos put on the shared half-duplex line: each answer after its own
 //!   return delay, overlapping answers garbled (duplicated ids, a broadcast PING).
-//! * [`pty`]: serving buses on pseudo-terminals in real time for the unmodified driver (the
-//!   host's line rate read from the pty: a servo at another rate hears nothing).
+//! * [`pty`]: serving buses on pseudo-terminals in real time for the unmodified driver.
 //! * [`camera`], [`lidar`]: the sensors, rendered and ray-cast from the simulated robot and
 //!   its room, served as the devices `nori-camera` and `nori-lidar` read.
 //! * [`description`]: the robot description file; the A3's is embedded.

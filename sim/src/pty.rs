@@ -176,56 +176,6 @@ pub(crate) fn open_pty(bus: &str, device: &Path) -> Result<OwnedFd, ServeError> 
     Ok(pty.master)
 }
 
-/// A bus's pseudo-terminal at the rate its servos listen at (a pty starts at 38 400 baud; a
-/// program that opens it without setting a rate talks at this one).
-fn open_bus(bus: &str, device: &Path, baud: u32) -> Result<OwnedFd, ServeError> {
-    let master = open_pty(bus, device)?;
-    if let Err(e) = set_line_rate(&master, baud) {
-        tracing::warn!(
-            bus,
-            baud,
-            "cannot preset the line rate ({e}): set it when opening"
-        );
-    }
-    Ok(master)
-}
-
-fn set_line_rate(master: &OwnedFd, baud: u32) -> nix::Result<()> {
-    use nix::sys::termios::{cfsetspeed, BaudRate};
-    let rate = match baud {
-        1_000_000 => BaudRate::B1000000,
-        500_000 => BaudRate::B500000,
-        115_200 => BaudRate::B115200,
-        57_600 => BaudRate::B57600,
-        38_400 => BaudRate::B38400,
-        _ => return Err(nix::errno::Errno::EINVAL),
-    };
-    let mut termios = tcgetattr(master)?;
-    cfsetspeed(&mut termios, rate)?;
-    tcsetattr(master, SetArg::TCSANOW, &termios)
-}
-
-/// The line rate the program at the other end set: termios2's `c_ospeed`, which holds the
-/// rate however it was set (a `Bnnn` constant or `BOTHER`, as `serialport` does); TCGETS2 on a
-/// master reads its slave's settings. `None` if the call fails.
-#[allow(
-    unsafe_code,
-    reason = "one read-only ioctl with no safe wrapper: nix has no termios2, and serialport \
-              reads it only of a port it opened itself"
-)]
-fn line_rate(master: &OwnedFd) -> Option<u32> {
-    use std::os::fd::AsRawFd;
-    // SAFETY: `termios2` is plain integers, so all-zero is a valid value; TCGETS2 writes one
-    // `termios2` through the pointer, which is valid, aligned and that large, on a descriptor
-    // borrowed (open) for the call.
-    let (r, termios) = unsafe {
-        let mut termios: nix::libc::termios2 = std::mem::zeroed();
-        let r = nix::libc::ioctl(master.as_raw_fd(), nix::libc::TCGETS2, &mut termios);
-        (r, termios)
-    };
-    (r == 0).then_some(termios.c_ospeed)
-}
-
 /// Serves each `(bus, device link)` on a new pseudo-terminal, stepping mechanics every `dt` s.
 ///
 /// At most 32 buses (the unplug mask is a `u32`).
@@ -233,12 +183,10 @@ pub fn serve(buses: Vec<(SimBus, PathBuf)>, dt: f64) -> Result<ServedRobot, Serv
     let mut masters = Vec::with_capacity(buses.len());
     let mut devices = Vec::with_capacity(buses.len());
     let mut names = Vec::with_capacity(buses.len());
-    let mut rates = Vec::with_capacity(buses.len());
     for (bus, device) in buses.iter().take(32) {
-        masters.push(Some(open_bus(&bus.name, device, bus.baud)?));
+        masters.push(Some(open_pty(&bus.name, device)?));
         devices.push(device.clone());
         names.push(bus.name.clone());
-        rates.push(bus.baud);
     }
     let buses = Arc::new(Mutex::new(
         buses
@@ -255,7 +203,6 @@ pub fn serve(buses: Vec<(SimBus, PathBuf)>, dt: f64) -> Result<ServedRobot, Serv
             masters,
             devices: devices.clone(),
             names,
-            rates,
             unplugged,
         };
         std::thread::Builder::new()
@@ -284,8 +231,6 @@ struct Lines {
     masters: Vec<Option<OwnedFd>>,
     devices: Vec<PathBuf>,
     names: Vec<String>,
-    /// Each bus's description rate (the one a pty starts at).
-    rates: Vec<u32>,
     unplugged: Arc<AtomicU32>,
 }
 
@@ -301,7 +246,7 @@ impl Lines {
                     let _ = std::fs::remove_file(&self.devices[i]);
                     tracing::info!(bus = %self.names[i], "unplugged");
                 }
-                (None, true) => match open_bus(&self.names[i], &self.devices[i], self.rates[i]) {
+                (None, true) => match open_pty(&self.names[i], &self.devices[i]) {
                     Ok(m) => {
                         self.masters[i] = Some(m);
                         tracing::info!(bus = %self.names[i], "plugged in again");
@@ -374,9 +319,6 @@ fn run(mut lines: Lines, buses: &Mutex<Vec<SimBus>>, stop: &AtomicBool, dt: f64)
                         if let Ok(mut buses) = buses.lock() {
                             let bus = &mut buses[i];
                             bus.advance_to(now, dt);
-                            if let Some(baud) = line_rate(master) {
-                                bus.set_host_baud(baud);
-                            }
                             bus.receive(now, &buf[..n]);
                         }
                     }

@@ -87,9 +87,12 @@ fn a_factory_fresh_servo_in_the_elbow_s_place_is_found_at_id_1_and_the_elbow_mis
         .map(|f| f["id"].as_u64().unwrap())
         .collect();
     assert_eq!(read, [2, 3, 5, 6, 7, 8]);
-    assert!(rates[1..]
-        .iter()
-        .all(|r| r["found"].as_array().unwrap().is_empty()));
+    // (The pseudo-terminal does not follow the host's rate: the same servos answer at every
+    // rate, and are judged where the bus runs.)
+    assert!(
+        faults_named(&findings, "wrong-rate").is_empty(),
+        "{findings:#?}"
+    );
     stack.stop();
 }
 
