@@ -719,6 +719,53 @@ mod tests {
         }
     }
 
+    /// A wheel's reply missed in one cycle (a corrupted reply, a cycle the machine woke late
+    /// for: the driver publishes it unread, torque unknown) leaves the base driving on its
+    /// ramp; wheels unread for longer than the driver's freshness bound stop it.
+    #[test]
+    fn a_wheel_missed_for_a_cycle_keeps_the_ramp_and_one_missed_for_long_stops_the_base() {
+        let mut c = ready(false);
+        let mut goal = GoalFrame::default();
+        let mut cruise = 0.0;
+        for i in 0..100u64 {
+            let t = i * 10 * MS;
+            c.on_command(&command(t, 0.3, 0.0), t).unwrap();
+            cruise = period(&mut c, t, None, &mut goal).1.commanded_linear_m_s;
+        }
+        assert!((cruise - 0.3).abs() < 1e-6, "{cruise}");
+        let unread = |t: u64, k: usize| {
+            let mut s = state(t, [0.0; 2], [0.0; 2]);
+            s.joints[k] = telemetry::JointSample::default();
+            s
+        };
+        let mut t = 1000 * MS;
+        c.on_command(&command(t, 0.3, 0.0), t).unwrap();
+        c.on_state(&unread(t, 1));
+        let (sent, s) = c.tick(t, None, &mut goal);
+        assert!(sent, "{s:?}");
+        assert!(s.flags & BASE_FLAG_NOT_DRIVEN == 0, "{s:?}");
+        assert!(s.flags & BASE_FLAG_WHEELS_UNREAD != 0, "{s:?}");
+        assert!((s.commanded_linear_m_s - 0.3).abs() < 1e-6, "{s:?}");
+        // Read again: on at full speed, not started again from rest.
+        t += 10 * MS;
+        let (sent, s) = period(&mut c, t, None, &mut goal);
+        assert!(sent && (s.commanded_linear_m_s - 0.3).abs() < 1e-6, "{s:?}");
+        // The right wheel unread from here on: driven until it is 100 ms unread, then not.
+        let read_at = t;
+        loop {
+            t += 10 * MS;
+            c.on_command(&command(t, 0.3, 0.0), t).unwrap();
+            c.on_state(&unread(t, 2));
+            let (sent, s) = c.tick(t, None, &mut goal);
+            let stale = t - read_at > STATE_MAX_AGE_NS;
+            assert_eq!(sent, !stale, "{} ms unread: {s:?}", (t - read_at) / MS);
+            assert_eq!(s.flags & BASE_FLAG_NOT_DRIVEN != 0, stale, "{s:?}");
+            if stale {
+                break;
+            }
+        }
+    }
+
     /// A revolution with one table leg off the front-left corner: a turn is judged in its own
     /// direction (left sweeps the front edge into it at once; right only after 62°), and the
     /// speed along the path is held to the field's, never more.
