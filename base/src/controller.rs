@@ -77,9 +77,11 @@ pub struct Controller {
     refused: u32,
     seq: u64,
     last_tick_ns: Option<u64>,
-    /// Whether the newest joint-state frame has the wheels driven, and read.
+    /// Whether the newest joint-state frame has the wheels driven, and read; whether the
+    /// newest frame that read them had their torque on.
     driven: bool,
     read: bool,
+    torque_on: bool,
     wheels_read_ns: u64,
     /// The newest joint-state frame's timestamp.
     state_ns: u64,
@@ -101,6 +103,7 @@ impl Controller {
             last_tick_ns: None,
             driven: false,
             read: false,
+            torque_on: false,
             wheels_read_ns: 0,
             state_ns: 0,
             history: PoseHistory::default(),
@@ -153,17 +156,24 @@ impl Controller {
         };
         if s.joint_count != count {
             self.read = false;
+            self.torque_on = false;
             self.driven = false;
             return;
         }
         self.state_ns = s.timestamp_ns;
         let (left, right) = (&s.joints[l], &s.joints[r]);
         let off = JOINT_FLAG_BUS_DISABLED | JOINT_FLAG_BUS_LOST;
+        self.read = left.is_valid() && right.is_valid();
+        // A reply missed this cycle says nothing of the wheel's torque (the sample is empty):
+        // the last read's word stands, as long as it is fresh.
+        if self.read {
+            self.torque_on = left.torque_enabled == 1 && right.torque_enabled == 1;
+        }
+        let fresh = s.timestamp_ns.saturating_sub(self.wheels_read_ns) <= STATE_MAX_AGE_NS;
         self.driven = s.flags & STATE_FLAG_SAFE_STATE == 0
             && (left.flags | right.flags) & off == 0
-            && left.torque_enabled == 1
-            && right.torque_enabled == 1;
-        self.read = left.is_valid() && right.is_valid();
+            && self.torque_on
+            && (self.read || fresh);
         if self.read {
             self.wheels_read_ns = s.timestamp_ns;
             let pose = self.odometry.update(
