@@ -234,3 +234,54 @@ fn goals_are_followed_clamped_and_gated() {
     );
     rig.served.stop();
 }
+
+/// A servo that does not hold its joint's calibration (its horn refitted, or a new servo set up
+/// but never calibrated: another homing offset, the factory's limits) is refused at setup, never
+/// energised and never given a goal, and its EEPROM is left as found; every other joint runs.
+#[test]
+fn a_servo_without_its_joints_calibration_is_not_driven() {
+    use feetech::registers as reg;
+    let rig = rig("uncalibrated");
+    // The left elbow (id 4 on the left arm) refitted: its homing offset 37 steps off the file's.
+    let cal = rig.config.calibration.joint["left_elbow"];
+    rig.served
+        .with_bus("left_arm", |b| {
+            let s = b.servo_mut(4).unwrap();
+            let offset = (cal.homing_offset + 37) as u16;
+            assert!(s.write(reg::LOCK.addr, &[0]));
+            assert!(s.write(reg::HOMING_OFFSET.addr, &offset.to_le_bytes()));
+            assert!(s.write(reg::LOCK.addr, &[1]));
+        })
+        .unwrap();
+    let mut d = driver(&rig.config);
+    let failures = d.setup();
+    let names: Vec<&str> = failures.iter().map(|(n, _)| n.as_str()).collect();
+    assert_eq!(names, ["left_elbow"], "{failures:?}");
+    let said = failures[0].1.to_string();
+    assert!(
+        said.contains("homing offset") && said.contains("calibrat"),
+        "{said}"
+    );
+    let elbow = d.joint_names().position(|n| n == "left_elbow").unwrap();
+    assert!(d.ready().enumerate().all(|(j, r)| r == (j != elbow)));
+    // Goals for it are not followed: it stays off, and keeps what its EEPROM holds.
+    d.apply_goals(
+        &goals(&d, &[(elbow, -1.0)]),
+        monotonic_ns(),
+        GoalPath::Joints,
+    )
+    .unwrap();
+    run_cycles(&mut d, 300);
+    assert!(!d.ready().nth(elbow).unwrap());
+    rig.served
+        .with_bus("left_arm", |b| {
+            let s = b.servo_mut(4).unwrap();
+            assert_eq!(s.get(reg::HOMING_OFFSET), cal.homing_offset + 37);
+            assert_eq!(s.get(reg::TORQUE_ENABLE), 0);
+            assert_eq!(s.log.torque_on_writes, 0);
+            assert_eq!(s.log.goal_writes, 0, "a goal reached the refused servo");
+        })
+        .unwrap();
+    drop(d);
+    rig.served.stop();
+}
