@@ -18,14 +18,10 @@ pub struct Setting {
     pub value: i32,
 }
 
-/// The EEPROM a servo must hold for this joint.
-pub fn desired(
-    backstops: &Backstops,
-    mode: Mode,
-    calibration: Option<&JointCalibration>,
-) -> Vec<Setting> {
+/// The protection EEPROM a servo must hold for this joint (the driver writes what differs).
+pub fn desired(backstops: &Backstops, mode: Mode) -> Vec<Setting> {
     let s = |register: Register, value: i32| Setting { register, value };
-    let mut v = vec![
+    vec![
         // Replies without the factory 500 µs delay: the cycle budget is wire time.
         s(reg::RETURN_DELAY_TIME, 0),
         s(reg::OPERATING_MODE, if mode == Mode::Speed { 1 } else { 0 }),
@@ -43,14 +39,28 @@ pub fn desired(
         ),
         s(reg::MAX_TORQUE_LIMIT, max_torque_permille(backstops)),
         s(reg::UNLOADING_CONDITION, UNLOADING_CONDITION),
-    ];
-    if let Some(cal) = calibration {
-        v.push(s(reg::HOMING_OFFSET, cal.homing_offset));
-        // The firmware's own goal limits: a second clamp behind the bus layer's.
-        v.push(s(reg::MIN_POSITION_LIMIT, cal.range_min));
-        v.push(s(reg::MAX_POSITION_LIMIT, cal.range_max));
-    }
-    v
+    ]
+}
+
+/// The EEPROM a calibrated servo holds for its joint: the homing offset and the firmware's own
+/// goal limits (a second clamp behind the bus layer's). The calibration writes them; the driver
+/// only checks them, so a servo nobody calibrated for this joint (a replaced one, a refitted
+/// horn) is refused, not quietly given a range that is not its joint's.
+pub fn calibration_settings(cal: &JointCalibration) -> [Setting; 3] {
+    [
+        Setting {
+            register: reg::HOMING_OFFSET,
+            value: cal.homing_offset,
+        },
+        Setting {
+            register: reg::MIN_POSITION_LIMIT,
+            value: cal.range_min,
+        },
+        Setting {
+            register: reg::MAX_POSITION_LIMIT,
+            value: cal.range_max,
+        },
+    ]
 }
 
 /// `Max_Torque_Limit` (and the volatile `Torque_Limit`) in 0.1 % units.
@@ -81,7 +91,7 @@ mod tests {
 
     #[test]
     fn backstops_in_register_units() {
-        let d = desired(&B, Mode::Position, None);
+        let d = desired(&B, Mode::Position);
         let get = |r: Register| d.iter().find(|s| s.register == r).unwrap().value;
         assert_eq!(get(reg::MAX_TEMPERATURE_LIMIT), 60);
         assert_eq!(get(reg::PROTECTION_CURRENT), 308); // 2.0 A / 6.5 mA
@@ -91,7 +101,7 @@ mod tests {
 
     #[test]
     fn only_differences_are_written() {
-        let d = desired(&B, Mode::Position, None);
+        let d = desired(&B, Mode::Position);
         let same: Vec<Option<i32>> = d.iter().map(|s| Some(s.value)).collect();
         assert!(
             plan(&d, &same).is_empty(),

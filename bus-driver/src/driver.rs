@@ -95,6 +95,22 @@ pub enum SetupError {
     /// Bus failure.
     #[error(transparent)]
     Bus(#[from] BusError),
+    /// The servo does not hold its joint's calibration (homing offset, position limits):
+    /// not the servo the calibration was made with, or its horn was refitted.
+    #[error(
+        "servo {id} holds homing offset {}, position limits {}..{}; the calibration says {}, \
+         {}..{}: not calibrated for this joint (a replaced servo or a refitted horn): left off \
+         until the joint is calibrated",
+        found[0], found[1], found[2], expected[0], expected[1], expected[2]
+    )]
+    NotCalibrated {
+        /// Servo id.
+        id: u8,
+        /// Homing offset and the two limits read.
+        found: [i32; 3],
+        /// What the calibration says.
+        expected: [i32; 3],
+    },
     /// The servo is not the configured model.
     #[error("servo {id} reports model number {found}, configured {expected:?}")]
     WrongModel {
@@ -582,7 +598,22 @@ impl<T: Transport> Driver<T> {
             });
         }
         bus.write(id, reg::TORQUE_ENABLE, 0)?;
-        let desired = backstops::desired(&backstops, mode, calibration.as_ref());
+        if let Some(cal) = &calibration {
+            let expected = backstops::calibration_settings(cal);
+            let mut found = [0; 3];
+            for (f, s) in found.iter_mut().zip(&expected) {
+                *f = bus.read(id, s.register)?;
+            }
+            let expected = expected.map(|s| s.value);
+            if found != expected {
+                return Err(SetupError::NotCalibrated {
+                    id,
+                    found,
+                    expected,
+                });
+            }
+        }
+        let desired = backstops::desired(&backstops, mode);
         let mut current = Vec::with_capacity(desired.len());
         for s in &desired {
             current.push(Some(bus.read(id, s.register)?));

@@ -285,3 +285,37 @@ fn a_servo_without_its_joints_calibration_is_not_driven() {
     drop(d);
     rig.served.stop();
 }
+
+/// The simulated A3 leaves the line calibrated, and the embedded calibration is that
+/// calibration: every calibrated joint's servo holds the file's homing offset and limits.
+#[test]
+fn the_embedded_calibration_is_the_one_the_simulated_robot_holds() {
+    use feetech::registers as reg;
+    let robot = RobotDescription::nori_a3();
+    let loaded = LoadedConfig::embedded().unwrap();
+    let mut checked = 0;
+    for config in &loaded.config.bus {
+        let d = robot.bus.iter().find(|b| b.name == config.name).unwrap();
+        let mut bus = SimBus::new(&robot, d);
+        for s in &config.servo {
+            let Some(cal) = loaded.calibration_for(config, &s.joint) else {
+                continue;
+            };
+            let servo = bus.servo_mut(s.id).unwrap();
+            let held = [
+                reg::HOMING_OFFSET,
+                reg::MIN_POSITION_LIMIT,
+                reg::MAX_POSITION_LIMIT,
+            ]
+            .map(|r| servo.get(r));
+            assert_eq!(
+                held,
+                [cal.homing_offset, cal.range_min, cal.range_max],
+                "{}",
+                s.joint
+            );
+            checked += 1;
+        }
+    }
+    assert_eq!(checked, 16, "every arm joint and gripper");
+}

@@ -91,6 +91,19 @@ pub enum Finding {
         /// Its id.
         id: u8,
     },
+    /// A servo whose homing offset or position limits are not its joint's calibration: the
+    /// driver refuses it (a replaced servo, a refitted horn, or a calibration file from
+    /// another robot).
+    NotCalibrated {
+        /// The joint.
+        joint: String,
+        /// Its id.
+        id: u8,
+        /// Homing offset and position limits it holds.
+        found: [i32; 3],
+        /// What the calibration says.
+        calibration: [i32; 3],
+    },
     /// EEPROM settings that differ from what the driver writes at start (and will write).
     Settings {
         /// The joint.
@@ -191,6 +204,17 @@ impl std::fmt::Display for Finding {
                  is the factory's {max_temperature_c} °C): a new servo, to set up and calibrate \
                  before the driver drives it (on a robot never started, the driver's first \
                  start sets it up)"
+            ),
+            Finding::NotCalibrated {
+                joint,
+                id,
+                found: [o, lo, hi],
+                calibration: [co, clo, chi],
+            } => write!(
+                f,
+                "{joint} (id {id}) holds homing offset {o} and limits {lo}..{hi}, the \
+                 calibration {co} and {clo}..{chi}: the driver refuses it until the joint is \
+                 calibrated"
             ),
             Finding::HeardOnlyByBroadcast { id, baud } => write!(
                 f,
@@ -305,7 +329,20 @@ fn judge_found(loaded: &LoadedConfig, bus: &BusConfig, f: &Found) -> Option<Find
             max_temperature_c: settings.max_temperature_c,
         });
     }
-    let changes = settings_against_driver(loaded, bus, &servo.joint, &servo.model, &settings);
+    if let Some(cal) = loaded.calibration_for(bus, &servo.joint) {
+        let want = backstops::calibration_settings(&cal);
+        let found = want.map(|s| settings.value_of(s.register).unwrap_or(i32::MIN));
+        let calibration = want.map(|s| s.value);
+        if found != calibration {
+            return Some(Finding::NotCalibrated {
+                joint: servo.joint.clone(),
+                id: f.id,
+                found,
+                calibration,
+            });
+        }
+    }
+    let changes = settings_against_driver(loaded, bus, &servo.model, &settings);
     (!changes.is_empty()).then(|| Finding::Settings {
         joint: servo.joint.clone(),
         id: f.id,
@@ -317,15 +354,13 @@ fn judge_found(loaded: &LoadedConfig, bus: &BusConfig, f: &Found) -> Option<Find
 fn settings_against_driver(
     loaded: &LoadedConfig,
     bus: &BusConfig,
-    joint: &str,
     model: &str,
     settings: &crate::settings::Settings,
 ) -> Vec<SettingChange> {
     let Some(b) = loaded.config.backstops.get(model) else {
         return Vec::new();
     };
-    let calibration = loaded.calibration_for(bus, joint);
-    backstops::desired(b, bus.mode, calibration.as_ref())
+    backstops::desired(b, bus.mode)
         .into_iter()
         .filter_map(|want| {
             let found = settings.value_of(want.register)?;

@@ -145,7 +145,11 @@ mod tests {
         let table = [0u8; 71];
         let settings = Settings::parse(&table).unwrap();
         for mode in [Mode::Position, Mode::Speed] {
-            for want in bus_driver::backstops::desired(&backstops, mode, Some(&calibration)) {
+            let calibrated = bus_driver::backstops::calibration_settings(&calibration);
+            for want in bus_driver::backstops::desired(&backstops, mode)
+                .into_iter()
+                .chain(calibrated)
+            {
                 assert!(
                     settings.value_of(want.register).is_some(),
                     "{}",

@@ -193,7 +193,7 @@ impl Target {
             id: servo.id,
             model,
             baud: bus.baud,
-            eeprom: backstops::desired(backstops, bus.mode, None),
+            eeprom: backstops::desired(backstops, bus.mode),
             others: bus
                 .servo
                 .iter()

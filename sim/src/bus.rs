@@ -167,8 +167,13 @@ pub struct SimBus {
     truth: Vec<Option<[u8; FEEDBACK_LEN as usize]>>,
 }
 
+/// How far inside each stop the robot's calibration put a joint's limits (rad): the simulated
+/// A3 leaves the line calibrated so, and `deploy/config/calibration.toml` is that calibration.
+pub const CALIBRATION_MARGIN_RAD: f64 = 0.15;
+
 impl SimBus {
-    /// Builds a bus from its description.
+    /// Builds a bus from its description: each servo set to its joint's id and rate, its arm
+    /// joints calibrated ([`CALIBRATION_MARGIN_RAD`]), the rest of its EEPROM the factory's.
     pub fn new(robot: &RobotDescription, d: &BusDescription) -> Self {
         let mut servos = Vec::with_capacity(d.servo.len());
         let mut index = [None; 256];
@@ -190,9 +195,11 @@ impl SimBus {
             for (k, j) in a.joint.iter().enumerate() {
                 roles[pos(j.servo)] = Role::ArmJoint(k);
                 arm_servos.push(pos(j.servo));
+                servos[pos(j.servo)].calibrate(j.lower_rad, j.upper_rad, CALIBRATION_MARGIN_RAD);
             }
             if let Some(g) = &a.gripper {
                 roles[pos(g.servo)] = Role::Gripper;
+                servos[pos(g.servo)].calibrate(g.lower_rad, g.upper_rad, CALIBRATION_MARGIN_RAD);
             }
         }
         let mut wheel_load = (0.0, 0.0);

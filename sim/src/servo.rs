@@ -381,6 +381,19 @@ impl Servo {
         CENTER_STEP + self.horn_steps + self.angle / RAD_PER_STEP
     }
 
+    /// Calibrated for a joint with stops at `lower_rad`..`upper_rad`, as the commissioning
+    /// leaves a servo: a homing offset that makes Present_Position read 2048 at the joint's
+    /// zero (the horn's tooth taken out), and position limits `margin_rad` inside the stops,
+    /// in EEPROM. Its goal follows, so it holds where it is.
+    pub fn calibrate(&mut self, lower_rad: f64, upper_rad: f64, margin_rad: f64) {
+        let step = |rad: f64| (CENTER_STEP + rad / RAD_PER_STEP).round() as i32;
+        self.set(reg::HOMING_OFFSET, self.horn_steps.round() as i32);
+        self.set(reg::MIN_POSITION_LIMIT, step(lower_rad + margin_rad));
+        self.set(reg::MAX_POSITION_LIMIT, step(upper_rad - margin_rad));
+        self.flash[..40].copy_from_slice(&self.regs[..40]);
+        self.set_goal_to_present();
+    }
+
     /// Fits its horn `steps` off the joint's zero (a new servo's); its goal follows, so it
     /// holds where it is.
     pub fn fit_horn(&mut self, steps: f64) {

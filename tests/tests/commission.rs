@@ -183,3 +183,65 @@ fn a_fresh_servo_connected_alone_is_set_up_as_the_elbow() {
     assert_eq!(elbow["id"], 4, "{elbow:#}");
     assert_eq!(elbow["torque_on_writes"], 0, "never turned on");
 }
+
+/// A burnt elbow replaced, set up alone, its neighbours plugged back: the scan names it not
+/// calibrated, and the driver drives the other seven but never this one (hazard C4), whose
+/// horn the robot's calibration knows nothing of.
+#[test]
+fn a_replaced_servo_set_up_but_not_calibrated_is_left_off_by_the_driver() {
+    let _turn = serial();
+    let mut args = vec![
+        "--fresh-servo".to_string(),
+        "left_arm:left_elbow".to_string(),
+    ];
+    // The other seven unplugged for the setup, back after 4 s.
+    for id in [1, 2, 3, 5, 6, 7, 8] {
+        args.extend(["--silence".to_string(), format!("left_arm:{id}@0+4")]);
+    }
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let mut stack = ArmStack::simulator_only("replaced", &args);
+    std::thread::sleep(Duration::from_millis(300));
+    let out = servo(&stack, &["setup", "left_arm", "left_elbow"]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    std::thread::sleep(Duration::from_secs(4));
+    let out = scan(&stack, &["--json", "--bus-rate-only"]);
+    assert_eq!(out.status.code(), Some(1));
+    let named = faults_named(&findings(&out), "not-calibrated");
+    assert_eq!(named.len(), 1, "{:#}", findings(&out).len());
+    assert_eq!(named[0]["joint"], "left_elbow");
+
+    stack.restart_supervisor();
+    stack.restart_driver();
+    let node = Plane::open(&stack.domain, "replaced-test").unwrap();
+    let states = node.subscriber(&plane::JOINT_STATE).unwrap();
+    let elbow = 3;
+    let s = wait_for(Duration::from_secs(20), "seven joints driven", || {
+        newest(&states).filter(|s| {
+            s.joints()
+                .iter()
+                .enumerate()
+                .all(|(j, q)| (j == elbow) != (q.torque_enabled == 1))
+        })
+    });
+    assert!(
+        s.joints[elbow].is_valid(),
+        "the elbow answers, read but off"
+    );
+    // Still off a while later (the driver retries its setup every second).
+    std::thread::sleep(Duration::from_millis(2500));
+    let s = newest(&states).unwrap();
+    assert_eq!(s.joints[elbow].torque_enabled, 0);
+    assert!(stack.driver.running());
+    drop((states, node));
+    let log = std::fs::read_to_string(stack.dir.join("driver-2.log")).unwrap();
+    assert!(log.contains("not calibrated for this joint"), "{log}");
+    let report = stack.stop();
+    let servo = &report["buses"][0]["servos"][3];
+    assert_eq!(servo["id"], 4, "{servo:#}");
+    assert_eq!(servo["torque_on_writes"], 0, "{servo:#}");
+    assert_eq!(servo["goal_writes"], 0, "{servo:#}");
+}

@@ -76,7 +76,7 @@ pub fn line(bus: &RefCell<SimBus>) -> Line<'_> {
 }
 
 /// The left arm as the driver leaves it at its first start: each servo's EEPROM as the driver
-/// writes it (backstops, calibrated limits), locked.
+/// writes it (backstops) and the calibration left it (homing offset, limits), locked.
 pub fn as_set_up_by_the_driver(mut bus: SimBus) -> SimBus {
     use telemetry::config::ProcessConfig;
     let loaded = bus_driver::LoadedConfig::embedded().unwrap();
@@ -86,7 +86,11 @@ pub fn as_set_up_by_the_driver(mut bus: SimBus) -> SimBus {
         let calibration = loaded.calibration_for(config, &s.joint);
         let servo = bus.servo_mut(s.id).unwrap();
         assert!(servo.write(feetech::registers::LOCK.addr, &[0]));
-        for want in bus_driver::backstops::desired(backstops, config.mode, calibration.as_ref()) {
+        let calibrated = calibration
+            .as_ref()
+            .map(bus_driver::backstops::calibration_settings);
+        let wanted = bus_driver::backstops::desired(backstops, config.mode);
+        for want in wanted.into_iter().chain(calibrated.into_iter().flatten()) {
             let raw = bus_driver::bus::encode(want.register, want.value)
                 .unwrap()
                 .to_le_bytes();
