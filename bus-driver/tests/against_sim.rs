@@ -319,3 +319,49 @@ fn the_embedded_calibration_is_the_one_the_simulated_robot_holds() {
     }
     assert_eq!(checked, 16, "every arm joint and gripper");
 }
+
+/// A factory-fresh servo (id 1, the factory's 500 µs return delay) in the elbow's place, beside
+/// the shoulder at id 1 that a driver set up before (return delay 0): the shoulder's reply
+/// comes first and intact, the twin's after it. The driver must hear both and drive neither;
+/// every write to id 1 would reach the twin too (hazard C5).
+#[test]
+fn a_twin_at_the_shoulders_id_is_heard_and_neither_servo_is_driven() {
+    use feetech::registers as reg;
+    let rig = rig("twin");
+    let robot = RobotDescription::nori_a3();
+    rig.served
+        .with_bus("left_arm", |b| {
+            let shoulder = b.servo_mut(1).unwrap();
+            assert!(shoulder.write(reg::LOCK.addr, &[0]));
+            assert!(shoulder.write(reg::RETURN_DELAY_TIME.addr, &[0]));
+            assert!(shoulder.write(reg::LOCK.addr, &[1]));
+            assert!(b.fit_fresh_servo(&robot, "left_elbow", 120.0));
+        })
+        .unwrap();
+    let mut d = driver(&rig.config);
+    let failures = d.setup();
+    let names: Vec<&str> = failures.iter().map(|(n, _)| n.as_str()).collect();
+    assert!(
+        names.contains(&"left_shoulder_pitch") && names.contains(&"left_elbow"),
+        "{failures:?}"
+    );
+    let said = failures
+        .iter()
+        .find(|(n, _)| n == "left_shoulder_pitch")
+        .unwrap()
+        .1
+        .to_string();
+    assert!(said.contains("more than one servo"), "{said}");
+    let goal = goals(&d, &[(0, -0.5)]);
+    d.apply_goals(&goal, monotonic_ns(), GoalPath::Joints).unwrap();
+    run_cycles(&mut d, 300);
+    assert!(!d.ready().next().unwrap(), "the shoulder driven");
+    let report = rig.served.reports();
+    let left = report.iter().find(|b| b.name == "left_arm").unwrap();
+    let twin = &left.servos[3];
+    assert_eq!(twin.id, 1);
+    assert_eq!(twin.log.torque_on_writes, 0, "the twin energised");
+    assert_eq!(twin.log.goal_writes, 0, "a goal reached the twin");
+    drop(d);
+    rig.served.stop();
+}
