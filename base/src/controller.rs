@@ -776,6 +776,51 @@ mod tests {
         }
     }
 
+    /// One wheel read with its torque off (a wheel servo that rebooted) while the other's reply
+    /// is missed in the same frame: not driven, whatever the last frame that read both said.
+    #[test]
+    fn a_wheel_read_with_torque_off_stops_the_base_when_the_other_is_unread() {
+        let mut c = ready(false);
+        let mut goal = GoalFrame::default();
+        for i in 0..50u64 {
+            let t = i * 10 * MS;
+            c.on_command(&command(t, 0.3, 0.0), t).unwrap();
+            period(&mut c, t, None, &mut goal);
+        }
+        let t = 500 * MS;
+        let mut s = state(t, [0.0; 2], [0.0; 2]);
+        s.joints[1].torque_enabled = 0;
+        s.joints[2] = telemetry::JointSample::default();
+        c.on_state(&s);
+        c.on_command(&command(t, 0.3, 0.0), t).unwrap();
+        let (sent, st) = c.tick(t, None, &mut goal);
+        assert!(!sent && st.flags & BASE_FLAG_NOT_DRIVEN != 0, "{st:?}");
+    }
+
+    /// A joint-state frame stamped ahead of the controller's clock (a publisher with another
+    /// clock on the plane) does not keep the wheels' word fresh, nor the driver heard, after it.
+    #[test]
+    fn a_state_stamped_ahead_keeps_nothing_fresh() {
+        let mut c = ready(false);
+        let mut goal = GoalFrame::default();
+        c.on_state(&state(10_000 * MS, [0.0; 2], [0.0; 2]));
+        for i in 1..=30u64 {
+            let t = i * 10 * MS;
+            let mut unread = state(t, [0.0; 2], [0.0; 2]);
+            unread.joints[1] = telemetry::JointSample::default();
+            c.on_state(&unread);
+            c.on_command(&command(t, 0.3, 0.0), t).unwrap();
+            let (sent, st) = c.tick(t, None, &mut goal);
+            assert!(!sent && st.flags & BASE_FLAG_NOT_DRIVEN != 0, "{i}: {st:?}");
+        }
+        // And a driver heard only from the future is not heard.
+        let mut c = ready(false);
+        c.on_state(&state(10_000 * MS, [0.0; 2], [0.0; 2]));
+        c.on_command(&command(20 * MS, 0.3, 0.0), 20 * MS).unwrap();
+        let (sent, st) = c.tick(20 * MS, None, &mut goal);
+        assert!(!sent && st.flags & BASE_FLAG_NOT_DRIVEN != 0, "{st:?}");
+    }
+
     /// A revolution with one table leg off the front-left corner: a turn is judged in its own
     /// direction (left sweeps the front edge into it at once; right only after 62°), and the
     /// speed along the path is held to the field's, never more.
