@@ -77,11 +77,12 @@ pub struct Controller {
     refused: u32,
     seq: u64,
     last_tick_ns: Option<u64>,
-    /// Whether the newest joint-state frame has the wheels driven, and read; whether the
-    /// newest frame that read them had their torque on.
-    driven: bool,
+    /// Whether the newest joint-state frame lets the wheels be driven (no safe state, their
+    /// bus on and connected), and read them both.
+    switched_on: bool,
     read: bool,
-    torque_on: bool,
+    /// Each wheel's torque word from the newest frame that read it, and that frame's stamp.
+    torque: [Option<(bool, u64)>; 2],
     wheels_read_ns: u64,
     /// The newest joint-state frame's timestamp.
     state_ns: u64,
@@ -101,9 +102,9 @@ impl Controller {
             refused: 0,
             seq: 0,
             last_tick_ns: None,
-            driven: false,
+            switched_on: false,
             read: false,
-            torque_on: false,
+            torque: [None; 2],
             wheels_read_ns: 0,
             state_ns: 0,
             history: PoseHistory::default(),
@@ -156,24 +157,23 @@ impl Controller {
         };
         if s.joint_count != count {
             self.read = false;
-            self.torque_on = false;
-            self.driven = false;
+            self.switched_on = false;
+            self.torque = [None; 2];
             return;
         }
         self.state_ns = s.timestamp_ns;
         let (left, right) = (&s.joints[l], &s.joints[r]);
         let off = JOINT_FLAG_BUS_DISABLED | JOINT_FLAG_BUS_LOST;
-        self.read = left.is_valid() && right.is_valid();
-        // A reply missed this cycle says nothing of the wheel's torque (the sample is empty):
-        // the last read's word stands, as long as it is fresh.
-        if self.read {
-            self.torque_on = left.torque_enabled == 1 && right.torque_enabled == 1;
+        self.switched_on =
+            s.flags & STATE_FLAG_SAFE_STATE == 0 && (left.flags | right.flags) & off == 0;
+        // A reply missed this cycle says nothing of its wheel's torque (the sample is empty):
+        // each wheel's last read word stands while it is fresh (judged at the tick).
+        for (word, wheel) in self.torque.iter_mut().zip([left, right]) {
+            if wheel.is_valid() {
+                *word = Some((wheel.torque_enabled == 1, s.timestamp_ns));
+            }
         }
-        let fresh = s.timestamp_ns.saturating_sub(self.wheels_read_ns) <= STATE_MAX_AGE_NS;
-        self.driven = s.flags & STATE_FLAG_SAFE_STATE == 0
-            && (left.flags | right.flags) & off == 0
-            && self.torque_on
-            && (self.read || fresh);
+        self.read = left.is_valid() && right.is_valid();
         if self.read {
             self.wheels_read_ns = s.timestamp_ns;
             let pose = self.odometry.update(
@@ -214,8 +214,14 @@ impl Controller {
         if !self.read {
             flags |= BASE_FLAG_WHEELS_UNREAD;
         }
-        let heard = now_ns.saturating_sub(self.state_ns) <= STATE_MAX_AGE_NS;
-        let send = self.driven && heard && self.wheels.is_some();
+        // Judged on this clock: a frame stamped ahead of it keeps nothing fresh.
+        let fresh = |t: u64| in_force(t, now_ns, STATE_MAX_AGE_NS).is_ok();
+        let torque_on = self
+            .torque
+            .iter()
+            .all(|w| matches!(*w, Some((true, t)) if fresh(t)));
+        let heard = fresh(self.state_ns);
+        let send = self.switched_on && torque_on && heard && self.wheels.is_some();
         let commanded = if send {
             self.ramp.step(target, dt, &self.config.limits)
         } else {

@@ -391,18 +391,43 @@ impl<T: Transport> Bus<T> {
         let deadline = Instant::now() + wire_time(request, self.transport.baud()) + window;
         let mut heard = Heard::default();
         self.collect_until(deadline, |_, status| {
-            heard.replies.push(Reply {
-                id: status.id,
-                status: status.status,
-                data: status.params.to_vec(),
-            });
+            heard.replies.push(Reply::of(status));
             false
         })?;
-        let after = &self.counters;
-        heard.damaged = (after.checksum_errors - before.checksum_errors)
-            + (after.framing_errors - before.framing_errors)
-            + u64::from(after.garbage_bytes > before.garbage_bytes);
+        heard.damaged = damage(&before, &self.counters);
         Ok(heard)
+    }
+
+    /// PING `id`, then listen `window` past the first answer for another one (two servos at
+    /// one id answer one after the other, or over each other): every answer heard, intact and
+    /// damaged. Nothing heard within a unicast transaction's budget is retried as one is.
+    pub fn ping_listening(&mut self, id: u8, window: Duration) -> Result<Heard, BusError> {
+        let budget = wire_time(status_bytes(0) + 16, self.transport.baud())
+            + self.margin.max(UNICAST_REPLY_MARGIN);
+        for _ in 0..UNICAST_ATTEMPTS {
+            self.start()?;
+            let before = self.counters;
+            self.send(Instruction::Ping { id })?;
+            let mut heard = Heard::default();
+            self.collect_until(Instant::now() + budget, |_, status| {
+                heard.replies.push(Reply::of(status));
+                true
+            })?;
+            if heard.replies.is_empty() && damage(&before, &self.counters) == 0 {
+                std::thread::sleep(self.margin);
+                continue;
+            }
+            self.collect_until(Instant::now() + window, |_, status| {
+                heard.replies.push(Reply::of(status));
+                false
+            })?;
+            heard.damaged = damage(&before, &self.counters);
+            return Ok(heard);
+        }
+        Err(BusError::NoReply {
+            id,
+            waited_us: budget.as_micros() as u64,
+        })
     }
 
     /// PING: the servo's status bits, or why it did not answer.
@@ -454,6 +479,16 @@ pub struct Reply {
     pub data: Vec<u8>,
 }
 
+impl Reply {
+    fn of(status: &StatusPacket) -> Reply {
+        Reply {
+            id: status.id,
+            status: status.status,
+            data: status.params.to_vec(),
+        }
+    }
+}
+
 /// What came back to one instruction within a listening window.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Heard {
@@ -462,6 +497,14 @@ pub struct Heard {
     /// Damaged packets (bad checksum or framing) and runs of bytes that were no packet: on a
     /// clean line, two servos that talked at once.
     pub damaged: u64,
+}
+
+/// Damaged packets and runs of bytes that were no packet between two counts: on a clean line,
+/// two servos that talked at once.
+fn damage(before: &BusCounters, after: &BusCounters) -> u64 {
+    (after.checksum_errors - before.checksum_errors)
+        + (after.framing_errors - before.framing_errors)
+        + u64::from(after.garbage_bytes > before.garbage_bytes)
 }
 
 /// Bytes of a READ request: header, id, length, instruction, address, count, checksum.

@@ -4,7 +4,7 @@
 //! Joint angle `q` (rad) and `Present_Position` `p` (steps, after the servo subtracts its
 //! `Homing_Offset`) relate as `p = 2048 + direction · q · 4096 / 2π`.
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use std::f64::consts::TAU;
 use thiserror::Error;
 
@@ -14,7 +14,7 @@ pub const STEPS_PER_RAD: f64 = 4096.0 / TAU;
 pub const CENTER: f64 = 2048.0;
 
 /// The calibration of one joint.
-#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, rename_all = "kebab-case")]
 pub struct JointCalibration {
     /// Written to the servo's `Homing_Offset` (steps, ±2047).
@@ -24,7 +24,7 @@ pub struct JointCalibration {
     /// Highest goal the joint may be sent, steps.
     pub range_max: i32,
     /// The servo turns against the joint's positive direction.
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub inverted: bool,
 }
 
@@ -71,6 +71,13 @@ impl JointCalibration {
                 "range-min {} must be below range-max {}",
                 self.range_min, self.range_max
             ));
+        }
+        if (self.homing_offset, self.range_min, self.range_max) == (0, 0, 4095) {
+            return fail(
+                "the factory's values (homing offset 0, range 0..4095): a servo never \
+                 calibrated holds the same, so the driver could not tell them apart"
+                    .into(),
+            );
         }
         if self.homing_offset.abs() > 2047 {
             return fail(format!(
@@ -159,6 +166,32 @@ mod tests {
             ));
         }
         assert!(wheel_speed_steps(0, f32::NAN, 5.0, false).is_err());
+    }
+
+    /// A calibration equal to a factory-fresh servo's EEPROM would let an uncalibrated servo
+    /// pass the driver's check: refused.
+    #[test]
+    fn the_factorys_values_are_no_calibration() {
+        let factory = JointCalibration {
+            homing_offset: 0,
+            range_min: 0,
+            range_max: 4095,
+            inverted: false,
+        };
+        let e = factory.validate("j").unwrap_err();
+        assert!(e.reason.contains("factory"), "{e}");
+        for near in [
+            JointCalibration {
+                homing_offset: 1,
+                ..factory
+            },
+            JointCalibration {
+                range_max: 4094,
+                ..factory
+            },
+        ] {
+            near.validate("j").unwrap();
+        }
     }
 
     #[test]

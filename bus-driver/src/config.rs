@@ -5,7 +5,7 @@
 //! `deploy/config/calibration.toml`), so the driver runs on the simulated robot with no file.
 
 use crate::calibration::JointCalibration;
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashSet};
 use std::path::{Path, PathBuf};
 pub use telemetry::config::ConfigError;
@@ -180,12 +180,58 @@ pub fn max_encodable_wheel_speed() -> f64 {
     f64::from(feetech::encoding::max_magnitude(15)) / crate::calibration::STEPS_PER_RAD
 }
 
-/// The calibration file: one table per joint.
-#[derive(Debug, Clone, PartialEq, Deserialize)]
+/// The calibration file: one table per joint, and where `nori calibrate` wrote it, what it was
+/// made of.
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, rename_all = "kebab-case")]
 pub struct CalibrationFile {
+    /// Who calibrated the robot, when and how (absent from a file written by hand).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibrated: Option<Provenance>,
     /// By joint name.
     pub joint: BTreeMap<String, JointCalibration>,
+    /// The servo each joint was calibrated with, as read then (by joint name).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub servo: BTreeMap<String, ServoIdentity>,
+}
+
+/// The calibration file format this driver reads.
+pub const CALIBRATION_FORMAT: u32 = 1;
+
+/// Where a calibration came from.
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct Provenance {
+    /// The file's format ([`CALIBRATION_FORMAT`]).
+    pub format: u32,
+    /// The robot's id.
+    pub robot: String,
+    /// When, RFC 3339 (UTC).
+    pub at: String,
+    /// How the ranges were found.
+    pub method: CalibrationMethod,
+}
+
+/// How a calibration found each joint's stops.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CalibrationMethod {
+    /// An operator moved each joint from stop to stop, torque off.
+    ByHand,
+    /// Each joint driven slowly at a low torque into its stops.
+    Automatic,
+}
+
+/// A servo as the calibration read it.
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct ServoIdentity {
+    /// Its id on the bus.
+    pub id: u8,
+    /// Its model key.
+    pub model: String,
+    /// Its firmware, major.minor.
+    pub firmware: String,
 }
 
 /// A loaded, validated configuration with its calibration.
@@ -486,6 +532,23 @@ impl DriverConfig {
     }
 }
 
+impl CalibrationFile {
+    /// A format this driver does not know is refused, naming both.
+    fn check_format(&self, origin: &str) -> Result<(), ConfigError> {
+        match &self.calibrated {
+            Some(p) if p.format != CALIBRATION_FORMAT => Err(invalid(
+                origin,
+                "calibrated.format",
+                format!(
+                    "format {} is not the {CALIBRATION_FORMAT} this driver reads",
+                    p.format
+                ),
+            )),
+            _ => Ok(()),
+        }
+    }
+}
+
 /// The driver's configuration and the calibration it names (relative to the file; the
 /// embedded calibration when it names none).
 impl ProcessConfig for LoadedConfig {
@@ -509,6 +572,7 @@ impl LoadedConfig {
     ) -> Result<Self, ConfigError> {
         let config = DriverConfig::parse(text, origin)?;
         let calibration: CalibrationFile = parse(calibration, cal_origin)?;
+        calibration.check_format(cal_origin)?;
         config.validate(origin, &calibration, cal_origin)?;
         Ok(LoadedConfig {
             config,
@@ -530,6 +594,7 @@ impl LoadedConfig {
             ),
         };
         let calibration: CalibrationFile = parse(&cal_text, &cal_origin)?;
+        calibration.check_format(&cal_origin)?;
         config.validate(origin, &calibration, &cal_origin)?;
         Ok(LoadedConfig {
             config,

@@ -353,7 +353,8 @@ fn a_twin_at_the_shoulders_id_is_heard_and_neither_servo_is_driven() {
         .to_string();
     assert!(said.contains("more than one servo"), "{said}");
     let goal = goals(&d, &[(0, -0.5)]);
-    d.apply_goals(&goal, monotonic_ns(), GoalPath::Joints).unwrap();
+    d.apply_goals(&goal, monotonic_ns(), GoalPath::Joints)
+        .unwrap();
     run_cycles(&mut d, 300);
     assert!(!d.ready().next().unwrap(), "the shoulder driven");
     let report = rig.served.reports();
@@ -362,6 +363,50 @@ fn a_twin_at_the_shoulders_id_is_heard_and_neither_servo_is_driven() {
     assert_eq!(twin.id, 1);
     assert_eq!(twin.log.torque_on_writes, 0, "the twin energised");
     assert_eq!(twin.log.goal_writes, 0, "a goal reached the twin");
+    drop(d);
+    rig.served.stop();
+}
+
+/// A horn fitted 300 steps below the encoder's centre, calibrated (a negative homing offset,
+/// sign-magnitude on the wire): the driver accepts the calibration that matches and reads the
+/// joint where the simulator has it; the same servo with the file's offset 37 steps off is
+/// refused.
+#[test]
+fn a_negative_homing_offset_is_checked_as_the_servo_holds_it() {
+    let mut rig = rig("negative-offset");
+    rig.served
+        .with_bus("left_arm", |b| {
+            let s = b.servo_mut(4).unwrap();
+            s.fit_horn(-300.0);
+            s.calibrate(-2.4, 0.1, 0.15);
+        })
+        .unwrap();
+    let elbow_cal = rig.config.calibration.joint.get_mut("left_elbow").unwrap();
+    elbow_cal.homing_offset = -300;
+    let mut d = driver(&rig.config);
+    assert!(d.setup().is_empty());
+    run_cycles(&mut d, 20);
+    let elbow = d.joint_names().position(|n| n == "left_elbow").unwrap();
+    let q = f64::from(d.state().joints[elbow].position_rad);
+    let truth = rig
+        .served
+        .with_bus("left_arm", |b| b.servo_mut(4).unwrap().angle)
+        .unwrap();
+    assert!(
+        (q - truth).abs() < 0.01,
+        "the elbow read at {q} rad, it is at {truth}"
+    );
+    drop(d);
+    rig.config
+        .calibration
+        .joint
+        .get_mut("left_elbow")
+        .unwrap()
+        .homing_offset = -263;
+    let mut d = driver(&rig.config);
+    let failures = d.setup();
+    assert_eq!(failures.len(), 1, "{failures:?}");
+    assert!(failures[0].1.to_string().contains("homing offset -300"));
     drop(d);
     rig.served.stop();
 }

@@ -12,8 +12,14 @@
 //! * [`findings`]: a scan judged against the driver's configuration: what is missing, at the
 //!   wrong rate or id, of the wrong model, and which EEPROM setting differs from what the
 //!   driver writes.
+//! * [`calibrate`]: a joint's travel swept by hand (across the encoder's wrap) and the
+//!   calibration chosen from it, refused when the travel is not the description's.
+//! * [`record`]: the calibration written as a versioned file, atomically, the previous one
+//!   kept, and what changed said joint by joint.
 
+pub mod calibrate;
 pub mod findings;
+pub mod record;
 pub mod scan;
 pub mod settings;
 pub mod setup;

@@ -1,0 +1,327 @@
+//! Calibration by hand, the pure part: a joint's travel recorded from its encoder while an
+//! operator moves it from stop to stop (torque off, its homing offset cleared), across the
+//! encoder's 0/4095 wrap, and the calibration chosen from it. The joint's zero is placed between
+//! the two stops where the robot's description puts it, the homing offset makes
+//! `Present_Position` read 2048 there, and the limits sit a margin inside the stops. A travel
+//! that is not the description's (a stop hit early: something in the way, a wrong part) is
+//! refused, not written.
+
+use bus_driver::calibration::{JointCalibration, CENTER, STEPS_PER_RAD};
+use thiserror::Error;
+
+/// Encoder steps in one turn.
+const TURN: i64 = 4096;
+/// The largest homing offset the register holds (sign and 11 bits).
+const MAX_OFFSET: i64 = 2047;
+
+/// A joint's mechanical stops, from the robot's description, rad; whether its servo turns
+/// against the joint's positive direction.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Stops {
+    /// The lower stop, rad.
+    pub lower_rad: f64,
+    /// The upper stop, rad.
+    pub upper_rad: f64,
+    /// The servo counts down as the joint angle grows.
+    pub inverted: bool,
+}
+
+impl Stops {
+    fn travel_rad(&self) -> f64 {
+        self.upper_rad - self.lower_rad
+    }
+}
+
+/// The readings of one joint so far: the encoder unwrapped across 0/4095 (two readings a
+/// sampling period apart never differ by half a turn: a hand does not turn a joint 180° in
+/// 20 ms), and the extremes reached.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Sweep {
+    last: Option<i64>,
+    unwrapped: i64,
+    min: i64,
+    max: i64,
+    readings: u32,
+}
+
+impl Sweep {
+    /// One `Present_Position` reading (steps, homing offset 0).
+    pub fn observe(&mut self, raw: u16) {
+        let raw = i64::from(raw).rem_euclid(TURN);
+        match self.last {
+            None => {
+                self.unwrapped = raw;
+                self.min = raw;
+                self.max = raw;
+            }
+            Some(last) => {
+                self.unwrapped += (raw - last + TURN / 2).rem_euclid(TURN) - TURN / 2;
+                self.min = self.min.min(self.unwrapped);
+                self.max = self.max.max(self.unwrapped);
+            }
+        }
+        self.last = Some(raw);
+        self.readings = self.readings.saturating_add(1);
+    }
+
+    /// The angle swept between the extremes, rad.
+    pub fn swept_rad(&self) -> f64 {
+        (self.max - self.min) as f64 / STEPS_PER_RAD
+    }
+
+    /// Where the joint is now, as a share of the sweep so far (0 at one extreme, 1 at the
+    /// other), for the operator's live view.
+    pub fn place(&self) -> f64 {
+        if self.max == self.min {
+            return 0.5;
+        }
+        (self.unwrapped - self.min) as f64 / (self.max - self.min) as f64
+    }
+
+    /// Whether the sweep has reached both stops (within `tolerance_rad` of the travel).
+    pub fn covers(&self, stops: &Stops, tolerance_rad: f64) -> bool {
+        self.readings > 0 && self.swept_rad() >= stops.travel_rad() - tolerance_rad
+    }
+}
+
+/// Why a joint's sweep gives no calibration.
+#[derive(Debug, Clone, PartialEq, Error)]
+pub enum Refusal {
+    /// Nothing was read.
+    #[error("{joint}: no reading")]
+    NoReadings {
+        /// The joint.
+        joint: String,
+    },
+    /// The sweep is short of the travel: the stops were not both reached, or something stops
+    /// the joint early.
+    #[error(
+        "{joint}: swept {swept_deg:.1}° of its {travel_deg:.1}° travel: move it from stop to \
+         stop (if it will not go further, something is in its way)"
+    )]
+    NotCovered {
+        /// The joint.
+        joint: String,
+        /// Swept, degrees.
+        swept_deg: f64,
+        /// The description's travel, degrees.
+        travel_deg: f64,
+    },
+    /// The stops are further apart than the description's: a broken stop or a part that is
+    /// not the description's.
+    #[error(
+        "{joint}: its stops are {swept_deg:.1}° apart, the description says {travel_deg:.1}°: \
+         a stop is not where the description puts it (a broken or wrong part)"
+    )]
+    BeyondTravel {
+        /// The joint.
+        joint: String,
+        /// Swept, degrees.
+        swept_deg: f64,
+        /// The description's travel, degrees.
+        travel_deg: f64,
+    },
+}
+
+/// The calibration of a joint from its sweep: `margin_rad` inside each stop, refused when the
+/// sweep differs from the description's travel by more than `tolerance_rad`.
+pub fn choose(
+    joint: &str,
+    sweep: &Sweep,
+    stops: &Stops,
+    margin_rad: f64,
+    tolerance_rad: f64,
+) -> Result<JointCalibration, Refusal> {
+    if sweep.readings == 0 {
+        return Err(Refusal::NoReadings {
+            joint: joint.into(),
+        });
+    }
+    let (swept_deg, travel_deg) = (
+        sweep.swept_rad().to_degrees(),
+        stops.travel_rad().to_degrees(),
+    );
+    if sweep.swept_rad() < stops.travel_rad() - tolerance_rad {
+        return Err(Refusal::NotCovered {
+            joint: joint.into(),
+            swept_deg,
+            travel_deg,
+        });
+    }
+    if sweep.swept_rad() > stops.travel_rad() + tolerance_rad {
+        return Err(Refusal::BeyondTravel {
+            joint: joint.into(),
+            swept_deg,
+            travel_deg,
+        });
+    }
+    // The reading at the joint's zero, estimated from each stop and averaged: the lower stop
+    // reads lowest unless the servo is inverted.
+    let sign = if stops.inverted { -1.0 } else { 1.0 };
+    let (at_lower, at_upper) = if stops.inverted {
+        (sweep.max as f64, sweep.min as f64)
+    } else {
+        (sweep.min as f64, sweep.max as f64)
+    };
+    let zero = 0.5
+        * ((at_lower - sign * stops.lower_rad * STEPS_PER_RAD)
+            + (at_upper - sign * stops.upper_rad * STEPS_PER_RAD));
+    // Present = raw − offset (mod a turn) reads 2048 at the zero.
+    let offset = ((zero - CENTER).round() as i64 + TURN / 2).rem_euclid(TURN) - TURN / 2;
+    let step = |rad: f64| (CENTER + sign * rad * STEPS_PER_RAD).round() as i32;
+    let (a, b) = (
+        step(stops.lower_rad + margin_rad),
+        step(stops.upper_rad - margin_rad),
+    );
+    Ok(JointCalibration {
+        // −2048 and 2048 are one offset; the register holds neither (a step off, 0.09°).
+        homing_offset: offset.clamp(-MAX_OFFSET, MAX_OFFSET) as i32,
+        range_min: a.min(b).max(0),
+        range_max: a.max(b).min(TURN as i32 - 1),
+        inverted: stops.inverted,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use feetech::registers as reg;
+    use sim::rng::Rng;
+    use sim::servo::Servo;
+
+    const ELBOW: Stops = Stops {
+        lower_rad: -2.4,
+        upper_rad: 0.1,
+        inverted: false,
+    };
+
+    /// A simulated servo of the description's kind, its horn on tooth `horn` (steps), its
+    /// homing offset cleared, read at `q`.
+    fn reading(servo: &mut Servo, q: f64) -> u16 {
+        servo.angle = q;
+        let mut b = [0u8; 2];
+        assert!(servo.read(reg::PRESENT_POSITION.addr, 2, &mut b));
+        u16::from_le_bytes(b)
+    }
+
+    fn servo(horn: f64) -> Servo {
+        let d = sim::RobotDescription::nori_a3();
+        let rating = d.rating("sts3095").unwrap();
+        let mut s = Servo::new(4, rating.model, rating, 0.0, 25.0);
+        s.fit_horn(horn);
+        s
+    }
+
+    /// An operator's sweep at 50 Hz: from where the joint rests to the lower stop, pressed
+    /// `press` rad into it (the stop's give), to the upper stop, back to rest.
+    fn swept(servo: &mut Servo, stops: &Stops, press: f64, rng: &mut Rng) -> Sweep {
+        let mut sweep = Sweep::default();
+        let waypoints = [-0.5, stops.lower_rad - press, stops.upper_rad + press, -0.5];
+        for w in waypoints.windows(2) {
+            let n = ((w[1] - w[0]).abs() / 0.02).ceil() as usize;
+            for k in 0..=n {
+                let q = w[0] + (w[1] - w[0]) * k as f64 / n as f64;
+                sweep.observe(reading(servo, q + rng.normal() * 0.001));
+            }
+        }
+        sweep
+    }
+
+    /// Over horns on every part of the encoder's turn (the sweep crossing 0/4095 in most), the
+    /// chosen offset reads the joint's zero within 2° on the simulator's own encoder, and the
+    /// limits sit the margin inside the stops.
+    #[test]
+    fn by_hand_the_zero_is_found_within_two_degrees_across_the_wrap() {
+        let mut rng = Rng::new(11);
+        for seed in 0..40 {
+            let horn = -2047.0 + 4094.0 * f64::from(seed) / 39.0;
+            let mut s = servo(horn);
+            let sweep = swept(&mut s, &ELBOW, 0.01, &mut rng);
+            let cal = choose("left_elbow", &sweep, &ELBOW, 0.15, 0.1).unwrap();
+            cal.validate("left_elbow").unwrap();
+            assert!(s.write(reg::LOCK.addr, &[0]));
+            let raw = (cal.homing_offset as i16 as u16).to_le_bytes();
+            let encoded = bus_driver::bus::encode(reg::HOMING_OFFSET, cal.homing_offset).unwrap();
+            assert!(
+                s.write(reg::HOMING_OFFSET.addr, &encoded.to_le_bytes()),
+                "{raw:?}"
+            );
+            let zero = cal.to_rad(i32::from(reading(&mut s, 0.0)));
+            assert!(
+                zero.abs() < 2f64.to_radians(),
+                "horn {horn}: zero reads {zero} rad"
+            );
+            let (lo, hi) = cal.range_rad();
+            assert!((lo - (ELBOW.lower_rad + 0.15)).abs() < 0.002, "{lo}");
+            assert!((hi - (ELBOW.upper_rad - 0.15)).abs() < 0.002, "{hi}");
+            // Where the joint is read at each calibrated limit is where the calibration says.
+            let at_low = cal.to_rad(i32::from(reading(&mut s, lo)));
+            assert!((at_low - lo).abs() < 2f64.to_radians(), "{at_low} vs {lo}");
+        }
+    }
+
+    #[test]
+    fn an_inverted_servo_is_calibrated_the_other_way_round() {
+        let stops = Stops {
+            inverted: true,
+            ..ELBOW
+        };
+        let mut s = servo(700.0);
+        let mut sweep = Sweep::default();
+        // Inverted: the servo reads the joint's angle negated.
+        for k in 0..=250 {
+            let q = stops.lower_rad + stops.travel_rad() * f64::from(k) / 250.0;
+            sweep.observe(reading(&mut s, -q));
+        }
+        let cal = choose("j", &sweep, &stops, 0.15, 0.1).unwrap();
+        assert!(cal.inverted);
+        let (lo, hi) = cal.range_rad();
+        assert!((lo - (stops.lower_rad + 0.15)).abs() < 0.002, "{lo}");
+        assert!((hi - (stops.upper_rad - 0.15)).abs() < 0.002, "{hi}");
+        // At the joint's zero the raw reading less the offset is the centre.
+        let raw = i64::from(reading(&mut s, 0.0));
+        let present = (raw - i64::from(cal.homing_offset)).rem_euclid(TURN);
+        assert!((present - 2048).abs() <= 2, "{present}");
+    }
+
+    #[test]
+    fn a_short_sweep_and_a_travel_beyond_the_description_are_refused() {
+        let mut rng = Rng::new(3);
+        let mut s = servo(0.0);
+        // Blocked 30° before the upper stop: the sweep is short.
+        let blocked = Stops {
+            upper_rad: ELBOW.upper_rad - 0.52,
+            ..ELBOW
+        };
+        let sweep = swept(&mut s, &blocked, 0.0, &mut rng);
+        assert!(!sweep.covers(&ELBOW, 0.1));
+        let e = choose("left_elbow", &sweep, &ELBOW, 0.15, 0.1).unwrap_err();
+        assert!(matches!(e, Refusal::NotCovered { .. }), "{e}");
+        assert!(e.to_string().contains("something is in its way"), "{e}");
+        // A stop broken off: 20° more travel than described.
+        let broken = Stops {
+            lower_rad: ELBOW.lower_rad - 0.35,
+            ..ELBOW
+        };
+        let sweep = swept(&mut s, &broken, 0.0, &mut rng);
+        let e = choose("left_elbow", &sweep, &ELBOW, 0.15, 0.1).unwrap_err();
+        assert!(matches!(e, Refusal::BeyondTravel { .. }), "{e}");
+        assert_eq!(
+            choose("j", &Sweep::default(), &ELBOW, 0.15, 0.1),
+            Err(Refusal::NoReadings { joint: "j".into() })
+        );
+    }
+
+    #[test]
+    fn the_sweep_unwraps_across_the_encoder_wrap_and_tracks_where_the_joint_is() {
+        let mut sweep = Sweep::default();
+        for raw in [4000u16, 4090, 5, 100, 50, 4095, 3990] {
+            sweep.observe(raw);
+        }
+        // 3990 .. 4096 + 100: 206 steps swept, now at the low end.
+        assert_eq!(sweep.max - sweep.min, 206);
+        assert!(sweep.place() < 0.01);
+        sweep.observe(100);
+        assert!((sweep.place() - 1.0).abs() < 1e-9);
+    }
+}
