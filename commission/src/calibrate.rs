@@ -240,12 +240,8 @@ mod tests {
             let cal = choose("left_elbow", &sweep, &ELBOW, 0.15, 0.1).unwrap();
             cal.validate("left_elbow").unwrap();
             assert!(s.write(reg::LOCK.addr, &[0]));
-            let raw = (cal.homing_offset as i16 as u16).to_le_bytes();
             let encoded = bus_driver::bus::encode(reg::HOMING_OFFSET, cal.homing_offset).unwrap();
-            assert!(
-                s.write(reg::HOMING_OFFSET.addr, &encoded.to_le_bytes()),
-                "{raw:?}"
-            );
+            assert!(s.write(reg::HOMING_OFFSET.addr, &encoded.to_le_bytes()));
             let zero = cal.to_rad(i32::from(reading(&mut s, 0.0)));
             assert!(
                 zero.abs() < 2f64.to_radians(),
