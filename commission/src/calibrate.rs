@@ -32,15 +32,22 @@ impl Stops {
     }
 }
 
+/// The most a reading may differ from the one before it for the joint to count as held there,
+/// steps: an extreme is where the joint was held (against its stop), not where it bounced
+/// through on its way (a dangling link swung into a stop goes in by tenths of a radian for a
+/// moment).
+const STILL_STEPS: i64 = 3;
+
 /// The readings of one joint so far: the encoder unwrapped across 0/4095 (two readings a
 /// sampling period apart never differ by half a turn: a hand does not turn a joint 180° in
-/// 20 ms), and the extremes reached.
+/// 20 ms), and the extremes where it was held.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct Sweep {
     last: Option<i64>,
     unwrapped: i64,
     min: i64,
     max: i64,
+    held: bool,
     readings: u32,
 }
 
@@ -48,19 +55,21 @@ impl Sweep {
     /// One `Present_Position` reading (steps, homing offset 0).
     pub fn observe(&mut self, raw: u16) {
         let raw = i64::from(raw).rem_euclid(TURN);
-        match self.last {
-            None => {
-                self.unwrapped = raw;
-                self.min = raw;
-                self.max = raw;
-            }
-            Some(last) => {
-                self.unwrapped += (raw - last + TURN / 2).rem_euclid(TURN) - TURN / 2;
+        let Some(last) = self.last.replace(raw) else {
+            self.unwrapped = raw;
+            self.readings = 1;
+            return;
+        };
+        let step = (raw - last + TURN / 2).rem_euclid(TURN) - TURN / 2;
+        self.unwrapped += step;
+        if step.abs() <= STILL_STEPS {
+            if self.held {
                 self.min = self.min.min(self.unwrapped);
                 self.max = self.max.max(self.unwrapped);
+            } else {
+                (self.min, self.max, self.held) = (self.unwrapped, self.unwrapped, true);
             }
         }
-        self.last = Some(raw);
         self.readings = self.readings.saturating_add(1);
     }
 
@@ -72,23 +81,23 @@ impl Sweep {
     /// Where the joint is now, as a share of the sweep so far (0 at one extreme, 1 at the
     /// other), for the operator's live view.
     pub fn place(&self) -> f64 {
-        if self.max == self.min {
+        if !self.held || self.max == self.min {
             return 0.5;
         }
-        (self.unwrapped - self.min) as f64 / (self.max - self.min) as f64
+        ((self.unwrapped - self.min) as f64 / (self.max - self.min) as f64).clamp(0.0, 1.0)
     }
 
     /// Whether the sweep has reached both stops (within `tolerance_rad` of the travel).
     pub fn covers(&self, stops: &Stops, tolerance_rad: f64) -> bool {
-        self.readings > 0 && self.swept_rad() >= stops.travel_rad() - tolerance_rad
+        self.held && self.swept_rad() >= stops.travel_rad() - tolerance_rad
     }
 }
 
 /// Why a joint's sweep gives no calibration.
 #[derive(Debug, Clone, PartialEq, Error)]
 pub enum Refusal {
-    /// Nothing was read.
-    #[error("{joint}: no reading")]
+    /// Nothing was read, or the joint was never held still.
+    #[error("{joint}: never read while held still")]
     NoReadings {
         /// The joint.
         joint: String,
@@ -132,7 +141,7 @@ pub fn choose(
     margin_rad: f64,
     tolerance_rad: f64,
 ) -> Result<JointCalibration, Refusal> {
-    if sweep.readings == 0 {
+    if !sweep.held {
         return Err(Refusal::NoReadings {
             joint: joint.into(),
         });
@@ -223,6 +232,10 @@ mod tests {
                 let q = w[0] + (w[1] - w[0]) * k as f64 / n as f64;
                 sweep.observe(reading(servo, q + rng.normal() * 0.001));
             }
+            // Held at the waypoint a while, as against a stop.
+            for _ in 0..10 {
+                sweep.observe(reading(servo, w[1] + rng.normal() * 0.001));
+            }
         }
         sweep
     }
@@ -267,7 +280,10 @@ mod tests {
         // Inverted: the servo reads the joint's angle negated.
         for k in 0..=250 {
             let q = stops.lower_rad + stops.travel_rad() * f64::from(k) / 250.0;
-            sweep.observe(reading(&mut s, -q));
+            // Held at each stop: the first and last readings repeated.
+            for _ in 0..if k % 250 == 0 { 5 } else { 1 } {
+                sweep.observe(reading(&mut s, -q));
+            }
         }
         let cal = choose("j", &sweep, &stops, 0.15, 0.1).unwrap();
         assert!(cal.inverted);
@@ -311,7 +327,9 @@ mod tests {
     #[test]
     fn the_sweep_unwraps_across_the_encoder_wrap_and_tracks_where_the_joint_is() {
         let mut sweep = Sweep::default();
+        // Each reading held (repeated): an extreme counts where the joint stood still.
         for raw in [4000u16, 4090, 5, 100, 50, 4095, 3990] {
+            sweep.observe(raw);
             sweep.observe(raw);
         }
         // 3990 .. 4096 + 100: 206 steps swept, now at the low end.
@@ -319,5 +337,9 @@ mod tests {
         assert!(sweep.place() < 0.01);
         sweep.observe(100);
         assert!((sweep.place() - 1.0).abs() < 1e-9);
+        // Passing through beyond it without stopping: not an extreme.
+        sweep.observe(300);
+        sweep.observe(100);
+        assert_eq!(sweep.max - sweep.min, 206);
     }
 }

@@ -14,9 +14,13 @@
 //!   driver writes.
 //! * [`calibrate`]: a joint's travel swept by hand (across the encoder's wrap) and the
 //!   calibration chosen from it, refused when the travel is not the description's.
+//! * [`by_hand`]: a calibration by hand over the line: the joints taken (torque off, offsets
+//!   cleared), read while the operator sweeps them, the chosen calibration written and read
+//!   back, or every servo given back what it held.
 //! * [`record`]: the calibration written as a versioned file, atomically, the previous one
 //!   kept, and what changed said joint by joint.
 
+pub mod by_hand;
 pub mod calibrate;
 pub mod findings;
 pub mod record;

@@ -165,6 +165,8 @@ pub struct SimBus {
     qd: Vec<f64>,
     faults: Option<crate::faults::FaultInjector>,
     truth: Vec<Option<[u8; FEEDBACK_LEN as usize]>>,
+    /// An operator's hand sweeping the arm's joints (calibration by hand), when put on.
+    hand: Option<crate::hand::Hand>,
 }
 
 /// How far inside each stop the robot's calibration put a joint's limits (rad): the simulated
@@ -249,7 +251,43 @@ impl SimBus {
             qd: vec![0.0; n_arm],
             faults: None,
             truth: vec![None; d.servo.len()],
+            hand: None,
         }
+    }
+
+    /// Puts an operator's hand on the arm: from now on it sweeps each joint whose torque is off
+    /// from stop to stop, in the arm's order, the gripper last ([`crate::hand`]). False on a
+    /// bus without an arm.
+    pub fn put_hand_on(&mut self, robot: &RobotDescription) -> bool {
+        let Some(arm) = robot.bus(&self.name).and_then(|d| d.arm.as_ref()) else {
+            return false;
+        };
+        let at = |id: u8| self.servos.iter().position(|s| s.id == id);
+        let mut joints: Vec<crate::hand::HandJoint> = arm
+            .joint
+            .iter()
+            .filter_map(|j| {
+                Some(crate::hand::HandJoint {
+                    servo: at(j.servo)?,
+                    lower_rad: j.lower_rad,
+                    upper_rad: j.upper_rad,
+                })
+            })
+            .collect();
+        if let Some(g) = &arm.gripper {
+            joints.extend(at(g.servo).map(|servo| crate::hand::HandJoint {
+                servo,
+                lower_rad: g.lower_rad,
+                upper_rad: g.upper_rad,
+            }));
+        }
+        self.hand = Some(crate::hand::Hand::new(joints));
+        true
+    }
+
+    /// Whether the hand put on has swept every joint (`None`: no hand).
+    pub fn hand_done(&self) -> Option<bool> {
+        self.hand.as_ref().map(crate::hand::Hand::done)
     }
 
     /// Applies a model extension fitted by the model lab to every servo of the bus.
@@ -397,6 +435,14 @@ impl SimBus {
             let speed = wheels.map(|w| self.servos[w].speed);
             (*wheels, motion.contact_torque(angle, speed))
         });
+        let servos = &self.servos;
+        let hand = self.hand.as_mut().and_then(|h| {
+            h.push(dt, |i| crate::hand::Feel {
+                angle_rad: servos[i].angle,
+                speed_rad_s: servos[i].speed,
+                torque_on: servos[i].torque_enabled(),
+            })
+        });
         let contact_on = |i: usize| match contact {
             Some((wheels, torque)) => wheels
                 .iter()
@@ -417,6 +463,11 @@ impl SimBus {
                     self.wheel_load.0,
                 ),
                 Role::Free => (0.0, 0.0),
+            };
+            // The hand's push is a load the other way.
+            let torque = match hand {
+                Some((k, push)) if k == i => torque - push,
+                _ => torque,
             };
             servo.step(
                 dt,

@@ -34,6 +34,7 @@ pub use body::description;
 pub mod device;
 pub mod extension;
 pub mod faults;
+pub mod hand;
 pub mod lidar;
 pub mod lift;
 pub mod line;
