@@ -38,7 +38,7 @@ pub enum ByHandError {
         joint: String,
         /// Its id.
         id: u8,
-        /// Why.
+        /// What went wrong on the line.
         source: BusError,
     },
     /// Not one servo answers at a joint's id.
@@ -100,6 +100,20 @@ struct Joint {
     sweep: Sweep,
     /// Homing offset and limits as found, given back if the calibration is abandoned.
     found: [i32; 3],
+    firmware: String,
+}
+
+/// A joint calibrated and written.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Calibrated {
+    /// The joint.
+    pub joint: String,
+    /// Its servo's id.
+    pub id: u8,
+    /// Its calibration.
+    pub calibration: JointCalibration,
+    /// Its servo's firmware, major.minor.
+    pub firmware: String,
 }
 
 /// A calibration by hand in progress.
@@ -130,11 +144,17 @@ impl<T: Transport> ByHand<T> {
             for (f, r) in found.iter_mut().zip(CALIBRATION_REGISTERS) {
                 *f = bus.read(id, r).map_err(fail)?;
             }
+            let firmware = format!(
+                "{}.{}",
+                bus.read(id, reg::FIRMWARE_MAJOR).map_err(fail)?,
+                bus.read(id, reg::FIRMWARE_MINOR).map_err(fail)?
+            );
             write_locked(&mut bus, id, &[(reg::HOMING_OFFSET, 0)]).map_err(fail)?;
             joints.push(Joint {
                 target,
                 sweep: Sweep::default(),
                 found,
+                firmware,
             });
         }
         Ok(ByHand { bus, joints })
@@ -178,7 +198,7 @@ impl<T: Transport> ByHand<T> {
         mut self,
         margin_rad: f64,
         tolerance_rad: f64,
-    ) -> Result<Vec<(String, JointCalibration)>, ByHandError> {
+    ) -> Result<Vec<Calibrated>, ByHandError> {
         let (mut chosen, mut refused) = (Vec::new(), Vec::new());
         for j in &self.joints {
             match choose(
@@ -188,7 +208,12 @@ impl<T: Transport> ByHand<T> {
                 margin_rad,
                 tolerance_rad,
             ) {
-                Ok(c) => chosen.push((j.target.joint.clone(), c)),
+                Ok(calibration) => chosen.push(Calibrated {
+                    joint: j.target.joint.clone(),
+                    id: j.target.id,
+                    calibration,
+                    firmware: j.firmware.clone(),
+                }),
                 Err(e) => refused.push(e),
             }
         }
@@ -196,8 +221,8 @@ impl<T: Transport> ByHand<T> {
             self.give_back()?;
             return Err(ByHandError::Refused(refused));
         }
-        for (j, (_, cal)) in self.joints.iter().zip(&chosen) {
-            let (joint, id) = (&j.target.joint, j.target.id);
+        for c in &chosen {
+            let (joint, id, cal) = (&c.joint, c.id, &c.calibration);
             let fail = |source| ByHandError::Bus {
                 joint: joint.clone(),
                 id,

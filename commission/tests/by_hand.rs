@@ -87,8 +87,10 @@ fn each_joint_reads_where_it_is_within_two_degrees_over_seeds() {
         assert!(progress.iter().all(|p| p.covered), "{progress:#?}");
         let chosen = session.finish(0.15, 0.1).unwrap();
         assert_eq!(chosen.len(), 8);
-        for (target, (joint, cal)) in targets(&robot).iter().zip(&chosen) {
+        for (target, c) in targets(&robot).iter().zip(&chosen) {
+            let (joint, cal) = (&c.joint, &c.calibration);
             assert_eq!(&target.joint, joint);
+            assert_eq!(c.firmware, "3.10");
             cal.validate(joint).unwrap();
             let mut b = bus.borrow_mut();
             let servo = b.servo_mut(target.id).unwrap();

@@ -14,6 +14,7 @@
 //! | `nori model analyze`, `nori model generate` | `nori-model …` | `model-lab` |
 
 mod base_tool;
+mod calibrate_tool;
 mod plane_tools;
 mod servo_tool;
 
@@ -56,6 +57,9 @@ enum Command {
     /// Commissioning and service of the servo buses (`nori servo scan`); the stack stopped.
     #[command(subcommand)]
     Servo(servo_tool::ServoCommand),
+    /// Calibrate the joints (`nori calibrate by-hand BUS`); the stack stopped.
+    #[command(subcommand)]
+    Calibrate(calibrate_tool::CalibrateCommand),
     /// Ask the supervisor to re-enable a bus it tripped (granted once the bus has cooled).
     Reenable(plane_tools::ReenableArgs),
     /// Stop the robot: its safe state, no goal from any source, until `nori resume` (no
@@ -130,6 +134,7 @@ fn main() -> Result<()> {
         Command::Resume(a) => plane_tools::resume(a),
         Command::Base(a) => base_tool::base(a),
         Command::Servo(c) => servo_tool::servo(c),
+        Command::Calibrate(c) => calibrate_tool::calibrate(c),
         Command::Lab(p) => run_instead("nori-lab", &[], p),
         Command::PolicyServer(p) => run_instead("nori-fleet", &["policy-server"], p),
         // `nori fleet store` and `nori fleet report` are commands of their own; plain `nori fleet`

@@ -43,7 +43,7 @@ pub struct Buses {
 
 impl Buses {
     /// The configuration, its devices moved to `--device-dir`, and where it came from.
-    fn load(&self) -> Result<(LoadedConfig, String)> {
+    pub(crate) fn load(&self) -> Result<(LoadedConfig, String)> {
         let (loaded, origin) = load_config(self.config.as_deref())?;
         Ok(match &self.device_dir {
             Some(dir) => (loaded.with_device_dir(dir), origin),

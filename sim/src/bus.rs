@@ -259,10 +259,26 @@ impl SimBus {
     /// from stop to stop, in the arm's order, the gripper last ([`crate::hand`]). False on a
     /// bus without an arm.
     pub fn put_hand_on(&mut self, robot: &RobotDescription) -> bool {
+        self.put_hand_on_joints(robot, |_| true)
+    }
+
+    /// [`SimBus::put_hand_on`] for the joints (by name) `sweep` accepts only. False on a bus
+    /// without an arm, or when no joint is accepted.
+    pub fn put_hand_on_joints(
+        &mut self,
+        robot: &RobotDescription,
+        sweep: impl Fn(&str) -> bool,
+    ) -> bool {
         let Some(arm) = robot.bus(&self.name).and_then(|d| d.arm.as_ref()) else {
             return false;
         };
-        let at = |id: u8| self.servos.iter().position(|s| s.id == id);
+        let joints = &self.joints;
+        let at = |id: u8| {
+            self.servos
+                .iter()
+                .position(|s| s.id == id)
+                .filter(|&i| sweep(&joints[i]))
+        };
         let mut joints: Vec<crate::hand::HandJoint> = arm
             .joint
             .iter()
@@ -280,6 +296,9 @@ impl SimBus {
                 lower_rad: g.lower_rad,
                 upper_rad: g.upper_rad,
             }));
+        }
+        if joints.is_empty() {
+            return false;
         }
         self.hand = Some(crate::hand::Hand::new(joints));
         true

@@ -21,7 +21,8 @@
 //!   serial devices that are no servo bus, on pseudo-terminals; `render`: the cameras'
 //!   pictures; `aim`: where an object is in a picture (a scripted demonstrator's truth);
 //!   `faults`: line faults injected on a bus; `scenario`: the protection scenarios' set-ups;
-//!   `rng`: the project's one seeded random generator.
+//!   `hand`: an operator's hand sweeping an arm's joints from stop to stop (calibration by
+//!   hand); `rng`: the project's one seeded random generator.
 
 pub mod aim;
 pub mod arm;

@@ -105,6 +105,56 @@ struct ServeArgs {
     /// e.g. `left_arm:left_elbow`; repeatable.
     #[arg(long, value_name = "BUS:JOINT")]
     pub fresh_servo: Vec<String>,
+    /// An operator's hand on an arm from AT seconds after start (calibration by hand): it
+    /// sweeps each joint whose torque is off from stop to stop, in the arm's order (or only
+    /// JOINT). BUS[:JOINT]@AT, e.g. `left_arm:left_elbow@5`; repeatable.
+    #[arg(long, value_name = "BUS[:JOINT]@AT")]
+    pub hand: Vec<String>,
+}
+
+/// A hand to put on an arm: its bus, the one joint it sweeps (or all), and when.
+struct HandOn {
+    bus: String,
+    joint: Option<String>,
+    at_s: f64,
+    on: bool,
+}
+
+/// `--hand BUS[:JOINT]@AT`, each on a served bus with an arm (and that joint).
+fn hands(args: &ServeArgs, robot: &RobotDescription) -> Result<Vec<HandOn>> {
+    args.hand
+        .iter()
+        .map(|text| {
+            let bad = || format!("--hand {text:?}: BUS[:JOINT]@AT");
+            let (what, at) = text.split_once('@').with_context(bad)?;
+            let at_s: f64 = at
+                .parse()
+                .ok()
+                .filter(|t: &f64| t.is_finite() && *t >= 0.0)
+                .with_context(bad)?;
+            let (bus, joint) = match what.split_once(':') {
+                Some((b, j)) => (b, Some(j.to_string())),
+                None => (what, None),
+            };
+            let d = robot
+                .bus(bus)
+                .filter(|d| serves_bus(args, &d.name) && d.arm.is_some());
+            let Some(d) = d else {
+                anyhow::bail!("--hand {text:?}: no arm on a served bus {bus:?}");
+            };
+            if let Some(j) = &joint {
+                if !d.servo.iter().any(|s| &s.joint == j) {
+                    anyhow::bail!("--hand {text:?}: bus {bus} has no joint {j:?}");
+                }
+            }
+            Ok(HandOn {
+                bus: bus.to_string(),
+                joint,
+                at_s,
+                on: false,
+            })
+        })
+        .collect()
 }
 
 /// The simulator's report: one entry per bus, the lidar's and the lift's.
@@ -153,6 +203,7 @@ fn run(args: &ServeArgs) -> Result<()> {
     check_settings(args, &robot)?;
     let faults = line_faults(args)?;
     let mut schedule = fault_schedule(args, &robot)?;
+    let mut hands = hands(args, &robot)?;
     let shutdown = telemetry::process::stop_flag()?;
     let buses = sim_buses(args, &robot, &faults)?;
     let lidar_faults = sensor_faults(args)?;
@@ -185,6 +236,13 @@ fn run(args: &ServeArgs) -> Result<()> {
         devices.follow(args, &served, t);
         for (s, active) in schedule.advance(t) {
             apply_fault(s, active, t, &served, devices.lidar.as_ref());
+        }
+        for h in hands.iter_mut().filter(|h| !h.on && t >= h.at_s) {
+            h.on = true;
+            served.with_bus(&h.bus, |b| {
+                b.put_hand_on_joints(&robot, |j| h.joint.as_deref().is_none_or(|only| only == j))
+            });
+            eprintln!("nori sim: a hand on {} at {t:.1} s", h.bus);
         }
         if let Some(path) = &args.report {
             if last_report.elapsed() >= Duration::from_secs(1) {

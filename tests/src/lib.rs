@@ -3,7 +3,8 @@
 //! Tests here spawn `nori` (the simulator), `supervisor` and `bus-driver` exactly as `nori up` or
 //! systemd do,
 //! talk to them over the state plane, and check what the simulated servos received. Every child
-//! is killed when its guard drops, so a failing test leaves no process behind.
+//! is killed when its guard drops, so a failing test leaves no process behind. [`probe`]
+//! measures how much this shared machine disturbed a loop, for rate bounds judged against it.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 

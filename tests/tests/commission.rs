@@ -245,3 +245,104 @@ fn a_replaced_servo_set_up_but_not_calibrated_is_left_off_by_the_driver() {
     assert_eq!(servo["torque_on_writes"], 0, "{servo:#}");
     assert_eq!(servo["goal_writes"], 0, "{servo:#}");
 }
+
+/// The whole service of a burnt elbow on the simulated arm: a factory-fresh servo in its place
+/// (its horn on another tooth), set up alone, calibrated by hand (`nori calibrate by-hand`, the
+/// simulator's hand sweeping it stop to stop), and the arm driven again with the new file: all
+/// eight joints on, the elbow read where the simulator has it.
+#[test]
+fn a_replaced_elbow_set_up_and_calibrated_by_hand_is_driven_again() {
+    let _turn = serial();
+    let mut args = vec![
+        "--fresh-servo".to_string(),
+        "left_arm:left_elbow".to_string(),
+        "--hand".to_string(),
+        "left_arm:left_elbow@6".to_string(),
+    ];
+    for id in [1, 2, 3, 5, 6, 7, 8] {
+        args.extend(["--silence".to_string(), format!("left_arm:{id}@0+4")]);
+    }
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let mut stack = ArmStack::simulator_only("recalibrated", &args);
+    std::thread::sleep(Duration::from_millis(300));
+    let out = servo(&stack, &["setup", "left_arm", "left_elbow"]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    std::thread::sleep(Duration::from_secs(4));
+    let file = stack.dir.join("calibration.toml");
+    let out = Command::new(binary("nori"))
+        .args(["calibrate", "by-hand", "left_arm", "--joint", "left_elbow"])
+        .arg("--device-dir")
+        .arg(stack.dir.join("dev"))
+        .arg("--output")
+        .arg(&file)
+        .args([
+            "--robot-id",
+            "sim-test",
+            "--finish-when-covered",
+            "--within",
+            "60",
+        ])
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{said} {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(said.contains("calibrated 1 joint(s)"), "{said}");
+    assert!(said.contains("left_elbow: homing offset 0 → "), "{said}");
+    let written: bus_driver::config::CalibrationFile =
+        toml::from_str(&std::fs::read_to_string(&file).unwrap()).unwrap();
+    let made = written.calibrated.as_ref().unwrap();
+    assert_eq!(made.robot, "sim-test");
+    assert_eq!(made.method, bus_driver::config::CalibrationMethod::ByHand);
+    assert_eq!(written.servo["left_elbow"].firmware, "3.10");
+
+    // The driver with the new calibration: every joint driven again.
+    let config = stack.dir.join("bus-driver.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "calibration-file = \"calibration.toml\"\n{}",
+            bus_driver::config::DEFAULT_CONFIG_TOML
+        ),
+    )
+    .unwrap();
+    stack.driver_args = vec!["--config".into(), config.display().to_string()];
+    stack.restart_supervisor();
+    stack.restart_driver();
+    let node = Plane::open(&stack.domain, "recalibrated-test").unwrap();
+    let states = node.subscriber(&plane::JOINT_STATE).unwrap();
+    wait_for(Duration::from_secs(20), "all eight joints driven", || {
+        newest(&states).filter(|s| {
+            s.joints()
+                .iter()
+                .all(|q| q.is_valid() && q.torque_enabled == 1)
+        })
+    });
+    // Held still under torque: the elbow read where the simulator has it (its report, written
+    // every second while it runs: at the stop the torque goes off and the elbow falls).
+    std::thread::sleep(Duration::from_millis(2500));
+    let read = f64::from(newest(&states).unwrap().joints[3].position_rad);
+    let report: Value =
+        serde_json::from_str(&std::fs::read_to_string(stack.dir.join("sim-report.json")).unwrap())
+            .unwrap();
+    let truth = report["buses"][0]["servos"][3]["angle_rad"]
+        .as_f64()
+        .unwrap();
+    assert!(
+        (read - truth).abs() < 2f64.to_radians(),
+        "the elbow read at {read} rad, the simulator has it at {truth}"
+    );
+    eprintln!(
+        "the replaced elbow read {:.2}° from the simulator's truth",
+        (read - truth).abs().to_degrees()
+    );
+    drop((states, node));
+    stack.stop();
+}

@@ -31,7 +31,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
     ("commission", &["feetech", "bus-driver"]),
     (
         "nori",
-        &["telemetry", "feetech", "bus-driver", "commission"],
+        &["telemetry", "feetech", "bus-driver", "commission", "body"],
     ),
     ("lab", &["telemetry", "body"]),
     (
