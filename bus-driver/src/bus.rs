@@ -24,6 +24,20 @@ pub enum BusError {
         /// How long we waited.
         waited_us: u64,
     },
+    /// More than one servo answered a PING at one id.
+    #[error(
+        "more than one servo answers at id {id} ({answers} intact answers, {damaged} damaged): \
+         two servos share the id (a new servo fitted at the factory's id?), or a noisy line \
+         damaged the answer"
+    )]
+    NotAlone {
+        /// Servo id.
+        id: u8,
+        /// Intact answers heard.
+        answers: usize,
+        /// Damaged packets heard (answers over each other).
+        damaged: u64,
+    },
     /// The reply carried the wrong amount of data.
     #[error("servo {id} answered {got} bytes, expected {expected}")]
     ShortReply {
@@ -398,6 +412,25 @@ impl<T: Transport> Bus<T> {
         Ok(heard)
     }
 
+    /// One servo, and only one, answers a PING at `id`: a second one (a factory-fresh servo
+    /// fitted at the factory's id beside the servo there) takes every write meant for the
+    /// first, while the first's intact reply hides it from a transaction that takes the first
+    /// reply. Listens [`TWIN_WINDOW`] past the first answer.
+    pub fn alone_at(&mut self, id: u8) -> Result<(), BusError> {
+        let heard = self.ping_listening(id, TWIN_WINDOW)?;
+        let answers = heard.replies.iter().filter(|r| r.id == id).count();
+        match (answers, heard.damaged) {
+            (1, 0) => Ok(()),
+            // Only another id's late answer: as if nothing answered.
+            (0, 0) => Err(BusError::NoReply { id, waited_us: 0 }),
+            (answers, damaged) => Err(BusError::NotAlone {
+                id,
+                answers,
+                damaged,
+            }),
+        }
+    }
+
     /// PING `id`, then listen `window` past the first answer for another one (two servos at
     /// one id answer one after the other, or over each other): every answer heard, intact and
     /// damaged. Nothing heard within a unicast transaction's budget is retried as one is.
@@ -514,6 +547,11 @@ const READ_REQUEST_BYTES: usize = 8;
 pub fn read_time(len: u8, baud: u32) -> Duration {
     wire_time(READ_REQUEST_BYTES + status_bytes(usize::from(len)), baud)
 }
+
+/// How long a PING listens past the first answer for a second servo at the same id: the
+/// slowest return delay a servo can be set to (254 × 2 µs; the factory's is 500 µs), a reply's
+/// wire time, and the host's scheduling.
+pub const TWIN_WINDOW: Duration = Duration::from_millis(3);
 
 /// Attempts of a unicast transaction before the servo is declared unreachable.
 pub const UNICAST_ATTEMPTS: usize = 3;

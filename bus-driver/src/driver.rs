@@ -111,20 +111,6 @@ pub enum SetupError {
         /// What the calibration says.
         expected: [i32; 3],
     },
-    /// More than one servo answered a PING at its id.
-    #[error(
-        "more than one servo answers at id {id} ({answers} intact answers, {damaged} damaged): \
-         two servos share the id (a new servo fitted at the factory's id?), or a noisy line \
-         damaged the answer: not driven, retried"
-    )]
-    NotAlone {
-        /// Servo id.
-        id: u8,
-        /// Intact answers heard.
-        answers: usize,
-        /// Damaged packets heard (answers over each other).
-        damaged: u64,
-    },
     /// The servo is not the configured model.
     #[error("servo {id} reports model number {found}, configured {expected:?}")]
     WrongModel {
@@ -135,29 +121,6 @@ pub enum SetupError {
         /// `Model_Number` read.
         found: i32,
     },
-}
-
-/// How long a setup's PING listens past the first answer for a second servo at the same id:
-/// the slowest return delay a servo can be set to (254 × 2 µs; the factory's is 500 µs), a
-/// reply's wire time, and the host's scheduling.
-const TWIN_WINDOW: std::time::Duration = std::time::Duration::from_millis(3);
-
-/// One servo, and only one, answers a PING at `id`: a second one (a factory-fresh servo fitted
-/// at the factory's id beside the servo there) would take every write meant for the first,
-/// while the first's intact reply hides it from a transaction that takes the first reply.
-fn alone_at<T: Transport>(bus: &mut Bus<T>, id: u8) -> Result<(), SetupError> {
-    let heard = bus.ping_listening(id, TWIN_WINDOW)?;
-    let answers = heard.replies.iter().filter(|r| r.id == id).count();
-    match (answers, heard.damaged) {
-        (1, 0) => Ok(()),
-        // Only another id's late answer: as if nothing answered.
-        (0, 0) => Err(BusError::NoReply { id, waited_us: 0 }.into()),
-        (answers, damaged) => Err(SetupError::NotAlone {
-            id,
-            answers,
-            damaged,
-        }),
-    }
 }
 
 /// Counters of the driver, for telemetry.
@@ -625,7 +588,7 @@ impl<T: Transport> Driver<T> {
         let torque = self.effective_torque(j);
         let mode = self.buses[b].mode;
         let bus = &mut self.buses[b].bus;
-        alone_at(bus, id)?;
+        bus.alone_at(id)?;
         let found = bus.read(id, reg::MODEL_NUMBER)?;
         if ServoModel::from_model_number(found as u16) != Some(model) {
             return Err(SetupError::WrongModel {

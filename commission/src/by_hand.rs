@@ -1,5 +1,5 @@
-//! A calibration by hand on one bus, over the line: each joint's servo found alone at its id,
-//! its torque off and its homing offset cleared so its encoder reads raw; the operator moves
+//! A calibration by hand on one bus, over the line: each joint's servo found alone at its id
+//! ([`Bus::alone_at`]), its torque off and its homing offset cleared so its encoder reads raw; the operator moves
 //! every joint from stop to stop while the session reads them (the caller sets the pace and
 //! shows [`ByHand::progress`]); then each joint's calibration is chosen
 //! ([`crate::calibrate::choose`]) and written into its servo, Lock around it, and read back.
@@ -11,11 +11,7 @@ use bus_driver::bus::{Bus, BusError};
 use bus_driver::calibration::JointCalibration;
 use bus_driver::transport::Transport;
 use feetech::registers as reg;
-use std::time::Duration;
 use thiserror::Error;
-
-/// How long a PING listens past the first answer for a second servo at the id.
-const TWIN_WINDOW: Duration = Duration::from_millis(3);
 
 /// A joint to calibrate.
 #[derive(Debug, Clone, PartialEq)]
@@ -40,18 +36,6 @@ pub enum ByHandError {
         id: u8,
         /// What went wrong on the line.
         source: BusError,
-    },
-    /// Not one servo answers at a joint's id.
-    #[error(
-        "{joint} (id {id}): {answers} servos answer (or answers garbled): set it up alone first"
-    )]
-    NotAlone {
-        /// The joint.
-        joint: String,
-        /// Its id.
-        id: u8,
-        /// Intact answers.
-        answers: usize,
     },
     /// Joints whose sweep gives no calibration: every servo was given back what it held.
     #[error("not calibrated, every servo left as found: {}", list(.0))]
@@ -134,11 +118,7 @@ impl<T: Transport> ByHand<T> {
                 id,
                 source,
             };
-            let heard = bus.ping_listening(id, TWIN_WINDOW).map_err(fail)?;
-            let answers = heard.replies.iter().filter(|r| r.id == id).count();
-            if answers != 1 || heard.damaged > 0 {
-                return Err(ByHandError::NotAlone { joint, id, answers });
-            }
+            bus.alone_at(id).map_err(fail)?;
             bus.write(id, reg::TORQUE_ENABLE, 0).map_err(fail)?;
             let mut found = [0; 3];
             for (f, r) in found.iter_mut().zip(CALIBRATION_REGISTERS) {
