@@ -534,7 +534,7 @@ impl DriverConfig {
 
 impl CalibrationFile {
     /// A format this driver does not know is refused, naming both.
-    fn check_format(&self, origin: &str) -> Result<(), ConfigError> {
+    pub fn check_format(&self, origin: &str) -> Result<(), ConfigError> {
         match &self.calibrated {
             Some(p) if p.format != CALIBRATION_FORMAT => Err(invalid(
                 origin,

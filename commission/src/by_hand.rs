@@ -11,6 +11,7 @@ use bus_driver::bus::{Bus, BusError};
 use bus_driver::calibration::JointCalibration;
 use bus_driver::transport::Transport;
 use feetech::registers as reg;
+use feetech::ServoModel;
 use thiserror::Error;
 
 /// A joint to calibrate.
@@ -20,6 +21,8 @@ pub struct JointToCalibrate {
     pub joint: String,
     /// Its servo's id.
     pub id: u8,
+    /// Its servo's model, from the configuration (checked against the servo's).
+    pub model: ServoModel,
     /// Its stops, from the robot's description.
     pub stops: Stops,
 }
@@ -36,6 +39,18 @@ pub enum ByHandError {
         id: u8,
         /// What went wrong on the line.
         source: BusError,
+    },
+    /// The servo at a joint's id is not its model.
+    #[error("{joint} (id {id}): model number {model_number}, not the {expected} the configuration names")]
+    WrongModel {
+        /// The joint.
+        joint: String,
+        /// Its id.
+        id: u8,
+        /// The model the configuration names.
+        expected: &'static str,
+        /// The `Model_Number` read.
+        model_number: i32,
     },
     /// Joints whose sweep gives no calibration: every servo was given back what it held.
     #[error("not calibrated, every servo left as found: {}", list(.0))]
@@ -87,6 +102,12 @@ struct Joint {
     firmware: String,
 }
 
+impl Joint {
+    fn model(&self) -> &'static str {
+        self.target.model.key()
+    }
+}
+
 /// A joint calibrated and written.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Calibrated {
@@ -96,6 +117,8 @@ pub struct Calibrated {
     pub id: u8,
     /// Its calibration.
     pub calibration: JointCalibration,
+    /// Its servo's model, as read.
+    pub model: &'static str,
     /// Its servo's firmware, major.minor.
     pub firmware: String,
 }
@@ -107,37 +130,73 @@ pub struct ByHand<T: Transport> {
 }
 
 impl<T: Transport> ByHand<T> {
-    /// Takes the joints: each servo alone at its id, its torque off, its calibration as found
-    /// kept, its homing offset cleared.
-    pub fn start(mut bus: Bus<T>, targets: Vec<JointToCalibrate>) -> Result<Self, ByHandError> {
-        let mut joints = Vec::with_capacity(targets.len());
+    /// Takes the joints: each servo alone at its id and of its joint's model, its torque off,
+    /// its calibration as found kept, its homing offset cleared (read back). A joint that
+    /// cannot be taken gives every one taken before it back what it held.
+    pub fn start(bus: Bus<T>, targets: Vec<JointToCalibrate>) -> Result<Self, ByHandError> {
+        let mut session = ByHand {
+            bus,
+            joints: Vec::with_capacity(targets.len()),
+        };
         for target in targets {
-            let (joint, id) = (target.joint.clone(), target.id);
-            let fail = |source| ByHandError::Bus {
-                joint: joint.clone(),
-                id,
-                source,
-            };
-            bus.alone_at(id).map_err(fail)?;
-            bus.write(id, reg::TORQUE_ENABLE, 0).map_err(fail)?;
-            let mut found = [0; 3];
-            for (f, r) in found.iter_mut().zip(CALIBRATION_REGISTERS) {
-                *f = bus.read(id, r).map_err(fail)?;
+            if let Err(e) = session.take(target) {
+                // Best effort: the error that stopped the session is the one to report.
+                let _ = session.give_back();
+                return Err(e);
             }
-            let firmware = format!(
-                "{}.{}",
-                bus.read(id, reg::FIRMWARE_MAJOR).map_err(fail)?,
-                bus.read(id, reg::FIRMWARE_MINOR).map_err(fail)?
-            );
-            write_locked(&mut bus, id, &[(reg::HOMING_OFFSET, 0)]).map_err(fail)?;
-            joints.push(Joint {
-                target,
-                sweep: Sweep::default(),
-                found,
-                firmware,
+        }
+        Ok(session)
+    }
+
+    fn take(&mut self, target: JointToCalibrate) -> Result<(), ByHandError> {
+        let (joint, id) = (target.joint.clone(), target.id);
+        let fail = |source| ByHandError::Bus {
+            joint: joint.clone(),
+            id,
+            source,
+        };
+        let bus = &mut self.bus;
+        bus.alone_at(id).map_err(fail)?;
+        let number = bus.read(id, reg::MODEL_NUMBER).map_err(fail)?;
+        let model = ServoModel::from_model_number(number as u16);
+        if model != Some(target.model) {
+            return Err(ByHandError::WrongModel {
+                joint,
+                id,
+                expected: target.model.key(),
+                model_number: number,
             });
         }
-        Ok(ByHand { bus, joints })
+        bus.write(id, reg::TORQUE_ENABLE, 0).map_err(fail)?;
+        let mut found = [0; 3];
+        for (f, r) in found.iter_mut().zip(CALIBRATION_REGISTERS) {
+            *f = bus.read(id, r).map_err(fail)?;
+        }
+        let firmware = format!(
+            "{}.{}",
+            bus.read(id, reg::FIRMWARE_MAJOR).map_err(fail)?,
+            bus.read(id, reg::FIRMWARE_MINOR).map_err(fail)?
+        );
+        // Kept before anything is written, so that it is given back whatever happens next.
+        self.joints.push(Joint {
+            target,
+            sweep: Sweep::default(),
+            found,
+            firmware,
+        });
+        let bus = &mut self.bus;
+        write_locked(bus, id, &[(reg::HOMING_OFFSET, 0)]).map_err(fail)?;
+        let offset = bus.read(id, reg::HOMING_OFFSET).map_err(fail)?;
+        if offset != 0 {
+            return Err(ByHandError::NotHeld {
+                joint,
+                id,
+                register: reg::HOMING_OFFSET.name,
+                found: offset,
+                wanted: 0,
+            });
+        }
+        Ok(())
     }
 
     /// Reads every joint once.
@@ -192,6 +251,7 @@ impl<T: Transport> ByHand<T> {
                     joint: j.target.joint.clone(),
                     id: j.target.id,
                     calibration,
+                    model: j.model(),
                     firmware: j.firmware.clone(),
                 }),
                 Err(e) => refused.push(e),
@@ -201,7 +261,17 @@ impl<T: Transport> ByHand<T> {
             self.give_back()?;
             return Err(ByHandError::Refused(refused));
         }
-        for c in &chosen {
+        if let Err(e) = self.write_chosen(&chosen) {
+            // Best effort: the failure that stopped the writes is the one to report.
+            let _ = self.give_back();
+            return Err(e);
+        }
+        Ok(chosen)
+    }
+
+    /// Each chosen calibration written into its servo and read back.
+    fn write_chosen(&mut self, chosen: &[Calibrated]) -> Result<(), ByHandError> {
+        for c in chosen {
             let (joint, id, cal) = (&c.joint, c.id, &c.calibration);
             let fail = |source| ByHandError::Bus {
                 joint: joint.clone(),
@@ -223,7 +293,7 @@ impl<T: Transport> ByHand<T> {
                 }
             }
         }
-        Ok(chosen)
+        Ok(())
     }
 
     /// Gives every servo back the homing offset and limits it held, and ends the session.

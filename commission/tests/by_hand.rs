@@ -22,12 +22,17 @@ fn targets(robot: &RobotDescription) -> Vec<JointToCalibrate> {
     let d = robot.bus("left_arm").unwrap();
     let arm = d.arm.as_ref().unwrap();
     let name = |id: u8| d.servo.iter().find(|s| s.id == id).unwrap().joint.clone();
+    let model = |id: u8| {
+        let key = &d.servo.iter().find(|s| s.id == id).unwrap().model;
+        feetech::ServoModel::from_key(key).unwrap()
+    };
     let mut t: Vec<JointToCalibrate> = arm
         .joint
         .iter()
         .map(|j| JointToCalibrate {
             joint: name(j.servo),
             id: j.servo,
+            model: model(j.servo),
             stops: Stops {
                 lower_rad: j.lower_rad,
                 upper_rad: j.upper_rad,
@@ -39,6 +44,7 @@ fn targets(robot: &RobotDescription) -> Vec<JointToCalibrate> {
     t.push(JointToCalibrate {
         joint: name(g.servo),
         id: g.servo,
+        model: model(g.servo),
         stops: Stops {
             lower_rad: g.lower_rad,
             upper_rad: g.upper_rad,
@@ -87,6 +93,10 @@ fn each_joint_reads_where_it_is_within_two_degrees_over_seeds() {
         assert!(progress.iter().all(|p| p.covered), "{progress:#?}");
         let chosen = session.finish(0.15, 0.1).unwrap();
         assert_eq!(chosen.len(), 8);
+        // Written to flash, not only to the registers: a power cycle keeps it.
+        for id in 1..=8 {
+            bus.borrow_mut().servo_mut(id).unwrap().reboot();
+        }
         for (target, c) in targets(&robot).iter().zip(&chosen) {
             let (joint, cal) = (&c.joint, &c.calibration);
             assert_eq!(&target.joint, joint);
@@ -159,4 +169,57 @@ fn a_joint_blocked_short_of_its_stop_is_refused_and_nothing_is_written() {
     for (id, was) in (1..=8).zip(&before) {
         assert_eq!(&held(b.servo_mut(id).unwrap()), was, "servo {id}");
     }
+}
+
+/// The arm calibrated before (offsets 30 to 240 steps), as found by a session.
+fn calibrated_before(bus: &RefCell<SimBus>) -> Vec<[i32; 3]> {
+    let mut b = bus.borrow_mut();
+    (1..=8u8)
+        .map(|id| {
+            let s = b.servo_mut(id).unwrap();
+            let offset = u16::from(id) * 30;
+            assert!(s.write(reg::LOCK.addr, &[0]));
+            assert!(s.write(reg::HOMING_OFFSET.addr, &offset.to_le_bytes()));
+            assert!(s.write(reg::LOCK.addr, &[1]));
+            [
+                s.get(reg::HOMING_OFFSET),
+                s.get(reg::MIN_POSITION_LIMIT),
+                s.get(reg::MAX_POSITION_LIMIT),
+            ]
+        })
+        .collect()
+}
+
+fn offsets(bus: &RefCell<SimBus>) -> Vec<i32> {
+    let mut b = bus.borrow_mut();
+    (1..=8)
+        .map(|id| b.servo_mut(id).unwrap().get(reg::HOMING_OFFSET))
+        .collect()
+}
+
+/// A session that cannot take every joint (a servo silent, or of the wrong model) gives the
+/// ones it took back what they held: no offset left cleared.
+#[test]
+fn a_joint_that_cannot_be_taken_leaves_every_servo_as_found() {
+    let robot = RobotDescription::nori_a3();
+    let bus = RefCell::new(left_arm());
+    let before: Vec<i32> = calibrated_before(&bus).iter().map(|v| v[0]).collect();
+    bus.borrow_mut().servo_mut(5).unwrap().answering = false;
+    let e = ByHand::start(
+        Bus::new(line(&bus), Duration::from_micros(600)),
+        targets(&robot),
+    )
+    .err()
+    .unwrap();
+    assert!(e.to_string().contains("left_forearm_roll"), "{e}");
+    assert_eq!(offsets(&bus), before);
+    bus.borrow_mut().servo_mut(5).unwrap().answering = true;
+    // The configuration names another model for the elbow.
+    let mut wrong = targets(&robot);
+    wrong[3].model = feetech::ServoModel::Sts3215;
+    let e = ByHand::start(Bus::new(line(&bus), Duration::from_micros(600)), wrong)
+        .err()
+        .unwrap();
+    assert!(matches!(e, ByHandError::WrongModel { .. }), "{e}");
+    assert_eq!(offsets(&bus), before);
 }

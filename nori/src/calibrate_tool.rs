@@ -15,6 +15,7 @@ use bus_driver::{LoadedConfig, SerialTransport};
 use commission::by_hand::{ByHand, Calibrated, JointToCalibrate};
 use commission::calibrate::Stops;
 use commission::record;
+use feetech::ServoModel;
 use std::io::BufRead;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -27,7 +28,7 @@ const INSTALLED_CALIBRATION: &str = "/var/lib/nori/calibration.toml";
 const MARGIN_RAD: f64 = 0.15;
 /// How far the travel swept may differ from the description's before it is refused, rad
 /// (the stops' give under an operator's push is a few degrees).
-const TOLERANCE_RAD: f64 = 0.15;
+const TOLERANCE_RAD: f64 = 0.1;
 /// A joint counts as covered within this of its travel, rad.
 const COVERED_RAD: f64 = 0.02;
 /// Readings a second.
@@ -66,7 +67,8 @@ pub struct ByHandArgs {
     /// Finish as soon as every joint's travel is covered (no Enter needed).
     #[arg(long)]
     finish_when_covered: bool,
-    /// Give up after this many seconds, every servo given back what it held.
+    /// Give up after this many seconds unless every joint is covered: every servo given back
+    /// what it held, nothing written.
     #[arg(long, value_name = "S", default_value_t = 600.0)]
     within: f64,
 }
@@ -79,6 +81,10 @@ pub fn calibrate(command: &CalibrateCommand) -> Result<()> {
 }
 
 fn by_hand(args: &ByHandArgs) -> Result<()> {
+    if !(args.within.is_finite() && args.within > 0.0) {
+        bail!("--within {}: a number of seconds above 0", args.within);
+    }
+    refuse_conffile(&args.output)?;
     let (loaded, origin) = args.buses.load()?;
     let Some(bus) = loaded.config.bus(&args.bus) else {
         bail!("no bus {:?} in {origin}", args.bus);
@@ -93,7 +99,10 @@ fn by_hand(args: &ByHandArgs) -> Result<()> {
         Some(p) => RobotDescription::load(p)?,
         None => RobotDescription::nori_a3(),
     };
-    let targets = targets(&loaded, bus, &robot, &args.joints)?;
+    let targets = targets(bus, &robot, &loaded.calibration, &args.joints)?;
+    // Everything the file needs is checked before a servo is touched.
+    let robot_id = args.robot_id.clone().unwrap_or_else(host_name);
+    let base = base_file(&args.output, &robot_id, &loaded)?;
     let line = SerialTransport::open(&bus.device, bus.baud)?;
     let margin = Duration::from_micros(loaded.config.reply_timeout_margin_us);
     let mut session = ByHand::start(Bus::new(line, margin), targets)?;
@@ -108,37 +117,96 @@ fn by_hand(args: &ByHandArgs) -> Result<()> {
     loop {
         std::thread::sleep(Duration::from_secs_f64(1.0 / RATE_HZ));
         if let Err(e) = session.read() {
-            session.abandon()?;
+            // Best effort: the read that failed is the error to report.
+            let _ = session.abandon();
             return Err(e.into());
         }
         let progress = session.progress(COVERED_RAD);
         let covered = progress.iter().all(|p| p.covered);
-        if shown.elapsed() >= Duration::from_secs(1) {
+        let pressed = entered.swap(false, Ordering::Relaxed);
+        let expired = start.elapsed().as_secs_f64() > args.within;
+        if shown.elapsed() >= Duration::from_secs(1) || pressed {
             shown = Instant::now();
-            for p in &progress {
-                println!(
-                    "  {:<24} {:6.1}° of {:6.1}° {}",
-                    p.joint,
-                    p.swept_deg,
-                    p.travel_deg,
-                    if p.covered { "covered" } else { "" }
+            show(&progress);
+        }
+        match Step::after(covered, pressed || args.finish_when_covered, expired) {
+            Step::Sweep => {
+                if pressed {
+                    println!("not every joint is covered yet: go on, or wait for --within");
+                }
+            }
+            Step::Finish => break,
+            Step::GiveUp => {
+                session.abandon()?;
+                let short: Vec<&str> = progress
+                    .iter()
+                    .filter(|p| !p.covered)
+                    .map(|p| p.joint.as_str())
+                    .collect();
+                bail!(
+                    "gave up after {} s, every servo given back what it held: not covered: {}",
+                    args.within,
+                    short.join(", ")
                 );
             }
         }
-        let done = entered.load(Ordering::Relaxed) || (covered && args.finish_when_covered);
-        if done || start.elapsed().as_secs_f64() > args.within {
-            break;
-        }
     }
     let calibrated = session.finish(MARGIN_RAD, TOLERANCE_RAD)?;
-    write_file(args, &loaded, &calibrated)
+    write_file(args, base, &robot_id, &calibrated)
+}
+
+/// What the sweep does next.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Step {
+    /// Go on reading.
+    Sweep,
+    /// Every joint covered and the operator (or `--finish-when-covered`) done: calibrate.
+    Finish,
+    /// Out of time before every joint was covered: nothing written.
+    GiveUp,
+}
+
+impl Step {
+    fn after(covered: bool, done: bool, expired: bool) -> Step {
+        match (covered, done, expired) {
+            (true, true, _) => Step::Finish,
+            (_, _, true) => Step::GiveUp,
+            _ => Step::Sweep,
+        }
+    }
+}
+
+fn show(progress: &[commission::by_hand::Progress]) {
+    for p in progress {
+        println!(
+            "  {:<24} {:6.1}° of {:6.1}° {}",
+            p.joint,
+            p.swept_deg,
+            p.travel_deg,
+            if p.covered { "covered" } else { "" }
+        );
+    }
+}
+
+/// The package owns `/etc/nori` (conffiles an upgrade compares); a calibration is the robot's
+/// state.
+fn refuse_conffile(output: &Path) -> Result<()> {
+    if absolute(output).starts_with("/etc") {
+        bail!(
+            "{}: /etc/nori holds the package's configuration files; a calibration is the \
+             robot's state: write it under /var/lib/nori (the default) and name it in the \
+             driver's configuration",
+            output.display()
+        );
+    }
+    Ok(())
 }
 
 /// The joints to calibrate, with their stops from the description.
 fn targets(
-    loaded: &LoadedConfig,
     bus: &BusConfig,
     robot: &RobotDescription,
+    calibration: &CalibrationFile,
     only: &[String],
 ) -> Result<Vec<JointToCalibrate>> {
     let d = robot
@@ -169,61 +237,83 @@ fn targets(
                         .map(|g| (g.lower_rad, g.upper_rad))
                 })
                 .with_context(|| format!("the description gives {} no stops", s.joint))?;
+            let model = ServoModel::from_key(&s.model)
+                .with_context(|| format!("{}: no model {:?}", s.joint, s.model))?;
             Ok(JointToCalibrate {
                 joint: s.joint.clone(),
                 id: s.id,
+                model,
                 stops: Stops {
                     lower_rad: stops.0,
                     upper_rad: stops.1,
-                    inverted: loaded
-                        .calibration
-                        .joint
-                        .get(&s.joint)
-                        .is_some_and(|c| c.inverted),
+                    inverted: calibration.joint.get(&s.joint).is_some_and(|c| c.inverted),
                 },
             })
         })
         .collect()
 }
 
-/// The calibration file: the previous one at the output (else the loaded calibration) with
-/// these joints replaced, stamped; written atomically, and what changed shown.
-fn write_file(args: &ByHandArgs, loaded: &LoadedConfig, calibrated: &[Calibrated]) -> Result<()> {
-    let previous: Option<CalibrationFile> = match std::fs::read_to_string(&args.output) {
-        Ok(text) => Some(
-            toml::from_str(&text)
-                .with_context(|| format!("the previous calibration {}", args.output.display()))?,
-        ),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
-        Err(e) => return Err(e).context(args.output.display().to_string()),
+/// The file this calibration goes into: the one already at `output` (its format known, this
+/// robot's, every joint valid), else the calibration the driver loads now.
+fn base_file(output: &Path, robot_id: &str, loaded: &LoadedConfig) -> Result<CalibrationFile> {
+    let text = match std::fs::read_to_string(output) {
+        Ok(text) => text,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            return Ok(loaded.calibration.clone())
+        }
+        Err(e) => return Err(e).context(output.display().to_string()),
     };
-    let mut file = previous
-        .clone()
-        .unwrap_or_else(|| loaded.calibration.clone());
-    let models = loaded.config.bus(&args.bus).map(|b| &b.servo);
+    let origin = output.display().to_string();
+    let file = checked(&text, &origin)?;
+    if let Some(p) = file.calibrated.as_ref().filter(|p| p.robot != robot_id) {
+        bail!(
+            "{origin} is robot {:?}'s calibration, not {robot_id:?}'s: give another --output \
+             (or --robot-id)",
+            p.robot
+        );
+    }
+    Ok(file)
+}
+
+/// A calibration file's text as the driver would take it: its format known, every joint valid.
+fn checked(text: &str, origin: &str) -> Result<CalibrationFile> {
+    let file: CalibrationFile = toml::from_str(text).with_context(|| origin.to_string())?;
+    file.check_format(origin)?;
+    for (joint, cal) in &file.joint {
+        cal.validate(joint).with_context(|| origin.to_string())?;
+    }
+    Ok(file)
+}
+
+/// `base` with these joints replaced, stamped; written atomically, and what changed shown.
+fn write_file(
+    args: &ByHandArgs,
+    mut file: CalibrationFile,
+    robot_id: &str,
+    calibrated: &[Calibrated],
+) -> Result<()> {
+    let before = file.clone();
     for c in calibrated {
         file.joint.insert(c.joint.clone(), c.calibration);
-        let model = models
-            .and_then(|m| m.iter().find(|s| s.joint == c.joint))
-            .map_or_else(String::new, |s| s.model.clone());
         file.servo.insert(
             c.joint.clone(),
             ServoIdentity {
                 id: c.id,
-                model,
+                model: c.model.to_string(),
                 firmware: c.firmware.clone(),
             },
         );
     }
     file.calibrated = Some(Provenance {
         format: CALIBRATION_FORMAT,
-        robot: args.robot_id.clone().unwrap_or_else(host_name),
+        robot: robot_id.to_string(),
         at: humantime::format_rfc3339_seconds(std::time::SystemTime::now()).to_string(),
         method: CalibrationMethod::ByHand,
     });
-    let before = previous.as_ref().unwrap_or(&loaded.calibration);
-    let changes = record::changes(Some(before), &file);
-    record::replace(&args.output, &record::render(&file)?)?;
+    let text = record::render(&file)?;
+    checked(&text, "the calibration to write").context("not written")?;
+    let changes = record::changes(Some(&before), &file);
+    record::replace(&args.output, &text)?;
     println!(
         "calibrated {} joint(s), written to {} (the previous kept as {}):",
         calibrated.len(),
@@ -265,4 +355,61 @@ fn enter_pressed() -> Arc<AtomicBool> {
         }
     });
     flag
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use telemetry::config::ProcessConfig;
+
+    #[test]
+    fn the_sweep_finishes_only_when_covered_and_gives_up_when_out_of_time() {
+        assert_eq!(Step::after(true, true, false), Step::Finish);
+        assert_eq!(Step::after(true, true, true), Step::Finish);
+        // Enter pressed with a joint short of its travel: go on.
+        assert_eq!(Step::after(false, true, false), Step::Sweep);
+        assert_eq!(Step::after(true, false, false), Step::Sweep);
+        // Out of time, not covered (Enter or not): nothing written.
+        assert_eq!(Step::after(false, true, true), Step::GiveUp);
+        assert_eq!(Step::after(false, false, true), Step::GiveUp);
+        // Covered, but nobody said done and out of time: given up, not written.
+        assert_eq!(Step::after(true, false, true), Step::GiveUp);
+    }
+
+    #[test]
+    fn a_previous_file_of_another_robot_or_format_or_a_conffile_is_refused() {
+        let dir = std::env::temp_dir().join(format!("nori-calibrate-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let loaded = LoadedConfig::embedded().unwrap();
+        let path = dir.join("calibration.toml");
+        // None there: the calibration loaded now.
+        let _ = std::fs::remove_file(&path);
+        let base = base_file(&path, "a3-0007", &loaded).unwrap();
+        assert_eq!(base, loaded.calibration);
+        let mut theirs = loaded.calibration.clone();
+        theirs.calibrated = Some(Provenance {
+            format: CALIBRATION_FORMAT,
+            robot: "a3-0001".into(),
+            at: "2026-11-01T00:00:00Z".into(),
+            method: CalibrationMethod::ByHand,
+        });
+        std::fs::write(&path, record::render(&theirs).unwrap()).unwrap();
+        let e = base_file(&path, "a3-0007", &loaded)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("a3-0001"), "{e}");
+        assert!(base_file(&path, "a3-0001", &loaded).is_ok());
+        let future = record::render(&theirs)
+            .unwrap()
+            .replace("format = 1", "format = 2");
+        std::fs::write(&path, future).unwrap();
+        let e = format!("{:#}", base_file(&path, "a3-0001", &loaded).unwrap_err());
+        assert!(e.contains("format 2"), "{e}");
+        std::fs::write(&path, "joint = 3").unwrap();
+        assert!(base_file(&path, "a3-0001", &loaded).is_err());
+        let e = refuse_conffile(Path::new("/etc/nori/calibration.toml")).unwrap_err();
+        assert!(e.to_string().contains("/var/lib/nori"), "{e}");
+        refuse_conffile(&path).unwrap();
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }
