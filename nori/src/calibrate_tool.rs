@@ -343,15 +343,16 @@ fn host_name() -> String {
         .unwrap_or_else(|_| "unknown".into())
 }
 
-/// A flag set when the operator presses Enter (a line on standard input, or its end).
+/// A flag set each time the operator presses Enter (a line on standard input).
 fn enter_pressed() -> Arc<AtomicBool> {
     let flag = Arc::new(AtomicBool::new(false));
     let set = flag.clone();
     std::thread::spawn(move || {
         let mut line = String::new();
         // A closed input (a script without one) is no Enter: the tool waits for coverage.
-        if matches!(std::io::stdin().lock().read_line(&mut line), Ok(n) if n > 0) {
+        while matches!(std::io::stdin().lock().read_line(&mut line), Ok(n) if n > 0) {
             set.store(true, Ordering::Relaxed);
+            line.clear();
         }
     });
     flag
