@@ -6,7 +6,6 @@
 use bus_driver::calibration::{JointCalibration, STEPS_PER_RAD};
 use bus_driver::config::CalibrationFile;
 use std::fmt;
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use thiserror::Error;
 
@@ -17,10 +16,12 @@ pub enum RecordError {
     #[error("the calibration could not be written as TOML: {0}")]
     Toml(#[from] toml::ser::Error),
     /// The file system refused.
-    #[error("{path}: {source}")]
+    #[error("{path}: {step}: {source}")]
     Io {
         /// The file.
         path: PathBuf,
+        /// What was being done.
+        step: telemetry::durable::Step,
         /// What the file system said.
         source: std::io::Error,
     },
@@ -104,40 +105,20 @@ pub fn previous_path(path: &Path) -> PathBuf {
     path.with_file_name(name)
 }
 
-/// Replaces the file at `path` with `text`: the old one kept as [`previous_path`], the new one
-/// written to a temporary file in the same directory, flushed to the disk, renamed over, and
-/// the directory flushed: after a power cut either calibration is there whole.
+/// Replaces the file at `path` with `text`, the old one kept as [`previous_path`]; each
+/// written atomically and durably ([`telemetry::durable`]): after a power cut either
+/// calibration is there whole.
 pub fn replace(path: &Path, text: &str) -> Result<(), RecordError> {
-    let io = |source| RecordError::Io {
-        path: path.to_path_buf(),
-        source,
-    };
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-        _ => PathBuf::from("."),
+    let io = |path: &Path| {
+        let path = path.to_path_buf();
+        move |(step, source)| RecordError::Io { path, step, source }
     };
     if path.exists() {
-        write_synced(&previous_path(path), &std::fs::read(path).map_err(io)?)?;
+        let old = std::fs::read(path).map_err(|e| io(path)(("reading", e)))?;
+        let previous = previous_path(path);
+        telemetry::durable::replace(&previous, &old).map_err(io(&previous))?;
     }
-    let mut tmp_name = path.file_name().unwrap_or_default().to_os_string();
-    tmp_name.push(format!(".tmp-{}", std::process::id()));
-    let tmp = path.with_file_name(tmp_name);
-    write_synced(&tmp, text.as_bytes())?;
-    std::fs::rename(&tmp, path).map_err(io)?;
-    std::fs::File::open(&dir)
-        .and_then(|d| d.sync_all())
-        .map_err(|source| RecordError::Io { path: dir, source })
-}
-
-/// Writes `bytes` to a new file at `path` and flushes it to the disk.
-fn write_synced(path: &Path, bytes: &[u8]) -> Result<(), RecordError> {
-    let io = |source| RecordError::Io {
-        path: path.to_path_buf(),
-        source,
-    };
-    let mut f = std::fs::File::create(path).map_err(io)?;
-    f.write_all(bytes).map_err(io)?;
-    f.sync_all().map_err(io)
+    telemetry::durable::replace(path, text.as_bytes()).map_err(io(path))
 }
 
 #[cfg(test)]

@@ -11,10 +11,10 @@
 //! One joint name per line (names survive a driver started on a subset of the buses, where bus
 //! indices do not), and [`OPERATOR_STOP`] while an operator's stop is in force (the supervisor
 //! restores it at start, so no restart ends a stop; the driver, which matches joint names,
-//! passes over it). Written atomically: temporary file, fsync, rename, fsync of the directory,
-//! so a crash or power loss leaves the old or the new record, never half and never none.
+//! passes over it). Written atomically ([`crate::durable`]): temporary file, fsync, rename,
+//! fsync of the directory, so a crash or power loss leaves the old or the new record, never
+//! half and never none.
 
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use thiserror::Error;
 
@@ -67,29 +67,12 @@ pub fn load(path: &Path) -> Result<Vec<String>, LatchError> {
 
 /// Records `joints` as latched, atomically and durably (see the module documentation).
 pub fn save(path: &Path, joints: &[String]) -> Result<(), LatchError> {
-    let fail = |action| {
-        move |source| LatchError {
-            path: path.into(),
-            action,
-            source,
-        }
-    };
-    let tmp = path.with_extension("tmp");
-    let mut f = std::fs::File::create(&tmp).map_err(fail("creating the temporary record"))?;
-    for j in joints {
-        writeln!(f, "{j}").map_err(fail("writing"))?;
-    }
-    f.sync_all().map_err(fail("syncing"))?;
-    std::fs::rename(&tmp, path).map_err(fail("renaming into place"))?;
-    // The rename is durable only once the directory entry is: without this, a power loss can
-    // bring back the old record (or none) although the new one was announced.
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
-    std::fs::File::open(dir)
-        .and_then(|d| d.sync_all())
-        .map_err(fail("syncing the directory"))
+    let text: String = joints.iter().map(|j| format!("{j}\n")).collect();
+    crate::durable::replace(path, text.as_bytes()).map_err(|(action, source)| LatchError {
+        path: path.into(),
+        action,
+        source,
+    })
 }
 
 #[cfg(test)]

@@ -10,6 +10,7 @@
 //! * `clock`: the common time base, and the one rule for a stamped message (in force, stale,
 //!   or from the future).
 //! * `config`: one error and one way to read a process's TOML file.
+//! * `durable`: a file replaced atomically and durably (the trip record, a calibration).
 //! * `frames`: the state plane's fixed-size frames (joints, goals, directives, heartbeats,
 //!   bus health, events).
 //! * `motion`: the base's and the lift's commands and states.
@@ -23,6 +24,7 @@
 
 pub mod clock;
 pub mod config;
+pub mod durable;
 pub mod frames;
 #[cfg(feature = "ipc")]
 pub mod latch;

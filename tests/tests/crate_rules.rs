@@ -28,7 +28,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
     ("model-lab", &["sim"]),
     ("fleet", &["fleet-agent", "telemetry"]),
     ("stack", &["telemetry", "sim", "bus-driver"]),
-    ("commission", &["feetech", "bus-driver"]),
+    ("commission", &["feetech", "bus-driver", "telemetry"]),
     (
         "nori",
         &["telemetry", "feetech", "bus-driver", "commission", "body"],
