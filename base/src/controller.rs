@@ -447,6 +447,12 @@ mod tests {
         c.tick(t, scan, goal)
     }
 
+    /// One period at `t` asked 0.3 m/s forward, the wheels read, no lidar.
+    fn drive_forward(c: &mut Controller, t: u64, goal: &mut GoalFrame) -> BaseState {
+        c.on_command(&command(t, 0.3, 0.0), t).unwrap();
+        period(c, t, None, goal).1
+    }
+
     /// A revolution of one return at `(x, y)` in the lidar's frame, measured at `t`.
     fn one_return(x: f32, y: f32, t: u64) -> LidarScan {
         let mut s = LidarScan {
@@ -744,9 +750,7 @@ mod tests {
         let mut goal = GoalFrame::default();
         let mut cruise = 0.0;
         for i in 0..100u64 {
-            let t = i * 10 * MS;
-            c.on_command(&command(t, 0.3, 0.0), t).unwrap();
-            cruise = period(&mut c, t, None, &mut goal).1.commanded_linear_m_s;
+            cruise = drive_forward(&mut c, i * 10 * MS, &mut goal).commanded_linear_m_s;
         }
         assert!((cruise - 0.3).abs() < 1e-6, "{cruise}");
         let unread = |t: u64, k: usize| {
@@ -789,9 +793,7 @@ mod tests {
         let mut c = ready(false);
         let mut goal = GoalFrame::default();
         for i in 0..50u64 {
-            let t = i * 10 * MS;
-            c.on_command(&command(t, 0.3, 0.0), t).unwrap();
-            period(&mut c, t, None, &mut goal);
+            drive_forward(&mut c, i * 10 * MS, &mut goal);
         }
         let t = 500 * MS;
         let mut s = state(t, [0.0; 2], [0.0; 2]);
@@ -913,9 +915,7 @@ mod tests {
         let mut c = ready(false);
         let mut goal = GoalFrame::default();
         for i in 0..50u64 {
-            let t = i * 10 * MS;
-            c.on_command(&command(t, 0.3, 0.0), t).unwrap();
-            period(&mut c, t, None, &mut goal);
+            drive_forward(&mut c, i * 10 * MS, &mut goal);
         }
         let mut safe = state(500 * MS, [0.0; 2], [0.0; 2]);
         safe.flags = STATE_FLAG_SAFE_STATE;

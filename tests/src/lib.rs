@@ -259,6 +259,21 @@ pub fn scratch(tag: &str) -> PathBuf {
     dir
 }
 
+/// Writes `dir/bus-driver.toml`: the default driver configuration reading its calibration from
+/// `dir/calibration.toml`; returns its path.
+pub fn driver_config_with_calibration_beside(dir: &Path) -> PathBuf {
+    let config = dir.join("bus-driver.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "calibration-file = \"calibration.toml\"\n{}",
+            bus_driver::config::DEFAULT_CONFIG_TOML
+        ),
+    )
+    .expect("the driver's configuration");
+    config
+}
+
 /// Waits until `f` returns `Some`, polling every 10 ms, or panics after `within` with `what`.
 pub fn wait_for<T>(within: Duration, what: &str, mut f: impl FnMut() -> Option<T>) -> T {
     let until = Instant::now() + within;

@@ -113,15 +113,7 @@ fn the_bus_driver_refuses_bad_configurations_naming_file_and_key() {
     );
     let cal_path = dir.join("calibration.toml");
     std::fs::write(&cal_path, cal).unwrap();
-    let config = dir.join("bus-driver.toml");
-    std::fs::write(
-        &config,
-        format!(
-            "calibration-file = \"calibration.toml\"\n{}",
-            bus_driver::config::DEFAULT_CONFIG_TOML
-        ),
-    )
-    .unwrap();
+    let config = nori_tests::driver_config_with_calibration_beside(&dir);
     let (code, stderr) = run(
         &binary("bus-driver"),
         &[

@@ -44,6 +44,35 @@ fn findings(out: &Output) -> Vec<Value> {
     report[0]["findings"].as_array().unwrap().clone()
 }
 
+/// The simulator's arguments for a burnt elbow replaced by a factory-fresh servo, its seven
+/// neighbours unpowered for `unpowered_s` (so the new one is alone on the line), and `extra`.
+fn fresh_elbow_alone(unpowered_s: u32, extra: &[&str]) -> Vec<String> {
+    let mut args = vec![
+        "--fresh-servo".to_string(),
+        "left_arm:left_elbow".to_string(),
+    ];
+    args.extend(extra.iter().map(|a| a.to_string()));
+    for id in [1, 2, 3, 5, 6, 7, 8] {
+        args.extend([
+            "--silence".to_string(),
+            format!("left_arm:{id}@0+{unpowered_s}"),
+        ]);
+    }
+    args
+}
+
+/// `nori servo setup left_arm left_elbow`, which must succeed; what it printed.
+fn set_up_elbow(stack: &ArmStack) -> String {
+    let out = servo(stack, &["setup", "left_arm", "left_elbow"]);
+    let said = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "{said} {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    said
+}
+
 #[test]
 fn a_factory_fresh_servo_in_the_elbow_s_place_is_found_at_id_1_and_the_elbow_missing() {
     let _turn = serial();
@@ -129,13 +158,7 @@ fn a_scan_is_refused_on_a_bus_the_driver_holds_and_the_driver_drives_on() {
 fn a_fresh_servo_connected_alone_is_set_up_as_the_elbow() {
     let _turn = serial();
     // The other seven unpowered: the new servo alone on the line.
-    let mut args = vec![
-        "--fresh-servo".to_string(),
-        "left_arm:left_elbow".to_string(),
-    ];
-    for id in [1, 2, 3, 5, 6, 7, 8] {
-        args.extend(["--silence".to_string(), format!("left_arm:{id}@0+100000")]);
-    }
+    let args = fresh_elbow_alone(100_000, &[]);
     let args: Vec<&str> = args.iter().map(String::as_str).collect();
     let stack = ArmStack::simulator_only("setup-fresh", &args);
     // (The silences begin at the simulator's first turns, 20 ms apart.)
@@ -148,13 +171,7 @@ fn a_fresh_servo_connected_alone_is_set_up_as_the_elbow() {
         said.contains("an sts3095 where left_gripper needs an sts3215"),
         "{said}"
     );
-    let out = servo(&stack, &["setup", "left_arm", "left_elbow"]);
-    let said = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{said} {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let said = set_up_elbow(&stack);
     assert!(
         said.contains("found the servo at id 1 at 1000000 baud"),
         "{said}"
@@ -190,23 +207,12 @@ fn a_fresh_servo_connected_alone_is_set_up_as_the_elbow() {
 #[test]
 fn a_replaced_servo_set_up_but_not_calibrated_is_left_off_by_the_driver() {
     let _turn = serial();
-    let mut args = vec![
-        "--fresh-servo".to_string(),
-        "left_arm:left_elbow".to_string(),
-    ];
     // The other seven unplugged for the setup, back after 4 s.
-    for id in [1, 2, 3, 5, 6, 7, 8] {
-        args.extend(["--silence".to_string(), format!("left_arm:{id}@0+4")]);
-    }
+    let args = fresh_elbow_alone(4, &[]);
     let args: Vec<&str> = args.iter().map(String::as_str).collect();
     let mut stack = ArmStack::simulator_only("replaced", &args);
     std::thread::sleep(Duration::from_millis(300));
-    let out = servo(&stack, &["setup", "left_arm", "left_elbow"]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    set_up_elbow(&stack);
     std::thread::sleep(Duration::from_secs(4));
     let out = scan(&stack, &["--json", "--bus-rate-only"]);
     assert_eq!(out.status.code(), Some(1));
@@ -253,24 +259,11 @@ fn a_replaced_servo_set_up_but_not_calibrated_is_left_off_by_the_driver() {
 #[test]
 fn a_replaced_elbow_set_up_and_calibrated_by_hand_is_driven_again() {
     let _turn = serial();
-    let mut args = vec![
-        "--fresh-servo".to_string(),
-        "left_arm:left_elbow".to_string(),
-        "--hand".to_string(),
-        "left_arm:left_elbow@6".to_string(),
-    ];
-    for id in [1, 2, 3, 5, 6, 7, 8] {
-        args.extend(["--silence".to_string(), format!("left_arm:{id}@0+4")]);
-    }
+    let args = fresh_elbow_alone(4, &["--hand", "left_arm:left_elbow@6"]);
     let args: Vec<&str> = args.iter().map(String::as_str).collect();
     let mut stack = ArmStack::simulator_only("recalibrated", &args);
     std::thread::sleep(Duration::from_millis(300));
-    let out = servo(&stack, &["setup", "left_arm", "left_elbow"]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    set_up_elbow(&stack);
     std::thread::sleep(Duration::from_secs(4));
     let file = stack.dir.join("calibration.toml");
     let out = Command::new(binary("nori"))
@@ -304,15 +297,7 @@ fn a_replaced_elbow_set_up_and_calibrated_by_hand_is_driven_again() {
     assert_eq!(written.servo["left_elbow"].firmware, "3.10");
 
     // The driver with the new calibration: every joint driven again.
-    let config = stack.dir.join("bus-driver.toml");
-    std::fs::write(
-        &config,
-        format!(
-            "calibration-file = \"calibration.toml\"\n{}",
-            bus_driver::config::DEFAULT_CONFIG_TOML
-        ),
-    )
-    .unwrap();
+    let config = nori_tests::driver_config_with_calibration_beside(&stack.dir);
     stack.driver_args = vec!["--config".into(), config.display().to_string()];
     stack.restart_supervisor();
     stack.restart_driver();
