@@ -388,6 +388,12 @@ fn a_servo_that_goes_silent_is_held_and_marked_never_nan_and_one_never_read_is_r
         held.len() >= FPS as usize,
         "at least a second of the silence held: {held:?}"
     );
+    // A frame whose whole arm is invalid had no read of the arm within its period: on a loaded
+    // machine the simulator's replies come after the driver's deadline, or the driver is late
+    // (seen under two CPU hogs: 370 ms of cycles reading nothing). The mask says so. The
+    // silence itself must not spread: no held frame marks some other joints, and most mark the
+    // elbow alone.
+    let mut whole_arm_stale = Vec::new();
     for &i in &held {
         let f = &rows[i].frame;
         assert!(f.state.iter().chain(&f.action).all(|x| x.is_finite()));
@@ -398,15 +404,16 @@ fn a_servo_that_goes_silent_is_held_and_marked_never_nan_and_one_never_read_is_r
                 "frame {i}: a held value does not change"
             );
         }
-        assert_eq!(
-            f.valid.iter().filter(|&&v| v < 0.5).count(),
-            1,
-            "frame {i}: only the elbow"
-        );
+        match f.valid.iter().filter(|&&v| v < 0.5).count() {
+            1 => {}
+            n if n == JOINTS as usize => whole_arm_stale.push(i),
+            n => panic!("frame {i}: {n} joints marked, only the elbow is silent"),
+        }
     }
-    // The other joints go on being read during the silence.
-    let shoulder: Vec<f32> = held.iter().map(|&i| rows[i].frame.valid[0]).collect();
-    assert!(shoulder.iter().all(|&v| v == 1.0));
+    assert!(
+        whole_arm_stale.len() * 2 < held.len(),
+        "the other joints go on being read during the silence: frames {whole_arm_stale:?} of {held:?} held the whole arm"
+    );
     drop(stack);
 
     // A servo silent from the start: the recorder refuses to begin, naming it.
@@ -717,6 +724,13 @@ fn the_whole_body_is_recorded_nineteen_wide_with_the_lift_rising_and_the_base_dr
             }
         })
     };
+    // Recording starts once the lift holds the operator's goal: before it, the goal recorded
+    // is the height (none in force), which is true but not what this test asks.
+    let node = Plane::open(&domain, "test-record-body").unwrap();
+    let lifts = node.subscriber(&plane::LIFT_STATE).unwrap();
+    wait_for(Duration::from_secs(20), "the lift's goal taken", || {
+        newest(&lifts).filter(|l| l.goal_m == 0.2)
+    });
     let dataset = robot.dir.join("dataset");
     let out = Command::new(binary("nori"))
         .args(record_args(
@@ -759,7 +773,11 @@ fn the_whole_body_is_recorded_nineteen_wide_with_the_lift_rising_and_the_base_dr
             .all(|(a, b)| b >= a - 1e-3),
         "the lift only rises"
     );
-    assert!(rows.iter().all(|r| r.frame.action[16] == 0.2), "its goal");
+    let off_goal: Vec<(usize, f32)> = (rows.iter().enumerate())
+        .map(|(i, r)| (i, r.frame.action[16]))
+        .filter(|&(_, goal)| goal != 0.2)
+        .collect();
+    assert!(off_goal.is_empty(), "its goal in every frame: {off_goal:?}");
     assert_the_base_drove_as_asked(&rows);
     // The odometry: backwards, to the right, and turned left by about the twist's integral.
     let (x0, y0, h0) = (first.odometry[0], first.odometry[1], first.odometry[2]);
