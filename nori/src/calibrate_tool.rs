@@ -24,8 +24,10 @@ use std::time::{Duration, Instant};
 
 /// Where a robot keeps its calibration: state, not a package's conffile.
 const INSTALLED_CALIBRATION: &str = "/var/lib/nori/calibration.toml";
-/// How far inside each stop a joint's limits are put, rad.
-const MARGIN_RAD: f64 = 0.15;
+/// How far inside each stop a joint's limits are put, rad: 1.5°, the most of the travel a
+/// calibration may keep from the joint (the zero's error, under 0.5°, leaves every limit
+/// 1–2° inside its stop; docs/commissioning.md).
+const MARGIN_RAD: f64 = 1.5 * std::f64::consts::PI / 180.0;
 /// How far the travel swept may differ from the description's before it is refused, rad
 /// (the stops' give under an operator's push is a few degrees).
 const TOLERANCE_RAD: f64 = 0.1;

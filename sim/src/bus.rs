@@ -65,6 +65,9 @@ pub struct ServoReport {
     pub joint: String,
     /// Joint angle now, rad.
     pub angle_rad: f64,
+    /// Where its encoder reads, less 2048, at the joint's zero: the homing offset its
+    /// calibration must find ([`crate::servo::Servo::horn_steps`]).
+    pub horn_steps: f64,
     /// Winding temperature now, °C.
     pub temperature_c: f64,
     /// Highest winding temperature reached, °C.
@@ -172,6 +175,11 @@ pub struct SimBus {
 /// How far inside each stop the robot's calibration put a joint's limits (rad): the simulated
 /// A3 leaves the line calibrated so, and `deploy/config/calibration.toml` is that calibration.
 pub const CALIBRATION_MARGIN_RAD: f64 = 0.15;
+
+/// How far off the joint's zero a horn goes on at assembly, steps: a spline tooth either way
+/// and more (an STS horn's 25 teeth are 164 steps apart), so the robot's calibration cannot
+/// be guessed.
+pub const ASSEMBLY_SPREAD_STEPS: f64 = 400.0;
 
 impl SimBus {
     /// Builds a bus from its description: each servo set to its joint's id and rate, its arm
@@ -383,6 +391,22 @@ impl SimBus {
         true
     }
 
+    /// As the robot comes off the line before its calibration: each arm joint's and gripper's
+    /// horn where the assembler fitted it on the spline, up to [`ASSEMBLY_SPREAD_STEPS`] off
+    /// the joint's zero (seeded by `seed` and the joint's name, so a robot is repeatable), and
+    /// its servo set up but not calibrated ([`Servo::clear_calibration`]). The truth is each
+    /// servo's `horn_steps` in the report.
+    pub fn assemble(&mut self, seed: u64) {
+        for (i, servo) in self.servos.iter_mut().enumerate() {
+            if matches!(self.roles[i], Role::ArmJoint(_) | Role::Gripper) {
+                let mut rng = crate::rng::Rng::new(crate::rng::seed_for(seed, &self.joints[i]));
+                let spread = ASSEMBLY_SPREAD_STEPS;
+                servo.fit_horn(rng.range(-spread, spread));
+                servo.clear_calibration();
+            }
+        }
+    }
+
     /// The pose of the base these wheels move (x, y in m, heading in rad), if they move one.
     pub fn base_pose(&self) -> Option<[f64; 3]> {
         self.base.as_ref().map(|(motion, _)| motion.pose())
@@ -566,6 +590,7 @@ impl SimBus {
                     id: s.id,
                     joint: joint.clone(),
                     angle_rad: s.angle,
+                    horn_steps: s.horn_steps,
                     temperature_c: s.temperature,
                     max_temperature_c: s.max_temperature,
                     torque_enabled: s.torque_enabled(),
@@ -981,6 +1006,69 @@ mod tests {
             [2569, 2825],
             "the shoulder's STS3095 (delay 0) first"
         );
+    }
+
+    /// Off the line: every arm servo's horn somewhere within the spread, no two joints alike,
+    /// the same robot from the same seed; its encoder reads the horn, uncalibrated.
+    #[test]
+    fn a_robot_off_the_line_has_its_horns_where_the_seed_put_them_and_no_calibration() {
+        let horns = |seed| {
+            let mut bus = left_arm();
+            bus.assemble(seed);
+            bus
+        };
+        let mut bus = horns(7);
+        let h: Vec<f64> = bus.report().servos.iter().map(|s| s.horn_steps).collect();
+        assert!(h.iter().all(|h| h.abs() <= ASSEMBLY_SPREAD_STEPS), "{h:?}");
+        assert!(
+            h.iter().any(|&h| h > 100.0) && h.iter().any(|&h| h < -100.0),
+            "{h:?}"
+        );
+        for (i, a) in h.iter().enumerate() {
+            assert!(h[i + 1..].iter().all(|b| b != a), "{h:?}");
+        }
+        let again: Vec<f64> = horns(7)
+            .report()
+            .servos
+            .iter()
+            .map(|s| s.horn_steps)
+            .collect();
+        assert_eq!(again, h);
+        let other: Vec<f64> = horns(8)
+            .report()
+            .servos
+            .iter()
+            .map(|s| s.horn_steps)
+            .collect();
+        assert!(other.iter().zip(&h).all(|(a, b)| a != b));
+        let report = bus.report();
+        for (s, r) in bus.servos.iter_mut().zip(&report.servos) {
+            assert_eq!(s.get(reg::HOMING_OFFSET), 0);
+            assert_eq!(s.get(reg::MIN_POSITION_LIMIT), 0);
+            assert_eq!(s.get(reg::MAX_POSITION_LIMIT), 4095);
+            let expected = 2048.0 + r.horn_steps + r.angle_rad / crate::servo::RAD_PER_STEP;
+            let mut bytes = [0; 2];
+            assert!(s.read(reg::PRESENT_POSITION.addr, 2, &mut bytes));
+            let read = u16::from_le_bytes(bytes);
+            assert!(
+                (f64::from(read) - expected).abs() <= 1.0,
+                "{read} vs {expected}"
+            );
+        }
+        // Held where it is: torque on does not move it.
+        send(
+            &mut bus,
+            Instruction::Write {
+                id: BROADCAST_ID,
+                addr: reg::TORQUE_ENABLE.addr,
+                data: &[1],
+            },
+        );
+        let before: Vec<f64> = bus.servos.iter().map(|s| s.angle).collect();
+        bus.advance_to(1.0, 0.001);
+        for (s, b) in bus.servos.iter().zip(&before) {
+            assert!((s.angle - b).abs() < 0.02, "{} moved from {b}", s.angle);
+        }
     }
 
     #[test]

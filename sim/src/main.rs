@@ -110,6 +110,11 @@ struct ServeArgs {
     /// JOINT). BUS[:JOINT]@AT, e.g. `left_arm:left_elbow@5`; repeatable.
     #[arg(long, value_name = "BUS[:JOINT]@AT")]
     pub hand: Vec<String>,
+    /// A robot off the line before its calibration: every arm joint's horn fitted at random
+    /// on its spline (seeded: the same seed, the same robot), its servo set up but not
+    /// calibrated. The horns are in the report (`horn_steps`).
+    #[arg(long, value_name = "SEED")]
+    pub assembly_seed: Option<u64>,
 }
 
 /// A hand to put on an arm: its bus, the one joint it sweeps (or all), and when.
@@ -383,12 +388,13 @@ fn sim_buses(
             seed: faults.seed.wrapping_add(i as u64),
             ..*faults
         }));
+        if let Some(seed) = args.assembly_seed {
+            sim_bus.assemble(seed);
+        }
         for (_, joint) in fresh.iter().filter(|(b, _)| *b == bus.name) {
             // A horn goes on the spline at any of its teeth: seeded by the joint, so a run is
             // repeatable; never where the old one was.
-            let seed = joint
-                .bytes()
-                .fold(args.fault_seed, |h, b| h.wrapping_mul(31) ^ u64::from(b));
+            let seed = sim::rng::seed_for(args.fault_seed, joint);
             let horn = sim::rng::Rng::new(seed).range(40.0, 400.0).round();
             if !sim_bus.fit_fresh_servo(robot, joint, horn) {
                 anyhow::bail!(

@@ -7,6 +7,13 @@
 #[derive(Debug, Clone)]
 pub struct Rng([u64; 4]);
 
+/// A seed of its own for each named thing (a joint) from one run's `seed`: the same name gets
+/// the same seed, whatever else the run has.
+pub fn seed_for(seed: u64, name: &str) -> u64 {
+    name.bytes()
+        .fold(seed, |h, b| h.wrapping_mul(31) ^ u64::from(b))
+}
+
 impl Rng {
     /// A generator from a seed.
     pub fn new(seed: u64) -> Self {

@@ -394,6 +394,16 @@ impl Servo {
         self.set_goal_to_present();
     }
 
+    /// As a servo is set up but not calibrated: its homing offset and position limits the
+    /// factory's (0, 0..4095), in EEPROM. Its goal follows, so it holds where it is.
+    pub fn clear_calibration(&mut self) {
+        self.set(reg::HOMING_OFFSET, 0);
+        self.set(reg::MIN_POSITION_LIMIT, 0);
+        self.set(reg::MAX_POSITION_LIMIT, 4095);
+        self.flash[..40].copy_from_slice(&self.regs[..40]);
+        self.set_goal_to_present();
+    }
+
     /// Fits its horn `steps` off the joint's zero (a new servo's); its goal follows, so it
     /// holds where it is.
     pub fn fit_horn(&mut self, steps: f64) {

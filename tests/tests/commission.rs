@@ -6,8 +6,10 @@
 
 use nori_tests::{binary, serial, wait_for, ArmStack};
 use serde_json::{json, Value};
+use std::path::Path;
 use std::process::{Command, Output};
 use std::time::Duration;
+use telemetry::frames::JointState;
 use telemetry::plane::{self, newest, Plane};
 
 /// `nori servo COMMAND ARGS --device-dir <the stack's>`.
@@ -71,6 +73,46 @@ fn set_up_elbow(stack: &ArmStack) -> String {
         String::from_utf8_lossy(&out.stderr)
     );
     said
+}
+
+/// `nori calibrate by-hand left_arm EXTRA` into `file` as robot `sim-test`, finishing once
+/// every joint is covered (within 150 s), which must succeed; what it printed.
+fn calibrate_by_hand(stack: &ArmStack, extra: &[&str], file: &Path) -> String {
+    let out = Command::new(binary("nori"))
+        .args(["calibrate", "by-hand", "left_arm"])
+        .args(extra)
+        .arg("--device-dir")
+        .arg(stack.dir.join("dev"))
+        .arg("--output")
+        .arg(file)
+        .args(["--robot-id", "sim-test", "--finish-when-covered"])
+        .args(["--within", "150"])
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "{said} {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    said
+}
+
+/// Waits until the driver drives all eight joints, each read; the state then.
+fn all_eight_driven(states: &plane::Sub<JointState>) -> JointState {
+    wait_for(Duration::from_secs(20), "all eight joints driven", || {
+        newest(states).filter(|s| {
+            s.joints()
+                .iter()
+                .all(|q| q.is_valid() && q.torque_enabled == 1)
+        })
+    })
+}
+
+/// The simulator's newest report (written every second).
+fn sim_report(stack: &ArmStack) -> Value {
+    serde_json::from_str(&std::fs::read_to_string(stack.dir.join("sim-report.json")).unwrap())
+        .unwrap()
 }
 
 #[test]
@@ -266,27 +308,7 @@ fn a_replaced_elbow_set_up_and_calibrated_by_hand_is_driven_again() {
     set_up_elbow(&stack);
     std::thread::sleep(Duration::from_secs(4));
     let file = stack.dir.join("calibration.toml");
-    let out = Command::new(binary("nori"))
-        .args(["calibrate", "by-hand", "left_arm", "--joint", "left_elbow"])
-        .arg("--device-dir")
-        .arg(stack.dir.join("dev"))
-        .arg("--output")
-        .arg(&file)
-        .args([
-            "--robot-id",
-            "sim-test",
-            "--finish-when-covered",
-            "--within",
-            "60",
-        ])
-        .output()
-        .unwrap();
-    let said = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{said} {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let said = calibrate_by_hand(&stack, &["--joint", "left_elbow"], &file);
     assert!(said.contains("calibrated 1 joint(s)"), "{said}");
     assert!(said.contains("left_elbow: homing offset 0 → "), "{said}");
     let written: bus_driver::config::CalibrationFile =
@@ -303,21 +325,12 @@ fn a_replaced_elbow_set_up_and_calibrated_by_hand_is_driven_again() {
     stack.restart_driver();
     let node = Plane::open(&stack.domain, "recalibrated-test").unwrap();
     let states = node.subscriber(&plane::JOINT_STATE).unwrap();
-    wait_for(Duration::from_secs(20), "all eight joints driven", || {
-        newest(&states).filter(|s| {
-            s.joints()
-                .iter()
-                .all(|q| q.is_valid() && q.torque_enabled == 1)
-        })
-    });
+    all_eight_driven(&states);
     // Held still under torque: the elbow read where the simulator has it (its report, written
     // every second while it runs: at the stop the torque goes off and the elbow falls).
     std::thread::sleep(Duration::from_millis(2500));
     let read = f64::from(newest(&states).unwrap().joints[3].position_rad);
-    let report: Value =
-        serde_json::from_str(&std::fs::read_to_string(stack.dir.join("sim-report.json")).unwrap())
-            .unwrap();
-    let truth = report["buses"][0]["servos"][3]["angle_rad"]
+    let truth = sim_report(&stack)["buses"][0]["servos"][3]["angle_rad"]
         .as_f64()
         .unwrap();
     assert!(
@@ -328,6 +341,105 @@ fn a_replaced_elbow_set_up_and_calibrated_by_hand_is_driven_again() {
         "the replaced elbow read {:.2}° from the simulator's truth",
         (read - truth).abs().to_degrees()
     );
+    drop((states, node));
+    stack.stop();
+}
+
+/// A robot off the line: every horn where the assembler fitted it, nothing calibrated. The scan
+/// names all eight servos new; calibrated by hand, the whole arm in one sweep
+/// (the simulator's hand), every joint's zero lies within 1° of the simulator's truth and its
+/// range inside the description's stops, within 2° of them; the driver then drives all eight,
+/// each read within 1° of where the simulator has it.
+#[test]
+fn a_robot_off_the_line_calibrated_by_hand_has_every_zero_within_a_degree() {
+    let _turn = serial();
+    let args = ["--assembly-seed", "11", "--hand", "left_arm@6"];
+    let mut stack = ArmStack::simulator_only("off-the-line", &args);
+    // Never started: each servo's EEPROM is the factory's but for its id, so the scan names
+    // it new (to set up and calibrate), before what it would say of the calibration.
+    let out = scan(&stack, &["--json", "--bus-rate-only"]);
+    let named = faults_named(&findings(&out), "not-set-up");
+    assert_eq!(named.len(), 8, "{:#?}", findings(&out));
+
+    let file = stack.dir.join("calibration.toml");
+    let said = calibrate_by_hand(&stack, &[], &file);
+    assert!(said.contains("calibrated 8 joint(s)"), "{said}");
+    let written: bus_driver::config::CalibrationFile =
+        toml::from_str(&std::fs::read_to_string(&file).unwrap()).unwrap();
+    let robot = body::description::RobotDescription::nori_a3();
+    let arm = robot.bus("left_arm").unwrap().arm.as_ref().unwrap();
+    let mut stops: Vec<(u8, f64, f64)> = (arm.joint.iter())
+        .map(|j| (j.servo, j.lower_rad, j.upper_rad))
+        .collect();
+    let g = arm.gripper.as_ref().unwrap();
+    stops.push((g.servo, g.lower_rad, g.upper_rad));
+    let report = sim_report(&stack);
+    let horns = report["buses"][0]["servos"].as_array().unwrap().iter();
+    let horns: Vec<f64> = horns.map(|s| s["horn_steps"].as_f64().unwrap()).collect();
+    let off = horns.iter().filter(|h| h.abs() > 100.0).count();
+    assert!(
+        off >= 4,
+        "the horns where the assembler put them: {horns:?}"
+    );
+    let step = sim::servo::RAD_PER_STEP;
+    let mut worst = (0f64, 0f64);
+    for servo in report["buses"][0]["servos"].as_array().unwrap() {
+        let joint = servo["joint"].as_str().unwrap();
+        let cal = &written.joint[joint];
+        let horn = servo["horn_steps"].as_f64().unwrap();
+        let zero_deg = ((f64::from(cal.homing_offset) - horn) * step).to_degrees();
+        assert!(
+            zero_deg.abs() < 1.0,
+            "{joint}: zero {zero_deg:.2}° off the truth"
+        );
+        let id = servo["id"].as_u64().unwrap() as u8;
+        let &(_, lower, upper) = stops.iter().find(|s| s.0 == id).unwrap();
+        // Where the calibrated servo reads at each stop, and how far inside it each limit is.
+        let inside = [
+            (f64::from(cal.range_min) - (2048.0 + lower / step)) * step,
+            ((2048.0 + upper / step) - f64::from(cal.range_max)) * step,
+        ]
+        .map(f64::to_degrees);
+        for d in inside {
+            assert!(
+                (0.0..2.0).contains(&d),
+                "{joint}: a limit {d:.2}° inside its stop"
+            );
+        }
+        worst = (
+            worst.0.max(zero_deg.abs()),
+            worst.1.max(inside[0]).max(inside[1]),
+        );
+    }
+    eprintln!(
+        "off the line, by hand: worst zero {:.2}°, worst limit {:.2}° inside",
+        worst.0, worst.1
+    );
+
+    let config = nori_tests::driver_config_with_calibration_beside(&stack.dir);
+    stack.driver_args = vec!["--config".into(), config.display().to_string()];
+    stack.restart_supervisor();
+    stack.restart_driver();
+    let node = Plane::open(&stack.domain, "off-the-line-test").unwrap();
+    let states = node.subscriber(&plane::JOINT_STATE).unwrap();
+    all_eight_driven(&states);
+    std::thread::sleep(Duration::from_millis(2500));
+    let read = newest(&states).unwrap();
+    let report = sim_report(&stack);
+    for (k, servo) in report["buses"][0]["servos"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .enumerate()
+    {
+        let truth = servo["angle_rad"].as_f64().unwrap();
+        let at = f64::from(read.joints[k].position_rad);
+        assert!(
+            (at - truth).abs() < 1f64.to_radians(),
+            "{}: read at {at} rad, the simulator has it at {truth}",
+            servo["joint"]
+        );
+    }
     drop((states, node));
     stack.stop();
 }
