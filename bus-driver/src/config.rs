@@ -8,6 +8,7 @@ use crate::calibration::JointCalibration;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashSet};
 use std::path::{Path, PathBuf};
+pub use telemetry::calibration::{CalibrationMethod, Provenance, CALIBRATION_FORMAT};
 pub use telemetry::config::ConfigError;
 use telemetry::config::{invalid, parse, read, ProcessConfig};
 use telemetry::MAX_JOINTS;
@@ -193,33 +194,6 @@ pub struct CalibrationFile {
     /// The servo each joint was calibrated with, as read then (by joint name).
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub servo: BTreeMap<String, ServoIdentity>,
-}
-
-/// The calibration file format this driver reads.
-pub const CALIBRATION_FORMAT: u32 = 1;
-
-/// Where a calibration came from.
-#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
-#[serde(deny_unknown_fields, rename_all = "kebab-case")]
-pub struct Provenance {
-    /// The file's format ([`CALIBRATION_FORMAT`]).
-    pub format: u32,
-    /// The robot's id.
-    pub robot: String,
-    /// When, RFC 3339 (UTC).
-    pub at: String,
-    /// How the ranges were found.
-    pub method: CalibrationMethod,
-}
-
-/// How a calibration found each joint's stops.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum CalibrationMethod {
-    /// An operator moved each joint from stop to stop, torque off.
-    ByHand,
-    /// Each joint driven slowly at a low torque into its stops.
-    Automatic,
 }
 
 /// A servo as the calibration read it.

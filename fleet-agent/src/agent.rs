@@ -11,16 +11,18 @@
 //! has not acknowledged ([`crate::delivery`]).
 
 use crate::delivery::{
-    Delivery, ACTIONS_REFUSED, AGENT_STARTED, DRIVER_STARTED, SUPERVISOR_STARTED,
+    Delivery, ACTIONS_REFUSED, AGENT_STARTED, CALIBRATION_IN_FORCE, DRIVER_STARTED,
+    SUPERVISOR_STARTED,
 };
 use crate::gate::{within, ActionGate, Range, REASONS};
+use crate::installed::calibration_detail;
 use crate::journal::{JournalError, Record, Recovery};
 use crate::outbound::{self, Every};
 use crate::preview::{preview_msg, scan_msg, Thumbnailer};
 use crate::schedule::Scheduler;
 use crate::schema::{
-    decode, encode, AckMsg, AgentCounters, BusStatus, CameraStatus, EventRecord, ImageMsg,
-    LidarStatus, StatusConfig, StatusHealth, StatusMsg, SCHEMA_VERSION,
+    decode, encode, AckMsg, AgentCounters, BusStatus, CalibrationMsg, CameraStatus, EventRecord,
+    ImageMsg, LidarStatus, StatusConfig, StatusHealth, StatusMsg, SCHEMA_VERSION,
 };
 use crate::AgentConfig;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -184,6 +186,8 @@ pub struct Agent {
     refusals_every: Every,
     /// The package version the robot runs, if it was installed from one (`installed`).
     installed_version: Option<String>,
+    /// The calibration the robot runs, if its file was read (`calibrated`).
+    calibration: Option<CalibrationMsg>,
 }
 
 /// A rate from a period in seconds, 0 meaning never.
@@ -253,6 +257,7 @@ impl Agent {
             scan_every: every_s(config.preview.scan_every_s),
             scan_pending: false,
             installed_version: None,
+            calibration: None,
             config: config.clone(),
         }
     }
@@ -262,6 +267,14 @@ impl Agent {
     /// fleet's store keeps which version ran when.
     pub fn installed(mut self, version: Option<String>) -> Agent {
         self.installed_version = version;
+        self
+    }
+
+    /// The agent of a robot running `calibration` (`None`: no file, or an unreadable one): its
+    /// status says so, and its start journals it, so the fleet's store keeps which
+    /// calibration ran when.
+    pub fn calibrated(mut self, calibration: Option<CalibrationMsg>) -> Agent {
+        self.calibration = calibration;
         self
     }
 
@@ -279,6 +292,15 @@ impl Agent {
             self.journal(
                 io,
                 agent_record(now, wall_ms, AGENT_STARTED, &version, cut_bytes as f32),
+            );
+            let detail = calibration_detail(self.calibration.as_ref());
+            let joints = self
+                .calibration
+                .as_ref()
+                .map_or(0.0, |c| f32::from(c.joints));
+            self.journal(
+                io,
+                agent_record(now, wall_ms, CALIBRATION_IN_FORCE, &detail, joints),
             );
         }
         self.take_layout(io, now);
@@ -610,6 +632,7 @@ impl Agent {
             robot_id: self.config.robot_id.clone(),
             agent_version: env!("CARGO_PKG_VERSION").into(),
             installed_version: self.installed_version.clone(),
+            calibration: self.calibration.clone(),
             config: StatusConfig {
                 state_hz: self.config.telemetry.state_hz,
                 observation_hz: self.config.telemetry.observation_hz,

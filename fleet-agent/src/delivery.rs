@@ -35,6 +35,9 @@ pub const DRIVER_STARTED: &str = "DriverStarted";
 /// The agent's own start (`detail`: the `nori-robot` package version it runs, empty for a build
 /// from source; `value`: bytes of a torn journal tail cut at open).
 pub const AGENT_STARTED: &str = "AgentStarted";
+/// The calibration the robot runs, journaled at the agent's start (`detail`:
+/// [`crate::installed::calibration_detail`]; `value`: the joints it calibrates).
+pub const CALIBRATION_IN_FORCE: &str = "CalibrationInForce";
 /// Action chunks refused for one reason since the last such event (`detail`: the reason,
 /// `value`: how many).
 pub const ACTIONS_REFUSED: &str = "ActionsRefused";

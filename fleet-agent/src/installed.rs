@@ -4,7 +4,14 @@
 //!
 //! The agent reads it once, at its start: an upgrade restarts the agent (the package's
 //! maintainer scripts), so what it read is what runs, not what was unpacked since.
+//!
+//! The calibration the robot runs, likewise: the stamp `nori calibrate` writes on the file
+//! the driver loads ([`CALIBRATION_FILE`]), read at the agent's start (a calibration is made
+//! with the stack stopped, so every process starts again after one).
 
+use crate::schema::CalibrationMsg;
+pub use telemetry::calibration::CALIBRATION_FILE;
+use telemetry::calibration::{stamp_of, StampError};
 use thiserror::Error;
 
 /// Where the `nori-robot` package writes its version.
@@ -44,9 +51,118 @@ pub fn parse_version_file(text: &str) -> Result<String, VersionFileError> {
     Ok(v.into())
 }
 
+/// The method of a calibration file with no `[calibrated]` stamp (written by hand).
+pub const UNSTAMPED: &str = "unstamped";
+
+/// A calibration file whose stamp cannot be reported.
+#[derive(Debug, Error, PartialEq)]
+pub enum CalibrationFileError {
+    /// Its stamp cannot be read.
+    #[error(transparent)]
+    Stamp(#[from] StampError),
+    /// A field too long for a line of a status.
+    #[error("its {field} is {len} bytes (at most {MAX_LEN})")]
+    TooLong {
+        /// Which.
+        field: &'static str,
+        /// Its length.
+        len: usize,
+    },
+}
+
+/// The calibration the robot runs, from the text of its calibration file.
+pub fn calibration_in_force(text: &str) -> Result<CalibrationMsg, CalibrationFileError> {
+    let stamp = stamp_of(text)?;
+    let joints = u16::try_from(stamp.joints).unwrap_or(u16::MAX);
+    let msg = match stamp.provenance {
+        Some(p) => CalibrationMsg {
+            method: p.method.key().into(),
+            at: p.at,
+            robot: p.robot,
+            joints,
+        },
+        None => CalibrationMsg {
+            method: UNSTAMPED.into(),
+            at: String::new(),
+            robot: String::new(),
+            joints,
+        },
+    };
+    for (field, value) in [("robot", &msg.robot), ("time", &msg.at)] {
+        if value.len() > MAX_LEN {
+            return Err(CalibrationFileError::TooLong {
+                field,
+                len: value.len(),
+            });
+        }
+    }
+    Ok(msg)
+}
+
+/// The detail of the agent's [`crate::delivery::CALIBRATION_IN_FORCE`] event: `none` (no
+/// file), or the method, the time and the robot the file names, space-separated (`-` for an
+/// empty field; the robot last, as it may hold spaces).
+pub fn calibration_detail(calibration: Option<&CalibrationMsg>) -> String {
+    let Some(c) = calibration else {
+        return "none".into();
+    };
+    let or_dash = |s: &str| {
+        if s.is_empty() {
+            "-".to_string()
+        } else {
+            s.replace(' ', "_")
+        }
+    };
+    format!(
+        "{} {} {}",
+        c.method,
+        or_dash(&c.at),
+        if c.robot.is_empty() { "-" } else { &c.robot }
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    const STAMPED: &str = "[calibrated]\nformat = 1\nrobot = \"a3 0042\"\n\
+        at = \"2026-11-29T05:00:00Z\"\nmethod = \"automatic\"\n\
+        [joint.left_elbow]\nhoming-offset = 3\nrange-min = 1000\nrange-max = 3000\n";
+
+    #[test]
+    fn the_calibration_in_force_is_its_stamp_and_its_event_says_it_in_one_line() {
+        let c = calibration_in_force(STAMPED).unwrap();
+        assert_eq!(
+            (c.method.as_str(), c.at.as_str(), c.robot.as_str(), c.joints),
+            ("automatic", "2026-11-29T05:00:00Z", "a3 0042", 1)
+        );
+        assert_eq!(
+            calibration_detail(Some(&c)),
+            "automatic 2026-11-29T05:00:00Z a3 0042"
+        );
+        assert_eq!(calibration_detail(None), "none");
+        let by_hand = STAMPED.split("[joint").nth(1).unwrap();
+        let c = calibration_in_force(&format!("[joint{by_hand}")).unwrap();
+        assert_eq!((c.method.as_str(), c.joints), (UNSTAMPED, 1));
+        assert_eq!(calibration_detail(Some(&c)), "unstamped - -");
+    }
+
+    #[test]
+    fn a_calibration_that_cannot_be_reported_is_refused_by_name() {
+        let other = STAMPED.replace("format = 1", "format = 9");
+        assert_eq!(
+            calibration_in_force(&other),
+            Err(CalibrationFileError::Stamp(StampError::Format { found: 9 }))
+        );
+        let long = STAMPED.replace("a3 0042", &"r".repeat(MAX_LEN + 1));
+        assert_eq!(
+            calibration_in_force(&long),
+            Err(CalibrationFileError::TooLong {
+                field: "robot",
+                len: MAX_LEN + 1
+            })
+        );
+    }
 
     #[test]
     fn the_package_s_version_is_read_with_or_without_its_newline() {

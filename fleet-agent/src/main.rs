@@ -48,6 +48,9 @@ struct Args {
     /// The file the `nori-robot` package writes its version to (absent: a build from source).
     #[arg(long, default_value = fleet_agent::installed::VERSION_FILE)]
     version_file: PathBuf,
+    /// The calibration file the driver loads (its stamp goes to the fleet).
+    #[arg(long, default_value = fleet_agent::installed::CALIBRATION_FILE)]
+    calibration_file: PathBuf,
 }
 
 /// The agent's two planes: iceoryx2 ports, and zenoh declarations once the fleet is reached.
@@ -345,8 +348,9 @@ fn run(args: Args) -> Result<()> {
         "joining the fleet: telemetry on {}, actions from {}", robot_key(&id, "state"), robot_key(&id, "actions"));
     let mut service = ServiceManager::from_env();
     service.ready(&format!("robot {id} joining the fleet"));
-    let mut agent =
-        Agent::resuming(&config, start).installed(installed_version(&args.version_file));
+    let mut agent = Agent::resuming(&config, start)
+        .installed(installed_version(&args.version_file))
+        .calibrated(calibration_in_force(&args.calibration_file, &id));
     let run_for = args.process.run_for()?;
     fleet_agent::agent::run(&mut agent, &mut io, &shutdown, run_for, &mut |t| {
         service.keepalive(t)
@@ -355,6 +359,47 @@ fn run(args: Args) -> Result<()> {
     tracing::info!(robot = %id, accepted = agent.accepted(), forwarded = agent.goals_forwarded(), "leaving the fleet");
     // The token, publishers and session close on drop: the fleet sees the robot leave.
     Ok(())
+}
+
+/// The calibration stamp of the file at `path`: `None`, said once, when there is none or it
+/// cannot be read (the status names no calibration rather than a wrong one); another robot's
+/// file is reported as it is, and warned of.
+fn calibration_in_force(
+    path: &std::path::Path,
+    robot_id: &str,
+) -> Option<fleet_agent::schema::CalibrationMsg> {
+    let text = match std::fs::read_to_string(path) {
+        Ok(text) => text,
+        Err(e) => {
+            tracing::info!("no calibration to report: {}: {e}", path.display());
+            return None;
+        }
+    };
+    match fleet_agent::installed::calibration_in_force(&text) {
+        Ok(c) => {
+            if !c.robot.is_empty() && c.robot != robot_id {
+                tracing::warn!(
+                    "{} is robot {:?}'s calibration, not {robot_id:?}'s",
+                    path.display(),
+                    c.robot
+                );
+            }
+            tracing::info!(
+                "calibration in force: {} {} ({} joints)",
+                c.method,
+                c.at,
+                c.joints
+            );
+            Some(c)
+        }
+        Err(e) => {
+            tracing::warn!(
+                "the calibration in force is unknown: {}: {e}",
+                path.display()
+            );
+            None
+        }
+    }
 }
 
 /// The package version from `path`: `None`, said once, when there is no such file (a build

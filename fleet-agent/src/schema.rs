@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 /// The schema version this build speaks.
-pub const SCHEMA_VERSION: u16 = 7;
+pub const SCHEMA_VERSION: u16 = 8;
 
 /// Joint telemetry for dashboards, rate-limited (`nori/<robot>/state`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -302,6 +302,9 @@ pub struct StatusMsg {
     /// The `nori-robot` package's version the robot runs (read at the agent's start); `None`:
     /// not installed from a package (a build from source).
     pub installed_version: Option<String>,
+    /// The calibration the robot runs (read at the agent's start); `None`: no calibration file
+    /// where the robot keeps it, or one that cannot be read.
+    pub calibration: Option<CalibrationMsg>,
     /// The agent's rates and action limits.
     pub config: StatusConfig,
     /// The robot as the agent sees it now.
@@ -316,6 +319,19 @@ pub struct StatusMsg {
     pub cameras: Vec<CameraStatus>,
     /// The lidar, when the agent watches one.
     pub lidar: Option<LidarStatus>,
+}
+
+/// The calibration a robot runs, from its calibration file's stamp, in a [`StatusMsg`].
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CalibrationMsg {
+    /// How: `by-hand`, `automatic`, or `unstamped` (a file written by hand).
+    pub method: String,
+    /// When, RFC 3339 (empty when unstamped).
+    pub at: String,
+    /// The robot the file was made for (empty when unstamped): another robot's file shows here.
+    pub robot: String,
+    /// Joints it calibrates.
+    pub joints: u16,
 }
 
 /// One camera, from the header of its newest frame on the state plane, in a [`StatusMsg`].

@@ -528,7 +528,10 @@ fn telemetry_events_and_status_go_out_named_from_the_layout() {
     assert!(st.buses[0].connected && st.buses[0].enabled);
     assert_eq!(st.buses[0].counters.checksum_errors, 3);
     assert_eq!(st.health.joints, 2);
-    assert_eq!(st.counters.events_sent, 2, "the agent's start, the trip");
+    assert_eq!(
+        st.counters.events_sent, 3,
+        "the agent's start, its calibration, the trip"
+    );
 }
 
 #[test]
@@ -612,7 +615,10 @@ fn the_status_reports_what_the_agent_did_and_saw() {
     assert_eq!(st.health.safe_state, Some(true));
     assert_eq!(st.health.deadline_misses, Some(3));
     assert_eq!(st.health.state_age_ms, Some(5.0));
-    assert_eq!(st.counters.events_sent, 3, "the agent's start, two stalls");
+    assert_eq!(
+        st.counters.events_sent, 4,
+        "the agent's start, its calibration, two stalls"
+    );
     let sent = |k| io.published.iter().filter(|(o, _)| *o == k).count() as u64;
     assert_eq!(st.counters.state_sent, sent(Outbound::State));
     assert_eq!(st.counters.observations_sent, sent(Outbound::Observation));
@@ -834,15 +840,15 @@ fn every_event_is_journaled_before_it_is_sent_and_sent_again_until_acknowledged(
     io.published.clear();
     agent.poll(&mut io, now + MS, 1_700_000_000_000);
     let kinds: Vec<String> = journaled(&io).into_iter().map(|r| r.kind).collect();
-    assert_eq!(kinds, ["AgentStarted", "ThermalTrip"]);
+    assert_eq!(kinds, ["AgentStarted", "CalibrationInForce", "ThermalTrip"]);
     let out: Vec<EventMsg> = sent(&mut io, Outbound::Event);
     assert_eq!(out.len(), 1, "the start went out in the first turn");
     assert_eq!(
         (out[0].seq, out[0].held_from),
-        (2, 1),
+        (3, 1),
         "numbered as journaled"
     );
-    assert_eq!(out[0].event, journaled(&io)[1]);
+    assert_eq!(out[0].event, journaled(&io)[2]);
     assert_eq!(out[0].event.wall_ms, 1_700_000_000_000, "when it happened");
     // No acknowledgement within resend-after (2 s): both go again, the oldest first.
     agent.poll(&mut io, now + 1_999 * MS, 0);
@@ -852,11 +858,11 @@ fn every_event_is_journaled_before_it_is_sent_and_sent_again_until_acknowledged(
         .iter()
         .map(|m| m.seq)
         .collect();
-    assert_eq!(again, [1, 2]);
+    assert_eq!(again, [1, 2, 3]);
     // Acknowledged: kept across restarts, and nothing goes again.
-    io.acks.push_back(ack(0, 2));
+    io.acks.push_back(ack(0, 3));
     agent.poll(&mut io, now + 2_200 * MS, 0);
-    assert_eq!(io.acked, [2]);
+    assert_eq!(io.acked, [3]);
     agent.poll(&mut io, now + 60_000 * MS, 0);
     assert!(sent::<EventMsg>(&mut io, Outbound::Event).is_empty());
     let st = status(&mut agent, &mut io, now + 60_001 * MS);
@@ -868,7 +874,7 @@ fn every_event_is_journaled_before_it_is_sent_and_sent_again_until_acknowledged(
             c.events_unacknowledged,
             c.events_stored_through
         ),
-        (2, 2, 0, 2)
+        (3, 3, 0, 3)
     );
 }
 
@@ -888,7 +894,7 @@ fn when_the_fleet_is_reached_late_everything_held_goes_out_at_once() {
         t += 100 * MS;
     }
     let kinds: Vec<String> = journaled(&io).into_iter().map(|r| r.kind).collect();
-    assert_eq!(kinds, ["AgentStarted", "ThermalTrip"]);
+    assert_eq!(kinds, ["AgentStarted", "CalibrationInForce", "ThermalTrip"]);
     io.published.clear();
     agent.poll(&mut io, last_sending + 1_000 * MS, 0);
     assert!(
@@ -907,7 +913,7 @@ fn when_the_fleet_is_reached_late_everything_held_goes_out_at_once() {
         .collect();
     assert_eq!(
         seqs,
-        [1, 2],
+        [1, 2, 3],
         "everything held goes out on joining, oldest first"
     );
 }
@@ -971,14 +977,19 @@ fn a_restarted_agent_sends_what_was_not_acknowledged_and_journals_nothing_twice(
         .collect();
     assert_eq!(
         new,
-        [("AgentStarted".into(), 5.0), ("DriverStarted".into(), 99.0)],
-        "its start (5 torn bytes cut), the driver's; not the replayed trip nor the known supervisor"
+        [
+            ("AgentStarted".into(), 5.0),
+            ("CalibrationInForce".into(), 0.0),
+            ("DriverStarted".into(), 99.0)
+        ],
+        "its start (5 torn bytes cut, no calibration file), the driver's; not the replayed \
+         trip nor the known supervisor"
     );
     let out: Vec<EventMsg> = sent(&mut io, Outbound::Event);
     assert!(out.iter().all(|m| m.journal == 77));
     assert_eq!(
         out.iter().map(|m| m.seq).collect::<Vec<_>>(),
-        [2, 3, 4, 5],
+        [2, 3, 4, 5, 6],
         "the unacknowledged, then the new, in order"
     );
     // A supervisor restarted: journaled once, however many heartbeats.
@@ -1057,7 +1068,11 @@ fn an_event_the_journal_cannot_keep_still_goes_out_once_unnumbered_and_counted()
     assert_eq!((out[0].seq, out[0].event.kind.as_str()), (0, "ThermalTrip"));
     agent.poll(&mut io, now + 60_000 * MS, 0);
     let again = sent::<EventMsg>(&mut io, Outbound::Event);
-    assert!(again.iter().all(|m| m.event.kind == "AgentStarted"), "once");
+    let start = ["AgentStarted", "CalibrationInForce"];
+    assert!(
+        again.iter().all(|m| start.contains(&m.event.kind.as_str())),
+        "once"
+    );
     let st = status(&mut agent, &mut io, now + 60_001 * MS);
     assert_eq!(st.counters.events_unjournaled, 1);
 }
@@ -1087,4 +1102,35 @@ fn the_package_version_the_robot_runs_is_in_its_status_and_its_start_s_event() {
         None
     );
     assert_eq!(journaled(&io)[0].detail, "");
+}
+
+#[test]
+fn the_calibration_the_robot_runs_is_in_its_status_and_journaled_at_its_start() {
+    let text = "[calibrated]\nformat = 1\nrobot = \"a3-0042\"\nat = \"2026-11-29T05:00:00Z\"\n\
+                method = \"by-hand\"\n[joint.left_elbow]\nhoming-offset = 3\n\
+                range-min = 1000\nrange-max = 3000\n";
+    let calibration = fleet_agent::installed::calibration_in_force(text).unwrap();
+    let config = AgentConfig::embedded().unwrap();
+    let mut io = Queues {
+        layout: Some(layout()),
+        ..Queues::default()
+    };
+    let mut agent = Agent::new(&config).calibrated(Some(calibration.clone()));
+    let st = status(&mut agent, &mut io, 1_000 * MS);
+    assert_eq!(st.calibration, Some(calibration));
+    let journal = journaled(&io);
+    let event = journal
+        .iter()
+        .find(|r| r.kind == "CalibrationInForce")
+        .unwrap();
+    assert_eq!(
+        (event.detail.as_str(), event.value),
+        ("by-hand 2026-11-29T05:00:00Z a3-0042", 1.0)
+    );
+
+    // No file: no calibration claimed, and the start says so.
+    let mut io = Queues::default();
+    let mut agent = Agent::new(&config).calibrated(None);
+    assert_eq!(status(&mut agent, &mut io, 1_000 * MS).calibration, None);
+    assert_eq!(journaled(&io)[1].detail, "none");
 }

@@ -390,6 +390,7 @@ impl Collector {
                     "actions_rejected": counters.map(|c| &c.actions_rejected),
                     "last_rejection": r.status.as_ref().map(|s| s.last_rejection.clone()),
                     "running": r.status.as_ref().map(running),
+                    "calibration": r.status.as_ref().map(calibration),
                     "buses": r.status.as_ref().map(|s| s.buses.iter().map(|b| json!({
                         "bus": b.name, "connected": b.connected, "enabled": b.enabled, "counters": b.counters,
                     })).collect::<Vec<_>>()),
@@ -592,6 +593,22 @@ fn running(s: &StatusMsg) -> String {
         Some(v) => format!("nori-robot {v}"),
         None => format!("built from source (agent {})", s.agent_version),
     }
+}
+
+/// The calibration a robot runs, as its status says: how and when, and for which robot when
+/// the file was made for another.
+fn calibration(s: &StatusMsg) -> String {
+    let Some(c) = &s.calibration else {
+        return "no calibration reported".into();
+    };
+    if c.method == fleet_agent::installed::UNSTAMPED {
+        return format!("calibration written by hand ({} joints)", c.joints);
+    }
+    let mut said = format!("calibrated {} {} ({} joints)", c.method, c.at, c.joints);
+    if c.robot != s.robot_id {
+        said += &format!(": robot {}'s calibration", c.robot);
+    }
+    said
 }
 
 /// Each live robot's servos: temperature, current, whether they answered.
@@ -872,8 +889,8 @@ fn finite(v: f32) -> Option<f32> {
 mod tests {
     use super::*;
     use fleet_agent::schema::{
-        encode, AgentCounters, BusStatus, JointInfoMsg, JointMsg, StatusConfig, StatusHealth,
-        SCHEMA_VERSION,
+        encode, AgentCounters, BusStatus, CalibrationMsg, JointInfoMsg, JointMsg, StatusConfig,
+        StatusHealth, SCHEMA_VERSION,
     };
     use fleet_agent::schema::{PreviewMsg, ScanMsg};
 
@@ -1038,6 +1055,12 @@ mod tests {
             robot_id: "r".into(),
             agent_version: "0".into(),
             installed_version: Some("0.1.0+57".into()),
+            calibration: Some(CalibrationMsg {
+                method: "by-hand".into(),
+                at: "2026-11-29T05:00:00Z".into(),
+                robot: "r".into(),
+                joints: 16,
+            }),
             config: StatusConfig {
                 state_hz: 50.0,
                 observation_hz: 50.0,
@@ -1114,6 +1137,33 @@ mod tests {
         assert!(
             c.snapshot(0)["robots"][2]["running"].is_null(),
             "no status yet"
+        );
+    }
+
+    #[test]
+    fn the_calibration_each_robot_runs_is_on_the_dashboard_and_another_robot_s_is_named() {
+        let mut c = Collector::new(1, 0);
+        let mut source: StatusMsg =
+            fleet_agent::schema::decode(&status(AgentCounters::default(), vec![])).unwrap();
+        c.status("nori/r1/status", &encode(&source), 0).unwrap();
+        source.calibration.as_mut().unwrap().robot = "a3-0007".into();
+        c.status("nori/r2/status", &encode(&source), 0).unwrap();
+        source.calibration.as_mut().unwrap().method = "unstamped".into();
+        c.status("nori/r3/status", &encode(&source), 0).unwrap();
+        source.calibration = None;
+        c.status("nori/r4/status", &encode(&source), 0).unwrap();
+        let snap = c.snapshot(0);
+        let said: Vec<&str> = (0..4)
+            .map(|i| snap["robots"][i]["calibration"].as_str().unwrap())
+            .collect();
+        assert_eq!(
+            said,
+            [
+                "calibrated by-hand 2026-11-29T05:00:00Z (16 joints)",
+                "calibrated by-hand 2026-11-29T05:00:00Z (16 joints): robot a3-0007's calibration",
+                "calibration written by hand (16 joints)",
+                "no calibration reported",
+            ]
         );
     }
 

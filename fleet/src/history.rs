@@ -88,6 +88,17 @@ CREATE TABLE IF NOT EXISTS refusals (
 CREATE OR REPLACE VIEW robot_versions AS
     SELECT DISTINCT ON (robot) robot, detail AS installed_version, at AS running_since
     FROM events WHERE kind = 'AgentStarted' ORDER BY robot, id DESC;
+-- The calibration each robot runs: its agent's newest start's `CalibrationInForce` (detail:
+-- `none`, or the method, the time and the robot the file names; value: its joints); its
+-- history is those events (the same calibration again at each start).
+CREATE OR REPLACE VIEW robot_calibrations AS
+    SELECT DISTINCT ON (robot) robot,
+        NULLIF(split_part(detail, ' ', 1), 'none') AS method,
+        NULLIF(NULLIF(split_part(detail, ' ', 2), '-'), '') AS calibrated_at,
+        NULLIF(NULLIF(regexp_replace(detail, '^\\S+ \\S+ ?', ''), '-'), '') AS calibrated_for,
+        value::int AS joints,
+        at AS reported_at
+    FROM events WHERE kind = 'CalibrationInForce' ORDER BY robot, id DESC;
 ";
 
 /// A batch of events into `events` in one statement (copies already there skipped; the rows

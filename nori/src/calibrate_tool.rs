@@ -22,8 +22,6 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-/// Where a robot keeps its calibration: state, not a package's conffile.
-const INSTALLED_CALIBRATION: &str = "/var/lib/nori/calibration.toml";
 /// How far inside each stop a joint's limits are put, rad: 1.5°, the most of the travel a
 /// calibration may keep from the joint (the zero's error, under 0.5°, leaves every limit
 /// 1–2° inside its stop; docs/commissioning.md).
@@ -61,7 +59,7 @@ pub struct ByHandArgs {
     #[arg(long, value_name = "FILE")]
     robot: Option<PathBuf>,
     /// The calibration file written (the previous one kept beside it as `.previous`).
-    #[arg(long, value_name = "FILE", default_value = INSTALLED_CALIBRATION)]
+    #[arg(long, value_name = "FILE", default_value = telemetry::calibration::CALIBRATION_FILE)]
     output: PathBuf,
     /// The robot's id, recorded in the file (the host's name when absent).
     #[arg(long)]

@@ -7,6 +7,7 @@
 //! (shared memory), `process` (signals) and `latch` (the trip record on disk) do, which is why
 //! they are a feature that only the processes enable.
 //!
+//! * `calibration`: where a robot's calibration came from (the stamp `nori calibrate` writes).
 //! * `clock`: the common time base, and the one rule for a stamped message (in force, stale,
 //!   or from the future).
 //! * `config`: one error and one way to read a process's TOML file.
@@ -22,6 +23,7 @@
 //! * In tests with `ipc`: `versions` (each frame's layout against `frame-layouts.txt`, so a
 //!   changed layout is a deliberate, reviewed edit).
 
+pub mod calibration;
 pub mod clock;
 pub mod config;
 pub mod durable;

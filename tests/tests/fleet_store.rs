@@ -707,19 +707,21 @@ fn a_store_that_hears_no_robot_opens_its_session_again_and_still_stores() {
     );
 }
 
-/// What the robot runs, through an upgrade: the package's version file read at the agent's
-/// start reaches its status and the store (`robot_versions`, from the starts' events), a newer
-/// one replaces it when the agent restarts on it, and a file that is not one version is
-/// reported as no version, the agent running on.
+/// What the robot runs, through an upgrade and a calibration: the package's version file and
+/// the calibration's stamp, read at the agent's start, reach its status and the store
+/// (`robot_versions` and `robot_calibrations`, from the starts' events); newer ones replace
+/// them when the agent restarts on them, and a file that cannot be read is reported as none,
+/// the agent running on.
 #[test]
-fn the_version_a_robot_runs_reaches_its_status_and_the_store_across_an_upgrade() {
+fn what_a_robot_runs_reaches_its_status_and_the_store_across_an_upgrade_and_a_calibration() {
     let mut stack = ArmStack::start("fleet-version", &[]);
     let db = ScratchPostgres::start(&stack.dir.join("postgres"));
     let (store_at, watch_at) = (free_endpoint(), free_endpoint());
     let _store = start_store(&stack.dir, &db.url, &store_at, 1);
     let watcher = nori_tests::listening_session(&watch_at);
-    let version_file = stack.dir.join("version");
+    let (version_file, calibration_file) = (stack.dir.join("version"), stack.dir.join("cal.toml"));
     let file = version_file.display().to_string();
+    let calibration = calibration_file.display().to_string();
     let journal = stack.dir.join("journal").display().to_string();
     let args = [
         "--robot-id",
@@ -732,55 +734,106 @@ fn the_version_a_robot_runs_reaches_its_status_and_the_store_across_an_upgrade()
         &journal,
         "--version-file",
         &file,
+        "--calibration-file",
+        &calibration,
     ];
-    let stored = |want: &str| {
+    let stored = |want: &str, method: Option<&str>| {
         wait_for(Duration::from_secs(30), &format!("{want} stored"), || {
             let mut c = postgres::Client::connect(&db.url, postgres::NoTls).ok()?;
-            let row = c
+            let version = c
                 .query_opt(
                     "SELECT installed_version FROM robot_versions WHERE robot = $1",
                     &[&ROBOT],
                 )
                 .ok()??;
-            (row.get::<_, String>(0) == want).then_some(())
+            let calibration = c
+                .query_opt(
+                    "SELECT method FROM robot_calibrations WHERE robot = $1",
+                    &[&ROBOT],
+                )
+                .ok()??;
+            let got = (
+                version.get::<_, String>(0),
+                calibration.get::<_, Option<String>>(0),
+            );
+            (got.0 == want && got.1.as_deref() == method).then_some(())
         });
     };
-    let status_says = |want: Option<&str>| {
+    let status_says = |want: Option<&str>, method: Option<&str>| {
         wait_for(Duration::from_secs(20), "the status's version", || {
             let st = nori_tests::agent_status(&watcher, ROBOT);
-            (st.installed_version.as_deref() == want).then_some(())
+            let calibrated = st.calibration.as_ref().map(|c| c.method.as_str());
+            (st.installed_version.as_deref() == want && calibrated == method).then_some(())
         });
     };
 
+    // No calibration file yet: none claimed.
     std::fs::write(&version_file, "0.1.0+41\n").unwrap();
     stack.restart_agent_with(&args);
-    status_says(Some("0.1.0+41"));
-    stored("0.1.0+41");
+    status_says(Some("0.1.0+41"), None);
+    stored("0.1.0+41", None);
 
-    // The upgrade: the package's file replaced, the agent restarted by the maintainer scripts.
+    // The upgrade: the package's file replaced, the agent restarted by the maintainer scripts;
+    // and the robot calibrated by hand meanwhile.
+    let stamped = format!(
+        "[calibrated]\nformat = 1\nrobot = \"{ROBOT}\"\nat = \"2026-11-29T05:00:00Z\"\n\
+         method = \"by-hand\"\n\n{}",
+        bus_driver::config::DEFAULT_CALIBRATION_TOML
+    );
+    std::fs::write(&calibration_file, &stamped).unwrap();
     std::fs::write(&version_file, "0.1.0+42\n").unwrap();
     stack.restart_agent_with(&args);
-    status_says(Some("0.1.0+42"));
-    stored("0.1.0+42");
+    status_says(Some("0.1.0+42"), Some("by-hand"));
+    stored("0.1.0+42", Some("by-hand"));
+    let st = nori_tests::agent_status(&watcher, ROBOT);
+    let c = st.calibration.unwrap();
+    assert_eq!(
+        (c.at.as_str(), c.robot.as_str(), c.joints),
+        ("2026-11-29T05:00:00Z", ROBOT, 16)
+    );
+    let row = db
+        .client()
+        .query_one(
+            "SELECT calibrated_at, calibrated_for, joints FROM robot_calibrations WHERE robot = $1",
+            &[&ROBOT],
+        )
+        .unwrap();
+    let row: (String, String, i32) = (row.get(0), row.get(1), row.get(2));
+    assert_eq!(row, ("2026-11-29T05:00:00Z".into(), ROBOT.into(), 16));
 
-    // Not a version: none is claimed, and the agent serves the fleet all the same.
+    // Neither file can be read: none is claimed, and the agent serves the fleet all the same.
     std::fs::write(&version_file, "0.1.0+43 amd64\n").unwrap();
+    std::fs::write(
+        &calibration_file,
+        stamped.replace("format = 1", "format = 9"),
+    )
+    .unwrap();
     stack.restart_agent_with(&args);
-    status_says(None);
-    stored("");
+    status_says(None, None);
+    stored("", None);
     let mut c = db.client();
-    let history: Vec<String> = c
+    let history: Vec<(String, String)> = c
         .query(
-            "SELECT detail FROM events WHERE robot = $1 AND kind = 'AgentStarted' ORDER BY id",
+            "SELECT kind, detail FROM events WHERE robot = $1 \
+             AND kind IN ('AgentStarted', 'CalibrationInForce') ORDER BY id",
             &[&ROBOT],
         )
         .unwrap()
         .iter()
-        .map(|r| r.get(0))
+        .map(|r| (r.get(0), r.get(1)))
         .collect();
+    let start = |v: &str| ("AgentStarted".to_string(), v.to_string());
+    let calibrated = |d: &str| ("CalibrationInForce".to_string(), d.to_string());
     assert_eq!(
         history,
-        ["0.1.0+41", "0.1.0+42", ""],
-        "which version ran when"
+        [
+            start("0.1.0+41"),
+            calibrated("none"),
+            start("0.1.0+42"),
+            calibrated(&format!("by-hand 2026-11-29T05:00:00Z {ROBOT}")),
+            start(""),
+            calibrated("none"),
+        ],
+        "which version and calibration ran when"
     );
 }
