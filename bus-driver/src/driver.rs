@@ -100,7 +100,7 @@ pub enum SetupError {
     #[error(
         "servo {id} holds homing offset {}, position limits {}..{}; the calibration says {}, \
          {}..{}: not calibrated for this joint (a replaced servo or a refitted horn): left off \
-         until the joint is calibrated",
+         until the joint is calibrated (`nori calibrate by-hand`)",
         found[0], found[1], found[2], expected[0], expected[1], expected[2]
     )]
     NotCalibrated {
@@ -112,7 +112,10 @@ pub enum SetupError {
         expected: [i32; 3],
     },
     /// The servo is not the configured model.
-    #[error("servo {id} reports model number {found}, configured {expected:?}")]
+    #[error(
+        "servo {id} reports model number {found}, configured {expected:?}: left off (`nori \
+         servo scan` names what is on the bus, `nori servo setup` sets up the right servo)"
+    )]
     WrongModel {
         /// Servo id.
         id: u8,

@@ -104,6 +104,11 @@ impl Arm {
         }
     }
 
+    /// Joint `k`'s hard stops, rad (lower, upper); `None` past the chain.
+    pub fn stops(&self, k: usize) -> Option<(f64, f64)> {
+        self.joints.get(k).map(|j| (j.lower, j.upper))
+    }
+
     /// Number of chain joints (the gripper excluded).
     pub fn dof(&self) -> usize {
         self.joints.len()

@@ -527,7 +527,36 @@ impl SimBus {
             let speed = wheels.map(|w| self.servos[w].speed);
             motion.step(dt, angle, speed);
         }
+        self.log_stop_presses(dt);
         self.time += dt;
+    }
+
+    /// Counts each arm joint or gripper its own motor pushes past a hard stop: the witness that
+    /// nothing the stack drives presses a stop (a calibration's limits inside them).
+    fn log_stop_presses(&mut self, dt: f64) {
+        let Some(arm) = &self.arm else {
+            return;
+        };
+        for (i, servo) in self.servos.iter_mut().enumerate() {
+            let stops = match self.roles[i] {
+                Role::ArmJoint(k) => arm.stops(k),
+                Role::Gripper => arm.gripper.as_ref().map(|g| (g.lower_rad, g.upper_rad)),
+                Role::Wheel | Role::Free => None,
+            };
+            let Some((lower, upper)) = stops else {
+                continue;
+            };
+            // Its motor pushes it further in (a joint sagging past a stop under gravity while
+            // its motor holds against it is not pressed by the motor).
+            let into = (servo.angle > upper && servo.duty > 0.0)
+                || (servo.angle < lower && servo.duty < 0.0);
+            if servo.torque_enabled() && into {
+                let log = &mut servo.log;
+                log.stop_press_s += dt;
+                let pushed = (servo.duty.abs() * 1000.0).round().min(1000.0) as u16;
+                log.stop_press_max_permille = log.stop_press_max_permille.max(pushed);
+            }
+        }
     }
 
     /// Steps the mechanics with `dt` until the simulated time reaches `t`.
@@ -1005,6 +1034,67 @@ mod tests {
             models,
             [2569, 2825],
             "the shoulder's STS3095 (delay 0) first"
+        );
+    }
+
+    /// The witness of a pressed stop: the elbow driven at its calibrated limit stays clear of
+    /// its stop; uncalibrated (limits 0..4095), the same goal far beyond drives it into the
+    /// stop, logged with the motor's push; pushed past by hand, torque off, nothing is logged.
+    #[test]
+    fn a_joint_its_motor_holds_past_a_stop_is_logged_and_one_held_inside_is_not() {
+        let mut bus = left_arm();
+        let elbow = bus.position(4).unwrap();
+        let goal = |bus: &mut SimBus, steps: u16| {
+            let data = steps.to_le_bytes();
+            send(
+                bus,
+                Instruction::Write {
+                    id: 4,
+                    addr: reg::GOAL_POSITION.addr,
+                    data: &data,
+                },
+            );
+        };
+        let torque = [1];
+        send(
+            &mut bus,
+            Instruction::Write {
+                id: 4,
+                addr: reg::TORQUE_ENABLE.addr,
+                data: &torque,
+            },
+        );
+        goal(&mut bus, 4095);
+        bus.advance_to(3.0, 0.001);
+        let log = bus.servos[elbow].log;
+        assert_eq!(
+            (log.stop_press_s, log.stop_press_max_permille),
+            (0.0, 0),
+            "at its limit"
+        );
+
+        bus.servos[elbow].clear_calibration();
+        goal(&mut bus, 4095);
+        bus.advance_to(6.0, 0.001);
+        let log = bus.servos[elbow].log;
+        assert!(log.stop_press_s > 1.0, "{log:?}");
+        assert!(log.stop_press_max_permille > 100, "{log:?}");
+
+        let off = [0];
+        send(
+            &mut bus,
+            Instruction::Write {
+                id: 4,
+                addr: reg::TORQUE_ENABLE.addr,
+                data: &off,
+            },
+        );
+        let before = bus.servos[elbow].log.stop_press_s;
+        bus.servos[elbow].angle += 0.05;
+        bus.advance_to(6.01, 0.001);
+        assert_eq!(
+            bus.servos[elbow].log.stop_press_s, before,
+            "torque off: not the motor's"
         );
     }
 

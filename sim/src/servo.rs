@@ -120,6 +120,13 @@ pub struct ServoLog {
     pub last_torque_write: Option<(f64, u8)>,
     /// When the last Torque_Enable = 1 write arrived (simulated s).
     pub last_torque_on_s: Option<f64>,
+    /// Time its joint spent past a hard stop with its motor pushing it further in, s (by hand
+    /// with the torque off, or sagging in under gravity while the motor holds against it, does
+    /// not count).
+    pub stop_press_s: f64,
+    /// The most the motor pushed while pressing a stop, 0.1 % of full duty (comparable with
+    /// Torque_Limit).
+    pub stop_press_max_permille: u16,
 }
 
 /// The registers the firmware consults every step, decoded once per write (not per step).

@@ -4,6 +4,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
+use bus_driver::config::CalibrationFile;
 use nori_tests::{binary, serial, wait_for, ArmStack};
 use serde_json::{json, Value};
 use std::path::Path;
@@ -11,6 +12,7 @@ use std::process::{Command, Output};
 use std::time::Duration;
 use telemetry::frames::JointState;
 use telemetry::plane::{self, newest, Plane};
+use telemetry::GoalFrame;
 
 /// `nori servo COMMAND ARGS --device-dir <the stack's>`.
 fn servo(stack: &ArmStack, command: &[&str]) -> Output {
@@ -287,6 +289,10 @@ fn a_replaced_servo_set_up_but_not_calibrated_is_left_off_by_the_driver() {
     drop((states, node));
     let log = std::fs::read_to_string(stack.dir.join("driver-2.log")).unwrap();
     assert!(log.contains("not calibrated for this joint"), "{log}");
+    assert!(
+        log.contains("`nori calibrate by-hand`"),
+        "the tool named: {log}"
+    );
     let report = stack.stop();
     let servo = &report["buses"][0]["servos"][3];
     assert_eq!(servo["id"], 4, "{servo:#}");
@@ -311,7 +317,7 @@ fn a_replaced_elbow_set_up_and_calibrated_by_hand_is_driven_again() {
     let said = calibrate_by_hand(&stack, &["--joint", "left_elbow"], &file);
     assert!(said.contains("calibrated 1 joint(s)"), "{said}");
     assert!(said.contains("left_elbow: homing offset 0 → "), "{said}");
-    let written: bus_driver::config::CalibrationFile =
+    let written: CalibrationFile =
         toml::from_str(&std::fs::read_to_string(&file).unwrap()).unwrap();
     let made = written.calibrated.as_ref().unwrap();
     assert_eq!(made.robot, "sim-test");
@@ -345,11 +351,112 @@ fn a_replaced_elbow_set_up_and_calibrated_by_hand_is_driven_again() {
     stack.stop();
 }
 
+/// Checks `written` against the simulator's truth: every zero within 1° of its horn, every
+/// limit 4–6° inside its stop of the description (5° wanted, the zero's error either way).
+fn check_off_the_line_calibration(stack: &ArmStack, written: &CalibrationFile) {
+    let robot = body::description::RobotDescription::nori_a3();
+    let arm = robot.bus("left_arm").unwrap().arm.as_ref().unwrap();
+    let mut stops: Vec<(u8, f64, f64)> = (arm.joint.iter())
+        .map(|j| (j.servo, j.lower_rad, j.upper_rad))
+        .collect();
+    let g = arm.gripper.as_ref().unwrap();
+    stops.push((g.servo, g.lower_rad, g.upper_rad));
+    let report = sim_report(stack);
+    let servos = report["buses"][0]["servos"].as_array().unwrap();
+    let horns: Vec<f64> = (servos.iter())
+        .map(|s| s["horn_steps"].as_f64().unwrap())
+        .collect();
+    let off = horns.iter().filter(|h| h.abs() > 100.0).count();
+    assert!(
+        off >= 4,
+        "the horns where the assembler put them: {horns:?}"
+    );
+    let mut worst = (0f64, 0f64);
+    for servo in servos {
+        let joint = servo["joint"].as_str().unwrap();
+        let cal = &written.joint[joint];
+        let horn = servo["horn_steps"].as_f64().unwrap();
+        let zero_deg = ((f64::from(cal.homing_offset) - horn) * STEP_RAD).to_degrees();
+        assert!(
+            zero_deg.abs() < 1.0,
+            "{joint}: zero {zero_deg:.2}° off the truth"
+        );
+        let id = servo["id"].as_u64().unwrap() as u8;
+        let &(_, lower, upper) = stops.iter().find(|s| s.0 == id).unwrap();
+        // How far inside its stop each limit is, where the calibrated servo reads.
+        let inside = [
+            limit_rad(cal.range_min) - lower,
+            upper - limit_rad(cal.range_max),
+        ]
+        .map(f64::to_degrees);
+        for d in inside {
+            assert!(
+                (4.0..6.0).contains(&d),
+                "{joint}: a limit {d:.2}° inside its stop"
+            );
+        }
+        worst = (
+            worst.0.max(zero_deg.abs()),
+            worst.1.max(inside[0]).max(inside[1]),
+        );
+    }
+    eprintln!(
+        "off the line, by hand: worst zero {:.2}°, worst limit {:.2}° inside",
+        worst.0, worst.1
+    );
+}
+
+const STEP_RAD: f64 = sim::servo::RAD_PER_STEP;
+
+/// Where a calibrated servo's reading of `steps` puts its joint, rad.
+fn limit_rad(steps: i32) -> f64 {
+    (f64::from(steps) - 2048.0) * STEP_RAD
+}
+
+/// Streams goals far beyond both ends of every joint's range (clamped to its limits by the
+/// driver), all joints at once, 2.5 s each way; how far each joint ran past its limits, rad.
+fn drive_to_both_ends(
+    node: &Plane,
+    states: &plane::Sub<JointState>,
+    written: &CalibrationFile,
+    names: &[String],
+) -> [f64; 8] {
+    let goals = node.publisher(&plane::GOALS).unwrap();
+    let mut past = [0f64; 8];
+    let mut seq = 0;
+    for end in [1.0f32, -1.0] {
+        let until = std::time::Instant::now() + Duration::from_millis(2500);
+        while std::time::Instant::now() < until {
+            seq += 1;
+            let mut g = GoalFrame {
+                seq,
+                joint_count: 8,
+                mask: 0xff,
+                timestamp_ns: telemetry::clock::monotonic_ns(),
+                ..GoalFrame::default()
+            };
+            g.position_rad[..8].fill(end * std::f32::consts::PI);
+            plane::publish(&goals, &g).unwrap();
+            std::thread::sleep(Duration::from_millis(10));
+            while let Some(s) = plane::next(states) {
+                for (k, joint) in names.iter().enumerate() {
+                    let cal = &written.joint[joint.as_str()];
+                    let q = f64::from(s.joints[k].position_rad);
+                    let beyond = (q - limit_rad(cal.range_max)).max(limit_rad(cal.range_min) - q);
+                    past[k] = past[k].max(beyond);
+                }
+            }
+        }
+    }
+    past
+}
+
 /// A robot off the line: every horn where the assembler fitted it, nothing calibrated. The scan
-/// names all eight servos new; calibrated by hand, the whole arm in one sweep
-/// (the simulator's hand), every joint's zero lies within 1° of the simulator's truth and its
-/// range inside the description's stops, within 2° of them; the driver then drives all eight,
-/// each read within 1° of where the simulator has it.
+/// names all eight servos new; calibrated by hand, the whole arm in one sweep (the simulator's
+/// hand), every joint's zero lies within 1° of the simulator's truth and its range 5° inside
+/// the description's stops; the driver then drives all eight, each read within 1° of where the
+/// simulator has it, and driven to both ends of their ranges at full speed none is pushed into
+/// a stop by its motor (the simulator's witness).
 #[test]
 fn a_robot_off_the_line_calibrated_by_hand_has_every_zero_within_a_degree() {
     let _turn = serial();
@@ -364,57 +471,9 @@ fn a_robot_off_the_line_calibrated_by_hand_has_every_zero_within_a_degree() {
     let file = stack.dir.join("calibration.toml");
     let said = calibrate_by_hand(&stack, &[], &file);
     assert!(said.contains("calibrated 8 joint(s)"), "{said}");
-    let written: bus_driver::config::CalibrationFile =
+    let written: CalibrationFile =
         toml::from_str(&std::fs::read_to_string(&file).unwrap()).unwrap();
-    let robot = body::description::RobotDescription::nori_a3();
-    let arm = robot.bus("left_arm").unwrap().arm.as_ref().unwrap();
-    let mut stops: Vec<(u8, f64, f64)> = (arm.joint.iter())
-        .map(|j| (j.servo, j.lower_rad, j.upper_rad))
-        .collect();
-    let g = arm.gripper.as_ref().unwrap();
-    stops.push((g.servo, g.lower_rad, g.upper_rad));
-    let report = sim_report(&stack);
-    let horns = report["buses"][0]["servos"].as_array().unwrap().iter();
-    let horns: Vec<f64> = horns.map(|s| s["horn_steps"].as_f64().unwrap()).collect();
-    let off = horns.iter().filter(|h| h.abs() > 100.0).count();
-    assert!(
-        off >= 4,
-        "the horns where the assembler put them: {horns:?}"
-    );
-    let step = sim::servo::RAD_PER_STEP;
-    let mut worst = (0f64, 0f64);
-    for servo in report["buses"][0]["servos"].as_array().unwrap() {
-        let joint = servo["joint"].as_str().unwrap();
-        let cal = &written.joint[joint];
-        let horn = servo["horn_steps"].as_f64().unwrap();
-        let zero_deg = ((f64::from(cal.homing_offset) - horn) * step).to_degrees();
-        assert!(
-            zero_deg.abs() < 1.0,
-            "{joint}: zero {zero_deg:.2}° off the truth"
-        );
-        let id = servo["id"].as_u64().unwrap() as u8;
-        let &(_, lower, upper) = stops.iter().find(|s| s.0 == id).unwrap();
-        // Where the calibrated servo reads at each stop, and how far inside it each limit is.
-        let inside = [
-            (f64::from(cal.range_min) - (2048.0 + lower / step)) * step,
-            ((2048.0 + upper / step) - f64::from(cal.range_max)) * step,
-        ]
-        .map(f64::to_degrees);
-        for d in inside {
-            assert!(
-                (0.0..2.0).contains(&d),
-                "{joint}: a limit {d:.2}° inside its stop"
-            );
-        }
-        worst = (
-            worst.0.max(zero_deg.abs()),
-            worst.1.max(inside[0]).max(inside[1]),
-        );
-    }
-    eprintln!(
-        "off the line, by hand: worst zero {:.2}°, worst limit {:.2}° inside",
-        worst.0, worst.1
-    );
+    check_off_the_line_calibration(&stack, &written);
 
     let config = nori_tests::driver_config_with_calibration_beside(&stack.dir);
     stack.driver_args = vec!["--config".into(), config.display().to_string()];
@@ -426,12 +485,8 @@ fn a_robot_off_the_line_calibrated_by_hand_has_every_zero_within_a_degree() {
     std::thread::sleep(Duration::from_millis(2500));
     let read = newest(&states).unwrap();
     let report = sim_report(&stack);
-    for (k, servo) in report["buses"][0]["servos"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .enumerate()
-    {
+    let servos = report["buses"][0]["servos"].as_array().unwrap();
+    for (k, servo) in servos.iter().enumerate() {
         let truth = servo["angle_rad"].as_f64().unwrap();
         let at = f64::from(read.joints[k].position_rad);
         assert!(
@@ -440,6 +495,21 @@ fn a_robot_off_the_line_calibrated_by_hand_has_every_zero_within_a_degree() {
             servo["joint"]
         );
     }
+    let names: Vec<String> = (servos.iter())
+        .map(|s| s["joint"].as_str().unwrap().to_string())
+        .collect();
+    let past = drive_to_both_ends(&node, &states, &written, &names);
+    eprintln!(
+        "past each limit at most (°): {:?}",
+        past.map(|p| (p.to_degrees() * 100.0).round() / 100.0)
+    );
     drop((states, node));
-    stack.stop();
+    let report = stack.stop();
+    for servo in report["buses"][0]["servos"].as_array().unwrap() {
+        assert_eq!(
+            servo["stop_press_s"], 0.0,
+            "{} pressed a stop: {servo:#}",
+            servo["joint"]
+        );
+    }
 }
