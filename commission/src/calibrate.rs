@@ -224,8 +224,13 @@ mod tests {
     /// An operator's sweep at 50 Hz: from where the joint rests to the lower stop, pressed
     /// `press` rad into it (the stop's give), to the upper stop, back to rest.
     fn swept(servo: &mut Servo, stops: &Stops, press: f64, rng: &mut Rng) -> Sweep {
-        let mut sweep = Sweep::default();
         let waypoints = [-0.5, stops.lower_rad - press, stops.upper_rad + press, -0.5];
+        sweep_through(servo, &waypoints, rng)
+    }
+
+    /// A sweep at 50 Hz through `waypoints`, held a while at each.
+    fn sweep_through(servo: &mut Servo, waypoints: &[f64], rng: &mut Rng) -> Sweep {
+        let mut sweep = Sweep::default();
         for w in waypoints.windows(2) {
             let n = ((w[1] - w[0]).abs() / 0.02).ceil() as usize;
             for k in 0..=n {
@@ -267,6 +272,53 @@ mod tests {
             let at_low = cal.to_rad(i32::from(reading(&mut s, lo)));
             assert!((at_low - lo).abs() < 2f64.to_radians(), "{at_low} vs {lo}");
         }
+    }
+
+    /// Pressed 0.09 rad into the lower stop and not into the upper (within the tolerance): the
+    /// zero shifts by half that, and the limits move in by as much, so each stays the margin
+    /// inside its real stop.
+    #[test]
+    fn a_stop_pressed_harder_than_the_other_keeps_every_limit_the_margin_inside_its_stop() {
+        let mut rng = Rng::new(5);
+        let margin = 5f64.to_radians();
+        for (press_lower, press_upper) in [(0.09, 0.0), (0.0, 0.09), (0.05, 0.01)] {
+            let mut s = servo(300.0);
+            let waypoints = [
+                -0.5,
+                ELBOW.lower_rad - press_lower,
+                ELBOW.upper_rad + press_upper,
+                -0.5,
+            ];
+            let sweep = sweep_through(&mut s, &waypoints, &mut rng);
+            let cal = choose("left_elbow", &sweep, &ELBOW, margin, 0.1).unwrap();
+            assert!(s.write(reg::LOCK.addr, &[0]));
+            let encoded = bus_driver::bus::encode(reg::HOMING_OFFSET, cal.homing_offset).unwrap();
+            assert!(s.write(reg::HOMING_OFFSET.addr, &encoded.to_le_bytes()));
+            // Where the joint truly is when the driver believes it at each limit.
+            let zero = cal.to_rad(i32::from(reading(&mut s, 0.0)));
+            let (lo, hi) = cal.range_rad();
+            let inside = [lo - zero - ELBOW.lower_rad, ELBOW.upper_rad - (hi - zero)];
+            for d in inside {
+                assert!(
+                    d >= margin - 0.003,
+                    "pressed {press_lower}/{press_upper}: a limit {:.2}° inside its stop",
+                    d.to_degrees()
+                );
+            }
+        }
+    }
+
+    /// A dangling link bouncing into a stop reverses there: its readings at the apex differ by
+    /// little, but for a moment, not as a joint held against its stop.
+    #[test]
+    fn a_bounce_s_apex_is_not_an_extreme() {
+        let mut sweep = Sweep::default();
+        for raw in [
+            2000u16, 2000, 2000, 2000, 2000, 1950, 1920, 1920, 1950, 2000, 2000,
+        ] {
+            sweep.observe(raw);
+        }
+        assert_eq!((sweep.min, sweep.max), (2000, 2000));
     }
 
     #[test]
