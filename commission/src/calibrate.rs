@@ -37,6 +37,9 @@ impl Stops {
 /// through on its way (a dangling link swung into a stop goes in by tenths of a radian for a
 /// moment).
 const STILL_STEPS: i64 = 3;
+/// Readings in a row within [`STILL_STEPS`] of each other before the joint counts as held
+/// (0.1 s at the tool's 50 Hz): a bounce reverses at its apex, slow for a reading or two.
+const HELD_READINGS: u32 = 5;
 
 /// The readings of one joint so far: the encoder unwrapped across 0/4095 (two readings a
 /// sampling period apart never differ by half a turn: a hand does not turn a joint 180° in
@@ -49,6 +52,8 @@ pub struct Sweep {
     max: i64,
     held: bool,
     readings: u32,
+    /// Readings in a row within [`STILL_STEPS`] of the one before.
+    still: u32,
 }
 
 impl Sweep {
@@ -62,7 +67,12 @@ impl Sweep {
         };
         let step = (raw - last + TURN / 2).rem_euclid(TURN) - TURN / 2;
         self.unwrapped += step;
-        if step.abs() <= STILL_STEPS {
+        self.still = if step.abs() <= STILL_STEPS {
+            self.still + 1
+        } else {
+            0
+        };
+        if self.still + 1 >= HELD_READINGS {
             if self.held {
                 self.min = self.min.min(self.unwrapped);
                 self.max = self.max.max(self.unwrapped);
@@ -164,6 +174,10 @@ pub fn choose(
             travel_deg,
         });
     }
+    // However the sweep's difference from the travel splits between the two stops (one
+    // pressed harder, or not reached), it shifts the zero by at most half of it: the limits
+    // move in by as much, so each stays `margin_rad` inside its real stop.
+    let margin_rad = margin_rad + (sweep.swept_rad() - stops.travel_rad()).abs() / 2.0;
     // The reading at the joint's zero, estimated from each stop and averaged: the lower stop
     // reads lowest unless the servo is inverted.
     let sign = if stops.inverted { -1.0 } else { 1.0 };
@@ -265,9 +279,11 @@ mod tests {
                 zero.abs() < 2f64.to_radians(),
                 "horn {horn}: zero reads {zero} rad"
             );
+            // The margin, and half the sweep's difference from the travel (the stops' give).
+            let inside = 0.15 + (sweep.swept_rad() - ELBOW.travel_rad()).abs() / 2.0;
             let (lo, hi) = cal.range_rad();
-            assert!((lo - (ELBOW.lower_rad + 0.15)).abs() < 0.002, "{lo}");
-            assert!((hi - (ELBOW.upper_rad - 0.15)).abs() < 0.002, "{hi}");
+            assert!((lo - (ELBOW.lower_rad + inside)).abs() < 0.002, "{lo}");
+            assert!((hi - (ELBOW.upper_rad - inside)).abs() < 0.002, "{hi}");
             // Where the joint is read at each calibrated limit is where the calibration says.
             let at_low = cal.to_rad(i32::from(reading(&mut s, lo)));
             assert!((at_low - lo).abs() < 2f64.to_radians(), "{at_low} vs {lo}");
@@ -379,10 +395,11 @@ mod tests {
     #[test]
     fn the_sweep_unwraps_across_the_encoder_wrap_and_tracks_where_the_joint_is() {
         let mut sweep = Sweep::default();
-        // Each reading held (repeated): an extreme counts where the joint stood still.
+        // Each reading held (repeated): an extreme counts where the joint stood still a while.
         for raw in [4000u16, 4090, 5, 100, 50, 4095, 3990] {
-            sweep.observe(raw);
-            sweep.observe(raw);
+            for _ in 0..HELD_READINGS {
+                sweep.observe(raw);
+            }
         }
         // 3990 .. 4096 + 100: 206 steps swept, now at the low end.
         assert_eq!(sweep.max - sweep.min, 206);

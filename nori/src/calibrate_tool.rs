@@ -8,7 +8,7 @@ use anyhow::{bail, Context, Result};
 use body::description::RobotDescription;
 use bus_driver::bus::Bus;
 use bus_driver::config::{
-    BusConfig, CalibrationFile, CalibrationMethod, Mode, Provenance, ServoIdentity,
+    BusConfig, CalibrationFile, CalibrationMethod, DriverConfig, Mode, Provenance, ServoIdentity,
     CALIBRATION_FORMAT,
 };
 use bus_driver::{LoadedConfig, SerialTransport};
@@ -85,6 +85,9 @@ fn by_hand(args: &ByHandArgs) -> Result<()> {
         bail!("--within {}: a number of seconds above 0", args.within);
     }
     refuse_conffile(&args.output)?;
+    // Held to the end: a second session on the same file (the other arm's) is refused, not
+    // left to overwrite this one's joints with its own older base.
+    let _lock = lock_output(&args.output)?;
     let (loaded, origin) = args.buses.load()?;
     let Some(bus) = loaded.config.bus(&args.bus) else {
         bail!("no bus {:?} in {origin}", args.bus);
@@ -152,7 +155,7 @@ fn by_hand(args: &ByHandArgs) -> Result<()> {
         }
     }
     let calibrated = session.finish(MARGIN_RAD, TOLERANCE_RAD)?;
-    write_file(args, base, &robot_id, &calibrated)
+    write_file(args, &loaded.config, base, &robot_id, &calibrated)
 }
 
 /// What the sweep does next.
@@ -254,12 +257,22 @@ fn targets(
 }
 
 /// The file this calibration goes into: the one already at `output` (its format known, this
-/// robot's, every joint valid), else the calibration the driver loads now.
+/// robot's, every joint valid), else the calibration file the driver's configuration names;
+/// never the embedded one, which is the simulated A3's and no robot's record: with none, the
+/// file holds only the joints calibrated now (the driver needs every position joint's, so it
+/// runs once every bus is calibrated).
 fn base_file(output: &Path, robot_id: &str, loaded: &LoadedConfig) -> Result<CalibrationFile> {
     let text = match std::fs::read_to_string(output) {
         Ok(text) => text,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            return Ok(loaded.calibration.clone())
+            return Ok(match loaded.config.calibration_file {
+                Some(_) => loaded.calibration.clone(),
+                None => CalibrationFile {
+                    calibrated: None,
+                    joint: Default::default(),
+                    servo: Default::default(),
+                },
+            });
         }
         Err(e) => return Err(e).context(output.display().to_string()),
     };
@@ -288,6 +301,7 @@ fn checked(text: &str, origin: &str) -> Result<CalibrationFile> {
 /// `base` with these joints replaced, stamped; written atomically, and what changed shown.
 fn write_file(
     args: &ByHandArgs,
+    config: &DriverConfig,
     mut file: CalibrationFile,
     robot_id: &str,
     calibrated: &[Calibrated],
@@ -326,11 +340,50 @@ fn write_file(
     if changes.is_empty() {
         println!("  nothing changed");
     }
+    let missing = not_calibrated(config, &file);
+    if !missing.is_empty() {
+        println!(
+            "not in the file yet (the driver needs every arm joint's calibration): {}",
+            missing.join(", ")
+        );
+    }
     println!(
         "the driver reads it when its configuration says calibration-file = {:?}",
         absolute(&args.output).display().to_string()
     );
     Ok(())
+}
+
+/// An exclusive lock on `<output>.lock` for the whole session.
+fn lock_output(output: &Path) -> Result<std::fs::File> {
+    let mut name = output.as_os_str().to_owned();
+    name.push(".lock");
+    let path = PathBuf::from(name);
+    let file = std::fs::File::options()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&path)
+        .with_context(|| path.display().to_string())?;
+    match file.try_lock() {
+        Ok(()) => Ok(file),
+        Err(std::fs::TryLockError::WouldBlock) => bail!(
+            "another calibration is writing {} (its lock {} is held): one session at a time",
+            output.display(),
+            path.display()
+        ),
+        Err(std::fs::TryLockError::Error(e)) => Err(e).context(path.display().to_string()),
+    }
+}
+
+/// The position joints of `config` that `file` has no calibration for.
+fn not_calibrated(config: &DriverConfig, file: &CalibrationFile) -> Vec<String> {
+    (config.bus.iter())
+        .filter(|b| b.mode == Mode::Position)
+        .flat_map(|b| &b.servo)
+        .filter(|s| !file.joint.contains_key(&s.joint))
+        .map(|s| s.joint.clone())
+        .collect()
 }
 
 fn absolute(path: &Path) -> PathBuf {
@@ -383,10 +436,23 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         let loaded = LoadedConfig::embedded().unwrap();
         let path = dir.join("calibration.toml");
-        // None there: the calibration loaded now.
+        // None there, and the driver on the embedded calibration (the simulated A3's): no
+        // joint carried over, so no robot's file holds the simulator's values unmeasured.
         let _ = std::fs::remove_file(&path);
         let base = base_file(&path, "a3-0007", &loaded).unwrap();
-        assert_eq!(base, loaded.calibration);
+        assert!(
+            base.joint.is_empty() && base.calibrated.is_none(),
+            "{base:?}"
+        );
+        assert_eq!(not_calibrated(&loaded.config, &base).len(), 16);
+        // The driver on a calibration file: that file is the base.
+        let mut configured = loaded.clone();
+        configured.config.calibration_file = Some(dir.join("robot.toml"));
+        assert_eq!(
+            base_file(&path, "a3-0007", &configured).unwrap(),
+            loaded.calibration
+        );
+        assert!(not_calibrated(&configured.config, &loaded.calibration).is_empty());
         let mut theirs = loaded.calibration.clone();
         theirs.calibrated = Some(Provenance {
             format: CALIBRATION_FORMAT,
@@ -408,6 +474,12 @@ mod tests {
         assert!(e.contains("format 2"), "{e}");
         std::fs::write(&path, "joint = 3").unwrap();
         assert!(base_file(&path, "a3-0001", &loaded).is_err());
+        // One session at a time on a file.
+        let held = lock_output(&path).unwrap();
+        let e = lock_output(&path).unwrap_err().to_string();
+        assert!(e.contains("another calibration"), "{e}");
+        drop(held);
+        lock_output(&path).unwrap();
         let e = refuse_conffile(Path::new("/etc/nori/calibration.toml")).unwrap_err();
         assert!(e.to_string().contains("/var/lib/nori"), "{e}");
         refuse_conffile(&path).unwrap();
