@@ -523,6 +523,25 @@ impl CalibrationFile {
     }
 }
 
+/// The calibration file the configuration names; none there means a robot never calibrated,
+/// said with the tool that calibrates it.
+fn read_calibration(path: &Path, origin: &str) -> Result<String, ConfigError> {
+    match read(path) {
+        Err(ConfigError::Io { source, .. }) if source.kind() == std::io::ErrorKind::NotFound => {
+            Err(invalid(
+                origin,
+                "calibration-file",
+                format!(
+                    "{}: no such file: this robot is not calibrated yet (`nori calibrate \
+                     by-hand BUS` for each arm's bus, with the stack stopped)",
+                    path.display()
+                ),
+            ))
+        }
+        other => other,
+    }
+}
+
 /// The driver's configuration and the calibration it names (relative to the file; the
 /// embedded calibration when it names none).
 impl ProcessConfig for LoadedConfig {
@@ -559,9 +578,9 @@ impl LoadedConfig {
         let (cal_text, cal_origin) = match (&config.calibration_file, dir) {
             (Some(file), Some(dir)) => {
                 let path = dir.join(file);
-                (read(&path)?, path.display().to_string())
+                (read_calibration(&path, origin)?, path.display().to_string())
             }
-            (Some(file), None) => (read(file)?, file.display().to_string()),
+            (Some(file), None) => (read_calibration(file, origin)?, file.display().to_string()),
             (None, _) => (
                 DEFAULT_CALIBRATION_TOML.to_string(),
                 "<embedded calibration.toml>".into(),
@@ -613,6 +632,26 @@ mod tests {
         let r = LoadedConfig::load(&dir.join("bus-driver.toml"));
         let _ = std::fs::remove_dir_all(&dir);
         r
+    }
+
+    #[test]
+    fn a_calibration_file_not_there_says_the_robot_is_not_calibrated_and_how_to() {
+        let dir = std::env::temp_dir().join(format!("nori-uncalibrated-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let text = format!("calibration-file = \"absent.toml\"\n{DEFAULT_CONFIG_TOML}");
+        std::fs::write(dir.join("bus-driver.toml"), text).unwrap();
+        let e = LoadedConfig::load(&dir.join("bus-driver.toml"))
+            .unwrap_err()
+            .to_string();
+        let _ = std::fs::remove_dir_all(&dir);
+        assert!(
+            e.contains("absent.toml") && e.contains("calibration-file"),
+            "{e}"
+        );
+        assert!(
+            e.contains("not calibrated yet") && e.contains("nori calibrate by-hand"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -100,7 +100,16 @@ robot_package() {
   install_bins "$root" "${robot_bins[@]}"
   install -d "$root/etc/nori" "$root/usr/lib/systemd/system" "$root/usr/lib/udev/rules.d" \
     "$root/usr/lib/sysusers.d" "$root/usr/lib/tmpfiles.d"
-  install -m 644 "${NORI_DEB_CONFIG:-deploy/config}"/*.toml "$root/etc/nori/"
+  local config=${NORI_DEB_CONFIG:-deploy/config} f
+  for f in "$config"/*.toml; do
+    # The embedded calibration is the simulated A3's: a robot's own is state, written by
+    # `nori calibrate` to /var/lib/nori, never a conffile (an upgrade must not put one back).
+    [ "$(basename "$f")" = calibration.toml ] || install -m 644 "$f" "$root/etc/nori/"
+  done
+  sed -i 's|^# calibration-file = "calibration.toml"$|calibration-file = "/var/lib/nori/calibration.toml"|' \
+    "$root/etc/nori/bus-driver.toml"
+  grep -qx 'calibration-file = "/var/lib/nori/calibration.toml"' "$root/etc/nori/bus-driver.toml" \
+    || { echo "build.sh: the packaged bus-driver.toml does not name /var/lib/nori/calibration.toml" >&2; exit 1; }
   install -m 644 deploy/systemd/*.service deploy/systemd/nori.target "$root/usr/lib/systemd/system/"
   install -m 644 deploy/udev/*.rules "$root/usr/lib/udev/rules.d/"
   install -m 644 deploy/systemd/nori.sysusers.conf "$root/usr/lib/sysusers.d/nori.conf"

@@ -97,7 +97,16 @@ in_root sh -c 'cd /usr/lib/systemd/system && cp nori-camera@.service /tmp/nori-c
   || { cat "$work/verify.log" >&2; fail "systemd-analyze verify"; }
 # It exits 0 on a key it ignores, but names the unit: ours must draw no word at all.
 if grep -i nori "$work/verify.log" >&2; then fail "systemd-analyze verify"; fi
-say "   installed: the user, /var/lib/nori, 11 units enabled and verified"
+# The robot's calibration is its own state: the driver reads it from /var/lib/nori, and until
+# `nori calibrate` wrote it there the driver refuses to start, saying so.
+grep -qx 'calibration-file = "/var/lib/nori/calibration.toml"' "$root/etc/nori/bus-driver.toml" \
+  || fail "the packaged bus-driver.toml does not name /var/lib/nori/calibration.toml"
+[ ! -e "$root/etc/nori/calibration.toml" ] || fail "the simulated A3's calibration shipped in /etc/nori"
+if in_root bus-driver --config /etc/nori/bus-driver.toml --run-for 1 >"$work/uncalibrated.log" 2>&1; then
+  fail "the driver started on a robot never calibrated"
+fi
+grep -q "not calibrated yet" "$work/uncalibrated.log" || { cat "$work/uncalibrated.log" >&2; fail "the driver did not say the robot is not calibrated"; }
+say "   installed: the user, /var/lib/nori, 11 units enabled and verified; the driver refuses to start uncalibrated"
 
 say "2. the packaged stack on the simulator"
 in_root nori up --dir /tmp/nori-up --domain "nori_debcheck_$$" --run-for 8 >"$work/up.log" 2>&1 \
