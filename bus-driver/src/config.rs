@@ -196,6 +196,16 @@ pub struct CalibrationFile {
     pub servo: BTreeMap<String, ServoIdentity>,
 }
 
+/// How much of the robot a calibration must cover to be loaded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Coverage {
+    /// Every position joint (the driver: a joint without one is never driven blind).
+    Every,
+    /// The joints calibrated so far, none at all included (the commissioning tools, on a robot
+    /// being calibrated bus by bus); each one present is still checked.
+    SoFar,
+}
+
 /// A servo as the calibration read it.
 #[derive(Debug, Clone, PartialEq, Eq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, rename_all = "kebab-case")]
@@ -245,6 +255,7 @@ impl DriverConfig {
         origin: &str,
         calibration: &CalibrationFile,
         cal_origin: &str,
+        coverage: Coverage,
     ) -> Result<(), ConfigError> {
         if !(self.rate_hz.is_finite() && (1.0..=1000.0).contains(&self.rate_hz)) {
             return Err(invalid(
@@ -318,7 +329,7 @@ impl DriverConfig {
             ));
         }
         self.validate_backstops(origin)?;
-        let joints = self.validate_buses(origin, calibration, cal_origin)?;
+        let joints = self.validate_buses(origin, calibration, cal_origin, coverage)?;
         if joints.len() > MAX_JOINTS {
             return Err(invalid(
                 origin,
@@ -433,6 +444,7 @@ impl DriverConfig {
         origin: &str,
         calibration: &CalibrationFile,
         cal_origin: &str,
+        coverage: Coverage,
     ) -> Result<HashSet<&'a str>, ConfigError> {
         let mut joints = HashSet::new();
         let mut buses = HashSet::new();
@@ -490,15 +502,19 @@ impl DriverConfig {
                     ));
                 }
                 if bus.mode == Mode::Position {
-                    let cal = calibration.joint.get(&s.joint).ok_or_else(|| {
-                        invalid(
-                            cal_origin,
-                            format!("joint.{}", s.joint),
-                            "missing: every position joint needs a calibration",
-                        )
-                    })?;
-                    cal.validate(&s.joint)
-                        .map_err(|e| invalid(cal_origin, format!("joint.{}", s.joint), e.reason))?;
+                    match (calibration.joint.get(&s.joint), coverage) {
+                        (Some(cal), _) => cal.validate(&s.joint).map_err(|e| {
+                            invalid(cal_origin, format!("joint.{}", s.joint), e.reason)
+                        })?,
+                        (None, Coverage::SoFar) => {}
+                        (None, Coverage::Every) => {
+                            return Err(invalid(
+                                cal_origin,
+                                format!("joint.{}", s.joint),
+                                "missing: every position joint needs a calibration",
+                            ))
+                        }
+                    }
                 }
             }
         }
@@ -566,7 +582,7 @@ impl LoadedConfig {
         let config = DriverConfig::parse(text, origin)?;
         let calibration: CalibrationFile = parse(calibration, cal_origin)?;
         calibration.check_format(cal_origin)?;
-        config.validate(origin, &calibration, cal_origin)?;
+        config.validate(origin, &calibration, cal_origin, Coverage::Every)?;
         Ok(LoadedConfig {
             config,
             calibration,
@@ -574,21 +590,48 @@ impl LoadedConfig {
     }
 
     fn from_texts(text: &str, origin: &str, dir: Option<&Path>) -> Result<Self, ConfigError> {
+        Self::covering(text, origin, dir, Coverage::Every)
+    }
+
+    /// The configuration at `path` (the embedded default for `None`) with the calibration it
+    /// names as far as the robot is calibrated: none yet (the file not there), or some buses
+    /// only. For the commissioning tools, which must run on a robot being calibrated.
+    pub fn for_commissioning(path: Option<&Path>) -> Result<Self, ConfigError> {
+        match path {
+            Some(p) => Self::covering(
+                &read(p)?,
+                &p.display().to_string(),
+                p.parent(),
+                Coverage::SoFar,
+            ),
+            None => Self::embedded(),
+        }
+    }
+
+    fn covering(
+        text: &str,
+        origin: &str,
+        dir: Option<&Path>,
+        coverage: Coverage,
+    ) -> Result<Self, ConfigError> {
         let config = DriverConfig::parse(text, origin)?;
-        let (cal_text, cal_origin) = match (&config.calibration_file, dir) {
-            (Some(file), Some(dir)) => {
-                let path = dir.join(file);
-                (read_calibration(&path, origin)?, path.display().to_string())
+        let path = config.calibration_file.as_ref().map(|file| match dir {
+            Some(dir) => dir.join(file),
+            None => file.clone(),
+        });
+        let (cal_text, cal_origin) = match path {
+            Some(path) if coverage == Coverage::SoFar && !path.exists() => {
+                (String::from("[joint]\n"), path.display().to_string())
             }
-            (Some(file), None) => (read_calibration(file, origin)?, file.display().to_string()),
-            (None, _) => (
+            Some(path) => (read_calibration(&path, origin)?, path.display().to_string()),
+            None => (
                 DEFAULT_CALIBRATION_TOML.to_string(),
                 "<embedded calibration.toml>".into(),
             ),
         };
         let calibration: CalibrationFile = parse(&cal_text, &cal_origin)?;
         calibration.check_format(&cal_origin)?;
-        config.validate(origin, &calibration, &cal_origin)?;
+        config.validate(origin, &calibration, &cal_origin, coverage)?;
         Ok(LoadedConfig {
             config,
             calibration,
@@ -652,6 +695,43 @@ mod tests {
             e.contains("not calibrated yet") && e.contains("nori calibrate by-hand"),
             "{e}"
         );
+    }
+
+    /// The commissioning tools load a robot not calibrated yet, or calibrated bus by bus; the
+    /// driver does not.
+    #[test]
+    fn a_robot_being_calibrated_loads_for_the_tools_and_not_for_the_driver() {
+        let dir = std::env::temp_dir().join(format!("nori-calibrating-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let config = dir.join("bus-driver.toml");
+        let text = format!("calibration-file = \"robot.toml\"\n{DEFAULT_CONFIG_TOML}");
+        std::fs::write(&config, text).unwrap();
+        let none = LoadedConfig::for_commissioning(Some(&config)).unwrap();
+        assert!(none.calibration.joint.is_empty());
+        assert!(LoadedConfig::load(&config).is_err());
+        // One arm calibrated: the tools take it, the driver wants every joint.
+        let all = LoadedConfig::embedded().unwrap().calibration;
+        let left = all.joint.iter().filter(|(j, _)| j.starts_with("left_"));
+        let mut text = String::new();
+        for (joint, cal) in left {
+            text += &format!(
+                "[joint.{joint}]\nhoming-offset = {}\nrange-min = {}\nrange-max = {}\n",
+                cal.homing_offset, cal.range_min, cal.range_max
+            );
+        }
+        std::fs::write(dir.join("robot.toml"), &text).unwrap();
+        let some = LoadedConfig::for_commissioning(Some(&config)).unwrap();
+        assert_eq!(some.calibration.joint.len(), 8);
+        let e = LoadedConfig::load(&config).unwrap_err().to_string();
+        assert!(e.contains("joint.right_") && e.contains("missing"), "{e}");
+        // A joint present is still checked.
+        std::fs::write(
+            dir.join("robot.toml"),
+            text.replace("range-max = ", "range-max = -"),
+        )
+        .unwrap();
+        assert!(LoadedConfig::for_commissioning(Some(&config)).is_err());
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

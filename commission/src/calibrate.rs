@@ -292,12 +292,19 @@ mod tests {
 
     /// Pressed 0.09 rad into the lower stop and not into the upper (within the tolerance): the
     /// zero shifts by half that, and the limits move in by as much, so each stays the margin
-    /// inside its real stop.
+    /// inside its real stop. What the sweep cannot see: pressed into one stop and short of the
+    /// other by as much (the travel right), the zero shifts by that and a limit is that much
+    /// less inside (the residual documented in hazard C6; the automatic calibration's remedy).
     #[test]
     fn a_stop_pressed_harder_than_the_other_keeps_every_limit_the_margin_inside_its_stop() {
         let mut rng = Rng::new(5);
         let margin = 5f64.to_radians();
-        for (press_lower, press_upper) in [(0.09, 0.0), (0.0, 0.09), (0.05, 0.01)] {
+        for (press_lower, press_upper, unseen) in [
+            (0.09, 0.0, 0.0),
+            (0.0, 0.09, 0.0),
+            (0.05, 0.01, 0.0),
+            (0.06, -0.06, 0.06),
+        ] {
             let mut s = servo(300.0);
             let waypoints = [
                 -0.5,
@@ -316,7 +323,7 @@ mod tests {
             let inside = [lo - zero - ELBOW.lower_rad, ELBOW.upper_rad - (hi - zero)];
             for d in inside {
                 assert!(
-                    d >= margin - 0.003,
+                    d >= margin - unseen - 0.003,
                     "pressed {press_lower}/{press_upper}: a limit {:.2}° inside its stop",
                     d.to_degrees()
                 );

@@ -3,7 +3,7 @@
 
 use crate::scan::{BroadcastAnswer, BusScan, Duplicate, Found};
 use bus_driver::backstops;
-use bus_driver::config::{BusConfig, LoadedConfig};
+use bus_driver::config::{BusConfig, LoadedConfig, Mode};
 use feetech::ServoModel;
 use serde::Serialize;
 
@@ -103,6 +103,14 @@ pub enum Finding {
         found: [i32; 3],
         /// What the calibration says.
         calibration: [i32; 3],
+    },
+    /// A servo whose joint has no calibration yet (a robot being calibrated bus by bus): the
+    /// driver does not start until every joint has one.
+    Uncalibrated {
+        /// The joint.
+        joint: String,
+        /// Its id.
+        id: u8,
     },
     /// EEPROM settings that differ from what the driver writes at start (and will write).
     Settings {
@@ -215,6 +223,11 @@ impl std::fmt::Display for Finding {
                 "{joint} (id {id}) holds homing offset {o} and limits {lo}..{hi}, the \
                  calibration {co} and {clo}..{chi}: the driver refuses it until the joint is \
                  calibrated"
+            ),
+            Finding::Uncalibrated { joint, id } => write!(
+                f,
+                "{joint} (id {id}) has no calibration yet: `nori calibrate by-hand` its bus \
+                 (the driver starts once every joint has one)"
             ),
             Finding::HeardOnlyByBroadcast { id, baud } => write!(
                 f,
@@ -329,7 +342,14 @@ fn judge_found(loaded: &LoadedConfig, bus: &BusConfig, f: &Found) -> Option<Find
             max_temperature_c: settings.max_temperature_c,
         });
     }
-    if let Some(cal) = loaded.calibration_for(bus, &servo.joint) {
+    let calibration = loaded.calibration_for(bus, &servo.joint);
+    if calibration.is_none() && bus.mode == Mode::Position {
+        return Some(Finding::Uncalibrated {
+            joint: servo.joint.clone(),
+            id: f.id,
+        });
+    }
+    if let Some(cal) = calibration {
         let want = backstops::calibration_settings(&cal);
         let found = want.map(|s| settings.value_of(s.register).unwrap_or(i32::MIN));
         let calibration = want.map(|s| s.value);

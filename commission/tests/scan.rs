@@ -56,6 +56,27 @@ fn the_arm_as_the_driver_set_it_up_has_no_fault_and_no_change_to_make() {
     assert_eq!(found.rates[1].broadcast, BroadcastAnswer::Silent);
 }
 
+/// On a robot being calibrated bus by bus, a joint with no calibration yet is named, with the
+/// tool that calibrates it; one calibrated is judged as ever.
+#[test]
+fn a_joint_with_no_calibration_yet_is_named() {
+    let bus = as_set_up_by_the_driver(left_arm());
+    let line = RefCell::new(bus);
+    let found = scan(common::line(&line), &plan()).unwrap();
+    let mut loaded = LoadedConfig::embedded().unwrap();
+    loaded.calibration.joint.remove("left_elbow");
+    let config = loaded.config.bus("left_arm").unwrap();
+    let findings = judge(&loaded, config, &found);
+    assert_eq!(
+        findings,
+        [Finding::Uncalibrated {
+            joint: "left_elbow".into(),
+            id: 4
+        }]
+    );
+    assert!(findings[0].to_string().contains("nori calibrate by-hand"));
+}
+
 #[test]
 fn servos_never_set_up_are_each_a_fault_and_the_driver_s_changes_named_once_set_up() {
     let mut bus = left_arm();

@@ -106,6 +106,13 @@ if in_root bus-driver --config /etc/nori/bus-driver.toml --run-for 1 >"$work/unc
   fail "the driver started on a robot never calibrated"
 fi
 grep -q "not calibrated yet" "$work/uncalibrated.log" || { cat "$work/uncalibrated.log" >&2; fail "the driver did not say the robot is not calibrated"; }
+# ... while the tool that calibrates it loads the same configuration (found by the outside
+# review: it refused too); here it gets as far as the bus's device, which this root has not.
+if in_root nori calibrate by-hand left_arm --within 1 >"$work/calibrate.log" 2>&1; then
+  fail "nori calibrate ran with no bus"
+fi
+grep -q "cannot open /dev/nori/left_arm" "$work/calibrate.log" \
+  || { cat "$work/calibrate.log" >&2; fail "nori calibrate did not reach the bus on a robot never calibrated"; }
 say "   installed: the user, /var/lib/nori, 11 units enabled and verified; the driver refuses to start uncalibrated"
 
 say "2. the packaged stack on the simulator"

@@ -53,6 +53,39 @@ pub fn parse_version_file(text: &str) -> Result<String, VersionFileError> {
 
 /// The method of a calibration file with no `[calibrated]` stamp (written by hand).
 pub const UNSTAMPED: &str = "unstamped";
+/// The method reported when the driver's configuration names no calibration file: the driver
+/// runs the embedded calibration, the simulated A3's (right for the simulator, wrong for any
+/// robot).
+pub const EMBEDDED: &str = "embedded";
+/// Where the packaged driver's configuration is.
+pub const DRIVER_CONFIG: &str = "/etc/nori/bus-driver.toml";
+
+/// The calibration file the driver's configuration (its text, found in `dir`) names, relative
+/// to `dir`; `None` when it names none (the driver runs the embedded calibration).
+pub fn calibration_file_of(
+    driver_config: &str,
+    dir: &std::path::Path,
+) -> Result<Option<std::path::PathBuf>, CalibrationFileError> {
+    let table: toml::Table = toml::from_str(driver_config)
+        .map_err(|e| CalibrationFileError::Stamp(StampError::Malformed(e.to_string())))?;
+    match table.get("calibration-file") {
+        None => Ok(None),
+        Some(toml::Value::String(file)) => Ok(Some(dir.join(file))),
+        Some(other) => Err(CalibrationFileError::Stamp(StampError::Malformed(format!(
+            "calibration-file = {other}: not a path"
+        )))),
+    }
+}
+
+/// What the fleet is told when the driver runs the embedded calibration.
+pub fn embedded_calibration() -> CalibrationMsg {
+    CalibrationMsg {
+        method: EMBEDDED.into(),
+        at: String::new(),
+        robot: String::new(),
+        joints: 0,
+    }
+}
 
 /// A calibration file whose stamp cannot be reported.
 #[derive(Debug, Error, PartialEq)]
@@ -145,6 +178,27 @@ mod tests {
         let c = calibration_in_force(&format!("[joint{by_hand}")).unwrap();
         assert_eq!((c.method.as_str(), c.joints), (UNSTAMPED, 1));
         assert_eq!(calibration_detail(Some(&c)), "unstamped - -");
+    }
+
+    /// The calibration reported is the one the driver's configuration names: relative to it,
+    /// or none (the embedded one).
+    #[test]
+    fn the_calibration_reported_is_the_one_the_driver_s_configuration_names() {
+        let dir = std::path::Path::new("/etc/nori");
+        let packaged = "rate-hz = 200\ncalibration-file = \"/var/lib/nori/calibration.toml\"\n";
+        assert_eq!(
+            calibration_file_of(packaged, dir).unwrap().as_deref(),
+            Some(std::path::Path::new("/var/lib/nori/calibration.toml"))
+        );
+        let relative = "calibration-file = \"calibration.toml\"\n";
+        assert_eq!(
+            calibration_file_of(relative, dir).unwrap().as_deref(),
+            Some(std::path::Path::new("/etc/nori/calibration.toml"))
+        );
+        let commented = "rate-hz = 200\n# calibration-file = \"calibration.toml\"\n";
+        assert_eq!(calibration_file_of(commented, dir).unwrap(), None);
+        assert!(calibration_file_of("calibration-file = 3", dir).is_err());
+        assert!(calibration_file_of("rate-hz = [", dir).is_err());
     }
 
     #[test]

@@ -48,9 +48,14 @@ struct Args {
     /// The file the `nori-robot` package writes its version to (absent: a build from source).
     #[arg(long, default_value = fleet_agent::installed::VERSION_FILE)]
     version_file: PathBuf,
-    /// The calibration file the driver loads (its stamp goes to the fleet).
-    #[arg(long, default_value = fleet_agent::installed::CALIBRATION_FILE)]
-    calibration_file: PathBuf,
+    /// The calibration file the driver loads (its stamp goes to the fleet); by default the one
+    /// the driver's configuration (`--driver-config`) names.
+    #[arg(long)]
+    calibration_file: Option<PathBuf>,
+    /// The driver's configuration, for the calibration it names (absent: the driver runs on its
+    /// embedded defaults, the simulated A3's calibration among them).
+    #[arg(long, default_value = fleet_agent::installed::DRIVER_CONFIG)]
+    driver_config: PathBuf,
 }
 
 /// The agent's two planes: iceoryx2 ports, and zenoh declarations once the fleet is reached.
@@ -350,7 +355,7 @@ fn run(args: Args) -> Result<()> {
     service.ready(&format!("robot {id} joining the fleet"));
     let mut agent = Agent::resuming(&config, start)
         .installed(installed_version(&args.version_file))
-        .calibrated(calibration_in_force(&args.calibration_file, &id));
+        .calibrated(calibration_of_the_driver(&args, &id));
     let run_for = args.process.run_for()?;
     fleet_agent::agent::run(&mut agent, &mut io, &shutdown, run_for, &mut |t| {
         service.keepalive(t)
@@ -359,6 +364,54 @@ fn run(args: Args) -> Result<()> {
     tracing::info!(robot = %id, accepted = agent.accepted(), forwarded = agent.goals_forwarded(), "leaving the fleet");
     // The token, publishers and session close on drop: the fleet sees the robot leave.
     Ok(())
+}
+
+/// The calibration the driver runs: `--calibration-file`'s, else the one the driver's
+/// configuration names, else the embedded one (no configuration, or one naming none).
+fn calibration_of_the_driver(
+    args: &Args,
+    robot_id: &str,
+) -> Option<fleet_agent::schema::CalibrationMsg> {
+    use fleet_agent::installed::{calibration_file_of, embedded_calibration};
+    if let Some(path) = &args.calibration_file {
+        return calibration_in_force(path, robot_id);
+    }
+    let config = &args.driver_config;
+    let text = match std::fs::read_to_string(config) {
+        Ok(text) => text,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            tracing::info!(
+                "no {}: the driver runs its embedded calibration",
+                config.display()
+            );
+            return Some(embedded_calibration());
+        }
+        Err(e) => {
+            tracing::warn!(
+                "the calibration in force is unknown: {}: {e}",
+                config.display()
+            );
+            return None;
+        }
+    };
+    let dir = config.parent().unwrap_or(std::path::Path::new("."));
+    match calibration_file_of(&text, dir) {
+        Ok(Some(path)) => calibration_in_force(&path, robot_id),
+        Ok(None) => {
+            tracing::warn!(
+                "{} names no calibration file: the driver runs the simulated A3's",
+                config.display()
+            );
+            Some(embedded_calibration())
+        }
+        Err(e) => {
+            tracing::warn!(
+                "the calibration in force is unknown: {}: {e}",
+                config.display()
+            );
+            None
+        }
+    }
 }
 
 /// The calibration stamp of the file at `path`: `None`, said once, when there is none or it

@@ -604,6 +604,9 @@ fn calibration(s: &StatusMsg) -> String {
     if c.method == fleet_agent::installed::UNSTAMPED {
         return format!("calibration written by hand ({} joints)", c.joints);
     }
+    if c.method == fleet_agent::installed::EMBEDDED {
+        return "the simulated A3's calibration (embedded): no robot's own".into();
+    }
     let mut said = format!("calibrated {} {} ({} joints)", c.method, c.at, c.joints);
     if c.robot != s.robot_id {
         said += &format!(": robot {}'s calibration", c.robot);
@@ -1152,8 +1155,10 @@ mod tests {
         c.status("nori/r3/status", &encode(&source), 0).unwrap();
         source.calibration = None;
         c.status("nori/r4/status", &encode(&source), 0).unwrap();
+        source.calibration = Some(fleet_agent::installed::embedded_calibration());
+        c.status("nori/r5/status", &encode(&source), 0).unwrap();
         let snap = c.snapshot(0);
-        let said: Vec<&str> = (0..4)
+        let said: Vec<&str> = (0..5)
             .map(|i| snap["robots"][i]["calibration"].as_str().unwrap())
             .collect();
         assert_eq!(
@@ -1163,6 +1168,7 @@ mod tests {
                 "calibrated by-hand 2026-11-29T05:00:00Z (16 joints): robot a3-0007's calibration",
                 "calibration written by hand (16 joints)",
                 "no calibration reported",
+                "the simulated A3's calibration (embedded): no robot's own",
             ]
         );
     }

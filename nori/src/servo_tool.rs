@@ -10,7 +10,6 @@ use commission::scan::{scan, AtRate, BroadcastAnswer, BusScan, Plan};
 use commission::setup::{set_up as set_up_servo, Target};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
-use telemetry::config::ProcessConfig;
 
 /// The driver's configuration on an installed robot.
 const INSTALLED_CONFIG: &str = "/etc/nori/bus-driver.toml";
@@ -193,7 +192,9 @@ fn load_config(path: Option<&Path>) -> Result<(LoadedConfig, String)> {
     let origin = path.map_or("the embedded default (the simulated A3)".into(), |p| {
         p.display().to_string()
     });
-    let loaded = LoadedConfig::from_arg(path).with_context(|| format!("loading {origin}"))?;
+    // As far as the robot is calibrated: these are the tools that calibrate it.
+    let loaded =
+        LoadedConfig::for_commissioning(path).with_context(|| format!("loading {origin}"))?;
     Ok((loaded, origin))
 }
 
