@@ -96,7 +96,7 @@ pub enum CalibrationFileError {
     /// A field too long for a line of a status.
     #[error("its {field} is {len} bytes (at most {MAX_LEN})")]
     TooLong {
-        /// Which.
+        /// The field: `robot` or `time`.
         field: &'static str,
         /// Its length.
         len: usize,
