@@ -7,7 +7,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use nori_tests::{binary, lerobot_check, serial, wait_for, ArmStack, Proc, Rng};
+use nori_tests::{binary, lerobot_check, serial, wait_for, ArmStack, Proc, Rng, SchedulingProbe};
 use std::path::Path;
 use std::process::Command;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -732,6 +732,10 @@ fn the_whole_body_is_recorded_nineteen_wide_with_the_lift_rising_and_the_base_dr
         newest(&lifts).filter(|l| l.goal_m == 0.2)
     });
     let dataset = robot.dir.join("dataset");
+    // How much the machine keeps a 200 Hz loop from running meanwhile (the bound on held
+    // samples below is judged against it).
+    let probe = SchedulingProbe::start(Duration::from_millis(5));
+    let recording_from = monotonic_ns();
     let out = Command::new(binary("nori"))
         .args(record_args(
             &domain,
@@ -740,6 +744,7 @@ fn the_whole_body_is_recorded_nineteen_wide_with_the_lift_rising_and_the_base_dr
         ))
         .output()
         .unwrap();
+    let kept = probe.finish().kept_ratio(recording_from, monotonic_ns());
     stop.store(true, Ordering::Relaxed);
     operator.join().unwrap();
     assert!(
@@ -791,16 +796,19 @@ fn the_whole_body_is_recorded_nineteen_wide_with_the_lift_rising_and_the_base_dr
     assert!(h1 - h0 > 0.6, "heading {h0} -> {h1}");
     // A sample is held when its source's newest state is older than the recorder allows (a
     // starved lift or base loop, rightly marked): at most one in twenty of the body's samples
-    // (three a frame; the bound once counted frames, not samples, and failed at 6 of 360).
+    // (three a frame; the bound once counted frames, not samples, and failed at 6 of 360) on a
+    // quiet machine, more by twice the share of ticks a 200 Hz loop in this process lost
+    // meanwhile (a loaded CI machine held 38 of 360).
     let body_samples: Vec<f32> = rows
         .iter()
         .flat_map(|r| r.frame.valid[16..].iter().copied())
         .collect();
     let held = body_samples.iter().filter(|v| **v < 0.5).count();
     assert_eq!(body_samples.len(), 3 * rows.len());
+    let allowed = 0.05 + 2.0 * (1.0 - kept);
     assert!(
-        held * 20 < body_samples.len(),
-        "{held} of {} body samples held",
+        (held as f64) < allowed * body_samples.len() as f64,
+        "{held} of {} body samples held (allowed {allowed:.3} with the probe keeping {kept:.3})",
         body_samples.len()
     );
     robot.stop();
