@@ -1102,13 +1102,16 @@ mod tests {
     /// the same robot from the same seed; its encoder reads the horn, uncalibrated.
     #[test]
     fn a_robot_off_the_line_has_its_horns_where_the_seed_put_them_and_no_calibration() {
-        let horns = |seed| {
+        let assembled = |seed| {
             let mut bus = left_arm();
             bus.assemble(seed);
             bus
         };
-        let mut bus = horns(7);
-        let h: Vec<f64> = bus.report().servos.iter().map(|s| s.horn_steps).collect();
+        let horns = |bus: &SimBus| -> Vec<f64> {
+            bus.report().servos.iter().map(|s| s.horn_steps).collect()
+        };
+        let mut bus = assembled(7);
+        let h = horns(&bus);
         assert!(h.iter().all(|h| h.abs() <= ASSEMBLY_SPREAD_STEPS), "{h:?}");
         assert!(
             h.iter().any(|&h| h > 100.0) && h.iter().any(|&h| h < -100.0),
@@ -1117,19 +1120,8 @@ mod tests {
         for (i, a) in h.iter().enumerate() {
             assert!(h[i + 1..].iter().all(|b| b != a), "{h:?}");
         }
-        let again: Vec<f64> = horns(7)
-            .report()
-            .servos
-            .iter()
-            .map(|s| s.horn_steps)
-            .collect();
-        assert_eq!(again, h);
-        let other: Vec<f64> = horns(8)
-            .report()
-            .servos
-            .iter()
-            .map(|s| s.horn_steps)
-            .collect();
+        assert_eq!(horns(&assembled(7)), h);
+        let other = horns(&assembled(8));
         assert!(other.iter().zip(&h).all(|(a, b)| a != b));
         let report = bus.report();
         for (s, r) in bus.servos.iter_mut().zip(&report.servos) {

@@ -103,15 +103,24 @@ fn calibrate_by_hand(stack: &ArmStack, extra: &[&str], file: &Path) -> String {
     said
 }
 
-/// Waits until the driver drives all eight joints, each read; the state then.
-fn all_eight_driven(states: &plane::Sub<JointState>) -> JointState {
+/// Restarts the supervisor and the driver, the driver on the `calibration.toml` beside the
+/// stack's directory, and waits until it drives all eight joints, each read; the plane node
+/// and its joint-state subscriber.
+fn driven_with_the_new_calibration(stack: &mut ArmStack) -> (Plane, plane::Sub<JointState>) {
+    let config = nori_tests::driver_config_with_calibration_beside(&stack.dir);
+    stack.driver_args = vec!["--config".into(), config.display().to_string()];
+    stack.restart_supervisor();
+    stack.restart_driver();
+    let node = Plane::open(&stack.domain, "recalibrated-test").unwrap();
+    let states = node.subscriber(&plane::JOINT_STATE).unwrap();
     wait_for(Duration::from_secs(20), "all eight joints driven", || {
-        newest(states).filter(|s| {
+        newest(&states).filter(|s| {
             s.joints()
                 .iter()
                 .all(|q| q.is_valid() && q.torque_enabled == 1)
         })
-    })
+    });
+    (node, states)
 }
 
 /// The simulator's newest report (written every second).
@@ -328,13 +337,7 @@ fn a_replaced_elbow_set_up_and_calibrated_by_hand_is_driven_again() {
     assert_eq!(written.servo["left_elbow"].firmware, "3.10");
 
     // The driver with the new calibration: every joint driven again.
-    let config = nori_tests::driver_config_with_calibration_beside(&stack.dir);
-    stack.driver_args = vec!["--config".into(), config.display().to_string()];
-    stack.restart_supervisor();
-    stack.restart_driver();
-    let node = Plane::open(&stack.domain, "recalibrated-test").unwrap();
-    let states = node.subscriber(&plane::JOINT_STATE).unwrap();
-    all_eight_driven(&states);
+    let (node, states) = driven_with_the_new_calibration(&mut stack);
     // Held still under torque: the elbow read where the simulator has it (its report, written
     // every second while it runs: at the stop the torque goes off and the elbow falls).
     std::thread::sleep(Duration::from_millis(2500));
@@ -389,10 +392,9 @@ fn check_off_the_line_calibration(stack: &ArmStack, written: &CalibrationFile) {
         let &(_, lower, upper) = stops.iter().find(|s| s.0 == id).unwrap();
         // How far inside its real stop each limit truly is: the calibrated servo reads
         // `raw − offset`, so the joint stands `(offset − horn)` steps from where it is read.
-        let truly =
-            |steps: i32| limit_rad(steps) + (f64::from(cal.homing_offset) - horn) * STEP_RAD;
-        let inside =
-            [truly(cal.range_min) - lower, upper - truly(cal.range_max)].map(f64::to_degrees);
+        let shift = (f64::from(cal.homing_offset) - horn) * STEP_RAD;
+        let (lo, hi) = cal.range_rad();
+        let inside = [lo + shift - lower, upper - (hi + shift)].map(f64::to_degrees);
         for d in inside {
             assert!(
                 (4.9..8.0).contains(&d),
@@ -411,11 +413,6 @@ fn check_off_the_line_calibration(stack: &ArmStack, written: &CalibrationFile) {
 }
 
 const STEP_RAD: f64 = sim::servo::RAD_PER_STEP;
-
-/// Where a calibrated servo's reading of `steps` puts its joint, rad.
-fn limit_rad(steps: i32) -> f64 {
-    (f64::from(steps) - 2048.0) * STEP_RAD
-}
 
 /// Streams goals far beyond both ends of every joint's range (clamped to its limits by the
 /// driver), all joints at once, 2.5 s each way; how far each joint ran past its limits, rad.
@@ -446,7 +443,8 @@ fn drive_to_both_ends(
                 for (k, joint) in names.iter().enumerate() {
                     let cal = &written.joint[joint.as_str()];
                     let q = f64::from(s.joints[k].position_rad);
-                    let beyond = (q - limit_rad(cal.range_max)).max(limit_rad(cal.range_min) - q);
+                    let (lo, hi) = cal.range_rad();
+                    let beyond = (q - hi).max(lo - q);
                     past[k] = past[k].max(beyond);
                 }
             }
@@ -479,13 +477,7 @@ fn a_robot_off_the_line_calibrated_by_hand_has_every_zero_within_a_degree() {
         toml::from_str(&std::fs::read_to_string(&file).unwrap()).unwrap();
     check_off_the_line_calibration(&stack, &written);
 
-    let config = nori_tests::driver_config_with_calibration_beside(&stack.dir);
-    stack.driver_args = vec!["--config".into(), config.display().to_string()];
-    stack.restart_supervisor();
-    stack.restart_driver();
-    let node = Plane::open(&stack.domain, "off-the-line-test").unwrap();
-    let states = node.subscriber(&plane::JOINT_STATE).unwrap();
-    all_eight_driven(&states);
+    let (node, states) = driven_with_the_new_calibration(&mut stack);
     std::thread::sleep(Duration::from_millis(2500));
     let read = newest(&states).unwrap();
     let report = sim_report(&stack);
