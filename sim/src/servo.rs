@@ -1063,6 +1063,48 @@ mod tests {
         assert!(s.duty.abs() < 0.05, "still pushing at duty {}", s.duty);
     }
 
+    /// The profile starts from where the servo is when position control takes over (its
+    /// torque on, or back from speed mode), whatever setpoint it left behind: a goal written
+    /// equal to the present position holds it there, even after its homing offset changed.
+    #[test]
+    fn a_goal_at_the_present_position_holds_when_position_control_takes_over() {
+        let mut s = servo("sts3215");
+        let run = |s: &mut Servo, seconds: f64| {
+            for _ in 0..(seconds * 1000.0) as usize {
+                s.step(0.001, Surroundings::BENCH.inertia(0.01));
+            }
+        };
+        let goal_at_present = |s: &mut Servo| {
+            let mut b = [0u8; 2];
+            assert!(s.read(reg::PRESENT_POSITION.addr, 2, &mut b));
+            write_u16(s, reg::GOAL_POSITION, i32::from(u16::from_le_bytes(b)));
+        };
+        write_u16(&mut s, reg::GOAL_VELOCITY, 300);
+        write_u16(&mut s, reg::TORQUE_ENABLE, 1);
+        write_u16(&mut s, reg::GOAL_POSITION, 2900);
+        run(&mut s, 4.0);
+        // Torque off, moved by hand, a new homing offset (RAM only): then held where it is.
+        write_u16(&mut s, reg::TORQUE_ENABLE, 0);
+        s.angle -= 1.0;
+        write_u16(&mut s, reg::HOMING_OFFSET, -700);
+        goal_at_present(&mut s);
+        write_u16(&mut s, reg::TORQUE_ENABLE, 1);
+        let held = s.angle;
+        run(&mut s, 2.0);
+        assert!((s.angle - held).abs() < 0.02, "{held} → {} rad", s.angle);
+        // Turned in speed mode, its offset changed there, then back to position mode.
+        write_u16(&mut s, reg::OPERATING_MODE, 1);
+        write_u16(&mut s, reg::GOAL_VELOCITY, -300);
+        run(&mut s, 2.0);
+        write_u16(&mut s, reg::HOMING_OFFSET, 500);
+        goal_at_present(&mut s);
+        write_u16(&mut s, reg::GOAL_VELOCITY, 300);
+        write_u16(&mut s, reg::OPERATING_MODE, 0);
+        let held = s.angle;
+        run(&mut s, 2.0);
+        assert!((s.angle - held).abs() < 0.02, "{held} → {} rad", s.angle);
+    }
+
     #[test]
     fn position_loop_follows_a_goal() {
         let mut s = servo("sts3215");
