@@ -238,6 +238,9 @@ pub struct Servo {
     setpoint: f64,
     /// Profiled setpoint speed, steps/s.
     setpoint_speed: f64,
+    /// Position control is off (torque off, or another mode): the profile starts again from
+    /// where the servo is when it comes back.
+    profile_restarts: bool,
     /// Speed mode: the integral of the speed error, rad.
     speed_integral: f64,
     /// With backlash: the motor side's angle less the output's, within ±half the play, rad ...
@@ -285,6 +288,7 @@ impl Servo {
             supply: rating.rated_voltage,
             setpoint: CENTER_STEP + angle / RAD_PER_STEP,
             setpoint_speed: 0.0,
+            profile_restarts: true,
             speed_integral: 0.0,
             motor_lead: 0.0,
             motor_speed: 0.0,
@@ -593,6 +597,14 @@ impl Servo {
 
     /// The firmware: duty from the active mode, torque limit and protections.
     fn firmware_duty(&mut self, dt: f64) -> f64 {
+        if !self.torque_enabled() || self.fw.mode != 0 {
+            self.profile_restarts = true;
+        } else if std::mem::take(&mut self.profile_restarts) {
+            // The profile starts from where the servo is when position control takes over
+            // (its torque on, or back from another mode), not from a setpoint left behind.
+            self.setpoint = self.raw_position() - self.fw.homing;
+            self.setpoint_speed = 0.0;
+        }
         if !self.torque_enabled() {
             self.speed_integral = 0.0;
             return 0.0;
