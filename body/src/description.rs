@@ -174,6 +174,47 @@ pub struct ArmDescription {
     /// Obstacles in reach.
     #[serde(default)]
     pub obstacle: Vec<Obstacle>,
+    /// How the arm calibrates itself (`nori calibrate auto`), if it can.
+    #[serde(default)]
+    pub calibration: Option<CalibrationPlan>,
+}
+
+/// How an arm calibrates itself: the lift's height, the speed, and the joints in the order
+/// they are driven toward their stops, each at a low torque while the joints its pose names
+/// hold where the pose puts them (docs/commissioning.md).
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct CalibrationPlan {
+    /// The lift at least this high, m above its lowest: the straight arm clears a table.
+    pub lift_m: f64,
+    /// The speed each joint is driven toward its stops, rad/s.
+    pub speed_rad_s: f64,
+    /// Every joint and the gripper, in the order they are swept.
+    pub sweep: Vec<CalibrationSweep>,
+}
+
+/// One joint's sweep in a [`CalibrationPlan`].
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct CalibrationSweep {
+    /// The joint's servo.
+    pub servo: u8,
+    /// Its torque limit while swept and held, % of full: above what gravity asks of it in the
+    /// pose, and all that presses on a stop.
+    pub torque_percent: f64,
+    /// Joints swept before it, held at these angles while it is swept.
+    #[serde(default)]
+    pub pose: Vec<PoseHold>,
+}
+
+/// A joint held at an angle.
+#[derive(Debug, Clone, Copy, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct PoseHold {
+    /// The joint's servo.
+    pub servo: u8,
+    /// Where it is held, rad.
+    pub rad: f64,
 }
 
 /// Wheels of the differential base, in speed mode.
@@ -561,6 +602,73 @@ fn validate_arm(
             return Err(site.not_on_bus("arm.gripper.servo", g.servo));
         }
     }
+    if let Some(plan) = &arm.calibration {
+        validate_calibration_plan(arm, plan, site)?;
+    }
+    Ok(())
+}
+
+/// A calibration plan sweeps every joint of the arm and its gripper once, at a torque that
+/// presses gently, and holds in its poses only joints already swept, inside their stops.
+fn validate_calibration_plan(
+    arm: &ArmDescription,
+    plan: &CalibrationPlan,
+    site: &BusSite,
+) -> Result<(), DescriptionError> {
+    let key = "arm.calibration";
+    if !(plan.lift_m.is_finite() && plan.lift_m >= 0.0) {
+        return Err(site.invalid(&format!("{key}.lift-m"), "must be ≥ 0".into()));
+    }
+    if !(plan.speed_rad_s > 0.0 && plan.speed_rad_s <= 1.0) {
+        return Err(site.invalid(
+            &format!("{key}.speed-rad-s"),
+            format!("{} is outside (0, 1] rad/s", plan.speed_rad_s),
+        ));
+    }
+    let stops: BTreeMap<u8, (f64, f64)> = arm
+        .joint
+        .iter()
+        .map(|j| (j.servo, (j.lower_rad, j.upper_rad)))
+        .chain(
+            arm.gripper
+                .iter()
+                .map(|g| (g.servo, (g.lower_rad, g.upper_rad))),
+        )
+        .collect();
+    let mut swept = HashSet::new();
+    for s in &plan.sweep {
+        let at = format!("{key}.sweep (servo {})", s.servo);
+        if !stops.contains_key(&s.servo) || !swept.insert(s.servo) {
+            return Err(site.invalid(&at, "not a joint of the arm, or swept twice".into()));
+        }
+        if !(s.torque_percent > 0.0 && s.torque_percent <= 50.0) {
+            return Err(site.invalid(
+                &at,
+                format!("torque-percent {} is outside (0, 50]", s.torque_percent),
+            ));
+        }
+        for p in &s.pose {
+            let inside = stops
+                .get(&p.servo)
+                .is_some_and(|&(lo, hi)| p.rad > lo && p.rad < hi);
+            if p.servo == s.servo || !swept.contains(&p.servo) || !inside {
+                return Err(site.invalid(
+                    &at,
+                    format!(
+                        "its pose holds servo {} at {} rad: only a joint swept before it, \
+                         inside its stops",
+                        p.servo, p.rad
+                    ),
+                ));
+            }
+        }
+    }
+    if swept.len() != stops.len() {
+        return Err(site.invalid(
+            &format!("{key}.sweep"),
+            "every joint of the arm and its gripper is swept".into(),
+        ));
+    }
     Ok(())
 }
 
@@ -709,6 +817,53 @@ mod tests {
                 .unwrap_err()
                 .to_string();
             assert!(err.contains(key), "{to:?}: {err}");
+        }
+    }
+
+    /// A calibration plan that would leave a joint uncalibrated, sweep one twice, hold a joint
+    /// it has not calibrated yet (or outside its stops), press hard, or crawl nowhere.
+    #[test]
+    fn a_calibration_plan_that_is_not_safe_is_refused() {
+        let gripper = "  { servo = 8, torque-percent = 15 },\n";
+        for (from, to, says) in [
+            (gripper, "", "every joint of the arm"),
+            (
+                gripper,
+                "  { servo = 8, torque-percent = 15 },\n  { servo = 8, torque-percent = 15 },\n",
+                "swept twice",
+            ),
+            (
+                gripper,
+                "  { servo = 9, torque-percent = 15 },\n",
+                "not a joint",
+            ),
+            (
+                "{ servo = 8, torque-percent = 15 }",
+                "{ servo = 8, torque-percent = 60 }",
+                "outside (0, 50]",
+            ),
+            (
+                "pose = [{ servo = 4, rad = -2.25 }]",
+                "pose = [{ servo = 2, rad = 0.5 }]",
+                "only a joint swept before it",
+            ),
+            (
+                "pose = [{ servo = 4, rad = -2.25 }]",
+                "pose = [{ servo = 4, rad = -2.5 }]",
+                "inside its stops",
+            ),
+            ("speed-rad-s = 0.3", "speed-rad-s = 0", "speed-rad-s"),
+            ("lift-m = 0.6", "lift-m = nan", "lift-m"),
+        ] {
+            assert!(NORI_A3_TOML.contains(from), "{from}");
+            let text = NORI_A3_TOML.replacen(from, to, 1);
+            let err = RobotDescription::parse(&text, "x.toml")
+                .unwrap_err()
+                .to_string();
+            assert!(
+                err.contains(says) && err.contains("left_arm"),
+                "{to:?}: {err}"
+            );
         }
     }
 }

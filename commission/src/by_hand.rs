@@ -5,79 +5,14 @@
 //! ([`crate::calibrate::choose`]) and written into its servo, Lock around it, and read back.
 //! Refused joints leave every servo as it was found: nothing half-calibrated.
 
-use crate::calibrate::{choose, Refusal, Stops, Sweep};
-use bus_driver::backstops::calibration_settings;
-use bus_driver::bus::{Bus, BusError};
-use bus_driver::calibration::JointCalibration;
+use crate::calibrate::{choose, Sweep};
+use crate::session::{
+    self, give_back, write_calibration, write_checked, Calibrated, JointToCalibrate, SessionError,
+    Taken,
+};
+use bus_driver::bus::Bus;
 use bus_driver::transport::Transport;
 use feetech::registers as reg;
-use feetech::ServoModel;
-use thiserror::Error;
-
-/// A joint to calibrate.
-#[derive(Debug, Clone, PartialEq)]
-pub struct JointToCalibrate {
-    /// The joint.
-    pub joint: String,
-    /// Its servo's id.
-    pub id: u8,
-    /// Its servo's model, from the configuration (checked against the servo's).
-    pub model: ServoModel,
-    /// Its stops, from the robot's description.
-    pub stops: Stops,
-}
-
-/// Why a calibration by hand stopped.
-#[derive(Debug, Error)]
-pub enum ByHandError {
-    /// The line failed.
-    #[error("{joint} (id {id}): {source}")]
-    Bus {
-        /// The joint.
-        joint: String,
-        /// Its id.
-        id: u8,
-        /// What went wrong on the line.
-        source: BusError,
-    },
-    /// The servo at a joint's id is not its model.
-    #[error("{joint} (id {id}): model number {model_number}, not the {expected} the configuration names")]
-    WrongModel {
-        /// The joint.
-        joint: String,
-        /// Its id.
-        id: u8,
-        /// The model the configuration names.
-        expected: &'static str,
-        /// The `Model_Number` read.
-        model_number: i32,
-    },
-    /// Joints whose sweep gives no calibration: every servo was given back what it held.
-    #[error("not calibrated, every servo left as found: {}", list(.0))]
-    Refused(Vec<Refusal>),
-    /// A written value did not read back.
-    #[error("{joint} (id {id}): {register} reads {found} after writing {wanted}")]
-    NotHeld {
-        /// The joint.
-        joint: String,
-        /// Its id.
-        id: u8,
-        /// The register.
-        register: &'static str,
-        /// What it reads.
-        found: i32,
-        /// What was written.
-        wanted: i32,
-    },
-}
-
-fn list(refusals: &[Refusal]) -> String {
-    refusals
-        .iter()
-        .map(ToString::to_string)
-        .collect::<Vec<_>>()
-        .join("; ")
-}
 
 /// One joint's progress, for the operator.
 #[derive(Debug, Clone, PartialEq)]
@@ -95,32 +30,8 @@ pub struct Progress {
 }
 
 struct Joint {
-    target: JointToCalibrate,
+    taken: Taken,
     sweep: Sweep,
-    /// Homing offset and limits as found, given back if the calibration is abandoned.
-    found: [i32; 3],
-    firmware: String,
-}
-
-impl Joint {
-    fn model(&self) -> &'static str {
-        self.target.model.key()
-    }
-}
-
-/// A joint calibrated and written.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Calibrated {
-    /// The joint.
-    pub joint: String,
-    /// Its servo's id.
-    pub id: u8,
-    /// Its calibration.
-    pub calibration: JointCalibration,
-    /// Its servo's model, as read.
-    pub model: &'static str,
-    /// Its servo's firmware, major.minor.
-    pub firmware: String,
 }
 
 /// A calibration by hand in progress.
@@ -133,7 +44,7 @@ impl<T: Transport> ByHand<T> {
     /// Takes the joints: each servo alone at its id and of its joint's model, its torque off,
     /// its calibration as found kept, its homing offset cleared (read back). A joint that
     /// cannot be taken gives every one taken before it back what it held.
-    pub fn start(bus: Bus<T>, targets: Vec<JointToCalibrate>) -> Result<Self, ByHandError> {
+    pub fn start(bus: Bus<T>, targets: Vec<JointToCalibrate>) -> Result<Self, SessionError> {
         let mut session = ByHand {
             bus,
             joints: Vec::with_capacity(targets.len()),
@@ -148,69 +59,23 @@ impl<T: Transport> ByHand<T> {
         Ok(session)
     }
 
-    fn take(&mut self, target: JointToCalibrate) -> Result<(), ByHandError> {
-        let (joint, id) = (target.joint.clone(), target.id);
-        let fail = |source| ByHandError::Bus {
-            joint: joint.clone(),
-            id,
-            source,
-        };
-        let bus = &mut self.bus;
-        bus.alone_at(id).map_err(fail)?;
-        let number = bus.read(id, reg::MODEL_NUMBER).map_err(fail)?;
-        let model = ServoModel::from_model_number(number as u16);
-        if model != Some(target.model) {
-            return Err(ByHandError::WrongModel {
-                joint,
-                id,
-                expected: target.model.key(),
-                model_number: number,
-            });
-        }
-        bus.write(id, reg::TORQUE_ENABLE, 0).map_err(fail)?;
-        let mut found = [0; 3];
-        for (f, r) in found.iter_mut().zip(CALIBRATION_REGISTERS) {
-            *f = bus.read(id, r).map_err(fail)?;
-        }
-        let firmware = format!(
-            "{}.{}",
-            bus.read(id, reg::FIRMWARE_MAJOR).map_err(fail)?,
-            bus.read(id, reg::FIRMWARE_MINOR).map_err(fail)?
-        );
+    fn take(&mut self, target: JointToCalibrate) -> Result<(), SessionError> {
+        let taken = session::take(&mut self.bus, target)?;
         // Kept before anything is written, so that it is given back whatever happens next.
         self.joints.push(Joint {
-            target,
+            taken: taken.clone(),
             sweep: Sweep::default(),
-            found,
-            firmware,
         });
-        let bus = &mut self.bus;
-        write_locked(bus, id, &[(reg::HOMING_OFFSET, 0)]).map_err(fail)?;
-        let offset = bus.read(id, reg::HOMING_OFFSET).map_err(fail)?;
-        if offset != 0 {
-            return Err(ByHandError::NotHeld {
-                joint,
-                id,
-                register: reg::HOMING_OFFSET.name,
-                found: offset,
-                wanted: 0,
-            });
-        }
-        Ok(())
+        write_checked(&mut self.bus, &taken, &[(reg::HOMING_OFFSET, 0)], true)
     }
 
     /// Reads every joint once.
-    pub fn read(&mut self) -> Result<(), ByHandError> {
+    pub fn read(&mut self) -> Result<(), SessionError> {
         for j in &mut self.joints {
-            let id = j.target.id;
-            let raw =
-                self.bus
-                    .read(id, reg::PRESENT_POSITION)
-                    .map_err(|source| ByHandError::Bus {
-                        joint: j.target.joint.clone(),
-                        id,
-                        source,
-                    })?;
+            let raw = self
+                .bus
+                .read(j.taken.target.id, reg::PRESENT_POSITION)
+                .map_err(|e| j.taken.failed(e))?;
             j.sweep.observe(raw.clamp(0, 4095) as u16);
         }
         Ok(())
@@ -220,12 +85,15 @@ impl<T: Transport> ByHand<T> {
     pub fn progress(&self, tolerance_rad: f64) -> Vec<Progress> {
         self.joints
             .iter()
-            .map(|j| Progress {
-                joint: j.target.joint.clone(),
-                swept_deg: j.sweep.swept_rad().to_degrees(),
-                travel_deg: (j.target.stops.upper_rad - j.target.stops.lower_rad).to_degrees(),
-                place: j.sweep.place(),
-                covered: j.sweep.covers(&j.target.stops, tolerance_rad),
+            .map(|j| {
+                let target = &j.taken.target;
+                Progress {
+                    joint: target.joint.clone(),
+                    swept_deg: j.sweep.swept_rad().to_degrees(),
+                    travel_deg: (target.stops.upper_rad - target.stops.lower_rad).to_degrees(),
+                    place: j.sweep.place(),
+                    covered: j.sweep.covers(&target.stops, tolerance_rad),
+                }
             })
             .collect()
     }
@@ -237,102 +105,45 @@ impl<T: Transport> ByHand<T> {
         mut self,
         margin_rad: f64,
         tolerance_rad: f64,
-    ) -> Result<Vec<Calibrated>, ByHandError> {
+    ) -> Result<Vec<Calibrated>, SessionError> {
         let (mut chosen, mut refused) = (Vec::new(), Vec::new());
         for j in &self.joints {
+            let target = &j.taken.target;
             match choose(
-                &j.target.joint,
+                &target.joint,
                 &j.sweep,
-                &j.target.stops,
+                &target.stops,
                 margin_rad,
                 tolerance_rad,
             ) {
-                Ok(calibration) => chosen.push(Calibrated {
-                    joint: j.target.joint.clone(),
-                    id: j.target.id,
-                    calibration,
-                    model: j.model(),
-                    firmware: j.firmware.clone(),
-                }),
+                Ok(calibration) => chosen.push((j.taken.clone(), calibration)),
                 Err(e) => refused.push(e),
             }
         }
         if !refused.is_empty() {
             self.give_back()?;
-            return Err(ByHandError::Refused(refused));
+            return Err(SessionError::Refused(refused));
         }
-        if let Err(e) = self.write_chosen(&chosen) {
-            // Best effort: the failure that stopped the writes is the one to report.
-            let _ = self.give_back();
-            return Err(e);
-        }
-        Ok(chosen)
-    }
-
-    /// Each chosen calibration written into its servo and read back.
-    fn write_chosen(&mut self, chosen: &[Calibrated]) -> Result<(), ByHandError> {
-        for c in chosen {
-            let (joint, id, cal) = (&c.joint, c.id, &c.calibration);
-            let fail = |source| ByHandError::Bus {
-                joint: joint.clone(),
-                id,
-                source,
-            };
-            let settings = calibration_settings(cal).map(|s| (s.register, s.value));
-            write_locked(&mut self.bus, id, &settings).map_err(fail)?;
-            for (register, wanted) in settings {
-                let found = self.bus.read(id, register).map_err(fail)?;
-                if found != wanted {
-                    return Err(ByHandError::NotHeld {
-                        joint: joint.clone(),
-                        id,
-                        register: register.name,
-                        found,
-                        wanted,
-                    });
-                }
+        for (taken, calibration) in &chosen {
+            if let Err(e) = write_calibration(&mut self.bus, taken, calibration) {
+                // Best effort: the failure that stopped the writes is the one to report.
+                let _ = self.give_back();
+                return Err(e);
             }
         }
-        Ok(())
+        Ok(chosen
+            .into_iter()
+            .map(|(taken, calibration)| taken.calibrated(calibration))
+            .collect())
     }
 
     /// Gives every servo back the homing offset and limits it held, and ends the session.
-    pub fn abandon(mut self) -> Result<(), ByHandError> {
+    pub fn abandon(mut self) -> Result<(), SessionError> {
         self.give_back()
     }
 
-    fn give_back(&mut self) -> Result<(), ByHandError> {
-        for j in &self.joints {
-            let values: Vec<_> = CALIBRATION_REGISTERS.into_iter().zip(j.found).collect();
-            write_locked(&mut self.bus, j.target.id, &values).map_err(|source| {
-                ByHandError::Bus {
-                    joint: j.target.joint.clone(),
-                    id: j.target.id,
-                    source,
-                }
-            })?;
-        }
-        Ok(())
+    fn give_back(&mut self) -> Result<(), SessionError> {
+        let taken: Vec<Taken> = self.joints.iter().map(|j| j.taken.clone()).collect();
+        give_back(&mut self.bus, &taken)
     }
-}
-
-/// The registers a calibration writes, in [`calibration_settings`]' order.
-const CALIBRATION_REGISTERS: [reg::Register; 3] = [
-    reg::HOMING_OFFSET,
-    reg::MIN_POSITION_LIMIT,
-    reg::MAX_POSITION_LIMIT,
-];
-
-/// EEPROM writes with the Lock opened around them.
-fn write_locked<T: Transport>(
-    bus: &mut Bus<T>,
-    id: u8,
-    values: &[(reg::Register, i32)],
-) -> Result<(), BusError> {
-    bus.write(id, reg::LOCK, 0)?;
-    for &(register, value) in values {
-        bus.write(id, register, value)?;
-    }
-    bus.write(id, reg::LOCK, 1)?;
-    Ok(())
 }

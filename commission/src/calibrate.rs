@@ -88,6 +88,11 @@ impl Sweep {
         (self.max - self.min) as f64 / STEPS_PER_RAD
     }
 
+    /// Where the joint is now, unwrapped from its first reading's turn, rad.
+    pub fn position_rad(&self) -> f64 {
+        self.unwrapped as f64 / STEPS_PER_RAD
+    }
+
     /// Where the joint is now, as a share of the sweep so far (0 at one extreme, 1 at the
     /// other), for the operator's live view.
     pub fn place(&self) -> f64 {
@@ -139,6 +144,48 @@ pub enum Refusal {
         swept_deg: f64,
         /// The description's travel, degrees.
         travel_deg: f64,
+    },
+    /// Driven toward a stop, the joint neither stalled nor ran past its travel in the time
+    /// it should take: it does not answer the drive as the description's joint would.
+    #[error(
+        "{joint}: driven toward its {toward} stop for {after_s:.0} s without finding it (is the \
+         joint connected to its servo?)"
+    )]
+    NoStop {
+        /// The joint.
+        joint: String,
+        /// Which stop.
+        toward: &'static str,
+        /// How long it was driven, s.
+        after_s: f64,
+    },
+    /// A servo's firmware unloaded its motor (a protection fired) during the calibration.
+    #[error(
+        "{joint}: its servo unloaded its motor ({status}): set it up (`nori servo setup`) so \
+         its protections are the driver's, let it cool, and calibrate again"
+    )]
+    Unloaded {
+        /// The joint.
+        joint: String,
+        /// The protections the servo reported.
+        status: String,
+    },
+    /// The session was stopped before it was done (the operator, or its time ran out).
+    #[error("stopped after {after_s:.0} s, before every joint was calibrated")]
+    Stopped {
+        /// When, s after it began.
+        after_s: f64,
+    },
+    /// A joint did not reach where the session drove it (a pose or its rest): something holds
+    /// it, or its torque limit is too low for the pose.
+    #[error("{joint}: driven to {wanted_deg:.1}°, stayed at {at_deg:.1}°: something holds it")]
+    NotReached {
+        /// The joint.
+        joint: String,
+        /// Where it was driven, degrees.
+        wanted_deg: f64,
+        /// Where it stayed, degrees.
+        at_deg: f64,
     },
 }
 

@@ -17,13 +17,21 @@
 //! * [`by_hand`]: a calibration by hand over the line: the joints taken (torque off, offsets
 //!   cleared), read while the operator sweeps them, the chosen calibration written and read
 //!   back, or every servo given back what it held.
+//! * [`automatic`]: the arm calibrating itself: each joint in the description's order swept in
+//!   speed mode at a low torque limit into each stop, found by the supervisor's stall rule, the
+//!   calibration chosen as by hand; any refusal drives the joint back and gives every servo
+//!   back what it held.
+//! * [`session`]: what both do to a servo: take it, write with the Lock around it and read
+//!   back, give back what it held.
 //! * [`record`]: the calibration written as a versioned file, atomically, the previous one
 //!   kept, and what changed said joint by joint.
 
+pub mod automatic;
 pub mod by_hand;
 pub mod calibrate;
 pub mod findings;
 pub mod record;
 pub mod scan;
+pub mod session;
 pub mod settings;
 pub mod setup;

@@ -8,51 +8,15 @@
 mod common;
 
 use bus_driver::bus::Bus;
-use commission::by_hand::{ByHand, ByHandError, JointToCalibrate};
-use commission::calibrate::{Refusal, Stops};
-use common::{left_arm, line};
+use commission::by_hand::ByHand;
+use commission::calibrate::Refusal;
+use commission::session::SessionError;
+use common::{left_arm, line, targets};
 use feetech::registers as reg;
 use sim::rng::Rng;
 use sim::{RobotDescription, SimBus};
 use std::cell::RefCell;
 use std::time::Duration;
-
-/// The left arm's joints and gripper, with their stops from the description.
-fn targets(robot: &RobotDescription) -> Vec<JointToCalibrate> {
-    let d = robot.bus("left_arm").unwrap();
-    let arm = d.arm.as_ref().unwrap();
-    let name = |id: u8| d.servo.iter().find(|s| s.id == id).unwrap().joint.clone();
-    let model = |id: u8| {
-        let key = &d.servo.iter().find(|s| s.id == id).unwrap().model;
-        feetech::ServoModel::from_key(key).unwrap()
-    };
-    let mut t: Vec<JointToCalibrate> = arm
-        .joint
-        .iter()
-        .map(|j| JointToCalibrate {
-            joint: name(j.servo),
-            id: j.servo,
-            model: model(j.servo),
-            stops: Stops {
-                lower_rad: j.lower_rad,
-                upper_rad: j.upper_rad,
-                inverted: false,
-            },
-        })
-        .collect();
-    let g = arm.gripper.as_ref().unwrap();
-    t.push(JointToCalibrate {
-        joint: name(g.servo),
-        id: g.servo,
-        model: model(g.servo),
-        stops: Stops {
-            lower_rad: g.lower_rad,
-            upper_rad: g.upper_rad,
-            inverted: false,
-        },
-    });
-    t
-}
 
 /// The arm with each horn `horn(id)` steps off, its hand on.
 fn assembled(robot: &RobotDescription, mut horn: impl FnMut(u8) -> f64) -> RefCell<SimBus> {
@@ -157,7 +121,7 @@ fn a_joint_blocked_short_of_its_stop_is_refused_and_nothing_is_written() {
         ByHand::start(Bus::new(line(&bus), Duration::from_micros(600)), expected).unwrap();
     sweep(&bus, &mut session, 200.0);
     let e = session.finish(0.15, 0.1).unwrap_err();
-    let ByHandError::Refused(refusals) = &e else {
+    let SessionError::Refused(refusals) = &e else {
         panic!("{e}")
     };
     assert_eq!(refusals.len(), 1, "{e}");
@@ -220,6 +184,6 @@ fn a_joint_that_cannot_be_taken_leaves_every_servo_as_found() {
     let e = ByHand::start(Bus::new(line(&bus), Duration::from_micros(600)), wrong)
         .err()
         .unwrap();
-    assert!(matches!(e, ByHandError::WrongModel { .. }), "{e}");
+    assert!(matches!(e, SessionError::WrongModel { .. }), "{e}");
     assert_eq!(offsets(&bus), before);
 }

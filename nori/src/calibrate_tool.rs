@@ -1,8 +1,10 @@
 //! `nori calibrate by-hand BUS`: the joints of one bus calibrated by an operator moving each
 //! from stop to stop with its torque off, the tool showing live how much of each joint's travel
-//! is covered; the calibration written into the servos and into a versioned file, atomically,
-//! the previous one kept and what changed shown. The stack must be stopped: the bus is opened
-//! exclusively, as the driver opens it.
+//! is covered. `nori calibrate auto BUS`: the arm of one bus calibrating itself, each joint
+//! driven slowly at a low torque into its stops in the order the robot's description gives,
+//! the lift high enough first. Either way the calibration is written into the servos and into
+//! a versioned file, atomically, the previous one kept and what changed shown. The driver of
+//! that bus must be stopped: the bus is opened exclusively, as the driver opens it.
 
 use anyhow::{bail, Context, Result};
 use body::description::RobotDescription;
@@ -12,9 +14,11 @@ use bus_driver::config::{
     CALIBRATION_FORMAT,
 };
 use bus_driver::{LoadedConfig, SerialTransport};
-use commission::by_hand::{ByHand, Calibrated, JointToCalibrate};
+use commission::automatic::{Activity, Automatic, Plan, Progress, Toward};
+use commission::by_hand::ByHand;
 use commission::calibrate::Stops;
 use commission::record;
+use commission::session::{Calibrated, JointToCalibrate};
 use feetech::ServoModel;
 use std::io::BufRead;
 use std::path::{Path, PathBuf};
@@ -43,16 +47,20 @@ pub enum CalibrateCommand {
     /// the calibration file; refused, writing nothing, when a joint's travel is not the
     /// description's.
     ByHand(ByHandArgs),
+    /// Calibrate a bus's arm without a hand: from hanging, each joint in the description's
+    /// order driven slowly at a low torque limit toward each of its stops, each stop found
+    /// where the joint stalls, the joint then driven back to rest. Refused, writing nothing
+    /// and every joint driven back, when a stop is not where the description says (something
+    /// in the way, a broken or wrong part). The lift must be at the description's height or
+    /// higher (read from `nori-lift`, or measured: `--lift-at`).
+    Auto(AutoArgs),
 }
 
-/// `nori calibrate by-hand`.
+/// What both methods are told.
 #[derive(clap::Args)]
-pub struct ByHandArgs {
+pub struct Common {
     /// The bus.
     bus: String,
-    /// Only these joints (repeatable); every position joint of the bus by default.
-    #[arg(long = "joint", value_name = "JOINT")]
-    joints: Vec<String>,
     #[command(flatten)]
     buses: crate::servo_tool::Buses,
     /// The robot's description (its joints' stops); the embedded Nori A3 when absent.
@@ -64,6 +72,33 @@ pub struct ByHandArgs {
     /// The robot's id, recorded in the file (the host's name when absent).
     #[arg(long)]
     robot_id: Option<String>,
+}
+
+/// `nori calibrate auto`.
+#[derive(clap::Args)]
+pub struct AutoArgs {
+    #[command(flatten)]
+    common: Common,
+    /// The lift's height as measured, m above its lowest, when `nori-lift` is not running to
+    /// say it.
+    #[arg(long, value_name = "M")]
+    lift_at: Option<f64>,
+    #[command(flatten)]
+    plane: crate::plane_tools::PlaneArgs,
+    /// Give up after this many seconds: every joint driven back, every servo given back
+    /// what it held, nothing written.
+    #[arg(long, value_name = "S", default_value_t = 900.0)]
+    within: f64,
+}
+
+/// `nori calibrate by-hand`.
+#[derive(clap::Args)]
+pub struct ByHandArgs {
+    #[command(flatten)]
+    common: Common,
+    /// Only these joints (repeatable); every position joint of the bus by default.
+    #[arg(long = "joint", value_name = "JOINT")]
+    joints: Vec<String>,
     /// Finish as soon as every joint's travel is covered (no Enter needed).
     #[arg(long)]
     finish_when_covered: bool,
@@ -77,40 +112,179 @@ pub struct ByHandArgs {
 pub fn calibrate(command: &CalibrateCommand) -> Result<()> {
     match command {
         CalibrateCommand::ByHand(args) => by_hand(args),
+        CalibrateCommand::Auto(args) => auto(args),
     }
 }
 
-fn by_hand(args: &ByHandArgs) -> Result<()> {
-    if !(args.within.is_finite() && args.within > 0.0) {
-        bail!("--within {}: a number of seconds above 0", args.within);
+/// What a session needs, everything the file needs checked before a servo is touched.
+struct Prepared {
+    loaded: LoadedConfig,
+    robot: RobotDescription,
+    targets: Vec<JointToCalibrate>,
+    robot_id: String,
+    base: CalibrationFile,
+    /// Held to the end: a second session on the same file (the other arm's) is refused, not
+    /// left to overwrite this one's joints with its own older base.
+    _lock: std::fs::File,
+}
+
+impl Prepared {
+    fn of(common: &Common, only: &[String], within: f64) -> Result<Self> {
+        if !(within.is_finite() && within > 0.0) {
+            bail!("--within {within}: a number of seconds above 0");
+        }
+        refuse_conffile(&common.output)?;
+        let lock = lock_output(&common.output)?;
+        let (loaded, origin) = common.buses.load()?;
+        let Some(bus) = loaded.config.bus(&common.bus) else {
+            bail!("no bus {:?} in {origin}", common.bus);
+        };
+        if bus.mode != Mode::Position {
+            bail!(
+                "bus {} drives wheels: there is nothing to calibrate",
+                bus.name
+            );
+        }
+        let robot = match &common.robot {
+            Some(p) => RobotDescription::load(p)?,
+            None => RobotDescription::nori_a3(),
+        };
+        let targets = targets(bus, &robot, &loaded.calibration, only)?;
+        let robot_id = common.robot_id.clone().unwrap_or_else(host_name);
+        let base = base_file(&common.output, &robot_id, &loaded)?;
+        Ok(Prepared {
+            loaded,
+            robot,
+            targets,
+            robot_id,
+            base,
+            _lock: lock,
+        })
     }
-    refuse_conffile(&args.output)?;
-    // Held to the end: a second session on the same file (the other arm's) is refused, not
-    // left to overwrite this one's joints with its own older base.
-    let _lock = lock_output(&args.output)?;
-    let (loaded, origin) = args.buses.load()?;
-    let Some(bus) = loaded.config.bus(&args.bus) else {
-        bail!("no bus {:?} in {origin}", args.bus);
+
+    /// The bus's line, opened exclusively.
+    fn open(&self, common: &Common) -> Result<Bus<SerialTransport>> {
+        let Some(bus) = self.loaded.config.bus(&common.bus) else {
+            bail!("no bus {:?}", common.bus);
+        };
+        let line = SerialTransport::open(&bus.device, bus.baud)?;
+        let margin = Duration::from_micros(self.loaded.config.reply_timeout_margin_us);
+        Ok(Bus::new(line, margin))
+    }
+
+    fn write(
+        self,
+        common: &Common,
+        method: CalibrationMethod,
+        calibrated: &[Calibrated],
+    ) -> Result<()> {
+        write_file(
+            &common.output,
+            &self.loaded.config,
+            self.base,
+            &self.robot_id,
+            method,
+            calibrated,
+        )
+    }
+}
+
+fn auto(args: &AutoArgs) -> Result<()> {
+    let common = &args.common;
+    let prepared = Prepared::of(common, &[], args.within)?;
+    let described = prepared
+        .robot
+        .bus(&common.bus)
+        .and_then(|b| b.arm.as_ref())
+        .and_then(|a| a.calibration.clone())
+        .with_context(|| {
+            format!(
+                "the description gives bus {} no calibration plan (`[bus.arm.calibration]`): \
+                 calibrate it by hand",
+                common.bus
+            )
+        })?;
+    lift_high_enough(args, described.lift_m)?;
+    let plan = Plan::of(&described, &prepared.targets, MARGIN_RAD, TOLERANCE_RAD)?;
+    let names: Vec<String> = plan.sweeps.iter().map(|s| s.target.joint.clone()).collect();
+    println!(
+        "calibrating {} without a hand: keep clear of the arm, it moves each joint into its \
+         stops in turn ({})",
+        common.bus,
+        names.join(", ")
+    );
+    // Stopped (Ctrl-C, SIGTERM) or out of time, the session still drives the joint back and
+    // gives every servo back what it held: a speed-mode servo left turning would press its
+    // stop until it cooked.
+    let interrupted = telemetry::process::stop_flag()?;
+    let start = Instant::now();
+    let mut session = Automatic::start(prepared.open(common)?, plan, 0.0)?;
+    let (mut shown, mut stopping) = (None, false);
+    let calibrated = loop {
+        std::thread::sleep(Duration::from_secs_f64(1.0 / RATE_HZ));
+        let now = start.elapsed().as_secs_f64();
+        if !stopping && (now > args.within || interrupted.load(Ordering::Relaxed)) {
+            stopping = true;
+            println!("stopping: the arm back to rest, every servo given back what it held");
+            session.stop(now, 0.0);
+        }
+        match session.tick(now)? {
+            Progress::Done(calibrated) => break calibrated,
+            Progress::Working(k, activity) => {
+                let line = (k, std::mem::discriminant(&activity));
+                if shown != Some(line) {
+                    shown = Some(line);
+                    println!("  {:<24} {}", names[k], activity_name(activity));
+                }
+            }
+        }
     };
-    if bus.mode != Mode::Position {
+    prepared.write(common, CalibrationMethod::Automatic, &calibrated)
+}
+
+fn activity_name(a: Activity) -> &'static str {
+    match a {
+        Activity::Posing => "driving the arm to its pose",
+        Activity::Seeking(Toward::Lower, _) => "seeking its lower stop",
+        Activity::Seeking(Toward::Upper, _) => "seeking its upper stop",
+        Activity::Resting => "calibrated, back to rest",
+        Activity::Returning => "refused, driven back to where it began",
+        Activity::Parking => "every joint to rest",
+    }
+}
+
+/// The lift at `lift_m` or higher: as `nori-lift` publishes it, or as the operator measured.
+fn lift_high_enough(args: &AutoArgs, lift_m: f64) -> Result<()> {
+    let (height, source) = match args.lift_at {
+        Some(h) => (h, "as measured (--lift-at)"),
+        None => {
+            let node = args.plane.node("calibrate")?;
+            match crate::plane_tools::lift_state(&node)? {
+                Some(l) => (f64::from(l.height_m), "as nori-lift reports it"),
+                None => bail!(
+                    "the lift's height is unknown (nori-lift is not running): the arm sweeps \
+                     below the table with the lift under {lift_m} m. Raise it (`nori goal \
+                     lift={lift_m}` with nori-lift running), or measure it and pass --lift-at M"
+                ),
+            }
+        }
+    };
+    if !(height.is_finite() && height >= lift_m) {
         bail!(
-            "bus {} drives wheels: there is nothing to calibrate",
-            bus.name
+            "the lift is at {height} m {source}: the description asks {lift_m} m or higher for \
+             the arm to sweep clear of a table (`nori goal lift={lift_m}`)"
         );
     }
-    let robot = match &args.robot {
-        Some(p) => RobotDescription::load(p)?,
-        None => RobotDescription::nori_a3(),
-    };
-    let targets = targets(bus, &robot, &loaded.calibration, &args.joints)?;
-    // Everything the file needs is checked before a servo is touched.
-    let robot_id = args.robot_id.clone().unwrap_or_else(host_name);
-    let base = base_file(&args.output, &robot_id, &loaded)?;
-    let line = SerialTransport::open(&bus.device, bus.baud)?;
-    let margin = Duration::from_micros(loaded.config.reply_timeout_margin_us);
-    let mut session = ByHand::start(Bus::new(line, margin), targets)?;
+    Ok(())
+}
+
+fn by_hand(args: &ByHandArgs) -> Result<()> {
+    let common = &args.common;
+    let prepared = Prepared::of(common, &args.joints, args.within)?;
+    let targets = prepared.targets.clone();
+    let mut session = ByHand::start(prepared.open(common)?, targets)?;
     let which = if args.joints.is_empty() {
-        format!("every joint of {}", args.bus)
+        format!("every joint of {}", common.bus)
     } else {
         args.joints.join(", ")
     };
@@ -155,7 +329,7 @@ fn by_hand(args: &ByHandArgs) -> Result<()> {
         }
     }
     let calibrated = session.finish(MARGIN_RAD, TOLERANCE_RAD)?;
-    write_file(args, &loaded.config, base, &robot_id, &calibrated)
+    prepared.write(common, CalibrationMethod::ByHand, &calibrated)
 }
 
 /// What the sweep does next.
@@ -300,10 +474,11 @@ fn checked(text: &str, origin: &str) -> Result<CalibrationFile> {
 
 /// `base` with these joints replaced, stamped; written atomically, and what changed shown.
 fn write_file(
-    args: &ByHandArgs,
+    output: &Path,
     config: &DriverConfig,
     mut file: CalibrationFile,
     robot_id: &str,
+    method: CalibrationMethod,
     calibrated: &[Calibrated],
 ) -> Result<()> {
     let before = file.clone();
@@ -322,17 +497,17 @@ fn write_file(
         format: CALIBRATION_FORMAT,
         robot: robot_id.to_string(),
         at: humantime::format_rfc3339_seconds(std::time::SystemTime::now()).to_string(),
-        method: CalibrationMethod::ByHand,
+        method,
     });
     let text = record::render(&file)?;
     checked(&text, "the calibration to write").context("not written")?;
     let changes = record::changes(Some(&before), &file);
-    record::replace(&args.output, &text)?;
+    record::replace(output, &text)?;
     println!(
         "calibrated {} joint(s), written to {} (the previous kept as {}):",
         calibrated.len(),
-        args.output.display(),
-        record::previous_path(&args.output).display()
+        output.display(),
+        record::previous_path(output).display()
     );
     for c in &changes {
         println!("  {c}");
@@ -349,7 +524,7 @@ fn write_file(
     }
     println!(
         "the driver reads it when its configuration says calibration-file = {:?}",
-        absolute(&args.output).display().to_string()
+        absolute(output).display().to_string()
     );
     Ok(())
 }

@@ -179,6 +179,12 @@ fn body_states(node: &Plane) -> Result<(Option<LiftState>, Option<BaseState>)> {
     Ok((lift, base))
 }
 
+/// The lift's newest state, if `nori-lift` publishes (it does at 50 Hz: a tenth of a second
+/// says whether it runs).
+pub fn lift_state(node: &Plane) -> Result<Option<LiftState>> {
+    Ok(body_states(node)?.0)
+}
+
 /// Why the lift's travel is held back, if it is.
 fn lift_held(l: &LiftState) -> Option<String> {
     match l.held {

@@ -95,9 +95,17 @@ impl StallDetector {
             StallKind::Joint => (config.current_fraction, config.min_error_rad),
             StallKind::Wheel => (config.current_fraction, WHEEL_MIN_SPEED_RAD_S),
         };
+        Self::with_threshold(kind, fraction * stall_current, min_error)
+    }
+
+    /// A detector judging the effort against `threshold` in its own unit (the calibration
+    /// judges `Present_Load` against the torque limit it set): stalled when the effort stays
+    /// at or above it over the window while the position stays static, `min_error` or more
+    /// from the goal.
+    pub fn with_threshold(kind: StallKind, threshold: f32, min_error: f32) -> Self {
         StallDetector {
             kind,
-            current_threshold: fraction * stall_current,
+            current_threshold: threshold,
             min_error,
             ring: [Sample::default(); MAX_WINDOW],
             filled: 0,

@@ -407,7 +407,7 @@ fn check_off_the_line_calibration(stack: &ArmStack, written: &CalibrationFile) {
         );
     }
     eprintln!(
-        "off the line, by hand: worst zero {:.2}°, worst limit {:.2}° inside",
+        "off the line: worst zero {:.2}°, worst limit {:.2}° inside",
         worst.0, worst.1
     );
 }
@@ -508,4 +508,104 @@ fn a_robot_off_the_line_calibrated_by_hand_has_every_zero_within_a_degree() {
             servo["joint"]
         );
     }
+}
+
+/// `nori calibrate auto left_arm` on the stack's bus, into `file`.
+fn calibrate_auto(stack: &ArmStack, extra: &[&str], file: &Path) -> Output {
+    Command::new(binary("nori"))
+        .args(["calibrate", "auto", "left_arm", "--domain", &stack.domain])
+        .args(extra)
+        .arg("--device-dir")
+        .arg(stack.dir.join("dev"))
+        .arg("--output")
+        .arg(file)
+        .args(["--robot-id", "sim-test", "--within", "300"])
+        .output()
+        .unwrap()
+}
+
+/// A robot off the line calibrates itself: refused while the lift's height is unknown or too
+/// low (nothing touched); then, the lift high enough, every joint driven into its stops by its
+/// own servo: every zero within 1° of the simulator's truth, every range 5° inside the
+/// description's stops, no stop pressed harder than its sweep's torque limit (the simulator's
+/// witness), the file stamped `automatic`, and the driver drives all eight with it, each read
+/// within 1° of where the simulator has it. The plan runs at 1 rad/s, not the shipped 0.3 (the
+/// in-memory test runs the shipped plan over eight seeds), so the test takes 1.5 minutes.
+#[test]
+fn a_robot_off_the_line_calibrates_itself_with_every_zero_within_a_degree() {
+    let _turn = serial();
+    let mut stack = ArmStack::simulator_only("auto", &["--assembly-seed", "23"]);
+    let file = stack.dir.join("calibration.toml");
+    std::fs::write(&file, bus_driver::config::DEFAULT_CALIBRATION_TOML).unwrap();
+    let before = std::fs::read_to_string(&file).unwrap();
+    for (extra, says) in [
+        (&[][..], "nori-lift is not running"),
+        (&["--lift-at", "0.3"][..], "0.6 m or higher"),
+    ] {
+        let out = calibrate_auto(&stack, extra, &file);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && err.contains(says), "{err}");
+    }
+    assert_eq!(std::fs::read_to_string(&file).unwrap(), before);
+
+    let robot = body::description::NORI_A3_TOML.replace("speed-rad-s = 0.3", "speed-rad-s = 1.0");
+    let described = stack.dir.join("robot.toml");
+    std::fs::write(&described, robot).unwrap();
+    let description = body::description::RobotDescription::load(&described).unwrap();
+    let out = calibrate_auto(
+        &stack,
+        &["--lift-at", "0.65", "--robot", described.to_str().unwrap()],
+        &file,
+    );
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success() && said.contains("calibrated 8 joint(s)"),
+        "{said} {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let written: CalibrationFile =
+        toml::from_str(&std::fs::read_to_string(&file).unwrap()).unwrap();
+    let stamp = written.calibrated.as_ref().unwrap();
+    assert_eq!(
+        stamp.method,
+        telemetry::calibration::CalibrationMethod::Automatic
+    );
+    check_off_the_line_calibration(&stack, &written);
+    let plan = description.bus("left_arm").unwrap().arm.as_ref().unwrap();
+    let plan = plan.calibration.as_ref().unwrap();
+    let report = sim_report(&stack);
+    for servo in report["buses"][0]["servos"].as_array().unwrap() {
+        let id = servo["id"].as_u64().unwrap() as u8;
+        let sweep = plan.sweep.iter().find(|s| s.servo == id).unwrap();
+        let pressed = servo["stop_press_max_permille"].as_f64().unwrap();
+        assert!(
+            pressed <= sweep.torque_percent * 10.0,
+            "{} pressed its stop at {pressed} ‰: {servo:#}",
+            servo["joint"]
+        );
+    }
+
+    let (_node, states) = driven_with_the_new_calibration(&mut stack);
+    // The simulator's report is written every second: compared with the newest state until
+    // the arm has settled under the driver and a report has caught up with it.
+    let mut off = Vec::new();
+    for _ in 0..10 {
+        std::thread::sleep(Duration::from_millis(1000));
+        let read = newest(&states).unwrap();
+        let report = sim_report(&stack);
+        let servos = report["buses"][0]["servos"].as_array().unwrap();
+        off = (servos.iter().enumerate())
+            .filter_map(|(k, servo)| {
+                let truth = servo["angle_rad"].as_f64().unwrap();
+                let at = f64::from(read.joints[k].position_rad);
+                let joint = servo["joint"].as_str().unwrap();
+                ((at - truth).abs() >= 1f64.to_radians())
+                    .then(|| format!("{joint}: read at {at} rad, the simulator has it at {truth}"))
+            })
+            .collect();
+        if off.is_empty() {
+            break;
+        }
+    }
+    assert!(off.is_empty(), "{off:#?}");
 }

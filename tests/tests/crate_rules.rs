@@ -28,7 +28,12 @@ const ALLOWED: &[(&str, &[&str])] = &[
     ("model-lab", &["sim"]),
     ("fleet", &["fleet-agent", "telemetry"]),
     ("stack", &["telemetry", "sim", "bus-driver"]),
-    ("commission", &["feetech", "bus-driver", "telemetry"]),
+    // The automatic calibration plans from the description and finds stops by the
+    // supervisor's stall rule (its pure `stall` module, not its process).
+    (
+        "commission",
+        &["feetech", "body", "bus-driver", "telemetry", "supervisor"],
+    ),
     (
         "nori",
         &["telemetry", "feetech", "bus-driver", "commission", "body"],

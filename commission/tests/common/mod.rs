@@ -3,7 +3,9 @@
 #![allow(dead_code, clippy::unwrap_used, clippy::expect_used)]
 
 use bus_driver::transport::{Transport, TransportError};
+use commission::calibrate::Stops;
 use commission::scan::Plan;
+use commission::session::JointToCalibrate;
 use sim::{RobotDescription, SimBus};
 use std::cell::RefCell;
 use std::collections::VecDeque;
@@ -99,4 +101,41 @@ pub fn as_set_up_by_the_driver(mut bus: SimBus) -> SimBus {
         assert!(servo.write(feetech::registers::LOCK.addr, &[1]));
     }
     bus
+}
+
+/// The left arm's joints and gripper, with their stops from the description.
+pub fn targets(robot: &RobotDescription) -> Vec<JointToCalibrate> {
+    let d = robot.bus("left_arm").unwrap();
+    let arm = d.arm.as_ref().unwrap();
+    let name = |id: u8| d.servo.iter().find(|s| s.id == id).unwrap().joint.clone();
+    let model = |id: u8| {
+        let key = &d.servo.iter().find(|s| s.id == id).unwrap().model;
+        feetech::ServoModel::from_key(key).unwrap()
+    };
+    let mut t: Vec<JointToCalibrate> = arm
+        .joint
+        .iter()
+        .map(|j| JointToCalibrate {
+            joint: name(j.servo),
+            id: j.servo,
+            model: model(j.servo),
+            stops: Stops {
+                lower_rad: j.lower_rad,
+                upper_rad: j.upper_rad,
+                inverted: false,
+            },
+        })
+        .collect();
+    let g = arm.gripper.as_ref().unwrap();
+    t.push(JointToCalibrate {
+        joint: name(g.servo),
+        id: g.servo,
+        model: model(g.servo),
+        stops: Stops {
+            lower_rad: g.lower_rad,
+            upper_rad: g.upper_rad,
+            inverted: false,
+        },
+    });
+    t
 }

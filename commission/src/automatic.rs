@@ -1,0 +1,751 @@
+//! A calibration without a hand, over the line: the arm held where it hangs, then each joint
+//! in the plan's order driven slowly toward each of its stops in speed mode at a low torque
+//! limit, each stop found where the joint stalls (the supervisor's stall signal: the effort at
+//! the limit, the position still), its calibration chosen from the two
+//! ([`crate::calibrate::choose`]), written, and the joint driven back to rest before the next.
+//! The caller sets the pace ([`Automatic::tick`] at a steady rate, the time passed in).
+//!
+//! Nothing here can drive a joint the wrong way round the encoder: a joint is swept in speed
+//! mode (no position goal, so no 0/4095 wrap to cross) and driven to positions only once its
+//! calibration puts its travel inside the turn. Until then it holds where it was found, its
+//! homing offset provisionally making it read mid-turn. Every write but the calibration goes
+//! to RAM (the Lock closed): a power cycle in the middle gives back what the servo held, and a
+//! refusal does the same at once, after the joint is driven back to where its sweep began.
+//! docs/commissioning.md gives the reasons; docs/hazards.md C7 the hazards.
+
+use crate::calibrate::{choose, Refusal, Sweep};
+use crate::session::{
+    self, give_back, write_calibration, write_checked, Calibrated, JointToCalibrate, SessionError,
+    Taken,
+};
+use body::description::CalibrationPlan;
+use bus_driver::bus::Bus;
+use bus_driver::calibration::{JointCalibration, CENTER, STEPS_PER_RAD};
+use bus_driver::transport::Transport;
+use feetech::registers as reg;
+use feetech::ServoStatus;
+use supervisor::stall::{StallAction, StallDetector, StallKind};
+
+/// One joint's sweep.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PlannedSweep {
+    /// The joint.
+    pub target: JointToCalibrate,
+    /// Its torque limit while swept and held, 0.1 %.
+    pub torque_permille: u16,
+    /// Joints swept before it, held at these angles (by index into the plan, rad) while it is.
+    pub pose: Vec<(usize, f64)>,
+}
+
+/// The whole calibration.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Plan {
+    /// The joints in the order they are swept.
+    pub sweeps: Vec<PlannedSweep>,
+    /// The speed toward each stop, rad/s.
+    pub speed_rad_s: f64,
+    /// How far inside each stop the limits go, rad.
+    pub margin_rad: f64,
+    /// How far the travel found may differ from the description's, rad.
+    pub tolerance_rad: f64,
+}
+
+/// A description's plan that names a joint not among those to calibrate.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("the description's calibration plan sweeps servo {0}, which is not among the joints to calibrate")]
+pub struct UnknownServo(pub u8);
+
+impl Plan {
+    /// The description's plan over `targets` (every joint the plan sweeps among them).
+    pub fn of(
+        described: &CalibrationPlan,
+        targets: &[JointToCalibrate],
+        margin_rad: f64,
+        tolerance_rad: f64,
+    ) -> Result<Plan, UnknownServo> {
+        let index = |servo: u8| {
+            described
+                .sweep
+                .iter()
+                .position(|s| s.servo == servo)
+                .ok_or(UnknownServo(servo))
+        };
+        let sweeps = described
+            .sweep
+            .iter()
+            .map(|s| {
+                let target = targets
+                    .iter()
+                    .find(|t| t.id == s.servo)
+                    .ok_or(UnknownServo(s.servo))?;
+                let pose = s
+                    .pose
+                    .iter()
+                    .map(|p| Ok((index(p.servo)?, p.rad)))
+                    .collect::<Result<_, UnknownServo>>()?;
+                Ok(PlannedSweep {
+                    target: target.clone(),
+                    torque_permille: (s.torque_percent * 10.0).round() as u16,
+                    pose,
+                })
+            })
+            .collect::<Result<_, UnknownServo>>()?;
+        Ok(Plan {
+            sweeps,
+            speed_rad_s: described.speed_rad_s,
+            margin_rad,
+            tolerance_rad,
+        })
+    }
+}
+
+/// Which stop a joint is driven toward.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Toward {
+    /// Its lower stop.
+    Lower,
+    /// Its upper stop.
+    Upper,
+}
+
+impl Toward {
+    fn name(self) -> &'static str {
+        match self {
+            Toward::Lower => "lower",
+            Toward::Upper => "upper",
+        }
+    }
+}
+
+/// What the session is doing.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Activity {
+    /// Driving the joints of a sweep's pose there.
+    Posing,
+    /// Driving a joint toward a stop; how far it has gone, rad.
+    Seeking(Toward, f64),
+    /// Driving a calibrated joint back to rest.
+    Resting,
+    /// Driving the swept joint back to where its sweep began, after a refusal.
+    Returning,
+    /// Every joint to rest, then its torque off.
+    Parking,
+}
+
+/// Where the session is, for the operator.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Progress {
+    /// Working on `joint` (index into the plan).
+    Working(usize, Activity),
+    /// Every joint calibrated and written, the arm at rest with its torque off.
+    Done(Vec<Calibrated>),
+}
+
+/// Readings in a row that make a stall (at a 50 Hz tick, 0.16 s: the supervisor's window is
+/// 75 ms at its rate).
+const WINDOW: usize = 8;
+/// The position spread over the window that still counts as still, rad (the supervisor's).
+const STILL_RAD: f32 = 0.01;
+/// The effort that counts as pushing: this share of the torque limit.
+const PUSHING_SHARE: f32 = 0.8;
+/// A joint is where it was driven within this, rad.
+const ARRIVED_RAD: f64 = 0.05;
+/// Longest a move to a pose or to rest may take beyond its travel at the speed, s.
+const MOVE_SLACK_S: f64 = 5.0;
+
+struct Joint {
+    taken: Taken,
+    plan: PlannedSweep,
+    /// The homing offset that made it read mid-turn where it was found.
+    provisional: i32,
+    /// The `Torque_Limit` it had when taken, given back at the end.
+    torque_limit: i32,
+    sweep: Sweep,
+    /// Where its sweep began, unwrapped, rad: where a refused sweep drives it back to.
+    began_rad: f64,
+    calibration: Option<JointCalibration>,
+}
+
+/// A joint driven toward a stop.
+struct Seeking {
+    k: usize,
+    toward: Toward,
+    since: f64,
+    /// Where it was when this drive began, unwrapped, rad.
+    from_rad: f64,
+    detector: StallDetector,
+}
+
+enum Stage {
+    Pose {
+        k: usize,
+        since: f64,
+    },
+    /// Boxed: the detector's window is large beside the other stages.
+    Seek(Box<Seeking>),
+    Rest {
+        k: usize,
+        since: f64,
+    },
+    Return {
+        k: usize,
+        since: f64,
+        to_rad: f64,
+        refusal: Refusal,
+    },
+    Park {
+        since: f64,
+        refusal: Option<Refusal>,
+    },
+}
+
+/// An automatic calibration in progress.
+pub struct Automatic<T: Transport> {
+    bus: Bus<T>,
+    joints: Vec<Joint>,
+    speed_rad_s: f64,
+    margin_rad: f64,
+    tolerance_rad: f64,
+    stage: Stage,
+    /// The held joint whose protections are read next (one a tick, in turn).
+    watched: usize,
+}
+
+impl<T: Transport> Automatic<T> {
+    /// Takes every joint (alone at its id, of its model, its torque off, what it held kept),
+    /// gives each a provisional offset reading mid-turn where it is and the whole turn as its
+    /// range (RAM only), and holds it there at its torque limit. A joint that cannot be taken
+    /// gives every one taken before it back what it held, its torque off.
+    pub fn start(bus: Bus<T>, plan: Plan, now_s: f64) -> Result<Self, SessionError> {
+        let mut session = Automatic {
+            bus,
+            joints: Vec::with_capacity(plan.sweeps.len()),
+            speed_rad_s: plan.speed_rad_s,
+            margin_rad: plan.margin_rad,
+            tolerance_rad: plan.tolerance_rad,
+            stage: Stage::Pose { k: 0, since: now_s },
+            watched: 0,
+        };
+        for p in plan.sweeps {
+            if let Err(e) = session.take(p) {
+                // Best effort: the error that stopped the session is the one to report.
+                let _ = session.release();
+                return Err(e);
+            }
+        }
+        if let Err(e) = session.begin_pose(0) {
+            let _ = session.release();
+            return Err(e);
+        }
+        Ok(session)
+    }
+
+    fn take(&mut self, plan: PlannedSweep) -> Result<(), SessionError> {
+        let taken = session::take(&mut self.bus, plan.target.clone())?;
+        let id = taken.target.id;
+        let bus = &mut self.bus;
+        // Closed, so that nothing below reaches the flash.
+        bus.write(id, reg::LOCK, 1).map_err(|e| taken.failed(e))?;
+        let present = bus
+            .read(id, reg::PRESENT_POSITION)
+            .map_err(|e| taken.failed(e))?;
+        let torque_limit = bus
+            .read(id, reg::TORQUE_LIMIT)
+            .map_err(|e| taken.failed(e))?;
+        let raw = (i64::from(present) + i64::from(taken.found[0])).rem_euclid(4096);
+        // Reads 2048 where it is. −2048 and 2048 are one offset; the register holds neither
+        // (a step off mid-turn).
+        let provisional = raw - CENTER as i64;
+        let provisional = provisional.clamp(-2047, 2047) as i32;
+        self.joints.push(Joint {
+            taken: taken.clone(),
+            plan,
+            provisional,
+            torque_limit,
+            sweep: Sweep::default(),
+            began_rad: 0.0,
+            calibration: None,
+        });
+        let values = [
+            (reg::HOMING_OFFSET, provisional),
+            (reg::MIN_POSITION_LIMIT, 0),
+            (reg::MAX_POSITION_LIMIT, 4095),
+        ];
+        write_checked(&mut self.bus, &taken, &values, false)?;
+        self.hold(self.joints.len() - 1)
+    }
+
+    /// Holds a joint where it is, in position mode at its torque limit.
+    fn hold(&mut self, k: usize) -> Result<(), SessionError> {
+        let speed = self.speed_steps();
+        let present = self.read(k, reg::PRESENT_POSITION)?;
+        let j = &self.joints[k];
+        let values = [
+            (reg::GOAL_VELOCITY, speed),
+            (reg::GOAL_POSITION, present),
+            (reg::OPERATING_MODE, 0),
+            (reg::TORQUE_LIMIT, i32::from(j.plan.torque_permille)),
+            (reg::TORQUE_ENABLE, 1),
+        ];
+        let taken = j.taken.clone();
+        write_checked(&mut self.bus, &taken, &values, false)
+    }
+
+    fn speed_steps(&self) -> i32 {
+        (self.speed_rad_s * STEPS_PER_RAD).round() as i32
+    }
+
+    fn read(&mut self, k: usize, register: reg::Register) -> Result<i32, SessionError> {
+        let j = &self.joints[k];
+        self.bus
+            .read(j.taken.target.id, register)
+            .map_err(|e| j.taken.failed(e))
+    }
+
+    fn write(&mut self, k: usize, register: reg::Register, value: i32) -> Result<(), SessionError> {
+        let j = &self.joints[k];
+        self.bus
+            .write(j.taken.target.id, register, value)
+            .map(|_| ())
+            .map_err(|e| j.taken.failed(e))
+    }
+
+    /// A calibrated joint driven toward `rad` (within its range), at the session's speed.
+    fn drive_to(&mut self, k: usize, rad: f64) -> Result<(), SessionError> {
+        let Some(cal) = self.joints[k].calibration else {
+            return Ok(());
+        };
+        // The angle is finite (the description's, or 0): the goal cannot be refused.
+        let goal = cal.goal_steps(k, rad as f32).unwrap_or(CENTER as i32);
+        self.write(k, reg::GOAL_POSITION, goal)
+    }
+
+    /// Whether a calibrated joint is within [`ARRIVED_RAD`] of `rad` (clamped into its range);
+    /// where it is, rad.
+    fn arrived(&mut self, k: usize, rad: f64) -> Result<(bool, f64), SessionError> {
+        let Some(cal) = self.joints[k].calibration else {
+            return Ok((true, rad));
+        };
+        let at = cal.to_rad(self.read(k, reg::PRESENT_POSITION)?);
+        let (lo, hi) = cal.range_rad();
+        Ok(((at - rad.clamp(lo, hi)).abs() <= ARRIVED_RAD, at))
+    }
+
+    fn begin_pose(&mut self, k: usize) -> Result<(), SessionError> {
+        for (i, rad) in self.joints[k].plan.pose.clone() {
+            self.drive_to(i, rad)?;
+        }
+        Ok(())
+    }
+
+    /// Stops the session before it is done: the joint being swept driven back to where its
+    /// sweep began, the arm parked, every servo given back what it held, by the ticks that
+    /// follow (they end in [`SessionError::Refused`]).
+    pub fn stop(&mut self, now_s: f64, began_s: f64) {
+        let refusal = Refusal::Stopped {
+            after_s: now_s - began_s,
+        };
+        let stage = std::mem::replace(
+            &mut self.stage,
+            Stage::Park {
+                since: now_s,
+                refusal: None,
+            },
+        );
+        self.stage = match stage {
+            Stage::Seek(seeking) => self.return_refused(seeking.k, refusal, now_s).0,
+            Stage::Return { .. } | Stage::Park { .. } => stage,
+            Stage::Pose { .. } | Stage::Rest { .. } => self.park_refused(refusal, now_s).0,
+        };
+    }
+
+    /// One step of the session at `now_s` (the caller's clock, s): reads what the stage needs
+    /// and drives what it decides. Every refusal drives the joint back, parks the arm, gives
+    /// every servo back what it held and returns [`SessionError::Refused`].
+    pub fn tick(&mut self, now_s: f64) -> Result<Progress, SessionError> {
+        let result = self.step(now_s);
+        if result.is_err() {
+            // Best effort: the line failed, so the error that stopped it is the one to report.
+            let _ = self.release();
+        }
+        result
+    }
+
+    fn step(&mut self, now_s: f64) -> Result<Progress, SessionError> {
+        let stage = std::mem::replace(
+            &mut self.stage,
+            Stage::Park {
+                since: now_s,
+                refusal: None,
+            },
+        );
+        let active = match &stage {
+            Stage::Pose { k, .. } | Stage::Rest { k, .. } | Stage::Return { k, .. } => Some(*k),
+            Stage::Seek(s) => Some(s.k),
+            Stage::Park { .. } => None,
+        };
+        if let Some(k) = active {
+            self.watched = (self.watched + 1) % self.joints.len();
+            for i in [k, self.watched] {
+                if let Some(refusal) = self.unloaded(i)? {
+                    if matches!(stage, Stage::Seek(_)) {
+                        // The joint stops where it is: it has no calibration to hold by.
+                        self.write(k, reg::GOAL_VELOCITY, 0)?;
+                    }
+                    let (next, progress) = self.park_refused(refusal, now_s);
+                    self.stage = next;
+                    return Ok(progress);
+                }
+            }
+        }
+        let (next, progress) = match stage {
+            Stage::Pose { k, since } => self.posing(k, since, now_s)?,
+            Stage::Seek(seeking) => self.seeking(seeking, now_s)?,
+            Stage::Rest { k, since } => self.resting(k, since, now_s)?,
+            Stage::Return {
+                k,
+                since,
+                to_rad,
+                refusal,
+            } => self.returning(k, since, to_rad, refusal, now_s)?,
+            Stage::Park { since, refusal } => return self.parking(since, refusal, now_s),
+        };
+        self.stage = next;
+        Ok(progress)
+    }
+
+    /// Time a move over `rad` should take at the session's speed, with slack, s.
+    fn allowed_s(&self, rad: f64) -> f64 {
+        rad.abs() / self.speed_rad_s * 1.5 + MOVE_SLACK_S
+    }
+
+    fn posing(
+        &mut self,
+        k: usize,
+        since: f64,
+        now_s: f64,
+    ) -> Result<(Stage, Progress), SessionError> {
+        let mut all = true;
+        for (i, rad) in self.joints[k].plan.pose.clone() {
+            let (there, at) = self.arrived(i, rad)?;
+            if !there && now_s - since > self.allowed_s(std::f64::consts::PI) {
+                let refusal = Refusal::NotReached {
+                    joint: self.joints[i].taken.target.joint.clone(),
+                    wanted_deg: rad.to_degrees(),
+                    at_deg: at.to_degrees(),
+                };
+                return Ok(self.park_refused(refusal, now_s));
+            }
+            all &= there;
+        }
+        if !all {
+            return Ok((
+                Stage::Pose { k, since },
+                Progress::Working(k, Activity::Posing),
+            ));
+        }
+        let from_rad = self.observe(k)?;
+        self.joints[k].began_rad = from_rad;
+        self.begin_seek(k, Toward::Lower)?;
+        Ok((
+            self.seek(k, Toward::Lower, now_s, from_rad),
+            Progress::Working(k, Activity::Seeking(Toward::Lower, 0.0)),
+        ))
+    }
+
+    fn seek(&self, k: usize, toward: Toward, since: f64, from_rad: f64) -> Stage {
+        let limit = f32::from(self.joints[k].plan.torque_permille) / 1000.0;
+        Stage::Seek(Box::new(Seeking {
+            k,
+            toward,
+            since,
+            from_rad,
+            detector: StallDetector::with_threshold(StallKind::Joint, PUSHING_SHARE * limit, 0.1),
+        }))
+    }
+
+    /// Whether a joint's servo has unloaded its motor (a protection fired).
+    fn unloaded(&mut self, k: usize) -> Result<Option<Refusal>, SessionError> {
+        let status = ServoStatus(self.read(k, reg::STATUS)? as u8);
+        let unloading = ServoStatus::OVERHEAT | ServoStatus::OVER_CURRENT | ServoStatus::OVERLOAD;
+        Ok((status.0 & unloading != 0).then(|| Refusal::Unloaded {
+            joint: self.joints[k].taken.target.joint.clone(),
+            status: status.to_string(),
+        }))
+    }
+
+    /// Reads a joint's position into its sweep; where it is, unwrapped, rad.
+    fn observe(&mut self, k: usize) -> Result<f64, SessionError> {
+        let present = self.read(k, reg::PRESENT_POSITION)?;
+        let j = &mut self.joints[k];
+        let raw = (i64::from(present) + i64::from(j.provisional)).rem_euclid(4096);
+        j.sweep.observe(raw as u16);
+        Ok(j.sweep.position_rad())
+    }
+
+    /// Speed mode toward a stop (the servo counting down toward the lower one unless it is
+    /// inverted).
+    fn begin_seek(&mut self, k: usize, toward: Toward) -> Result<(), SessionError> {
+        let down = (toward == Toward::Lower) != self.joints[k].plan.target.stops.inverted;
+        let speed = self.speed_steps();
+        self.write(k, reg::GOAL_VELOCITY, if down { -speed } else { speed })?;
+        self.write(k, reg::OPERATING_MODE, 1)
+    }
+
+    fn seeking(
+        &mut self,
+        mut seeking: Box<Seeking>,
+        now_s: f64,
+    ) -> Result<(Stage, Progress), SessionError> {
+        let Seeking {
+            k,
+            toward,
+            since,
+            from_rad,
+            ..
+        } = *seeking;
+        let at = self.observe(k)?;
+        let load = self.read(k, reg::PRESENT_LOAD)?;
+        let stops = self.joints[k].plan.target.stops;
+        let travel = stops.upper_rad - stops.lower_rad;
+        let joint = self.joints[k].taken.target.joint.clone();
+        let moved = (at - from_rad).abs();
+        if moved > travel + self.tolerance_rad {
+            let refusal = Refusal::BeyondTravel {
+                joint,
+                swept_deg: moved.to_degrees(),
+                travel_deg: travel.to_degrees(),
+            };
+            return Ok(self.return_refused(k, refusal, now_s));
+        }
+        if now_s - since > self.allowed_s(travel) {
+            let refusal = Refusal::NoStop {
+                joint,
+                toward: toward.name(),
+                after_s: now_s - since,
+            };
+            return Ok(self.return_refused(k, refusal, now_s));
+        }
+        // Always trying: the goal is a radian beyond where it is, the way it is driven.
+        let ahead = if (toward == Toward::Lower) != stops.inverted {
+            -1.0
+        } else {
+            1.0
+        };
+        let sample = (at as f32, load as f32 / 1000.0, (at + ahead) as f32);
+        let stalled = seeking.detector.update(Some(sample), &stall_config()) != StallAction::None;
+        let progress = Progress::Working(k, Activity::Seeking(toward, moved));
+        match (stalled, toward) {
+            (false, _) => Ok((Stage::Seek(seeking), progress)),
+            (true, Toward::Lower) => {
+                self.begin_seek(k, Toward::Upper)?;
+                Ok((self.seek(k, Toward::Upper, now_s, at), progress))
+            }
+            (true, Toward::Upper) => self.calibrate(k, now_s),
+        }
+    }
+
+    /// Both stops found: the calibration chosen and written, the joint held in position mode
+    /// and sent to rest.
+    fn calibrate(&mut self, k: usize, now_s: f64) -> Result<(Stage, Progress), SessionError> {
+        let j = &self.joints[k];
+        let target = &j.taken.target;
+        let chosen = choose(
+            &target.joint,
+            &j.sweep,
+            &target.stops,
+            self.margin_rad,
+            self.tolerance_rad,
+        );
+        let calibration = match chosen {
+            Ok(c) => c,
+            Err(refusal) => return Ok(self.return_refused(k, refusal, now_s)),
+        };
+        let taken = j.taken.clone();
+        // Still pressing its stop at the torque limit while the calibration is written: it
+        // moves nowhere, and its position then reads in the calibrated frame (no wrap).
+        write_calibration(&mut self.bus, &taken, &calibration)?;
+        self.joints[k].calibration = Some(calibration);
+        let present = self.read(k, reg::PRESENT_POSITION)?;
+        self.write(k, reg::GOAL_POSITION, present)?;
+        self.write(k, reg::OPERATING_MODE, 0)?;
+        self.drive_to(k, 0.0)?;
+        Ok((
+            Stage::Rest { k, since: now_s },
+            Progress::Working(k, Activity::Resting),
+        ))
+    }
+
+    fn resting(
+        &mut self,
+        k: usize,
+        since: f64,
+        now_s: f64,
+    ) -> Result<(Stage, Progress), SessionError> {
+        let (there, at) = self.arrived(k, 0.0)?;
+        let stops = self.joints[k].plan.target.stops;
+        if !there {
+            if now_s - since > self.allowed_s(stops.upper_rad - stops.lower_rad) {
+                let refusal = Refusal::NotReached {
+                    joint: self.joints[k].taken.target.joint.clone(),
+                    wanted_deg: 0.0,
+                    at_deg: at.to_degrees(),
+                };
+                return Ok(self.park_refused(refusal, now_s));
+            }
+            return Ok((
+                Stage::Rest { k, since },
+                Progress::Working(k, Activity::Resting),
+            ));
+        }
+        if k + 1 == self.joints.len() {
+            return Ok(self.park(None, now_s));
+        }
+        // The joints the last pose held go back to rest unless the next pose holds them.
+        for (i, _) in self.joints[k].plan.pose.clone() {
+            self.drive_to(i, 0.0)?;
+        }
+        self.begin_pose(k + 1)?;
+        Ok((
+            Stage::Pose {
+                k: k + 1,
+                since: now_s,
+            },
+            Progress::Working(k + 1, Activity::Posing),
+        ))
+    }
+
+    /// A refused sweep: the joint driven back toward where its sweep began (still in speed
+    /// mode: it has no calibration), then the arm parked.
+    fn return_refused(&mut self, k: usize, refusal: Refusal, now_s: f64) -> (Stage, Progress) {
+        let to_rad = self.joints[k].began_rad;
+        (
+            Stage::Return {
+                k,
+                since: now_s,
+                to_rad,
+                refusal,
+            },
+            Progress::Working(k, Activity::Returning),
+        )
+    }
+
+    fn returning(
+        &mut self,
+        k: usize,
+        since: f64,
+        to_rad: f64,
+        refusal: Refusal,
+        now_s: f64,
+    ) -> Result<(Stage, Progress), SessionError> {
+        let at = self.observe(k)?;
+        let left = to_rad - at;
+        let travel = self.joints[k].plan.target.stops;
+        let expired = now_s - since > self.allowed_s(travel.upper_rad - travel.lower_rad);
+        if left.abs() <= ARRIVED_RAD || expired {
+            self.write(k, reg::GOAL_VELOCITY, 0)?;
+            return Ok(self.park_refused(refusal, now_s));
+        }
+        // Toward the start: the servo counts up when the unwrapped reading must grow.
+        let speed = self.speed_steps();
+        self.write(
+            k,
+            reg::GOAL_VELOCITY,
+            if left > 0.0 { speed } else { -speed },
+        )?;
+        Ok((
+            Stage::Return {
+                k,
+                since,
+                to_rad,
+                refusal,
+            },
+            Progress::Working(k, Activity::Returning),
+        ))
+    }
+
+    fn park_refused(&mut self, refusal: Refusal, now_s: f64) -> (Stage, Progress) {
+        self.park(Some(refusal), now_s)
+    }
+
+    /// Every calibrated joint to rest; the others hold where they are.
+    fn park(&mut self, refusal: Option<Refusal>, now_s: f64) -> (Stage, Progress) {
+        let k = self.joints.len().saturating_sub(1);
+        (
+            Stage::Park {
+                since: now_s,
+                refusal,
+            },
+            Progress::Working(k, Activity::Parking),
+        )
+    }
+
+    fn parking(
+        &mut self,
+        since: f64,
+        refusal: Option<Refusal>,
+        now_s: f64,
+    ) -> Result<Progress, SessionError> {
+        let mut all = true;
+        for k in 0..self.joints.len() {
+            self.drive_to(k, 0.0)?;
+            all &= self.arrived(k, 0.0)?.0;
+        }
+        if !all && now_s - since <= self.allowed_s(std::f64::consts::PI) {
+            self.stage = Stage::Park { since, refusal };
+            let k = self.joints.len().saturating_sub(1);
+            return Ok(Progress::Working(k, Activity::Parking));
+        }
+        self.release()?;
+        match refusal {
+            Some(r) => Err(SessionError::Refused(vec![r])),
+            None => Ok(Progress::Done(
+                self.joints
+                    .iter()
+                    .filter_map(|j| j.calibration.map(|c| j.taken.calibrated(c)))
+                    .collect(),
+            )),
+        }
+    }
+
+    /// Every joint's torque off and its RAM as a driver expects it (position mode, the torque
+    /// limit it had); when not every joint was calibrated, every servo given back what it held.
+    fn release(&mut self) -> Result<(), SessionError> {
+        let mut first_error = None;
+        for k in 0..self.joints.len() {
+            let values = [
+                (reg::TORQUE_ENABLE, 0),
+                (reg::GOAL_VELOCITY, 0),
+                (reg::OPERATING_MODE, 0),
+                (reg::TORQUE_LIMIT, self.joints[k].torque_limit),
+            ];
+            // Every joint is released even when one cannot be.
+            let taken = self.joints[k].taken.clone();
+            if let Err(e) = write_checked(&mut self.bus, &taken, &values, false) {
+                first_error.get_or_insert(e);
+            }
+        }
+        if self.joints.iter().any(|j| j.calibration.is_none()) {
+            let taken: Vec<Taken> = self.joints.iter().map(|j| j.taken.clone()).collect();
+            if let Err(e) = give_back(&mut self.bus, &taken) {
+                first_error.get_or_insert(e);
+            }
+        }
+        first_error.map_or(Ok(()), Err)
+    }
+}
+
+/// The supervisor's stall rule over the calibration's window.
+fn stall_config() -> supervisor::config::StallConfig {
+    supervisor::config::StallConfig {
+        window: WINDOW,
+        current_fraction: 0.0,
+        gripper_current_fraction: 0.0,
+        static_rad: STILL_RAD,
+        min_error_rad: 0.1,
+        gripper_min_error_rad: 0.1,
+        new_target_rad: 0.2,
+        gripper_hold_percent: 0.0,
+        reduced_percent: 0.0,
+    }
+}

@@ -1,0 +1,346 @@
+//! The automatic calibration on the simulated left arm, in memory: every servo's horn on
+//! another tooth (seeded), no hand: each joint driven into its stops by its own servo at the
+//! plan's torque limit through the arm's own mechanics (gravity, the stops' give), the
+//! calibration chosen and written. Each joint then reads where the simulator has it within 1°,
+//! each limit sits the margin inside its real stop, and no motor pressed a stop harder than
+//! its sweep's torque limit.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+mod common;
+
+use bus_driver::bus::Bus;
+use commission::automatic::{Activity, Automatic, Plan, Progress, Toward};
+use commission::calibrate::Refusal;
+use commission::session::{Calibrated, SessionError};
+use common::{as_set_up_by_the_driver, left_arm, line, targets};
+use feetech::registers as reg;
+use sim::rng::Rng;
+use sim::{RobotDescription, SimBus};
+use std::cell::RefCell;
+use std::time::Duration;
+
+const MARGIN_RAD: f64 = 5.0 * std::f64::consts::PI / 180.0;
+const TOLERANCE_RAD: f64 = 0.1;
+
+fn plan(robot: &RobotDescription) -> Plan {
+    let arm = robot.bus("left_arm").unwrap().arm.as_ref().unwrap();
+    Plan::of(
+        arm.calibration.as_ref().unwrap(),
+        &targets(robot),
+        MARGIN_RAD,
+        TOLERANCE_RAD,
+    )
+    .unwrap()
+}
+
+/// The arm hanging (each joint at rest, its torque off), each servo set up as the driver
+/// sets it up but not calibrated, each horn `horn(id)` steps off.
+fn assembled(mut horn: impl FnMut(u8) -> f64) -> RefCell<SimBus> {
+    let mut sim = as_set_up_by_the_driver(left_arm());
+    for id in 1..=8 {
+        let s = sim.servo_mut(id).unwrap();
+        s.clear_calibration();
+        s.fit_horn(horn(id));
+    }
+    RefCell::new(sim)
+}
+
+/// Ticks the session at 50 Hz until it ends (at most `within_s` of simulated time).
+fn run(bus: &RefCell<SimBus>, plan: Plan, within_s: f64) -> Result<Vec<Calibrated>, SessionError> {
+    let hung: Vec<f64> = (1..=7)
+        .map(|id| bus.borrow_mut().servo_mut(id).unwrap().angle)
+        .collect();
+    let mut t = bus.borrow().time();
+    let mut session = Automatic::start(Bus::new(line(bus), Duration::from_micros(600)), plan, t)?;
+    let end = t + within_s;
+    while t < end {
+        t += 0.02;
+        bus.borrow_mut().advance_to(t, 0.001);
+        let p = session.tick(t)?;
+        if let Progress::Working(0, _) = p {
+            // While the gripper is swept the rest of the arm holds where it hung.
+            let mut b = bus.borrow_mut();
+            for (id, was) in (1..=7).zip(&hung) {
+                let at = b.servo_mut(id).unwrap().angle;
+                assert!(
+                    (at - was).abs() < 0.05,
+                    "servo {id} moved from {was} to {at} rad"
+                );
+            }
+        }
+        if let Progress::Done(c) = p {
+            return Ok(c);
+        }
+    }
+    panic!("not done within {within_s} s");
+}
+
+/// Where the servo reads the joint at `q` through `calibration`, rad.
+fn read_at(
+    bus: &RefCell<SimBus>,
+    id: u8,
+    q: f64,
+    cal: &bus_driver::calibration::JointCalibration,
+) -> f64 {
+    let mut b = bus.borrow_mut();
+    let servo = b.servo_mut(id).unwrap();
+    let was = servo.angle;
+    servo.angle = q;
+    let mut raw = [0u8; 2];
+    assert!(servo.read(reg::PRESENT_POSITION.addr, 2, &mut raw));
+    servo.angle = was;
+    cal.to_rad(i32::from(u16::from_le_bytes(raw)))
+}
+
+#[test]
+fn each_zero_within_a_degree_and_no_stop_pressed_above_the_torque_limit_over_seeds() {
+    let robot = RobotDescription::nori_a3();
+    let plan = plan(&robot);
+    let (mut worst_zero, mut least_inside, mut hardest): (f64, f64, u16) = (0.0, f64::MAX, 0);
+    for seed in 1..=8 {
+        let mut rng = Rng::new(seed);
+        let bus = assembled(|_| rng.range(-400.0, 400.0));
+        let t0 = bus.borrow().time();
+        let chosen = run(&bus, plan.clone(), 900.0).unwrap();
+        let took = bus.borrow().time() - t0;
+        assert_eq!(chosen.len(), 8);
+        for id in 1..=8 {
+            // Written to flash, and every torque off at the end.
+            let mut b = bus.borrow_mut();
+            let s = b.servo_mut(id).unwrap();
+            assert!(!s.torque_enabled(), "seed {seed}: servo {id} left driving");
+            s.reboot();
+        }
+        for c in &chosen {
+            let sweep = plan.sweeps.iter().find(|s| s.target.id == c.id).unwrap();
+            let stops = sweep.target.stops;
+            let cal = &c.calibration;
+            cal.validate(&c.joint).unwrap();
+            // The zero: where the joint reads at its true zero.
+            let zero = read_at(&bus, c.id, 0.0, cal);
+            worst_zero = worst_zero.max(zero.abs().to_degrees());
+            assert!(
+                zero.abs() < 1f64.to_radians(),
+                "seed {seed}: {} reads {:.2}° at its zero",
+                c.joint,
+                zero.to_degrees()
+            );
+            // Each limit, where the joint truly is when it reads there, inside its stop.
+            let (lo, hi) = cal.range_rad();
+            let inside = [lo - zero - stops.lower_rad, stops.upper_rad - (hi - zero)];
+            for d in inside {
+                least_inside = least_inside.min(d.to_degrees());
+                assert!(
+                    d > MARGIN_RAD - 1f64.to_radians(),
+                    "seed {seed}: {} has a limit {:.2}° inside its stop",
+                    c.joint,
+                    d.to_degrees()
+                );
+            }
+            let pressed = bus
+                .borrow_mut()
+                .servo_mut(c.id)
+                .unwrap()
+                .log
+                .stop_press_max_permille;
+            hardest = hardest.max(pressed);
+            assert!(
+                pressed <= sweep.torque_permille,
+                "seed {seed}: {} pressed its stop at {pressed} ‰, its limit {} ‰",
+                c.joint,
+                sweep.torque_permille
+            );
+        }
+        eprintln!("seed {seed}: calibrated in {took:.0} s of simulated time");
+    }
+    eprintln!(
+        "automatic, 8 seeds: worst zero {worst_zero:.2}°, least inside a stop {least_inside:.2}°, \
+         hardest press {hardest} ‰"
+    );
+}
+
+/// Each servo's homing offset and limits, in flash (as a power cycle gives them back).
+fn held(bus: &RefCell<SimBus>) -> Vec<[i32; 3]> {
+    let mut b = bus.borrow_mut();
+    (1..=8)
+        .map(|id| {
+            let s = b.servo_mut(id).unwrap();
+            let mut copy = s.clone();
+            copy.reboot();
+            [
+                copy.get(reg::HOMING_OFFSET),
+                copy.get(reg::MIN_POSITION_LIMIT),
+                copy.get(reg::MAX_POSITION_LIMIT),
+            ]
+        })
+        .collect()
+}
+
+/// Runs a calibration that must be refused: the refusals, after checking that every servo was
+/// given back what it held (in flash and in RAM) and left with its torque off.
+fn refused(bus: &RefCell<SimBus>, plan: Plan) -> Vec<Refusal> {
+    let before = held(bus);
+    let e = run(bus, plan, 900.0).unwrap_err();
+    let SessionError::Refused(refusals) = e else {
+        panic!("{e}")
+    };
+    assert_eq!(held(bus), before);
+    let mut b = bus.borrow_mut();
+    for id in 1..=8 {
+        let s = b.servo_mut(id).unwrap();
+        assert!(!s.torque_enabled(), "servo {id} left driving");
+        assert_eq!(s.get(reg::OPERATING_MODE), 0, "servo {id}");
+        assert_eq!(s.get(reg::HOMING_OFFSET), before[usize::from(id) - 1][0]);
+    }
+    refusals
+}
+
+/// The sim's left arm built with `change` made to its mechanics (the description the plan
+/// reads does not know it), set up by the driver, calibrated before with its horns 30–240
+/// steps off (what must be given back).
+fn changed_arm(change: impl FnOnce(&mut sim::description::ArmDescription)) -> RefCell<SimBus> {
+    let mut robot = RobotDescription::nori_a3();
+    let d = robot.bus.iter_mut().find(|b| b.name == "left_arm").unwrap();
+    change(d.arm.as_mut().unwrap());
+    let mut sim = as_set_up_by_the_driver(SimBus::new(&robot, robot.bus("left_arm").unwrap()));
+    for id in 1..=8 {
+        sim.servo_mut(id).unwrap().fit_horn(f64::from(id) * 30.0);
+    }
+    RefCell::new(sim)
+}
+
+/// Something in the way of the elbow 30° before its upper stop: refused, naming the joint and
+/// what to look for, and nothing written.
+#[test]
+fn a_joint_blocked_short_of_its_stop_is_refused_and_every_servo_left_as_found() {
+    let robot = RobotDescription::nori_a3();
+    let bus = changed_arm(|arm| arm.joint[3].upper_rad -= 0.52);
+    // Hanging, it rests on the obstacle.
+    bus.borrow_mut().advance_to(2.0, 0.001);
+    let began = bus.borrow_mut().servo_mut(4).unwrap().angle;
+    let refusals = refused(&bus, plan(&robot));
+    assert!(
+        matches!(&refusals[..], [Refusal::NotCovered { joint, .. }] if joint == "left_elbow"),
+        "{refusals:?}"
+    );
+    assert!(refusals[0].to_string().contains("something is in its way"));
+    // Driven back to where its sweep began before its torque went off.
+    let angle = bus.borrow_mut().servo_mut(4).unwrap().angle;
+    assert!(
+        (angle - began).abs() < 0.1,
+        "the elbow began at {began} rad, was left at {angle} rad"
+    );
+}
+
+/// A wrist whose lower stop broke off (25° more travel): the sweep stops once the joint has
+/// gone further than its travel, and is refused.
+#[test]
+fn a_joint_that_runs_past_its_travel_is_stopped_and_refused() {
+    let robot = RobotDescription::nori_a3();
+    let bus = changed_arm(|arm| arm.joint[5].lower_rad -= 0.45);
+    let refusals = refused(&bus, plan(&robot));
+    assert!(
+        matches!(&refusals[..], [Refusal::BeyondTravel { joint, .. }] if joint == "left_wrist_pitch"),
+        "{refusals:?}"
+    );
+    let angle = bus.borrow_mut().servo_mut(6).unwrap().angle;
+    assert!(
+        angle > -1.8 - 0.45 + 0.05,
+        "pressed into its stop at {angle} rad"
+    );
+}
+
+/// A torque limit too low to lift the arm sideways: the shoulder's roll stalls under gravity
+/// before its stop. Refused as a travel short of the description's, not taken for a stop.
+#[test]
+fn a_stall_under_gravity_is_not_taken_for_a_stop() {
+    let robot = RobotDescription::nori_a3();
+    let mut plan = plan(&robot);
+    let roll = plan
+        .sweeps
+        .iter_mut()
+        .find(|s| s.target.joint == "left_shoulder_roll")
+        .unwrap();
+    roll.torque_permille = 100;
+    let bus = changed_arm(|_| {});
+    let refusals = refused(&bus, plan);
+    assert!(
+        matches!(&refusals[..], [Refusal::NotCovered { joint, .. }] if joint == "left_shoulder_roll"),
+        "{refusals:?}"
+    );
+}
+
+/// A shoulder whose over-current protection is set at 1 A (not as the driver sets it up): it
+/// unloads its motor under the calibration's torque. Refused, naming it and what to do.
+#[test]
+fn a_servo_whose_protection_fires_stops_the_calibration() {
+    let robot = RobotDescription::nori_a3();
+    let bus = changed_arm(|_| {});
+    {
+        let mut b = bus.borrow_mut();
+        let s = b.servo_mut(1).unwrap();
+        assert!(s.write(reg::LOCK.addr, &[0]));
+        // 6.5 mA a count.
+        assert!(s.write(reg::PROTECTION_CURRENT.addr, &154u16.to_le_bytes()));
+        assert!(s.write(reg::LOCK.addr, &[1]));
+    }
+    let refusals = refused(&bus, plan(&robot));
+    let [Refusal::Unloaded { joint, status }] = &refusals[..] else {
+        panic!("{refusals:?}")
+    };
+    assert!(joint.starts_with("left_shoulder"), "{joint}");
+    assert!(status.contains("over-current"), "{status}");
+    assert!(refusals[0].to_string().contains("nori servo setup"));
+}
+
+/// Stopped in the middle of a sweep (the operator's Ctrl-C, or out of time): the joint driven
+/// back, the arm parked, every servo given back what it held; the joints calibrated before it
+/// are not kept (nothing half-calibrated).
+#[test]
+fn a_session_stopped_mid_sweep_leaves_every_servo_as_found() {
+    let robot = RobotDescription::nori_a3();
+    let bus = changed_arm(|_| {});
+    let before = held(&bus);
+    let mut t = bus.borrow().time();
+    let began = t;
+    let mut session = Automatic::start(
+        Bus::new(line(&bus), Duration::from_micros(600)),
+        plan(&robot),
+        t,
+    )
+    .unwrap();
+    // Into the elbow's sweep (the fifth joint), then stopped.
+    let mut elbow_began = None;
+    let e = loop {
+        t += 0.02;
+        bus.borrow_mut().advance_to(t, 0.001);
+        match session.tick(t) {
+            Ok(Progress::Working(4, Activity::Seeking(Toward::Upper, moved))) if moved > 0.5 => {
+                session.stop(t, began)
+            }
+            Ok(Progress::Working(4, Activity::Posing)) => {
+                elbow_began = Some(bus.borrow_mut().servo_mut(4).unwrap().angle);
+            }
+            Ok(Progress::Done(_)) => panic!("not stopped"),
+            Ok(_) => {}
+            Err(e) => break e,
+        }
+        assert!(t < began + 900.0);
+    };
+    let SessionError::Refused(refusals) = e else {
+        panic!("{e}")
+    };
+    assert!(
+        matches!(&refusals[..], [Refusal::Stopped { .. }]),
+        "{refusals:?}"
+    );
+    assert_eq!(held(&bus), before);
+    let mut b = bus.borrow_mut();
+    let elbow = b.servo_mut(4).unwrap().angle;
+    let began_at = elbow_began.unwrap();
+    assert!((elbow - began_at).abs() < 0.1, "{began_at} → {elbow}");
+    for id in 1..=8 {
+        assert!(!b.servo_mut(id).unwrap().torque_enabled(), "servo {id}");
+    }
+}
