@@ -344,3 +344,64 @@ fn a_session_stopped_mid_sweep_leaves_every_servo_as_found() {
         assert!(!b.servo_mut(id).unwrap().torque_enabled(), "servo {id}");
     }
 }
+
+/// Stopped after every joint was calibrated, as the last one goes back to rest (or a session
+/// dropped halfway): not one calibration is kept, in RAM or in flash.
+#[test]
+fn a_session_stopped_after_the_last_sweep_or_dropped_keeps_no_calibration() {
+    let robot = RobotDescription::nori_a3();
+    for drop_it in [false, true] {
+        let bus = changed_arm(|_| {});
+        let before = held(&bus);
+        let offsets = |bus: &RefCell<SimBus>| -> Vec<i32> {
+            (1..=8)
+                .map(|id| {
+                    bus.borrow_mut()
+                        .servo_mut(id)
+                        .unwrap()
+                        .get(reg::HOMING_OFFSET)
+                })
+                .collect()
+        };
+        let in_ram = offsets(&bus);
+        let mut t = bus.borrow().time();
+        let began = t;
+        let mut session = Automatic::start(
+            Bus::new(line(&bus), Duration::from_micros(600)),
+            plan(&robot),
+            t,
+        )
+        .unwrap();
+        let mut stopped = false;
+        loop {
+            t += 0.02;
+            bus.borrow_mut().advance_to(t, 0.001);
+            match session.tick(t) {
+                Ok(Progress::Working(7, Activity::Resting)) if !stopped => {
+                    stopped = true;
+                    if drop_it {
+                        break;
+                    }
+                    session.stop(t, began);
+                }
+                Ok(Progress::Done(_)) => panic!("not stopped"),
+                Ok(_) => {}
+                Err(SessionError::Refused(r)) => {
+                    assert!(matches!(&r[..], [Refusal::Stopped { .. }]), "{r:?}");
+                    break;
+                }
+                Err(e) => panic!("{e}"),
+            }
+            assert!(t < began + 900.0);
+        }
+        drop(session);
+        assert_eq!(held(&bus), before, "dropped: {drop_it}");
+        assert_eq!(offsets(&bus), in_ram, "dropped: {drop_it}");
+        let mut b = bus.borrow_mut();
+        for id in 1..=8 {
+            let s = b.servo_mut(id).unwrap();
+            assert!(!s.torque_enabled(), "servo {id}");
+            assert_eq!(s.get(reg::OPERATING_MODE), 0, "servo {id}");
+        }
+    }
+}
