@@ -449,8 +449,18 @@ impl RobotDescription {
                 return Err(site.invalid("name", "duplicate bus name".into()));
             }
             let ids = validate_bus_servos(bus, &self.servo_models, &site)?;
+            // Each servo's no-load speed on this bus's supply, rad/s.
+            let free_speed: BTreeMap<u8, f64> = (bus.servo.iter())
+                .filter_map(|s| {
+                    let r = self.servo_models.get(&s.model)?;
+                    Some((s.id, r.no_load_speed_rad_s * bus.supply_v / r.rated_voltage))
+                })
+                .collect();
             if let Some(arm) = &mut bus.arm {
                 validate_arm(arm, &ids, &site)?;
+                if let Some(plan) = &arm.calibration {
+                    validate_calibration_plan(arm, plan, &free_speed, &site)?;
+                }
             }
             if let Some(w) = &bus.wheels {
                 validate_wheels(w, &ids, &site)?;
@@ -602,17 +612,21 @@ fn validate_arm(
             return Err(site.not_on_bus("arm.gripper.servo", g.servo));
         }
     }
-    if let Some(plan) = &arm.calibration {
-        validate_calibration_plan(arm, plan, site)?;
-    }
     Ok(())
 }
 
+/// The share of full duty a servo needs over what its speed takes (back-EMF): the rest is for
+/// friction, gravity and acceleration.
+const SPEED_DUTY_FACTOR: f64 = 1.5;
+
 /// A calibration plan sweeps every joint of the arm and its gripper once, at a torque that
-/// presses gently, and holds in its poses only joints already swept, inside their stops.
+/// presses gently yet turns the servo at the plan's speed (`free_speed`: each servo's no-load
+/// speed on its bus's supply), and holds in its poses only joints already swept, inside their
+/// stops.
 fn validate_calibration_plan(
     arm: &ArmDescription,
     plan: &CalibrationPlan,
+    free_speed: &BTreeMap<u8, f64>,
     site: &BusSite,
 ) -> Result<(), DescriptionError> {
     let key = "arm.calibration";
@@ -645,6 +659,18 @@ fn validate_calibration_plan(
             return Err(site.invalid(
                 &at,
                 format!("torque-percent {} is outside (0, 50]", s.torque_percent),
+            ));
+        }
+        let needed = free_speed
+            .get(&s.servo)
+            .map_or(0.0, |v| 100.0 * SPEED_DUTY_FACTOR * plan.speed_rad_s / v);
+        if s.torque_percent < needed {
+            return Err(site.invalid(
+                &at,
+                format!(
+                    "torque-percent {} cannot turn it at {} rad/s: {needed:.1} or more",
+                    s.torque_percent, plan.speed_rad_s
+                ),
             ));
         }
         for p in &s.pose {
@@ -824,12 +850,12 @@ mod tests {
     /// it has not calibrated yet (or outside its stops), press hard, or crawl nowhere.
     #[test]
     fn a_calibration_plan_that_is_not_safe_is_refused() {
-        let gripper = "  { servo = 8, torque-percent = 15 },\n";
+        let gripper = "  { servo = 8, torque-percent = 10 },\n";
         for (from, to, says) in [
             (gripper, "", "every joint of the arm"),
             (
                 gripper,
-                "  { servo = 8, torque-percent = 15 },\n  { servo = 8, torque-percent = 15 },\n",
+                "  { servo = 8, torque-percent = 10 },\n  { servo = 8, torque-percent = 10 },\n",
                 "swept twice",
             ),
             (
@@ -838,10 +864,32 @@ mod tests {
                 "not a joint",
             ),
             (
-                "{ servo = 8, torque-percent = 15 }",
+                "{ servo = 8, torque-percent = 10 }",
                 "{ servo = 8, torque-percent = 60 }",
                 "outside (0, 50]",
             ),
+            (
+                "{ servo = 8, torque-percent = 10 }",
+                "{ servo = 8, torque-percent = 0 }",
+                "outside (0, 50]",
+            ),
+            (
+                "pose = [{ servo = 4, rad = -2.25 }]",
+                "pose = [{ servo = 1, rad = 0.5 }]",
+                "only a joint swept before it",
+            ),
+            (
+                "pose = [{ servo = 4, rad = -2.25 }]",
+                "pose = [{ servo = 4, rad = -2.4 }]",
+                "inside its stops",
+            ),
+            ("speed-rad-s = 0.3", "speed-rad-s = 1.5", "speed-rad-s"),
+            (
+                "speed-rad-s = 0.3",
+                "speed-rad-s = 0.5",
+                "cannot turn it at 0.5 rad/s",
+            ),
+            ("lift-m = 0.6", "lift-m = -0.1", "lift-m"),
             (
                 "pose = [{ servo = 4, rad = -2.25 }]",
                 "pose = [{ servo = 2, rad = 0.5 }]",

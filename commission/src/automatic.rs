@@ -18,7 +18,8 @@ use crate::session::{
     self, give_back, write_calibration, write_checked, Calibrated, JointToCalibrate, SessionError,
     Taken,
 };
-use body::description::CalibrationPlan;
+use body::description::BusDescription;
+use bus_driver::backstops::calibration_settings;
 use bus_driver::bus::Bus;
 use bus_driver::calibration::{JointCalibration, CENTER, STEPS_PER_RAD};
 use bus_driver::transport::Transport;
@@ -50,46 +51,60 @@ pub struct Plan {
     pub tolerance_rad: f64,
 }
 
-/// A description's plan that names a joint not among those to calibrate.
+/// Why a description gives no plan over the joints to calibrate.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("the description's calibration plan sweeps servo {0}, which is not among the joints to calibrate")]
-pub struct UnknownServo(pub u8);
+pub enum PlanError {
+    /// The bus has no arm with a calibration plan.
+    #[error(
+        "the description gives bus {0} no calibration plan (`[bus.arm.calibration]`): \
+         calibrate it by hand"
+    )]
+    NoPlan(String),
+    /// The plan sweeps a servo whose joint is not among those to calibrate.
+    #[error(
+        "the description's calibration plan sweeps servo {0}, whose joint is not among those \
+         the driver's configuration names"
+    )]
+    UnknownServo(u8),
+}
 
 impl Plan {
-    /// The description's plan over `targets` (every joint the plan sweeps among them).
+    /// The description's plan for `bus` over `targets`: each servo the plan names is the
+    /// target of the joint the description gives that servo (the driver's configuration may
+    /// number the servos otherwise).
     pub fn of(
-        described: &CalibrationPlan,
+        bus: &BusDescription,
         targets: &[JointToCalibrate],
         margin_rad: f64,
         tolerance_rad: f64,
-    ) -> Result<Plan, UnknownServo> {
-        let index = |servo: u8| {
-            described
-                .sweep
+    ) -> Result<Plan, PlanError> {
+        let described = (bus.arm.as_ref())
+            .and_then(|a| a.calibration.as_ref())
+            .ok_or_else(|| PlanError::NoPlan(bus.name.clone()))?;
+        let target = |servo: u8| {
+            let joint = bus.servo.iter().find(|s| s.id == servo).map(|s| &s.joint);
+            targets
                 .iter()
-                .position(|s| s.servo == servo)
-                .ok_or(UnknownServo(servo))
+                .position(|t| Some(&t.joint) == joint)
+                .ok_or(PlanError::UnknownServo(servo))
         };
-        let sweeps = described
-            .sweep
-            .iter()
+        let index = |servo: u8| {
+            (described.sweep.iter())
+                .position(|s| s.servo == servo)
+                .ok_or(PlanError::UnknownServo(servo))
+        };
+        let sweeps = (described.sweep.iter())
             .map(|s| {
-                let target = targets
-                    .iter()
-                    .find(|t| t.id == s.servo)
-                    .ok_or(UnknownServo(s.servo))?;
-                let pose = s
-                    .pose
-                    .iter()
+                let pose = (s.pose.iter())
                     .map(|p| Ok((index(p.servo)?, p.rad)))
-                    .collect::<Result<_, UnknownServo>>()?;
+                    .collect::<Result<_, PlanError>>()?;
                 Ok(PlannedSweep {
-                    target: target.clone(),
+                    target: targets[target(s.servo)?].clone(),
                     torque_permille: (s.torque_percent * 10.0).round() as u16,
                     pose,
                 })
             })
-            .collect::<Result<_, UnknownServo>>()?;
+            .collect::<Result<_, PlanError>>()?;
         Ok(Plan {
             sweeps,
             speed_rad_s: described.speed_rad_s,
@@ -150,6 +165,12 @@ const STILL_RAD: f32 = 0.01;
 const PUSHING_SHARE: f32 = 0.8;
 /// A joint is where it was driven within this, rad.
 const ARRIVED_RAD: f64 = 0.05;
+/// How far above its torque limit a joint's load may read before the limit is judged not
+/// to hold, 0.1 % (a reading's noise).
+const LOAD_SLACK: i32 = 50;
+/// How far a driven joint may go the other way (a start's sag) before it is judged to turn
+/// the wrong way, rad.
+const WRONG_WAY_RAD: f64 = 0.2;
 /// Longest a move to a pose or to rest may take beyond its travel at the speed, s.
 const MOVE_SLACK_S: f64 = 5.0;
 
@@ -163,6 +184,8 @@ struct Joint {
     sweep: Sweep,
     /// Where its sweep began, unwrapped, rad: where a refused sweep drives it back to.
     began_rad: f64,
+    /// In speed mode with a speed goal (it turns until told otherwise).
+    turning: bool,
     calibration: Option<JointCalibration>,
 }
 
@@ -192,6 +215,8 @@ enum Stage {
         since: f64,
         to_rad: f64,
         refusal: Refusal,
+        /// Something in its way back stops it there.
+        detector: Box<StallDetector>,
     },
     Park {
         since: f64,
@@ -209,6 +234,8 @@ pub struct Automatic<T: Transport> {
     stage: Stage,
     /// The held joint whose protections are read next (one a tick, in turn).
     watched: usize,
+    /// Every joint released (torque off, RAM as a driver expects it): the session is over.
+    released: bool,
 }
 
 impl<T: Transport> Automatic<T> {
@@ -225,16 +252,17 @@ impl<T: Transport> Automatic<T> {
             tolerance_rad: plan.tolerance_rad,
             stage: Stage::Pose { k: 0, since: now_s },
             watched: 0,
+            released: false,
         };
         for p in plan.sweeps {
             if let Err(e) = session.take(p) {
                 // Best effort: the error that stopped the session is the one to report.
-                let _ = session.release();
+                let _ = session.release(false);
                 return Err(e);
             }
         }
         if let Err(e) = session.begin_pose(0) {
-            let _ = session.release();
+            let _ = session.release(false);
             return Err(e);
         }
         Ok(session)
@@ -264,6 +292,7 @@ impl<T: Transport> Automatic<T> {
             torque_limit,
             sweep: Sweep::default(),
             began_rad: 0.0,
+            turning: false,
             calibration: None,
         });
         let values = [
@@ -272,7 +301,19 @@ impl<T: Transport> Automatic<T> {
             (reg::MAX_POSITION_LIMIT, 4095),
         ];
         write_checked(&mut self.bus, &taken, &values, false)?;
-        self.hold(self.joints.len() - 1)
+        let k = self.joints.len() - 1;
+        // Everything below relies on the firmware applying a homing offset written to RAM.
+        let reads = self.read(k, reg::PRESENT_POSITION)?;
+        if (reads - CENTER as i32).abs() > 8 {
+            return Err(SessionError::Refused(vec![Refusal::FirmwareDiffers {
+                joint: taken.target.joint.clone(),
+                what: format!(
+                    "given a homing offset to read 2048 where it stands (Lock closed), it reads \
+                     {reads}"
+                ),
+            }]));
+        }
+        self.hold(k)
     }
 
     /// Holds a joint where it is, in position mode at its torque limit.
@@ -364,9 +405,9 @@ impl<T: Transport> Automatic<T> {
     /// every servo back what it held and returns [`SessionError::Refused`].
     pub fn tick(&mut self, now_s: f64) -> Result<Progress, SessionError> {
         let result = self.step(now_s);
-        if result.is_err() {
+        if result.is_err() && !self.released {
             // Best effort: the line failed, so the error that stopped it is the one to report.
-            let _ = self.release();
+            let _ = self.release(false);
         }
         result
     }
@@ -380,22 +421,23 @@ impl<T: Transport> Automatic<T> {
             },
         );
         let active = match &stage {
-            Stage::Pose { k, .. } | Stage::Rest { k, .. } | Stage::Return { k, .. } => Some(*k),
-            Stage::Seek(s) => Some(s.k),
-            Stage::Park { .. } => None,
+            Stage::Pose { k, .. } | Stage::Rest { k, .. } | Stage::Return { k, .. } => *k,
+            Stage::Seek(s) => s.k,
+            Stage::Park { .. } => self.watched,
         };
-        if let Some(k) = active {
-            self.watched = (self.watched + 1) % self.joints.len();
-            for i in [k, self.watched] {
-                if let Some(refusal) = self.unloaded(i)? {
-                    if matches!(stage, Stage::Seek(_)) {
-                        // The joint stops where it is: it has no calibration to hold by.
-                        self.write(k, reg::GOAL_VELOCITY, 0)?;
-                    }
-                    let (next, progress) = self.park_refused(refusal, now_s);
-                    self.stage = next;
-                    return Ok(progress);
-                }
+        self.watched = (self.watched + 1) % self.joints.len();
+        for i in [active, self.watched] {
+            if let Some(refusal) = self.unloaded(i)? {
+                let refusal = match stage {
+                    // Refused already: that is the refusal to report.
+                    Stage::Park {
+                        refusal: Some(first),
+                        ..
+                    } => first,
+                    _ => refusal,
+                };
+                self.stage = self.park_refused(refusal, now_s).0;
+                return Ok(Progress::Working(active, Activity::Parking));
             }
         }
         let (next, progress) = match stage {
@@ -407,7 +449,8 @@ impl<T: Transport> Automatic<T> {
                 since,
                 to_rad,
                 refusal,
-            } => self.returning(k, since, to_rad, refusal, now_s)?,
+                detector,
+            } => self.returning(k, (since, to_rad), refusal, detector, now_s)?,
             Stage::Park { since, refusal } => return self.parking(since, refusal, now_s),
         };
         self.stage = next;
@@ -454,24 +497,51 @@ impl<T: Transport> Automatic<T> {
     }
 
     fn seek(&self, k: usize, toward: Toward, since: f64, from_rad: f64) -> Stage {
-        let limit = f32::from(self.joints[k].plan.torque_permille) / 1000.0;
         Stage::Seek(Box::new(Seeking {
             k,
             toward,
             since,
             from_rad,
-            detector: StallDetector::with_threshold(StallKind::Joint, PUSHING_SHARE * limit, 0.1),
+            detector: self.detector(k),
         }))
+    }
+
+    /// The stall rule for a joint driven at its torque limit.
+    fn detector(&self, k: usize) -> StallDetector {
+        let limit = f32::from(self.joints[k].plan.torque_permille) / 1000.0;
+        StallDetector::with_threshold(StallKind::Joint, PUSHING_SHARE * limit, 0.1)
     }
 
     /// Whether a joint's servo has unloaded its motor (a protection fired).
     fn unloaded(&mut self, k: usize) -> Result<Option<Refusal>, SessionError> {
         let status = ServoStatus(self.read(k, reg::STATUS)? as u8);
-        let unloading = ServoStatus::OVERHEAT | ServoStatus::OVER_CURRENT | ServoStatus::OVERLOAD;
+        // The protections that unload the motor, and an encoder that cannot be trusted.
+        let unloading = ServoStatus::OVERHEAT
+            | ServoStatus::OVER_CURRENT
+            | ServoStatus::OVERLOAD
+            | ServoStatus::ANGLE_SENSOR;
         Ok((status.0 & unloading != 0).then(|| Refusal::Unloaded {
             joint: self.joints[k].taken.target.joint.clone(),
             status: status.to_string(),
         }))
+    }
+
+    /// What a swept joint does that the calibration does not expect: pressing harder than
+    /// its torque limit allows, or going the other way than it is driven (`progress_rad`, in
+    /// the direction driven).
+    fn misbehaves(&self, k: usize, load: i32, progress_rad: f64) -> Option<String> {
+        let limit = i32::from(self.joints[k].plan.torque_permille);
+        if load.abs() > limit + LOAD_SLACK {
+            return Some(format!(
+                "Present_Load {load} ‰ beyond its Torque_Limit {limit} ‰"
+            ));
+        }
+        (progress_rad < -WRONG_WAY_RAD).then(|| {
+            format!(
+                "driven one way, it went {progress_rad:.2} rad the other: it turns the other \
+                 way in speed mode, or its torque limit cannot hold it against gravity"
+            )
+        })
     }
 
     /// Reads a joint's position into its sweep; where it is, unwrapped, rad.
@@ -488,8 +558,14 @@ impl<T: Transport> Automatic<T> {
     fn begin_seek(&mut self, k: usize, toward: Toward) -> Result<(), SessionError> {
         let down = (toward == Toward::Lower) != self.joints[k].plan.target.stops.inverted;
         let speed = self.speed_steps();
-        self.write(k, reg::GOAL_VELOCITY, if down { -speed } else { speed })?;
-        self.write(k, reg::OPERATING_MODE, 1)
+        let taken = self.joints[k].taken.clone();
+        let values = [
+            (reg::GOAL_VELOCITY, if down { -speed } else { speed }),
+            (reg::OPERATING_MODE, 1),
+        ];
+        write_checked(&mut self.bus, &taken, &values, false)?;
+        self.joints[k].turning = true;
+        Ok(())
     }
 
     fn seeking(
@@ -532,6 +608,10 @@ impl<T: Transport> Automatic<T> {
         } else {
             1.0
         };
+        if let Some(what) = self.misbehaves(k, load, (at - from_rad) * ahead) {
+            let refusal = Refusal::FirmwareDiffers { joint, what };
+            return Ok(self.return_refused(k, refusal, now_s));
+        }
         let sample = (at as f32, load as f32 / 1000.0, (at + ahead) as f32);
         let stalled = seeking.detector.update(Some(sample), &stall_config()) != StallAction::None;
         let progress = Progress::Working(k, Activity::Seeking(toward, moved));
@@ -562,13 +642,16 @@ impl<T: Transport> Automatic<T> {
             Err(refusal) => return Ok(self.return_refused(k, refusal, now_s)),
         };
         let taken = j.taken.clone();
-        // Still pressing its stop at the torque limit while the calibration is written: it
-        // moves nowhere, and its position then reads in the calibrated frame (no wrap).
-        write_calibration(&mut self.bus, &taken, &calibration)?;
+        // Still pressing its stop at the torque limit while the calibration is written (to
+        // RAM: the flash gets every joint's at the end, or none): it moves nowhere, and its
+        // position then reads in the calibrated frame (no wrap).
+        let settings = calibration_settings(&calibration).map(|s| (s.register, s.value));
+        write_checked(&mut self.bus, &taken, &settings, false)?;
         self.joints[k].calibration = Some(calibration);
         let present = self.read(k, reg::PRESENT_POSITION)?;
-        self.write(k, reg::GOAL_POSITION, present)?;
-        self.write(k, reg::OPERATING_MODE, 0)?;
+        let values = [(reg::GOAL_POSITION, present), (reg::OPERATING_MODE, 0)];
+        write_checked(&mut self.bus, &taken, &values, false)?;
+        self.joints[k].turning = false;
         self.drive_to(k, 0.0)?;
         Ok((
             Stage::Rest { k, since: now_s },
@@ -625,6 +708,7 @@ impl<T: Transport> Automatic<T> {
                 since: now_s,
                 to_rad,
                 refusal,
+                detector: Box::new(self.detector(k)),
             },
             Progress::Working(k, Activity::Returning),
         )
@@ -633,16 +717,19 @@ impl<T: Transport> Automatic<T> {
     fn returning(
         &mut self,
         k: usize,
-        since: f64,
-        to_rad: f64,
+        (since, to_rad): (f64, f64),
         refusal: Refusal,
+        mut detector: Box<StallDetector>,
         now_s: f64,
     ) -> Result<(Stage, Progress), SessionError> {
         let at = self.observe(k)?;
+        let load = self.read(k, reg::PRESENT_LOAD)?;
         let left = to_rad - at;
         let travel = self.joints[k].plan.target.stops;
         let expired = now_s - since > self.allowed_s(travel.upper_rad - travel.lower_rad);
-        if left.abs() <= ARRIVED_RAD || expired {
+        let sample = (at as f32, load as f32 / 1000.0, (at + left.signum()) as f32);
+        let blocked = detector.update(Some(sample), &stall_config()) != StallAction::None;
+        if left.abs() <= ARRIVED_RAD || expired || blocked {
             self.write(k, reg::GOAL_VELOCITY, 0)?;
             return Ok(self.park_refused(refusal, now_s));
         }
@@ -659,6 +746,7 @@ impl<T: Transport> Automatic<T> {
                 since,
                 to_rad,
                 refusal,
+                detector,
             },
             Progress::Working(k, Activity::Returning),
         ))
@@ -686,6 +774,12 @@ impl<T: Transport> Automatic<T> {
         refusal: Option<Refusal>,
         now_s: f64,
     ) -> Result<Progress, SessionError> {
+        for k in 0..self.joints.len() {
+            if std::mem::take(&mut self.joints[k].turning) {
+                // It has no calibration to hold by: it stops where it is.
+                self.write(k, reg::GOAL_VELOCITY, 0)?;
+            }
+        }
         let mut all = true;
         for k in 0..self.joints.len() {
             self.drive_to(k, 0.0)?;
@@ -696,7 +790,10 @@ impl<T: Transport> Automatic<T> {
             let k = self.joints.len().saturating_sub(1);
             return Ok(Progress::Working(k, Activity::Parking));
         }
-        self.release()?;
+        if refusal.is_none() {
+            self.flash()?;
+        }
+        self.release(refusal.is_none())?;
         match refusal {
             Some(r) => Err(SessionError::Refused(vec![r])),
             None => Ok(Progress::Done(
@@ -708,9 +805,23 @@ impl<T: Transport> Automatic<T> {
         }
     }
 
+    /// Every joint's calibration, held so far in RAM, written to flash and read back.
+    fn flash(&mut self) -> Result<(), SessionError> {
+        for j in &self.joints {
+            if let Some(c) = &j.calibration {
+                write_calibration(&mut self.bus, &j.taken, c)?;
+            }
+        }
+        Ok(())
+    }
+
     /// Every joint's torque off and its RAM as a driver expects it (position mode, the torque
-    /// limit it had); when not every joint was calibrated, every servo given back what it held.
-    fn release(&mut self) -> Result<(), SessionError> {
+    /// limit it had); unless the session is `done`, every servo given back what it held (in
+    /// flash and RAM), each tried even when one fails. Once.
+    fn release(&mut self, done: bool) -> Result<(), SessionError> {
+        if std::mem::replace(&mut self.released, true) {
+            return Ok(());
+        }
         let mut first_error = None;
         for k in 0..self.joints.len() {
             let values = [
@@ -719,19 +830,26 @@ impl<T: Transport> Automatic<T> {
                 (reg::OPERATING_MODE, 0),
                 (reg::TORQUE_LIMIT, self.joints[k].torque_limit),
             ];
-            // Every joint is released even when one cannot be.
             let taken = self.joints[k].taken.clone();
             if let Err(e) = write_checked(&mut self.bus, &taken, &values, false) {
                 first_error.get_or_insert(e);
             }
-        }
-        if self.joints.iter().any(|j| j.calibration.is_none()) {
-            let taken: Vec<Taken> = self.joints.iter().map(|j| j.taken.clone()).collect();
-            if let Err(e) = give_back(&mut self.bus, &taken) {
-                first_error.get_or_insert(e);
+            if !done {
+                if let Err(e) = give_back(&mut self.bus, std::slice::from_ref(&taken)) {
+                    first_error.get_or_insert(e);
+                }
             }
         }
         first_error.map_or(Ok(()), Err)
+    }
+}
+
+impl<T: Transport> Drop for Automatic<T> {
+    /// A session dropped before it ended (a panic in the caller, an early return): every
+    /// torque off and every servo given back, as far as the line allows. A servo left in
+    /// speed mode would turn into its stop until it cooked.
+    fn drop(&mut self) {
+        let _ = self.release(false);
     }
 }
 

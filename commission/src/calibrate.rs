@@ -170,6 +170,17 @@ pub enum Refusal {
         /// The protections the servo reported.
         status: String,
     },
+    /// A servo does not do what the automatic calibration relies on: it is not driven further.
+    #[error(
+        "{joint}: its servo does not behave as the calibration expects ({what}): calibrate it \
+         by hand"
+    )]
+    FirmwareDiffers {
+        /// The joint.
+        joint: String,
+        /// What it did.
+        what: String,
+    },
     /// The session was stopped before it was done (the operator, or its time ran out).
     #[error("stopped after {after_s:.0} s, before every joint was calibrated")]
     Stopped {

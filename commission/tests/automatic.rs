@@ -21,12 +21,11 @@ use std::cell::RefCell;
 use std::time::Duration;
 
 const MARGIN_RAD: f64 = 5.0 * std::f64::consts::PI / 180.0;
-const TOLERANCE_RAD: f64 = 0.1;
+const TOLERANCE_RAD: f64 = 0.05;
 
 fn plan(robot: &RobotDescription) -> Plan {
-    let arm = robot.bus("left_arm").unwrap().arm.as_ref().unwrap();
     Plan::of(
-        arm.calibration.as_ref().unwrap(),
+        robot.bus("left_arm").unwrap(),
         &targets(robot),
         MARGIN_RAD,
         TOLERANCE_RAD,
@@ -46,8 +45,40 @@ fn assembled(mut horn: impl FnMut(u8) -> f64) -> RefCell<SimBus> {
     RefCell::new(sim)
 }
 
+thread_local! {
+    /// The lowest and highest angle each servo (ids 1–8) reached in the last `run`, rad.
+    static EXTREMES: RefCell<Vec<(f64, f64)>> = const { RefCell::new(Vec::new()) };
+}
+
+/// The lowest and highest angle servo `id` reached in the last `run`, rad.
+fn extremes(id: u8) -> (f64, f64) {
+    EXTREMES.with(|e| e.borrow()[usize::from(id) - 1])
+}
+
 /// Ticks the session at 50 Hz until it ends (at most `within_s` of simulated time).
 fn run(bus: &RefCell<SimBus>, plan: Plan, within_s: f64) -> Result<Vec<Calibrated>, SessionError> {
+    let angles = || -> Vec<f64> {
+        (1..=8)
+            .map(|id| bus.borrow_mut().servo_mut(id).unwrap().angle)
+            .collect()
+    };
+    EXTREMES.with(|e| *e.borrow_mut() = angles().iter().map(|&a| (a, a)).collect());
+    let result = run_ticks(bus, plan, within_s, || {
+        EXTREMES.with(|e| {
+            for (x, a) in e.borrow_mut().iter_mut().zip(angles()) {
+                *x = (x.0.min(a), x.1.max(a));
+            }
+        })
+    });
+    result
+}
+
+fn run_ticks(
+    bus: &RefCell<SimBus>,
+    plan: Plan,
+    within_s: f64,
+    mut each: impl FnMut(),
+) -> Result<Vec<Calibrated>, SessionError> {
     let hung: Vec<f64> = (1..=7)
         .map(|id| bus.borrow_mut().servo_mut(id).unwrap().angle)
         .collect();
@@ -57,6 +88,7 @@ fn run(bus: &RefCell<SimBus>, plan: Plan, within_s: f64) -> Result<Vec<Calibrate
     while t < end {
         t += 0.02;
         bus.borrow_mut().advance_to(t, 0.001);
+        each();
         let p = session.tick(t)?;
         if let Progress::Working(0, _) = p {
             // While the gripper is swept the rest of the arm holds where it hung.
@@ -238,17 +270,27 @@ fn a_joint_blocked_short_of_its_stop_is_refused_and_every_servo_left_as_found() 
 #[test]
 fn a_joint_that_runs_past_its_travel_is_stopped_and_refused() {
     let robot = RobotDescription::nori_a3();
-    let bus = changed_arm(|arm| arm.joint[5].lower_rad -= 0.45);
-    let refusals = refused(&bus, plan(&robot));
-    assert!(
-        matches!(&refusals[..], [Refusal::BeyondTravel { joint, .. }] if joint == "left_wrist_pitch"),
-        "{refusals:?}"
-    );
-    let angle = bus.borrow_mut().servo_mut(6).unwrap().angle;
-    assert!(
-        angle > -1.8 - 0.45 + 0.05,
-        "pressed into its stop at {angle} rad"
-    );
+    // Broken 25° further, then gone.
+    for broken in [0.45, 20.0] {
+        let bus = changed_arm(|arm| arm.joint[5].lower_rad -= broken);
+        let began = bus.borrow_mut().servo_mut(6).unwrap().angle;
+        let refusals = refused(&bus, plan(&robot));
+        assert!(
+            matches!(&refusals[..], [Refusal::BeyondTravel { joint, .. }] if joint == "left_wrist_pitch"),
+            "{refusals:?}"
+        );
+        let at = bus.borrow_mut().servo_mut(6).unwrap().angle;
+        assert!(
+            (at - began).abs() < 0.1,
+            "broken {broken} rad: began at {began}, left at {at} rad"
+        );
+        // Stopped within its travel (3.6 rad) and the tolerance of where its drive began.
+        let (lowest, _) = extremes(6);
+        assert!(
+            lowest > began - 3.6 - 0.05 - 0.05,
+            "broken {broken} rad: began at {began}, went down to {lowest} rad"
+        );
+    }
 }
 
 /// A torque limit too low to lift the arm sideways: the shoulder's roll stalls under gravity
@@ -289,9 +331,37 @@ fn a_servo_whose_protection_fires_stops_the_calibration() {
     let [Refusal::Unloaded { joint, status }] = &refusals[..] else {
         panic!("{refusals:?}")
     };
-    assert!(joint.starts_with("left_shoulder"), "{joint}");
+    assert_eq!(joint, "left_shoulder_pitch");
     assert!(status.contains("over-current"), "{status}");
     assert!(refusals[0].to_string().contains("nori servo setup"));
+}
+
+/// A joint held while another is swept (the shoulder, while the gripper is) whose motor its
+/// firmware unloads (its temperature limit below the room's): found by the status read in
+/// turn, within a second, not when its own sweep comes.
+#[test]
+fn a_held_joint_unloaded_while_another_is_swept_stops_the_calibration() {
+    let robot = RobotDescription::nori_a3();
+    let bus = changed_arm(|_| {});
+    {
+        let mut b = bus.borrow_mut();
+        let s = b.servo_mut(1).unwrap();
+        assert!(s.write(reg::LOCK.addr, &[0]));
+        assert!(s.write(reg::MAX_TEMPERATURE_LIMIT.addr, &[20]));
+        assert!(s.write(reg::LOCK.addr, &[1]));
+    }
+    let t0 = bus.borrow().time();
+    let refusals = refused(&bus, plan(&robot));
+    let [Refusal::Unloaded { joint, status }] = &refusals[..] else {
+        panic!("{refusals:?}")
+    };
+    assert_eq!(joint, "left_shoulder_pitch");
+    assert!(status.contains("overheat"), "{status}");
+    let took = bus.borrow().time() - t0;
+    assert!(took < 3.0, "refused after {took} s");
+    // The gripper, swept when it was found, was stopped: it had not reached its lower stop.
+    let (lowest, _) = extremes(8);
+    assert!(lowest > 0.1, "the gripper went down to {lowest} rad");
 }
 
 /// Stopped in the middle of a sweep (the operator's Ctrl-C, or out of time): the joint driven

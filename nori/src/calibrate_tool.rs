@@ -33,6 +33,9 @@ const MARGIN_RAD: f64 = 5.0 * std::f64::consts::PI / 180.0;
 /// How far the travel swept may differ from the description's before it is refused, rad
 /// (the stops' give under an operator's push is a few degrees).
 const TOLERANCE_RAD: f64 = 0.1;
+/// The same for the automatic calibration, rad (2.9°): its stops are pressed at a known low
+/// torque, so a stall further from the described travel is something in the way.
+const AUTO_TOLERANCE_RAD: f64 = 0.05;
 /// A joint counts as covered within this of its travel, rad.
 const COVERED_RAD: f64 = 0.02;
 /// Readings a second.
@@ -192,31 +195,22 @@ impl Prepared {
 fn auto(args: &AutoArgs) -> Result<()> {
     let common = &args.common;
     let prepared = Prepared::of(common, &[], args.within)?;
-    let described = prepared
-        .robot
-        .bus(&common.bus)
-        .and_then(|b| b.arm.as_ref())
-        .and_then(|a| a.calibration.clone())
-        .with_context(|| {
-            format!(
-                "the description gives bus {} no calibration plan (`[bus.arm.calibration]`): \
-                 calibrate it by hand",
-                common.bus
-            )
-        })?;
-    lift_high_enough(args, described.lift_m)?;
-    let plan = Plan::of(&described, &prepared.targets, MARGIN_RAD, TOLERANCE_RAD)?;
+    let described = (prepared.robot.bus(&common.bus))
+        .with_context(|| format!("the description has no bus {}", common.bus))?;
+    let plan = Plan::of(described, &prepared.targets, MARGIN_RAD, AUTO_TOLERANCE_RAD)?;
+    let lift_m = described.arm.as_ref().and_then(|a| a.calibration.as_ref());
+    lift_high_enough(args, lift_m.map_or(0.0, |c| c.lift_m))?;
     let names: Vec<String> = plan.sweeps.iter().map(|s| s.target.joint.clone()).collect();
-    println!(
+    say(&format!(
         "calibrating {} without a hand: keep clear of the arm, it moves each joint into its \
          stops in turn ({})",
         common.bus,
         names.join(", ")
-    );
-    // Stopped (Ctrl-C, SIGTERM) or out of time, the session still drives the joint back and
-    // gives every servo back what it held: a speed-mode servo left turning would press its
-    // stop until it cooked.
-    let interrupted = telemetry::process::stop_flag()?;
+    ));
+    // Stopped (Ctrl-C, SIGTERM, the terminal gone) or out of time, the session still drives
+    // the joint back and gives every servo back what it held: a speed-mode servo left turning
+    // would press its stop until it cooked. A panic drops the session, which releases it.
+    let interrupted = telemetry::process::stop_or_hangup_flag()?;
     let start = Instant::now();
     let mut session = Automatic::start(prepared.open(common)?, plan, 0.0)?;
     let (mut shown, mut stopping) = (None, false);
@@ -225,8 +219,8 @@ fn auto(args: &AutoArgs) -> Result<()> {
         let now = start.elapsed().as_secs_f64();
         if !stopping && (now > args.within || interrupted.load(Ordering::Relaxed)) {
             stopping = true;
-            println!("stopping: the arm back to rest, every servo given back what it held");
             session.stop(now, 0.0);
+            say("stopping: the joint driven back, every servo given back what it held");
         }
         match session.tick(now)? {
             Progress::Done(calibrated) => break calibrated,
@@ -234,12 +228,19 @@ fn auto(args: &AutoArgs) -> Result<()> {
                 let line = (k, std::mem::discriminant(&activity));
                 if shown != Some(line) {
                     shown = Some(line);
-                    println!("  {:<24} {}", names[k], activity_name(activity));
+                    say(&format!("  {:<24} {}", names[k], activity_name(activity)));
                 }
             }
         }
     };
     prepared.write(common, CalibrationMethod::Automatic, &calibrated)
+}
+
+/// A line to the operator; a closed output (a pipe whose reader went with the Ctrl-C) must
+/// not end the session before it has driven the arm back.
+fn say(line: &str) {
+    use std::io::Write;
+    let _ = writeln!(std::io::stdout(), "{line}");
 }
 
 fn activity_name(a: Activity) -> &'static str {
@@ -253,21 +254,28 @@ fn activity_name(a: Activity) -> &'static str {
     }
 }
 
-/// The lift at `lift_m` or higher: as `nori-lift` publishes it, or as the operator measured.
+/// The lift at `lift_m` or higher, and not on its way down: as `nori-lift` publishes it when
+/// it runs (whatever `--lift-at` says), else as the operator measured it.
 fn lift_high_enough(args: &AutoArgs, lift_m: f64) -> Result<()> {
-    let (height, source) = match args.lift_at {
-        Some(h) => (h, "as measured (--lift-at)"),
-        None => {
-            let node = args.plane.node("calibrate")?;
-            match crate::plane_tools::lift_state(&node)? {
-                Some(l) => (f64::from(l.height_m), "as nori-lift reports it"),
-                None => bail!(
-                    "the lift's height is unknown (nori-lift is not running): the arm sweeps \
-                     below the table with the lift under {lift_m} m. Raise it (`nori goal \
-                     lift={lift_m}` with nori-lift running), or measure it and pass --lift-at M"
-                ),
+    let node = args.plane.node("calibrate")?;
+    let (height, source) = match (crate::plane_tools::lift_state(&node)?, args.lift_at) {
+        (Some(l), _) => {
+            let goal = f64::from(l.goal_m);
+            // NaN: no goal in force.
+            if goal < lift_m {
+                bail!(
+                    "the lift is on its way to {goal:.2} m: the description asks {lift_m} m or \
+                     higher for the arm to sweep clear of a table (`nori goal lift={lift_m}`)"
+                );
             }
+            (f64::from(l.height_m), "as nori-lift reports it")
         }
+        (None, Some(h)) => (h, "as measured (--lift-at)"),
+        (None, None) => bail!(
+            "the lift's height is unknown (nori-lift is not running): the arm sweeps below the \
+             table with the lift under {lift_m} m. Raise it (`nori goal lift={lift_m}` with \
+             nori-lift running), or measure it and pass --lift-at M"
+        ),
     };
     if !(height.is_finite() && height >= lift_m) {
         bail!(

@@ -235,8 +235,19 @@ pub fn init_logging() {
 
 /// A flag set when SIGINT or SIGTERM arrives.
 pub fn stop_flag() -> std::io::Result<Arc<AtomicBool>> {
+    flag_on(&[signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM])
+}
+
+/// A flag set when SIGINT, SIGTERM or SIGHUP arrives: for a tool that must finish what it
+/// started (a motor left turning) even when its terminal goes away.
+pub fn stop_or_hangup_flag() -> std::io::Result<Arc<AtomicBool>> {
+    use signal_hook::consts::{SIGHUP, SIGINT, SIGTERM};
+    flag_on(&[SIGINT, SIGTERM, SIGHUP])
+}
+
+fn flag_on(signals: &[i32]) -> std::io::Result<Arc<AtomicBool>> {
     let stop = Arc::new(AtomicBool::new(false));
-    for signal in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+    for &signal in signals {
         signal_hook::flag::register(signal, stop.clone())?;
     }
     Ok(stop)
