@@ -615,6 +615,10 @@ fn validate_arm(
     Ok(())
 }
 
+/// What a calibrated joint's stops leave of the encoder's turn at each end, rad (its zero reads
+/// mid-turn): pressed past its stop or overshooting, it must not read across the wrap.
+const TURN_HEADROOM_RAD: f64 = 0.1;
+
 /// The share of full duty a servo needs over what its speed takes (back-EMF): the rest is for
 /// friction, gravity and acceleration.
 const SPEED_DUTY_FACTOR: f64 = 1.5;
@@ -659,6 +663,17 @@ fn validate_calibration_plan(
             return Err(site.invalid(
                 &at,
                 format!("torque-percent {} is outside (0, 50]", s.torque_percent),
+            ));
+        }
+        let (lo, hi) = stops[&s.servo];
+        if lo.abs().max(hi.abs()) > std::f64::consts::PI - TURN_HEADROOM_RAD {
+            return Err(site.invalid(
+                &at,
+                format!(
+                    "its stops {lo}..{hi} rad do not fit one turn of the encoder with \
+                     {TURN_HEADROOM_RAD} rad to spare at each end: near a stop it would read \
+                     across the wrap"
+                ),
             ));
         }
         let needed = free_speed
@@ -884,6 +899,11 @@ mod tests {
                 "inside its stops",
             ),
             ("speed-rad-s = 0.3", "speed-rad-s = 1.5", "speed-rad-s"),
+            (
+                "lower-rad = -3.0, upper-rad = 3.0",
+                "lower-rad = -3.1, upper-rad = 3.0",
+                "one turn",
+            ),
             (
                 "speed-rad-s = 0.3",
                 "speed-rad-s = 0.5",

@@ -171,6 +171,8 @@ const LOAD_SLACK: i32 = 50;
 /// How far a driven joint may go the other way (a start's sag) before it is judged to turn
 /// the wrong way, rad.
 const WRONG_WAY_RAD: f64 = 0.2;
+/// A pose's joint this far from its pose while another is swept is pushed out of it, rad.
+const POSE_HELD_RAD: f64 = 0.15;
 /// Longest a move to a pose or to rest may take beyond its travel at the speed, s.
 const MOVE_SLACK_S: f64 = 5.0;
 
@@ -214,6 +216,8 @@ enum Stage {
         k: usize,
         since: f64,
         to_rad: f64,
+        /// Further than this from where it goes back to, it is not going back: stopped.
+        farthest_rad: f64,
         refusal: Refusal,
         /// Something in its way back stops it there.
         detector: Box<StallDetector>,
@@ -222,6 +226,9 @@ enum Stage {
         since: f64,
         refusal: Option<Refusal>,
     },
+    /// Every joint calibrated (in RAM) and at rest, held there: waiting for
+    /// [`Automatic::commit`].
+    Parked,
 }
 
 /// An automatic calibration in progress.
@@ -395,7 +402,15 @@ impl<T: Transport> Automatic<T> {
         );
         self.stage = match stage {
             Stage::Seek(seeking) => self.return_refused(seeking.k, refusal, now_s).0,
-            Stage::Return { .. } | Stage::Park { .. } => stage,
+            Stage::Return { .. } | Stage::Parked => stage,
+            // Parking after the last joint: stopped now, it is not done.
+            Stage::Park {
+                since,
+                refusal: first,
+            } => Stage::Park {
+                since,
+                refusal: first.or(Some(refusal)),
+            },
             Stage::Pose { .. } | Stage::Rest { .. } => self.park_refused(refusal, now_s).0,
         };
     }
@@ -413,32 +428,35 @@ impl<T: Transport> Automatic<T> {
     }
 
     fn step(&mut self, now_s: f64) -> Result<Progress, SessionError> {
-        let stage = std::mem::replace(
-            &mut self.stage,
-            Stage::Park {
-                since: now_s,
-                refusal: None,
-            },
-        );
+        if self.released {
+            return Err(SessionError::Ended);
+        }
+        if let Stage::Parked = self.stage {
+            return Ok(Progress::Done(self.calibrated()));
+        }
+        let mut stage = std::mem::replace(&mut self.stage, Stage::Parked);
         let active = match &stage {
             Stage::Pose { k, .. } | Stage::Rest { k, .. } | Stage::Return { k, .. } => *k,
             Stage::Seek(s) => s.k,
-            Stage::Park { .. } => self.watched,
+            Stage::Park { .. } | Stage::Parked => self.watched,
         };
         self.watched = (self.watched + 1) % self.joints.len();
         for i in [active, self.watched] {
-            if let Some(refusal) = self.unloaded(i)? {
-                let refusal = match stage {
-                    // Refused already: that is the refusal to report.
-                    Stage::Park {
-                        refusal: Some(first),
-                        ..
-                    } => first,
-                    _ => refusal,
-                };
-                self.stage = self.park_refused(refusal, now_s).0;
-                return Ok(Progress::Working(active, Activity::Parking));
+            let Some(unloaded) = self.unloaded(i)? else {
+                continue;
+            };
+            if let Stage::Park { refusal, .. } = &mut stage {
+                // Parking already: its clock and its first refusal stand.
+                refusal.get_or_insert(unloaded);
+                break;
             }
+            let refusal = match stage {
+                // Refused already: that is the refusal to report.
+                Stage::Return { refusal, .. } => refusal,
+                _ => unloaded,
+            };
+            self.stage = self.park_refused(refusal, now_s).0;
+            return Ok(Progress::Working(active, Activity::Parking));
         }
         let (next, progress) = match stage {
             Stage::Pose { k, since } => self.posing(k, since, now_s)?,
@@ -448,10 +466,12 @@ impl<T: Transport> Automatic<T> {
                 k,
                 since,
                 to_rad,
+                farthest_rad,
                 refusal,
                 detector,
-            } => self.returning(k, (since, to_rad), refusal, detector, now_s)?,
+            } => self.returning(k, (since, to_rad, farthest_rad), refusal, detector, now_s)?,
             Stage::Park { since, refusal } => return self.parking(since, refusal, now_s),
+            Stage::Parked => return Ok(Progress::Done(self.calibrated())),
         };
         self.stage = next;
         Ok(progress)
@@ -544,6 +564,22 @@ impl<T: Transport> Automatic<T> {
         })
     }
 
+    /// A joint of `k`'s pose pushed out of it while `k` is swept (the sweep's motion, or
+    /// something else), if any.
+    fn out_of_pose(&mut self, k: usize) -> Result<Option<Refusal>, SessionError> {
+        for (i, rad) in self.joints[k].plan.pose.clone() {
+            let (_, at) = self.arrived(i, rad)?;
+            if (at - rad).abs() > POSE_HELD_RAD {
+                return Ok(Some(Refusal::NotReached {
+                    joint: self.joints[i].taken.target.joint.clone(),
+                    wanted_deg: rad.to_degrees(),
+                    at_deg: at.to_degrees(),
+                }));
+            }
+        }
+        Ok(None)
+    }
+
     /// Reads a joint's position into its sweep; where it is, unwrapped, rad.
     fn observe(&mut self, k: usize) -> Result<f64, SessionError> {
         let present = self.read(k, reg::PRESENT_POSITION)?;
@@ -612,6 +648,9 @@ impl<T: Transport> Automatic<T> {
             let refusal = Refusal::FirmwareDiffers { joint, what };
             return Ok(self.return_refused(k, refusal, now_s));
         }
+        if let Some(refusal) = self.out_of_pose(k)? {
+            return Ok(self.return_refused(k, refusal, now_s));
+        }
         let sample = (at as f32, load as f32 / 1000.0, (at + ahead) as f32);
         let stalled = seeking.detector.update(Some(sample), &stall_config()) != StallAction::None;
         let progress = Progress::Working(k, Activity::Seeking(toward, moved));
@@ -649,7 +688,12 @@ impl<T: Transport> Automatic<T> {
         write_checked(&mut self.bus, &taken, &settings, false)?;
         self.joints[k].calibration = Some(calibration);
         let present = self.read(k, reg::PRESENT_POSITION)?;
-        let values = [(reg::GOAL_POSITION, present), (reg::OPERATING_MODE, 0)];
+        // The profile's speed positive (it was the sweep's signed speed).
+        let values = [
+            (reg::GOAL_VELOCITY, self.speed_steps()),
+            (reg::GOAL_POSITION, present),
+            (reg::OPERATING_MODE, 0),
+        ];
         write_checked(&mut self.bus, &taken, &values, false)?;
         self.joints[k].turning = false;
         self.drive_to(k, 0.0)?;
@@ -702,11 +746,13 @@ impl<T: Transport> Automatic<T> {
     /// mode: it has no calibration), then the arm parked.
     fn return_refused(&mut self, k: usize, refusal: Refusal, now_s: f64) -> (Stage, Progress) {
         let to_rad = self.joints[k].began_rad;
+        let away = (to_rad - self.joints[k].sweep.position_rad()).abs();
         (
             Stage::Return {
                 k,
                 since: now_s,
                 to_rad,
+                farthest_rad: away + WRONG_WAY_RAD,
                 refusal,
                 detector: Box::new(self.detector(k)),
             },
@@ -717,7 +763,7 @@ impl<T: Transport> Automatic<T> {
     fn returning(
         &mut self,
         k: usize,
-        (since, to_rad): (f64, f64),
+        (since, to_rad, farthest_rad): (f64, f64, f64),
         refusal: Refusal,
         mut detector: Box<StallDetector>,
         now_s: f64,
@@ -729,7 +775,9 @@ impl<T: Transport> Automatic<T> {
         let expired = now_s - since > self.allowed_s(travel.upper_rad - travel.lower_rad);
         let sample = (at as f32, load as f32 / 1000.0, (at + left.signum()) as f32);
         let blocked = detector.update(Some(sample), &stall_config()) != StallAction::None;
-        if left.abs() <= ARRIVED_RAD || expired || blocked {
+        // Going away from where it is sent back to: it does not turn as driven.
+        let astray = left.abs() > farthest_rad;
+        if left.abs() <= ARRIVED_RAD || expired || blocked || astray {
             self.write(k, reg::GOAL_VELOCITY, 0)?;
             return Ok(self.park_refused(refusal, now_s));
         }
@@ -745,6 +793,7 @@ impl<T: Transport> Automatic<T> {
                 k,
                 since,
                 to_rad,
+                farthest_rad,
                 refusal,
                 detector,
             },
@@ -780,29 +829,66 @@ impl<T: Transport> Automatic<T> {
                 self.write(k, reg::GOAL_VELOCITY, 0)?;
             }
         }
-        let mut all = true;
+        let mut away = None;
         for k in 0..self.joints.len() {
             self.drive_to(k, 0.0)?;
-            all &= self.arrived(k, 0.0)?.0;
+            let (there, at) = self.arrived(k, 0.0)?;
+            if !there {
+                away = away.or(Some((k, at)));
+            }
         }
-        if !all && now_s - since <= self.allowed_s(std::f64::consts::PI) {
-            self.stage = Stage::Park { since, refusal };
-            let k = self.joints.len().saturating_sub(1);
-            return Ok(Progress::Working(k, Activity::Parking));
-        }
-        if refusal.is_none() {
-            self.flash()?;
-        }
-        self.release(refusal.is_none())?;
+        let expired = now_s - since > self.allowed_s(std::f64::consts::PI);
+        let refusal = match away {
+            Some(_) if !expired => {
+                self.stage = Stage::Park { since, refusal };
+                let k = self.joints.len().saturating_sub(1);
+                return Ok(Progress::Working(k, Activity::Parking));
+            }
+            Some((k, at)) => refusal.or(Some(Refusal::NotReached {
+                joint: self.joints[k].taken.target.joint.clone(),
+                wanted_deg: 0.0,
+                at_deg: at.to_degrees(),
+            })),
+            None => refusal,
+        };
         match refusal {
-            Some(r) => Err(SessionError::Refused(vec![r])),
-            None => Ok(Progress::Done(
-                self.joints
-                    .iter()
-                    .filter_map(|j| j.calibration.map(|c| j.taken.calibrated(c)))
-                    .collect(),
-            )),
+            Some(r) => {
+                self.release(false)?;
+                Err(SessionError::Refused(vec![r]))
+            }
+            None => {
+                self.stage = Stage::Parked;
+                Ok(Progress::Done(self.calibrated()))
+            }
         }
+    }
+
+    fn calibrated(&self) -> Vec<Calibrated> {
+        (self.joints.iter())
+            .filter_map(|j| j.calibration.map(|c| j.taken.calibrated(c)))
+            .collect()
+    }
+
+    /// Once done ([`Progress::Done`]): every joint's calibration written to flash and read
+    /// back, every torque off and its RAM as a driver expects it. A failure gives every servo
+    /// back what it held. What the calibration is recorded in comes after: if that fails,
+    /// [`Automatic::abandon`].
+    pub fn commit(&mut self) -> Result<Vec<Calibrated>, SessionError> {
+        if !matches!(self.stage, Stage::Parked) || self.released {
+            return Err(SessionError::NotDone);
+        }
+        if let Err(e) = self.flash().and_then(|()| self.release(true)) {
+            // Best effort: the failure that stopped the commit is the one to report.
+            let _ = self.give_back_all(true);
+            return Err(e);
+        }
+        Ok(self.calibrated())
+    }
+
+    /// After [`Automatic::commit`], when the calibration cannot be recorded: every servo
+    /// given back what it held, in flash.
+    pub fn abandon(&mut self) -> Result<(), SessionError> {
+        self.give_back_all(true)
     }
 
     /// Every joint's calibration, held so far in RAM, written to flash and read back.
@@ -817,7 +903,7 @@ impl<T: Transport> Automatic<T> {
 
     /// Every joint's torque off and its RAM as a driver expects it (position mode, the torque
     /// limit it had); unless the session is `done`, every servo given back what it held (in
-    /// flash and RAM), each tried even when one fails. Once.
+    /// RAM: nothing reached the flash), each tried even when one fails. Once.
     fn release(&mut self, done: bool) -> Result<(), SessionError> {
         if std::mem::replace(&mut self.released, true) {
             return Ok(());
@@ -834,10 +920,22 @@ impl<T: Transport> Automatic<T> {
             if let Err(e) = write_checked(&mut self.bus, &taken, &values, false) {
                 first_error.get_or_insert(e);
             }
-            if !done {
-                if let Err(e) = give_back(&mut self.bus, std::slice::from_ref(&taken)) {
-                    first_error.get_or_insert(e);
-                }
+        }
+        if !done {
+            if let Err(e) = self.give_back_all(false) {
+                first_error.get_or_insert(e);
+            }
+        }
+        first_error.map_or(Ok(()), Err)
+    }
+
+    /// Every servo given back the homing offset and limits it held (`to_flash`: in its
+    /// EEPROM too), each tried even when one fails.
+    fn give_back_all(&mut self, to_flash: bool) -> Result<(), SessionError> {
+        let mut first_error = None;
+        for j in &self.joints {
+            if let Err(e) = give_back(&mut self.bus, std::slice::from_ref(&j.taken), to_flash) {
+                first_error.get_or_insert(e);
             }
         }
         first_error.map_or(Ok(()), Err)

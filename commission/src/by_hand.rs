@@ -144,6 +144,6 @@ impl<T: Transport> ByHand<T> {
 
     fn give_back(&mut self) -> Result<(), SessionError> {
         let taken: Vec<Taken> = self.joints.iter().map(|j| j.taken.clone()).collect();
-        give_back(&mut self.bus, &taken)
+        give_back(&mut self.bus, &taken, true)
     }
 }

@@ -53,6 +53,12 @@ pub enum SessionError {
     /// Joints whose travel gives no calibration: every servo was given back what it held.
     #[error("not calibrated, every servo left as found: {}", list(.0))]
     Refused(Vec<Refusal>),
+    /// The session has ended (released): nothing more is driven.
+    #[error("the calibration session has ended")]
+    Ended,
+    /// Committed before every joint was calibrated and parked.
+    #[error("the calibration is not done: nothing to commit")]
+    NotDone,
     /// A written value did not read back.
     #[error("{joint} (id {id}): {register} reads {found} after writing {wanted}")]
     NotHeld {
@@ -220,11 +226,16 @@ pub fn write_calibration<T: Transport>(
     write_checked(bus, taken, &settings, true)
 }
 
-/// Gives every joint taken back the homing offset and limits it held, in its EEPROM.
-pub fn give_back<T: Transport>(bus: &mut Bus<T>, taken: &[Taken]) -> Result<(), SessionError> {
+/// Gives every joint taken back the homing offset and limits it held (`to_flash`: in its
+/// EEPROM too, else until a power cycle).
+pub fn give_back<T: Transport>(
+    bus: &mut Bus<T>,
+    taken: &[Taken],
+    to_flash: bool,
+) -> Result<(), SessionError> {
     for t in taken {
         let values: Vec<_> = CALIBRATION_REGISTERS.into_iter().zip(t.found).collect();
-        write_checked(bus, t, &values, true)?;
+        write_checked(bus, t, &values, to_flash)?;
     }
     Ok(())
 }

@@ -101,8 +101,8 @@ fn run_ticks(
                 );
             }
         }
-        if let Progress::Done(c) = p {
-            return Ok(c);
+        if let Progress::Done(_) = p {
+            return session.commit();
         }
     }
     panic!("not done within {within_s} s");
@@ -213,6 +213,14 @@ fn held(bus: &RefCell<SimBus>) -> Vec<[i32; 3]> {
 /// given back what it held (in flash and in RAM) and left with its torque off.
 fn refused(bus: &RefCell<SimBus>, plan: Plan) -> Vec<Refusal> {
     let before = held(bus);
+    let limits: Vec<i32> = (1..=8)
+        .map(|id| {
+            bus.borrow_mut()
+                .servo_mut(id)
+                .unwrap()
+                .get(reg::TORQUE_LIMIT)
+        })
+        .collect();
     let e = run(bus, plan, 900.0).unwrap_err();
     let SessionError::Refused(refusals) = e else {
         panic!("{e}")
@@ -224,6 +232,11 @@ fn refused(bus: &RefCell<SimBus>, plan: Plan) -> Vec<Refusal> {
         assert!(!s.torque_enabled(), "servo {id} left driving");
         assert_eq!(s.get(reg::OPERATING_MODE), 0, "servo {id}");
         assert_eq!(s.get(reg::HOMING_OFFSET), before[usize::from(id) - 1][0]);
+        assert_eq!(
+            s.get(reg::TORQUE_LIMIT),
+            limits[usize::from(id) - 1],
+            "servo {id}"
+        );
     }
     refusals
 }
@@ -474,4 +487,103 @@ fn a_session_stopped_after_the_last_sweep_or_dropped_keeps_no_calibration() {
             assert_eq!(s.get(reg::OPERATING_MODE), 0, "servo {id}");
         }
     }
+}
+
+/// Runs a session to its end, `hook` called after each tick with what it said; the `Done`
+/// progress (not committed) or the error.
+fn session_until_end(
+    bus: &RefCell<SimBus>,
+    plan: Plan,
+    mut hook: impl FnMut(&Progress, f64, &mut Automatic<common::Line<'_>>, &RefCell<SimBus>),
+) -> (Result<Progress, SessionError>, f64) {
+    let mut t = bus.borrow().time();
+    let began = t;
+    let mut session =
+        Automatic::start(Bus::new(line(bus), Duration::from_micros(600)), plan, t).unwrap();
+    loop {
+        t += 0.02;
+        bus.borrow_mut().advance_to(t, 0.001);
+        match session.tick(t) {
+            Ok(p @ Progress::Done(_)) => {
+                let committed = session.commit().map(|_| p);
+                hook(&Progress::Done(Vec::new()), t, &mut session, bus);
+                return (committed, t - began);
+            }
+            Ok(p) => hook(&p, t, &mut session, bus),
+            Err(e) => return (Err(e), t - began),
+        }
+        assert!(t < began + 900.0, "the session did not end");
+    }
+}
+
+/// The elbow, held folded while the shoulder's pitch is swept, overheats (its motor unloaded
+/// by its firmware, its protection latched): refused naming it, and the session still ends
+/// (the arm parked as far as it goes, every torque off, every servo given back) instead of
+/// parking for ever against the latched bit.
+#[test]
+fn a_latched_protection_while_parking_still_ends_the_session() {
+    let robot = RobotDescription::nori_a3();
+    let bus = changed_arm(|_| {});
+    let before = held(&bus);
+    let mut tripped_at = None;
+    let (end, took) = session_until_end(&bus, plan(&robot), |p, t, _, bus| {
+        if let (Progress::Working(6, Activity::Seeking(..)), None) = (p, tripped_at) {
+            tripped_at = Some(t);
+            let mut b = bus.borrow_mut();
+            let s = b.servo_mut(4).unwrap();
+            assert!(s.write(reg::LOCK.addr, &[0]));
+            assert!(s.write(reg::MAX_TEMPERATURE_LIMIT.addr, &[20]));
+            assert!(s.write(reg::LOCK.addr, &[1]));
+        }
+    });
+    let Err(SessionError::Refused(refusals)) = end else {
+        panic!("{end:?}")
+    };
+    assert!(
+        matches!(&refusals[..], [Refusal::Unloaded { joint, .. }] if joint == "left_elbow"),
+        "{refusals:?}"
+    );
+    let after_trip = took - tripped_at.unwrap();
+    assert!(after_trip < 60.0, "ended {after_trip} s after the trip");
+    assert_eq!(held(&bus), before);
+    let mut b = bus.borrow_mut();
+    for id in 1..=8 {
+        assert!(!b.servo_mut(id).unwrap().torque_enabled(), "servo {id}");
+    }
+}
+
+/// Stopped while the arm parks after the last joint: refused, nothing kept; and a committed
+/// calibration that cannot be recorded is abandoned: every servo's flash as it was.
+#[test]
+fn a_stop_while_parking_and_an_abandoned_commit_keep_no_calibration() {
+    let robot = RobotDescription::nori_a3();
+    let bus = changed_arm(|_| {});
+    let before = held(&bus);
+    let mut stopped = false;
+    let (end, _) = session_until_end(&bus, plan(&robot), |p, t, session, _| {
+        if let (Progress::Working(_, Activity::Parking), false) = (p, stopped) {
+            stopped = true;
+            session.stop(t, 0.0);
+        }
+    });
+    let Err(SessionError::Refused(refusals)) = end else {
+        panic!("{end:?}")
+    };
+    assert!(
+        matches!(&refusals[..], [Refusal::Stopped { .. }]),
+        "{refusals:?}"
+    );
+    assert_eq!(held(&bus), before);
+
+    let mut abandoned = false;
+    let (end, _) = session_until_end(&bus, plan(&robot), |p, _, session, bus| {
+        if let Progress::Done(_) = p {
+            // Committed: in flash now.
+            assert_ne!(held(bus), before);
+            session.abandon().unwrap();
+            abandoned = true;
+        }
+    });
+    assert!(end.is_ok() && abandoned, "{end:?}");
+    assert_eq!(held(&bus), before);
 }

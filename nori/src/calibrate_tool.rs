@@ -223,7 +223,7 @@ fn auto(args: &AutoArgs) -> Result<()> {
             say("stopping: the joint driven back, every servo given back what it held");
         }
         match session.tick(now)? {
-            Progress::Done(calibrated) => break calibrated,
+            Progress::Done(_) => break session.commit()?,
             Progress::Working(k, activity) => {
                 let line = (k, std::mem::discriminant(&activity));
                 if shown != Some(line) {
@@ -233,7 +233,12 @@ fn auto(args: &AutoArgs) -> Result<()> {
             }
         }
     };
-    prepared.write(common, CalibrationMethod::Automatic, &calibrated)
+    if let Err(e) = prepared.write(common, CalibrationMethod::Automatic, &calibrated) {
+        // The servos hold a calibration no file records: they get back what they held.
+        session.abandon()?;
+        return Err(e.context("not recorded: every servo given back what it held"));
+    }
+    Ok(())
 }
 
 /// A line to the operator; a closed output (a pipe whose reader went with the Ctrl-C) must
@@ -258,17 +263,23 @@ fn activity_name(a: Activity) -> &'static str {
 /// it runs (whatever `--lift-at` says), else as the operator measured it.
 fn lift_high_enough(args: &AutoArgs, lift_m: f64) -> Result<()> {
     let node = args.plane.node("calibrate")?;
-    let (height, source) = match (crate::plane_tools::lift_state(&node)?, args.lift_at) {
-        (Some(l), _) => {
-            let goal = f64::from(l.goal_m);
-            // NaN: no goal in force.
+    let published = crate::plane_tools::lift_state(&node)?
+        .map(|l| (f64::from(l.height_m), f64::from(l.goal_m)));
+    lift_verdict(published, args.lift_at, lift_m)
+}
+
+/// The judgment of [`lift_high_enough`] on the lift's published height and goal (a NaN goal:
+/// none in force) and the operator's measurement.
+fn lift_verdict(published: Option<(f64, f64)>, lift_at: Option<f64>, lift_m: f64) -> Result<()> {
+    let (height, source) = match (published, lift_at) {
+        (Some((height, goal)), _) => {
             if goal < lift_m {
                 bail!(
                     "the lift is on its way to {goal:.2} m: the description asks {lift_m} m or \
                      higher for the arm to sweep clear of a table (`nori goal lift={lift_m}`)"
                 );
             }
-            (f64::from(l.height_m), "as nori-lift reports it")
+            (height, "as nori-lift reports it")
         }
         (None, Some(h)) => (h, "as measured (--lift-at)"),
         (None, None) => bail!(
@@ -598,6 +609,21 @@ fn enter_pressed() -> Arc<AtomicBool> {
 mod tests {
     use super::*;
     use telemetry::config::ProcessConfig;
+
+    /// The lift's own report wins over the operator's measurement; a goal below the plan's
+    /// height (on its way down) or a height below it is refused; none at all is refused.
+    #[test]
+    fn the_lift_must_be_high_enough_and_not_going_down() {
+        let ok = |published, at| lift_verdict(published, at, 0.6).is_ok();
+        assert!(ok(Some((0.6, f64::NAN)), None));
+        assert!(ok(Some((0.7, 0.6)), Some(0.1)));
+        assert!(!ok(Some((0.59, f64::NAN)), Some(0.9)));
+        assert!(!ok(Some((0.7, 0.59)), None));
+        assert!(!ok(Some((f64::NAN, f64::NAN)), None));
+        assert!(ok(None, Some(0.6)));
+        assert!(!ok(None, Some(0.59)));
+        assert!(!ok(None, None));
+    }
 
     #[test]
     fn the_sweep_finishes_only_when_covered_and_gives_up_when_out_of_time() {

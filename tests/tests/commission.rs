@@ -546,8 +546,8 @@ fn all_torque_off(stack: &ArmStack) -> u64 {
 /// own servo: every zero within 1° of the simulator's truth, every range 5° inside the
 /// description's stops, no stop pressed harder than its sweep's torque limit (the simulator's
 /// witness), the file stamped `automatic`, and the driver drives all eight with it, each read
-/// within 1° of where the simulator has it. Ctrl-C in the middle of a run leaves every torque
-/// off and nothing written. The plan runs at twice the shipped speed (the in-memory test runs
+/// within 1° of where the simulator has it. A hang-up in the middle of a run leaves every torque
+/// off and nothing written (SIGHUP: the terminal gone). The plan runs at twice the shipped speed (the in-memory test runs
 /// the shipped plan over eight seeds).
 #[test]
 fn a_robot_off_the_line_calibrates_itself_with_every_zero_within_a_degree() {
@@ -579,7 +579,7 @@ fn a_robot_off_the_line_calibrates_itself_with_every_zero_within_a_degree() {
     std::fs::write(&described, robot).unwrap();
     let description = body::description::RobotDescription::load(&described).unwrap();
     let args = ["--lift-at", "0.6", "--robot", described.to_str().unwrap()];
-    // Ctrl-C in the middle (the wrist's sweep): the joint driven back, every torque off,
+    // The terminal hung up in the middle (the wrist's sweep): the joint driven back, every torque off,
     // nothing written.
     let child = calibrate_auto_command(&stack, &args, &file)
         .stdout(std::process::Stdio::piped())
@@ -588,7 +588,7 @@ fn a_robot_off_the_line_calibrates_itself_with_every_zero_within_a_degree() {
         .unwrap();
     std::thread::sleep(Duration::from_secs(10));
     let pid = nix::unistd::Pid::from_raw(child.id() as i32);
-    nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGINT).unwrap();
+    nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGHUP).unwrap();
     let out = child.wait_with_output().unwrap();
     let (said, err) = (
         String::from_utf8_lossy(&out.stdout),
