@@ -411,7 +411,7 @@ impl<T: Transport> Automatic<T> {
                 since,
                 refusal: first.or(Some(refusal)),
             },
-            Stage::Pose { .. } | Stage::Rest { .. } => self.park_refused(refusal, now_s).0,
+            Stage::Pose { .. } | Stage::Rest { .. } => self.park(Some(refusal), now_s).0,
         };
     }
 
@@ -455,7 +455,7 @@ impl<T: Transport> Automatic<T> {
                 Stage::Return { refusal, .. } => refusal,
                 _ => unloaded,
             };
-            self.stage = self.park_refused(refusal, now_s).0;
+            self.stage = self.park(Some(refusal), now_s).0;
             return Ok(Progress::Working(active, Activity::Parking));
         }
         let (next, progress) = match stage {
@@ -497,7 +497,7 @@ impl<T: Transport> Automatic<T> {
                     wanted_deg: rad.to_degrees(),
                     at_deg: at.to_degrees(),
                 };
-                return Ok(self.park_refused(refusal, now_s));
+                return Ok(self.park(Some(refusal), now_s));
             }
             all &= there;
         }
@@ -718,7 +718,7 @@ impl<T: Transport> Automatic<T> {
                     wanted_deg: 0.0,
                     at_deg: at.to_degrees(),
                 };
-                return Ok(self.park_refused(refusal, now_s));
+                return Ok(self.park(Some(refusal), now_s));
             }
             return Ok((
                 Stage::Rest { k, since },
@@ -779,7 +779,7 @@ impl<T: Transport> Automatic<T> {
         let astray = left.abs() > farthest_rad;
         if left.abs() <= ARRIVED_RAD || expired || blocked || astray {
             self.write(k, reg::GOAL_VELOCITY, 0)?;
-            return Ok(self.park_refused(refusal, now_s));
+            return Ok(self.park(Some(refusal), now_s));
         }
         // Toward the start: the servo counts up when the unwrapped reading must grow.
         let speed = self.speed_steps();
@@ -801,12 +801,8 @@ impl<T: Transport> Automatic<T> {
         ))
     }
 
-    fn park_refused(&mut self, refusal: Refusal, now_s: f64) -> (Stage, Progress) {
-        self.park(Some(refusal), now_s)
-    }
-
     /// Every calibrated joint to rest; the others hold where they are.
-    fn park(&mut self, refusal: Option<Refusal>, now_s: f64) -> (Stage, Progress) {
+    fn park(&self, refusal: Option<Refusal>, now_s: f64) -> (Stage, Progress) {
         let k = self.joints.len().saturating_sub(1);
         (
             Stage::Park {

@@ -63,14 +63,13 @@ fn run(bus: &RefCell<SimBus>, plan: Plan, within_s: f64) -> Result<Vec<Calibrate
             .collect()
     };
     EXTREMES.with(|e| *e.borrow_mut() = angles().iter().map(|&a| (a, a)).collect());
-    let result = run_ticks(bus, plan, within_s, || {
+    run_ticks(bus, plan, within_s, || {
         EXTREMES.with(|e| {
             for (x, a) in e.borrow_mut().iter_mut().zip(angles()) {
                 *x = (x.0.min(a), x.1.max(a));
             }
         })
-    });
-    result
+    })
 }
 
 fn run_ticks(
