@@ -201,6 +201,18 @@ struct Seeking {
     detector: StallDetector,
 }
 
+/// A refused joint driven back to where its sweep began.
+struct Returning {
+    k: usize,
+    since: f64,
+    to_rad: f64,
+    /// Further than this from where it goes back to, it is not going back: stopped.
+    farthest_rad: f64,
+    refusal: Refusal,
+    /// Something in its way back stops it there.
+    detector: StallDetector,
+}
+
 enum Stage {
     Pose {
         k: usize,
@@ -212,16 +224,8 @@ enum Stage {
         k: usize,
         since: f64,
     },
-    Return {
-        k: usize,
-        since: f64,
-        to_rad: f64,
-        /// Further than this from where it goes back to, it is not going back: stopped.
-        farthest_rad: f64,
-        refusal: Refusal,
-        /// Something in its way back stops it there.
-        detector: Box<StallDetector>,
-    },
+    /// Boxed, as [`Stage::Seek`].
+    Return(Box<Returning>),
     Park {
         since: f64,
         refusal: Option<Refusal>,
@@ -402,7 +406,7 @@ impl<T: Transport> Automatic<T> {
         );
         self.stage = match stage {
             Stage::Seek(seeking) => self.return_refused(seeking.k, refusal, now_s).0,
-            Stage::Return { .. } | Stage::Parked => stage,
+            Stage::Return(_) | Stage::Parked => stage,
             // Parking after the last joint: stopped now, it is not done.
             Stage::Park {
                 since,
@@ -436,8 +440,9 @@ impl<T: Transport> Automatic<T> {
         }
         let mut stage = std::mem::replace(&mut self.stage, Stage::Parked);
         let active = match &stage {
-            Stage::Pose { k, .. } | Stage::Rest { k, .. } | Stage::Return { k, .. } => *k,
+            Stage::Pose { k, .. } | Stage::Rest { k, .. } => *k,
             Stage::Seek(s) => s.k,
+            Stage::Return(r) => r.k,
             Stage::Park { .. } | Stage::Parked => self.watched,
         };
         self.watched = (self.watched + 1) % self.joints.len();
@@ -452,7 +457,7 @@ impl<T: Transport> Automatic<T> {
             }
             let refusal = match stage {
                 // Refused already: that is the refusal to report.
-                Stage::Return { refusal, .. } => refusal,
+                Stage::Return(r) => r.refusal,
                 _ => unloaded,
             };
             self.stage = self.park(Some(refusal), now_s).0;
@@ -462,14 +467,7 @@ impl<T: Transport> Automatic<T> {
             Stage::Pose { k, since } => self.posing(k, since, now_s)?,
             Stage::Seek(seeking) => self.seeking(seeking, now_s)?,
             Stage::Rest { k, since } => self.resting(k, since, now_s)?,
-            Stage::Return {
-                k,
-                since,
-                to_rad,
-                farthest_rad,
-                refusal,
-                detector,
-            } => self.returning(k, (since, to_rad, farthest_rad), refusal, detector, now_s)?,
+            Stage::Return(returning) => self.returning(returning, now_s)?,
             Stage::Park { since, refusal } => return self.parking(since, refusal, now_s),
             Stage::Parked => return Ok(Progress::Done(self.calibrated())),
         };
@@ -748,38 +746,36 @@ impl<T: Transport> Automatic<T> {
         let to_rad = self.joints[k].began_rad;
         let away = (to_rad - self.joints[k].sweep.position_rad()).abs();
         (
-            Stage::Return {
+            Stage::Return(Box::new(Returning {
                 k,
                 since: now_s,
                 to_rad,
                 farthest_rad: away + WRONG_WAY_RAD,
                 refusal,
-                detector: Box::new(self.detector(k)),
-            },
+                detector: self.detector(k),
+            })),
             Progress::Working(k, Activity::Returning),
         )
     }
 
     fn returning(
         &mut self,
-        k: usize,
-        (since, to_rad, farthest_rad): (f64, f64, f64),
-        refusal: Refusal,
-        mut detector: Box<StallDetector>,
+        mut r: Box<Returning>,
         now_s: f64,
     ) -> Result<(Stage, Progress), SessionError> {
+        let (k, since, to_rad) = (r.k, r.since, r.to_rad);
         let at = self.observe(k)?;
         let load = self.read(k, reg::PRESENT_LOAD)?;
         let left = to_rad - at;
         let travel = self.joints[k].plan.target.stops;
         let expired = now_s - since > self.allowed_s(travel.upper_rad - travel.lower_rad);
         let sample = (at as f32, load as f32 / 1000.0, (at + left.signum()) as f32);
-        let blocked = detector.update(Some(sample), &stall_config()) != StallAction::None;
+        let blocked = r.detector.update(Some(sample), &stall_config()) != StallAction::None;
         // Going away from where it is sent back to: it does not turn as driven.
-        let astray = left.abs() > farthest_rad;
+        let astray = left.abs() > r.farthest_rad;
         if left.abs() <= ARRIVED_RAD || expired || blocked || astray {
             self.write(k, reg::GOAL_VELOCITY, 0)?;
-            return Ok(self.park(Some(refusal), now_s));
+            return Ok(self.park(Some(r.refusal), now_s));
         }
         // Toward the start: the servo counts up when the unwrapped reading must grow.
         let speed = self.speed_steps();
@@ -788,17 +784,7 @@ impl<T: Transport> Automatic<T> {
             reg::GOAL_VELOCITY,
             if left > 0.0 { speed } else { -speed },
         )?;
-        Ok((
-            Stage::Return {
-                k,
-                since,
-                to_rad,
-                farthest_rad,
-                refusal,
-                detector,
-            },
-            Progress::Working(k, Activity::Returning),
-        ))
+        Ok((Stage::Return(r), Progress::Working(k, Activity::Returning)))
     }
 
     /// Every calibrated joint to rest; the others hold where they are.

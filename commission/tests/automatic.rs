@@ -55,56 +55,75 @@ fn extremes(id: u8) -> (f64, f64) {
     EXTREMES.with(|e| e.borrow()[usize::from(id) - 1])
 }
 
-/// Ticks the session at 50 Hz until it ends (at most `within_s` of simulated time).
-fn run(bus: &RefCell<SimBus>, plan: Plan, within_s: f64) -> Result<Vec<Calibrated>, SessionError> {
+/// Runs a session to its end and commits it, tracking each servo's extremes
+/// ([`extremes`]) and checking that the rest of the arm holds where it hung while the gripper
+/// is swept.
+fn run(bus: &RefCell<SimBus>, plan: Plan) -> Result<Vec<Calibrated>, SessionError> {
     let angles = || -> Vec<f64> {
         (1..=8)
             .map(|id| bus.borrow_mut().servo_mut(id).unwrap().angle)
             .collect()
     };
-    EXTREMES.with(|e| *e.borrow_mut() = angles().iter().map(|&a| (a, a)).collect());
-    run_ticks(bus, plan, within_s, || {
+    let hung = angles();
+    EXTREMES.with(|e| *e.borrow_mut() = hung.iter().map(|&a| (a, a)).collect());
+    let (end, _) = session_until_end(bus, plan, |p, _, _, _| {
+        let now = angles();
         EXTREMES.with(|e| {
-            for (x, a) in e.borrow_mut().iter_mut().zip(angles()) {
+            for (x, &a) in e.borrow_mut().iter_mut().zip(&now) {
                 *x = (x.0.min(a), x.1.max(a));
             }
-        })
-    })
-}
-
-fn run_ticks(
-    bus: &RefCell<SimBus>,
-    plan: Plan,
-    within_s: f64,
-    mut each: impl FnMut(),
-) -> Result<Vec<Calibrated>, SessionError> {
-    let hung: Vec<f64> = (1..=7)
-        .map(|id| bus.borrow_mut().servo_mut(id).unwrap().angle)
-        .collect();
-    let mut t = bus.borrow().time();
-    let mut session = Automatic::start(Bus::new(line(bus), Duration::from_micros(600)), plan, t)?;
-    let end = t + within_s;
-    while t < end {
-        t += 0.02;
-        bus.borrow_mut().advance_to(t, 0.001);
-        each();
-        let p = session.tick(t)?;
+        });
         if let Progress::Working(0, _) = p {
-            // While the gripper is swept the rest of the arm holds where it hung.
-            let mut b = bus.borrow_mut();
-            for (id, was) in (1..=7).zip(&hung) {
-                let at = b.servo_mut(id).unwrap().angle;
+            for (id, (was, at)) in (1..=7).zip(hung.iter().zip(&now)) {
                 assert!(
                     (at - was).abs() < 0.05,
                     "servo {id} moved from {was} to {at} rad"
                 );
             }
         }
-        if let Progress::Done(_) = p {
-            return session.commit();
-        }
+        true
+    });
+    match end? {
+        Progress::Done(calibrated) => Ok(calibrated),
+        p => panic!("ended {p:?}"),
     }
-    panic!("not done within {within_s} s");
+}
+
+/// Runs a session at 50 Hz to its end, `hook` called after each tick with what it said (and
+/// after the commit with what was committed), the session dropped where it answers false;
+/// the last progress (`Done` once committed) or the error, and the simulated time it took.
+fn session_until_end(
+    bus: &RefCell<SimBus>,
+    plan: Plan,
+    mut hook: impl FnMut(&Progress, f64, &mut Automatic<common::Line<'_>>, &RefCell<SimBus>) -> bool,
+) -> (Result<Progress, SessionError>, f64) {
+    let began = bus.borrow().time();
+    let mut t = began;
+    let line = Bus::new(line(bus), Duration::from_micros(600));
+    let mut session = match Automatic::start(line, plan, t) {
+        Ok(s) => s,
+        Err(e) => return (Err(e), 0.0),
+    };
+    loop {
+        t += 0.02;
+        bus.borrow_mut().advance_to(t, 0.001);
+        match session.tick(t) {
+            Ok(Progress::Done(_)) => {
+                let end = session.commit().map(Progress::Done);
+                if let Ok(p) = &end {
+                    hook(p, t, &mut session, bus);
+                }
+                return (end, t - began);
+            }
+            Ok(p) => {
+                if !hook(&p, t, &mut session, bus) {
+                    return (Ok(p), t - began);
+                }
+            }
+            Err(e) => return (Err(e), t - began),
+        }
+        assert!(t < began + 900.0, "the session did not end");
+    }
 }
 
 /// Where the servo reads the joint at `q` through `calibration`, rad.
@@ -133,7 +152,7 @@ fn each_zero_within_a_degree_and_no_stop_pressed_above_the_torque_limit_over_see
         let mut rng = Rng::new(seed);
         let bus = assembled(|_| rng.range(-400.0, 400.0));
         let t0 = bus.borrow().time();
-        let chosen = run(&bus, plan.clone(), 900.0).unwrap();
+        let chosen = run(&bus, plan.clone()).unwrap();
         let took = bus.borrow().time() - t0;
         assert_eq!(chosen.len(), 8);
         for id in 1..=8 {
@@ -220,7 +239,7 @@ fn refused(bus: &RefCell<SimBus>, plan: Plan) -> Vec<Refusal> {
                 .get(reg::TORQUE_LIMIT)
         })
         .collect();
-    let e = run(bus, plan, 900.0).unwrap_err();
+    let e = run(bus, plan).unwrap_err();
     let SessionError::Refused(refusals) = e else {
         panic!("{e}")
     };
@@ -384,34 +403,23 @@ fn a_session_stopped_mid_sweep_leaves_every_servo_as_found() {
     let robot = RobotDescription::nori_a3();
     let bus = changed_arm(|_| {});
     let before = held(&bus);
-    let mut t = bus.borrow().time();
-    let began = t;
-    let mut session = Automatic::start(
-        Bus::new(line(&bus), Duration::from_micros(600)),
-        plan(&robot),
-        t,
-    )
-    .unwrap();
     // Into the elbow's sweep (the fifth joint), then stopped.
     let mut elbow_began = None;
-    let e = loop {
-        t += 0.02;
-        bus.borrow_mut().advance_to(t, 0.001);
-        match session.tick(t) {
-            Ok(Progress::Working(4, Activity::Seeking(Toward::Upper, moved))) if moved > 0.5 => {
-                session.stop(t, began)
+    let (end, _) = session_until_end(&bus, plan(&robot), |p, t, session, bus| {
+        match p {
+            Progress::Working(4, Activity::Seeking(Toward::Upper, moved)) if *moved > 0.5 => {
+                session.stop(t, 0.0)
             }
-            Ok(Progress::Working(4, Activity::Posing)) => {
+            Progress::Working(4, Activity::Posing) => {
                 elbow_began = Some(bus.borrow_mut().servo_mut(4).unwrap().angle);
             }
-            Ok(Progress::Done(_)) => panic!("not stopped"),
-            Ok(_) => {}
-            Err(e) => break e,
+            Progress::Done(_) => panic!("not stopped"),
+            _ => {}
         }
-        assert!(t < began + 900.0);
-    };
-    let SessionError::Refused(refusals) = e else {
-        panic!("{e}")
+        true
+    });
+    let Err(SessionError::Refused(refusals)) = end else {
+        panic!("{end:?}")
     };
     assert!(
         matches!(&refusals[..], [Refusal::Stopped { .. }]),
@@ -446,37 +454,25 @@ fn a_session_stopped_after_the_last_sweep_or_dropped_keeps_no_calibration() {
                 .collect()
         };
         let in_ram = offsets(&bus);
-        let mut t = bus.borrow().time();
-        let began = t;
-        let mut session = Automatic::start(
-            Bus::new(line(&bus), Duration::from_micros(600)),
-            plan(&robot),
-            t,
-        )
-        .unwrap();
         let mut stopped = false;
-        loop {
-            t += 0.02;
-            bus.borrow_mut().advance_to(t, 0.001);
-            match session.tick(t) {
-                Ok(Progress::Working(7, Activity::Resting)) if !stopped => {
-                    stopped = true;
-                    if drop_it {
-                        break;
-                    }
-                    session.stop(t, began);
+        let (end, _) = session_until_end(&bus, plan(&robot), |p, t, session, _| {
+            if let (Progress::Working(7, Activity::Resting), false) = (p, stopped) {
+                stopped = true;
+                if drop_it {
+                    return false;
                 }
-                Ok(Progress::Done(_)) => panic!("not stopped"),
-                Ok(_) => {}
-                Err(SessionError::Refused(r)) => {
-                    assert!(matches!(&r[..], [Refusal::Stopped { .. }]), "{r:?}");
-                    break;
-                }
-                Err(e) => panic!("{e}"),
+                session.stop(t, 0.0);
             }
-            assert!(t < began + 900.0);
+            assert!(!matches!(p, Progress::Done(_)), "not stopped");
+            true
+        });
+        match end {
+            Ok(_) => assert!(drop_it && stopped),
+            Err(SessionError::Refused(r)) => {
+                assert!(matches!(&r[..], [Refusal::Stopped { .. }]), "{r:?}")
+            }
+            Err(e) => panic!("{e}"),
         }
-        drop(session);
         assert_eq!(held(&bus), before, "dropped: {drop_it}");
         assert_eq!(offsets(&bus), in_ram, "dropped: {drop_it}");
         let mut b = bus.borrow_mut();
@@ -485,33 +481,6 @@ fn a_session_stopped_after_the_last_sweep_or_dropped_keeps_no_calibration() {
             assert!(!s.torque_enabled(), "servo {id}");
             assert_eq!(s.get(reg::OPERATING_MODE), 0, "servo {id}");
         }
-    }
-}
-
-/// Runs a session to its end, `hook` called after each tick with what it said; the `Done`
-/// progress (not committed) or the error.
-fn session_until_end(
-    bus: &RefCell<SimBus>,
-    plan: Plan,
-    mut hook: impl FnMut(&Progress, f64, &mut Automatic<common::Line<'_>>, &RefCell<SimBus>),
-) -> (Result<Progress, SessionError>, f64) {
-    let mut t = bus.borrow().time();
-    let began = t;
-    let mut session =
-        Automatic::start(Bus::new(line(bus), Duration::from_micros(600)), plan, t).unwrap();
-    loop {
-        t += 0.02;
-        bus.borrow_mut().advance_to(t, 0.001);
-        match session.tick(t) {
-            Ok(p @ Progress::Done(_)) => {
-                let committed = session.commit().map(|_| p);
-                hook(&Progress::Done(Vec::new()), t, &mut session, bus);
-                return (committed, t - began);
-            }
-            Ok(p) => hook(&p, t, &mut session, bus),
-            Err(e) => return (Err(e), t - began),
-        }
-        assert!(t < began + 900.0, "the session did not end");
     }
 }
 
@@ -534,6 +503,7 @@ fn a_latched_protection_while_parking_still_ends_the_session() {
             assert!(s.write(reg::MAX_TEMPERATURE_LIMIT.addr, &[20]));
             assert!(s.write(reg::LOCK.addr, &[1]));
         }
+        true
     });
     let Err(SessionError::Refused(refusals)) = end else {
         panic!("{end:?}")
@@ -564,6 +534,7 @@ fn a_stop_while_parking_and_an_abandoned_commit_keep_no_calibration() {
             stopped = true;
             session.stop(t, 0.0);
         }
+        true
     });
     let Err(SessionError::Refused(refusals)) = end else {
         panic!("{end:?}")
@@ -582,6 +553,7 @@ fn a_stop_while_parking_and_an_abandoned_commit_keep_no_calibration() {
             session.abandon().unwrap();
             abandoned = true;
         }
+        true
     });
     assert!(end.is_ok() && abandoned, "{end:?}");
     assert_eq!(held(&bus), before);
