@@ -237,12 +237,11 @@ fn print_summary(an: &Analysis, source: &str) {
 /// Prints the motion channel: its cause, the servo as configured and each model held out.
 fn print_motion(m: &MotionAnalysis) {
     println!(
-        "motion ({} runs through the simulator's {}): cause {}; after `{}`: {}",
+        "motion ({} runs through the simulator's {}): cause {}; {}",
         m.as_configured.len(),
         m.servo,
         m.cause,
-        m.chosen,
-        m.judged
+        m.judged()
     );
     for (run, mae, rmse) in &m.as_configured {
         println!("  as configured  {run}: MAE {mae:.4} rad, RMSE {rmse:.4} rad");

@@ -515,15 +515,13 @@ impl Draft {
         let md = &mut self.md;
         let _ = writeln!(
             md,
-            "\n## Motion channel ({} runs through the simulator's {})\n\n**Cause: `{}`**; after \
-             `{}`: {}.\n\n\
+            "\n## Motion channel ({} runs through the simulator's {})\n\n**Cause: `{}`**; {}.\n\n\
              The simulator's servo as configured (its rated friction), open loop:\n\n\
              | run | MAE (rad) | RMSE (rad) |\n|---|---|---|",
             m.as_configured.len(),
             m.servo,
             m.cause,
-            m.chosen,
-            m.judged
+            m.judged()
         );
         for (run, mae, rmse) in &m.as_configured {
             let _ = writeln!(md, "| {} | {mae:.4} | {rmse:.4} |", esc(run));

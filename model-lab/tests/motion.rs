@@ -171,13 +171,27 @@ fn runs_without_an_extension_give_none() {
 
 /// A duty gain 5 % above the configured one is within the motor constant's own ±10 %: the
 /// firmware-gain extension cuts the held-out error by far more than the practical margins,
-/// and its size is what refuses it.
+/// and its size is what refuses it; the misfit it leaves to the nominal model is that
+/// tolerance's, not `unexplained`.
 #[test]
 fn a_firmware_gain_within_the_motors_tolerance_is_no_finding() {
     let g = generate_motion_sized(Effect::FirmwareGain, 11, Some(0.05));
     let out = analyze(g.dataset().unwrap(), &options(), &mut |_| {}).unwrap();
     let m = out.analysis.motion.unwrap();
-    assert_eq!(m.cause, Effect::None, "{}", m.judged);
+    assert_eq!(m.cause, Effect::None, "{}", m.judged());
+    // The misfit the nominal model leaves is beyond the floor measured at rest, and the gain
+    // at its size takes it within: the tolerance's misfit, said so.
+    let nominal = &m.candidates[0];
+    let rmse = (nominal.runs.iter().map(|h| h.rmse_rad.powi(2)).sum::<f64>()
+        / nominal.runs.len() as f64)
+        .sqrt();
+    assert!(rmse > 2.0 * m.judged.floor.floor, "{rmse} {}", m.judged());
+    assert_eq!(
+        m.within_tolerance,
+        Some(Effect::FirmwareGain),
+        "{}",
+        m.judged()
+    );
     let gain = m
         .candidates
         .iter()
@@ -251,5 +265,47 @@ fn bams_runs_replay_through_the_simulators_servo() {
     assert!(
         maes.iter().zip(&still).all(|(m, s)| *s > 1.5 * *m),
         "{maes:?} vs frozen {still:?}"
+    );
+}
+
+/// The positions' noise floor on BAM's STS3250 runs is measured where the servo stood still,
+/// and a run replayed at twice the speed (every other reading) keeps it within a fifth, where
+/// second differences over the whole run took the swings for noise and grew with the speed.
+#[test]
+fn bams_position_floor_does_not_grow_when_the_runs_are_replayed_faster() {
+    use model_lab::analysis::{FloorBasis, NoiseFloor};
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/bam-sts3250");
+    let d = model_lab::load(&root).unwrap();
+    let rating = sim::RobotDescription::nori_a3();
+    let runs = MotionRun::from_dataset(&d, rating.rating("sts3250").unwrap().rated_voltage);
+    let q = sim::servo::RAD_PER_STEP;
+    let series: Vec<Vec<f64>> = runs.iter().map(|r| r.position.clone()).collect();
+    let faster: Vec<Vec<f64>> = series
+        .iter()
+        .map(|x| x.iter().step_by(2).copied().collect())
+        .collect();
+    let (slow, fast) = (
+        NoiseFloor::at_rest(&series, q),
+        NoiseFloor::at_rest(&faster, q),
+    );
+    let whole = |s: &[Vec<f64>]| {
+        let segments: Vec<(usize, usize)> = vec![(0, s.iter().map(Vec::len).max().unwrap())];
+        NoiseFloor::of(s, q, &segments)
+    };
+    eprintln!(
+        "BAM's position floor: at rest {:.5} rad ({:?}), replayed twice as fast {:.5}; over the \
+         whole runs {:.5}, twice as fast {:.5}",
+        slow.floor,
+        slow.measured_on,
+        fast.floor,
+        whole(&series).floor,
+        whole(&faster).floor
+    );
+    assert!(matches!(slow.measured_on, FloorBasis::AtRest { .. }));
+    assert!(
+        (fast.floor / slow.floor - 1.0).abs() < 0.2,
+        "{} vs {}",
+        slow.floor,
+        fast.floor
     );
 }

@@ -22,7 +22,34 @@ pub struct NoiseFloor {
     pub readings_noise: f64,
     /// √(q²/12 + σ²).
     pub floor: f64,
+    /// What the readings' noise was measured on.
+    pub measured_on: FloorBasis,
 }
+
+/// What a noise floor's readings noise was measured on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FloorBasis {
+    /// Second differences over whole segments (a signal smooth at the sampling rate).
+    SecondDifferences,
+    /// Second differences where the readings were at rest: `samples` of them, on `runs`
+    /// runs (the motion's own curvature excluded, whatever the speed).
+    AtRest {
+        /// Second differences used.
+        samples: usize,
+        /// Runs they came from.
+        runs: usize,
+    },
+    /// No reading was at rest long enough: the register's step alone.
+    StepOnly,
+}
+
+/// A reading moving by at most this many register steps from the one before is at rest (an
+/// encoder's jitter at a standstill is a step or two).
+pub const REST_STEPS: f64 = 2.0;
+/// Readings in a row at rest before they count (0.1 s at 100 Hz): a reversal's apex is not a
+/// rest.
+pub const REST_MIN_READINGS: usize = 10;
 
 impl NoiseFloor {
     /// The floor of `series` (per motor, NaN where missing) read in steps of `quantum`.
@@ -44,11 +71,44 @@ impl NoiseFloor {
         } else {
             0.0
         };
+        NoiseFloor::with(quantum, readings_noise, FloorBasis::SecondDifferences)
+    }
+
+    fn with(quantum: f64, readings_noise: f64, measured_on: FloorBasis) -> NoiseFloor {
         NoiseFloor {
             quantum,
             readings_noise,
             floor: (quantum * quantum / 12.0 + readings_noise * readings_noise).sqrt(),
+            measured_on,
         }
+    }
+
+    /// The floor of `runs` (each a series of readings, NaN where missing, in steps of
+    /// `quantum`) measured where the readings are at rest: [`REST_MIN_READINGS`] or more in a
+    /// row, each within [`REST_STEPS`] steps of the one before. There the second differences
+    /// see the sensor, not the motion, so the floor does not grow when a run is replayed
+    /// faster; with no rest anywhere it is the register's step alone.
+    pub fn at_rest(runs: &[Vec<f64>], quantum: f64) -> NoiseFloor {
+        let (mut sum, mut n, mut used) = (0.0, 0usize, 0usize);
+        for x in runs {
+            let before = n;
+            for (s, e) in rests(x, quantum) {
+                for k in s + 1..e - 1 {
+                    let d2 = x[k + 1] - 2.0 * x[k] + x[k - 1];
+                    sum += d2 * d2;
+                    n += 1;
+                }
+            }
+            used += usize::from(n > before);
+        }
+        if n == 0 {
+            return NoiseFloor::with(quantum, 0.0, FloorBasis::StepOnly);
+        }
+        let basis = FloorBasis::AtRest {
+            samples: n,
+            runs: used,
+        };
+        NoiseFloor::with(quantum, (sum / n as f64 / 6.0).sqrt(), basis)
     }
 
     /// A held-out misfit (RMSE, bias, in `unit`) held against this floor.
@@ -65,6 +125,26 @@ impl NoiseFloor {
             significant: rmse_floors > MISFIT_RMSE_FLOORS || bias_floors > MISFIT_BIAS_FLOORS,
         }
     }
+}
+
+/// The stretches `[s, e)` of `x` at rest: [`REST_MIN_READINGS`] or more finite readings in a
+/// row, each within [`REST_STEPS`] steps of the one before.
+fn rests(x: &[f64], quantum: f64) -> Vec<(usize, usize)> {
+    let mut out = Vec::new();
+    let mut start = 0;
+    for k in 1..=x.len() {
+        let still = k < x.len()
+            && x[k].is_finite()
+            && x[k - 1].is_finite()
+            && (x[k] - x[k - 1]).abs() <= REST_STEPS * quantum * (1.0 + 1e-9);
+        if !still {
+            if k - start >= REST_MIN_READINGS {
+                out.push((start, k));
+            }
+            start = k;
+        }
+    }
+    out
 }
 
 /// A held-out misfit held against a channel's noise floor ([`NoiseFloor::judge`]).
@@ -89,11 +169,19 @@ pub struct AgainstFloor {
 impl std::fmt::Display for AgainstFloor {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let Self { rmse, unit, .. } = self;
+        let on = match self.floor.measured_on {
+            FloorBasis::SecondDifferences => String::new(),
+            FloorBasis::AtRest { samples, runs } => {
+                format!(" at rest, {samples} readings on {runs} run(s)")
+            }
+            FloorBasis::StepOnly => " (no reading at rest: the step alone)".into(),
+        };
         write!(
             f,
             "held-out RMSE {rmse:.3} {unit} = {:.1} noise floors, |bias| {:.3} {unit} = {:.1} \
-             (floor {:.3} {unit}: step {} {unit}, readings' noise {:.3} {unit}); significant \
-             beyond {MISFIT_RMSE_FLOORS} floors of RMSE or {MISFIT_BIAS_FLOORS} of bias",
+             (floor {:.4} {unit}: step {} {unit}, readings' noise {:.4} {unit}{on}); \
+             significant beyond {MISFIT_RMSE_FLOORS} floors of RMSE or {MISFIT_BIAS_FLOORS} of \
+             bias",
             self.rmse_floors,
             self.bias.abs(),
             self.bias_floors,
@@ -175,5 +263,77 @@ pub(super) fn verdict(
         significant: pooled.significant || worst.is_some_and(|(_, w)| w.significant),
         pooled,
         worst,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A servo that swings hard between holds, read by a 4096-step encoder with a step of
+    /// jitter: the floor at rest is the jitter's, and replayed at twice the speed (every other
+    /// reading) it stays within a fifth; the second differences over the whole run take the
+    /// swings for noise and grow with the speed.
+    #[test]
+    fn the_floor_at_rest_does_not_grow_when_a_run_is_replayed_faster() {
+        let q = std::f64::consts::TAU / 4096.0;
+        let mut rng = 7u64;
+        let mut jitter = || {
+            // A step up or down one reading in four.
+            rng = rng
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            match rng >> 62 {
+                0 => q,
+                1 => -q,
+                _ => 0.0,
+            }
+        };
+        let mut x = Vec::new();
+        for cycle in 0..6 {
+            let hold = if cycle % 2 == 0 { 0.0 } else { 1.5 };
+            for _ in 0..60 {
+                x.push(((hold + jitter()) / q).round() * q);
+            }
+            // A swing of 1.5 rad in 0.3 s at 100 Hz.
+            for k in 0..30 {
+                let s = f64::from(k) / 30.0;
+                let p = if cycle % 2 == 0 {
+                    1.5 * s
+                } else {
+                    1.5 * (1.0 - s)
+                };
+                x.push(((p + 0.5 * (std::f64::consts::PI * s).sin()) / q).round() * q);
+            }
+        }
+        let faster: Vec<f64> = x.iter().step_by(2).copied().collect();
+        let (slow, fast) = (
+            NoiseFloor::at_rest(std::slice::from_ref(&x), q),
+            NoiseFloor::at_rest(std::slice::from_ref(&faster), q),
+        );
+        assert!(matches!(
+            slow.measured_on,
+            FloorBasis::AtRest { runs: 1, .. }
+        ));
+        assert!(
+            (fast.floor / slow.floor - 1.0).abs() < 0.2,
+            "{} vs {}",
+            slow.floor,
+            fast.floor
+        );
+        assert!(slow.readings_noise < 2.0 * q, "{}", slow.readings_noise);
+        let whole = |x: &Vec<f64>| NoiseFloor::of(std::slice::from_ref(x), q, &[(0, x.len())]);
+        assert!(whole(&x).floor > 3.0 * slow.floor);
+        assert!(whole(&faster).floor > 2.0 * whole(&x).floor);
+    }
+
+    /// Never at rest: the register's step alone, said so.
+    #[test]
+    fn a_run_never_at_rest_has_the_step_alone() {
+        let q = 0.01;
+        let x: Vec<f64> = (0..500).map(|k| f64::from(k) * 0.05).collect();
+        let f = NoiseFloor::at_rest(&[x], q);
+        assert_eq!(f.measured_on, FloorBasis::StepOnly);
+        assert!((f.floor - q / 12f64.sqrt()).abs() < 1e-12);
     }
 }

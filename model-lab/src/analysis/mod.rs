@@ -27,7 +27,9 @@ use crate::thermal::{
 use crate::verdict::Verdict;
 use electrical_channel::{electrical_channel, ElectricalOutcome};
 use floor::verdict;
-pub use floor::{AgainstFloor, ChannelVerdict, NoiseFloor, MISFIT_BIAS_FLOORS, MISFIT_RMSE_FLOORS};
+pub use floor::{
+    AgainstFloor, ChannelVerdict, FloorBasis, NoiseFloor, MISFIT_BIAS_FLOORS, MISFIT_RMSE_FLOORS,
+};
 use serde::Serialize;
 pub(crate) use significance::HELDOUT_SIZE;
 use significance::{
