@@ -280,22 +280,38 @@ pub fn parse_csv(text: &str, origin: &str) -> Result<Vec<Row>, DataError> {
 
 /// Reads a CSV file (with its sidecar, if any) or a directory of them.
 pub fn load(path: &Path) -> Result<Dataset, DataError> {
-    let io = |source| DataError::Io {
-        path: path.display().to_string(),
-        source,
-    };
+    load_all(std::slice::from_ref(&path.to_path_buf()))
+}
+
+/// Reads CSV files (with their sidecars) and directories of them as one dataset, one run per
+/// file: a subset of a directory's runs is named file by file (runs a fit must not see left
+/// out).
+pub fn load_all(paths: &[std::path::PathBuf]) -> Result<Dataset, DataError> {
     let mut files = Vec::new();
-    if path.is_dir() {
-        for e in std::fs::read_dir(path).map_err(io)? {
-            let p = e.map_err(io)?.path();
-            if p.extension().is_some_and(|x| x == "csv") {
-                files.push(p);
+    for path in paths {
+        let io = |source| DataError::Io {
+            path: path.display().to_string(),
+            source,
+        };
+        if path.is_dir() {
+            for e in std::fs::read_dir(path).map_err(io)? {
+                let p = e.map_err(io)?.path();
+                if p.extension().is_some_and(|x| x == "csv") {
+                    files.push(p);
+                }
             }
+        } else {
+            files.push(path.clone());
         }
-        files.sort();
-    } else {
-        files.push(path.to_path_buf());
     }
+    // A file named twice (itself and in its directory) is one run.
+    files.sort();
+    files.dedup();
+    let origin = paths
+        .iter()
+        .map(|p| p.display().to_string())
+        .collect::<Vec<_>>()
+        .join(" ");
     let mut runs = Vec::new();
     let mut meta = Meta::default();
     for f in &files {
@@ -317,7 +333,7 @@ pub fn load(path: &Path) -> Result<Dataset, DataError> {
             })?;
         }
     }
-    let mut d = Dataset::from_runs(runs, meta, &path.display().to_string())?;
+    let mut d = Dataset::from_runs(runs, meta, &origin)?;
     for f in &files {
         let mechanics = read_mechanics(f)?;
         let name = f.display().to_string();

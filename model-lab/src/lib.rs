@@ -42,4 +42,4 @@ pub mod verdict;
 
 pub use analysis::{analyze, Analysis, AnalysisError, Options, Outcome};
 pub use catalog::{Channel, Effect};
-pub use data::{load, DataError, Dataset};
+pub use data::{load, load_all, DataError, Dataset};

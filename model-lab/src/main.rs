@@ -4,7 +4,6 @@
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser};
-use model_lab::electrical::CurrentEstimator;
 use model_lab::generate::{generate, Spec};
 use model_lab::motion::MotionAnalysis;
 use model_lab::{analyze, Analysis, Effect, Options, Outcome};
@@ -28,8 +27,10 @@ enum ModelCommand {
 /// Options of `nori model analyze`.
 #[derive(Args, Debug)]
 struct AnalyzeArgs {
-    /// Telemetry CSV (data/README.md format), or a directory of them (one run each).
-    data: PathBuf,
+    /// Telemetry CSVs (data/README.md format) or directories of them, one run per file, taken
+    /// together (name files one by one to leave runs out of the fit).
+    #[arg(required = true)]
+    data: Vec<PathBuf>,
     /// Print one JSON object instead of the summary.
     #[arg(long)]
     json: bool,
@@ -98,15 +99,21 @@ fn write(path: &Path, text: &str) -> Result<()> {
 /// `nori model analyze`: the analysis, its report and model file, and its summary or JSON.
 fn run_analyze(a: &AnalyzeArgs) -> Result<()> {
     let opts = options(a)?;
-    let data = model_lab::load(&a.data)?;
+    let data = model_lab::load_all(&a.data)?;
     let start = Instant::now();
     let out = analyze(data, &opts, &mut |line| {
         eprintln!("[{:6.1} s] {line}", start.elapsed().as_secs_f64())
     })?;
     let an = &out.analysis;
-    let source = a.data.display().to_string();
+    let source = a
+        .data
+        .iter()
+        .map(|p| p.display().to_string())
+        .collect::<Vec<_>>()
+        .join(" ");
     let model_text = format!(
-        "# Model extension fitted by `nori model analyze {source}`.\n{}",
+        "# Model extension fitted by `nori model analyze --servo {} {source}`.\n{}",
+        a.servo,
         out.model.to_toml()
     );
     if let Some(dir) = &a.report {
@@ -129,30 +136,9 @@ fn run_analyze(a: &AnalyzeArgs) -> Result<()> {
 /// The analysis options of the arguments: the servo's rating estimates the currents and
 /// bounds what the data may read.
 fn options(a: &AnalyzeArgs) -> Result<Options> {
-    let robot = sim::RobotDescription::nori_a3();
-    let Some(rating) = robot.rating(&a.servo) else {
-        bail!(
-            "unknown servo model {:?} (sts3215, sts3250, sts3095)",
-            a.servo
-        );
-    };
     Ok(Options {
         fit_fraction: a.fit_fraction,
-        estimator: Some(CurrentEstimator {
-            kp: a.kp,
-            resistance_ohm: rating.rated_voltage / rating.stall_current_a,
-            ke_v_s_per_rad: rating.rated_voltage / rating.no_load_speed_rad_s,
-        }),
-        limits: model_lab::audit::Limits {
-            stall_current_a: rating.stall_current_a,
-            // Feetech's 12 V servos take up to 14.8 V (a charged 4S pack); margin for a
-            // charger's ripple. A lower-rated servo may run on the 12 V bus (the STS3095).
-            max_supply_v: (1.4 * rating.rated_voltage).max(16.8),
-            max_speed_rad_s: 3.0 * rating.no_load_speed_rad_s,
-            ..model_lab::audit::Limits::default()
-        },
-        servo: a.servo.clone(),
-        ..Options::default()
+        ..Options::for_servo(&a.servo, a.kp)?
     })
 }
 

@@ -644,19 +644,25 @@ impl MotionAnalysis {
         }
     }
 
-    /// Writes the named motion extension (fitted on all runs) into the simulator's model file,
-    /// with the friction calibrated beside it; the file's cause names every channel's.
+    /// Writes the supported motion extension (fitted on all runs) into the simulator's model
+    /// file, with the friction calibrated beside it, the servo model and the held-out gain;
+    /// the file's cause names every channel's. An extension supported with a misfit still
+    /// left beyond the floor (`unexplained` beside it) is written, and said so: it predicts
+    /// better on runs it did not see, which is what the simulator needs of it.
     pub fn write_extension(&self, m: &mut sim::extension::ModelExtension) {
-        if !MOTION_CATALOG.contains(&self.cause) {
+        m.servo = Some(self.servo.clone());
+        if !MOTION_CATALOG.contains(&self.chosen) {
             return;
         }
-        let Some(c) = self.candidates.iter().find(|c| c.id == self.cause) else {
+        let Some(c) = self.candidates.iter().find(|c| c.id == self.chosen) else {
             return;
         };
+        m.motion_heldout_gain = Some(c.gain);
+        m.motion_misfit_left = self.cause == Effect::Unexplained;
         let x: Vec<f64> = c.parameters.iter().map(|p| p.value).collect();
-        let p = decode(self.cause, &x);
+        let p = decode(self.chosen, &x);
         let e = p.ext;
-        let id = self.cause.id();
+        let id = self.chosen.id();
         m.cause = match m.cause.as_str() {
             "none" => id.to_string(),
             other if other.split('+').any(|c| c == id) => other.to_string(),
@@ -664,7 +670,7 @@ impl MotionAnalysis {
         };
         m.fitted_coulomb_nm = Some(p.coulomb_nm);
         m.fitted_viscous_nms = Some(p.viscous_nms);
-        match self.cause {
+        match self.chosen {
             Effect::ArmatureError => m.armature_error = Some(e.armature_error),
             Effect::FirmwareGain => m.duty_gain_error = Some(e.duty_gain_error),
             Effect::Backlash => m.backlash_rad = Some(e.backlash_rad),

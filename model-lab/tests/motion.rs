@@ -309,3 +309,83 @@ fn bams_position_floor_does_not_grow_when_the_runs_are_replayed_faster() {
         fast.floor
     );
 }
+
+/// The simulator's STS3250 runs the lab's finding on BAM's runs (`sim/constants/sts3250.toml`):
+/// the file is what the lab fits on the runs it names, and on the run no fit saw (the chirp,
+/// left out of that fit) the simulator's servo with it replays the measured positions better
+/// than with the rating, and no worse on the runs it was fitted on.
+#[test]
+fn the_simulators_sts3250_constants_are_the_labs_and_predict_a_run_no_fit_saw() {
+    use sim::constants::{shipped, ConstantsChoice};
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let all = shipped(ConstantsChoice::Fitted).unwrap();
+    let c = all
+        .iter()
+        .find(|c| c.model.key() == "sts3250")
+        .expect("a finding for the STS3250");
+    let f = &c.finding;
+
+    // Fitted again on the runs the file names: the same finding.
+    let fitted_on: Vec<_> = f.fitted_on.iter().map(|r| root.join(r)).collect();
+    // As `nori model analyze --servo sts3250` (its default kp, 32) fits it.
+    let opts = Options::for_servo("sts3250", 32.0).unwrap();
+    let out = analyze(model_lab::load_all(&fitted_on).unwrap(), &opts, &mut |_| {}).unwrap();
+    let again = out.model;
+    let close = |a: Option<f64>, b: Option<f64>| match (a, b) {
+        (Some(a), Some(b)) => (a - b).abs() <= 1e-6 * a.abs().max(1e-9),
+        _ => false,
+    };
+    assert_eq!(
+        (again.cause.as_str(), again.servo.as_deref()),
+        ("armature_error", Some("sts3250"))
+    );
+    assert!(
+        close(again.armature_error, f.armature_error),
+        "{again:?} vs {f:?}"
+    );
+    assert!(
+        close(again.fitted_coulomb_nm, f.fitted_coulomb_nm),
+        "{again:?}"
+    );
+    assert!(
+        close(again.fitted_viscous_nms, f.fitted_viscous_nms),
+        "{again:?}"
+    );
+
+    // Every run of BAM's, through the simulator's servo as rated and as it now runs.
+    let d = model_lab::load(&root.join("data/bam-sts3250")).unwrap();
+    let robot = sim::RobotDescription::nori_a3();
+    let rating = robot.rating("sts3250").unwrap();
+    let runs = MotionRun::from_dataset(&d, rating.rated_voltage);
+    let rated = motion::MotionParams {
+        coulomb_nm: rating.coulomb_nm,
+        viscous_nms: rating.viscous_nms,
+        ext: Default::default(),
+    };
+    let fitted = motion::MotionParams {
+        coulomb_nm: f.fitted_coulomb_nm.unwrap(),
+        viscous_nms: f.fitted_viscous_nms.unwrap(),
+        ext: sim::extension::ServoExtension::from(f),
+    };
+    let mae = |p: &motion::MotionParams, r: &MotionRun| {
+        motion::errors(&motion::simulate(rating, p, r), r).0
+    };
+    let mut unseen = 0;
+    for r in &runs {
+        let seen = f.fitted_on.iter().any(|n| r.name.ends_with(n.as_str()));
+        let (before, after) = (mae(&rated, r), mae(&fitted, r));
+        eprintln!(
+            "{} ({}): MAE as rated {before:.4} rad, with the lab's constants {after:.4} ({:+.1} %)",
+            r.name,
+            if seen { "fitted on" } else { "no fit saw it" },
+            100.0 * (after / before - 1.0)
+        );
+        if seen {
+            assert!(after <= 1.02 * before, "{}: {before} → {after}", r.name);
+        } else {
+            unseen += 1;
+            assert!(after < 0.8 * before, "{}: {before} → {after}", r.name);
+        }
+    }
+    assert_eq!(unseen, 1, "one run left out of the fit");
+}

@@ -317,6 +317,22 @@ impl SimBus {
         self.hand.as_ref().map(crate::hand::Hand::done)
     }
 
+    /// Runs a servo model's constants as the model lab found them: its extension and the
+    /// friction calibrated with it, on every servo of that model on the bus.
+    pub fn apply_constants(&mut self, c: &crate::constants::ModelConstants) {
+        let ext = crate::extension::ServoExtension::from(&c.finding);
+        for s in self.servos.iter_mut().filter(|s| s.model == c.model) {
+            s.extension = ext;
+            s.sensor_temperature = s.temperature;
+            if let Some(v) = c.finding.fitted_coulomb_nm {
+                s.plant.coulomb = v;
+            }
+            if let Some(v) = c.finding.fitted_viscous_nms {
+                s.plant.viscous = v;
+            }
+        }
+    }
+
     /// Applies a model extension fitted by the model lab to every servo of the bus.
     pub fn apply_extension(&mut self, m: &crate::extension::ModelExtension) {
         let ext = crate::extension::ServoExtension::from(m);
@@ -874,6 +890,33 @@ mod tests {
         let mut buf = [0u8; 300];
         let n = i.encode(&mut buf).unwrap();
         bus.receive(bus.time(), &buf[..n]);
+    }
+
+    /// The shipped finding changes the STS3250s of the bus (the bicep rotation, the wrist
+    /// pitch) and nothing else: their inertia's error and the friction fitted with it.
+    #[test]
+    fn a_models_constants_change_that_models_servos_only() {
+        let mut bus = left_arm();
+        let before: Vec<_> = bus.servos.iter().map(|s| (s.plant, s.extension)).collect();
+        let found = crate::constants::shipped(crate::constants::ConstantsChoice::Fitted).unwrap();
+        let c = found
+            .iter()
+            .find(|c| c.model == reg::ServoModel::Sts3250)
+            .unwrap();
+        bus.apply_constants(c);
+        let mut changed = 0;
+        for (s, (plant, ext)) in bus.servos.iter().zip(before) {
+            if s.model == reg::ServoModel::Sts3250 {
+                changed += 1;
+                assert_eq!(Some(s.extension.armature_error), c.finding.armature_error);
+                assert_eq!(Some(s.plant.coulomb), c.finding.fitted_coulomb_nm);
+                assert_eq!(Some(s.plant.viscous), c.finding.fitted_viscous_nms);
+                assert_ne!(s.plant, plant, "servo {}", s.id);
+            } else {
+                assert_eq!((s.plant, s.extension), (plant, ext), "servo {}", s.id);
+            }
+        }
+        assert_eq!(changed, 2);
     }
 
     #[test]

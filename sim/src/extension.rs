@@ -124,6 +124,20 @@ pub struct ModelExtension {
     /// Relative reduction of the held-out error the extension brought, for reference.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub heldout_gain: Option<f64>,
+    /// The servo model the motion channel replayed: its extension and friction are that
+    /// model's constants.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub servo: Option<String>,
+    /// Relative reduction of the motion channel's held-out error its extension brought.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub motion_heldout_gain: Option<f64>,
+    /// A misfit beyond the positions' noise floor is left with the motion extension: it is
+    /// supported, not the whole story (the analysis said `unexplained` beside it).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub motion_misfit_left: bool,
+    /// The runs it was fitted on, each its file: runs not named here are the ones no fit saw.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub fitted_on: Vec<String>,
     /// Fitted per-motor constants, for reference.
     #[serde(default)]
     pub motor: Vec<FittedMotor>,
@@ -151,6 +165,10 @@ impl ModelExtension {
             fitted_coulomb_nm: None,
             fitted_viscous_nms: None,
             heldout_gain: None,
+            servo: None,
+            motion_heldout_gain: None,
+            motion_misfit_left: false,
+            fitted_on: Vec::new(),
             motor: Vec::new(),
         }
     }

@@ -14,6 +14,8 @@
 //!   its room, served as the devices `nori-camera` and `nori-lidar` read.
 //! * [`description`]: the robot description file; the A3's is embedded.
 //! * [`extension`]: model extensions fitted on measured data by the model lab.
+//! * [`constants`]: the constants each servo model runs: its rating, and the model lab's
+//!   shipped finding on top where it found the rating wrong.
 //!
 //! Batch mode is [`bus::SimBus::step`] in a loop: no wall clock, as fast as the CPU goes.
 //!
@@ -29,6 +31,7 @@ pub mod arm;
 pub mod base;
 pub mod bus;
 pub mod camera;
+pub mod constants;
 /// The robot description (the `body` crate's, re-exported: the one description the simulator and
 /// the robot's processes read).
 pub use body::description;

@@ -31,6 +31,10 @@ struct ServeArgs {
     /// repeatable: the set-ups combine (the chaos run uses all three).
     #[arg(long, value_enum)]
     pub scenario: Vec<sim::scenario::Scenario>,
+    /// The servos' constants: the description's ratings with the model lab's shipped findings
+    /// on top (each model it found wrong on measured runs), or the ratings alone.
+    #[arg(long, value_enum, default_value_t = sim::constants::ConstantsChoice::Fitted)]
+    pub servo_constants: sim::constants::ConstantsChoice,
     /// Integrate temperatures this many times faster than real time (accelerated heating).
     #[arg(long, default_value_t = 1.0)]
     pub thermal_speedup: f64,
@@ -210,7 +214,14 @@ fn run(args: &ServeArgs) -> Result<()> {
     let mut schedule = fault_schedule(args, &robot)?;
     let mut hands = hands(args, &robot)?;
     let shutdown = telemetry::process::stop_flag()?;
-    let buses = sim_buses(args, &robot, &faults)?;
+    let constants = sim::constants::shipped(args.servo_constants)?;
+    announce_constants(&robot, &constants);
+    let mut buses = sim_buses(args, &robot, &faults)?;
+    for (bus, _) in &mut buses {
+        for c in &constants {
+            bus.apply_constants(c);
+        }
+    }
     let lidar_faults = sensor_faults(args)?;
     let served = serve(buses, args.dt)?;
     let devices = Devices {
@@ -537,6 +548,24 @@ impl Devices {
             if let Some(pose) = pose {
                 l.with_device(|d| d.set_base_pose(pose));
             }
+        }
+    }
+}
+
+/// Says which constants each servo model of the robot runs: a finding's, or its rating's.
+fn announce_constants(robot: &RobotDescription, constants: &[sim::constants::ModelConstants]) {
+    let mut models: Vec<&str> = robot
+        .bus
+        .iter()
+        .flat_map(|b| &b.servo)
+        .map(|s| s.model.as_str())
+        .collect();
+    models.sort_unstable();
+    models.dedup();
+    for model in models {
+        match constants.iter().find(|c| c.model.key() == model) {
+            Some(c) => eprintln!("nori sim: servo constants of {}", c.describe()),
+            None => eprintln!("nori sim: servo constants of {model}: its rating"),
         }
     }
 }

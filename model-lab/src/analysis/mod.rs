@@ -79,6 +79,34 @@ pub struct Options {
     pub servo: String,
 }
 
+impl Options {
+    /// The options `nori model analyze --servo SERVO --kp KP` runs with: the servo's rating
+    /// estimates the currents the data do not carry and bounds what the data may read.
+    pub fn for_servo(servo: &str, kp: f64) -> Result<Options, AnalysisError> {
+        let robot = sim::RobotDescription::nori_a3();
+        let rating = robot
+            .rating(servo)
+            .ok_or_else(|| AnalysisError::UnknownServo(servo.into()))?;
+        Ok(Options {
+            estimator: Some(CurrentEstimator {
+                kp,
+                resistance_ohm: rating.rated_voltage / rating.stall_current_a,
+                ke_v_s_per_rad: rating.rated_voltage / rating.no_load_speed_rad_s,
+            }),
+            limits: audit::Limits {
+                stall_current_a: rating.stall_current_a,
+                // Feetech's 12 V servos take up to 14.8 V (a charged 4S pack); margin for a
+                // charger's ripple. A lower-rated servo may run on the 12 V bus (the STS3095).
+                max_supply_v: (1.4 * rating.rated_voltage).max(16.8),
+                max_speed_rad_s: 3.0 * rating.no_load_speed_rad_s,
+                ..audit::Limits::default()
+            },
+            servo: servo.into(),
+            ..Options::default()
+        })
+    }
+}
+
 impl Default for Options {
     fn default() -> Self {
         Options {
@@ -964,6 +992,7 @@ fn model_file(
         set_key(&mut m, chosen.effect, v);
     }
     m.heldout_gain = cand.as_ref().map(|c| c.gain);
+    m.fitted_on = d.runs.iter().map(|r| r.name.clone()).collect();
     if let (Some(td), Some((nom, _))) = (td, nominal) {
         // The calibrated constants travel with the extension: with the extension, the fitted
         // per-motor constants are the extended fit's, since they were fitted together.
