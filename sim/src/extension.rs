@@ -131,8 +131,9 @@ pub struct ModelExtension {
     /// Relative reduction of the motion channel's held-out error its extension brought.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub motion_heldout_gain: Option<f64>,
-    /// A misfit beyond the positions' noise floor is left with the motion extension: it is
-    /// supported, not the whole story (the analysis said `unexplained` beside it).
+    /// A misfit that matters (beyond the positions' noise floor and an encoder step) is left
+    /// with the motion extension: it is supported, not the whole story (the analysis said
+    /// `unexplained` beside it).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub motion_misfit_left: bool,
     /// The runs it was fitted on, each its file: runs not named here are the ones no fit saw.

@@ -113,7 +113,21 @@ impl NoiseFloor {
 
     /// A held-out misfit (RMSE, bias, in `unit`) held against this floor.
     pub fn judge(&self, rmse: f64, bias: f64, unit: &'static str) -> AgainstFloor {
+        self.judge_beyond(rmse, bias, unit, 0.0)
+    }
+
+    /// As [`NoiseFloor::judge`], and significant only where the RMSE or the bias also exceeds
+    /// `practical` (in `unit`): a misfit too small to matter is none, however well measured.
+    pub fn judge_beyond(
+        &self,
+        rmse: f64,
+        bias: f64,
+        unit: &'static str,
+        practical: f64,
+    ) -> AgainstFloor {
         let (rmse_floors, bias_floors) = (rmse / self.floor, bias.abs() / self.floor);
+        // NaN (no residuals) is no evidence of a misfit.
+        let beyond_floor = rmse_floors > MISFIT_RMSE_FLOORS || bias_floors > MISFIT_BIAS_FLOORS;
         AgainstFloor {
             rmse,
             bias,
@@ -121,8 +135,8 @@ impl NoiseFloor {
             floor: *self,
             rmse_floors,
             bias_floors,
-            // NaN (no residuals) is no evidence of a misfit.
-            significant: rmse_floors > MISFIT_RMSE_FLOORS || bias_floors > MISFIT_BIAS_FLOORS,
+            practical,
+            significant: beyond_floor && rmse.max(bias.abs()) > practical,
         }
     }
 }
@@ -162,7 +176,10 @@ pub struct AgainstFloor {
     pub rmse_floors: f64,
     /// |bias| in floors.
     pub bias_floors: f64,
-    /// Beyond [`MISFIT_RMSE_FLOORS`] of RMSE or [`MISFIT_BIAS_FLOORS`] of bias.
+    /// The size below which a misfit does not matter, in `unit` (0: none).
+    pub practical: f64,
+    /// Beyond [`MISFIT_RMSE_FLOORS`] of RMSE or [`MISFIT_BIAS_FLOORS`] of bias, and beyond
+    /// `practical`.
     pub significant: bool,
 }
 
@@ -176,12 +193,20 @@ impl std::fmt::Display for AgainstFloor {
             }
             FloorBasis::StepOnly => " (no reading at rest: the step alone)".into(),
         };
+        let practical = if self.practical > 0.0 {
+            format!(
+                ", and beyond {:.4} {unit}, the size that matters",
+                self.practical
+            )
+        } else {
+            String::new()
+        };
         write!(
             f,
             "held-out RMSE {rmse:.3} {unit} = {:.1} noise floors, |bias| {:.3} {unit} = {:.1} \
              (floor {:.4} {unit}: step {} {unit}, readings' noise {:.4} {unit}{on}); \
              significant beyond {MISFIT_RMSE_FLOORS} floors of RMSE or {MISFIT_BIAS_FLOORS} of \
-             bias",
+             bias{practical}",
             self.rmse_floors,
             self.bias.abs(),
             self.bias_floors,
