@@ -17,7 +17,11 @@ use std::process::Command;
 /// The session `effect` with `seed`, written by the independent generator, as the lab reads it.
 fn session(effect: &str, seed: u64) -> model_lab::Dataset {
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("crosscheck/independent_sessions.py");
-    let dir = std::env::temp_dir().join(format!("nori-independent-{}", std::process::id()));
+    // One directory per session: the tests run side by side, and each removes its own.
+    let dir = std::env::temp_dir().join(format!(
+        "nori-independent-{}-{effect}-{seed}",
+        std::process::id()
+    ));
     std::fs::create_dir_all(&dir).unwrap();
     let csv = dir.join(format!("{effect}-{seed}.csv"));
     let out = Command::new("python3")
@@ -33,6 +37,7 @@ fn session(effect: &str, seed: u64) -> model_lab::Dataset {
     );
     let d = model_lab::load(&csv).unwrap();
     let _ = std::fs::remove_file(&csv);
+    let _ = std::fs::remove_dir(&dir);
     d
 }
 
