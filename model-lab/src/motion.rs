@@ -759,7 +759,7 @@ pub fn analyze_motion(
     // The misfit left, against the positions' noise floor (pooled over held-out runs).
     let floor = position_floor(runs, &held_out);
     let judge = |c: &MotionCandidate| {
-        floor.judge_beyond(pooled_rmse(c), 0.0, "rad", MOTION_PRACTICAL_MISFIT)
+        floor.judge_beyond(c.pooled_rmse(), 0.0, "rad", MOTION_PRACTICAL_MISFIT)
     };
     let mut judged = judge(chosen);
     // A misfit that an extension at a size within the servo's own tolerances takes within the
@@ -885,6 +885,11 @@ fn held_out_run(rating: &ServoRating, effect: Effect, x: Vec<f64>, run: &MotionR
 }
 
 impl MotionCandidate {
+    /// Its held-out RMSE, pooled over its held-out runs, rad.
+    pub fn pooled_rmse(&self) -> f64 {
+        (self.runs.iter().map(|h| h.rmse_rad.powi(2)).sum::<f64>() / self.runs.len() as f64).sqrt()
+    }
+
     /// `effect`'s model on its held-out runs `held`, with its parameters `x` fitted on all runs;
     /// not yet judged.
     fn of(effect: Effect, held: Vec<HeldOutRun>, x: &[f64]) -> MotionCandidate {
@@ -986,11 +991,6 @@ fn best_supported(extensions: &[MotionCandidate]) -> Option<&MotionCandidate> {
         }
     }
     best
-}
-
-/// A candidate's held-out RMSE, pooled over its held-out runs, rad.
-fn pooled_rmse(c: &MotionCandidate) -> f64 {
-    (c.runs.iter().map(|h| h.rmse_rad.powi(2)).sum::<f64>() / c.runs.len() as f64).sqrt()
 }
 
 /// The positions' noise floor on the held-out runs: the encoder's step and the readings'

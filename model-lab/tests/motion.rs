@@ -198,9 +198,7 @@ fn a_firmware_gain_within_the_motors_tolerance_is_no_finding() {
     // The misfit the nominal model leaves is beyond the floor measured at rest, and the gain
     // at its size takes it within: the tolerance's misfit, said so.
     let nominal = &m.candidates[0];
-    let rmse = (nominal.runs.iter().map(|h| h.rmse_rad.powi(2)).sum::<f64>()
-        / nominal.runs.len() as f64)
-        .sqrt();
+    let rmse = nominal.pooled_rmse();
     assert!(rmse > 2.0 * m.judged.floor.floor, "{rmse} {}", m.judged());
     assert_eq!(
         m.within_tolerance,
