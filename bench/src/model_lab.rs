@@ -83,6 +83,7 @@ pub fn run_bench(a: &BenchArgs) -> Result<()> {
 fn analysis_timing() -> Result<Vec<serde_json::Value>> {
     let nominal_only = Options {
         candidates: Vec::new(),
+        search_form: false,
         ..Options::default()
     };
     let mut timing = Vec::new();
@@ -151,11 +152,11 @@ fn print_summary(report: &Report, timing: &[serde_json::Value]) {
 /// The accuracy table: per hidden effect, how often it was named, its parameter recovered,
 /// its detection limit.
 fn print_accuracy_table(report: &Report) {
-    println!("| hidden | size range | named correctly | a wrong catalog name | parameter within 25 % | median parameter error | detection limit (≥ 90 %) | mean analysis |");
-    println!("|---|---|---|---|---|---|---|---|");
+    println!("| hidden | size range | named correctly | a wrong catalog name | parameter within 25 % | median parameter error | detection limit (≥ 90 %) | a form found | mean analysis |");
+    println!("|---|---|---|---|---|---|---|---|---|");
     for e in &report.effects {
         println!(
-            "| `{}` | {} | {:.0} % (`{}`) | {:.0} % | {} | {} | {} | {:.2} s |",
+            "| `{}` | {} | {:.0} % (`{}`) | {:.0} % | {} | {} | {} | {:.0} % | {:.2} s |",
             e.hidden,
             if matches!(e.effect, Effect::None | Effect::Unexplained) {
                 "–".to_string()
@@ -174,6 +175,7 @@ fn print_accuracy_table(report: &Report) {
                 .map_or("–".into(), |v| format!("{:.1} %", 100.0 * v)),
             e.detection_limit
                 .map_or("–".into(), |v| format!("{v:.4} {}", e.unit)),
+            100.0 * e.form_found,
             e.mean_seconds
         );
     }

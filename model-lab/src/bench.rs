@@ -100,6 +100,9 @@ pub struct Run {
     pub both_recovered: bool,
     /// With a dirty channel: the audit found it (a finding of its kind).
     pub flagged: bool,
+    /// The thermal channel's form search found terms its residual follows (on null data, a
+    /// false alarm).
+    pub form: bool,
 }
 
 /// Accuracy on one effect.
@@ -130,6 +133,8 @@ pub struct EffectScore {
     pub sweep: Vec<(f64, f64)>,
     /// Smallest size of the sweep reliably found (None: not even the largest).
     pub detection_limit: Option<f64>,
+    /// Fraction of runs whose thermal residual has a form ([`crate::form`]).
+    pub form_found: f64,
     /// Every run.
     #[serde(skip)]
     pub detail: Vec<Run>,
@@ -189,6 +194,7 @@ fn motion_score(
                     both_named: false,
                     both_recovered: false,
                     flagged: false,
+                    form: false,
                     seed,
                     size: g.parameters.get(i).copied().unwrap_or(0.0),
                     named,
@@ -224,6 +230,7 @@ fn motion_score(
         mean_seconds: mean_seconds(&runs),
         sweep: Vec::new(),
         detection_limit: None,
+        form_found: fraction(&runs, |r| r.form),
         detail: runs,
     };
     progress(&format!(
@@ -324,6 +331,11 @@ fn run_one(spec: &Spec, seed: u64) -> Run {
                 flagged: spec
                     .dirty
                     .is_some_and(|k| a.diagnostics.audit.iter().any(|f| f.kind == k.id())),
+                form: a
+                    .diagnostics
+                    .thermal_form
+                    .as_ref()
+                    .is_some_and(|f| f.found()),
             }
         }
         None => Run {
@@ -337,6 +349,7 @@ fn run_one(spec: &Spec, seed: u64) -> Run {
             both_named: false,
             both_recovered: false,
             flagged: false,
+            form: false,
         },
     }
 }
@@ -446,15 +459,17 @@ fn catalog_score(
         mean_seconds: mean_seconds(&runs),
         sweep,
         detection_limit,
+        form_found: fraction(&runs, |r| r.form),
         detail: runs,
     };
     progress(&format!(
-        "{:18} accuracy {:5.1} %  parameter within {:.0} %: {:5.1} %  limit {:?}",
+        "{:18} accuracy {:5.1} %  parameter within {:.0} %: {:5.1} %  limit {:?}  form {:5.1} %",
         effect.id(),
         100.0 * score.accuracy,
         100.0 * PARAMETER_TOLERANCE,
         100.0 * score.recovered,
-        score.detection_limit
+        score.detection_limit,
+        100.0 * score.form_found
     ));
     score
 }
@@ -528,13 +543,15 @@ fn foreign_score(
         mean_seconds: mean_seconds(&runs),
         sweep: Vec::new(),
         detection_limit: None,
+        form_found: fraction(&runs, |r| r.form),
         detail: runs,
     };
     progress(&format!(
-        "{:18} unexplained {:5.1} %  a catalog name {:5.1} %",
+        "{:18} unexplained {:5.1} %  a catalog name {:5.1} %  form {:5.1} %",
         foreign.id(),
         100.0 * score.accuracy,
-        100.0 * score.wrong_name()
+        100.0 * score.wrong_name(),
+        100.0 * score.form_found
     ));
     score
 }
@@ -567,6 +584,7 @@ fn pair_score(
         mean_seconds: mean_seconds(&runs),
         sweep: Vec::new(),
         detection_limit: None,
+        form_found: fraction(&runs, |r| r.form),
         detail: runs,
     };
     progress(&format!(
@@ -602,6 +620,7 @@ fn dirty_score(dirty: Dirty, settings: &Settings, progress: &mut dyn FnMut(&str)
         mean_seconds: mean_seconds(&runs),
         sweep: Vec::new(),
         detection_limit: None,
+        form_found: fraction(&runs, |r| r.form),
         detail: runs,
     };
     progress(&format!(

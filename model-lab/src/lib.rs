@@ -16,6 +16,8 @@
 //! * [`audit`]: data that lie — channels against the servo's physical ranges and unit
 //!   mistakes (fixed when unambiguous, refused when nonsense), stuck sensors, clock jumps.
 //! * [`analysis`]: split, calibrate, misfit statistics, the tests that decide the cause.
+//! * [`form`]: what an unexplained misfit looks like: a sparse regression of the residual over
+//!   a library of terms, chosen by held-out error.
 //! * [`verdict`]: why an extension is named or not, as a type.
 //! * [`fit`]: Levenberg–Marquardt aware of per-motor block structure.
 //! * [`stats`]: RMSE, bias, autocorrelation, Ljung–Box, χ².
@@ -32,6 +34,7 @@ pub mod catalog;
 pub mod data;
 pub mod electrical;
 pub mod fit;
+pub mod form;
 pub mod generate;
 pub mod motion;
 pub mod register;

@@ -199,6 +199,9 @@ fn print_summary(an: &Analysis, source: &str) {
             .map(|(k, r)| format!("{k} {r:+.2}"))
             .collect();
         println!("  unexplained: the residual follows {}", r.join(", "));
+        if let Some(f) = &u.form {
+            println!("  unexplained; {}", f.describe());
+        }
         if let Some((m, rmse, bias)) = u.motors.first() {
             println!(
                 "  worst motor {m}: RMSE {rmse:.3} {u}, bias {bias:+.3} {u}",

@@ -381,6 +381,20 @@ impl Draft {
                 );
             }
         }
+        if let Some(f) = &u.form {
+            let _ = writeln!(
+                md,
+                "\n**Its form:** {}. Terms of the missing dynamics (τ·dT/dt = nominal + …), \
+                 chosen from {} by their held-out error over {} blocks of time; held-out RMSE \
+                 {:.3} → {:.3} {}.\n",
+                f.describe(),
+                f.library,
+                crate::form::FOLDS,
+                f.baseline_rmse,
+                f.rmse,
+                f.unit
+            );
+        }
         let _ = writeln!(md, "\nThe nominal residual follows most:\n");
         for (k, r) in &u.strongest_regressors {
             let _ = writeln!(md, "- {k}: r = {r:+.3}");

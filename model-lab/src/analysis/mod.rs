@@ -13,6 +13,7 @@ mod electrical_channel;
 mod floor;
 mod significance;
 mod thermal_channel;
+mod thermal_form;
 
 use crate::audit::{self, Finding};
 use crate::catalog::{Channel, Effect};
@@ -77,6 +78,8 @@ pub struct Options {
     pub limits: audit::Limits,
     /// The servo model (`sim`'s description) the motion channel replays runs through.
     pub servo: String,
+    /// Search the thermal misfit's form ([`crate::form`]).
+    pub search_form: bool,
 }
 
 impl Options {
@@ -118,6 +121,7 @@ impl Default for Options {
                 .collect(),
             limits: audit::Limits::default(),
             servo: "sts3215".into(),
+            search_form: true,
         }
     }
 }
@@ -193,6 +197,8 @@ pub struct Unexplained {
     pub motors: Vec<(i64, f64, f64)>,
     /// The held-out part in ten spans of time: start, end (s), RMSE, bias (all motors).
     pub time_course: Vec<(f64, f64, f64, f64)>,
+    /// What the misfit looks like, when the channel's form search found terms it follows.
+    pub form: Option<crate::form::Form>,
 }
 
 /// One extension as tried.
@@ -288,6 +294,9 @@ pub struct Diagnostics {
     pub electrical: Option<Misfit>,
     /// Every extension tried.
     pub candidates: Vec<Candidate>,
+    /// The form search on the thermal channel's nominal misfit, whatever the verdict (a form
+    /// found where the verdict is `none` is what the false-alarm rate counts).
+    pub thermal_form: Option<crate::form::Form>,
     /// Per channel, the misfit left and whether it is beyond the noise floor.
     pub verdicts: Vec<ChannelVerdict>,
     /// Significance level per test (family-wise [`ALPHA`] over the catalog).
@@ -479,7 +488,7 @@ pub fn analyze(
     };
     let thermal = td
         .as_ref()
-        .map(|td| thermal_channel(td, &d.motors, opts, hours, progress));
+        .map(|td| thermal_channel(td, &d, opts, hours, progress));
     let electrical = ed
         .as_ref()
         .map(|ed| electrical_channel(ed, &d, opts, hours, progress));
@@ -488,7 +497,8 @@ pub fn analyze(
         .map(|t| &t.channel)
         .chain(electrical.iter().map(|e| &e.channel))
         .collect();
-    let decision = Decision::of(&channels, motion.as_ref(), &d.t, split);
+    let form = thermal.as_ref().and_then(|t| t.form.as_ref());
+    let decision = Decision::of(&channels, motion.as_ref(), form, &d.t, split);
     let chosen = Chosen {
         effect: decision.cause,
         thermal: thermal
@@ -539,7 +549,7 @@ pub fn analyze(
         &d,
         split,
         &channels,
-        thermal.as_ref().map(|t| t.register_noise),
+        thermal.as_ref(),
         ed.as_ref().map(|e| e.current_source),
         audit,
         cleaning,
@@ -579,7 +589,7 @@ impl Diagnostics {
         d: &Dataset,
         split: usize,
         channels: &[&ChannelOutcome],
-        register_noise_c: Option<f64>,
+        thermal: Option<&ThermalOutcome>,
         current_source: Option<&'static str>,
         audit: Vec<Finding>,
         cleaning: Cleaning,
@@ -602,10 +612,11 @@ impl Diagnostics {
             audit,
             cleaning,
             temperature_quantum_c: d.temperature_quantum,
-            register_noise_c,
+            register_noise_c: thermal.map(|t| t.register_noise),
             thermal: misfit_of(Channel::Thermal),
             electrical: misfit_of(Channel::Electrical),
             candidates: channels.iter().flat_map(|c| c.candidates.clone()).collect(),
+            thermal_form: thermal.and_then(|t| t.form.clone()),
             verdicts: channels.iter().map(|c| c.verdict.clone()).collect(),
             alpha_per_test: ALPHA / Effect::CATALOG.len() as f64,
             min_heldout_t: MIN_HELDOUT_T,
@@ -633,6 +644,7 @@ impl Decision {
     fn of(
         channels: &[&ChannelOutcome],
         motion: Option<&MotionAnalysis>,
+        thermal_form: Option<&crate::form::Form>,
         t: &[f64],
         split: usize,
     ) -> Decision {
@@ -651,7 +663,11 @@ impl Decision {
         };
         let unexplained = left_over.map(|c| {
             let channel = c.verdict.channel;
-            structure(channel, &c.candidates, Some(&c.misfit), &c.held, t, split)
+            let mut u = structure(channel, &c.candidates, Some(&c.misfit), &c.held, t, split);
+            u.form = thermal_form
+                .filter(|f| f.found() && channel == Channel::Thermal)
+                .cloned();
+            u
         });
         Decision {
             cause,
@@ -958,6 +974,7 @@ fn structure(
         strongest_regressors: strongest,
         motors,
         time_course,
+        form: None,
     }
 }
 

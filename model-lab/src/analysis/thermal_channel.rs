@@ -124,6 +124,8 @@ pub(super) struct ThermalOutcome {
     pub(super) best: Option<(ThermalFit, Vec<Vec<f64>>)>,
     /// Two effects named together.
     pub(super) pair: Option<NamedPair>,
+    /// The form of the nominal model's misfit, when searched ([`Options::search_form`]).
+    pub(super) form: Option<crate::form::Form>,
 }
 
 /// Two thermal effects named together, each with the value it took beside the other.
@@ -186,7 +188,7 @@ pub(super) type ThermalSingle = (Effect, ThermalFit, Vec<Vec<f64>>);
 /// The thermal channel: the nominal model, every single extension, then pairs.
 pub(super) fn thermal_channel(
     td: &ThermalData,
-    motor_ids: &[i64],
+    d: &Dataset,
     opts: &Options,
     hours: f64,
     progress: &mut dyn FnMut(&str),
@@ -195,7 +197,7 @@ pub(super) fn thermal_channel(
     let nom_pred = ThermalModel::new(td, Effect::None).predict(&nom.p);
     let held = thermal_held(td, &nom_pred);
     let floor = NoiseFloor::of(&td.measured, td.quantum, &td.segments);
-    let ids: Vec<i64> = td.motors.iter().map(|&dm| motor_ids[dm]).collect();
+    let ids: Vec<i64> = td.motors.iter().map(|&dm| d.motors[dm]).collect();
     let nominal_verdict = verdict(Channel::Thermal, None, &ids, &held, "°C", &floor);
     let tries = ThermalTries {
         td,
@@ -225,6 +227,10 @@ pub(super) fn thermal_channel(
         chosen = Some((fit.clone(), pred.clone()));
     }
     let left = thermal_held(td, chosen.as_ref().map_or(&nom_pred, |(_, p)| p));
+    let form = opts.search_form.then(|| {
+        progress("thermal: searching the misfit's form");
+        super::thermal_form::thermal_form(d, td, &nom, &nom_pred)
+    });
     ThermalOutcome {
         channel: ChannelOutcome {
             misfit: misfit(&held, thermal_regressors(td, &nom_pred), "°C", floor),
@@ -236,6 +242,7 @@ pub(super) fn thermal_channel(
         nominal: (nom, nom_pred),
         best: chosen,
         pair: pair.map(|(named, _, _)| named),
+        form,
     }
 }
 
