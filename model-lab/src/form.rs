@@ -19,6 +19,9 @@ use serde::Serialize;
 pub const FOLDS: usize = 5;
 /// A form has at most this many terms (beyond the refit of the nominal model's own).
 pub const MAX_TERMS: usize = 3;
+/// The search refits the nominal model's own terms per motor with every candidate: beyond this
+/// many motors (a robot has 19) its solves grow too large, and it is not run.
+pub const MAX_MOTORS: usize = 32;
 /// A term enters when it lowers the cross-validated RMSE by this fraction of what is left.
 pub const MIN_TERM_GAIN: f64 = 0.05;
 /// …in at least this many of the [`FOLDS`] blocks.
@@ -194,7 +197,11 @@ impl Form {
                 (0, _) => sign.into(),
                 _ => format!(" {sign} "),
             };
-            s += &format!("{sep}{:.4}·{}", t.coefficient.abs(), t.term.formula());
+            s += &format!(
+                "{sep}{}·{}",
+                three_significant(t.coefficient.abs()),
+                t.term.formula()
+            );
         }
         s
     }
@@ -224,6 +231,16 @@ impl Form {
     }
 }
 
+/// `x` (≥ 0) to three significant digits: a ΔT³ coefficient is ten-thousandths of a kelvin.
+fn three_significant(x: f64) -> String {
+    let digits = if x > 0.0 && x.is_finite() {
+        (2 - x.log10().floor() as i32).max(0) as usize
+    } else {
+        0
+    };
+    format!("{x:.digits$}")
+}
+
 /// Sums of products of a design's columns and its target, one set per block of time: any
 /// subset of columns is fitted on any blocks, and scored on the others, from these alone.
 #[derive(Debug, Clone)]
@@ -232,6 +249,8 @@ pub struct FoldGrams {
     /// Per block: the (cols + 1)² sums of x·xᵀ, the target last.
     grams: Vec<DMatrix<f64>>,
     rows: usize,
+    /// The current row's nonzero columns (kept to reuse its allocation).
+    nonzero: Vec<usize>,
 }
 
 /// The error of one set of columns, block by block.
@@ -254,22 +273,23 @@ impl FoldGrams {
             cols,
             grams: vec![DMatrix::zeros(cols + 1, cols + 1); FOLDS],
             rows: 0,
+            nonzero: Vec::with_capacity(cols),
         }
     }
 
     /// Adds one row (its columns `x`, its target `y`) to block `fold`. Rows with a value that
-    /// is not finite are left out.
+    /// is not finite are left out. Only the row's nonzero columns are visited: a motor's own
+    /// columns are zero on every other motor's rows.
     pub fn add(&mut self, fold: usize, x: &[f64], y: f64) {
         if x.len() != self.cols || !y.is_finite() || x.iter().any(|v| !v.is_finite()) {
             return;
         }
         let g = &mut self.grams[fold.min(FOLDS - 1)];
         let n = self.cols;
-        for i in 0..n {
-            if x[i] == 0.0 {
-                continue;
-            }
-            for j in i..n {
+        self.nonzero.clear();
+        self.nonzero.extend((0..n).filter(|&i| x[i] != 0.0));
+        for (a, &i) in self.nonzero.iter().enumerate() {
+            for &j in &self.nonzero[a..] {
                 g[(i, j)] += x[i] * x[j];
             }
             g[(i, n)] += x[i] * y;
@@ -492,10 +512,12 @@ mod tests {
         assert!((f.terms[0].coefficient - 0.8).abs() < 0.02, "{f:?}");
         assert!(f.heldout_gain > 0.5 && f.folds_improved == FOLDS, "{f:?}");
         assert!(
-            f.describe().starts_with("the residual follows 0.7"),
+            f.describe().starts_with("the residual follows 0.800·ΔT²"),
             "{}",
             f.describe()
         );
+        assert_eq!(three_significant(0.000_312_4), "0.000312");
+        assert_eq!(three_significant(2.437), "2.44");
     }
 
     #[test]

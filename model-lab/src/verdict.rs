@@ -99,6 +99,16 @@ pub enum Verdict {
         /// The channel's noise floor.
         floor: f64,
     },
+    /// Where it predicts a change, the held-out readings of one regime follow significantly
+    /// less than half of it: a name that explains one regime and not another is no name.
+    NotInEveryRegime {
+        /// The regime.
+        regime: Regime,
+        /// The held-out slope there.
+        slope: f64,
+        /// Its block standard error.
+        se: f64,
+    },
     /// It removes too little of a misfit beyond the noise.
     ExplainsTooLittle {
         /// Held-out gain.
@@ -159,6 +169,39 @@ pub enum Verdict {
     },
 }
 
+/// A part of the held-out readings in which an extension's prediction must hold.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Regime {
+    /// Readings where the motor carries little current (under a tenth of its held-out peak).
+    Idle,
+    /// Readings where it carries more.
+    Load,
+    /// One motor's readings.
+    Motor(i64),
+}
+
+impl Regime {
+    /// Why a name is refused for this regime.
+    fn not_followed(self, f: &mut fmt::Formatter<'_>, slope: f64, se: f64) -> fmt::Result {
+        write!(
+            f,
+            "not followed {self}: the held-out readings there follow {slope:.2} of its \
+             correction (s.e. {se:.2}), significantly less than half; a name that explains one \
+             regime and not another is no name"
+        )
+    }
+}
+
+impl fmt::Display for Regime {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Regime::Idle => write!(f, "at idle"),
+            Regime::Load => write!(f, "under load"),
+            Regime::Motor(id) => write!(f, "on motor {id}"),
+        }
+    }
+}
+
 impl Verdict {
     /// Whether it names the extension.
     pub fn supported(&self) -> bool {
@@ -208,6 +251,7 @@ impl fmt::Display for Verdict {
             Verdict::NoBicGain { delta_bic } => {
                 write!(f, "BIC does not improve (ΔBIC = {delta_bic:.1})")
             }
+            Verdict::NotInEveryRegime { regime, slope, se } => regime.not_followed(f, *slope, *se),
             Verdict::NotFollowed { slope, t } => write!(
                 f,
                 "held-out readings do not follow the extension (slope {slope:.2}, t = {t:.2} < \

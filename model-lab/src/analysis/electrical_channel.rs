@@ -69,6 +69,7 @@ pub(super) fn electrical_channel(
                 before: &nominal_verdict,
                 floor: floor.floor,
                 hours,
+                regimes: None,
             },
         ));
         sag

@@ -35,7 +35,7 @@ use serde::Serialize;
 pub(crate) use significance::HELDOUT_SIZE;
 use significance::{
     block_wald_test, deviance_test, judge, stronger_second, strongest_significant, Evidence,
-    FitTest, Yardstick,
+    FitTest, Regimes, Yardstick,
 };
 pub use significance::{
     ALPHA, MAX_INFORMATIVE_SE, MIN_HELDOUT_T, PRACTICAL_GAIN, PRACTICAL_OF_FLOOR,
@@ -78,7 +78,7 @@ pub struct Options {
     pub limits: audit::Limits,
     /// The servo model (`sim`'s description) the motion channel replays runs through.
     pub servo: String,
-    /// Search the thermal misfit's form ([`crate::form`]).
+    /// Search the thermal misfit's form ([`crate::form`]; up to [`crate::form::MAX_MOTORS`]).
     pub search_form: bool,
 }
 

@@ -2,6 +2,7 @@
 //! ([`judge`]); the rules are set out in `docs/model-lab.md`, "Name the cause".
 
 use super::*;
+use crate::verdict::Regime;
 
 /// Family-wise false-alarm rate of the significance test.
 pub const ALPHA: f64 = 0.01;
@@ -225,6 +226,86 @@ pub(super) struct Yardstick<'a> {
     pub(super) floor: f64,
     /// The record's span, h (what an ambient drift's size is judged against).
     pub(super) hours: f64,
+    /// The regimes of the held-out readings, where the channel has them.
+    pub(super) regimes: Option<&'a Regimes>,
+}
+
+/// The family-wise level of the regime test over all of a channel's regimes.
+const REGIME_ALPHA: f64 = 0.05;
+
+/// The regimes of a channel's held-out readings, aligned with its held-out residuals: idle or
+/// under load, and the motor.
+pub(super) struct Regimes {
+    /// Per motor, per held-out reading: under load.
+    pub(super) load: Vec<Vec<bool>>,
+    /// Motor ids, in the channel's order.
+    pub(super) ids: Vec<i64>,
+}
+
+impl Regimes {
+    /// A motor is under load where its current exceeds a tenth of its held-out peak.
+    pub(super) fn of(currents: &[Vec<f64>], ids: &[i64]) -> Regimes {
+        let load = currents
+            .iter()
+            .map(|i| {
+                let peak = i.iter().fold(0.0_f64, |m, v| m.max(v.abs()));
+                i.iter()
+                    .map(|v| peak > 0.0 && v.abs() > 0.1 * peak)
+                    .collect()
+            })
+            .collect();
+        Regimes {
+            load,
+            ids: ids.to_vec(),
+        }
+    }
+
+    /// The first regime in which a correction that matters there (RMS ≥ `required`) is
+    /// followed by significantly less than half (one-sided against the low end of
+    /// [`HELDOUT_SIZE`], at 5 % over all the regimes: Bonferroni, each motor being one), where
+    /// the regime's readings can tell: its slope, s.e.
+    pub(super) fn first_unfollowed(
+        &self,
+        base: &[Vec<f64>],
+        ext: &[Vec<f64>],
+        required: f64,
+    ) -> Option<(Regime, f64, f64)> {
+        let mut regimes = vec![Regime::Idle, Regime::Load];
+        regimes.extend(self.ids.iter().map(|&id| Regime::Motor(id)));
+        // One-sided 5 % over the regimes: P(Z > z) = 0.05 / regimes.
+        let z = stats::chi2_isf(2.0 * REGIME_ALPHA / regimes.len() as f64, 1.0).sqrt();
+        regimes.into_iter().find_map(|regime| {
+            let pick = |m: usize, k: usize| match regime {
+                Regime::Idle => !self.load[m][k],
+                Regime::Load => self.load[m][k],
+                Regime::Motor(id) => self.ids[m] == id,
+            };
+            let part = |r: &[Vec<f64>]| -> Vec<Vec<f64>> {
+                r.iter()
+                    .enumerate()
+                    .map(|(m, x)| {
+                        x.iter()
+                            .enumerate()
+                            .filter(|&(k, _)| k < self.load[m].len() && pick(m, k))
+                            .map(|(_, v)| *v)
+                            .collect()
+                    })
+                    .collect()
+            };
+            let (b, e) = (part(base), part(ext));
+            let change: Vec<f64> = b
+                .iter()
+                .zip(&e)
+                .flat_map(|(b, e)| b.iter().zip(e).map(|(b, e)| b - e))
+                .collect();
+            if change.is_empty() || stats::rmse(&change) < required {
+                return None;
+            }
+            let (slope, _, se) = slope_stats(&b, &e);
+            let informative = se.is_finite() && se > 0.0 && se <= MAX_INFORMATIVE_SE;
+            (informative && (slope - HELDOUT_SIZE.start()) / se < -z).then_some((regime, slope, se))
+        })
+    }
 }
 
 /// The three tests of the module docs.
@@ -242,6 +323,7 @@ pub(super) fn judge(e: Evidence, against: &Yardstick) -> Candidate {
     let Yardstick {
         before: nominal,
         floor,
+        regimes,
         ..
     } = *against;
     let base_held = stats::rmse(&base_res.concat());
@@ -303,12 +385,14 @@ pub(super) fn judge(e: Evidence, against: &Yardstick) -> Candidate {
         verdict: Verdict::Supported,
         iterations,
     };
-    c.verdict = first_failed(&c, heldout_slope_se, against);
+    let unfollowed = regimes.and_then(|r| r.first_unfollowed(base_res, res, required_change));
+    c.verdict = first_failed(&c, heldout_slope_se, against, unfollowed);
     c
 }
 
 /// The first test `c` fails (`docs/model-lab.md`, "Name the cause"), or `Supported`;
-/// `slope_se` is its held-out slope's block standard error.
+/// `slope_se` is its held-out slope's block standard error, `unfollowed` the first regime in
+/// which the held-out readings do not follow it.
 ///
 /// The held-out test can only refute an extension where it has the power to see it: with a
 /// block standard error of the slope above [`MAX_INFORMATIVE_SE`], a correction the readings
@@ -316,7 +400,12 @@ pub(super) fn judge(e: Evidence, against: &Yardstick) -> Candidate {
 /// far below the register's rounding noise there). Such a held-out part is uninformative:
 /// the extension then stands on the fitting part, provided the held-out readings do not go
 /// significantly against it and its held-out error is not significantly worse.
-fn first_failed(c: &Candidate, slope_se: f64, against: &Yardstick) -> Verdict {
+fn first_failed(
+    c: &Candidate,
+    slope_se: f64,
+    against: &Yardstick,
+    unfollowed: Option<(Regime, f64, f64)>,
+) -> Verdict {
     let Yardstick { floor, hours, .. } = *against;
     let informative = slope_se.is_finite() && slope_se <= MAX_INFORMATIVE_SE;
     let alpha = ALPHA / Effect::CATALOG.len() as f64;
@@ -365,6 +454,8 @@ fn first_failed(c: &Candidate, slope_se: f64, against: &Yardstick) -> Verdict {
             required: c.required_change,
             floor,
         }
+    } else if let Some((regime, slope, se)) = unfollowed {
+        Verdict::NotInEveryRegime { regime, slope, se }
     } else if c.gain.is_nan() || c.gain < c.required_gain {
         Verdict::ExplainsTooLittle {
             gain: c.gain,
@@ -475,6 +566,111 @@ mod tests {
         assert!(t > MIN_HELDOUT_T, "{t}");
         // The same data through the squared-error drop: about half the t.
         assert!(improvement_t(&b, &e) < t, "{}", improvement_t(&b, &e));
+    }
+
+    /// Two motors whose readings alternate between idle and load every 100 readings; the
+    /// extension corrects both regimes by `size_idle` and `size_load`, the readings follow
+    /// `follow_idle` and `follow_load` of it.
+    fn regimes_case(
+        size_idle: f64,
+        follow_idle: f64,
+        follow_load: f64,
+    ) -> (Regimes, Vec<Vec<f64>>, Vec<Vec<f64>>) {
+        let mut rng = Rng::new(11);
+        let (mut base, mut ext, mut current) = (Vec::new(), Vec::new(), Vec::new());
+        for m in 0..2 {
+            let (mut b, mut e, mut i) = (Vec::new(), Vec::new(), Vec::new());
+            for k in 0..4000 {
+                let load = (k / 100) % 2 == 1;
+                let wave = ((k as f64) / 37.0 + m as f64).sin();
+                let (delta, follow) = if load {
+                    (0.3 * wave, follow_load)
+                } else {
+                    (size_idle * wave, follow_idle)
+                };
+                let r = follow * delta + 0.1 * rng.normal();
+                b.push(r);
+                e.push(r - delta);
+                i.push(if load { 1.2 } else { 0.03 });
+            }
+            base.push(b);
+            ext.push(e);
+            current.push(i);
+        }
+        (Regimes::of(&current, &[1, 2]), base, ext)
+    }
+
+    /// A correction the readings follow under load and not at idle is no name there.
+    #[test]
+    fn a_name_that_holds_under_load_and_not_at_idle_is_refused_at_idle() {
+        let (regimes, b, e) = regimes_case(0.3, 0.0, 1.0);
+        let (regime, slope, se) = regimes.first_unfollowed(&b, &e, 0.01).unwrap();
+        assert_eq!(regime, Regime::Idle);
+        assert!(slope.abs() < 0.2 && se < MAX_INFORMATIVE_SE, "{slope} {se}");
+        // Followed in both: nothing to refuse.
+        let (regimes, b, e) = regimes_case(0.3, 1.0, 1.0);
+        assert_eq!(regimes.first_unfollowed(&b, &e, 0.01), None);
+        // A regime where it predicts nothing that matters is not judged there.
+        let (regimes, b, e) = regimes_case(0.001, 0.0, 1.0);
+        assert_eq!(regimes.first_unfollowed(&b, &e, 0.01), None);
+        // Half followed is not "significantly less than half".
+        let (regimes, b, e) = regimes_case(0.3, 0.6, 1.0);
+        assert_eq!(regimes.first_unfollowed(&b, &e, 0.01), None);
+    }
+
+    /// The same through [`judge`]: a current offset (an effect that predicts a change at idle
+    /// as under load) whose correction the idle readings do not follow is refused for it, and
+    /// would be supported without the rule.
+    #[test]
+    fn judge_refuses_a_name_for_the_regime_it_does_not_hold_in() {
+        let (regimes, b, e) = regimes_case(0.1, 0.0, 1.0);
+        let floor = NoiseFloor::of(&b, 0.0, &[(0, 4000)]);
+        let before = verdict(Channel::Thermal, None, &[1, 2], &b, "°C", &floor);
+        let judged = |regimes: Option<&Regimes>| {
+            let evidence = Evidence {
+                effect: Effect::CurrentOffset,
+                parameter: Some(Parameter {
+                    name: "current_offset".into(),
+                    value: 0.1,
+                    unit: "A".into(),
+                }),
+                base_sse: 1000.0,
+                sse: 500.0,
+                test: FitTest {
+                    lr: 500.0,
+                    n_eff: 1000.0,
+                    p_value: 1e-20,
+                    params: 1.0,
+                    with_heldout: false,
+                },
+                base_res: &b,
+                res: &e,
+                iterations: 1,
+            };
+            let against = Yardstick {
+                before: &before,
+                floor: floor.floor,
+                hours: 2.0,
+                regimes,
+            };
+            judge(evidence, &against).verdict
+        };
+        assert_eq!(judged(None), Verdict::Supported);
+        let refused = judged(Some(&regimes));
+        assert!(
+            matches!(
+                refused,
+                Verdict::NotInEveryRegime {
+                    regime: Regime::Idle,
+                    ..
+                }
+            ),
+            "{refused}"
+        );
+        assert!(
+            refused.to_string().starts_with("not followed at idle"),
+            "{refused}"
+        );
     }
 
     #[test]

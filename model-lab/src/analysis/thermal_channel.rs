@@ -199,6 +199,10 @@ pub(super) fn thermal_channel(
     let floor = NoiseFloor::of(&td.measured, td.quantum, &td.segments);
     let ids: Vec<i64> = td.motors.iter().map(|&dm| d.motors[dm]).collect();
     let nominal_verdict = verdict(Channel::Thermal, None, &ids, &held, "°C", &floor);
+    let held_currents: Vec<Vec<f64>> = (0..td.n())
+        .map(|m| td.held_idx[m].iter().map(|&k| td.current[m][k]).collect())
+        .collect();
+    let regimes = Regimes::of(&held_currents, &ids);
     let tries = ThermalTries {
         td,
         reg: &reg,
@@ -209,6 +213,7 @@ pub(super) fn thermal_channel(
             before: &nominal_verdict,
             floor: floor.floor,
             hours,
+            regimes: Some(&regimes),
         },
         ids: &ids,
         floor: &floor,
@@ -227,7 +232,7 @@ pub(super) fn thermal_channel(
         chosen = Some((fit.clone(), pred.clone()));
     }
     let left = thermal_held(td, chosen.as_ref().map_or(&nom_pred, |(_, p)| p));
-    let form = opts.search_form.then(|| {
+    let form = (opts.search_form && td.n() <= crate::form::MAX_MOTORS).then(|| {
         progress("thermal: searching the misfit's form");
         super::thermal_form::thermal_form(d, td, &nom, &nom_pred)
     });
