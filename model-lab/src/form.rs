@@ -5,9 +5,9 @@
 //! The regression is SINDy's question (which few terms of a library make up the missing
 //! dynamics) asked by forward selection with held-out error, not by a threshold: terms enter
 //! one at a time, each the one that lowers the cross-validated error most, and only while it
-//! lowers it by [`MIN_TERM_GAIN`] in at least [`MIN_FOLDS_IMPROVED`] of [`FOLDS`] contiguous
-//! blocks of time. A library with a step at every candidate time makes a change of regime one
-//! more term. Every fit is solved from per-fold sums of products ([`FoldGrams`]), so a
+//! lowers it by [`MIN_TERM_GAIN`] over [`FOLDS`] contiguous blocks of time, and lowers it in
+//! all but one of the blocks whose readings it touches, at least two ([`confirmed`]). A
+//! library with a step at every candidate time makes a change of regime one more term. Every fit is solved from per-fold sums of products ([`FoldGrams`]), so a
 //! candidate costs a small linear solve, not a pass over the data. Why this and not STLSQ is in
 //! `docs/model-lab.md` ("A form for what has no name").
 
@@ -24,8 +24,12 @@ pub const MAX_TERMS: usize = 3;
 pub const MAX_MOTORS: usize = 32;
 /// A term enters when it lowers the cross-validated RMSE by this fraction of what is left.
 pub const MIN_TERM_GAIN: f64 = 0.05;
-/// …in at least this many of the [`FOLDS`] blocks.
-pub const MIN_FOLDS_IMPROVED: usize = FOLDS - 1;
+/// Whether a term lowering the error in `improved` of the `touched` blocks whose readings it
+/// touches is confirmed: in all of them but one, and in two at least (a term one block alone
+/// sees, a change of regime inside the last, cannot be held out on another).
+pub fn confirmed(improved: usize, touched: usize) -> bool {
+    improved <= touched && improved >= touched.saturating_sub(1).max(2)
+}
 /// Ridge on the standardised normal equations: keeps a column that is zero in a fold's
 /// fitting blocks (a step after them) at a zero coefficient instead of a singular solve.
 const RIDGE: f64 = 1e-9;
@@ -172,8 +176,13 @@ pub struct Form {
     pub heldout_gain: f64,
     /// Blocks in which the form lowers the held-out error, of [`FOLDS`].
     pub folds_improved: usize,
-    /// The best term that did not enter, with the gain it would have brought and its blocks.
-    pub best_refused: Option<(Term, f64, usize)>,
+    /// The best term that did not enter, with the gain it would have brought, the blocks it
+    /// lowered the error in and the blocks it touches.
+    pub best_refused: Option<(Term, f64, usize, usize)>,
+    /// The fitted columns (the nominal model's own included) with their coefficients, to
+    /// evaluate the fitted correction on a row of the design.
+    #[serde(skip)]
+    pub fitted: Vec<(usize, f64)>,
 }
 
 impl Form {
@@ -210,10 +219,10 @@ impl Form {
     pub fn describe(&self) -> String {
         if !self.found() {
             return format!(
-                "no form: no term of {} lowers the held-out error by {:.0} % in {} of {} blocks",
+                "no form: no term of {} lowers the held-out error by {:.0} %, in all but one of \
+                 the {} blocks of time it touches",
                 self.library,
                 100.0 * MIN_TERM_GAIN,
-                MIN_FOLDS_IMPROVED,
                 FOLDS
             );
         }
@@ -371,6 +380,13 @@ impl FoldGrams {
         s.max(0.0)
     }
 
+    /// The blocks in whose readings any of `columns` is not zero.
+    fn touched(&self, columns: &[usize]) -> Vec<bool> {
+        (0..FOLDS)
+            .map(|b| columns.iter().any(|&c| self.at(b, c, c) > 0.0))
+            .collect()
+    }
+
     /// `active` held out block by block.
     fn score(&self, active: &[usize]) -> Scored {
         Scored {
@@ -381,9 +397,14 @@ impl FoldGrams {
     }
 }
 
-/// Blocks in which `new` has the smaller held-out error than `old`.
-fn improved(new: &Scored, old: &Scored) -> usize {
-    new.sse.iter().zip(&old.sse).filter(|(n, o)| n < o).count()
+/// Blocks in which `new` has the smaller held-out error than `old`, among those `touched`.
+fn improved(new: &Scored, old: &Scored, touched: &[bool]) -> usize {
+    new.sse
+        .iter()
+        .zip(&old.sse)
+        .zip(touched)
+        .filter(|((n, o), t)| **t && n < o)
+        .count()
 }
 
 /// RMSE of a score over `rows` readings.
@@ -427,9 +448,11 @@ pub fn select(
     let mut chosen: Vec<&Entry> = Vec::new();
     let mut best_refused = None;
     while chosen.len() < MAX_TERMS {
+        // An entry sharing a column with one that entered (a step beside the change of regime
+        // at its time) would enter that column twice.
         let best = library
             .iter()
-            .filter(|e| !chosen.contains(e))
+            .filter(|e| !e.columns.iter().any(|c| active.contains(c)))
             .map(|e| {
                 let mut with = active.clone();
                 with.extend(&e.columns);
@@ -438,9 +461,11 @@ pub fn select(
             .min_by(|a, b| a.1.total().total_cmp(&b.1.total()));
         let Some((entry, scored)) = best else { break };
         let gain = 1.0 - rmse(&scored, rows) / rmse(&current, rows).max(f64::MIN_POSITIVE);
-        let folds = improved(&scored, &current);
-        if gain < MIN_TERM_GAIN || folds < MIN_FOLDS_IMPROVED {
-            best_refused = Some((entry.terms[0], gain, folds));
+        let touched = grams.touched(&entry.columns);
+        let blocks = touched.iter().filter(|t| **t).count();
+        let folds = improved(&scored, &current, &touched);
+        if gain < MIN_TERM_GAIN || !confirmed(folds, blocks) {
+            best_refused = Some((entry.terms[0], gain, folds, blocks));
             break;
         }
         chosen.push(entry);
@@ -467,8 +492,9 @@ pub fn select(
         rmse: f,
         unit,
         heldout_gain: if b > 0.0 { 1.0 - f / b } else { 0.0 },
-        folds_improved: improved(&current, &baseline),
+        folds_improved: improved(&current, &baseline, &[true; FOLDS]),
         best_refused,
+        fitted: active.iter().copied().zip(beta.iter().copied()).collect(),
     }
 }
 
@@ -525,9 +551,31 @@ mod tests {
         let (g, lib) = design(0.0);
         let f = select(&g, &[0], &lib, Channel::Thermal, "°C");
         assert!(!f.found(), "{f:?}");
-        let (_, gain, _) = f.best_refused.unwrap();
+        let (_, gain, _, _) = f.best_refused.unwrap();
         assert!(gain < MIN_TERM_GAIN);
         assert!(f.describe().starts_with("no form"));
+    }
+
+    /// A step inside the last block touches that block alone: whatever it does there, no other
+    /// block can confirm it, and the blocks it does not touch do not count as confirming it.
+    #[test]
+    fn a_change_one_block_alone_sees_is_no_form() {
+        let mut g = FoldGrams::new(2);
+        let n = 1000;
+        let mut seed = 5;
+        for k in 0..n {
+            let step = if k >= 900 { 1.0 } else { 0.0 };
+            g.add(
+                k * FOLDS / n,
+                &[1.0, step],
+                2.0 * step + 0.2 * noise(&mut seed),
+            );
+        }
+        let lib = vec![Entry::single(1, Term::StepAt { at_s: 900.0 })];
+        let f = select(&g, &[0], &lib, Channel::Thermal, "°C");
+        assert!(!f.found(), "{f:?}");
+        assert_eq!(f.best_refused.map(|r| r.3), Some(1));
+        assert!(confirmed(4, 5) && confirmed(2, 2) && !confirmed(1, 2) && !confirmed(1, 1));
     }
 
     /// A step after every fitting block's end has a zero column there: the ridge keeps its

@@ -239,7 +239,8 @@ fn an_effect_outside_the_catalog_is_unexplained_with_its_structure() {
         let md = &files[0].1;
         assert!(md.contains("What is left unexplained") && md.contains("residual.svg"));
         // A worse cooling from some time on: a change of regime, stated with its form. (A
-        // heater on one motor, on and off, is in no term of the library: no form.)
+        // heater on one motor, on and off, is in no term of the library: what it gets, a
+        // partial form or none, is not asserted.)
         if foreign == Foreign::CoolingLoss {
             let form = u.form.as_ref().unwrap();
             assert!(form.regime_change_s().is_some(), "{}", form.describe());

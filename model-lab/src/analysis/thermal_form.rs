@@ -107,7 +107,7 @@ fn library(td: &ThermalData, voltage: bool, speed: bool) -> Vec<Term> {
         td.t.first().copied().unwrap_or(0.0),
         td.t.last().copied().unwrap_or(0.0),
     );
-    for g in (STEP_GRID / FOLDS)..=(STEP_GRID - STEP_GRID / FOLDS) {
+    for g in (STEP_GRID / FOLDS)..(STEP_GRID - STEP_GRID / FOLDS) {
         let at_s = (t0 + (t1 - t0) * g as f64 / STEP_GRID as f64).round();
         lib.extend([
             Term::StepAt { at_s },
@@ -156,95 +156,153 @@ fn lagged_squared(td: &ThermalData, m: usize, s: usize, k: usize, lag: f64) -> f
     i * i
 }
 
-/// The form of the thermal channel's nominal misfit over the whole record.
+/// The form of the thermal channel's nominal misfit over the whole record. The terms are built
+/// from the nominal model's prediction, never from the readings (whose own residual would then
+/// explain itself on the held-out blocks); once a form is found, the search runs again with the
+/// temperature that form predicts (one Gauss–Newton step: a change of cooling acts on the
+/// temperature the change itself raised).
 pub(super) fn thermal_form(
     d: &Dataset,
     td: &ThermalData,
     nominal: &ThermalFit,
     pred: &[Vec<f64>],
 ) -> Form {
-    let params = ThermalModel::new(td, Effect::None).decode(&nominal.p);
-    let voltage = held_channel(&d.voltage, td);
-    let speed = held_channel(&d.velocity, td);
-    let lib = library(td, voltage.is_some(), speed.is_some());
-    let mean_v: Vec<f64> = voltage
-        .as_ref()
-        .map(|v| v.iter().map(|x| stats::mean(x)).collect())
-        .unwrap_or_default();
-    // The terms see the temperature as read (held over gaps), not as the nominal model
-    // predicts it: what is missing acts on the winding's real temperature.
-    let readings: Vec<Vec<f64>> = td.measured.iter().map(|r| electrical::hold(r)).collect();
-    let n = td.n();
-    let base = NOMINAL_TERMS * n;
-    let mut grams = FoldGrams::new(base + lib.len());
-    let (len, t0) = (td.t.len(), td.t.first().copied().unwrap_or(0.0));
-    let width = NOMINAL_TERMS + lib.len();
-    let (mut state, mut before, mut now) = (vec![0.0; width], vec![0.0; width], vec![0.0; width]);
-    let mut row = vec![0.0; base + lib.len()];
-    for m in 0..n {
-        let (tau, idle, gain) = (params.tau_s[m], params.idle_c[m], params.gain_k_per_a2[m]);
-        for &(s, e) in &td.segments {
-            state.fill(0.0);
-            for k in s..e {
-                let i = td.current[m][k];
-                let nb = &td.neighbours[m];
-                let sample = Sample {
-                    rise: readings[m][k] - idle,
-                    current: i,
-                    voltage: voltage.as_ref().map_or(0.0, |v| v[m][k] - mean_v[m]),
-                    speed: speed.as_ref().map_or(0.0, |w| w[m][k]),
-                    t_s: td.t[k],
-                    hours: (td.t[k] - t0) / 3600.0,
-                    lagged: LAGS_S.map(|lag| lagged_squared(td, m, s, k, lag)),
-                    neighbours: if nb.is_empty() {
-                        0.0
-                    } else {
-                        nb.iter().map(|&j| pred[j][k]).sum::<f64>() / nb.len() as f64 - pred[m][k]
-                    },
-                    rate: if k > s {
-                        (pred[m][k] - pred[m][k - 1]) / (td.t[k] - td.t[k - 1]).max(1e-9)
-                    } else {
-                        0.0
-                    },
-                };
-                now[0] = 1.0;
-                now[1] = i * i;
-                now[2] = idle + gain * i * i - pred[m][k];
-                for (j, &term) in lib.iter().enumerate() {
-                    now[NOMINAL_TERMS + j] = sample.value(term);
-                }
-                if k > s {
-                    // Zero-order hold over the interval, as the nominal model integrates.
-                    let a = (-(td.t[k] - td.t[k - 1]) / tau).exp();
-                    for (x, b) in state.iter_mut().zip(&before) {
-                        *x = a * *x + (1.0 - a) * b;
-                    }
-                }
-                std::mem::swap(&mut before, &mut now);
-                if !td.measured[m][k].is_finite() {
-                    continue;
-                }
-                row.fill(0.0);
-                row[NOMINAL_TERMS * m..NOMINAL_TERMS * (m + 1)]
-                    .copy_from_slice(&state[..NOMINAL_TERMS]);
-                for (j, &term) in lib.iter().enumerate() {
-                    // A lagging sensor adds to the readings, not to the dynamics.
-                    row[base + j] = if term == Term::TemperatureRate {
-                        before[NOMINAL_TERMS + j]
-                    } else {
-                        state[NOMINAL_TERMS + j]
+    let design = Design::new(d, td, nominal);
+    let first = design.search(pred, pred);
+    if !first.found() {
+        return first;
+    }
+    let mut seen = pred.to_vec();
+    design.rows(pred, pred, |m, k, row| {
+        let correction: f64 = first.fitted.iter().map(|&(c, b)| row[c] * b).sum();
+        seen[m][k] = pred[m][k] + correction;
+    });
+    design.search(pred, &seen)
+}
+
+/// The design of the thermal form's regression: what its rows are computed from.
+struct Design<'a> {
+    td: &'a ThermalData,
+    params: crate::thermal::ThermalParams,
+    lib: Vec<Term>,
+    /// Supply voltage about its mean and shaft speed, per motor, where the data carry them.
+    voltage: Option<Vec<Vec<f64>>>,
+    speed: Option<Vec<Vec<f64>>>,
+}
+
+impl<'a> Design<'a> {
+    fn new(d: &Dataset, td: &'a ThermalData, nominal: &ThermalFit) -> Design<'a> {
+        let voltage = held_channel(&d.voltage, td).map(|v| {
+            v.into_iter()
+                .map(|x| {
+                    let mean = stats::mean(&x);
+                    x.into_iter().map(|v| v - mean).collect()
+                })
+                .collect()
+        });
+        let speed = held_channel(&d.velocity, td);
+        Design {
+            td,
+            params: ThermalModel::new(td, Effect::None).decode(&nominal.p),
+            lib: library(td, voltage.is_some(), speed.is_some()),
+            voltage,
+            speed,
+        }
+    }
+
+    /// The search with the terms seeing the temperature `seen`.
+    fn search(&self, pred: &[Vec<f64>], seen: &[Vec<f64>]) -> Form {
+        let base = NOMINAL_TERMS * self.td.n();
+        let mut grams = FoldGrams::new(base + self.lib.len());
+        let len = self.td.t.len();
+        self.rows(pred, seen, |m, k, row| {
+            let reading = self.td.measured[m][k];
+            if reading.is_finite() {
+                grams.add(k * FOLDS / len, row, reading - pred[m][k]);
+            }
+        });
+        let always: Vec<usize> = (0..base).collect();
+        form::select(
+            &grams,
+            &always,
+            &entries(&self.lib, base),
+            Channel::Thermal,
+            "°C",
+        )
+    }
+
+    /// Calls `visit(motor, sample, row)` with the design's row at every sample: the nominal
+    /// model's own terms in the motor's columns, then the library's, each passed through the
+    /// motor's lag (but dT/dt, which a lagging sensor adds to the readings).
+    fn rows(
+        &self,
+        pred: &[Vec<f64>],
+        seen: &[Vec<f64>],
+        mut visit: impl FnMut(usize, usize, &[f64]),
+    ) {
+        let (td, lib) = (self.td, &self.lib);
+        let n = td.n();
+        let base = NOMINAL_TERMS * n;
+        let t0 = td.t.first().copied().unwrap_or(0.0);
+        let width = NOMINAL_TERMS + lib.len();
+        let (mut state, mut before, mut now) =
+            (vec![0.0; width], vec![0.0; width], vec![0.0; width]);
+        let mut row = vec![0.0; base + lib.len()];
+        for m in 0..n {
+            let p = &self.params;
+            let (tau, idle, gain) = (p.tau_s[m], p.idle_c[m], p.gain_k_per_a2[m]);
+            for &(s, e) in &td.segments {
+                state.fill(0.0);
+                for k in s..e {
+                    let i = td.current[m][k];
+                    let nb = &td.neighbours[m];
+                    let sample = Sample {
+                        rise: seen[m][k] - idle,
+                        current: i,
+                        voltage: self.voltage.as_ref().map_or(0.0, |v| v[m][k]),
+                        speed: self.speed.as_ref().map_or(0.0, |w| w[m][k]),
+                        t_s: td.t[k],
+                        hours: (td.t[k] - t0) / 3600.0,
+                        lagged: LAGS_S.map(|lag| lagged_squared(td, m, s, k, lag)),
+                        neighbours: if nb.is_empty() {
+                            0.0
+                        } else {
+                            nb.iter().map(|&j| pred[j][k]).sum::<f64>() / nb.len() as f64
+                                - pred[m][k]
+                        },
+                        rate: if k > s {
+                            (pred[m][k] - pred[m][k - 1]) / (td.t[k] - td.t[k - 1]).max(1e-9)
+                        } else {
+                            0.0
+                        },
                     };
+                    now[0] = 1.0;
+                    now[1] = i * i;
+                    now[2] = idle + gain * i * i - pred[m][k];
+                    for (j, &term) in lib.iter().enumerate() {
+                        now[NOMINAL_TERMS + j] = sample.value(term);
+                    }
+                    if k > s {
+                        // Zero-order hold over the interval, as the nominal model integrates.
+                        let a = (-(td.t[k] - td.t[k - 1]) / tau).exp();
+                        for (x, b) in state.iter_mut().zip(&before) {
+                            *x = a * *x + (1.0 - a) * b;
+                        }
+                    }
+                    std::mem::swap(&mut before, &mut now);
+                    row.fill(0.0);
+                    row[NOMINAL_TERMS * m..NOMINAL_TERMS * (m + 1)]
+                        .copy_from_slice(&state[..NOMINAL_TERMS]);
+                    for (j, &term) in lib.iter().enumerate() {
+                        row[base + j] = if term == Term::TemperatureRate {
+                            before[NOMINAL_TERMS + j]
+                        } else {
+                            state[NOMINAL_TERMS + j]
+                        };
+                    }
+                    visit(m, k, &row);
                 }
-                grams.add(k * FOLDS / len, &row, td.measured[m][k] - pred[m][k]);
             }
         }
     }
-    let always: Vec<usize> = (0..base).collect();
-    form::select(
-        &grams,
-        &always,
-        &entries(&lib, base),
-        Channel::Thermal,
-        "°C",
-    )
 }
