@@ -47,13 +47,10 @@ impl Sample {
             Term::Speed => self.speed.abs(),
             Term::SpeedSquared => self.speed * self.speed,
             Term::Time => self.hours,
-            Term::LaggedCurrentSquared { lag_s } => {
-                if lag_s == LAGS_S[0] {
-                    self.lagged[0]
-                } else {
-                    self.lagged[1]
-                }
-            }
+            Term::LaggedCurrentSquared { lag_s } => LAGS_S
+                .iter()
+                .position(|&l| l == lag_s)
+                .map_or(0.0, |j| self.lagged[j]),
             Term::NeighbourDifference => self.neighbours,
             Term::TemperatureRate => self.rate,
             Term::StepAt { at_s } => after(at_s),
