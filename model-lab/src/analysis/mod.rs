@@ -3,7 +3,8 @@
 //!
 //! [`analyze`] goes forward through its rooms: the data audit and glitch rejection
 //! ([`crate::audit`], [`crate::data`]), the motion channel ([`crate::motion`]), the thermal
-//! channel ([`thermal_channel`]), the electrical channel ([`electrical_channel`]), each
+//! channel ([`thermal_channel`], and when it stays unexplained the form of its misfit,
+//! [`thermal_form`]), the electrical channel ([`electrical_channel`]), each
 //! extension judged by the tests of [`significance`] and each channel's misfit against its
 //! noise [`floor`]; then the cause across channels ([`Decision`]), the figures and the model
 //! file. The rules an extension must pass, and why, are in `docs/model-lab.md` ("Name the
