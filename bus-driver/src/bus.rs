@@ -124,6 +124,11 @@ impl<T: Transport> Bus<T> {
         Ok(())
     }
 
+    /// The link under the bus (its wire tap, if it has one).
+    pub fn transport_mut(&mut self) -> &mut T {
+        &mut self.transport
+    }
+
     /// The line rate, baud.
     pub fn baud(&self) -> u32 {
         self.transport.baud()

@@ -23,6 +23,7 @@ use telemetry::frames::{
     JOINT_FLAG_BUS_DISABLED, JOINT_FLAG_BUS_LOST, JOINT_FLAG_DRIVER_TRIP, JOINT_FLAG_OUTPUT_LOST,
     MAX_BUSES, STATE_FLAG_OPERATOR_STOP, STATE_FLAG_SAFE_STATE,
 };
+use telemetry::wire::WireFrame;
 use telemetry::{GoalFrame, JointSample, JointState, MAX_JOINTS};
 use thiserror::Error;
 
@@ -404,6 +405,19 @@ impl<T: Transport> Driver<T> {
     /// Whether each joint is set up and driven.
     pub fn ready(&self) -> impl Iterator<Item = bool> + '_ {
         self.joints.iter().map(|j| j.ready)
+    }
+
+    /// Hands each tapped bus's traffic since the last call to `publish` (stamped with the
+    /// cycle and the bus's index; a bus that moved nothing is skipped), then empties it.
+    pub fn drain_wire(&mut self, publish: &mut dyn FnMut(&WireFrame)) {
+        let cycle = self.counters.cycles;
+        for (bi, b) in self.buses.iter_mut().enumerate() {
+            b.bus.transport_mut().take_wire(&mut |wire| {
+                wire.cycle = cycle;
+                wire.bus = bi as u32;
+                publish(wire);
+            });
+        }
     }
 
     /// Error counters of each bus, by name.

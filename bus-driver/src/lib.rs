@@ -15,6 +15,7 @@
 //!   (two flipped bits can pass the checksum; the servos' own 0 °C / 150 °C glitches do).
 //! * [`cutoff`]: inferring from the motor that a firmware protection cut its output.
 //! * [`runloop`]: the fixed-rate loop, the supervisor's heartbeat watched.
+//! * [`tap`]: the wire tap, every byte sent and received copied for the black box.
 //!
 //! Safety behaviour: goals are clamped to the calibrated range at the bus layer; a goal frame
 //! with a non-finite value, the wrong shape or a stale timestamp is refused whole; a servo that
@@ -33,6 +34,7 @@ pub mod driver;
 pub mod plausibility;
 pub mod rt;
 pub mod runloop;
+pub mod tap;
 pub mod transport;
 
 pub use config::LoadedConfig;

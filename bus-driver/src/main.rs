@@ -5,6 +5,7 @@
 //! and SIGTERM end the loop with torque off.
 
 use anyhow::{Context, Result};
+use bus_driver::tap::Tapped;
 use bus_driver::{Driver, LoadedConfig, LoopIo, SerialTransport};
 use clap::Parser;
 use std::path::{Path, PathBuf};
@@ -14,6 +15,7 @@ use telemetry::latch;
 use telemetry::plane::{self, Plane, Pub, Sub};
 use telemetry::process::Exit;
 use telemetry::process::{ProcessArgs, ServiceManager, Started};
+use telemetry::wire::WireFrame;
 use telemetry::{GoalFrame, JointState};
 
 #[derive(Parser)]
@@ -56,6 +58,7 @@ struct Ipc {
     heartbeat: Pub<Heartbeat>,
     layout_out: Pub<JointLayout>,
     health: Pub<BusHealth>,
+    wire: Pub<WireFrame>,
     layout: JointLayout,
     beat: Heartbeat,
     every: Duration,
@@ -89,6 +92,12 @@ impl LoopIo for Ipc {
 
     fn publish_health(&mut self, health: &BusHealth) {
         if plane::publish(&self.health, health).is_err() {
+            self.publish_errors += 1;
+        }
+    }
+
+    fn publish_wire(&mut self, wire: &WireFrame) {
+        if plane::publish(&self.wire, wire).is_err() {
             self.publish_errors += 1;
         }
     }
@@ -133,7 +142,8 @@ impl LoopIo for Ipc {
     }
 }
 
-fn open_transports(config: &LoadedConfig, wait: Duration) -> Result<Vec<SerialTransport>> {
+/// Every bus's device, tapped for the black box.
+fn open_transports(config: &LoadedConfig, wait: Duration) -> Result<Vec<Tapped<SerialTransport>>> {
     let until = Instant::now() + wait;
     config
         .config
@@ -141,7 +151,7 @@ fn open_transports(config: &LoadedConfig, wait: Duration) -> Result<Vec<SerialTr
         .iter()
         .map(|b| loop {
             match SerialTransport::open(&b.device, b.baud) {
-                Ok(t) => break Ok(t),
+                Ok(t) => break Ok(Tapped::new(t)),
                 Err(e) if Instant::now() >= until => {
                     break Err(e).with_context(|| {
                         format!(
@@ -199,6 +209,7 @@ fn run(args: Args) -> Result<()> {
         heartbeat: node.publisher(&plane::DRIVER_HEARTBEAT)?,
         layout_out: node.publisher(&plane::LAYOUT)?,
         health: node.publisher(&plane::BUS_HEALTH)?,
+        wire: node.publisher(&plane::BUS_WIRE)?,
         layout: driver.layout(),
         beat: Heartbeat {
             pid: std::process::id(),
@@ -291,7 +302,7 @@ fn select_buses(mut config: LoadedConfig, args: &Args) -> Result<LoadedConfig> {
 /// Latches off, before any torque, every bus the trip record names (all of them if it cannot
 /// be read): whatever the start order of the processes and whether a supervisor is up.
 fn apply_trip_record(
-    driver: &mut Driver<SerialTransport>,
+    driver: &mut Driver<Tapped<SerialTransport>>,
     config: &LoadedConfig,
     trip_file: &Path,
 ) {

@@ -9,6 +9,7 @@ use std::time::{Duration, Instant};
 use telemetry::clock::{in_force, monotonic_ns};
 use telemetry::frames::{BusHealth, Directives, Heartbeat};
 use telemetry::watchdog::{Liveness, Watchdog};
+use telemetry::wire::WireFrame;
 use telemetry::{GoalFrame, JointState};
 
 /// Everything the loop exchanges with other processes.
@@ -33,6 +34,8 @@ pub trait LoopIo {
     fn publish(&mut self, state: &JointState);
     /// Publishes the error counts of every bus (every 100 ms).
     fn publish_health(&mut self, _health: &BusHealth) {}
+    /// Publishes one bus's traffic of the cycle (tapped buses only).
+    fn publish_wire(&mut self, _wire: &WireFrame) {}
 }
 
 /// No other process: no goals, no supervisor (every joint holds where it came up).
@@ -191,6 +194,7 @@ pub fn run<T: Transport>(
         }
         let state = driver.cycle(monotonic_ns);
         io.publish(state);
+        driver.drain_wire(&mut |w| io.publish_wire(w));
         if driver.counters.cycles % every_100ms == 1 || every_100ms == 1 {
             driver.health(&mut health);
             io.publish_health(&health);
@@ -209,6 +213,8 @@ pub fn run<T: Transport>(
         }
     }
     driver.torque_off();
+    // The torque going off, for the black box.
+    driver.drain_wire(&mut |w| io.publish_wire(w));
     let elapsed = start.elapsed().as_secs_f64();
     RunSummary {
         counters: driver.counters,

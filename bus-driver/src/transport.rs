@@ -60,6 +60,9 @@ pub trait Transport {
             ),
         })
     }
+    /// Hands the traffic recorded since the last call to `publish`, frame by frame in order,
+    /// and empties it: on a tapped link ([`crate::tap::Tapped`]); a plain one has none.
+    fn take_wire(&mut self, _publish: &mut dyn FnMut(&mut telemetry::wire::WireFrame)) {}
 }
 
 /// A servo bus on a serial device (USB adapter, UART, or the simulator's pseudo-terminal).

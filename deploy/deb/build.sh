@@ -29,7 +29,7 @@ case $arch in
 esac
 command -v $strip >/dev/null || { echo "deb: $strip missing (apt install binutils-aarch64-linux-gnu)" >&2; exit 1; }
 
-robot_bins=(bus-driver supervisor fleet-agent nori-camera nori-lidar nori-base nori-lift nori-record nori)
+robot_bins=(bus-driver supervisor fleet-agent nori-camera nori-lidar nori-base nori-lift nori-record nori-blackbox nori)
 sim_bins=(nori-sim nori-stack)
 mkdir -p "$out"
 work=$(mktemp -d)

@@ -85,14 +85,14 @@ in_root dpkg -i "/debs/nori-robot_${n}_$arch.deb" "/debs/nori-sim_${n}_$arch.deb
 grep -q "start it with: systemctl start nori.target" "$work/install.log" || fail "no word on starting it"
 in_root getent passwd nori | grep -q ':/var/lib/nori:' || fail "no nori user"
 [ "$(in_root stat -c %U "/var/lib/nori")" = nori ] || fail "/var/lib/nori is not nori's"
-for u in nori-supervisor nori-bus-driver nori-fleet-agent nori-lidar nori-base nori-lift \
+for u in nori-supervisor nori-bus-driver nori-fleet-agent nori-lidar nori-base nori-lift nori-blackbox \
   nori-camera@head nori-camera@neck nori-camera@left_wrist nori-camera@right_wrist; do
   [ -L "$root/etc/systemd/system/nori.target.wants/$u.service" ] || fail "$u not enabled"
 done
 [ -L "$root/etc/systemd/system/multi-user.target.wants/nori.target" ] || fail "nori.target not enabled"
 in_root sh -c 'cd /usr/lib/systemd/system && cp nori-camera@.service /tmp/nori-camera@head.service &&
   systemd-analyze verify --man=no nori-supervisor.service nori-bus-driver.service \
-    nori-fleet-agent.service nori-lidar.service nori-base.service nori-lift.service \
+    nori-fleet-agent.service nori-lidar.service nori-base.service nori-lift.service nori-blackbox.service \
     /tmp/nori-camera@head.service nori.target' >"$work/verify.log" 2>&1 \
   || { cat "$work/verify.log" >&2; fail "systemd-analyze verify"; }
 # It exits 0 on a key it ignores, but names the unit: ours must draw no word at all.

@@ -12,6 +12,7 @@
 //! | `nori fleet`, `nori fleet store`, `nori fleet report`, `nori policy-server`, `nori router` | `nori-fleet dashboard`, `… store`, `… report`, `… policy-server`, `… router` | `fleet` |
 //! | `nori bench …`, `nori model bench` | `nori-bench …`, `nori-bench model-lab` | `bench` |
 //! | `nori model analyze`, `nori model generate` | `nori-model …` | `model-lab` |
+//! | `nori blackbox list`, `show`, `export`, `save`, `record` | `nori-blackbox …` | `blackbox` |
 
 mod base_tool;
 mod calibrate_tool;
@@ -92,6 +93,10 @@ enum Command {
     /// Datasets recorded by `nori record`: recover after a crash, export for the model lab.
     #[command(disable_help_flag = true)]
     Dataset(Passed),
+    /// The black box: the boxes frozen when something went wrong (list, show, export), and
+    /// `save` to freeze the last minutes now.
+    #[command(disable_help_flag = true)]
+    Blackbox(Passed),
 }
 
 #[derive(Subcommand)]
@@ -158,5 +163,6 @@ fn main() -> Result<()> {
         Command::Model(p) => run_instead("nori-model", &[], p),
         Command::Record(p) => run_instead("nori-record", &["record"], p),
         Command::Dataset(p) => run_instead("nori-record", &["dataset"], p),
+        Command::Blackbox(p) => run_instead("nori-blackbox", &[], p),
     }
 }

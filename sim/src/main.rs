@@ -4,7 +4,7 @@
 use anyhow::{Context, Result};
 use clap::Parser;
 use sim::faults::{Schedule, Scheduled};
-use sim::pty::{default_device_dir, serve};
+use sim::pty::{default_device_dir, serve_logged};
 use sim::{BusReport, RobotDescription, SimBus};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
@@ -47,6 +47,10 @@ struct ServeArgs {
     /// Stop after this many seconds.
     #[arg(long)]
     pub run_for: Option<f64>,
+    /// Append every byte each bus receives and sends to DIR/<bus>.received and DIR/<bus>.sent:
+    /// the simulator's own record of the wire (a black box is checked against it).
+    #[arg(long, value_name = "DIR")]
+    pub wire_log: Option<PathBuf>,
     /// Line fault: probability per status packet of one flipped bit.
     #[arg(long, default_value_t = 0.0)]
     pub bit_flip_rate: f64,
@@ -223,7 +227,7 @@ fn run(args: &ServeArgs) -> Result<()> {
         }
     }
     let lidar_faults = sensor_faults(args)?;
-    let served = serve(buses, args.dt)?;
+    let served = serve_logged(buses, args.dt, args.wire_log.as_deref())?;
     let devices = Devices {
         lidar: serve_lidar(args, &robot, lidar_faults)?,
         lift: serve_lift(args, &robot)?,

@@ -51,6 +51,13 @@ pub enum ServeError {
         path: PathBuf,
         source: std::io::Error,
     },
+    /// Creating a wire log's file failed.
+    #[error("cannot create the wire log {path}: {source}")]
+    WireLog {
+        /// The file.
+        path: PathBuf,
+        source: std::io::Error,
+    },
 }
 
 /// The simulated robot being served; call [`ServedRobot::stop`] to end it.
@@ -180,6 +187,17 @@ pub(crate) fn open_pty(bus: &str, device: &Path) -> Result<OwnedFd, ServeError> 
 ///
 /// At most 32 buses (the unplug mask is a `u32`).
 pub fn serve(buses: Vec<(SimBus, PathBuf)>, dt: f64) -> Result<ServedRobot, ServeError> {
+    serve_logged(buses, dt, None)
+}
+
+/// [`serve`], and with `wire_log` every byte each bus received and sent appended to
+/// `DIR/<bus>.received` and `DIR/<bus>.sent` as it crossed the line: the simulator's own record
+/// of the wire, to hold a recording of the driver's side against.
+pub fn serve_logged(
+    buses: Vec<(SimBus, PathBuf)>,
+    dt: f64,
+    wire_log: Option<&Path>,
+) -> Result<ServedRobot, ServeError> {
     let mut masters = Vec::with_capacity(buses.len());
     let mut devices = Vec::with_capacity(buses.len());
     let mut names = Vec::with_capacity(buses.len());
@@ -199,11 +217,16 @@ pub fn serve(buses: Vec<(SimBus, PathBuf)>, dt: f64) -> Result<ServedRobot, Serv
     let unplugged = Arc::new(AtomicU32::new(0));
     let thread = {
         let (buses, stop, unplugged) = (buses.clone(), stop.clone(), unplugged.clone());
+        let logs = names
+            .iter()
+            .map(|name| wire_log.map(|dir| WireLog::create(dir, name)).transpose())
+            .collect::<Result<Vec<_>, _>>()?;
         let lines = Lines {
             masters,
             devices: devices.clone(),
             names,
             unplugged,
+            logs,
         };
         std::thread::Builder::new()
             .name("sim-buses".into())
@@ -232,6 +255,34 @@ struct Lines {
     devices: Vec<PathBuf>,
     names: Vec<String>,
     unplugged: Arc<AtomicU32>,
+    logs: Vec<Option<WireLog>>,
+}
+
+/// One bus's record of its wire: the bytes received and the bytes sent, each as a stream.
+struct WireLog {
+    received: std::fs::File,
+    sent: std::fs::File,
+}
+
+impl WireLog {
+    fn create(dir: &Path, bus: &str) -> Result<WireLog, ServeError> {
+        let open = |suffix: &str| {
+            let path = dir.join(format!("{bus}.{suffix}"));
+            std::fs::File::create(&path).map_err(|source| ServeError::WireLog { path, source })
+        };
+        Ok(WireLog {
+            received: open("received")?,
+            sent: open("sent")?,
+        })
+    }
+
+    /// Appends `bytes` to one stream (a failed write is logged, and the record has a hole).
+    fn append(file: &mut std::fs::File, bytes: &[u8]) {
+        use std::io::Write;
+        if let Err(e) = file.write_all(bytes) {
+            tracing::warn!("wire log: {e}");
+        }
+    }
 }
 
 impl Lines {
@@ -278,13 +329,16 @@ fn run(mut lines: Lines, buses: &Mutex<Vec<SimBus>>, stop: &AtomicBool, dt: f64)
         let mut next_due = now + dt;
         {
             let Ok(mut buses) = buses.lock() else { return };
-            for (bus, master) in buses.iter_mut().zip(masters) {
+            for ((bus, master), log) in buses.iter_mut().zip(masters).zip(&mut lines.logs) {
                 bus.advance_to(now, dt);
                 while let Some(reply) = bus.pop_due(now) {
                     // Nobody listening (or a full buffer, or unplugged): the reply is lost, as
                     // on a real line.
-                    if let Some(master) = master {
-                        let _ = nix::unistd::write(master, &reply.bytes);
+                    let written = master
+                        .as_ref()
+                        .and_then(|m| nix::unistd::write(m, &reply.bytes).ok());
+                    if let (Some(n), Some(log)) = (written, log.as_mut()) {
+                        WireLog::append(&mut log.sent, &reply.bytes[..n]);
                     }
                 }
                 if let Some(due) = bus.next_due() {
@@ -316,6 +370,9 @@ fn run(mut lines: Lines, buses: &Mutex<Vec<SimBus>>, stop: &AtomicBool, dt: f64)
             if revents.contains(PollFlags::POLLIN) {
                 match nix::unistd::read(master, &mut buf) {
                     Ok(n) if n > 0 => {
+                        if let Some(log) = lines.logs[i].as_mut() {
+                            WireLog::append(&mut log.received, &buf[..n]);
+                        }
                         if let Ok(mut buses) = buses.lock() {
                             let bus = &mut buses[i];
                             bus.advance_to(now, dt);

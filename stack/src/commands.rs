@@ -63,6 +63,17 @@ impl Run<'_> {
         args
     }
 
+    /// `nori-blackbox record`, its boxes in `dir`.
+    pub fn blackbox(&self, dir: &Path) -> Vec<String> {
+        vec![
+            s("record"),
+            s("--domain"),
+            s(self.domain),
+            s("--dir"),
+            dir.display().to_string(),
+        ]
+    }
+
     /// `fleet-agent` (status printing and the trip record are not its business).
     pub fn agent(&self) -> Vec<String> {
         vec![s("--domain"), s(self.domain)]

@@ -37,6 +37,10 @@ pub struct ScenarioArgs {
     /// supervisor is started again once the driver has, and must take the trip over.
     #[arg(long, value_name = "CELSIUS")]
     kill_supervisor_at: Option<f32>,
+    /// Run the black box too, its boxes in DIR/boxes, and the simulator's own record of the
+    /// wire in DIR/sim-wire (kept after the run, to hold the boxes against).
+    #[arg(long, value_name = "DIR")]
+    blackbox: Option<std::path::PathBuf>,
 }
 
 #[derive(Debug, Clone, serde::Serialize)]
@@ -84,6 +88,10 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
     let stopped_ns = monotonic_ns();
     stack.driver.stop(Duration::from_secs(5));
     stack.supervisor.stop(Duration::from_secs(5));
+    if let Some(b) = stack.blackbox.as_mut() {
+        // Stopped, it finishes the box it is freezing.
+        b.stop(Duration::from_secs(10));
+    }
     stack.sim.stop(Duration::from_secs(5));
     drop(io);
     Plane::remove_unused_domain(&domain)?;
@@ -103,11 +111,12 @@ pub fn run(args: &ScenarioArgs) -> Result<()> {
     Ok(())
 }
 
-/// The stack under test: the simulator, the supervisor and the driver.
+/// The stack under test: the simulator, the supervisor and the driver (and the black box).
 struct Stack {
     sim: Managed,
     supervisor: Managed,
     driver: Managed,
+    blackbox: Option<Managed>,
 }
 
 impl Stack {
@@ -153,13 +162,22 @@ impl Stack {
         ] {
             m.log_to(&dir.join(log))?;
         }
+        let blackbox = match &args.blackbox {
+            Some(out) => Some(blackbox_beside(&mut sim, run, out)?),
+            None => None,
+        };
         sim.start()?;
+        if let Some(out) = &args.blackbox {
+            // Recording before the driver starts: the box holds the whole run.
+            wait_until_recording(&out.join("blackbox.log"))?;
+        }
         supervisor.start()?;
         driver.start()?;
         Ok(Stack {
             sim,
             supervisor,
             driver,
+            blackbox,
         })
     }
 
@@ -188,6 +206,41 @@ impl Stack {
             std::thread::sleep(Duration::from_millis(20));
         }
     }
+}
+
+/// The black box for a scenario: the simulator told to record its wire in `out/sim-wire`, the
+/// recorder started (logging to `out/blackbox.log`) with its boxes in `out/boxes`.
+fn blackbox_beside(sim: &mut Managed, run: &Run, out: &Path) -> Result<Managed> {
+    let wire = out.join("sim-wire");
+    let boxes = out.join("boxes");
+    for d in [&wire, &boxes] {
+        std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
+    }
+    sim.add_args(&["--wire-log".into(), wire.display().to_string()]);
+    let mut b = Managed::new(
+        "blackbox",
+        &sibling("nori-blackbox")?,
+        &run.blackbox(&boxes),
+    );
+    b.log_to(&out.join("blackbox.log"))?;
+    b.start()?;
+    Ok(b)
+}
+
+/// Waits (10 s at most) until the recorder says it records (its subscriptions are open).
+fn wait_until_recording(log: &Path) -> Result<()> {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while Instant::now() < deadline {
+        let text = std::fs::read_to_string(log).unwrap_or_default();
+        if text.contains("recording the last minutes") {
+            return Ok(());
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    bail!(
+        "the black box did not start recording (its log: {})",
+        log.display()
+    )
 }
 
 /// The scenario's link to the state plane (dropped in this order, the node last).

@@ -81,20 +81,12 @@ fn cameras(asked: &[String], robot: Option<&std::path::Path>) -> Result<Vec<Stri
     Ok(asked.to_vec())
 }
 
-/// Runs the stack until Ctrl-C (or `--run-for`).
-pub fn run(args: &UpArgs) -> Result<()> {
-    let shutdown = telemetry::process::stop_flag()?;
-    let run = Run {
-        domain: &args.domain,
-        device_dir: &args.dir,
-        trips: None,
-        quiet: false,
-    };
-    let report = args.dir.join("sim-report.json");
+/// The simulated robot as `args` ask for it, reporting to `report`.
+fn simulator(args: &UpArgs, run: &Run, report: &std::path::Path) -> Result<Managed> {
     let mut sim = Managed::new(
         "simulator",
         &sibling("nori-sim")?,
-        &run.simulator(&[], &report),
+        &run.simulator(&[], report),
     );
     if let Some(robot) = &args.robot {
         sim.add_args(&["--description".into(), robot.display().to_string()]);
@@ -105,6 +97,20 @@ pub fn run(args: &UpArgs) -> Result<()> {
     for silence in &args.silence {
         sim.add_args(&["--silence".into(), silence.clone()]);
     }
+    Ok(sim)
+}
+
+/// Runs the stack until Ctrl-C (or `--run-for`).
+pub fn run(args: &UpArgs) -> Result<()> {
+    let shutdown = telemetry::process::stop_flag()?;
+    let run = Run {
+        domain: &args.domain,
+        device_dir: &args.dir,
+        trips: None,
+        quiet: false,
+    };
+    let report = args.dir.join("sim-report.json");
+    let mut sim = simulator(args, &run, &report)?;
     let mut bus_driver = Managed::new("bus-driver", &sibling("bus-driver")?, &run.driver(&[]));
     // Restarted as systemd restarts it on the robot (RestartSec=500ms), never backing off: the
     // wheel servos keep their last speed while no driver runs, and the base's protective field
@@ -123,6 +129,14 @@ pub fn run(args: &UpArgs) -> Result<()> {
     }
     // The lift: homes at start, then takes heights (nori/lift/command).
     let mut lift = Managed::new("nori-lift", &sibling("nori-lift")?, &run.lift());
+    // The black box: the last minutes in memory, a box frozen on each protection event (in
+    // DIR/blackbox here; /var/lib/nori/blackbox on the robot).
+    let boxes = args.dir.join("blackbox");
+    let mut blackbox = Managed::new(
+        "nori-blackbox",
+        &sibling("nori-blackbox")?,
+        &run.blackbox(&boxes),
+    );
     if let Some(c) = &args.agent_config {
         fleet_agent.add_args(&["--config".into(), c.display().to_string()]);
     }
@@ -149,6 +163,7 @@ pub fn run(args: &UpArgs) -> Result<()> {
     }
     eprintln!("nori up: the Nori A3 stack on the simulated robot (no hardware)");
     sim.start()?;
+    blackbox.start()?;
     // The supervisor first: the driver holds its safe state until the supervisor is heard from.
     supervising.start()?;
     bus_driver.start()?;
@@ -160,9 +175,11 @@ pub fn run(args: &UpArgs) -> Result<()> {
     }
     eprintln!(
         "nori up: watch the joints with `nori state --domain {d}`, move one with `nori goal --domain {d} left_elbow=-1.0`; \
-         the simulator's report is {}. `nori policy-server` in another terminal drives the elbows \
+         the simulator's report is {}; boxes frozen by the black box are listed by \
+         `nori blackbox list --dir {}`. `nori policy-server` in another terminal drives the elbows \
          through the fleet agent. Ctrl-C stops everything with torque off.",
         report.display(),
+        boxes.display(),
         d = args.domain
     );
     let start = Instant::now();
@@ -177,6 +194,7 @@ pub fn run(args: &UpArgs) -> Result<()> {
         fleet_agent.supervise()?;
         base.supervise()?;
         lift.supervise()?;
+        blackbox.supervise()?;
         for s in &mut sensors {
             s.supervise()?;
         }
@@ -193,6 +211,8 @@ pub fn run(args: &UpArgs) -> Result<()> {
     }
     bus_driver.stop(Duration::from_secs(5));
     supervising.stop(Duration::from_secs(5));
+    // After the driver: the box being frozen holds the torque going off.
+    blackbox.stop(Duration::from_secs(5));
     sim.stop(Duration::from_secs(5));
     match telemetry::plane::Plane::remove_unused_domain(&args.domain) {
         Ok(_) => {}

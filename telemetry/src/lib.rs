@@ -18,6 +18,8 @@
 //! * `sensors`: camera images and lidar revolutions.
 //! * `stats`: the project's one quantile rule.
 //! * `watchdog`: a peer's liveness from its timestamps.
+//! * `wire`: what went on a bus's wire in one cycle, byte for byte, and the operator's
+//!   request to save the black box.
 //! * With `ipc`: `plane` (the services and their QoS), `process` (start-up, signals, the
 //!   service manager), `latch` (the trip record on disk).
 //! * In tests with `ipc`: `versions` (each frame's layout against `frame-layouts.txt`, so a
@@ -38,6 +40,7 @@ pub mod process;
 pub mod sensors;
 pub mod stats;
 pub mod watchdog;
+pub mod wire;
 
 #[cfg(all(test, feature = "ipc"))]
 mod versions;

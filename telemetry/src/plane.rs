@@ -10,6 +10,7 @@ use crate::frames::{
 };
 use crate::motion::{BaseCommand, BaseState, BodyFrames, LiftAllowance, LiftCommand, LiftState};
 use crate::sensors::{CameraFrameHeader, LidarScan};
+use crate::wire::{BlackboxSave, WireFrame};
 use iceoryx2::node::{NodeCreationFailure, NodeListFailure};
 use iceoryx2::port::publisher::{Publisher, PublisherCreateError};
 use iceoryx2::port::subscriber::{Subscriber, SubscriberCreateError};
@@ -100,6 +101,12 @@ pub const GRIP: Topic<GripFrame> = topic("nori/grip", 1, 16, 2, 8);
 pub const COMMANDS: Topic<SupervisorCommand> = topic("nori/supervisor-commands", 0, 8, 4, 2);
 /// Driver → all: error counts by kind per bus, every 100 ms (history 1: the newest at once).
 pub const BUS_HEALTH: Topic<crate::frames::BusHealth> = topic("nori/bus-health", 1, 4, 2, 8);
+/// Driver → the black box: each bus's bytes on the wire, one frame per bus per cycle. No
+/// history; 64 frames queued (80 ms of four buses at 200 Hz), the oldest overwritten: a slow
+/// or hung reader loses traffic, never holds the driver.
+pub const BUS_WIRE: Topic<WireFrame> = topic("nori/bus-wire", 0, 64, 2, 2);
+/// Operator → the black box: freeze the last minutes now.
+pub const BLACKBOX_SAVE: Topic<BlackboxSave> = topic("nori/blackbox/save", 0, 4, 4, 2);
 
 /// Tools, the fleet agent → the base controller: velocity commands (a queue: none is lost
 /// between two of the controller's periods; the newest wins).

@@ -14,6 +14,7 @@ use crate::frames::{
 use crate::motion::{BaseCommand, BaseState, BodyFrames, LiftAllowance, LiftCommand, LiftState};
 use crate::plane::{topic, type_name, Plane, PlaneError};
 use crate::sensors::{CameraFrameHeader, LidarScan};
+use crate::wire::{BlackboxSave, WireFrame};
 use iceoryx2::prelude::ZeroCopySend;
 use iceoryx2::service::static_config::message_type_details::{TypeDetail, TypeVariant};
 
@@ -92,6 +93,8 @@ fn current() -> Vec<String> {
         layout::<BodyFrames>(),
         layout::<CameraFrameHeader>(),
         layout::<LidarScan>(),
+        layout::<WireFrame>(),
+        layout::<BlackboxSave>(),
     ]
 }
 

@@ -25,6 +25,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
     ("lidar", &["telemetry"]),
     ("sim", &["feetech", "body", "telemetry", "camera"]),
     ("recorder", &["telemetry"]),
+    ("blackbox", &["telemetry"]),
     ("model-lab", &["sim"]),
     ("fleet", &["fleet-agent", "telemetry"]),
     ("stack", &["telemetry", "sim", "bus-driver"]),
@@ -71,6 +72,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
             "recorder",
             "base",
             "lift",
+            "blackbox",
         ],
     ),
 ];
@@ -86,6 +88,7 @@ const CONFINED: &[(&str, &[&str])] = &[
     // nori-tests speaks Nori Lab's page link as a page would (a second implementation of it).
     ("tungstenite", &["lab", "stack", "nori-tests"]),
     ("prometheus-client", &["fleet"]),
+    ("mcap", &["blackbox"]),
 ];
 
 /// The crates of the programs that run on the robot (its processes and the operator's `nori`),
@@ -99,6 +102,7 @@ const ROBOT: &[&str] = &[
     "supervisor",
     "fleet-agent",
     "recorder",
+    "blackbox",
     "camera",
     "lidar",
     "base",

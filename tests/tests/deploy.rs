@@ -88,6 +88,7 @@ fn the_systemd_units_verify() {
         "nori-lidar.service",
         "nori-base.service",
         "nori-lift.service",
+        "nori-blackbox.service",
         "nori.target",
     ] {
         let out = Command::new("systemd-analyze")

@@ -1,0 +1,477 @@
+//! The box's channels: what each carries, its JSON schema (so Foxglove, Rerun and the `mcap`
+//! tools decode it without a plugin), and each state-plane frame written as its JSON message.
+//!
+//! JSON rather than a binary encoding: every generic viewer reads it with the schema alone, and
+//! zstd takes back most of its size (BENCHMARKS.md, "Black box"). Bytes on the wire are base64,
+//! as Foxglove's JSON schemas carry bytes.
+
+use base64::Engine;
+use serde::Serialize;
+use telemetry::frames::{
+    BusHealth, Directives, EventKind, GoalFrame, JointLayout, JointState, SupervisorEvent,
+    DIRECTIVE_FLAG_STOP,
+};
+use telemetry::motion::{BaseState, LiftState};
+use telemetry::wire::{Direction, WireFrame};
+
+/// One channel of a box.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+#[repr(u8)]
+pub enum Channel {
+    /// Every bus's bytes on the wire, per bus and cycle.
+    Wire = 0,
+    /// The driver's joint-state frames, every cycle.
+    JointStates = 1,
+    /// Goals for the arms and grippers, from every source.
+    Goals = 2,
+    /// The base controller's wheel goals.
+    WheelGoals = 3,
+    /// The supervisor's directives.
+    Directives = 4,
+    /// The supervisor's and the driver's events.
+    Events = 5,
+    /// Each bus's error counts.
+    BusHealth = 6,
+    /// The lift's state.
+    LiftState = 7,
+    /// The base's state.
+    BaseState = 8,
+    /// Why the box was frozen (one message per freezing event).
+    Triggers = 9,
+}
+
+impl Channel {
+    /// Every channel, in id order.
+    pub const ALL: [Channel; 10] = [
+        Channel::Wire,
+        Channel::JointStates,
+        Channel::Goals,
+        Channel::WheelGoals,
+        Channel::Directives,
+        Channel::Events,
+        Channel::BusHealth,
+        Channel::LiftState,
+        Channel::BaseState,
+        Channel::Triggers,
+    ];
+
+    /// The channel with id `id`.
+    pub fn from_id(id: u8) -> Option<Channel> {
+        Channel::ALL.get(id as usize).copied()
+    }
+
+    /// Its topic in the box.
+    pub fn topic(self) -> &'static str {
+        match self {
+            Channel::Wire => "/bus/wire",
+            Channel::JointStates => "/joint_states",
+            Channel::Goals => "/goals",
+            Channel::WheelGoals => "/base/wheel_goals",
+            Channel::Directives => "/supervisor/directives",
+            Channel::Events => "/events",
+            Channel::BusHealth => "/bus/health",
+            Channel::LiftState => "/lift/state",
+            Channel::BaseState => "/base/state",
+            Channel::Triggers => "/blackbox/triggers",
+        }
+    }
+
+    /// The channel whose topic is `topic`.
+    pub fn from_topic(topic: &str) -> Option<Channel> {
+        Channel::ALL.into_iter().find(|c| c.topic() == topic)
+    }
+
+    /// Its schema's name.
+    pub fn schema_name(self) -> &'static str {
+        match self {
+            Channel::Wire => "nori.BusWire",
+            Channel::JointStates => "nori.JointStates",
+            Channel::Goals | Channel::WheelGoals => "nori.Goals",
+            Channel::Directives => "nori.Directives",
+            Channel::Events => "nori.Event",
+            Channel::BusHealth => "nori.BusHealth",
+            Channel::LiftState => "nori.LiftState",
+            Channel::BaseState => "nori.BaseState",
+            Channel::Triggers => "nori.Trigger",
+        }
+    }
+
+    /// Its JSON schema (draft 2020-12).
+    pub fn schema(self) -> String {
+        let properties = match self {
+            Channel::Wire => WIRE_PROPERTIES,
+            Channel::JointStates => JOINT_STATES_PROPERTIES,
+            Channel::Goals | Channel::WheelGoals => GOALS_PROPERTIES,
+            Channel::Directives => DIRECTIVES_PROPERTIES,
+            Channel::Events | Channel::Triggers => EVENT_PROPERTIES,
+            Channel::BusHealth => {
+                r#""seq": {"type": "integer"}, "buses": {"type": "array", "items": {"type": "object"}}"#
+            }
+            Channel::LiftState => {
+                r#""seq": {"type": "integer"}, "height_m": {"type": "number"}, "goal_m": {"type": "number"}, "velocity_m_s": {"type": "number"}, "current_a": {"type": "number"}, "state": {"type": "integer"}, "held": {"type": "boolean"}, "obstructions": {"type": "integer"}"#
+            }
+            Channel::BaseState => {
+                r#""seq": {"type": "integer"}, "x_m": {"type": "number"}, "y_m": {"type": "number"}, "theta_rad": {"type": "number"}, "linear_m_s": {"type": "number"}, "angular_rad_s": {"type": "number"}, "field_distance_m": {"type": "number"}, "flags": {"type": "array", "items": {"type": "string"}}"#
+            }
+        };
+        format!(
+            r#"{{"$schema": "https://json-schema.org/draft/2020-12/schema", "title": "{}", "type": "object", "properties": {{"timestamp_ns": {{"type": "integer", "description": "CLOCK_MONOTONIC of the robot, ns"}}, {properties}}}, "required": ["timestamp_ns"]}}"#,
+            self.schema_name()
+        )
+    }
+}
+
+const WIRE_PROPERTIES: &str = r#""cycle": {"type": "integer"}, "bus": {"type": "string"}, "lost_bytes": {"type": "integer"}, "chunks": {"type": "array", "items": {"type": "object", "properties": {"t_ns": {"type": "integer"}, "direction": {"type": "string", "enum": ["sent", "received"]}, "data": {"type": "string", "contentEncoding": "base64"}}, "required": ["t_ns", "direction", "data"]}}"#;
+const JOINT_STATES_PROPERTIES: &str = r#""seq": {"type": "integer"}, "safe_state": {"type": "boolean"}, "name": {"type": "array", "items": {"type": "string"}}, "valid": {"type": "array", "items": {"type": "boolean"}}, "position": {"type": "array", "items": {"type": "number"}}, "velocity": {"type": "array", "items": {"type": "number"}}, "load": {"type": "array", "items": {"type": "number"}}, "current_a": {"type": "array", "items": {"type": "number"}}, "voltage_v": {"type": "array", "items": {"type": "number"}}, "temperature_c": {"type": "array", "items": {"type": "number"}}, "goal": {"type": "array", "items": {"type": "number"}}, "status": {"type": "array", "items": {"type": "integer"}}, "torque_enabled": {"type": "array", "items": {"type": "boolean"}}, "flags": {"type": "array", "items": {"type": "integer"}}"#;
+const GOALS_PROPERTIES: &str = r#""seq": {"type": "integer"}, "name": {"type": "array", "items": {"type": "string"}}, "goal": {"type": "array", "items": {"type": "number"}}"#;
+const DIRECTIVES_PROPERTIES: &str = r#""seq": {"type": "integer"}, "stop": {"type": "boolean"}, "bus_enabled": {"type": "array", "items": {"type": "boolean"}}, "torque_limit_permille": {"type": "array", "items": {"type": "integer"}}"#;
+const EVENT_PROPERTIES: &str = r#""kind": {"type": "string"}, "joint": {"type": ["string", "null"]}, "bus": {"type": ["string", "null"]}, "level": {"type": "integer"}, "value": {"type": "number"}"#;
+
+/// The names the messages carry: the driver's layout (`j<k>`, `bus<k>` until it is heard).
+#[derive(Debug, Clone, Default)]
+pub struct Names {
+    joints: Vec<String>,
+    buses: Vec<String>,
+}
+
+impl Names {
+    /// The names of `layout`.
+    pub fn from_layout(layout: &JointLayout) -> Names {
+        Names {
+            joints: layout
+                .joints()
+                .iter()
+                .map(|j| j.name().to_string())
+                .collect(),
+            buses: layout.bus_names().map(str::to_string).collect(),
+        }
+    }
+
+    /// Joint `k`'s name.
+    pub fn joint(&self, k: usize) -> String {
+        self.joints
+            .get(k)
+            .cloned()
+            .unwrap_or_else(|| format!("j{k}"))
+    }
+
+    /// Bus `k`'s name.
+    pub fn bus(&self, k: usize) -> String {
+        self.buses
+            .get(k)
+            .cloned()
+            .unwrap_or_else(|| format!("bus{k}"))
+    }
+}
+
+/// A bus's traffic of one cycle as a message.
+#[derive(Serialize)]
+struct WireMessage<'a> {
+    timestamp_ns: u64,
+    cycle: u64,
+    bus: String,
+    lost_bytes: u32,
+    chunks: Vec<WireChunkMessage<'a>>,
+}
+
+#[derive(Serialize)]
+struct WireChunkMessage<'a> {
+    t_ns: u64,
+    direction: &'a str,
+    data: String,
+}
+
+/// `frame` as a message; stamped with its first chunk's time.
+pub fn wire(frame: &WireFrame, names: &Names) -> (u64, Vec<u8>) {
+    let chunks: Vec<WireChunkMessage> = frame
+        .chunks()
+        .map(|(d, t_ns, bytes)| WireChunkMessage {
+            t_ns,
+            direction: match d {
+                Direction::Sent => "sent",
+                Direction::Received => "received",
+            },
+            data: base64::engine::general_purpose::STANDARD.encode(bytes),
+        })
+        .collect();
+    let t = chunks.first().map_or(0, |c| c.t_ns);
+    let msg = WireMessage {
+        timestamp_ns: t,
+        cycle: frame.cycle,
+        bus: names.bus(frame.bus as usize),
+        lost_bytes: frame.lost_bytes,
+        chunks,
+    };
+    (t, to_json(&msg))
+}
+
+/// One chunk of a bus's traffic read back: its time, its direction, its bytes.
+pub type WireChunk = (u64, Direction, Vec<u8>);
+
+/// Decodes a wire message: its bus and its chunks; `None` if it is not one.
+pub fn wire_chunks(data: &[u8]) -> Option<(String, Vec<WireChunk>)> {
+    let v: serde_json::Value = serde_json::from_slice(data).ok()?;
+    let bus = v.get("bus")?.as_str()?.to_string();
+    let chunks = v
+        .get("chunks")?
+        .as_array()?
+        .iter()
+        .map(|c| {
+            let direction = match c.get("direction")?.as_str()? {
+                "sent" => Direction::Sent,
+                "received" => Direction::Received,
+                _ => return None,
+            };
+            let bytes = base64::engine::general_purpose::STANDARD
+                .decode(c.get("data")?.as_str()?)
+                .ok()?;
+            Some((c.get("t_ns")?.as_u64()?, direction, bytes))
+        })
+        .collect::<Option<Vec<_>>>()?;
+    Some((bus, chunks))
+}
+
+#[derive(Serialize)]
+struct JointStatesMessage {
+    timestamp_ns: u64,
+    seq: u64,
+    safe_state: bool,
+    name: Vec<String>,
+    valid: Vec<bool>,
+    position: Vec<f32>,
+    velocity: Vec<f32>,
+    load: Vec<f32>,
+    current_a: Vec<f32>,
+    voltage_v: Vec<f32>,
+    temperature_c: Vec<f32>,
+    goal: Vec<f32>,
+    status: Vec<u8>,
+    torque_enabled: Vec<bool>,
+    flags: Vec<u8>,
+}
+
+/// A joint-state frame as a message (a missing reading's values are written as read: `valid`
+/// says which to trust).
+pub fn joint_states(state: &JointState, names: &Names) -> (u64, Vec<u8>) {
+    let j = state.joints();
+    let col = |f: fn(&telemetry::JointSample) -> f32| j.iter().map(f).map(finite).collect();
+    let msg = JointStatesMessage {
+        timestamp_ns: state.timestamp_ns,
+        seq: state.seq,
+        safe_state: state.flags & telemetry::frames::STATE_FLAG_SAFE_STATE != 0,
+        name: (0..j.len()).map(|k| names.joint(k)).collect(),
+        valid: j.iter().map(|s| s.is_valid()).collect(),
+        position: col(|s| s.position_rad),
+        velocity: col(|s| s.velocity_rad_s),
+        load: col(|s| s.load),
+        current_a: col(|s| s.current_a),
+        voltage_v: col(|s| s.voltage_v),
+        temperature_c: col(|s| s.temperature_c),
+        goal: col(|s| s.goal_rad),
+        status: j.iter().map(|s| s.status).collect(),
+        torque_enabled: j.iter().map(|s| s.torque_enabled != 0).collect(),
+        flags: j.iter().map(|s| s.flags).collect(),
+    };
+    (state.timestamp_ns, to_json(&msg))
+}
+
+/// JSON has no NaN: a non-finite value (never in a valid reading) is written as 0.
+fn finite(x: f32) -> f32 {
+    if x.is_finite() {
+        x
+    } else {
+        0.0
+    }
+}
+
+#[derive(Serialize)]
+struct GoalsMessage {
+    timestamp_ns: u64,
+    seq: u64,
+    name: Vec<String>,
+    goal: Vec<f32>,
+}
+
+/// A goal frame as a message: the joints its mask names.
+pub fn goals(frame: &GoalFrame, names: &Names) -> (u64, Vec<u8>) {
+    let n = (frame.joint_count as usize).min(frame.position_rad.len());
+    let named: Vec<usize> = (0..n.min(32))
+        .filter(|k| frame.mask & (1 << k) != 0)
+        .collect();
+    let msg = GoalsMessage {
+        timestamp_ns: frame.timestamp_ns,
+        seq: frame.seq,
+        name: named.iter().map(|&k| names.joint(k)).collect(),
+        goal: named
+            .iter()
+            .map(|&k| finite(frame.position_rad[k]))
+            .collect(),
+    };
+    (frame.timestamp_ns, to_json(&msg))
+}
+
+#[derive(Serialize)]
+struct DirectivesMessage {
+    timestamp_ns: u64,
+    seq: u64,
+    stop: bool,
+    bus_enabled: Vec<bool>,
+    torque_limit_permille: Vec<u16>,
+}
+
+/// A directive as a message.
+pub fn directives(d: &Directives, buses: usize) -> (u64, Vec<u8>) {
+    let n = (d.joint_count as usize).min(d.torque_limit_permille.len());
+    let msg = DirectivesMessage {
+        timestamp_ns: d.timestamp_ns,
+        seq: d.seq,
+        stop: d.flags & DIRECTIVE_FLAG_STOP != 0,
+        bus_enabled: (0..buses.min(32))
+            .map(|b| d.bus_enabled & (1 << b) != 0)
+            .collect(),
+        torque_limit_permille: d.torque_limit_permille[..n].to_vec(),
+    };
+    (d.timestamp_ns, to_json(&msg))
+}
+
+/// An event or a trigger, as a message.
+#[derive(Debug, Clone, Serialize, serde::Deserialize, PartialEq)]
+pub struct EventMessage {
+    /// When, on the robot's monotonic clock.
+    pub timestamp_ns: u64,
+    /// What (`thermal_trip`, `lift_obstruction`, `saved`, …).
+    pub kind: String,
+    /// The joint it is about.
+    pub joint: Option<String>,
+    /// The bus it is about.
+    pub bus: Option<String>,
+    /// The event's level.
+    pub level: u8,
+    /// The event's value (°C, A, s, by kind).
+    pub value: f32,
+}
+
+/// A supervisor event as a message.
+pub fn event(e: &SupervisorEvent, names: &Names) -> EventMessage {
+    EventMessage {
+        timestamp_ns: e.timestamp_ns,
+        kind: e
+            .kind()
+            .map_or_else(|| format!("unknown_{}", e.kind), event_name),
+        joint: (e.joint != 0xFF).then(|| names.joint(e.joint as usize)),
+        bus: (e.bus != 0xFF).then(|| names.bus(e.bus as usize)),
+        level: e.level,
+        value: finite(e.value),
+    }
+}
+
+/// An event kind's name in snake case (`ThermalTrip` → `thermal_trip`).
+pub fn event_name(kind: EventKind) -> String {
+    snake(&format!("{kind:?}"))
+}
+
+/// `CamelCase` → `camel_case`.
+pub(crate) fn snake(camel: &str) -> String {
+    let mut out = String::new();
+    for (i, c) in camel.chars().enumerate() {
+        if c.is_uppercase() && i > 0 {
+            out.push('_');
+        }
+        out.extend(c.to_lowercase());
+    }
+    out
+}
+
+/// Bus health as a message.
+pub fn bus_health(h: &BusHealth, names: &Names) -> (u64, Vec<u8>) {
+    let buses: Vec<serde_json::Value> = h
+        .buses()
+        .iter()
+        .enumerate()
+        .map(|(k, b)| {
+            let mut v = serde_json::to_value(b).unwrap_or_default();
+            if let Some(o) = v.as_object_mut() {
+                o.insert("bus".into(), names.bus(k).into());
+            }
+            v
+        })
+        .collect();
+    let msg = serde_json::json!({"timestamp_ns": h.timestamp_ns, "seq": h.seq, "buses": buses});
+    (h.timestamp_ns, to_json(&msg))
+}
+
+/// The lift's state as a message.
+pub fn lift_state(s: &LiftState) -> (u64, Vec<u8>) {
+    let msg = serde_json::json!({
+        "timestamp_ns": s.timestamp_ns, "seq": s.seq, "height_m": finite(s.height_m),
+        "goal_m": finite(s.goal_m), "velocity_m_s": finite(s.velocity_m_s),
+        "current_a": finite(s.current_a), "state": s.state, "held": s.held != 0,
+        "obstructions": s.obstructions,
+    });
+    (s.timestamp_ns, to_json(&msg))
+}
+
+/// The base's state as a message.
+pub fn base_state(s: &BaseState) -> (u64, Vec<u8>) {
+    let f = |x: f64| if x.is_finite() { x } else { 0.0 };
+    let msg = serde_json::json!({
+        "timestamp_ns": s.timestamp_ns, "seq": s.seq, "x_m": f(s.x_m), "y_m": f(s.y_m),
+        "theta_rad": f(s.theta_rad), "linear_m_s": finite(s.linear_m_s),
+        "angular_rad_s": finite(s.angular_rad_s), "field_distance_m": finite(s.field_distance_m),
+        "flags": s.flag_names().collect::<Vec<_>>(),
+    });
+    (s.timestamp_ns, to_json(&msg))
+}
+
+/// Serialises a message; our own types always serialise, so a failure is an empty object.
+pub fn to_json<T: Serialize>(msg: &T) -> Vec<u8> {
+    serde_json::to_vec(msg).unwrap_or_else(|_| b"{}".to_vec())
+}
+
+/// [`to_json`] as text.
+pub(crate) fn to_json_string<T: Serialize>(msg: &T) -> String {
+    String::from_utf8_lossy(&to_json(msg)).into_owned()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_channel_has_a_topic_of_its_own_and_a_schema_that_parses() {
+        for c in Channel::ALL {
+            assert_eq!(Channel::from_id(c as u8), Some(c));
+            assert_eq!(Channel::from_topic(c.topic()), Some(c));
+            let schema: serde_json::Value = serde_json::from_str(&c.schema()).unwrap();
+            assert_eq!(schema["type"], "object", "{c:?}");
+        }
+    }
+
+    #[test]
+    fn a_wire_frame_comes_back_byte_for_byte() {
+        let mut f = WireFrame::default();
+        f.record(Direction::Sent, 5, &[0xFF, 0xFF, 0xFE, 4, 0x82]);
+        f.record(Direction::Received, 9, &[0xFF, 0xFF, 1, 2, 0, 0xFC]);
+        f.bus = 1;
+        let (t, data) = wire(&f, &Names::default());
+        assert_eq!(t, 5);
+        let (bus, chunks) = wire_chunks(&data).unwrap();
+        assert_eq!(bus, "bus1");
+        assert_eq!(
+            chunks,
+            vec![
+                (5, Direction::Sent, vec![0xFF, 0xFF, 0xFE, 4, 0x82]),
+                (9, Direction::Received, vec![0xFF, 0xFF, 1, 2, 0, 0xFC]),
+            ]
+        );
+    }
+
+    #[test]
+    fn event_kinds_are_named_in_snake_case() {
+        assert_eq!(event_name(EventKind::ThermalTrip), "thermal_trip");
+        assert_eq!(
+            event_name(EventKind::FirmwareProtection),
+            "firmware_protection"
+        );
+    }
+}

@@ -1,0 +1,389 @@
+//! A frozen box: an MCAP file written chunk by chunk while its window is open (each finished
+//! chunk flushed and synced, so a `kill -9` or a power cut leaves every finished chunk
+//! readable), finished with its summary when the window closes; read back linearly, which a
+//! box cut short still allows, and recovered into a whole file at the next start.
+
+use crate::channel::{Channel, EventMessage};
+use crate::ring::Record;
+use std::collections::BTreeMap;
+use std::io::{BufWriter, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+use thiserror::Error;
+
+/// The suffix of a box still being written (or cut short).
+pub const PARTIAL_SUFFIX: &str = ".mcap.partial";
+
+/// A box that cannot be written or read.
+#[derive(Debug, Error)]
+pub enum BoxError {
+    /// The MCAP layer refused.
+    #[error("MCAP: {0}")]
+    Mcap(#[from] mcap::McapError),
+    /// The file could not be written or read.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The system's error.
+        source: std::io::Error,
+    },
+}
+
+/// What froze a box, as its metadata says.
+pub const METADATA_NAME: &str = "nori.blackbox";
+
+/// A file whose `flush` also syncs its data to the device: the MCAP writer flushes after each
+/// finished chunk, so a finished chunk is on the card before the next one starts.
+pub struct Durable {
+    file: BufWriter<std::fs::File>,
+}
+
+impl Durable {
+    /// Creates `path`.
+    pub fn create(path: &Path) -> Result<Durable, BoxError> {
+        let file = std::fs::File::create(path).map_err(|source| BoxError::Io {
+            path: path.into(),
+            source,
+        })?;
+        Ok(Durable {
+            file: BufWriter::with_capacity(64 * 1024, file),
+        })
+    }
+}
+
+impl Write for Durable {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.file.write(buf)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.file.flush()?;
+        self.file.get_ref().sync_data()
+    }
+}
+
+impl Seek for Durable {
+    fn seek(&mut self, pos: SeekFrom) -> std::io::Result<u64> {
+        self.file.seek(pos)
+    }
+}
+
+/// A box being written.
+pub struct BoxWriter<W: Write + Seek> {
+    mcap: mcap::Writer<W>,
+    channels: BTreeMap<Channel, u16>,
+    /// The offset from the robot's monotonic clock to the wall clock, ns (MCAP times are wall
+    /// times, so a viewer shows when it happened; the messages keep the monotonic stamps).
+    wall_offset_ns: i128,
+    sequence: u32,
+    /// Messages written.
+    pub messages: u64,
+}
+
+impl<W: Write + Seek> BoxWriter<W> {
+    /// Starts a box on `w`, with the event that froze it as its metadata.
+    pub fn new(
+        w: W,
+        trigger: &EventMessage,
+        robot: &str,
+        wall_offset_ns: i128,
+    ) -> Result<Self, BoxError> {
+        let options = mcap::WriteOptions::new()
+            .compression(Some(mcap::Compression::Zstd))
+            .chunk_size(Some(256 * 1024))
+            .compression_threads(0)
+            .profile("")
+            .library(concat!("nori-blackbox ", env!("CARGO_PKG_VERSION")));
+        let mut mcap = options.create(w)?;
+        let metadata = mcap::records::Metadata {
+            name: METADATA_NAME.into(),
+            metadata: BTreeMap::from([
+                ("robot".to_string(), robot.to_string()),
+                ("trigger".to_string(), trigger.kind.clone()),
+                ("event".to_string(), crate::channel::to_json_string(trigger)),
+                ("wall_offset_ns".to_string(), wall_offset_ns.to_string()),
+            ]),
+        };
+        mcap.write_metadata(&metadata)?;
+        Ok(BoxWriter {
+            mcap,
+            channels: BTreeMap::new(),
+            wall_offset_ns,
+            sequence: 0,
+            messages: 0,
+        })
+    }
+
+    fn channel_id(&mut self, c: Channel) -> Result<u16, BoxError> {
+        if let Some(&id) = self.channels.get(&c) {
+            return Ok(id);
+        }
+        let schema = self
+            .mcap
+            .add_schema(c.schema_name(), "jsonschema", c.schema().as_bytes())?;
+        let id = self
+            .mcap
+            .add_channel(schema, c.topic(), "json", &BTreeMap::new())?;
+        self.channels.insert(c, id);
+        Ok(id)
+    }
+
+    /// Writes one message.
+    pub fn write(&mut self, r: Record) -> Result<(), BoxError> {
+        let id = self.channel_id(r.channel)?;
+        let wall = (r.t_ns as i128 + self.wall_offset_ns).max(0) as u64;
+        self.sequence = self.sequence.wrapping_add(1);
+        self.mcap.write_to_known_channel(
+            &mcap::records::MessageHeader {
+                channel_id: id,
+                sequence: self.sequence,
+                log_time: wall,
+                publish_time: wall,
+            },
+            r.data,
+        )?;
+        self.messages += 1;
+        Ok(())
+    }
+
+    /// Ends the chunk in progress and syncs it: everything written so far survives a crash.
+    pub fn flush(&mut self) -> Result<(), BoxError> {
+        self.mcap.flush()?;
+        Ok(())
+    }
+
+    /// Writes the summary and the footer.
+    pub fn finish(mut self) -> Result<W, BoxError> {
+        self.mcap.finish()?;
+        Ok(self.mcap.into_inner())
+    }
+}
+
+/// One message read back from a box.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Message {
+    /// Its channel (`None`: a topic this version does not know).
+    pub channel: Option<Channel>,
+    /// Its topic.
+    pub topic: String,
+    /// Its log time (wall clock), ns.
+    pub log_time: u64,
+    /// Its JSON.
+    pub data: Vec<u8>,
+}
+
+/// A box read back.
+#[derive(Debug, Clone, Default)]
+pub struct ReadBox {
+    /// Its metadata (what froze it).
+    pub metadata: BTreeMap<String, String>,
+    /// Its messages, in file order.
+    pub messages: Vec<Message>,
+    /// Whether it ends with its footer (a box cut short by a crash does not: its finished
+    /// chunks are all here).
+    pub complete: bool,
+}
+
+/// Reads a box linearly, as far as it is whole.
+pub fn read(bytes: &[u8]) -> ReadBox {
+    use mcap::records::Record as R;
+    let mut out = ReadBox::default();
+    let mut topics: BTreeMap<u16, String> = BTreeMap::new();
+    let mut chunk_bufs = Vec::new();
+    let options = mcap::read::Options::IgnoreEndMagic.into();
+    let Ok(reader) = mcap::read::LinearReader::new_with_options(bytes, options) else {
+        return out;
+    };
+    for record in reader {
+        let Ok(record) = record else { break };
+        match record {
+            R::Channel(c) => {
+                topics.insert(c.id, c.topic.clone());
+            }
+            R::Metadata(m) if m.name == METADATA_NAME => out.metadata = m.metadata.clone(),
+            R::Message { header, data } => {
+                push_message(&mut out, &topics, header.channel_id, header.log_time, &data)
+            }
+            R::Chunk { header, data } => chunk_bufs.push((header, data.into_owned())),
+            R::Footer(_) => out.complete = true,
+            _ => {}
+        }
+        for (header, data) in chunk_bufs.drain(..) {
+            let Ok(chunk) = mcap::read::ChunkReader::new(header, &data) else {
+                continue;
+            };
+            for r in chunk.flatten() {
+                match r {
+                    R::Channel(c) => {
+                        topics.insert(c.id, c.topic.clone());
+                    }
+                    R::Message { header, data } => {
+                        push_message(&mut out, &topics, header.channel_id, header.log_time, &data)
+                    }
+                    _ => {}
+                }
+            }
+        }
+    }
+    out
+}
+
+fn push_message(
+    out: &mut ReadBox,
+    topics: &BTreeMap<u16, String>,
+    id: u16,
+    log_time: u64,
+    data: &[u8],
+) {
+    let topic = topics.get(&id).cloned().unwrap_or_default();
+    out.messages.push(Message {
+        channel: Channel::from_topic(&topic),
+        topic,
+        log_time,
+        data: data.to_vec(),
+    });
+}
+
+/// Rewrites a box cut short (`NAME.mcap.partial`) into a whole `NAME.mcap` holding everything
+/// it kept, then removes the partial file; gives the new path and the messages saved.
+pub fn recover(partial: &Path) -> Result<(PathBuf, usize), BoxError> {
+    let io = |source| BoxError::Io {
+        path: partial.into(),
+        source,
+    };
+    let bytes = std::fs::read(partial).map_err(io)?;
+    let cut = read(&bytes);
+    let name = partial.to_string_lossy();
+    let whole = PathBuf::from(format!("{}.mcap", name.trim_end_matches(PARTIAL_SUFFIX)));
+    let trigger: EventMessage = cut
+        .metadata
+        .get("event")
+        .and_then(|e| serde_json::from_str(e).ok())
+        .unwrap_or(EventMessage {
+            timestamp_ns: 0,
+            kind: "unknown".into(),
+            joint: None,
+            bus: None,
+            level: 0,
+            value: 0.0,
+        });
+    let robot = cut.metadata.get("robot").cloned().unwrap_or_default();
+    let offset = cut
+        .metadata
+        .get("wall_offset_ns")
+        .and_then(|o| o.parse().ok())
+        .unwrap_or(0i128);
+    let tmp = PathBuf::from(format!("{}.recovering", whole.display()));
+    let mut w = BoxWriter::new(Durable::create(&tmp)?, &trigger, &robot, offset)?;
+    let mut count = 0;
+    for m in &cut.messages {
+        let Some(channel) = m.channel else { continue };
+        let t_ns = (m.log_time as i128 - offset).max(0) as u64;
+        w.write(Record {
+            channel,
+            t_ns,
+            data: &m.data,
+        })?;
+        count += 1;
+    }
+    w.finish()?.flush().map_err(io)?;
+    std::fs::rename(&tmp, &whole).map_err(io)?;
+    std::fs::remove_file(partial).map_err(io)?;
+    Ok((whole, count))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::io::Cursor;
+
+    fn trigger() -> EventMessage {
+        EventMessage {
+            timestamp_ns: 50,
+            kind: "thermal_trip".into(),
+            joint: Some("left_elbow".into()),
+            bus: Some("left_arm".into()),
+            level: 0,
+            value: 59.0,
+        }
+    }
+
+    fn write_box(n: u64, flush_every: u64) -> (Vec<u8>, Vec<usize>) {
+        let mut w = BoxWriter::new(Cursor::new(Vec::new()), &trigger(), "r1", 1_000).unwrap();
+        let mut flushed_at = Vec::new();
+        for t in 0..n {
+            let data = format!("{{\"timestamp_ns\": {t}}}");
+            w.write(Record {
+                channel: if t % 2 == 0 {
+                    Channel::Wire
+                } else {
+                    Channel::JointStates
+                },
+                t_ns: t,
+                data: data.as_bytes(),
+            })
+            .unwrap();
+            if (t + 1) % flush_every == 0 {
+                w.flush().unwrap();
+                flushed_at.push(t as usize + 1);
+            }
+        }
+        (w.finish().unwrap().into_inner(), flushed_at)
+    }
+
+    #[test]
+    fn a_box_reads_back_whole_with_its_trigger_and_wall_times() {
+        let (bytes, _) = write_box(100, 30);
+        let b = read(&bytes);
+        assert!(b.complete);
+        assert_eq!(b.metadata["trigger"], "thermal_trip");
+        let event: EventMessage = serde_json::from_str(&b.metadata["event"]).unwrap();
+        assert_eq!(event, trigger());
+        assert_eq!(b.messages.len(), 100);
+        assert_eq!(b.messages[3].channel, Some(Channel::JointStates));
+        assert_eq!(b.messages[3].log_time, 1_003);
+        assert_eq!(b.messages[3].data, b"{\"timestamp_ns\": 3}");
+    }
+
+    #[test]
+    fn a_box_cut_anywhere_keeps_every_finished_chunk() {
+        let (bytes, flushed_at) = write_box(100, 30);
+        let whole = read(&bytes);
+        let mut cuts_seen = 0;
+        // Cut the file at every length: what was flushed before the cut is all there, in order.
+        for len in (0..bytes.len()).step_by(7) {
+            let cut = read(&bytes[..len]);
+            assert!(!cut.complete || len + 200 > bytes.len(), "{len}");
+            assert_eq!(cut.messages[..], whole.messages[..cut.messages.len()]);
+            if cut.messages.len() >= 30 {
+                cuts_seen += 1;
+            }
+        }
+        assert!(cuts_seen > 0);
+        // A cut just after the first flushed chunk keeps exactly its messages.
+        let first_chunk_end = (0..bytes.len())
+            .find(|&len| read(&bytes[..len]).messages.len() == flushed_at[0])
+            .unwrap();
+        assert!(first_chunk_end < bytes.len() / 2);
+    }
+
+    #[test]
+    fn a_partial_box_is_recovered_into_a_whole_one() {
+        let dir = std::env::temp_dir().join(format!("nori-bb-recover-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (bytes, flushed_at) = write_box(100, 30);
+        let cut_len = (0..bytes.len())
+            .find(|&len| read(&bytes[..len]).messages.len() == flushed_at[1])
+            .unwrap();
+        let partial = dir.join(format!("box{PARTIAL_SUFFIX}"));
+        std::fs::write(&partial, &bytes[..cut_len + 5]).unwrap();
+        let (whole, n) = recover(&partial).unwrap();
+        assert_eq!(n, 60);
+        assert!(!partial.exists());
+        let b = read(&std::fs::read(&whole).unwrap());
+        assert!(b.complete);
+        assert_eq!(b.messages.len(), 60);
+        assert_eq!(b.metadata["trigger"], "thermal_trip");
+        assert_eq!(b.messages[59].log_time, 1_059);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

@@ -1,0 +1,506 @@
+//! `nori-blackbox`: the robot's black box as a process (`record`), and the operator's commands
+//! on its boxes (`list`, `show`, `export`, `save`; run as `nori blackbox …`).
+//!
+//! `record` moves every frame of the state plane it keeps into the recorder at 100 Hz, freezes
+//! a box on each trigger, flushes the open box's chunk every second, and names a box whole
+//! once its window has passed. It only reads the plane: killed, hung or slow, it holds no
+//! other process (the plane's queues overwrite their oldest frame).
+
+use anyhow::{bail, Context, Result};
+use blackbox::channel::{self, Channel, EventMessage, Names};
+use blackbox::config::BlackboxConfig;
+use blackbox::frozen::{self, BoxWriter, Durable, PARTIAL_SUFFIX};
+use blackbox::recorder::{Recorder, Window};
+use blackbox::ring::{Record, Ring};
+use blackbox::trigger::{OwnTrigger, Watch};
+use clap::{Parser, Subcommand};
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant, SystemTime};
+use telemetry::clock::monotonic_ns;
+use telemetry::frames::{BusHealth, Directives, JointLayout, SupervisorEvent};
+use telemetry::motion::{BaseState, LiftState};
+use telemetry::plane::{self, Plane, Sub};
+use telemetry::process::{ProcessArgs, ServiceManager, Started, Ticker};
+use telemetry::wire::{BlackboxSave, WireFrame};
+use telemetry::{GoalFrame, JointState};
+
+#[derive(Parser)]
+#[command(
+    version,
+    about = "Nori A3 black box: the robot's last minutes, frozen when it matters"
+)]
+struct Args {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Record: the process (systemd's nori-blackbox.service).
+    Record {
+        #[command(flatten)]
+        process: ProcessArgs,
+        /// Keep boxes here instead of the configuration's `dir`.
+        #[arg(long)]
+        dir: Option<PathBuf>,
+    },
+    /// The boxes kept, oldest first.
+    List {
+        /// The box directory (the configuration's `dir` when absent).
+        #[arg(long)]
+        dir: Option<PathBuf>,
+        /// One JSON object per box.
+        #[arg(long)]
+        json: bool,
+    },
+    /// What one box holds.
+    Show {
+        /// The box (a path, or a name in the box directory).
+        r#box: PathBuf,
+        /// The box directory.
+        #[arg(long)]
+        dir: Option<PathBuf>,
+    },
+    /// A box's joint states as the model lab's CSV (with a NAME.meta.json sidecar), or its MCAP.
+    Export {
+        /// The box.
+        r#box: PathBuf,
+        /// The box directory.
+        #[arg(long)]
+        dir: Option<PathBuf>,
+        /// Write the joint states as CSV here.
+        #[arg(long)]
+        csv: Option<PathBuf>,
+        /// Copy the raw MCAP here.
+        #[arg(long)]
+        mcap: Option<PathBuf>,
+    },
+    /// Freeze the last minutes now (the running recorder saves a box).
+    Save {
+        /// State-plane domain.
+        #[arg(long, default_value = plane::DEFAULT_DOMAIN)]
+        domain: String,
+    },
+}
+
+fn main() -> std::process::ExitCode {
+    telemetry::process::finish(run(Args::parse()), |_| None)
+}
+
+fn run(args: Args) -> Result<()> {
+    match args.command {
+        Command::Record { process, dir } => record(&process, dir),
+        Command::List { dir, json } => list(&box_dir(dir)?, json),
+        Command::Show { r#box, dir } => show(&find_box(&r#box, dir)?),
+        Command::Export {
+            r#box,
+            dir,
+            csv,
+            mcap,
+        } => export(&find_box(&r#box, dir)?, csv.as_deref(), mcap.as_deref()),
+        Command::Save { domain } => save(&domain),
+    }
+}
+
+/// `--dir`, or the embedded configuration's.
+fn box_dir(dir: Option<PathBuf>) -> Result<PathBuf> {
+    use telemetry::config::ProcessConfig;
+    Ok(match dir {
+        Some(d) => d,
+        None => BlackboxConfig::embedded()?.dir,
+    })
+}
+
+fn find_box(b: &Path, dir: Option<PathBuf>) -> Result<PathBuf> {
+    if b.exists() {
+        return Ok(b.into());
+    }
+    let in_dir = box_dir(dir)?.join(b);
+    if in_dir.exists() {
+        return Ok(in_dir);
+    }
+    bail!("no box {} (nor {})", b.display(), in_dir.display())
+}
+
+/// The recorder's subscriptions.
+struct Inputs {
+    wire: Sub<WireFrame>,
+    states: Sub<JointState>,
+    layout: Sub<JointLayout>,
+    goals: Sub<GoalFrame>,
+    wheel_goals: Sub<GoalFrame>,
+    directives: Sub<Directives>,
+    events: Sub<SupervisorEvent>,
+    health: Sub<BusHealth>,
+    lift: Sub<LiftState>,
+    base: Sub<BaseState>,
+    save: Sub<BlackboxSave>,
+}
+
+impl Inputs {
+    fn open(node: &Plane) -> Result<Inputs> {
+        Ok(Inputs {
+            wire: node.subscriber(&plane::BUS_WIRE)?,
+            states: node.subscriber(&plane::JOINT_STATE)?,
+            layout: node.subscriber(&plane::LAYOUT)?,
+            goals: node.subscriber(&plane::GOALS)?,
+            wheel_goals: node.subscriber(&plane::WHEEL_GOALS)?,
+            directives: node.subscriber(&plane::DIRECTIVES)?,
+            events: node.subscriber(&plane::EVENTS)?,
+            health: node.subscriber(&plane::BUS_HEALTH)?,
+            lift: node.subscriber(&plane::LIFT_STATE)?,
+            base: node.subscriber(&plane::BASE_STATE)?,
+            save: node.subscriber(&plane::BLACKBOX_SAVE)?,
+        })
+    }
+}
+
+/// The recording process's state: the recorder, where its boxes go, what it watches.
+struct Recording {
+    recorder: Recorder<Durable>,
+    dir: PathBuf,
+    robot: String,
+    wall_offset_ns: i128,
+    names: Names,
+    bus_count: usize,
+    watch: Watch,
+    partial: Option<PathBuf>,
+    disk_cap_bytes: u64,
+}
+
+impl Recording {
+    fn record(&mut self, channel: Channel, (t_ns, data): (u64, Vec<u8>)) {
+        // A stamp ahead of the clock (a publisher's bug, a frame from the future) is taken as
+        // now: it must neither hold a ring segment open nor push the ring's end ahead. A
+        // missing stamp (a wire frame that only lost bytes) is now too.
+        let now = monotonic_ns();
+        let t_ns = if t_ns == 0 { now } else { t_ns.min(now) };
+        if let Err(e) = self.recorder.record(Record {
+            channel,
+            t_ns,
+            data: &data,
+        }) {
+            tracing::error!("the box being frozen is given up: {e}");
+            self.partial = None;
+        }
+    }
+
+    /// Every frame waiting on the plane into the recorder; the triggers they carry.
+    fn drain(&mut self, i: &Inputs) -> Vec<EventMessage> {
+        let mut triggers = Vec::new();
+        if let Some(l) = plane::newest(&i.layout) {
+            self.names = Names::from_layout(&l);
+            self.bus_count = l.bus_count as usize;
+        }
+        while let Some(w) = plane::next(&i.wire) {
+            self.record(Channel::Wire, channel::wire(&w, &self.names));
+        }
+        while let Some(s) = plane::next(&i.states) {
+            triggers.extend(self.watch.joint_state(&s));
+            self.record(Channel::JointStates, channel::joint_states(&s, &self.names));
+        }
+        while let Some(g) = plane::next(&i.goals) {
+            self.record(Channel::Goals, channel::goals(&g, &self.names));
+        }
+        while let Some(g) = plane::next(&i.wheel_goals) {
+            self.record(Channel::WheelGoals, channel::goals(&g, &self.names));
+        }
+        while let Some(d) = plane::next(&i.directives) {
+            let m = channel::directives(&d, self.bus_count);
+            self.record(Channel::Directives, m);
+        }
+        while let Some(e) = plane::next(&i.events) {
+            triggers.extend(self.watch.event(&e, &self.names));
+            let m = channel::event(&e, &self.names);
+            self.record(Channel::Events, (m.timestamp_ns, channel::to_json(&m)));
+        }
+        while let Some(h) = plane::next(&i.health) {
+            self.record(Channel::BusHealth, channel::bus_health(&h, &self.names));
+        }
+        while let Some(s) = plane::next(&i.lift) {
+            triggers.extend(self.watch.lift(&s));
+            self.record(Channel::LiftState, channel::lift_state(&s));
+        }
+        while let Some(s) = plane::next(&i.base) {
+            triggers.extend(self.watch.base(&s));
+            self.record(Channel::BaseState, channel::base_state(&s));
+        }
+        while let Some(s) = plane::next(&i.save) {
+            triggers.push(OwnTrigger::Saved.at(s.timestamp_ns, s.pid as f32));
+        }
+        triggers
+    }
+
+    /// Freezes a box on `event` (or keeps the open one longer); a stamp ahead of the clock is
+    /// taken as now (a box must end).
+    fn trigger(&mut self, event: &EventMessage) {
+        let mut event = event.clone();
+        event.timestamp_ns = event.timestamp_ns.min(monotonic_ns());
+        let event = &event;
+        tracing::info!(kind = %event.kind, joint = ?event.joint, bus = ?event.bus, "freezing the black box");
+        let stamp = humantime::format_rfc3339_millis(SystemTime::now())
+            .to_string()
+            .replace([':', '-', '.'], "");
+        let path = self
+            .dir
+            .join(format!("{stamp}-{}{PARTIAL_SUFFIX}", event.kind));
+        let (robot, offset) = (self.robot.clone(), self.wall_offset_ns);
+        match self.recorder.trigger(event, |e| {
+            BoxWriter::new(Durable::create(&path)?, e, &robot, offset)
+        }) {
+            Ok(true) => self.partial = Some(path),
+            Ok(false) => {}
+            Err(e) => tracing::error!(path = %path.display(), "cannot freeze a box: {e}"),
+        }
+    }
+
+    /// Flushes the open box; names it whole once its window has passed (or `force`).
+    fn housekeeping(&mut self, force: bool) {
+        if let Err(e) = self.recorder.flush() {
+            tracing::error!("the box being frozen is given up: {e}");
+        }
+        let Some(done) = self.recorder.finish_due(monotonic_ns(), force) else {
+            return;
+        };
+        let Some(partial) = self.partial.take() else {
+            return;
+        };
+        let result = done
+            .map_err(anyhow::Error::from)
+            .and_then(|mut w| Ok(std::io::Write::flush(&mut w)?))
+            .and_then(|()| {
+                let whole = whole_name(&partial);
+                std::fs::rename(&partial, &whole)?;
+                Ok(whole)
+            });
+        match result {
+            Ok(whole) => tracing::info!(path = %whole.display(), "box frozen"),
+            Err(e) => tracing::error!(path = %partial.display(), "box not finished: {e:#}"),
+        }
+        remove_oldest(&self.dir, self.disk_cap_bytes);
+    }
+}
+
+fn whole_name(partial: &Path) -> PathBuf {
+    let s = partial.to_string_lossy();
+    PathBuf::from(format!("{}.mcap", s.trim_end_matches(PARTIAL_SUFFIX)))
+}
+
+/// The boxes in `dir` (whole ones), oldest first by name (their names begin with the time).
+fn boxes(dir: &Path) -> Vec<PathBuf> {
+    let mut out: Vec<PathBuf> = std::fs::read_dir(dir)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|x| x == "mcap"))
+        .collect();
+    out.sort();
+    out
+}
+
+/// Removes the oldest boxes until the directory holds at most `cap` bytes of them.
+fn remove_oldest(dir: &Path, cap: u64) {
+    let all = boxes(dir);
+    let size = |p: &PathBuf| std::fs::metadata(p).map_or(0, |m| m.len());
+    let mut total: u64 = all.iter().map(size).sum();
+    for p in &all {
+        if total <= cap {
+            break;
+        }
+        total -= size(p);
+        match std::fs::remove_file(p) {
+            Ok(()) => tracing::warn!(path = %p.display(), "box removed: the disk cap is reached"),
+            Err(e) => tracing::error!(path = %p.display(), "cannot remove an old box: {e}"),
+        }
+    }
+}
+
+/// Makes whole every box a crash cut short.
+fn recover_partials(dir: &Path) {
+    let partials = std::fs::read_dir(dir)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.to_string_lossy().ends_with(PARTIAL_SUFFIX));
+    for p in partials {
+        match frozen::recover(&p) {
+            Ok((whole, n)) => {
+                tracing::warn!(path = %whole.display(), messages = n, "a box cut short is recovered")
+            }
+            Err(e) => tracing::error!(path = %p.display(), "cannot recover a box: {e}"),
+        }
+    }
+}
+
+fn wall_offset_ns() -> i128 {
+    let wall = SystemTime::now()
+        .duration_since(SystemTime::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as i128);
+    wall - monotonic_ns() as i128
+}
+
+fn record(process: &ProcessArgs, dir: Option<PathBuf>) -> Result<()> {
+    let Some(Started { config, shutdown }) = process.start::<BlackboxConfig>()? else {
+        return Ok(());
+    };
+    let run_for = process.run_for()?;
+    let dir = dir.unwrap_or(config.dir.clone());
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let s = |x: f64| (x * 1e9) as u64;
+    let ring = Ring::new(
+        s(config.ring_seconds),
+        s(config.segment_seconds),
+        (config.ring_megabytes * 1e6) as usize,
+    );
+    let window = Window {
+        before_ns: s(config.before_seconds),
+        after_ns: s(config.after_seconds),
+        longest_ns: s(config.longest_box_seconds),
+    };
+    let node = Plane::open(&process.domain, "blackbox")?;
+    // A recorder killed before left its ports: free them before taking new ones.
+    node.cleanup_dead();
+    let inputs = Inputs::open(&node)?;
+    let mut rec = Recording {
+        recorder: Recorder::new(ring, window),
+        dir,
+        robot: std::fs::read_to_string("/etc/hostname")
+            .map(|h| h.trim().to_string())
+            .unwrap_or_default(),
+        wall_offset_ns: wall_offset_ns(),
+        names: Names::default(),
+        bus_count: 0,
+        watch: Watch::since(monotonic_ns()),
+        partial: None,
+        disk_cap_bytes: (config.disk_megabytes * 1e6) as u64,
+    };
+    let mut service = ServiceManager::from_env();
+    service.ready(&format!("recording; boxes in {}", rec.dir.display()));
+    // After READY: nothing waits on a recovery.
+    recover_partials(&rec.dir);
+    tracing::info!(dir = %rec.dir.display(), ring_s = config.ring_seconds, "recording the last minutes");
+    let started = Instant::now();
+    let mut ticker = Ticker::new(Duration::from_millis(10));
+    let mut last_housekeeping = Instant::now();
+    while !shutdown.load(std::sync::atomic::Ordering::Relaxed)
+        && run_for.is_none_or(|d| started.elapsed() < d)
+    {
+        for t in rec.drain(&inputs) {
+            rec.trigger(&t);
+        }
+        if last_housekeeping.elapsed() >= Duration::from_secs(1) {
+            rec.housekeeping(false);
+            last_housekeeping = Instant::now();
+        }
+        service.keepalive(Instant::now());
+        ticker.wait();
+    }
+    service.stopping();
+    rec.housekeeping(true);
+    tracing::info!(counters = ?rec.recorder.counters, ring = ?rec.recorder.ring_stats(), "stopped");
+    println!(
+        "{}",
+        serde_json::json!({"recorder": rec.recorder.counters, "ring": rec.recorder.ring_stats()})
+    );
+    Ok(())
+}
+
+fn list(dir: &Path, json: bool) -> Result<()> {
+    for p in boxes(dir) {
+        let bytes = std::fs::read(&p).with_context(|| format!("reading {}", p.display()))?;
+        let b = frozen::read(&bytes);
+        let (per_topic, span) = blackbox::export::summary(&b);
+        let event: Option<EventMessage> = b
+            .metadata
+            .get("event")
+            .and_then(|e| serde_json::from_str(e).ok());
+        let name = p.file_name().map(|n| n.to_string_lossy().into_owned());
+        if json {
+            let v = serde_json::json!({
+                "box": name, "path": p, "bytes": bytes.len(), "complete": b.complete,
+                "event": event, "span_s": span, "messages": per_topic,
+            });
+            println!("{v}");
+        } else {
+            let what = event.map_or("?".into(), |e| {
+                format!("{} {}", e.kind, e.joint.or(e.bus).unwrap_or_default())
+            });
+            println!(
+                "{}  {what}  {span:.0} s  {} messages  {:.1} MB",
+                name.unwrap_or_default(),
+                b.messages.len(),
+                bytes.len() as f64 / 1e6
+            );
+        }
+    }
+    Ok(())
+}
+
+fn show(path: &Path) -> Result<()> {
+    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    let b = frozen::read(&bytes);
+    let (per_topic, span) = blackbox::export::summary(&b);
+    println!("{}", path.display());
+    println!(
+        "  whole: {}",
+        if b.complete {
+            "yes"
+        } else {
+            "no (cut short: every finished chunk read)"
+        }
+    );
+    for (k, v) in &b.metadata {
+        println!("  {k}: {v}");
+    }
+    println!("  span: {span:.1} s, {} messages", b.messages.len());
+    for (topic, n) in per_topic {
+        println!("    {topic}: {n}");
+    }
+    for m in b
+        .messages
+        .iter()
+        .filter(|m| m.channel == Some(Channel::Triggers))
+    {
+        println!("  trigger: {}", String::from_utf8_lossy(&m.data));
+    }
+    Ok(())
+}
+
+fn export(path: &Path, csv: Option<&Path>, mcap: Option<&Path>) -> Result<()> {
+    if csv.is_none() && mcap.is_none() {
+        bail!("say what to export: --csv FILE and/or --mcap FILE");
+    }
+    if let Some(out) = mcap {
+        std::fs::copy(path, out).with_context(|| format!("copying to {}", out.display()))?;
+    }
+    if let Some(out) = csv {
+        let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+        let (text, joints) = blackbox::export::joint_states_csv(&frozen::read(&bytes));
+        std::fs::write(out, text).with_context(|| format!("writing {}", out.display()))?;
+        let sidecar = out.with_extension("meta.json");
+        std::fs::write(
+            &sidecar,
+            serde_json::json!({ "joints": joints }).to_string(),
+        )
+        .with_context(|| format!("writing {}", sidecar.display()))?;
+    }
+    Ok(())
+}
+
+fn save(domain: &str) -> Result<()> {
+    let node = Plane::open(domain, "blackbox-save")?;
+    let publisher = node.publisher(&plane::BLACKBOX_SAVE)?;
+    let request = BlackboxSave {
+        seq: 1,
+        timestamp_ns: monotonic_ns(),
+        pid: std::process::id(),
+        reserved: 0,
+    };
+    // The recorder drains the plane every 10 ms: a subscriber that is there gets it.
+    plane::publish(&publisher, &request)?;
+    std::thread::sleep(Duration::from_millis(50));
+    println!("asked the black box to save the last minutes");
+    Ok(())
+}

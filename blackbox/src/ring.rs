@@ -1,0 +1,270 @@
+//! The last minutes in memory: messages appended to an open segment, which is sealed (zstd)
+//! once it spans `segment` of time; sealed segments are dropped oldest first beyond the byte cap
+//! and the time span. Nothing here writes to the SD card: a box is written only when frozen.
+
+use crate::channel::Channel;
+use std::collections::VecDeque;
+use thiserror::Error;
+
+/// A sealed segment that cannot be read back (memory corrupted, a bug): its messages are lost.
+#[derive(Debug, Error)]
+#[error("a sealed segment of the ring ({start_ns}..{end_ns} ns) cannot be read: {why}")]
+pub struct RingError {
+    /// Its first message's time.
+    pub start_ns: u64,
+    /// Its last message's time.
+    pub end_ns: u64,
+    /// What the decompressor said.
+    pub why: String,
+}
+
+/// One message as the ring holds it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Record<'a> {
+    /// Its channel.
+    pub channel: Channel,
+    /// Its time on the robot's monotonic clock, ns.
+    pub t_ns: u64,
+    /// Its JSON.
+    pub data: &'a [u8],
+}
+
+const HEADER: usize = 1 + 8 + 4;
+
+fn append(buf: &mut Vec<u8>, r: Record) {
+    buf.push(r.channel as u8);
+    buf.extend_from_slice(&r.t_ns.to_le_bytes());
+    buf.extend_from_slice(&(r.data.len() as u32).to_le_bytes());
+    buf.extend_from_slice(r.data);
+}
+
+/// The records of a segment's raw bytes, in order (a torn record ends them).
+fn records(buf: &[u8]) -> impl Iterator<Item = Record<'_>> {
+    let mut at = 0;
+    std::iter::from_fn(move || {
+        let head = buf.get(at..at + HEADER)?;
+        let channel = Channel::from_id(head[0])?;
+        let t_ns = u64::from_le_bytes(head[1..9].try_into().ok()?);
+        let len = u32::from_le_bytes(head[9..13].try_into().ok()?) as usize;
+        let data = buf.get(at + HEADER..at + HEADER + len)?;
+        at += HEADER + len;
+        Some(Record {
+            channel,
+            t_ns,
+            data,
+        })
+    })
+}
+
+struct Sealed {
+    start_ns: u64,
+    end_ns: u64,
+    compressed: Vec<u8>,
+    raw_len: usize,
+}
+
+/// What the ring holds and has dropped.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct RingStats {
+    /// Bytes held (sealed, compressed, and the open segment).
+    pub bytes: usize,
+    /// Messages appended.
+    pub messages: u64,
+    /// Segments dropped to keep within the cap or the span.
+    pub dropped_segments: u64,
+    /// Raw bytes sealed, and what they took compressed (the compression ratio).
+    pub sealed_raw_bytes: u64,
+    /// Compressed bytes sealed.
+    pub sealed_compressed_bytes: u64,
+}
+
+/// The ring.
+pub struct Ring {
+    sealed: VecDeque<Sealed>,
+    open: Vec<u8>,
+    open_start_ns: Option<u64>,
+    open_end_ns: u64,
+    segment_ns: u64,
+    span_ns: u64,
+    cap_bytes: usize,
+    stats: RingStats,
+}
+
+impl Ring {
+    /// A ring keeping at least `span_ns` of messages when they fit in `cap_bytes`, sealed in
+    /// segments of `segment_ns`.
+    pub fn new(span_ns: u64, segment_ns: u64, cap_bytes: usize) -> Ring {
+        Ring {
+            sealed: VecDeque::new(),
+            open: Vec::new(),
+            open_start_ns: None,
+            open_end_ns: 0,
+            segment_ns: segment_ns.max(1),
+            span_ns,
+            cap_bytes,
+            stats: RingStats::default(),
+        }
+    }
+
+    /// Appends a message; seals the open segment once it spans a segment's time.
+    pub fn push(&mut self, r: Record) {
+        let start = *self.open_start_ns.get_or_insert(r.t_ns);
+        append(&mut self.open, r);
+        self.open_end_ns = self.open_end_ns.max(r.t_ns);
+        self.stats.messages += 1;
+        if r.t_ns.saturating_sub(start) >= self.segment_ns {
+            self.seal();
+        }
+    }
+
+    /// Compresses the open segment into the sealed ones, then drops the oldest beyond the
+    /// cap or older than the span.
+    pub fn seal(&mut self) {
+        let Some(start_ns) = self.open_start_ns.take() else {
+            return;
+        };
+        // zstd's level 3: a fraction of a core at the ring's rate (BENCHMARKS.md).
+        let compressed = zstd::bulk::compress(&self.open, 3).unwrap_or_else(|_| Vec::new());
+        self.stats.sealed_raw_bytes += self.open.len() as u64;
+        self.stats.sealed_compressed_bytes += compressed.len() as u64;
+        self.sealed.push_back(Sealed {
+            start_ns,
+            end_ns: self.open_end_ns,
+            raw_len: self.open.len(),
+            compressed,
+        });
+        self.open.clear();
+        let newest = self.open_end_ns;
+        while let Some(oldest) = self.sealed.front() {
+            let too_old = newest.saturating_sub(oldest.end_ns) > self.span_ns;
+            if self.held_bytes() <= self.cap_bytes && !too_old {
+                break;
+            }
+            self.sealed.pop_front();
+            self.stats.dropped_segments += 1;
+        }
+    }
+
+    fn held_bytes(&self) -> usize {
+        self.sealed
+            .iter()
+            .map(|s| s.compressed.len())
+            .sum::<usize>()
+            + self.open.capacity()
+    }
+
+    /// What it holds and has dropped.
+    pub fn stats(&self) -> RingStats {
+        RingStats {
+            bytes: self.held_bytes(),
+            ..self.stats
+        }
+    }
+
+    /// The oldest time it holds.
+    pub fn oldest_ns(&self) -> Option<u64> {
+        self.sealed
+            .front()
+            .map(|s| s.start_ns)
+            .or(self.open_start_ns)
+    }
+
+    /// Every record at or after `since_ns`, oldest first, to `f`. A sealed segment that cannot
+    /// be read is skipped and reported.
+    pub fn each_since(
+        &self,
+        since_ns: u64,
+        f: &mut dyn FnMut(Record),
+    ) -> Result<(), Vec<RingError>> {
+        let mut errors = Vec::new();
+        for s in self.sealed.iter().filter(|s| s.end_ns >= since_ns) {
+            match zstd::bulk::decompress(&s.compressed, s.raw_len) {
+                Ok(raw) => records(&raw)
+                    .filter(|r| r.t_ns >= since_ns)
+                    .for_each(&mut *f),
+                Err(e) => errors.push(RingError {
+                    start_ns: s.start_ns,
+                    end_ns: s.end_ns,
+                    why: e.to_string(),
+                }),
+            }
+        }
+        records(&self.open)
+            .filter(|r| r.t_ns >= since_ns)
+            .for_each(f);
+        if errors.is_empty() {
+            Ok(())
+        } else {
+            Err(errors)
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn msg(t_ns: u64) -> Vec<u8> {
+        format!(
+            "{{\"timestamp_ns\": {t_ns}, \"pad\": \"{}\"}}",
+            "x".repeat(100)
+        )
+        .into_bytes()
+    }
+
+    fn all_since(ring: &Ring, since: u64) -> Vec<u64> {
+        let mut out = Vec::new();
+        ring.each_since(since, &mut |r| {
+            assert_eq!(r.data, msg(r.t_ns).as_slice());
+            out.push(r.t_ns)
+        })
+        .unwrap();
+        out
+    }
+
+    #[test]
+    fn what_is_pushed_comes_back_in_order_across_sealed_and_open_segments() {
+        let mut ring = Ring::new(1_000, 100, usize::MAX);
+        for t in 0..350u64 {
+            let data = msg(t);
+            ring.push(Record {
+                channel: Channel::JointStates,
+                t_ns: t,
+                data: &data,
+            });
+        }
+        assert_eq!(all_since(&ring, 0), (0..350).collect::<Vec<_>>());
+        assert_eq!(all_since(&ring, 200), (200..350).collect::<Vec<_>>());
+        let s = ring.stats();
+        assert!(s.sealed_compressed_bytes * 5 < s.sealed_raw_bytes, "{s:?}");
+    }
+
+    #[test]
+    fn the_oldest_segments_go_beyond_the_span_and_beyond_the_cap() {
+        let mut ring = Ring::new(300, 100, usize::MAX);
+        for t in 0..1_000u64 {
+            let data = msg(t);
+            ring.push(Record {
+                channel: Channel::Wire,
+                t_ns: t,
+                data: &data,
+            });
+        }
+        let kept = all_since(&ring, 0);
+        assert!(kept[0] >= 1_000 - 300 - 200, "{:?}", &kept[..3]);
+        assert_eq!(*kept.last().unwrap(), 999);
+        assert!(ring.stats().dropped_segments >= 5);
+
+        let mut small = Ring::new(u64::MAX, 100, 4_000);
+        for t in 0..10_000u64 {
+            let data = format!("{t:x}{}", t.wrapping_mul(0x9E37_79B9_7F4A_7C15)).into_bytes();
+            small.push(Record {
+                channel: Channel::Wire,
+                t_ns: t,
+                data: &data,
+            });
+        }
+        assert!(small.stats().bytes <= 4_000 + 16_384, "{:?}", small.stats());
+        assert!(small.oldest_ns().unwrap() > 5_000);
+    }
+}
