@@ -2,10 +2,12 @@
 //! simulation against real time).
 
 use crate::base::BaseLoad;
+use crate::blackbox::{BlackboxLoad, PlaneIo};
 use crate::cameras::CameraLoad;
 use crate::lidar::LidarLoad;
 use anyhow::{Context, Result};
-use bus_driver::{Driver, LoadedConfig, SerialTransport, Standalone};
+use bus_driver::tap::Tapped;
+use bus_driver::{Driver, LoadedConfig, LoopIo, SerialTransport, Standalone, Transport};
 use clap::Args;
 use feetech::registers as reg;
 use feetech::timing::{cycle_bytes, wire_time};
@@ -53,6 +55,11 @@ pub struct DriverRateArgs {
     /// other half, idle (no layout) in the rest.
     #[arg(long)]
     base: bool,
+    /// Compare against the black box: both halves run the driver as deployed (its wire
+    /// tapped, its state and wire frames published on the plane); in every other half
+    /// `nori-blackbox` records and freezes a box, in the rest none runs.
+    #[arg(long)]
+    blackbox: bool,
     /// Print one JSON object.
     #[arg(long)]
     json: bool,
@@ -86,8 +93,16 @@ struct RateRun {
 }
 
 /// Serves the buses, sets the driver up and runs its loop for `seconds` at `rate_hz` (no
-/// supervisor), with or without the background read-back of safety settings.
-fn rate_run(buses: &[String], rate_hz: f64, seconds: f64, read_back: bool) -> Result<RateRun> {
+/// supervisor), with or without the background read-back of safety settings; with `plane`, as
+/// deployed on that domain (its wire tapped, its state and wire frames published), otherwise
+/// publishing nothing.
+fn rate_run(
+    buses: &[String],
+    rate_hz: f64,
+    seconds: f64,
+    read_back: bool,
+    plane: Option<&str>,
+) -> Result<RateRun> {
     let robot = RobotDescription::nori_a3();
     let dir = std::env::temp_dir().join(format!("nori-bench-{}", std::process::id()));
     let mut sims = Vec::new();
@@ -108,7 +123,39 @@ fn rate_run(buses: &[String], rate_hz: f64, seconds: f64, read_back: bool) -> Re
         .iter()
         .map(|b| SerialTransport::open(&b.device, b.baud))
         .collect::<Result<Vec<_>, _>>()?;
-    let mut driver = Driver::new(&config, transports);
+    let counts = match plane {
+        None => measure(
+            Driver::new(&config, transports),
+            &config,
+            &mut Standalone,
+            read_back,
+            seconds,
+        )?,
+        Some(domain) => measure(
+            Driver::new(&config, transports.into_iter().map(Tapped::new).collect()),
+            &config,
+            &mut PlaneIo::open(domain)?,
+            read_back,
+            seconds,
+        )?,
+    };
+    let lines: Vec<_> = served.stop().into_iter().map(|r| r.line).collect();
+    Ok(RateRun {
+        late_bursts: lines.iter().map(|l| l.late_bursts).sum(),
+        max_lateness_us: lines.iter().map(|l| l.max_lateness_us).fold(0.0, f64::max),
+        ..counts
+    })
+}
+
+/// Sets `driver` up and runs its loop for `seconds` against `io`; the run's counts (the
+/// simulator's lateness left to the caller).
+fn measure<T: Transport>(
+    mut driver: Driver<T>,
+    config: &LoadedConfig,
+    io: &mut dyn LoopIo,
+    read_back: bool,
+    seconds: f64,
+) -> Result<RateRun> {
     driver.set_background_read_back(read_back);
     // A servo missed at setup (machine hiccup) is set up again before measuring.
     let mut failures = driver.setup();
@@ -131,7 +178,7 @@ fn rate_run(buses: &[String], rate_hz: f64, seconds: f64, read_back: bool) -> Re
         &mut driver,
         config.config.period(),
         None,
-        &mut Standalone,
+        io,
         &shutdown,
         None,
     );
@@ -144,15 +191,13 @@ fn rate_run(buses: &[String], rate_hz: f64, seconds: f64, read_back: bool) -> Re
         sum(|c| c.missing),
         sum(|c| c.read_backs),
     );
-    drop(driver);
-    let lines: Vec<_> = served.stop().into_iter().map(|r| r.line).collect();
     Ok(RateRun {
         summary,
         replies,
         missing,
         read_backs,
-        late_bursts: lines.iter().map(|l| l.late_bursts).sum(),
-        max_lateness_us: lines.iter().map(|l| l.max_lateness_us).fold(0.0, f64::max),
+        late_bursts: 0,
+        max_lateness_us: 0.0,
     })
 }
 
@@ -164,9 +209,11 @@ pub fn driver_rate(args: &DriverRateArgs) -> Result<()> {
     // stretch of this shared machine hits both alike. The variant is the background read-back
     // (the stack as deployed), or with --cameras the cameras streaming (both halves as deployed).
     let domain = format!("nori_bench_sensors_{}", std::process::id());
-    let sensors = args.cameras > 0 || args.lidar || args.base;
-    let loads = SensorLoads::start(args, &domain)?;
-    let halves = run_halves(args, &loads, sensors)?;
+    let sensors = args.cameras > 0 || args.lidar || args.base || args.blackbox;
+    let mut loads = SensorLoads::start(args, &domain)?;
+    let halves = run_halves(args, &mut loads, sensors, &domain)?;
+    loads.feed(false)?;
+    let blackbox_load = loads.blackbox.as_ref().map(BlackboxLoad::figures);
     let load = load_figures(loads, args, &domain, &halves);
     let without = rate_figures(&halves.runs[0], wire.hz);
     let with = rate_figures(&halves.runs[1], wire.hz);
@@ -176,13 +223,14 @@ pub fn driver_rate(args: &DriverRateArgs) -> Result<()> {
         "rate_hz_set": args.rate_hz,
         "cycle_bytes_per_bus": wire.bytes,
         "wire_limited_hz": wire.hz,
-        "baseline": if sensors { "as deployed, sensors idle" } else { "no background read-back" },
-        "variant": if sensors { "as deployed, sensors streaming" } else { "as deployed (background read-back)" },
+        "baseline": labels(args, sensors).0,
+        "variant": labels(args, sensors).1,
         "baseline_figures": without,
         "variant_figures": with,
         "camera_load": load.cameras,
         "lidar_load": load.lidar,
         "base_load": load.base,
+        "blackbox_load": blackbox_load,
         "rate_ratio_variant_to_baseline": measured_hz(&with) / measured_hz(&without).max(1e-9),
         "machine_wakeup_overshoot_p99_us": jitter.0,
         "machine_wakeup_overshoot_max_us": jitter.1,
@@ -225,6 +273,7 @@ struct SensorLoads {
     cameras: Option<CameraLoad>,
     lidar: Option<LidarLoad>,
     base: Option<BaseLoad>,
+    blackbox: Option<BlackboxLoad>,
 }
 
 /// CPU time the loads' processes used, s.
@@ -258,15 +307,27 @@ impl SensorLoads {
                 domain,
             )?),
         };
+        let blackbox = if args.blackbox {
+            Some(BlackboxLoad::new(domain)?)
+        } else {
+            None
+        };
         Ok(SensorLoads {
             cameras,
             lidar,
             base,
+            blackbox,
         })
     }
 
-    /// Streams every load (or idles it).
-    fn feed(&self, on: bool) {
+    /// Streams every load (or idles it); the black box is started, freezing a box, or stopped.
+    fn feed(&mut self, on: bool) -> Result<()> {
+        if let Some(load) = &mut self.blackbox {
+            load.feed(on)?;
+            if on {
+                load.save()?;
+            }
+        }
         if let Some(load) = &self.cameras {
             load.feed(on);
         }
@@ -276,6 +337,7 @@ impl SensorLoads {
         if let Some(load) = &self.base {
             load.feed(on);
         }
+        Ok(())
     }
 
     /// CPU time each load used so far.
@@ -299,7 +361,12 @@ struct Halves {
 }
 
 /// Runs the driver in four alternating halves: baseline, variant, baseline, variant.
-fn run_halves(args: &DriverRateArgs, loads: &SensorLoads, sensors: bool) -> Result<Halves> {
+fn run_halves(
+    args: &DriverRateArgs,
+    loads: &mut SensorLoads,
+    sensors: bool,
+    domain: &str,
+) -> Result<Halves> {
     let half = args.seconds / 2.0;
     let mut halves = Halves {
         runs: [Vec::new(), Vec::new()],
@@ -308,7 +375,7 @@ fn run_halves(args: &DriverRateArgs, loads: &SensorLoads, sensors: bool) -> Resu
     };
     for variant in [false, true, false, true] {
         let read_back = variant || sensors;
-        loads.feed(variant);
+        loads.feed(variant)?;
         if sensors {
             // Let the sensors reach (or leave) their steady rate before timing.
             let settle = if args.lidar {
@@ -319,7 +386,8 @@ fn run_halves(args: &DriverRateArgs, loads: &SensorLoads, sensors: bool) -> Resu
             std::thread::sleep(settle);
         }
         let before = loads.cpu_seconds();
-        let run = rate_run(&args.buses, args.rate_hz, half, read_back)?;
+        let plane = args.blackbox.then_some(domain);
+        let run = rate_run(&args.buses, args.rate_hz, half, read_back, plane)?;
         if variant {
             let after = loads.cpu_seconds();
             halves.cpu.cameras += after.cameras - before.cameras;
@@ -350,6 +418,7 @@ fn load_figures(
         cameras,
         lidar,
         base,
+        blackbox: _,
     } = loads;
     let (cpu, streaming_s) = (halves.cpu, halves.streaming_s);
     let camera_figures = cameras.as_ref().map(|load| {
@@ -411,6 +480,20 @@ fn rate_figures(r: &[RateRun], wire_limited_hz: f64) -> serde_json::Value {
     })
 }
 
+/// What the baseline and the variant are.
+fn labels(args: &DriverRateArgs, sensors: bool) -> (&'static str, &'static str) {
+    if args.blackbox && args.cameras == 0 && !args.lidar && !args.base {
+        (
+            "as deployed, no recorder",
+            "as deployed, the black box recording",
+        )
+    } else if sensors {
+        ("as deployed, loads idle", "as deployed, loads running")
+    } else {
+        ("baseline, no background read-back", "as deployed")
+    }
+}
+
 /// The rate a side's figures measured, Hz.
 fn measured_hz(v: &serde_json::Value) -> f64 {
     v["measured_hz"].as_f64().unwrap_or(0.0)
@@ -433,14 +516,7 @@ fn print_rate_report(
             v["deadline_miss_ratio"].as_f64().unwrap_or(0.0), v["replies"], v["missing_replies"], v["read_backs"]
         )
     };
-    let (base, variant) = if sensors {
-        (
-            "as deployed, sensors idle",
-            "as deployed, sensors streaming",
-        )
-    } else {
-        ("baseline, no background read-back", "as deployed")
-    };
+    let (base, variant) = labels(args, sensors);
     let WireLimit {
         slowest,
         bytes,
@@ -463,6 +539,14 @@ fn print_rate_report(
             "  base: nori-base driving (wheel readings at 200 Hz, commands at 20 Hz): {} wheel goal frames sent, {:.1} % of a core while driving, peak RSS {} MB",
             b["goals_sent"],
             b["cpu_percent_of_a_core"].as_f64().unwrap_or(f64::NAN), b["peak_rss_mb"]
+        );
+    }
+    if let Some(b) = out["blackbox_load"].as_object() {
+        println!(
+            "  black box: nori-blackbox recording the driver's state and wire, a box frozen in each half: {:.1} % of a core, peak RSS {:.1} MB, boxes {}",
+            b["cpu_percent_of_a_core"].as_f64().unwrap_or(f64::NAN),
+            b["peak_rss_mb"].as_f64().unwrap_or(f64::NAN),
+            b["box_bytes"]
         );
     }
     if let Some(l) = out["lidar_load"].as_object() {

@@ -4,6 +4,7 @@
 //! BENCHMARKS.md with the command that gave each figure.
 
 mod base;
+mod blackbox;
 mod cameras;
 mod driver;
 mod fleet;

@@ -121,7 +121,7 @@ impl Channel {
     }
 }
 
-const WIRE_PROPERTIES: &str = r#""cycle": {"type": "integer"}, "bus": {"type": "string"}, "lost_bytes": {"type": "integer"}, "chunks": {"type": "array", "items": {"type": "object", "properties": {"t_ns": {"type": "integer"}, "direction": {"type": "string", "enum": ["sent", "received"]}, "data": {"type": "string", "contentEncoding": "base64"}}, "required": ["t_ns", "direction", "data"]}}"#;
+const WIRE_PROPERTIES: &str = r#""cycle": {"type": "integer"}, "bus": {"type": "string"}, "lost_bytes": {"type": "integer"}, "chunks": {"type": "array", "items": {"type": "object", "properties": {"t_ns": {"type": "integer"}, "direction": {"type": "string", "enum": ["sent", "received", "send_failed", "discarded", "reopened", "baud_changed"]}, "data": {"type": "string", "contentEncoding": "base64"}}, "required": ["t_ns", "direction", "data"]}}"#;
 const JOINT_STATES_PROPERTIES: &str = r#""seq": {"type": "integer"}, "safe_state": {"type": "boolean"}, "name": {"type": "array", "items": {"type": "string"}}, "valid": {"type": "array", "items": {"type": "boolean"}}, "position": {"type": "array", "items": {"type": "number"}}, "velocity": {"type": "array", "items": {"type": "number"}}, "load": {"type": "array", "items": {"type": "number"}}, "current_a": {"type": "array", "items": {"type": "number"}}, "voltage_v": {"type": "array", "items": {"type": "number"}}, "temperature_c": {"type": "array", "items": {"type": "number"}}, "goal": {"type": "array", "items": {"type": "number"}}, "status": {"type": "array", "items": {"type": "integer"}}, "torque_enabled": {"type": "array", "items": {"type": "boolean"}}, "flags": {"type": "array", "items": {"type": "integer"}}"#;
 const GOALS_PROPERTIES: &str = r#""seq": {"type": "integer"}, "name": {"type": "array", "items": {"type": "string"}}, "goal": {"type": "array", "items": {"type": "number"}}"#;
 const DIRECTIVES_PROPERTIES: &str = r#""seq": {"type": "integer"}, "stop": {"type": "boolean"}, "bus_enabled": {"type": "array", "items": {"type": "boolean"}}, "torque_limit_permille": {"type": "array", "items": {"type": "integer"}}"#;
@@ -187,10 +187,7 @@ pub fn wire(frame: &WireFrame, names: &Names) -> (u64, Vec<u8>) {
         .chunks()
         .map(|(d, t_ns, bytes)| WireChunkMessage {
             t_ns,
-            direction: match d {
-                Direction::Sent => "sent",
-                Direction::Received => "received",
-            },
+            direction: d.name(),
             data: base64::engine::general_purpose::STANDARD.encode(bytes),
         })
         .collect();
@@ -217,11 +214,7 @@ pub fn wire_chunks(data: &[u8]) -> Option<(String, Vec<WireChunk>)> {
         .as_array()?
         .iter()
         .map(|c| {
-            let direction = match c.get("direction")?.as_str()? {
-                "sent" => Direction::Sent,
-                "received" => Direction::Received,
-                _ => return None,
-            };
+            let direction = Direction::from_name(c.get("direction")?.as_str()?)?;
             let bytes = base64::engine::general_purpose::STANDARD
                 .decode(c.get("data")?.as_str()?)
                 .ok()?;

@@ -171,91 +171,183 @@ pub struct Message {
     pub data: Vec<u8>,
 }
 
-/// A box read back.
+/// A box read back whole into memory (a small one: tests and tools; [`visit`] streams).
 #[derive(Debug, Clone, Default)]
 pub struct ReadBox {
     /// Its metadata (what froze it).
     pub metadata: BTreeMap<String, String>,
     /// Its messages, in file order.
     pub messages: Vec<Message>,
-    /// Whether it ends with its footer (a box cut short by a crash does not: its finished
-    /// chunks are all here).
-    pub complete: bool,
+    /// How far it could be read.
+    pub extent: Extent,
 }
 
-/// Reads a box linearly, as far as it is whole.
-pub fn read(bytes: &[u8]) -> ReadBox {
+/// How far a box could be read.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct Extent {
+    /// It ends with its footer (a box cut short by a crash does not: its finished chunks are
+    /// all read).
+    pub complete: bool,
+    /// Chunks that could not be read (damaged: a checksum, a decompression or a record that
+    /// fails), their messages lost and counted here.
+    pub bad_chunks: usize,
+}
+
+/// The largest chunk a box is read with, uncompressed (ours are 256 kB; other tools' up to a
+/// few MB).
+pub const MAX_CHUNK_BYTES: u64 = 16 << 20;
+
+/// One thing read from a box, in file order.
+#[derive(Debug, Clone, Copy)]
+pub enum Item<'a> {
+    /// The box's metadata (what froze it).
+    Metadata(&'a BTreeMap<String, String>),
+    /// One message.
+    Message {
+        /// Its topic.
+        topic: &'a str,
+        /// Its log time (wall clock), ns.
+        log_time: u64,
+        /// Its JSON.
+        data: &'a [u8],
+    },
+}
+
+/// Reads a box linearly, as far as it is whole, handing each item to `f` as it is decoded
+/// (one chunk in memory at a time).
+pub fn visit(bytes: &[u8], f: &mut dyn FnMut(Item)) -> Extent {
     use mcap::records::Record as R;
-    let mut out = ReadBox::default();
+    let mut extent = Extent::default();
     let mut topics: BTreeMap<u16, String> = BTreeMap::new();
-    let mut chunk_bufs = Vec::new();
     let options = mcap::read::Options::IgnoreEndMagic.into();
     let Ok(reader) = mcap::read::LinearReader::new_with_options(bytes, options) else {
-        return out;
+        return extent;
     };
+    fn message(
+        f: &mut dyn FnMut(Item),
+        topics: &BTreeMap<u16, String>,
+        id: u16,
+        log_time: u64,
+        data: &[u8],
+    ) {
+        let topic = topics.get(&id).map_or("", String::as_str);
+        f(Item::Message {
+            topic,
+            log_time,
+            data,
+        })
+    }
     for record in reader {
         let Ok(record) = record else { break };
         match record {
             R::Channel(c) => {
                 topics.insert(c.id, c.topic.clone());
             }
-            R::Metadata(m) if m.name == METADATA_NAME => out.metadata = m.metadata.clone(),
+            R::Metadata(m) if m.name == METADATA_NAME => f(Item::Metadata(&m.metadata)),
             R::Message { header, data } => {
-                push_message(&mut out, &topics, header.channel_id, header.log_time, &data)
+                message(f, &topics, header.channel_id, header.log_time, &data)
             }
-            R::Chunk { header, data } => chunk_bufs.push((header, data.into_owned())),
-            R::Footer(_) => out.complete = true,
-            _ => {}
-        }
-        for (header, data) in chunk_bufs.drain(..) {
-            let Ok(chunk) = mcap::read::ChunkReader::new(header, &data) else {
-                continue;
-            };
-            for r in chunk.flatten() {
-                match r {
-                    R::Channel(c) => {
-                        topics.insert(c.id, c.topic.clone());
+            R::Chunk { header, data } => {
+                let Some(raw) = chunk_bytes(&header, &data) else {
+                    extent.bad_chunks += 1;
+                    continue;
+                };
+                for r in mcap::read::LinearReader::sans_magic(&raw) {
+                    match r {
+                        Ok(R::Channel(c)) => {
+                            topics.insert(c.id, c.topic.clone());
+                        }
+                        Ok(R::Message { header, data }) => {
+                            message(f, &topics, header.channel_id, header.log_time, &data)
+                        }
+                        Ok(_) => {}
+                        Err(_) => {
+                            extent.bad_chunks += 1;
+                            break;
+                        }
                     }
-                    R::Message { header, data } => {
-                        push_message(&mut out, &topics, header.channel_id, header.log_time, &data)
-                    }
-                    _ => {}
                 }
             }
+            R::Footer(_) => extent.complete = true,
+            _ => {}
         }
     }
+    extent
+}
+
+/// A chunk's records, decompressed and checked against its checksum; `None` if it is damaged.
+/// Done here rather than by `mcap`'s chunk reader, which trusts the lengths inside a damaged
+/// chunk (seen: an abort asking for 7·10¹⁸ bytes on one flipped byte).
+fn chunk_bytes(header: &mcap::records::ChunkHeader, data: &[u8]) -> Option<Vec<u8>> {
+    if header.uncompressed_size > MAX_CHUNK_BYTES || header.compressed_size != data.len() as u64 {
+        return None;
+    }
+    let raw = match header.compression.as_str() {
+        "" => data.to_vec(),
+        "zstd" => zstd::bulk::decompress(data, header.uncompressed_size as usize).ok()?,
+        _ => return None,
+    };
+    let sound = raw.len() as u64 == header.uncompressed_size
+        && (header.uncompressed_crc == 0 || crc32fast::hash(&raw) == header.uncompressed_crc);
+    sound.then_some(raw)
+}
+
+/// Reads a box whole into memory.
+pub fn read(bytes: &[u8]) -> ReadBox {
+    let mut out = ReadBox::default();
+    out.extent = visit(bytes, &mut |item| match item {
+        Item::Metadata(m) => out.metadata = m.clone(),
+        Item::Message {
+            topic,
+            log_time,
+            data,
+        } => out.messages.push(Message {
+            channel: Channel::from_topic(topic),
+            topic: topic.into(),
+            log_time,
+            data: data.to_vec(),
+        }),
+    });
     out
 }
 
-fn push_message(
-    out: &mut ReadBox,
-    topics: &BTreeMap<u16, String>,
-    id: u16,
-    log_time: u64,
-    data: &[u8],
-) {
-    let topic = topics.get(&id).cloned().unwrap_or_default();
-    out.messages.push(Message {
-        channel: Channel::from_topic(&topic),
-        topic,
-        log_time,
-        data: data.to_vec(),
+/// The metadata of a box (what froze it), read as far as it goes.
+pub fn metadata(bytes: &[u8]) -> BTreeMap<String, String> {
+    let mut out = BTreeMap::new();
+    visit(bytes, &mut |item| {
+        if let Item::Metadata(m) = item {
+            out = m.clone();
+        }
     });
+    out
+}
+
+/// A box made whole by [`recover`].
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Recovered {
+    /// The whole box.
+    pub path: PathBuf,
+    /// Messages it holds.
+    pub messages: usize,
+    /// Chunks of the cut box that could not be read; the cut box is then kept beside it as
+    /// `NAME.mcap.damaged`.
+    pub bad_chunks: usize,
 }
 
 /// Rewrites a box cut short (`NAME.mcap.partial`) into a whole `NAME.mcap` holding everything
-/// it kept, then removes the partial file; gives the new path and the messages saved.
-pub fn recover(partial: &Path) -> Result<(PathBuf, usize), BoxError> {
+/// it kept, streaming (one chunk decoded at a time), then removes the partial file, or keeps it
+/// as `NAME.mcap.damaged` when a chunk could not be read.
+pub fn recover(partial: &Path) -> Result<Recovered, BoxError> {
     let io = |source| BoxError::Io {
         path: partial.into(),
         source,
     };
     let bytes = std::fs::read(partial).map_err(io)?;
-    let cut = read(&bytes);
-    let name = partial.to_string_lossy();
-    let whole = PathBuf::from(format!("{}.mcap", name.trim_end_matches(PARTIAL_SUFFIX)));
-    let trigger: EventMessage = cut
-        .metadata
+    let meta = metadata(&bytes);
+    let stem = partial.to_string_lossy();
+    let stem = stem.trim_end_matches(PARTIAL_SUFFIX);
+    let whole = PathBuf::from(format!("{stem}.mcap"));
+    let trigger: EventMessage = meta
         .get("event")
         .and_then(|e| serde_json::from_str(e).ok())
         .unwrap_or(EventMessage {
@@ -266,29 +358,53 @@ pub fn recover(partial: &Path) -> Result<(PathBuf, usize), BoxError> {
             level: 0,
             value: 0.0,
         });
-    let robot = cut.metadata.get("robot").cloned().unwrap_or_default();
-    let offset = cut
-        .metadata
+    let robot = meta.get("robot").cloned().unwrap_or_default();
+    let offset: i128 = meta
         .get("wall_offset_ns")
         .and_then(|o| o.parse().ok())
-        .unwrap_or(0i128);
-    let tmp = PathBuf::from(format!("{}.recovering", whole.display()));
+        .unwrap_or(0);
+    let tmp = PathBuf::from(format!("{stem}.mcap.recovering"));
     let mut w = BoxWriter::new(Durable::create(&tmp)?, &trigger, &robot, offset)?;
-    let mut count = 0;
-    for m in &cut.messages {
-        let Some(channel) = m.channel else { continue };
-        let t_ns = (m.log_time as i128 - offset).max(0) as u64;
-        w.write(Record {
-            channel,
-            t_ns,
-            data: &m.data,
-        })?;
-        count += 1;
+    let (mut messages, mut failed) = (0, None);
+    let extent = visit(&bytes, &mut |item| {
+        let Item::Message {
+            topic,
+            log_time,
+            data,
+        } = item
+        else {
+            return;
+        };
+        let Some(channel) = Channel::from_topic(topic) else {
+            return;
+        };
+        if failed.is_none() {
+            let t_ns = (log_time as i128 - offset).max(0) as u64;
+            failed = w
+                .write(Record {
+                    channel,
+                    t_ns,
+                    data,
+                })
+                .err();
+            messages += 1;
+        }
+    });
+    if let Some(e) = failed {
+        return Err(e);
     }
     w.finish()?.flush().map_err(io)?;
     std::fs::rename(&tmp, &whole).map_err(io)?;
-    std::fs::remove_file(partial).map_err(io)?;
-    Ok((whole, count))
+    if extent.bad_chunks > 0 {
+        std::fs::rename(partial, format!("{stem}.mcap.damaged")).map_err(io)?;
+    } else {
+        std::fs::remove_file(partial).map_err(io)?;
+    }
+    Ok(Recovered {
+        path: whole,
+        messages,
+        bad_chunks: extent.bad_chunks,
+    })
 }
 
 #[cfg(test)]
@@ -334,7 +450,7 @@ mod tests {
     fn a_box_reads_back_whole_with_its_trigger_and_wall_times() {
         let (bytes, _) = write_box(100, 30);
         let b = read(&bytes);
-        assert!(b.complete);
+        assert!(b.extent.complete);
         assert_eq!(b.metadata["trigger"], "thermal_trip");
         let event: EventMessage = serde_json::from_str(&b.metadata["event"]).unwrap();
         assert_eq!(event, trigger());
@@ -352,7 +468,8 @@ mod tests {
         // Cut the file at every length: what was flushed before the cut is all there, in order.
         for len in (0..bytes.len()).step_by(7) {
             let cut = read(&bytes[..len]);
-            assert!(!cut.complete || len + 200 > bytes.len(), "{len}");
+            assert!(!cut.extent.complete || len + 200 > bytes.len(), "{len}");
+            assert_eq!(cut.extent.bad_chunks, 0, "a cut chunk is not a damaged one");
             assert_eq!(cut.messages[..], whole.messages[..cut.messages.len()]);
             if cut.messages.len() >= 30 {
                 cuts_seen += 1;
@@ -367,6 +484,26 @@ mod tests {
     }
 
     #[test]
+    fn a_damaged_chunk_is_counted_and_the_chunks_after_it_still_read() {
+        let (bytes, _) = write_box(100, 30);
+        let whole = read(&bytes).messages.len();
+        let mut counted = 0;
+        for at in (bytes.len() / 8..bytes.len() / 2).step_by(3) {
+            let mut damaged = bytes.clone();
+            damaged[at] ^= 0x55;
+            let b = read(&damaged);
+            assert!(b.messages.len() <= whole);
+            if b.extent.bad_chunks > 0 && b.messages.len() >= 30 && b.extent.complete {
+                counted += 1;
+            }
+        }
+        assert!(
+            counted > 10,
+            "{counted} damaged chunks counted with the rest read"
+        );
+    }
+
+    #[test]
     fn a_partial_box_is_recovered_into_a_whole_one() {
         let dir = std::env::temp_dir().join(format!("nori-bb-recover-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
@@ -376,11 +513,11 @@ mod tests {
             .unwrap();
         let partial = dir.join(format!("box{PARTIAL_SUFFIX}"));
         std::fs::write(&partial, &bytes[..cut_len + 5]).unwrap();
-        let (whole, n) = recover(&partial).unwrap();
-        assert_eq!(n, 60);
+        let r = recover(&partial).unwrap();
+        assert_eq!((r.messages, r.bad_chunks), (60, 0));
         assert!(!partial.exists());
-        let b = read(&std::fs::read(&whole).unwrap());
-        assert!(b.complete);
+        let b = read(&std::fs::read(&r.path).unwrap());
+        assert!(b.extent.complete);
         assert_eq!(b.messages.len(), 60);
         assert_eq!(b.metadata["trigger"], "thermal_trip");
         assert_eq!(b.messages[59].log_time, 1_059);

@@ -7,6 +7,8 @@
 //!   the span or the byte cap; nothing reaches the SD card until a box is frozen.
 //! * [`frozen`]: a box as an MCAP file (zstd chunks, each flushed and synced as it finishes),
 //!   read back linearly as far as it is whole, and recovered after a crash.
+//! * [`shelf`]: the boxes on disk, numbered across restarts (never ordered by the wall clock),
+//!   the oldest removed beyond the cap whatever their state.
 //! * [`trigger`]: what freezes a box (protection events, an obstruction, a protective stop, the
 //!   driver's safe state, the operator).
 //! * [`recorder`]: the core: messages into the ring and the open box, a trigger opening a box
@@ -24,4 +26,5 @@ pub mod export;
 pub mod frozen;
 pub mod recorder;
 pub mod ring;
+pub mod shelf;
 pub mod trigger;

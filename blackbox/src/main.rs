@@ -9,9 +9,10 @@
 use anyhow::{bail, Context, Result};
 use blackbox::channel::{self, Channel, EventMessage, Names};
 use blackbox::config::BlackboxConfig;
-use blackbox::frozen::{self, BoxWriter, Durable, PARTIAL_SUFFIX};
-use blackbox::recorder::{Recorder, Window};
+use blackbox::frozen::{self, BoxWriter, Durable};
+use blackbox::recorder::{Recorder, Window, COPY_STEP};
 use blackbox::ring::{Record, Ring};
+use blackbox::shelf::{self, Shelf};
 use blackbox::trigger::{OwnTrigger, Watch};
 use clap::{Parser, Subcommand};
 use std::path::{Path, PathBuf};
@@ -158,7 +159,7 @@ impl Inputs {
 /// The recording process's state: the recorder, where its boxes go, what it watches.
 struct Recording {
     recorder: Recorder<Durable>,
-    dir: PathBuf,
+    shelf: Shelf,
     robot: String,
     wall_offset_ns: i128,
     names: Names,
@@ -166,6 +167,11 @@ struct Recording {
     watch: Watch,
     partial: Option<PathBuf>,
     disk_cap_bytes: u64,
+    /// The driver's last state frame seen, and the frames never seen between two seen (the
+    /// plane's queue overwrote them: the recorder fell behind).
+    last_state_seq: Option<u64>,
+    states_missed: u64,
+    states_missed_logged: u64,
 }
 
 impl Recording {
@@ -196,6 +202,11 @@ impl Recording {
             self.record(Channel::Wire, channel::wire(&w, &self.names));
         }
         while let Some(s) = plane::next(&i.states) {
+            // A driver restarted counts from 1 again: no gap.
+            if let Some(prev) = self.last_state_seq.filter(|p| s.seq > p + 1) {
+                self.states_missed += s.seq - prev - 1;
+            }
+            self.last_state_seq = Some(s.seq);
             triggers.extend(self.watch.joint_state(&s));
             self.record(Channel::JointStates, channel::joint_states(&s, &self.names));
         }
@@ -241,9 +252,7 @@ impl Recording {
         let stamp = humantime::format_rfc3339_millis(SystemTime::now())
             .to_string()
             .replace([':', '-', '.'], "");
-        let path = self
-            .dir
-            .join(format!("{stamp}-{}{PARTIAL_SUFFIX}", event.kind));
+        let path = self.shelf.new_partial(&stamp, &event.kind);
         let (robot, offset) = (self.robot.clone(), self.wall_offset_ns);
         match self.recorder.trigger(event, |e| {
             BoxWriter::new(Durable::create(&path)?, e, &robot, offset)
@@ -256,6 +265,14 @@ impl Recording {
 
     /// Flushes the open box; names it whole once its window has passed (or `force`).
     fn housekeeping(&mut self, force: bool) {
+        if self.states_missed > self.states_missed_logged {
+            tracing::warn!(
+                missed = self.states_missed - self.states_missed_logged,
+                total = self.states_missed,
+                "the recorder fell behind: joint-state frames overwritten unread"
+            );
+            self.states_missed_logged = self.states_missed;
+        }
         if let Err(e) = self.recorder.flush() {
             tracing::error!("the box being frozen is given up: {e}");
         }
@@ -269,7 +286,7 @@ impl Recording {
             .map_err(anyhow::Error::from)
             .and_then(|mut w| Ok(std::io::Write::flush(&mut w)?))
             .and_then(|()| {
-                let whole = whole_name(&partial);
+                let whole = shelf::whole_name(&partial);
                 std::fs::rename(&partial, &whole)?;
                 Ok(whole)
             });
@@ -277,58 +294,34 @@ impl Recording {
             Ok(whole) => tracing::info!(path = %whole.display(), "box frozen"),
             Err(e) => tracing::error!(path = %partial.display(), "box not finished: {e:#}"),
         }
-        remove_oldest(&self.dir, self.disk_cap_bytes);
+        self.trim();
     }
-}
 
-fn whole_name(partial: &Path) -> PathBuf {
-    let s = partial.to_string_lossy();
-    PathBuf::from(format!("{}.mcap", s.trim_end_matches(PARTIAL_SUFFIX)))
-}
-
-/// The boxes in `dir` (whole ones), oldest first by name (their names begin with the time).
-fn boxes(dir: &Path) -> Vec<PathBuf> {
-    let mut out: Vec<PathBuf> = std::fs::read_dir(dir)
-        .into_iter()
-        .flatten()
-        .flatten()
-        .map(|e| e.path())
-        .filter(|p| p.extension().is_some_and(|x| x == "mcap"))
-        .collect();
-    out.sort();
-    out
-}
-
-/// Removes the oldest boxes until the directory holds at most `cap` bytes of them.
-fn remove_oldest(dir: &Path, cap: u64) {
-    let all = boxes(dir);
-    let size = |p: &PathBuf| std::fs::metadata(p).map_or(0, |m| m.len());
-    let mut total: u64 = all.iter().map(size).sum();
-    for p in &all {
-        if total <= cap {
-            break;
+    /// Keeps the shelf within its cap (the box being written stays).
+    fn trim(&self) {
+        let (removed, errors) = self
+            .shelf
+            .trim(self.disk_cap_bytes, self.partial.as_deref());
+        for p in removed {
+            tracing::warn!(path = %p.display(), "box removed: the disk cap is reached");
         }
-        total -= size(p);
-        match std::fs::remove_file(p) {
-            Ok(()) => tracing::warn!(path = %p.display(), "box removed: the disk cap is reached"),
-            Err(e) => tracing::error!(path = %p.display(), "cannot remove an old box: {e}"),
+        for e in errors {
+            tracing::error!(dir = %self.shelf.dir().display(), "cannot remove an old box: {e}");
         }
     }
 }
 
 /// Makes whole every box a crash cut short.
-fn recover_partials(dir: &Path) {
-    let partials = std::fs::read_dir(dir)
-        .into_iter()
-        .flatten()
-        .flatten()
-        .map(|e| e.path())
-        .filter(|p| p.to_string_lossy().ends_with(PARTIAL_SUFFIX));
-    for p in partials {
+fn recover_partials(shelf: &Shelf) {
+    for p in shelf.partials() {
         match frozen::recover(&p) {
-            Ok((whole, n)) => {
-                tracing::warn!(path = %whole.display(), messages = n, "a box cut short is recovered")
-            }
+            Ok(r) if r.bad_chunks > 0 => tracing::error!(
+                path = %r.path.display(), messages = r.messages, bad_chunks = r.bad_chunks,
+                "a box cut short is recovered without its damaged chunks (kept as .mcap.damaged)"
+            ),
+            Ok(r) => tracing::warn!(
+                path = %r.path.display(), messages = r.messages, "a box cut short is recovered"
+            ),
             Err(e) => tracing::error!(path = %p.display(), "cannot recover a box: {e}"),
         }
     }
@@ -347,7 +340,7 @@ fn record(process: &ProcessArgs, dir: Option<PathBuf>) -> Result<()> {
     };
     let run_for = process.run_for()?;
     let dir = dir.unwrap_or(config.dir.clone());
-    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let shelf = Shelf::open(&dir).with_context(|| format!("opening {}", dir.display()))?;
     let s = |x: f64| (x * 1e9) as u64;
     let ring = Ring::new(
         s(config.ring_seconds),
@@ -365,7 +358,7 @@ fn record(process: &ProcessArgs, dir: Option<PathBuf>) -> Result<()> {
     let inputs = Inputs::open(&node)?;
     let mut rec = Recording {
         recorder: Recorder::new(ring, window),
-        dir,
+        shelf,
         robot: std::fs::read_to_string("/etc/hostname")
             .map(|h| h.trim().to_string())
             .unwrap_or_default(),
@@ -375,12 +368,19 @@ fn record(process: &ProcessArgs, dir: Option<PathBuf>) -> Result<()> {
         watch: Watch::since(monotonic_ns()),
         partial: None,
         disk_cap_bytes: (config.disk_megabytes * 1e6) as u64,
+        last_state_seq: None,
+        states_missed: 0,
+        states_missed_logged: 0,
     };
     let mut service = ServiceManager::from_env();
-    service.ready(&format!("recording; boxes in {}", rec.dir.display()));
+    service.ready(&format!(
+        "recording; boxes in {}",
+        rec.shelf.dir().display()
+    ));
     // After READY: nothing waits on a recovery.
-    recover_partials(&rec.dir);
-    tracing::info!(dir = %rec.dir.display(), ring_s = config.ring_seconds, "recording the last minutes");
+    recover_partials(&rec.shelf);
+    rec.trim();
+    tracing::info!(dir = %rec.shelf.dir().display(), ring_s = config.ring_seconds, "recording the last minutes");
     let started = Instant::now();
     let mut ticker = Ticker::new(Duration::from_millis(10));
     let mut last_housekeeping = Instant::now();
@@ -389,6 +389,11 @@ fn record(process: &ProcessArgs, dir: Option<PathBuf>) -> Result<()> {
     {
         for t in rec.drain(&inputs) {
             rec.trigger(&t);
+        }
+        // A new box copies the ring in steps, the plane drained between them.
+        if let Err(e) = rec.recorder.pump(COPY_STEP) {
+            tracing::error!("the box being frozen is given up: {e}");
+            rec.partial = None;
         }
         if last_housekeeping.elapsed() >= Duration::from_secs(1) {
             rec.housekeeping(false);
@@ -402,25 +407,29 @@ fn record(process: &ProcessArgs, dir: Option<PathBuf>) -> Result<()> {
     tracing::info!(counters = ?rec.recorder.counters, ring = ?rec.recorder.ring_stats(), "stopped");
     println!(
         "{}",
-        serde_json::json!({"recorder": rec.recorder.counters, "ring": rec.recorder.ring_stats()})
+        serde_json::json!({
+            "recorder": rec.recorder.counters,
+            "ring": rec.recorder.ring_stats(),
+            "joint_states_missed": rec.states_missed,
+        })
     );
     Ok(())
 }
 
 fn list(dir: &Path, json: bool) -> Result<()> {
-    for p in boxes(dir) {
+    for p in Shelf::open(dir)?.boxes() {
         let bytes = std::fs::read(&p).with_context(|| format!("reading {}", p.display()))?;
-        let b = frozen::read(&bytes);
-        let (per_topic, span) = blackbox::export::summary(&b);
-        let event: Option<EventMessage> = b
+        let sum = blackbox::export::summary(&bytes);
+        let event: Option<EventMessage> = sum
             .metadata
             .get("event")
             .and_then(|e| serde_json::from_str(e).ok());
         let name = p.file_name().map(|n| n.to_string_lossy().into_owned());
+        let messages: usize = sum.per_topic.values().sum();
         if json {
             let v = serde_json::json!({
-                "box": name, "path": p, "bytes": bytes.len(), "complete": b.complete,
-                "event": event, "span_s": span, "messages": per_topic,
+                "box": name, "path": p, "bytes": bytes.len(), "extent": sum.extent,
+                "event": event, "span_s": sum.span_s, "messages": sum.per_topic,
             });
             println!("{v}");
         } else {
@@ -428,42 +437,40 @@ fn list(dir: &Path, json: bool) -> Result<()> {
                 format!("{} {}", e.kind, e.joint.or(e.bus).unwrap_or_default())
             });
             println!(
-                "{}  {what}  {span:.0} s  {} messages  {:.1} MB",
+                "{}  {what}  {:.0} s  {messages} messages  {:.1} MB{}",
                 name.unwrap_or_default(),
-                b.messages.len(),
-                bytes.len() as f64 / 1e6
+                sum.span_s,
+                bytes.len() as f64 / 1e6,
+                damage(&sum.extent)
             );
         }
     }
     Ok(())
 }
 
+/// What an operator is told of a box that is not whole.
+fn damage(e: &frozen::Extent) -> String {
+    match (e.complete, e.bad_chunks) {
+        (true, 0) => String::new(),
+        (false, 0) => " (cut short: every finished chunk read)".into(),
+        (_, n) => format!(" ({n} damaged chunks not read)"),
+    }
+}
+
 fn show(path: &Path) -> Result<()> {
     let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-    let b = frozen::read(&bytes);
-    let (per_topic, span) = blackbox::export::summary(&b);
-    println!("{}", path.display());
-    println!(
-        "  whole: {}",
-        if b.complete {
-            "yes"
-        } else {
-            "no (cut short: every finished chunk read)"
-        }
-    );
-    for (k, v) in &b.metadata {
+    let sum = blackbox::export::summary(&bytes);
+    println!("{}{}", path.display(), damage(&sum.extent));
+    for (k, v) in &sum.metadata {
         println!("  {k}: {v}");
     }
-    println!("  span: {span:.1} s, {} messages", b.messages.len());
-    for (topic, n) in per_topic {
+    let messages: usize = sum.per_topic.values().sum();
+    println!("  span: {:.1} s, {messages} messages", sum.span_s);
+    for (topic, n) in &sum.per_topic {
         println!("    {topic}: {n}");
     }
-    for m in b
-        .messages
-        .iter()
-        .filter(|m| m.channel == Some(Channel::Triggers))
-    {
-        println!("  trigger: {}", String::from_utf8_lossy(&m.data));
+    for t in &sum.triggers {
+        println!("  trigger: {t}");
     }
     Ok(())
 }
@@ -477,7 +484,7 @@ fn export(path: &Path, csv: Option<&Path>, mcap: Option<&Path>) -> Result<()> {
     }
     if let Some(out) = csv {
         let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-        let (text, joints) = blackbox::export::joint_states_csv(&frozen::read(&bytes));
+        let (text, joints) = blackbox::export::joint_states_csv(&bytes);
         std::fs::write(out, text).with_context(|| format!("writing {}", out.display()))?;
         let sidecar = out.with_extension("meta.json");
         std::fs::write(
@@ -498,9 +505,15 @@ fn save(domain: &str) -> Result<()> {
         pid: std::process::id(),
         reserved: 0,
     };
-    // The recorder drains the plane every 10 ms: a subscriber that is there gets it.
-    plane::publish(&publisher, &request)?;
-    std::thread::sleep(Duration::from_millis(50));
+    // The recorder drains the plane every 10 ms; the sample lives only as long as its
+    // publisher, so wait until no subscriber holds it unread.
+    let receivers = publisher
+        .send_copy(request)
+        .map_err(telemetry::plane::PlaneError::Send)?;
+    if receivers == 0 {
+        bail!("no black box is recording on domain {domain:?} (is nori-blackbox running?)");
+    }
+    std::thread::sleep(Duration::from_millis(200));
     println!("asked the black box to save the last minutes");
     Ok(())
 }

@@ -30,15 +30,20 @@ pub struct RecorderCounters {
     pub boxes_finished: u64,
     /// Writes to a box that failed (the box is given up; the ring goes on).
     pub box_errors: u64,
-    /// Ring segments that could not be read into a box.
-    pub ring_errors: u64,
 }
 
 struct Open<W: Write + Seek> {
     writer: BoxWriter<W>,
     opened_ns: u64,
     until_ns: u64,
+    /// While the box catches up with the ring: the ring's sequence number to copy next, and
+    /// the oldest time the box takes. Live messages reach the box through the ring until then.
+    catching_up: Option<(u64, u64)>,
 }
+
+/// Ring records copied into a new box per step ([`Recorder::pump`]): a few milliseconds, so
+/// the process drains the plane's queues (80 ms of joint states) between steps.
+pub const COPY_STEP: usize = 400;
 
 /// The ring and the box being frozen.
 pub struct Recorder<W: Write + Seek> {
@@ -77,10 +82,39 @@ impl<W: Write + Seek> Recorder<W> {
         let Some(open) = self.open.as_mut() else {
             return Ok(());
         };
+        if open.catching_up.is_some() {
+            return Ok(());
+        }
         open.writer.write(r).inspect_err(|_| {
             self.counters.box_errors += 1;
             self.open = None;
         })
+    }
+
+    /// One step of a new box's copy of the ring (at most `max` records); the box then takes
+    /// live messages once it has caught up. Whether it is still catching up.
+    pub fn pump(&mut self, max: usize) -> Result<bool, BoxError> {
+        let Some(open) = self.open.as_mut() else {
+            return Ok(false);
+        };
+        let Some((cursor, since)) = open.catching_up else {
+            return Ok(false);
+        };
+        let mut failed = None;
+        let writer = &mut open.writer;
+        let next = self.ring.read_from(cursor, max, &mut |r| {
+            if failed.is_none() && r.t_ns >= since {
+                failed = writer.write(r).err();
+            }
+        });
+        if let Some(e) = failed {
+            self.counters.box_errors += 1;
+            self.open = None;
+            return Err(e);
+        }
+        let behind = next < self.ring.next_seq();
+        open.catching_up = behind.then_some((next, since));
+        Ok(behind)
     }
 
     /// A trigger: opens a box on the writer `create` gives (the ring's messages from
@@ -104,33 +138,21 @@ impl<W: Write + Seek> Recorder<W> {
                 .until_ns
                 .max(until)
                 .min(open.opened_ns.saturating_add(self.window.longest_ns));
-            self.ring.push(trigger);
-            return open.writer.write(trigger).map(|_| false);
+            self.record(trigger)?;
+            return Ok(false);
         }
-        let mut writer = create(event).inspect_err(|_| self.counters.box_errors += 1)?;
+        let writer = create(event).inspect_err(|_| self.counters.box_errors += 1)?;
         let since = event.timestamp_ns.saturating_sub(self.window.before_ns);
-        let mut failed = None;
-        let copied = self.ring.each_since(since, &mut |r| {
-            if failed.is_none() {
-                failed = writer.write(r).err();
-            }
-        });
-        if let Err(lost) = copied {
-            self.counters.ring_errors += lost.len() as u64;
-        }
-        if let Some(e) = failed {
-            self.counters.box_errors += 1;
-            return Err(e);
-        }
-        self.ring.push(trigger);
-        writer.write(trigger)?;
-        writer.flush()?;
         self.counters.boxes_opened += 1;
         self.open = Some(Open {
             writer,
             opened_ns: event.timestamp_ns,
             until_ns: until,
+            catching_up: Some((self.ring.oldest_seq(), since)),
         });
+        // The trigger goes through the ring, so the box takes it in its place.
+        self.record(trigger)?;
+        self.pump(COPY_STEP)?;
         Ok(true)
     }
 
@@ -156,6 +178,9 @@ impl<W: Write + Seek> Recorder<W> {
         let due = self.open.as_ref()?.until_ns <= now_ns || force;
         if !due {
             return None;
+        }
+        if let Err(e) = self.pump(usize::MAX) {
+            return Some(Err(e));
         }
         let open = self.open.take()?;
         let finished = open.writer.finish();
@@ -237,9 +262,39 @@ mod tests {
         assert!(*t.last().unwrap() >= 32 * S - S / 10);
         assert!(t.windows(2).all(|w| w[0] < w[1]), "in order, none twice");
         assert_eq!(times(&bytes, Channel::Triggers), vec![30 * S]);
-        assert!(read(&bytes).complete);
+        assert!(read(&bytes).extent.complete);
         assert!(!r.is_freezing());
         assert_eq!(r.counters.boxes_finished, 1);
+    }
+
+    #[test]
+    fn a_box_catches_up_with_the_ring_in_steps_and_takes_what_came_meanwhile_once() {
+        let mut r = recorder();
+        feed(&mut r, 0, 60);
+        assert!(r.trigger(&trip(60), open).unwrap());
+        assert!(r.is_freezing());
+        // Live messages come between the copy's steps, as the plane's do between loop turns.
+        let mut t = 600;
+        while r.pump(7).unwrap() {
+            let data = format!("{{\"timestamp_ns\": {}}}", t * S / 10);
+            r.record(Record {
+                channel: Channel::JointStates,
+                t_ns: t * S / 10,
+                data: data.as_bytes(),
+            })
+            .unwrap();
+            t += 1;
+        }
+        assert!(t > 600 + 10, "the copy took several steps");
+        let bytes = r.finish_due(u64::MAX, true).unwrap().unwrap().into_inner();
+        let times = times(&bytes, Channel::JointStates);
+        assert_eq!(times.first(), Some(&(50 * S)), "10 s before the event");
+        assert_eq!(
+            times.len() as u64,
+            t - 500,
+            "everything from the window on, once each"
+        );
+        assert!(times.windows(2).all(|w| w[0] < w[1]));
     }
 
     #[test]

@@ -9,9 +9,11 @@ use std::time::Duration;
 use telemetry::clock::monotonic_ns;
 use telemetry::wire::{Direction, WireFrame};
 
-/// Frames a tap holds between two cycles' hand-overs (16 kB, 512 chunks): what the set-up of a
-/// whole bus moves before the loop's first cycle. Beyond them bytes are counted lost.
-pub const TAP_FRAMES: usize = 8;
+/// Frames a tap holds between two cycles' hand-overs (32 kB, 1024 chunks): twice what the
+/// set-up of a whole bus moves before the loop's first cycle (about 520 chunks with its
+/// transactions' discard marks; 8 frames lost 577 bytes of it). Beyond them bytes are counted
+/// lost.
+pub const TAP_FRAMES: usize = 16;
 
 /// `inner` with its traffic recorded.
 pub struct Tapped<T> {
@@ -52,9 +54,13 @@ impl<T: Transport> Transport for Tapped<T> {
     }
 
     fn send(&mut self, bytes: &[u8]) -> Result<(), TransportError> {
-        self.inner.send(bytes)?;
-        self.record(Direction::Sent, bytes);
-        Ok(())
+        let sent = self.inner.send(bytes);
+        let direction = match sent {
+            Ok(()) => Direction::Sent,
+            Err(_) => Direction::SendFailed,
+        };
+        self.record(direction, bytes);
+        sent
     }
 
     fn receive(&mut self, buf: &mut [u8], timeout: Duration) -> Result<usize, TransportError> {
@@ -66,15 +72,20 @@ impl<T: Transport> Transport for Tapped<T> {
     }
 
     fn discard_input(&mut self) -> Result<(), TransportError> {
+        self.record(Direction::Discarded, &[]);
         self.inner.discard_input()
     }
 
     fn reopen(&mut self) -> Result<(), TransportError> {
-        self.inner.reopen()
+        self.inner.reopen()?;
+        self.record(Direction::Reopened, &[]);
+        Ok(())
     }
 
     fn set_baud(&mut self, baud: u32) -> Result<(), TransportError> {
-        self.inner.set_baud(baud)
+        self.inner.set_baud(baud)?;
+        self.record(Direction::BaudChanged, &baud.to_le_bytes());
+        Ok(())
     }
 
     fn take_wire(&mut self, publish: &mut dyn FnMut(&mut WireFrame)) {
@@ -152,6 +163,52 @@ mod tests {
             out.extend(f.chunks().map(|(d, t, b)| (d, t, b.to_vec())))
         });
         out
+    }
+
+    /// A link whose writes fail.
+    struct Broken;
+
+    impl Transport for Broken {
+        fn baud(&self) -> u32 {
+            1_000_000
+        }
+        fn send(&mut self, _: &[u8]) -> Result<(), TransportError> {
+            Err(TransportError::Io {
+                device: "/dev/gone".into(),
+                source: std::io::Error::other("unplugged"),
+            })
+        }
+        fn receive(&mut self, _: &mut [u8], _: Duration) -> Result<usize, TransportError> {
+            Ok(0)
+        }
+        fn discard_input(&mut self) -> Result<(), TransportError> {
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn a_failed_write_a_discard_and_a_reopen_are_marked_and_the_error_passes_through() {
+        let mut t = Tapped::new(Broken);
+        t.discard_input().unwrap();
+        assert!(t.send(&[1, 2]).is_err(), "the link's error reaches the bus");
+        t.reopen().unwrap();
+        let mut marks = Vec::new();
+        t.take_wire(&mut |f| marks.extend(f.chunks().map(|(d, _, b)| (d, b.to_vec()))));
+        assert_eq!(
+            marks,
+            vec![
+                (Direction::Discarded, vec![]),
+                (Direction::SendFailed, vec![1, 2]),
+                (Direction::Reopened, vec![]),
+            ]
+        );
+        assert!(
+            t.set_baud(500_000).is_err(),
+            "a link with one rate refuses, unmarked"
+        );
+        let mut n = 0;
+        t.take_wire(&mut |f| n += f.chunks().count());
+        assert_eq!(n, 0);
     }
 
     #[test]

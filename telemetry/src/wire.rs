@@ -10,7 +10,7 @@ pub const MAX_WIRE_CHUNKS: usize = 64;
 /// 21-byte replies, the SYNC_WRITE), a set-up or read-back a few dozen more.
 pub const WIRE_BYTES: usize = 2048;
 
-/// Which way a chunk went.
+/// Which way a chunk went, or what happened to the line.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[repr(u8)]
 pub enum Direction {
@@ -18,6 +18,48 @@ pub enum Direction {
     Sent = 0,
     /// Servos → host (replies, or whatever the line carried).
     Received = 1,
+    /// A write that failed: the bytes asked for (some may have gone out).
+    SendFailed = 2,
+    /// Input not yet read was dropped (a transaction starts); no bytes.
+    Discarded = 3,
+    /// The device was opened again after a failure; no bytes.
+    Reopened = 4,
+    /// The line rate changed: the new rate, 4 bytes little-endian.
+    BaudChanged = 5,
+}
+
+impl Direction {
+    /// Every direction, by its byte.
+    pub const ALL: [Direction; 6] = [
+        Direction::Sent,
+        Direction::Received,
+        Direction::SendFailed,
+        Direction::Discarded,
+        Direction::Reopened,
+        Direction::BaudChanged,
+    ];
+
+    /// The direction of a chunk's byte.
+    pub fn from_byte(b: u8) -> Option<Direction> {
+        Direction::ALL.get(b as usize).copied()
+    }
+
+    /// Its name in a box (`sent`, `received`, `send_failed`, …).
+    pub fn name(self) -> &'static str {
+        match self {
+            Direction::Sent => "sent",
+            Direction::Received => "received",
+            Direction::SendFailed => "send_failed",
+            Direction::Discarded => "discarded",
+            Direction::Reopened => "reopened",
+            Direction::BaudChanged => "baud_changed",
+        }
+    }
+
+    /// The direction named `name`.
+    pub fn from_name(name: &str) -> Option<Direction> {
+        Direction::ALL.into_iter().find(|d| d.name() == name)
+    }
 }
 
 /// One chunk's place in [`WireFrame::bytes`].
@@ -81,7 +123,8 @@ impl WireFrame {
     /// Appends one chunk; what does not fit is counted in `lost_bytes`.
     pub fn record(&mut self, direction: Direction, t_ns: u64, bytes: &[u8]) {
         let start = self.byte_count as usize;
-        if bytes.is_empty() {
+        let data = matches!(direction, Direction::Sent | Direction::Received);
+        if bytes.is_empty() && data {
             return;
         }
         if !self.fits(bytes.len()) {
@@ -120,12 +163,7 @@ impl WireFrame {
                 let bytes = self
                     .bytes
                     .get(c.offset as usize..c.offset as usize + c.len as usize)?;
-                let direction = match c.direction {
-                    0 => Direction::Sent,
-                    1 => Direction::Received,
-                    _ => return None,
-                };
-                Some((direction, c.t_ns, bytes))
+                Some((Direction::from_byte(c.direction)?, c.t_ns, bytes))
             })
     }
 }
@@ -174,5 +212,17 @@ mod tests {
         f.clear();
         assert!(f.is_empty());
         assert_eq!(f.chunks().count(), 0);
+        f.record(Direction::Discarded, 60, &[]);
+        f.record(Direction::Received, 61, &[]);
+        let marks: Vec<_> = f.chunks().map(|(d, t, b)| (d, t, b.len())).collect();
+        assert_eq!(
+            marks,
+            vec![(Direction::Discarded, 60, 0)],
+            "a mark has no bytes, data has"
+        );
+        for d in Direction::ALL {
+            assert_eq!(Direction::from_byte(d as u8), Some(d));
+            assert_eq!(Direction::from_name(d.name()), Some(d));
+        }
     }
 }
