@@ -38,11 +38,13 @@ pub enum Channel {
     BaseState = 8,
     /// Why the box was frozen (one message per freezing event).
     Triggers = 9,
+    /// The driver's layout: each joint's name, bus, id, servo model and range (once a second).
+    Layout = 10,
 }
 
 impl Channel {
     /// Every channel, in id order.
-    pub const ALL: [Channel; 10] = [
+    pub const ALL: [Channel; 11] = [
         Channel::Wire,
         Channel::JointStates,
         Channel::Goals,
@@ -53,6 +55,7 @@ impl Channel {
         Channel::LiftState,
         Channel::BaseState,
         Channel::Triggers,
+        Channel::Layout,
     ];
 
     /// The channel with id `id`.
@@ -73,6 +76,7 @@ impl Channel {
             Channel::LiftState => "/lift/state",
             Channel::BaseState => "/base/state",
             Channel::Triggers => "/blackbox/triggers",
+            Channel::Layout => "/layout",
         }
     }
 
@@ -93,6 +97,7 @@ impl Channel {
             Channel::LiftState => "nori.LiftState",
             Channel::BaseState => "nori.BaseState",
             Channel::Triggers => "nori.Trigger",
+            Channel::Layout => "nori.Layout",
         }
     }
 
@@ -104,6 +109,7 @@ impl Channel {
             Channel::Goals | Channel::WheelGoals => GOALS_PROPERTIES,
             Channel::Directives => DIRECTIVES_PROPERTIES,
             Channel::Events | Channel::Triggers => EVENT_PROPERTIES,
+            Channel::Layout => LAYOUT_PROPERTIES,
             Channel::BusHealth => {
                 r#""seq": {"type": "integer"}, "buses": {"type": "array", "items": {"type": "object"}}"#
             }
@@ -125,6 +131,7 @@ const WIRE_PROPERTIES: &str = r#""cycle": {"type": "integer"}, "bus": {"type": "
 const JOINT_STATES_PROPERTIES: &str = r#""seq": {"type": "integer"}, "safe_state": {"type": "boolean"}, "name": {"type": "array", "items": {"type": "string"}}, "valid": {"type": "array", "items": {"type": "boolean"}}, "position": {"type": "array", "items": {"type": "number"}}, "velocity": {"type": "array", "items": {"type": "number"}}, "load": {"type": "array", "items": {"type": "number"}}, "current_a": {"type": "array", "items": {"type": "number"}}, "voltage_v": {"type": "array", "items": {"type": "number"}}, "temperature_c": {"type": "array", "items": {"type": "number"}}, "goal": {"type": "array", "items": {"type": "number"}}, "status": {"type": "array", "items": {"type": "integer"}}, "torque_enabled": {"type": "array", "items": {"type": "boolean"}}, "flags": {"type": "array", "items": {"type": "integer"}}"#;
 const GOALS_PROPERTIES: &str = r#""seq": {"type": "integer"}, "name": {"type": "array", "items": {"type": "string"}}, "goal": {"type": "array", "items": {"type": "number"}}"#;
 const DIRECTIVES_PROPERTIES: &str = r#""seq": {"type": "integer"}, "stop": {"type": "boolean"}, "bus_enabled": {"type": "array", "items": {"type": "boolean"}}, "torque_limit_permille": {"type": "array", "items": {"type": "integer"}}"#;
+const LAYOUT_PROPERTIES: &str = r#""joints": {"type": "array", "items": {"type": "object", "properties": {"name": {"type": "string"}, "bus": {"type": "string"}, "id": {"type": "integer"}, "model": {"type": "integer", "description": "Model_Number: 777 STS3215, 2825 STS3250, 2569 STS3095"}, "role": {"type": "string"}, "range_rad": {"type": "array", "items": {"type": "number"}}}}}"#;
 const EVENT_PROPERTIES: &str = r#""kind": {"type": "string"}, "joint": {"type": ["string", "null"]}, "bus": {"type": ["string", "null"]}, "level": {"type": "integer"}, "value": {"type": "number"}"#;
 
 /// The names the messages carry: the driver's layout (`j<k>`, `bus<k>` until it is heard).
@@ -162,6 +169,42 @@ impl Names {
             .cloned()
             .unwrap_or_else(|| format!("bus{k}"))
     }
+}
+
+/// One joint of the layout, as a message.
+#[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
+pub struct LayoutJoint {
+    /// Its name.
+    pub name: String,
+    /// Its bus's name.
+    pub bus: String,
+    /// Its servo's id on the bus.
+    pub id: u8,
+    /// Its servo's `Model_Number`.
+    pub model: u16,
+    /// `joint`, `gripper` or `wheel`.
+    pub role: String,
+    /// Its calibrated range, rad.
+    pub range_rad: [f32; 2],
+}
+
+/// The layout as a message, stamped `t_ns` (the layout frame carries no time).
+pub fn layout(l: &JointLayout, t_ns: u64) -> (u64, Vec<u8>) {
+    let names = Names::from_layout(l);
+    let joints: Vec<LayoutJoint> = l
+        .joints()
+        .iter()
+        .map(|j| LayoutJoint {
+            name: j.name().to_string(),
+            bus: names.bus(j.bus as usize),
+            id: j.id,
+            model: j.model,
+            role: snake(&format!("{:?}", j.role())),
+            range_rad: j.range_rad.map(finite),
+        })
+        .collect();
+    let msg = serde_json::json!({ "timestamp_ns": t_ns, "joints": joints });
+    (t_ns, to_json(&msg))
 }
 
 /// A bus's traffic of one cycle as a message.

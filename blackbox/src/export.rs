@@ -2,7 +2,7 @@
 //! format, one row per motor per sample, empty cells for a missing reading), and what a box
 //! holds, for `nori blackbox list` and `show`; both read the box as a stream.
 
-use crate::channel::Channel;
+use crate::channel::{Channel, LayoutJoint};
 use crate::frozen::{visit, Extent, Item};
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -11,17 +11,25 @@ use std::fmt::Write as _;
 pub const HEADER: &str =
     "t_s,motor,goal_rad,position_rad,velocity_rad_s,voltage_v,temperature_c,current_a";
 
-/// The box's joint states as CSV, time from its first frame, and the joints' names in motor
-/// order (the sidecar's `joints`).
-pub fn joint_states_csv(bytes: &[u8]) -> (String, Vec<String>) {
+/// The box's joint states as CSV, time from its first frame, and its sidecar
+/// (`NAME.meta.json`: the joints' names in motor order, the daisy chains per bus and each
+/// servo's model, from the box's last layout).
+pub fn joint_states_csv(bytes: &[u8]) -> (String, serde_json::Value) {
     let mut out = String::from(HEADER);
     out.push('\n');
     let mut names = Vec::new();
+    let mut layout: Vec<LayoutJoint> = Vec::new();
     let mut t0 = None;
     visit(bytes, &mut |item| {
         let Item::Message { topic, data, .. } = item else {
             return;
         };
+        if Channel::from_topic(topic) == Some(Channel::Layout) {
+            if let Ok(v) = serde_json::from_slice::<serde_json::Value>(data) {
+                layout = serde_json::from_value(v["joints"].clone()).unwrap_or_default();
+            }
+            return;
+        }
         if Channel::from_topic(topic) != Some(Channel::JointStates) {
             return;
         }
@@ -37,7 +45,33 @@ pub fn joint_states_csv(bytes: &[u8]) -> (String, Vec<String>) {
         }
         rows(&mut out, t, &v);
     });
-    (out, names)
+    (out, sidecar(&names, &layout))
+}
+
+/// The model lab's sidecar: the joints, the chains (motor indices per bus, in the driver's
+/// order) and the servo models, where the layout names the joint.
+fn sidecar(names: &[String], layout: &[LayoutJoint]) -> serde_json::Value {
+    let mut chains: BTreeMap<&str, Vec<usize>> = BTreeMap::new();
+    let mut servo = serde_json::Map::new();
+    for (k, name) in names.iter().enumerate() {
+        let Some(j) = layout.iter().find(|j| &j.name == name) else {
+            continue;
+        };
+        chains.entry(j.bus.as_str()).or_default().push(k);
+        let key = match j.model {
+            777 => "sts3215",
+            2825 => "sts3250",
+            2569 => "sts3095",
+            _ => continue,
+        };
+        servo.insert(k.to_string(), key.into());
+    }
+    let mut side = serde_json::json!({ "joints": names });
+    if !chains.is_empty() {
+        side["chains"] = chains.into_values().collect::<Vec<_>>().into();
+        side["servo"] = servo.into();
+    }
+    side
 }
 
 /// One frame's rows.
@@ -156,13 +190,25 @@ mod tests {
             .unwrap();
         }
         let bytes = w.finish().unwrap().into_inner();
-        let (csv, names) = joint_states_csv(&bytes);
+        let (csv, side) = joint_states_csv(&bytes);
         let lines: Vec<&str> = csv.lines().collect();
         assert_eq!(lines[0], HEADER);
         assert_eq!(lines[1], "0.000000,0,0,0.5,0,0,41,0");
         assert_eq!(lines[2], "0.000000,1,,,,,,");
         assert_eq!(lines[3], "0.005000,0,0,0.5,0,0,41,0");
-        assert_eq!(names, ["j0", "j1"]);
+        assert_eq!(side["joints"], serde_json::json!(["j0", "j1"]));
+        assert!(side.get("chains").is_none(), "no layout, no chains");
+        let layout = [LayoutJoint {
+            name: "j1".into(),
+            bus: "left_arm".into(),
+            id: 2,
+            model: 2825,
+            role: "joint".into(),
+            range_rad: [-1.0, 1.0],
+        }];
+        let side = sidecar(&["j0".into(), "j1".into()], &layout);
+        assert_eq!(side["chains"], serde_json::json!([[1]]));
+        assert_eq!(side["servo"], serde_json::json!({"1": "sts3250"}));
         let sum = summary(&bytes);
         assert_eq!(sum.per_topic["/joint_states"], 2);
         assert!((sum.span_s - 0.005).abs() < 1e-9);

@@ -197,6 +197,8 @@ impl Recording {
         if let Some(l) = plane::newest(&i.layout) {
             self.names = Names::from_layout(&l);
             self.bus_count = l.bus_count as usize;
+            // Once a second from the driver: every box's window holds one.
+            self.record(Channel::Layout, channel::layout(&l, monotonic_ns()));
         }
         while let Some(w) = plane::next(&i.wire) {
             self.record(Channel::Wire, channel::wire(&w, &self.names));
@@ -484,14 +486,11 @@ fn export(path: &Path, csv: Option<&Path>, mcap: Option<&Path>) -> Result<()> {
     }
     if let Some(out) = csv {
         let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-        let (text, joints) = blackbox::export::joint_states_csv(&bytes);
+        let (text, side) = blackbox::export::joint_states_csv(&bytes);
         std::fs::write(out, text).with_context(|| format!("writing {}", out.display()))?;
         let sidecar = out.with_extension("meta.json");
-        std::fs::write(
-            &sidecar,
-            serde_json::json!({ "joints": joints }).to_string(),
-        )
-        .with_context(|| format!("writing {}", sidecar.display()))?;
+        std::fs::write(&sidecar, side.to_string())
+            .with_context(|| format!("writing {}", sidecar.display()))?;
     }
     Ok(())
 }

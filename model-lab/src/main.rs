@@ -24,11 +24,32 @@ enum ModelCommand {
     Generate(GenerateArgs),
 }
 
+/// `paths` with each black box (`.mcap`) written as a run of CSV and its sidecar in `dir`.
+fn boxes_as_runs(paths: &[PathBuf], dir: &std::path::Path) -> Result<Vec<PathBuf>> {
+    paths
+        .iter()
+        .map(|p| {
+            if p.extension().is_none_or(|x| x != "mcap") {
+                return Ok(p.clone());
+            }
+            let bytes = std::fs::read(p).with_context(|| format!("reading {}", p.display()))?;
+            let (csv, side) = blackbox::export::joint_states_csv(&bytes);
+            std::fs::create_dir_all(dir)?;
+            let stem = p.file_stem().unwrap_or_default().to_string_lossy();
+            let run = dir.join(format!("{stem}.csv"));
+            std::fs::write(&run, csv)?;
+            std::fs::write(run.with_extension("meta.json"), side.to_string())?;
+            Ok(run)
+        })
+        .collect()
+}
+
 /// Options of `nori model analyze`.
 #[derive(Args, Debug)]
 struct AnalyzeArgs {
     /// Telemetry CSVs (data/README.md format) or directories of them, one run per file, taken
-    /// together (name files one by one to leave runs out of the fit).
+    /// together (name files one by one to leave runs out of the fit); a black box (`.mcap`,
+    /// `nori blackbox list`) is read as one run of its joint states.
     #[arg(required = true)]
     data: Vec<PathBuf>,
     /// Print one JSON object instead of the summary.
@@ -99,7 +120,11 @@ fn write(path: &Path, text: &str) -> Result<()> {
 /// `nori model analyze`: the analysis, its report and model file, and its summary or JSON.
 fn run_analyze(a: &AnalyzeArgs) -> Result<()> {
     let opts = options(a)?;
-    let data = model_lab::load_all(&a.data)?;
+    let scratch = std::env::temp_dir().join(format!("nori-model-boxes-{}", std::process::id()));
+    let runs = boxes_as_runs(&a.data, &scratch);
+    let data = runs.and_then(|runs| Ok(model_lab::load_all(&runs)?));
+    let _ = std::fs::remove_dir_all(&scratch);
+    let data = data?;
     let start = Instant::now();
     let out = analyze(data, &opts, &mut |line| {
         eprintln!("[{:6.1} s] {line}", start.elapsed().as_secs_f64())

@@ -26,7 +26,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
     ("sim", &["feetech", "body", "telemetry", "camera"]),
     ("recorder", &["telemetry"]),
     ("blackbox", &["telemetry"]),
-    ("model-lab", &["sim"]),
+    ("model-lab", &["sim", "blackbox"]),
     ("fleet", &["fleet-agent", "telemetry"]),
     ("stack", &["telemetry", "sim", "bus-driver"]),
     // The automatic calibration plans from the description and finds stops by the
