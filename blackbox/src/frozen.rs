@@ -329,14 +329,15 @@ pub struct Recovered {
     pub path: PathBuf,
     /// Messages it holds.
     pub messages: usize,
-    /// Chunks of the cut box that could not be read; the cut box is then kept beside it as
-    /// `NAME.mcap.damaged`.
+    /// Chunks of the cut box that could not be read.
     pub bad_chunks: usize,
 }
 
 /// Rewrites a box cut short (`NAME.mcap.partial`) into a whole `NAME.mcap` holding everything
-/// it kept, streaming (one chunk decoded at a time), then removes the partial file, or keeps it
-/// as `NAME.mcap.damaged` when a chunk could not be read.
+/// a linear read gets from it (one chunk decoded at a time), and keeps the cut file beside it as
+/// `NAME.mcap.cut`: a read stops at the first record it cannot parse, and what lies after a
+/// damaged stretch (a power cut mid-write) may still be read by other means. The shelf's cap
+/// removes it in its turn.
 pub fn recover(partial: &Path) -> Result<Recovered, BoxError> {
     let io = |source| BoxError::Io {
         path: partial.into(),
@@ -395,11 +396,7 @@ pub fn recover(partial: &Path) -> Result<Recovered, BoxError> {
     }
     w.finish()?.flush().map_err(io)?;
     std::fs::rename(&tmp, &whole).map_err(io)?;
-    if extent.bad_chunks > 0 {
-        std::fs::rename(partial, format!("{stem}.mcap.damaged")).map_err(io)?;
-    } else {
-        std::fs::remove_file(partial).map_err(io)?;
-    }
+    std::fs::rename(partial, format!("{stem}.mcap.cut")).map_err(io)?;
     Ok(Recovered {
         path: whole,
         messages,
@@ -516,6 +513,12 @@ mod tests {
         let r = recover(&partial).unwrap();
         assert_eq!((r.messages, r.bad_chunks), (60, 0));
         assert!(!partial.exists());
+        let cut = dir.join("box.mcap.cut");
+        assert_eq!(
+            std::fs::read(&cut).unwrap(),
+            bytes[..cut_len + 5],
+            "the cut file kept"
+        );
         let b = read(&std::fs::read(&r.path).unwrap());
         assert!(b.extent.complete);
         assert_eq!(b.messages.len(), 60);

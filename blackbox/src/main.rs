@@ -172,9 +172,19 @@ struct Recording {
     last_state_seq: Option<u64>,
     states_missed: u64,
     states_missed_logged: u64,
+    /// Each bus's last wire frame's cycle, and the cycles between two seen with no frame
+    /// (overwritten unread, or a cycle the bus moved nothing: a lost bus).
+    last_wire_cycle: [Option<u64>; telemetry::frames::MAX_BUSES],
+    wire_cycles_missed: u64,
 }
 
 impl Recording {
+    /// The box being frozen was given up (a write failed): its file is no longer protected.
+    fn given_up(&mut self, e: &blackbox::frozen::BoxError) {
+        tracing::error!("the box being frozen is given up: {e}");
+        self.partial = None;
+    }
+
     fn record(&mut self, channel: Channel, (t_ns, data): (u64, Vec<u8>)) {
         // A stamp ahead of the clock (a publisher's bug, a frame from the future) is taken as
         // now: it must neither hold a ring segment open nor push the ring's end ahead. A
@@ -186,8 +196,7 @@ impl Recording {
             t_ns,
             data: &data,
         }) {
-            tracing::error!("the box being frozen is given up: {e}");
-            self.partial = None;
+            self.given_up(&e);
         }
     }
 
@@ -201,6 +210,12 @@ impl Recording {
             self.record(Channel::Layout, channel::layout(&l, monotonic_ns()));
         }
         while let Some(w) = plane::next(&i.wire) {
+            if let Some(last) = self.last_wire_cycle.get_mut(w.bus as usize) {
+                if let Some(prev) = last.filter(|p| w.cycle > p + 1) {
+                    self.wire_cycles_missed += w.cycle - prev - 1;
+                }
+                *last = Some(w.cycle);
+            }
             self.record(Channel::Wire, channel::wire(&w, &self.names));
         }
         while let Some(s) = plane::next(&i.states) {
@@ -261,8 +276,18 @@ impl Recording {
         }) {
             Ok(true) => self.partial = Some(path),
             Ok(false) => {}
-            Err(e) => tracing::error!(path = %path.display(), "cannot freeze a box: {e}"),
+            Err(e) => {
+                tracing::error!(path = %path.display(), "cannot freeze a box: {e}");
+                if !self.recorder.is_freezing() {
+                    self.partial = None;
+                }
+            }
         }
+    }
+
+    /// Names the open box whole if its window has passed.
+    fn finish_due(&mut self) {
+        self.finish(false);
     }
 
     /// Flushes the open box; names it whole once its window has passed (or `force`).
@@ -271,13 +296,20 @@ impl Recording {
             tracing::warn!(
                 missed = self.states_missed - self.states_missed_logged,
                 total = self.states_missed,
+                wire_cycles_missed = self.wire_cycles_missed,
                 "the recorder fell behind: joint-state frames overwritten unread"
             );
             self.states_missed_logged = self.states_missed;
         }
         if let Err(e) = self.recorder.flush() {
-            tracing::error!("the box being frozen is given up: {e}");
+            self.given_up(&e);
         }
+        self.finish(force);
+    }
+
+    /// Finishes the open box if its window has passed (or `force`), names it whole, trims the
+    /// shelf.
+    fn finish(&mut self, force: bool) {
         let Some(done) = self.recorder.finish_due(monotonic_ns(), force) else {
             return;
         };
@@ -319,7 +351,7 @@ fn recover_partials(shelf: &Shelf) {
         match frozen::recover(&p) {
             Ok(r) if r.bad_chunks > 0 => tracing::error!(
                 path = %r.path.display(), messages = r.messages, bad_chunks = r.bad_chunks,
-                "a box cut short is recovered without its damaged chunks (kept as .mcap.damaged)"
+                "a box cut short is recovered without its damaged chunks (the cut file kept as .mcap.cut)"
             ),
             Ok(r) => tracing::warn!(
                 path = %r.path.display(), messages = r.messages, "a box cut short is recovered"
@@ -373,14 +405,23 @@ fn record(process: &ProcessArgs, dir: Option<PathBuf>) -> Result<()> {
         last_state_seq: None,
         states_missed: 0,
         states_missed_logged: 0,
+        last_wire_cycle: [None; telemetry::frames::MAX_BUSES],
+        wire_cycles_missed: 0,
     };
     let mut service = ServiceManager::from_env();
     service.ready(&format!(
         "recording; boxes in {}",
         rec.shelf.dir().display()
     ));
-    // After READY: nothing waits on a recovery.
-    recover_partials(&rec.shelf);
+    // After READY, and beside the loop: nothing waits on a recovery, and the loop keeps
+    // recording and telling the watchdog it lives while a long box is rewritten.
+    let recovering = {
+        let shelf = Shelf::open(rec.shelf.dir())?;
+        std::thread::Builder::new()
+            .name("recover".into())
+            .spawn(move || recover_partials(&shelf))
+            .context("starting the recovery")?
+    };
     rec.trim();
     tracing::info!(dir = %rec.shelf.dir().display(), ring_s = config.ring_seconds, "recording the last minutes");
     let started = Instant::now();
@@ -390,12 +431,13 @@ fn record(process: &ProcessArgs, dir: Option<PathBuf>) -> Result<()> {
         && run_for.is_none_or(|d| started.elapsed() < d)
     {
         for t in rec.drain(&inputs) {
+            // A box whose window has passed ends before a new event: the event opens its own.
+            rec.finish_due();
             rec.trigger(&t);
         }
         // A new box copies the ring in steps, the plane drained between them.
         if let Err(e) = rec.recorder.pump(COPY_STEP) {
-            tracing::error!("the box being frozen is given up: {e}");
-            rec.partial = None;
+            rec.given_up(&e);
         }
         if last_housekeeping.elapsed() >= Duration::from_secs(1) {
             rec.housekeeping(false);
@@ -405,6 +447,7 @@ fn record(process: &ProcessArgs, dir: Option<PathBuf>) -> Result<()> {
         ticker.wait();
     }
     service.stopping();
+    let _ = recovering.join();
     rec.housekeeping(true);
     tracing::info!(counters = ?rec.recorder.counters, ring = ?rec.recorder.ring_stats(), "stopped");
     println!(
@@ -413,6 +456,7 @@ fn record(process: &ProcessArgs, dir: Option<PathBuf>) -> Result<()> {
             "recorder": rec.recorder.counters,
             "ring": rec.recorder.ring_stats(),
             "joint_states_missed": rec.states_missed,
+            "wire_cycles_missed": rec.wire_cycles_missed,
         })
     );
     Ok(())

@@ -13,13 +13,16 @@ pub struct Shelf {
     next: u64,
 }
 
-/// The number a file of the shelf begins with (0 for a name without one: the oldest).
-fn number(path: &Path) -> u64 {
-    path.file_name()
-        .and_then(|n| n.to_str())
-        .and_then(|n| n.split('-').next())
-        .and_then(|n| n.parse().ok())
-        .unwrap_or(0)
+/// The number a file of the shelf begins with (six digits or more, then `-`); `None` for a
+/// file that is not a box (an operator's export, say), which the shelf neither counts nor
+/// removes.
+fn number(path: &Path) -> Option<u64> {
+    let name = path.file_name()?.to_str()?;
+    let (n, _) = name.split_once('-')?;
+    if n.len() < 6 {
+        return None;
+    }
+    n.parse().ok()
 }
 
 impl Shelf {
@@ -33,7 +36,7 @@ impl Shelf {
         shelf.next = shelf
             .files()
             .iter()
-            .map(|(n, _, _)| n + 1)
+            .map(|(n, _, _)| n.saturating_add(1))
             .max()
             .unwrap_or(1);
         Ok(shelf)
@@ -59,10 +62,10 @@ impl Shelf {
             .flatten()
             .flatten()
             .filter(|e| e.file_type().is_ok_and(|t| t.is_file()))
-            .map(|e| {
+            .filter_map(|e| {
                 let p = e.path();
                 let size = e.metadata().map_or(0, |m| m.len());
-                (number(&p), p, size)
+                Some((number(&p)?, p, size))
             })
             .collect();
         out.sort();
@@ -167,7 +170,10 @@ mod tests {
                 p
             })
             .collect();
+        let export = dir.join("an-operators-export.csv");
+        std::fs::write(&export, [0u8; 1000]).unwrap();
         let (removed, errors) = shelf.trim(250, Some(&names[0]));
+        assert!(export.exists(), "not a box: neither counted nor removed");
         assert!(errors.is_empty());
         assert_eq!(removed, vec![names[1].clone(), names[2].clone()]);
         let left: Vec<PathBuf> = shelf.files().into_iter().map(|f| f.1).collect();

@@ -317,13 +317,16 @@ fn a_recorder_killed_mid_box_leaves_it_readable_and_a_stopped_one_holds_nothing_
     // Stopped (SIGSTOP: a hung recorder), it holds the driver to nothing: the driver's cycles
     // over two seconds are those of the two seconds before.
     let mut rec = recorder(&stack, &boxes, "blackbox-2.log");
-    let whole = files_ending(&boxes, ".mcap");
+    // Made whole beside the recording loop, the cut file kept beside it.
+    let whole = wait_for(Duration::from_secs(20), "the cut box made whole", || {
+        (!partial.exists()).then(|| files_ending(&boxes, ".mcap"))
+    });
     assert_eq!(
         whole.len(),
         1,
         "the cut box made whole at the restart: {whole:?}"
     );
-    assert!(!partial.exists());
+    assert_eq!(files_ending(&boxes, ".mcap.cut").len(), 1);
     let recovered = read_box(&whole[0]);
     assert!(recovered.extent.complete);
     assert_eq!(recovered.messages.len(), cut.messages.len());
