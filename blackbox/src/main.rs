@@ -269,25 +269,23 @@ impl Recording {
         let stamp = humantime::format_rfc3339_millis(SystemTime::now())
             .to_string()
             .replace([':', '-', '.'], "");
-        let path = self.shelf.new_partial(&stamp, &event.kind);
         let (robot, offset) = (self.robot.clone(), self.wall_offset_ns);
-        match self.recorder.trigger(event, |e| {
-            BoxWriter::new(Durable::create(&path)?, e, &robot, offset)
-        }) {
-            Ok(true) => self.partial = Some(path),
+        let shelf = &mut self.shelf;
+        let mut opened = None;
+        let result = self.recorder.trigger(event, |e| {
+            let path = opened.insert(shelf.new_partial(&stamp, &e.kind));
+            BoxWriter::new(Durable::create(path)?, e, &robot, offset)
+        });
+        match result {
+            Ok(true) => self.partial = opened,
             Ok(false) => {}
             Err(e) => {
-                tracing::error!(path = %path.display(), "cannot freeze a box: {e}");
+                tracing::error!(path = ?opened, "cannot freeze a box: {e}");
                 if !self.recorder.is_freezing() {
                     self.partial = None;
                 }
             }
         }
-    }
-
-    /// Names the open box whole if its window has passed.
-    fn finish_due(&mut self) {
-        self.finish(false);
     }
 
     /// Flushes the open box; names it whole once its window has passed (or `force`).
@@ -432,7 +430,7 @@ fn record(process: &ProcessArgs, dir: Option<PathBuf>) -> Result<()> {
     {
         for t in rec.drain(&inputs) {
             // A box whose window has passed ends before a new event: the event opens its own.
-            rec.finish_due();
+            rec.finish(false);
             rec.trigger(&t);
         }
         // A new box copies the ring in steps, the plane drained between them.
