@@ -40,11 +40,13 @@ pub enum Channel {
     Triggers = 9,
     /// The driver's layout: each joint's name, bus, id, servo model and range (once a second).
     Layout = 10,
+    /// A lidar revolution a second, in Foxglove's `LaserScan`.
+    LidarScan = 11,
 }
 
 impl Channel {
     /// Every channel, in id order.
-    pub const ALL: [Channel; 11] = [
+    pub const ALL: [Channel; 12] = [
         Channel::Wire,
         Channel::JointStates,
         Channel::Goals,
@@ -56,6 +58,7 @@ impl Channel {
         Channel::BaseState,
         Channel::Triggers,
         Channel::Layout,
+        Channel::LidarScan,
     ];
 
     /// The channel with id `id`.
@@ -77,6 +80,7 @@ impl Channel {
             Channel::BaseState => "/base/state",
             Channel::Triggers => "/blackbox/triggers",
             Channel::Layout => "/layout",
+            Channel::LidarScan => "/lidar/scan",
         }
     }
 
@@ -98,12 +102,14 @@ impl Channel {
             Channel::BaseState => "nori.BaseState",
             Channel::Triggers => "nori.Trigger",
             Channel::Layout => "nori.Layout",
+            Channel::LidarScan => "foxglove.LaserScan",
         }
     }
 
     /// Its JSON schema (draft 2020-12).
     pub fn schema(self) -> String {
         let properties = match self {
+            Channel::LidarScan => return LASER_SCAN_SCHEMA.to_string(),
             Channel::Wire => WIRE_PROPERTIES,
             Channel::JointStates => JOINT_STATES_PROPERTIES,
             Channel::Goals | Channel::WheelGoals => GOALS_PROPERTIES,
@@ -131,6 +137,42 @@ const WIRE_PROPERTIES: &str = r#""cycle": {"type": "integer"}, "bus": {"type": "
 const JOINT_STATES_PROPERTIES: &str = r#""seq": {"type": "integer"}, "safe_state": {"type": "boolean"}, "name": {"type": "array", "items": {"type": "string"}}, "valid": {"type": "array", "items": {"type": "boolean"}}, "position": {"type": "array", "items": {"type": "number"}}, "velocity": {"type": "array", "items": {"type": "number"}}, "load": {"type": "array", "items": {"type": "number"}}, "current_a": {"type": "array", "items": {"type": "number"}}, "voltage_v": {"type": "array", "items": {"type": "number"}}, "temperature_c": {"type": "array", "items": {"type": "number"}}, "goal": {"type": "array", "items": {"type": "number"}}, "status": {"type": "array", "items": {"type": "integer"}}, "torque_enabled": {"type": "array", "items": {"type": "boolean"}}, "flags": {"type": "array", "items": {"type": "integer"}}"#;
 const GOALS_PROPERTIES: &str = r#""seq": {"type": "integer"}, "name": {"type": "array", "items": {"type": "string"}}, "goal": {"type": "array", "items": {"type": "number"}}"#;
 const DIRECTIVES_PROPERTIES: &str = r#""seq": {"type": "integer"}, "stop": {"type": "boolean"}, "bus_enabled": {"type": "array", "items": {"type": "boolean"}}, "torque_limit_permille": {"type": "array", "items": {"type": "integer"}}"#;
+/// Foxglove's `LaserScan`, as its JSON schema has it (the well-known schema every Foxglove
+/// panel draws without a plugin): ranges evenly spaced from `start_angle` to `end_angle`.
+const LASER_SCAN_SCHEMA: &str = r#"{"$schema": "https://json-schema.org/draft/2020-12/schema", "title": "foxglove.LaserScan", "type": "object", "properties": {"timestamp": {"type": "object", "properties": {"sec": {"type": "integer", "minimum": 0}, "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999}}}, "frame_id": {"type": "string"}, "pose": {"type": "object", "properties": {"position": {"type": "object", "properties": {"x": {"type": "number"}, "y": {"type": "number"}, "z": {"type": "number"}}}, "orientation": {"type": "object", "properties": {"x": {"type": "number"}, "y": {"type": "number"}, "z": {"type": "number"}, "w": {"type": "number"}}}}}, "start_angle": {"type": "number"}, "end_angle": {"type": "number"}, "ranges": {"type": "array", "items": {"type": "number"}}, "intensities": {"type": "array", "items": {"type": "number"}}}, "required": ["timestamp", "frame_id", "start_angle", "end_angle", "ranges"]}"#;
+
+/// Bins of a revolution in a `LaserScan` (0.5°: the C1's spacing at 10 Hz is about 0.72°).
+pub const SCAN_BINS: usize = 720;
+
+/// A lidar revolution as Foxglove's `LaserScan`, its points put in their 0.5° bins (a bin
+/// with no return reads 0, below any range the lidar measures), stamped on the wall clock
+/// (`wall_offset_ns` from the robot's monotonic one); the monotonic stamp beside it.
+pub fn laser_scan(scan: &telemetry::sensors::LidarScan, wall_offset_ns: i128) -> (u64, Vec<u8>) {
+    let step = std::f64::consts::TAU / SCAN_BINS as f64;
+    let mut ranges = vec![0.0f32; SCAN_BINS];
+    let mut intensities = vec![0.0f32; SCAN_BINS];
+    for p in scan.points() {
+        let bin = (p.angle_rad as f64 / step).round() as usize % SCAN_BINS;
+        if p.range_m.is_finite() && p.range_m > 0.0 {
+            ranges[bin] = p.range_m;
+            intensities[bin] = p.quality as f32;
+        }
+    }
+    let wall = (scan.start_ns as i128 + wall_offset_ns).max(0) as u128;
+    let msg = serde_json::json!({
+        "timestamp": {"sec": (wall / 1_000_000_000) as u64, "nsec": (wall % 1_000_000_000) as u64},
+        "timestamp_ns": scan.start_ns,
+        "frame_id": "lidar",
+        "pose": {"position": {"x": 0.0, "y": 0.0, "z": 0.0},
+                 "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
+        "start_angle": 0.0,
+        "end_angle": step * (SCAN_BINS - 1) as f64,
+        "ranges": ranges,
+        "intensities": intensities,
+    });
+    (scan.start_ns, to_json(&msg))
+}
+
 const LAYOUT_PROPERTIES: &str = r#""joints": {"type": "array", "items": {"type": "object", "properties": {"name": {"type": "string"}, "bus": {"type": "string"}, "id": {"type": "integer"}, "model": {"type": "integer", "description": "Model_Number: 777 STS3215, 2825 STS3250, 2569 STS3095"}, "role": {"type": "string"}, "range_rad": {"type": "array", "items": {"type": "number"}}}}}"#;
 const EVENT_PROPERTIES: &str = r#""kind": {"type": "string"}, "joint": {"type": ["string", "null"]}, "bus": {"type": ["string", "null"]}, "level": {"type": "integer"}, "value": {"type": "number"}"#;
 
@@ -500,6 +542,36 @@ mod tests {
                 (9, Direction::Received, vec![0xFF, 0xFF, 1, 2, 0, 0xFC]),
             ]
         );
+    }
+
+    #[test]
+    fn a_revolution_becomes_a_laser_scan_with_each_point_in_its_bin() {
+        let mut scan = telemetry::sensors::LidarScan {
+            start_ns: 1_500_000_000,
+            point_count: 3,
+            ..Default::default()
+        };
+        let step = std::f32::consts::TAU / SCAN_BINS as f32;
+        for (k, (bin, range)) in [(0usize, 1.5f32), (180, 2.0), (719, 0.0)]
+            .into_iter()
+            .enumerate()
+        {
+            scan.points[k].angle_rad = bin as f32 * step + step * 0.3;
+            scan.points[k].range_m = range;
+            scan.points[k].quality = 40;
+        }
+        let (t, data) = laser_scan(&scan, 1_000_000_000);
+        assert_eq!(t, 1_500_000_000);
+        let v: serde_json::Value = serde_json::from_slice(&data).unwrap();
+        assert_eq!(v["timestamp"]["sec"], 2);
+        assert_eq!(v["timestamp"]["nsec"], 500_000_000);
+        let ranges = v["ranges"].as_array().unwrap();
+        assert_eq!(ranges.len(), SCAN_BINS);
+        assert_eq!(ranges[0], 1.5);
+        assert_eq!(ranges[180], 2.0);
+        assert_eq!(ranges[719], 0.0, "no return: below any measured range");
+        assert_eq!(v["intensities"][180], 40.0);
+        assert_eq!(ranges.iter().filter(|r| r.as_f64() != Some(0.0)).count(), 2);
     }
 
     #[test]

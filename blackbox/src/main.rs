@@ -136,6 +136,7 @@ struct Inputs {
     lift: Sub<LiftState>,
     base: Sub<BaseState>,
     save: Sub<BlackboxSave>,
+    lidar: Sub<telemetry::sensors::LidarScan>,
 }
 
 impl Inputs {
@@ -152,6 +153,7 @@ impl Inputs {
             lift: node.subscriber(&plane::LIFT_STATE)?,
             base: node.subscriber(&plane::BASE_STATE)?,
             save: node.subscriber(&plane::BLACKBOX_SAVE)?,
+            lidar: node.subscriber(&plane::LIDAR_SCAN)?,
         })
     }
 }
@@ -176,6 +178,8 @@ struct Recording {
     /// (overwritten unread, or a cycle the bus moved nothing: a lost bus).
     last_wire_cycle: [Option<u64>; telemetry::frames::MAX_BUSES],
     wire_cycles_missed: u64,
+    /// When the last lidar revolution kept was measured (one a second is kept).
+    last_scan_ns: u64,
 }
 
 impl Recording {
@@ -252,6 +256,13 @@ impl Recording {
         while let Some(s) = plane::next(&i.base) {
             triggers.extend(self.watch.base(&s));
             self.record(Channel::BaseState, channel::base_state(&s));
+        }
+        while let Some(scan) = plane::next(&i.lidar) {
+            if scan.start_ns >= self.last_scan_ns.saturating_add(1_000_000_000) {
+                self.last_scan_ns = scan.start_ns;
+                let m = channel::laser_scan(&scan, self.wall_offset_ns);
+                self.record(Channel::LidarScan, m);
+            }
         }
         while let Some(s) = plane::next(&i.save) {
             triggers.push(OwnTrigger::Saved.at(s.timestamp_ns, s.pid as f32));
@@ -405,6 +416,7 @@ fn record(process: &ProcessArgs, dir: Option<PathBuf>) -> Result<()> {
         states_missed_logged: 0,
         last_wire_cycle: [None; telemetry::frames::MAX_BUSES],
         wire_cycles_missed: 0,
+        last_scan_ns: 0,
     };
     let mut service = ServiceManager::from_env();
     service.ready(&format!(
