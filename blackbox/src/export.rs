@@ -58,13 +58,9 @@ fn sidecar(names: &[String], layout: &[LayoutJoint]) -> serde_json::Value {
             continue;
         };
         chains.entry(j.bus.as_str()).or_default().push(k);
-        let key = match j.model {
-            777 => "sts3215",
-            2825 => "sts3250",
-            2569 => "sts3095",
-            _ => continue,
-        };
-        servo.insert(k.to_string(), key.into());
+        if let Some(model) = feetech::ServoModel::from_model_number(j.model) {
+            servo.insert(k.to_string(), model.key().into());
+        }
     }
     let mut side = serde_json::json!({ "joints": names });
     if !chains.is_empty() {

@@ -25,7 +25,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
     ("lidar", &["telemetry"]),
     ("sim", &["feetech", "body", "telemetry", "camera"]),
     ("recorder", &["telemetry"]),
-    ("blackbox", &["telemetry"]),
+    ("blackbox", &["telemetry", "feetech"]),
     ("model-lab", &["sim", "blackbox"]),
     ("fleet", &["fleet-agent", "telemetry"]),
     ("stack", &["telemetry", "sim", "bus-driver"]),
