@@ -12,7 +12,8 @@ use telemetry::frames::{
     DIRECTIVE_FLAG_STOP,
 };
 use telemetry::motion::{BaseState, LiftState};
-use telemetry::wire::{Direction, WireFrame};
+pub use telemetry::wire::Direction;
+use telemetry::wire::WireFrame;
 
 /// One channel of a box.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -290,10 +291,22 @@ pub fn wire(frame: &WireFrame, names: &Names) -> (u64, Vec<u8>) {
 /// One chunk of a bus's traffic read back: its time, its direction, its bytes.
 pub type WireChunk = (u64, Direction, Vec<u8>);
 
-/// Decodes a wire message: its bus and its chunks; `None` if it is not one.
-pub fn wire_chunks(data: &[u8]) -> Option<(String, Vec<WireChunk>)> {
+/// One wire message read back: a bus's traffic of one cycle.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct WireRecord {
+    /// The bus's name.
+    pub bus: String,
+    /// Bytes the driver's tap could not keep this cycle (its chunks are incomplete).
+    pub lost_bytes: u64,
+    /// The chunks, in the order they went.
+    pub chunks: Vec<WireChunk>,
+}
+
+/// Decodes a wire message; `None` if it is not one.
+pub fn wire_chunks(data: &[u8]) -> Option<WireRecord> {
     let v: serde_json::Value = serde_json::from_slice(data).ok()?;
     let bus = v.get("bus")?.as_str()?.to_string();
+    let lost_bytes = v.get("lost_bytes")?.as_u64()?;
     let chunks = v
         .get("chunks")?
         .as_array()?
@@ -306,7 +319,11 @@ pub fn wire_chunks(data: &[u8]) -> Option<(String, Vec<WireChunk>)> {
             Some((c.get("t_ns")?.as_u64()?, direction, bytes))
         })
         .collect::<Option<Vec<_>>>()?;
-    Some((bus, chunks))
+    Some(WireRecord {
+        bus,
+        lost_bytes,
+        chunks,
+    })
 }
 
 #[derive(Serialize)]
@@ -533,10 +550,10 @@ mod tests {
         f.bus = 1;
         let (t, data) = wire(&f, &Names::default());
         assert_eq!(t, 5);
-        let (bus, chunks) = wire_chunks(&data).unwrap();
-        assert_eq!(bus, "bus1");
+        let record = wire_chunks(&data).unwrap();
+        assert_eq!((record.bus.as_str(), record.lost_bytes), ("bus1", 0));
         assert_eq!(
-            chunks,
+            record.chunks,
             vec![
                 (5, Direction::Sent, vec![0xFF, 0xFF, 0xFE, 4, 0x82]),
                 (9, Direction::Received, vec![0xFF, 0xFF, 1, 2, 0, 0xFC]),

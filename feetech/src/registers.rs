@@ -53,6 +53,27 @@ pub enum Unit {
     TwoMicroseconds,
 }
 
+impl Unit {
+    /// One count in a unit a person reads, and that unit's symbol (angles in degrees; `count`
+    /// for a register without a unit).
+    pub fn scale(self) -> (f64, &'static str) {
+        let degrees_per_step = 360.0 / f64::from(crate::STEPS_PER_TURN);
+        match self {
+            Unit::None => (1.0, "count"),
+            Unit::Steps => (degrees_per_step, "°"),
+            Unit::StepsPerSecond => (degrees_per_step, "°/s"),
+            Unit::HundredStepsPerSecond2 => (100.0 * degrees_per_step, "°/s²"),
+            Unit::PerMille => (0.1, "%"),
+            Unit::Percent => (1.0, "%"),
+            Unit::DeciVolt => (0.1, "V"),
+            Unit::Celsius => (1.0, "°C"),
+            Unit::CurrentUnit => (crate::AMPS_PER_CURRENT_UNIT, "A"),
+            Unit::TenMilliseconds => (0.01, "s"),
+            Unit::TwoMicroseconds => (2e-6, "s"),
+        }
+    }
+}
+
 /// One entry of the control table.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Register {

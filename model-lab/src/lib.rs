@@ -24,6 +24,8 @@
 //! * [`generate`]: a truth model that hides one effect of random size in measured-like data.
 //! * [`bench`]: accuracy and detection limits over many seeds.
 //! * [`report`]: a Markdown report with SVG plots, as strings (the caller writes them).
+//! * [`replay`]: a black box's bus traffic played into the simulated servos, their replies
+//!   held against the recorded ones register by register (`nori sim replay`).
 //!
 //! The model file the lab writes is [`sim::extension::ModelExtension`], which the simulator loads.
 
@@ -38,6 +40,7 @@ pub mod form;
 pub mod generate;
 pub mod motion;
 pub mod register;
+pub mod replay;
 pub mod report;
 pub mod stats;
 pub mod thermal;

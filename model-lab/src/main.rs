@@ -22,6 +22,46 @@ enum ModelCommand {
     Analyze(AnalyzeArgs),
     /// Write measured-like data with one hidden effect (the truth model of the tests).
     Generate(GenerateArgs),
+    /// Play a black box's bus traffic into the simulated servos and hold the simulator's
+    /// replies against the recorded ones, register by register (`nori sim replay`).
+    Replay(ReplayArgs),
+}
+
+/// Options of `nori sim replay`.
+#[derive(Args, Debug)]
+struct ReplayArgs {
+    /// The box (`nori blackbox list`; `nori blackbox export --mcap` copies one out).
+    #[arg(value_name = "BOX.mcap")]
+    path: PathBuf,
+    /// Robot description (TOML) of the robot the box was recorded on; the embedded Nori A3
+    /// when absent.
+    #[arg(long)]
+    description: Option<PathBuf>,
+    /// Loads known on the robot when it was recorded: a protection scenario's set-up, as
+    /// `nori sim serve --scenario` (repeatable).
+    #[arg(long, value_enum)]
+    scenario: Vec<sim::scenario::Scenario>,
+    /// Temperatures integrated this many times faster than real time: as the simulator that
+    /// recorded the box did (`nori sim scenario overheat` heats 120 times faster); 1 for a
+    /// real robot.
+    #[arg(long, default_value_t = 1.0)]
+    thermal_speedup: f64,
+    /// The servos' constants (as `nori sim serve`).
+    #[arg(long, value_enum, default_value_t = sim::constants::ConstantsChoice::Fitted)]
+    servo_constants: sim::constants::ConstantsChoice,
+    /// A model extension on every servo (what `nori model analyze` wrote): does it close the
+    /// gap?
+    #[arg(long, value_name = "FILE")]
+    model_extension: Option<PathBuf>,
+    /// Mechanics step, s.
+    #[arg(long, default_value_t = 0.001)]
+    dt: f64,
+    /// Stretches of the box each register's error is also given over.
+    #[arg(long, default_value_t = 6)]
+    windows: usize,
+    /// Print one JSON object instead of the summary.
+    #[arg(long)]
+    json: bool,
 }
 
 /// `paths` with each black box (`.mcap`) written as a run of CSV and its sidecar in `dir`.
@@ -110,6 +150,7 @@ fn main() -> Result<()> {
     match &ModelCommand::parse() {
         ModelCommand::Analyze(a) => run_analyze(a),
         ModelCommand::Generate(a) => run_generate(a),
+        ModelCommand::Replay(a) => run_replay(a),
     }
 }
 
@@ -330,5 +371,40 @@ fn run_generate(a: &GenerateArgs) -> Result<()> {
             p.name, p.value, p.unit
         ))
     );
+    Ok(())
+}
+
+/// `nori sim replay`: the box replayed, and the simulator's misfit per servo and register.
+fn run_replay(a: &ReplayArgs) -> Result<()> {
+    let mut robot = match &a.description {
+        Some(p) => sim::RobotDescription::load(p)?,
+        None => sim::RobotDescription::nori_a3(),
+    };
+    for s in &a.scenario {
+        s.apply(&mut robot);
+    }
+    let extension = match &a.model_extension {
+        Some(p) => Some(sim::extension::ModelExtension::load(p)?),
+        None => None,
+    };
+    let setup = model_lab::replay::Setup {
+        robot,
+        thermal_speedup: a.thermal_speedup,
+        constants: sim::constants::shipped(a.servo_constants)?,
+        extension,
+        dt: a.dt,
+        windows: a.windows,
+    };
+    let bytes = std::fs::read(&a.path).with_context(|| format!("reading {}", a.path.display()))?;
+    let replay = model_lab::replay::replay(&bytes, &setup)
+        .with_context(|| format!("replaying {}", a.path.display()))?;
+    if a.json {
+        println!("{}", serde_json::to_string(&replay)?);
+    } else {
+        print!(
+            "{}",
+            model_lab::replay::summary(&replay, &a.path.display().to_string())
+        );
+    }
     Ok(())
 }

@@ -11,7 +11,7 @@
 //! | `nori sim aim` | `nori-sim-aim` | `sim` |
 //! | `nori fleet`, `nori fleet store`, `nori fleet report`, `nori policy-server`, `nori router` | `nori-fleet dashboard`, `… store`, `… report`, `… policy-server`, `… router` | `fleet` |
 //! | `nori bench …`, `nori model bench` | `nori-bench …`, `nori-bench model-lab` | `bench` |
-//! | `nori model analyze`, `nori model generate` | `nori-model …` | `model-lab` |
+//! | `nori model analyze`, `nori model generate`, `nori sim replay` | `nori-model …`, `nori-model replay` | `model-lab` |
 //! | `nori blackbox list`, `show`, `export`, `save`, `record` | `nori-blackbox …` | `blackbox` |
 
 mod base_tool;
@@ -107,6 +107,10 @@ enum SimCommand {
     /// Run the whole stack into a protection scenario and print the outcome.
     #[command(disable_help_flag = true)]
     Scenario(Passed),
+    /// Play a black box's bus traffic into the simulated servos and compare their replies
+    /// with the recorded ones, register by register.
+    #[command(disable_help_flag = true)]
+    Replay(Passed),
     /// Where an object is in a simulated arm camera's picture, and the joint angles that
     /// centre it (the simulated world's ground truth, for demonstrators and evaluations).
     #[command(disable_help_flag = true)]
@@ -131,6 +135,7 @@ fn main() -> Result<()> {
         Command::Sim(SimCommand::Serve(p)) => run_instead("nori-sim", &[], p),
         Command::Sim(SimCommand::Scenario(p)) => run_instead("nori-stack", &["scenario"], p),
         Command::Sim(SimCommand::Aim(p)) => run_instead("nori-sim-aim", &[], p),
+        Command::Sim(SimCommand::Replay(p)) => run_instead("nori-model", &["replay"], p),
         Command::State(a) => plane_tools::state(a),
         Command::Goal(a) => plane_tools::goal(a),
         Command::Reenable(a) => plane_tools::reenable(a),

@@ -333,15 +333,20 @@ impl SimBus {
         }
     }
 
-    /// Applies a model extension fitted by the model lab to every servo of the bus.
+    /// Puts a model extension (fitted by the model lab, or an effect hidden from it) on every
+    /// servo of the bus, on top of its model's constants: the parameters it sets replace
+    /// theirs.
     pub fn apply_extension(&mut self, m: &crate::extension::ModelExtension) {
-        let ext = crate::extension::ServoExtension::from(m);
         for s in &mut self.servos {
-            s.extension = ext;
+            s.extension.overlay(m);
             s.sensor_temperature = s.temperature;
         }
-        self.neighbor_coupling = m.neighbor_coupling_ratio.unwrap_or(0.0);
-        self.ambient_drift_k_per_s = m.ambient_drift_k_per_h.unwrap_or(0.0) / 3600.0;
+        if let Some(k) = m.neighbor_coupling_ratio {
+            self.neighbor_coupling = k;
+        }
+        if let Some(d) = m.ambient_drift_k_per_h {
+            self.ambient_drift_k_per_s = d / 3600.0;
+        }
         if let Some(r) = m.supply_resistance_ohm {
             self.supply_resistance = r;
         }

@@ -299,20 +299,34 @@ impl Default for ServoExtension {
     }
 }
 
+impl ServoExtension {
+    /// Sets the parameters `m` carries and keeps the others (an effect put on top of a
+    /// model's fitted constants).
+    pub fn overlay(&mut self, m: &ModelExtension) {
+        for (slot, value) in [
+            (&mut self.sensor_time_constant_s, m.sensor_time_constant_s),
+            (&mut self.resistance_tempco_per_k, m.resistance_tempco_per_k),
+            (&mut self.current_offset_a, m.current_offset_a),
+            (&mut self.armature_error, m.armature_error),
+            (&mut self.duty_gain_error, m.duty_gain_error),
+            (&mut self.stribeck_nm, m.stribeck_nm),
+            (&mut self.stribeck_speed_rad_s, m.stribeck_speed_rad_s),
+            (&mut self.friction_drive_ratio, m.friction_drive_ratio),
+            (&mut self.friction_back_ratio, m.friction_back_ratio),
+            (&mut self.backlash_rad, m.backlash_rad),
+        ] {
+            if let Some(v) = value {
+                *slot = v;
+            }
+        }
+    }
+}
+
 impl From<&ModelExtension> for ServoExtension {
     fn from(m: &ModelExtension) -> Self {
-        ServoExtension {
-            sensor_time_constant_s: m.sensor_time_constant_s.unwrap_or(0.0),
-            resistance_tempco_per_k: m.resistance_tempco_per_k.unwrap_or(0.0),
-            current_offset_a: m.current_offset_a.unwrap_or(0.0),
-            armature_error: m.armature_error.unwrap_or(0.0),
-            duty_gain_error: m.duty_gain_error.unwrap_or(0.0),
-            stribeck_nm: m.stribeck_nm.unwrap_or(0.0),
-            stribeck_speed_rad_s: m.stribeck_speed_rad_s.unwrap_or(1.0),
-            friction_drive_ratio: m.friction_drive_ratio.unwrap_or(0.0),
-            friction_back_ratio: m.friction_back_ratio.unwrap_or(0.0),
-            backlash_rad: m.backlash_rad.unwrap_or(0.0),
-        }
+        let mut ext = ServoExtension::default();
+        ext.overlay(m);
+        ext
     }
 }
 

@@ -35,6 +35,10 @@ struct ServeArgs {
     /// on top (each model it found wrong on measured runs), or the ratings alone.
     #[arg(long, value_enum, default_value_t = sim::constants::ConstantsChoice::Fitted)]
     pub servo_constants: sim::constants::ConstantsChoice,
+    /// A model extension (TOML, as `nori model analyze` writes it) on every servo, on top of
+    /// the servo constants: an effect the model lab must find, or a finding to run.
+    #[arg(long, value_name = "FILE")]
+    pub model_extension: Option<PathBuf>,
     /// Integrate temperatures this many times faster than real time (accelerated heating).
     #[arg(long, default_value_t = 1.0)]
     pub thermal_speedup: f64,
@@ -220,11 +224,21 @@ fn run(args: &ServeArgs) -> Result<()> {
     let shutdown = telemetry::process::stop_flag()?;
     let constants = sim::constants::shipped(args.servo_constants)?;
     announce_constants(&robot, &constants);
+    let extension = match &args.model_extension {
+        Some(p) => Some(sim::extension::ModelExtension::load(p)?),
+        None => None,
+    };
     let mut buses = sim_buses(args, &robot, &faults)?;
     for (bus, _) in &mut buses {
         for c in &constants {
             bus.apply_constants(c);
         }
+        if let Some(m) = &extension {
+            bus.apply_extension(m);
+        }
+    }
+    if let Some(m) = &extension {
+        eprintln!("nori sim: model extension {} on every servo", m.cause);
     }
     let lidar_faults = sensor_faults(args)?;
     let served = serve_logged(buses, args.dt, args.wire_log.as_deref())?;

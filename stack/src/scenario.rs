@@ -37,6 +37,10 @@ pub struct ScenarioArgs {
     /// supervisor is started again once the driver has, and must take the trip over.
     #[arg(long, value_name = "CELSIUS")]
     kill_supervisor_at: Option<f32>,
+    /// A model extension on every servo of the simulator (`nori sim serve --model-extension`):
+    /// an effect hidden from the model lab.
+    #[arg(long, value_name = "FILE")]
+    model_extension: Option<std::path::PathBuf>,
     /// Run the black box too, its boxes in DIR/boxes, and the simulator's own record of the
     /// wire in DIR/sim-wire (kept after the run, to hold the boxes against).
     #[arg(long, value_name = "DIR")]
@@ -140,6 +144,9 @@ impl Stack {
             "--thermal-speedup".into(),
             speedup.to_string(),
         ]);
+        if let Some(m) = &args.model_extension {
+            sim.add_args(&["--model-extension".into(), m.display().to_string()]);
+        }
         let [mut supervisor, mut driver] = supervisor_and_driver(run, SCENARIO_BUS)?;
         if args.kill_supervisor_at.is_some() {
             // A hold that still carries the payload (80 %, the drive limit), so the motor keeps

@@ -36,8 +36,8 @@ fn wire_of(b: &ReadBox, bus: &str) -> Vec<(u64, Direction, Vec<u8>)> {
         .iter()
         .filter(|m| m.channel == Some(Channel::Wire))
         .filter_map(|m| wire_chunks(&m.data))
-        .filter(|(name, _)| name == bus)
-        .flat_map(|(_, chunks)| chunks)
+        .filter(|r| r.bus == bus)
+        .flat_map(|r| r.chunks)
         .collect()
 }
 
@@ -206,6 +206,148 @@ fn an_overheat_trip_freezes_a_box_with_the_bus_bytes_as_the_simulator_saw_them()
         Some(8),
         "{analysis}"
     );
+
+    // Replayed into the simulator with the scenario's payload and heating, the box agrees
+    // with the simulator that recorded it (docs/blackbox.md, "Replay": bounds).
+    let replay = replay(
+        trip_box,
+        &["--scenario", "overheat", "--thermal-speedup", "120"],
+    );
+    let servos = bus_servos(&replay, "left_arm");
+    assert_eq!(servos.len(), 8, "{replay}");
+    for s in servos {
+        let compared = s["compared"].as_u64().unwrap();
+        assert!(compared > 500, "{s}");
+        assert_eq!(s["only_recorded"], 0, "{s}");
+        // A reply the driver gave up on (the real-time simulator late on a loaded machine)
+        // is one the replay still gets.
+        assert!(s["only_simulated"].as_u64().unwrap() * 50 < compared, "{s}");
+        assert!(error(s, "Present_Position", "rms") < 1.0, "{s}");
+        assert!(error(s, "Present_Temperature", "rms") < 0.5, "{s}");
+        assert!(error(s, "Present_Current", "rms") < 0.5, "{s}");
+        assert!(error(s, "Present_Voltage", "max_abs") < 0.05, "{s}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `nori sim replay BOX ARGS --json`.
+fn replay(path: &Path, args: &[&str]) -> Value {
+    let out = Command::new(binary("nori"))
+        .args(["sim", "replay", "--json"])
+        .arg(path)
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+/// A replay's servos on `bus`.
+fn bus_servos<'a>(replay: &'a Value, bus: &str) -> &'a Vec<Value> {
+    let b = replay["buses"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|b| b["bus"] == bus)
+        .unwrap_or_else(|| panic!("no {bus} in {replay}"));
+    b["servos"].as_array().unwrap()
+}
+
+/// A replayed servo's `figure` (`bias`, `rms`, `max_abs`) of `register`.
+fn error(servo: &Value, register: &str, figure: &str) -> f64 {
+    let r = servo["registers"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|r| r["register"] == register)
+        .unwrap_or_else(|| panic!("{register} not compared: {servo}"));
+    r["error"][figure].as_f64().unwrap()
+}
+
+/// The stall scenario with the black box beside it; its one box. `extension`: a model
+/// extension the simulator runs on every servo.
+fn stall_box(dir: &Path, extension: Option<&Path>) -> PathBuf {
+    let mut cmd = Command::new(binary("nori"));
+    cmd.args(["sim", "scenario", "stall", "--json", "--timeout", "120"])
+        .arg("--blackbox")
+        .arg(dir);
+    if let Some(m) = extension {
+        cmd.arg("--model-extension").arg(m);
+    }
+    let out = cmd.output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let boxes = files_ending(&dir.join("boxes"), ".mcap");
+    assert_eq!(boxes.len(), 1, "{boxes:?}");
+    boxes[0].clone()
+}
+
+/// The causes `nori model analyze` names from a box, and its JSON.
+fn analyze(path: &Path) -> (Vec<String>, Value) {
+    let out = Command::new(binary("nori"))
+        .args(["model", "analyze", "--json"])
+        .arg(path)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let causes = v["causes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c.as_str().unwrap().to_string())
+        .collect();
+    (causes, v)
+}
+
+#[test]
+fn a_supply_sag_hidden_in_the_simulator_shows_in_the_replay_and_the_lab_names_it() {
+    let _one_at_a_time = nori_tests::serial();
+    let dir = scratch("blackbox-hidden-sag");
+    // The same scenario on the simulator as it is: the lab finds nothing, the replay agrees.
+    let plain = stall_box(&dir.join("plain"), None);
+    let (causes, v) = analyze(&plain);
+    assert!(causes.is_empty(), "named on a plain box: {causes:?} {v}");
+    for s in bus_servos(&replay(&plain, &["--scenario", "stall"]), "left_arm") {
+        assert!(error(s, "Present_Voltage", "max_abs") < 0.05, "{s}");
+    }
+
+    // The supply sagging 0.25 Ω with the bus's current, hidden from both.
+    let sag = dir.join("sag.toml");
+    std::fs::write(
+        &sag,
+        "format = 1\ncause = \"supply_sag\"\nsupply-resistance-ohm = 0.25\n",
+    )
+    .unwrap();
+    let sagged = stall_box(&dir.join("sagged"), Some(&sag));
+    let nominal = replay(&sagged, &["--scenario", "stall"]);
+    for s in bus_servos(&nominal, "left_arm") {
+        // The simulator's supply stays up where the robot's sagged.
+        assert!(error(s, "Present_Voltage", "bias") > 0.5, "{s}");
+    }
+    let sag_arg = sag.display().to_string();
+    let modelled = replay(
+        &sagged,
+        &["--scenario", "stall", "--model-extension", &sag_arg],
+    );
+    for s in bus_servos(&modelled, "left_arm") {
+        assert!(error(s, "Present_Voltage", "bias").abs() < 0.1, "{s}");
+    }
+    let (causes, v) = analyze(&sagged);
+    assert_eq!(causes, ["supply_sag"], "{v}");
+    let ohm = v["parameters"][0]["value"].as_f64().unwrap();
+    assert!((ohm - 0.25).abs() < 0.05, "fitted {ohm} Ω for 0.25: {v}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -26,7 +26,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
     ("sim", &["feetech", "body", "telemetry", "camera"]),
     ("recorder", &["telemetry"]),
     ("blackbox", &["telemetry", "feetech"]),
-    ("model-lab", &["sim", "blackbox"]),
+    ("model-lab", &["sim", "blackbox", "feetech"]),
     ("fleet", &["fleet-agent", "telemetry"]),
     ("stack", &["telemetry", "sim", "bus-driver"]),
     // The automatic calibration plans from the description and finds stops by the
