@@ -36,6 +36,12 @@ pub struct Setup {
     pub windows: usize,
 }
 
+/// The longest stretch of traffic replayed, s: a box holds minutes (`longest-box-seconds`);
+/// a span of days is a damaged clock, not hours of simulation to step through.
+pub const MAX_SPAN_S: f64 = 3600.0;
+/// The most stretches a register's error is given over.
+pub const MAX_WINDOWS: usize = 1000;
+
 /// A box that cannot be replayed.
 #[derive(Debug, Error)]
 pub enum ReplayError {
@@ -67,6 +73,9 @@ pub enum ReplayError {
         /// What the description says.
         described: String,
     },
+    /// Traffic over a span no box holds.
+    #[error("the box's bus traffic spans {0:.0} s, over the {MAX_SPAN_S} s a replay steps through (its clock is damaged)")]
+    Span(f64),
     /// Settings that cannot be simulated.
     #[error("replay settings: {0}")]
     Settings(String),
@@ -194,6 +203,12 @@ pub fn replay(bytes: &[u8], setup: &Setup) -> Result<Replay, ReplayError> {
             setup.thermal_speedup
         )));
     }
+    if !(1..=MAX_WINDOWS).contains(&setup.windows) {
+        return Err(ReplayError::Settings(format!(
+            "the stretches must number 1 to {MAX_WINDOWS}, got {}",
+            setup.windows
+        )));
+    }
     let recorded = Recorded::read(bytes);
     let (Some(t0), Some(t1)) = (recorded.first_ns(), recorded.last_ns()) else {
         return Err(ReplayError::NoWire);
@@ -201,8 +216,11 @@ pub fn replay(bytes: &[u8], setup: &Setup) -> Result<Replay, ReplayError> {
     let clock = Clock {
         t0_ns: t0,
         duration_s: (t1 - t0) as f64 * 1e-9,
-        windows: setup.windows.max(1),
+        windows: setup.windows,
     };
+    if clock.duration_s > MAX_SPAN_S {
+        return Err(ReplayError::Span(clock.duration_s));
+    }
     let buses = recorded
         .buses
         .iter()
@@ -1287,6 +1305,35 @@ mod tests {
             err.contains(&elbow.joint) && err.contains("--description"),
             "{err}"
         );
+        // A clock that jumps two hours: refused, not stepped through.
+        let mut layout = JointLayout {
+            bus_count: 1,
+            ..JointLayout::default()
+        };
+        layout.set_bus_name(0, BUS);
+        let mut w = BoxWriter::new(std::io::Cursor::new(Vec::new()), &trigger, "t", 0).unwrap();
+        for t_ns in [1_000, 7_200_000_000_000] {
+            let mut frame = WireFrame::default();
+            frame.record(Direction::Sent, t_ns, &packet(Instruction::Ping { id: 1 }));
+            let (t_ns, data) = wire(&frame, &Names::from_layout(&layout));
+            w.write(Record {
+                channel: Channel::Wire,
+                t_ns,
+                data: &data,
+            })
+            .unwrap();
+        }
+        let jumped = w.finish().unwrap().into_inner();
+        assert!(matches!(
+            replay(&jumped, &setup(None)),
+            Err(ReplayError::Span(s)) if s > 7000.0
+        ));
+        let mut many = setup(None);
+        many.windows = MAX_WINDOWS + 1;
+        assert!(matches!(
+            replay(&bytes, &many),
+            Err(ReplayError::Settings(_))
+        ));
         let mut unknown = setup(None);
         unknown.robot.bus.retain(|b| b.name != BUS);
         let err = replay(&bytes, &unknown).unwrap_err().to_string();
