@@ -296,6 +296,8 @@ pub type WireChunk = (u64, Direction, Vec<u8>);
 pub struct WireRecord {
     /// The bus's name.
     pub bus: String,
+    /// The driver's cycle.
+    pub cycle: u64,
     /// Bytes the driver's tap could not keep this cycle (its chunks are incomplete).
     pub lost_bytes: u64,
     /// The chunks, in the order they went.
@@ -307,6 +309,7 @@ pub fn wire_chunks(data: &[u8]) -> Option<WireRecord> {
     let v: serde_json::Value = serde_json::from_slice(data).ok()?;
     let bus = v.get("bus")?.as_str()?.to_string();
     let lost_bytes = v.get("lost_bytes")?.as_u64()?;
+    let cycle = v.get("cycle")?.as_u64()?;
     let chunks = v
         .get("chunks")?
         .as_array()?
@@ -321,6 +324,7 @@ pub fn wire_chunks(data: &[u8]) -> Option<WireRecord> {
         .collect::<Option<Vec<_>>>()?;
     Some(WireRecord {
         bus,
+        cycle,
         lost_bytes,
         chunks,
     })
@@ -548,10 +552,12 @@ mod tests {
         f.record(Direction::Sent, 5, &[0xFF, 0xFF, 0xFE, 4, 0x82]);
         f.record(Direction::Received, 9, &[0xFF, 0xFF, 1, 2, 0, 0xFC]);
         f.bus = 1;
+        f.cycle = 7;
         let (t, data) = wire(&f, &Names::default());
         assert_eq!(t, 5);
         let record = wire_chunks(&data).unwrap();
         assert_eq!((record.bus.as_str(), record.lost_bytes), ("bus1", 0));
+        assert_eq!(record.cycle, 7);
         assert_eq!(
             record.chunks,
             vec![

@@ -896,15 +896,14 @@ impl Servo {
         self.write(reg::UNLOADING_CONDITION.addr, &[0]);
     }
 
-    /// Puts the servo at rest at `angle` rad with its winding (and its sensor) at
-    /// `temperature_c`: the state a replay starts from, read off a record.
+    /// Puts the servo at rest at `angle` rad, its goal where it is, with its winding (and its
+    /// sensor) at `temperature_c`: the state a replay starts from, read off a record.
     pub fn place(&mut self, angle: f64, temperature_c: f64) {
         self.angle = angle;
         self.speed = 0.0;
         self.motor_lead = 0.0;
         self.motor_speed = 0.0;
-        self.setpoint = self.raw_position() - self.fw.homing;
-        self.setpoint_speed = 0.0;
+        self.set_goal_to_present();
         self.temperature = temperature_c;
         self.sensor_temperature = temperature_c;
         self.max_temperature = temperature_c;
