@@ -11,9 +11,12 @@
 //! * `agent`: the loop's state and one turn of it; `config`: its configuration; `keys`: the zenoh
 //!   key expressions; `schema`: what crosses zenoh (postcard, versioned); `outbound`: plane
 //!   frames to fleet messages and the plan to goal frames; `preview`: camera thumbnails and
-//!   lidar scans for the dashboard; `installed`: the package version the robot runs.
+//!   lidar scans for the dashboard; `installed`: the package version the robot runs;
+//!   `box_upload`: the black box's frozen boxes to the fleet, chunk by chunk, paced and never
+//!   ahead of telemetry (its pure core; not wired into the agent yet).
 
 pub mod agent;
+pub mod box_upload;
 pub mod config;
 pub mod delivery;
 pub mod gate;

@@ -1,0 +1,458 @@
+//! The black box's frozen boxes to the fleet, chunk by chunk, at least once (docs/blackbox.md,
+//! "To the fleet"). Pure: the shelf's listing, the fleet's acknowledgements and the time in,
+//! the chunks to read and send out.
+//!
+//! Boxes go oldest first, one at a time. Each starts with a probe (a chunk of no bytes at
+//! offset 0), which the store answers with how much of it it holds: a box it has whole is
+//! never sent again, one it holds part of resumes there (an agent restarted, a store that was
+//! down). Then chunks go in order, at most `window` unacknowledged; when the oldest has waited
+//! `resend-after` without an acknowledgement, everything unacknowledged goes again from the
+//! store's offset, and the wait doubles. Bytes are paced by a token bucket, and nothing is
+//! sent while the telemetry or the event journal has anything waiting: a box never goes
+//! ahead of them.
+
+use std::collections::VecDeque;
+
+/// The longest wait before sending unacknowledged chunks again.
+pub const MAX_RESEND_AFTER_NS: u64 = 60_000_000_000;
+
+/// A finished box on the robot's shelf.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ShelvedBox {
+    /// Its number on the shelf (counts up across restarts).
+    pub number: u64,
+    /// Its file name.
+    pub name: String,
+    /// Its size, bytes.
+    pub size: u64,
+}
+
+/// How the upload is paced.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct UploadConfig {
+    /// Bytes a chunk carries at most.
+    pub chunk_bytes: u64,
+    /// Bytes a second, on average.
+    pub bytes_per_second: f64,
+    /// Bytes that may go at once after a quiet while.
+    pub burst_bytes: f64,
+    /// Chunks sent and not yet acknowledged, at most.
+    pub window: usize,
+    /// The first wait for an acknowledgement before sending again, ns.
+    pub resend_after_ns: u64,
+}
+
+/// A chunk to send: `len` bytes of box `number` from `offset` (0 bytes: a probe).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ChunkToSend {
+    /// The box's number.
+    pub number: u64,
+    /// Its file name.
+    pub name: String,
+    /// Its size.
+    pub size: u64,
+    /// Where the chunk starts.
+    pub offset: u64,
+    /// Its length (0: a probe, asking how much the store holds).
+    pub len: u64,
+}
+
+/// The store's acknowledgement of a box: it holds `received` bytes of it from the start, and
+/// `complete` when it has it whole and checked.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct BoxAck {
+    /// The box's number.
+    pub number: u64,
+    /// Bytes the store holds, from the start.
+    pub received: u64,
+    /// Held whole, checked against its digest.
+    pub complete: bool,
+}
+
+/// What the upload did.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct UploadCounters {
+    /// Boxes the store holds whole.
+    pub boxes_stored: u64,
+    /// Boxes gone from the shelf (its cap) before the store had them whole.
+    pub boxes_lost: u64,
+    /// Bytes sent the first time.
+    pub bytes_sent: u64,
+    /// Bytes sent again.
+    pub bytes_resent: u64,
+    /// Acknowledgements of no box in flight, or beyond its size.
+    pub acks_refused: u64,
+}
+
+/// The box being sent.
+#[derive(Debug)]
+struct InFlight {
+    shelved: ShelvedBox,
+    /// The store answered the probe: `acked` is what it holds.
+    probed: bool,
+    acked: u64,
+    /// The next byte to send.
+    next: u64,
+    /// Chunks sent and unacknowledged: their end, and when they went.
+    unacked: VecDeque<(u64, u64)>,
+    /// The furthest byte ever sent (bytes before it go out again as resent).
+    furthest: u64,
+}
+
+/// The upload's state.
+#[derive(Debug)]
+pub struct Upload {
+    config: UploadConfig,
+    waiting: VecDeque<ShelvedBox>,
+    in_flight: Option<InFlight>,
+    /// Boxes known whole at the store (never sent again while this agent runs).
+    stored: Vec<u64>,
+    tokens: f64,
+    tokens_at_ns: u64,
+    resend_after_ns: u64,
+    counters: UploadCounters,
+}
+
+impl Upload {
+    /// An upload with nothing on the shelf yet.
+    pub fn new(config: UploadConfig) -> Upload {
+        Upload {
+            config,
+            waiting: VecDeque::new(),
+            in_flight: None,
+            stored: Vec::new(),
+            tokens: config.burst_bytes,
+            tokens_at_ns: 0,
+            resend_after_ns: config.resend_after_ns,
+            counters: UploadCounters::default(),
+        }
+    }
+
+    /// The shelf's finished boxes now: new ones wait their turn, oldest first; one gone before
+    /// the store had it whole is counted lost.
+    pub fn shelf(&mut self, boxes: &[ShelvedBox]) {
+        let on_shelf = |n: u64| boxes.iter().any(|b| b.number == n);
+        let before = self.waiting.len();
+        self.waiting.retain(|b| on_shelf(b.number));
+        let mut lost = (before - self.waiting.len()) as u64;
+        if self
+            .in_flight
+            .as_ref()
+            .is_some_and(|f| !on_shelf(f.shelved.number))
+        {
+            self.in_flight = None;
+            lost += 1;
+        }
+        self.counters.boxes_lost += lost;
+        for b in boxes {
+            let known = self.stored.contains(&b.number)
+                || self.waiting.iter().any(|w| w.number == b.number)
+                || self
+                    .in_flight
+                    .as_ref()
+                    .is_some_and(|f| f.shelved.number == b.number);
+            if !known {
+                self.waiting.push_back(b.clone());
+            }
+        }
+        self.waiting.make_contiguous().sort_by_key(|b| b.number);
+    }
+
+    /// The next chunk to send at `now_ns`, if one is due. `quiet`: the telemetry and the event
+    /// journal have nothing waiting.
+    pub fn next_chunk(&mut self, now_ns: u64, quiet: bool) -> Option<ChunkToSend> {
+        self.refill(now_ns);
+        if !quiet {
+            return None;
+        }
+        if self.in_flight.is_none() {
+            let shelved = self.waiting.pop_front()?;
+            self.in_flight = Some(InFlight {
+                shelved,
+                probed: false,
+                acked: 0,
+                next: 0,
+                unacked: VecDeque::new(),
+                furthest: 0,
+            });
+        }
+        let resend_after = self.resend_after_ns;
+        let f = self.in_flight.as_mut()?;
+        let overdue = f
+            .unacked
+            .front()
+            .is_some_and(|&(_, at)| now_ns.saturating_sub(at) >= resend_after);
+        if overdue {
+            f.unacked.clear();
+            f.next = f.acked;
+            self.resend_after_ns = (self.resend_after_ns * 2).min(MAX_RESEND_AFTER_NS);
+        }
+        if !f.probed {
+            if !f.unacked.is_empty() {
+                return None;
+            }
+            f.unacked.push_back((0, now_ns));
+            return Some(chunk(&f.shelved, 0, 0));
+        }
+        if f.unacked.len() >= self.config.window || f.next >= f.shelved.size {
+            return None;
+        }
+        let len = self.config.chunk_bytes.min(f.shelved.size - f.next);
+        if self.tokens < len as f64 {
+            return None;
+        }
+        self.tokens -= len as f64;
+        let out = chunk(&f.shelved, f.next, len);
+        let fresh = (f.next + len).saturating_sub(f.furthest.max(f.next));
+        self.counters.bytes_sent += fresh;
+        self.counters.bytes_resent += len - fresh;
+        f.next += len;
+        f.furthest = f.furthest.max(f.next);
+        f.unacked.push_back((f.next, now_ns));
+        Some(out)
+    }
+
+    fn refill(&mut self, now_ns: u64) {
+        let dt = now_ns.saturating_sub(self.tokens_at_ns) as f64 * 1e-9;
+        self.tokens_at_ns = self.tokens_at_ns.max(now_ns);
+        self.tokens =
+            (self.tokens + dt * self.config.bytes_per_second).min(self.config.burst_bytes);
+    }
+
+    /// The store's acknowledgement. An old one, or one of a box not in flight, changes
+    /// nothing; one beyond the box's size is refused.
+    pub fn acknowledged(&mut self, ack: BoxAck) -> bool {
+        let Some(f) = self
+            .in_flight
+            .as_mut()
+            .filter(|f| f.shelved.number == ack.number)
+        else {
+            self.counters.acks_refused += 1;
+            return false;
+        };
+        if ack.received > f.shelved.size {
+            self.counters.acks_refused += 1;
+            return false;
+        }
+        if ack.complete {
+            self.stored.push(ack.number);
+            self.counters.boxes_stored += 1;
+            self.in_flight = None;
+            self.resend_after_ns = self.config.resend_after_ns;
+            return true;
+        }
+        if !f.probed {
+            // The store's offset is where this box resumes.
+            f.probed = true;
+            f.acked = ack.received;
+            f.next = ack.received;
+            f.furthest = f.furthest.max(ack.received);
+            f.unacked.clear();
+        } else if ack.received < f.acked || ack.received > f.next {
+            // The store lost what it had (a restart without it), or holds what was never
+            // sent to it this time: resume where it is.
+            f.acked = ack.received;
+            f.next = ack.received;
+            f.unacked.clear();
+        } else {
+            f.acked = ack.received;
+            f.unacked.retain(|&(end, _)| end > ack.received);
+        }
+        self.resend_after_ns = self.config.resend_after_ns;
+        true
+    }
+
+    /// The link to the fleet has just come up: what is unacknowledged goes again at once.
+    pub fn link_up(&mut self) {
+        if let Some(f) = self.in_flight.as_mut() {
+            f.unacked.clear();
+            f.next = f.acked;
+        }
+        self.resend_after_ns = self.config.resend_after_ns;
+    }
+
+    /// Boxes waiting or in flight.
+    pub fn pending(&self) -> usize {
+        self.waiting.len() + usize::from(self.in_flight.is_some())
+    }
+
+    /// What it did.
+    pub fn counters(&self) -> UploadCounters {
+        self.counters
+    }
+}
+
+fn chunk(b: &ShelvedBox, offset: u64, len: u64) -> ChunkToSend {
+    ChunkToSend {
+        number: b.number,
+        name: b.name.clone(),
+        size: b.size,
+        offset,
+        len,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::expect_used)]
+    use super::*;
+
+    const MS: u64 = 1_000_000;
+
+    fn config() -> UploadConfig {
+        UploadConfig {
+            chunk_bytes: 100,
+            bytes_per_second: 1000.0,
+            burst_bytes: 300.0,
+            window: 2,
+            resend_after_ns: 500 * MS,
+        }
+    }
+
+    fn shelved(number: u64, size: u64) -> ShelvedBox {
+        ShelvedBox {
+            number,
+            name: format!("{number:06}-box.mcap"),
+            size,
+        }
+    }
+
+    /// A store that holds what arrives in order, and answers each chunk.
+    #[derive(Default)]
+    struct Store {
+        held: std::collections::BTreeMap<u64, u64>,
+        whole: Vec<u64>,
+    }
+
+    impl Store {
+        fn take(&mut self, c: &ChunkToSend) -> BoxAck {
+            let held = self.held.entry(c.number).or_insert(0);
+            if c.offset == *held {
+                *held += c.len;
+            }
+            let complete = *held == c.size;
+            if complete && !self.whole.contains(&c.number) {
+                self.whole.push(c.number);
+            }
+            BoxAck {
+                number: c.number,
+                received: *held,
+                complete,
+            }
+        }
+    }
+
+    /// Runs the upload against `store` for `steps` turns of 10 ms from `t`, the link up when
+    /// `link(t)`; gives the time reached.
+    fn run(
+        u: &mut Upload,
+        store: &mut Store,
+        mut t: u64,
+        steps: usize,
+        link: impl Fn(u64) -> bool,
+    ) -> u64 {
+        for _ in 0..steps {
+            t += 10 * MS;
+            while let Some(c) = u.next_chunk(t, true) {
+                if link(t) {
+                    let ack = store.take(&c);
+                    u.acknowledged(ack);
+                }
+            }
+        }
+        t
+    }
+
+    #[test]
+    fn boxes_reach_the_store_whole_oldest_first_at_the_paced_rate() {
+        let mut u = Upload::new(config());
+        u.shelf(&[shelved(2, 1000), shelved(1, 250)]);
+        let mut store = Store::default();
+        run(&mut u, &mut store, 0, 100, |_| true);
+        assert_eq!(store.whole, vec![1, 2]);
+        assert_eq!(u.pending(), 0);
+        let c = u.counters();
+        assert_eq!((c.boxes_stored, c.bytes_sent, c.bytes_resent), (2, 1250, 0));
+        // 1250 bytes at 1000 B/s with a 300-byte burst: not before 0.95 s.
+        let mut slow = Upload::new(config());
+        slow.shelf(&[shelved(1, 1250)]);
+        let mut store = Store::default();
+        run(&mut slow, &mut store, 0, 90, |_| true);
+        assert!(store.whole.is_empty(), "faster than its pace");
+        run(&mut slow, &mut store, 900 * MS, 20, |_| true);
+        assert_eq!(store.whole, vec![1]);
+    }
+
+    #[test]
+    fn nothing_goes_while_telemetry_waits() {
+        let mut u = Upload::new(config());
+        u.shelf(&[shelved(1, 100)]);
+        assert_eq!(u.next_chunk(10 * MS, false), None);
+        assert_eq!(u.next_chunk(20 * MS, true).map(|c| c.len), Some(0));
+    }
+
+    #[test]
+    fn an_outage_resumes_where_the_store_is_and_a_stored_box_is_not_sent_again() {
+        let mut u = Upload::new(config());
+        u.shelf(&[shelved(1, 1000)]);
+        let mut store = Store::default();
+        // The link goes down after 0.3 s and comes back at 3 s.
+        let down = |t: u64| !(300 * MS..3000 * MS).contains(&t);
+        let t = run(&mut u, &mut store, 0, 500, down);
+        assert_eq!(store.whole, vec![1]);
+        let c = u.counters();
+        assert_eq!(c.bytes_sent, 1000);
+        assert!(c.bytes_resent > 0, "what was lost in the outage went again");
+
+        // An agent restarted with the same shelf: the probe finds the box stored.
+        let mut again = Upload::new(config());
+        again.shelf(&[shelved(1, 1000), shelved(3, 50)]);
+        run(&mut again, &mut store, t, 50, |_| true);
+        assert_eq!(store.whole, vec![1, 3]);
+        assert_eq!(again.counters().bytes_sent, 50, "box 1 not sent again");
+    }
+
+    #[test]
+    fn a_box_the_store_holds_part_of_resumes_there() {
+        let mut store = Store::default();
+        store.held.insert(1, 600);
+        let mut u = Upload::new(config());
+        u.shelf(&[shelved(1, 1000)]);
+        run(&mut u, &mut store, 0, 100, |_| true);
+        assert_eq!(store.whole, vec![1]);
+        assert_eq!(u.counters().bytes_sent, 400);
+    }
+
+    #[test]
+    fn a_box_trimmed_off_the_shelf_before_it_was_stored_is_counted_lost() {
+        let mut u = Upload::new(config());
+        u.shelf(&[shelved(1, 1000), shelved(2, 100)]);
+        let first = u.next_chunk(10 * MS, true).unwrap();
+        assert_eq!(first.number, 1);
+        u.shelf(&[shelved(2, 100)]);
+        assert_eq!(u.counters().boxes_lost, 1);
+        assert_eq!(u.next_chunk(20 * MS, true).map(|c| c.number), Some(2));
+    }
+
+    #[test]
+    fn a_wrong_acknowledgement_changes_nothing() {
+        let mut u = Upload::new(config());
+        u.shelf(&[shelved(1, 100)]);
+        u.next_chunk(10 * MS, true).unwrap();
+        let beyond = BoxAck {
+            number: 1,
+            received: 101,
+            complete: false,
+        };
+        let other = BoxAck {
+            number: 9,
+            received: 0,
+            complete: true,
+        };
+        assert!(!u.acknowledged(beyond));
+        assert!(!u.acknowledged(other));
+        assert_eq!(u.counters().acks_refused, 2);
+        assert_eq!(u.counters().boxes_stored, 0);
+        assert_eq!(u.pending(), 1);
+    }
+}
