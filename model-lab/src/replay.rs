@@ -1080,6 +1080,18 @@ mod tests {
     const CYCLE_NS: u64 = 5_000_000;
     const SPEEDUP: f64 = 60.0;
 
+    /// A servo's status packet carrying `params`.
+    fn status(id: u8, params: &[u8]) -> Vec<u8> {
+        let mut buf = [0u8; feetech::MAX_PACKET];
+        let p = StatusPacket {
+            id,
+            status: feetech::ServoStatus(0),
+            params,
+        };
+        let n = p.encode(&mut buf).unwrap();
+        buf[..n].to_vec()
+    }
+
     fn packet(i: Instruction) -> Vec<u8> {
         let mut buf = [0u8; feetech::MAX_PACKET];
         let n = i.encode(&mut buf).unwrap();
@@ -1378,16 +1390,6 @@ mod tests {
     /// gave up on it, read at the head of the next cycle's feedback.
     #[test]
     fn a_late_answer_to_an_earlier_read_is_not_taken_for_this_one() {
-        let status = |id: u8, params: &[u8]| {
-            let mut buf = [0u8; feetech::MAX_PACKET];
-            let p = StatusPacket {
-                id,
-                status: feetech::ServoStatus(0),
-                params,
-            };
-            let n = p.encode(&mut buf).unwrap();
-            buf[..n].to_vec()
-        };
         let mut feedback = [0u8; reg::FEEDBACK_LEN as usize];
         feedback[..2].copy_from_slice(&2100u16.to_le_bytes());
         let read = Read {
@@ -1420,16 +1422,6 @@ mod tests {
     /// at the driver's set-up is placed, a wheel runs in speed mode.
     #[test]
     fn a_servo_is_placed_with_what_the_box_read_before_any_write() {
-        let status = |id: u8, params: &[u8]| {
-            let mut buf = [0u8; feetech::MAX_PACKET];
-            let p = StatusPacket {
-                id,
-                status: feetech::ServoStatus(0),
-                params,
-            };
-            let n = p.encode(&mut buf).unwrap();
-            buf[..n].to_vec()
-        };
         let read = |id, r: Register| Read {
             id,
             addr: r.addr,

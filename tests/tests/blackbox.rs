@@ -190,17 +190,7 @@ fn an_overheat_trip_freezes_a_box_with_the_bus_bytes_as_the_simulator_saw_them()
 
     // The model lab reads the box as it is: one run of its joint states, the bus's motors
     // with their chain and servo model from the box's layout.
-    let out = Command::new(binary("nori"))
-        .args(["model", "analyze", "--json"])
-        .arg(trip_box)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let analysis: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let (_, analysis) = analyze(trip_box);
     assert_eq!(
         analysis["motors"].as_array().map(Vec::len),
         Some(8),
