@@ -14,6 +14,8 @@
 //! * [`recorder`]: the core: messages into the ring and the open box, a trigger opening a box
 //!   with the ring's window, the box finished when its window has passed (time passed in).
 //! * [`export`]: a box's joint states as the model lab's CSV, and what a box holds.
+//! * [`lead_up`]: what led to a box's event (its joint's figures and the protections before
+//!   it), for the fleet's statistics.
 //! * [`config`]: the recorder's configuration, `blackbox.toml`.
 //!
 //! The process (`nori-blackbox`, feature `process`) moves frames from the state plane into the
@@ -24,6 +26,7 @@ pub mod channel;
 pub mod config;
 pub mod export;
 pub mod frozen;
+pub mod lead_up;
 pub mod recorder;
 pub mod ring;
 pub mod shelf;

@@ -57,24 +57,12 @@ impl Shelf {
 
     /// Every file of the shelf: its number, path and size, oldest first.
     pub fn files(&self) -> Vec<(u64, PathBuf, u64)> {
-        let mut out: Vec<(u64, PathBuf, u64)> = std::fs::read_dir(&self.dir)
-            .into_iter()
-            .flatten()
-            .flatten()
-            .filter(|e| e.file_type().is_ok_and(|t| t.is_file()))
-            .filter_map(|e| {
-                let p = e.path();
-                let size = e.metadata().map_or(0, |m| m.len());
-                Some((number(&p)?, p, size))
-            })
-            .collect();
-        out.sort();
-        out
+        files_in(&self.dir)
     }
 
     /// The whole boxes, oldest first.
     pub fn boxes(&self) -> Vec<PathBuf> {
-        self.with_suffix(".mcap")
+        whole_boxes(&self.dir).into_iter().map(|f| f.1).collect()
     }
 
     /// The boxes a crash cut short, oldest first.
@@ -115,6 +103,33 @@ impl Shelf {
     }
 }
 
+/// Every box file in `dir`: its number, path and size, oldest first (none if `dir` cannot be
+/// read).
+fn files_in(dir: &Path) -> Vec<(u64, PathBuf, u64)> {
+    let mut out: Vec<(u64, PathBuf, u64)> = std::fs::read_dir(dir)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .filter(|e| e.file_type().is_ok_and(|t| t.is_file()))
+        .filter_map(|e| {
+            let p = e.path();
+            let size = e.metadata().map_or(0, |m| m.len());
+            Some((number(&p)?, p, size))
+        })
+        .collect();
+    out.sort();
+    out
+}
+
+/// The finished boxes in `dir` (not those being written, cut short or damaged): number, path
+/// and size, oldest first. A reader's view that changes nothing: the fleet agent sends them.
+pub fn whole_boxes(dir: &Path) -> Vec<(u64, PathBuf, u64)> {
+    files_in(dir)
+        .into_iter()
+        .filter(|(_, p, _)| p.extension().is_some_and(|x| x == "mcap"))
+        .collect()
+}
+
 /// The name a finished box takes.
 pub fn whole_name(partial: &Path) -> PathBuf {
     let s = partial.to_string_lossy();
@@ -153,6 +168,8 @@ mod tests {
             "by number, not by time"
         );
         assert_eq!(again.boxes(), vec![whole_name(&a)]);
+        let whole: Vec<PathBuf> = whole_boxes(&dir).into_iter().map(|f| f.1).collect();
+        assert_eq!(whole, vec![whole_name(&a)], "not the one being written");
         assert_eq!(again.partials(), vec![b]);
         std::fs::remove_dir_all(&dir).unwrap();
     }

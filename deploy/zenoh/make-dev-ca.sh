@@ -29,7 +29,8 @@
 #                acknowledgements, even its own
 #   inference    reads nori/*/observation and nori/*/layout, publishes nori/*/actions
 #   dashboard    reads nori/*/{state,events,layout,alive,status}; publishes nothing
-#   store        reads nori/*/{events,state,layout}, publishes nori/*/acks only
+#   store        reads nori/*/{events,state,layout,blackbox/chunk}, publishes nori/*/acks and
+#                nori/*/blackbox/ack only
 # For production use a real CA and keep each robot's key on its robot only.
 set -euo pipefail
 sites=()
@@ -190,17 +191,17 @@ JSON
   done
   cat <<JSON
       { id: "robots-see-interest", permission: "allow", flows: ["egress"], messages: ["declare_subscriber", "declare_liveliness_subscriber"], key_exprs: ["nori/**"] },
-      { id: "robots-publish-no-commands", permission: "deny", flows: ["ingress"], messages: ["put", "delete"], key_exprs: ["nori/*/actions", "nori/*/acks"] },
+      { id: "robots-publish-no-commands", permission: "deny", flows: ["ingress"], messages: ["put", "delete"], key_exprs: ["nori/*/actions", "nori/*/acks", "nori/*/blackbox/ack"] },
       { id: "inference-observes", permission: "allow", flows: ["ingress"], messages: ["declare_subscriber"], key_exprs: ["nori/*/observation", "nori/*/layout"] },
       { id: "inference-hears", permission: "allow", flows: ["egress"], messages: ["put"], key_exprs: ["nori/*/observation", "nori/*/layout"] },
       { id: "inference-acts", permission: "allow", flows: ["ingress"], messages: ["put"], key_exprs: ["nori/*/actions"] },
       { id: "inference-acts-interest", permission: "allow", flows: ["egress"], messages: ["declare_subscriber"], key_exprs: ["nori/*/actions"] },
       { id: "dashboard-asks", permission: "allow", flows: ["ingress"], messages: ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"], key_exprs: ["nori/*/state", "nori/*/events", "nori/*/layout", "nori/*/alive", "nori/*/status", "nori/*/preview", "nori/*/scan"] },
       { id: "dashboard-hears", permission: "allow", flows: ["egress"], messages: ["put", "reply", "liveliness_token", "declare_queryable"], key_exprs: ["nori/*/state", "nori/*/events", "nori/*/layout", "nori/*/alive", "nori/*/status", "nori/*/preview", "nori/*/scan"] },
-      { id: "store-asks", permission: "allow", flows: ["ingress"], messages: ["declare_subscriber"], key_exprs: ["nori/*/events", "nori/*/state", "nori/*/layout"] },
-      { id: "store-hears", permission: "allow", flows: ["egress"], messages: ["put"], key_exprs: ["nori/*/events", "nori/*/state", "nori/*/layout"] },
-      { id: "store-acknowledges", permission: "allow", flows: ["ingress"], messages: ["put"], key_exprs: ["nori/*/acks"] },
-      { id: "store-acknowledges-interest", permission: "allow", flows: ["egress"], messages: ["declare_subscriber"], key_exprs: ["nori/*/acks"] },
+      { id: "store-asks", permission: "allow", flows: ["ingress"], messages: ["declare_subscriber"], key_exprs: ["nori/*/events", "nori/*/state", "nori/*/layout", "nori/*/blackbox/chunk"] },
+      { id: "store-hears", permission: "allow", flows: ["egress"], messages: ["put"], key_exprs: ["nori/*/events", "nori/*/state", "nori/*/layout", "nori/*/blackbox/chunk"] },
+      { id: "store-acknowledges", permission: "allow", flows: ["ingress"], messages: ["put"], key_exprs: ["nori/*/acks", "nori/*/blackbox/ack"] },
+      { id: "store-acknowledges-interest", permission: "allow", flows: ["egress"], messages: ["declare_subscriber"], key_exprs: ["nori/*/acks", "nori/*/blackbox/ack"] },
       { id: "read-only", permission: "deny", flows: ["ingress"], messages: ["put", "delete", "declare_queryable", "liveliness_token"], key_exprs: ["nori/**"] },
     ],
     subjects: [

@@ -10,6 +10,8 @@
 //! [`AgentIo::journal`]) before they are sent, and a restarted agent sends again what the fleet
 //! has not acknowledged ([`crate::delivery`]).
 
+use crate::box_shelf::ShelfError;
+use crate::box_upload::{BoxAck, ChunkToSend, ShelvedBox, Upload};
 use crate::delivery::{
     Delivery, ACTIONS_REFUSED, AGENT_STARTED, CALIBRATION_IN_FORCE, DRIVER_STARTED,
     SUPERVISOR_STARTED,
@@ -21,8 +23,9 @@ use crate::outbound::{self, Every};
 use crate::preview::{preview_msg, scan_msg, Thumbnailer};
 use crate::schedule::Scheduler;
 use crate::schema::{
-    decode, encode, AckMsg, AgentCounters, BusStatus, CalibrationMsg, CameraStatus, EventRecord,
-    ImageMsg, LidarStatus, StatusConfig, StatusHealth, StatusMsg, SCHEMA_VERSION,
+    decode, encode, AckMsg, AgentCounters, BoxAckMsg, BoxChunkMsg, BoxCounters, BusStatus,
+    CalibrationMsg, CameraStatus, EventRecord, ImageMsg, LidarStatus, StatusConfig, StatusHealth,
+    StatusMsg, SCHEMA_VERSION,
 };
 use crate::AgentConfig;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -51,8 +54,10 @@ pub enum Outbound {
     Preview,
     /// `nori/<robot>/scan` (dropped on congestion).
     Scan,
-    /// `nori/<robot>/events` (blocks on congestion: events are rare and matter).
+    /// `nori/<robot>/events` (dropped on congestion: the journal sends them again).
     Event,
+    /// `nori/<robot>/blackbox/chunk` (dropped on congestion: sent again until acknowledged).
+    BoxChunk,
 }
 
 /// Action refusals are journaled as one event per reason at most this often (a policy sending
@@ -124,6 +129,22 @@ pub trait AgentIo {
     fn fleet_joined(&mut self) -> bool {
         false
     }
+    /// The black box's finished boxes, if the shelf's listing changed since the last call
+    /// (`None` too when the agent watches no shelf).
+    fn shelf(&mut self) -> Option<Vec<ShelvedBox>> {
+        None
+    }
+    /// The bytes of `chunk` of a box on the shelf.
+    fn read_box(&mut self, chunk: &ChunkToSend) -> Result<Vec<u8>, ShelfError> {
+        Err(ShelfError::Io {
+            name: chunk.name.clone(),
+            source: std::io::Error::other("no shelf watched"),
+        })
+    }
+    /// The next acknowledgement of a box by the fleet's store (its bytes, undecoded).
+    fn next_box_ack(&mut self) -> Option<Vec<u8>> {
+        None
+    }
 }
 
 /// The agent's counters beyond the gate's and the scheduler's own.
@@ -143,6 +164,8 @@ struct Counters {
     previews_sent: u64,
     previews_failed: u64,
     scans_sent: u64,
+    box_acks_malformed: u64,
+    box_read_failures: u64,
     last_rejection: String,
 }
 
@@ -178,6 +201,8 @@ pub struct Agent {
     scan_pending: bool,
     /// The journal's events on their way to the fleet.
     delivery: Delivery,
+    /// The black box's boxes on their way to the fleet.
+    upload: Upload,
     /// Bytes of a torn tail cut when the journal opened (journaled with the agent's start),
     /// `None` once the start is journaled.
     starting: Option<u64>,
@@ -226,6 +251,7 @@ impl Agent {
         }
         Agent {
             delivery,
+            upload: Upload::new(config.box_upload()),
             starting: Some(journal.recovery.cut_bytes),
             refusals: vec![0; REASONS.len()],
             refusals_every: Every::hz(1e9 / REFUSALS_EVERY_NS as f64),
@@ -285,6 +311,7 @@ impl Agent {
             // Everything held goes out now, and the layout with it (the fleet reads the
             // telemetry by it), not at their next intervals.
             self.delivery.resend_now();
+            self.upload.link_up();
             self.layout_every = Every::hz(1.0 / self.config.telemetry.layout_every_s);
         }
         if let Some(cut_bytes) = self.starting.take() {
@@ -313,6 +340,7 @@ impl Agent {
         }
         self.journal_refusals(io, now, wall_ms);
         self.deliver(io, now);
+        self.ship_boxes(io, now);
         io.answer_status(&mut || encode(&self.status(now)));
     }
 
@@ -352,6 +380,55 @@ impl Agent {
         }
         while let Some(msg) = self.delivery.next_to_send(now) {
             io.publish(Outbound::Event, encode(&msg));
+        }
+    }
+
+    /// Sends what is due of the black box's boxes (only while every event is acknowledged: a
+    /// box never goes ahead of the journal) and takes the store's acknowledgements.
+    fn ship_boxes(&mut self, io: &mut impl AgentIo, now: u64) {
+        if let Some(listing) = io.shelf() {
+            self.upload.shelf(&listing);
+        }
+        while let Some(bytes) = io.next_box_ack() {
+            match decode::<BoxAckMsg>(&bytes) {
+                Ok(a) => {
+                    self.upload.acknowledged(BoxAck {
+                        number: a.number,
+                        digest: a.digest,
+                        received: a.received,
+                        complete: a.complete,
+                    });
+                }
+                Err(e) => {
+                    self.counters.box_acks_malformed += 1;
+                    if self.warn_every.due(now) {
+                        tracing::warn!("a box's acknowledgement refused: {e}");
+                    }
+                }
+            }
+        }
+        let quiet = self.delivery.held() == 0;
+        while let Some(chunk) = self.upload.next_chunk(now, quiet) {
+            // A probe carries no bytes: nothing to read.
+            let read = if chunk.len == 0 {
+                Ok(Vec::new())
+            } else {
+                io.read_box(&chunk)
+            };
+            match read {
+                Ok(data) => {
+                    io.publish(Outbound::BoxChunk, encode(&box_chunk_msg(&chunk, data)));
+                }
+                Err(e) => {
+                    // Tried again after the wait, or counted lost once off the shelf.
+                    self.upload.unsent(&chunk);
+                    self.counters.box_read_failures += 1;
+                    if self.warn_every.due(now) {
+                        tracing::warn!("{e}");
+                    }
+                    break;
+                }
+            }
         }
     }
 
@@ -676,6 +753,7 @@ impl Agent {
                 previews_sent: c.previews_sent,
                 previews_failed: c.previews_failed,
                 scans_sent: c.scans_sent,
+                boxes: self.box_counters(),
             },
             last_rejection: c.last_rejection.clone(),
             // Named from the driver's layout: the one source of names.
@@ -726,6 +804,19 @@ impl Agent {
         }
     }
 
+    fn box_counters(&self) -> BoxCounters {
+        let u = self.upload.counters();
+        BoxCounters {
+            pending: self.upload.pending() as u64,
+            stored: u.boxes_stored,
+            lost: u.boxes_lost,
+            bytes_sent: u.bytes_sent,
+            bytes_resent: u.bytes_resent,
+            acks_refused: u.acks_refused + self.counters.box_acks_malformed,
+            read_failures: self.counters.box_read_failures,
+        }
+    }
+
     /// Action chunks accepted so far.
     pub fn accepted(&self) -> u64 {
         self.gate.accepted()
@@ -762,6 +853,19 @@ pub fn wall_ms() -> u64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(0, |d| d.as_millis() as u64)
+}
+
+/// The message carrying `chunk`'s bytes.
+fn box_chunk_msg(chunk: &ChunkToSend, data: Vec<u8>) -> BoxChunkMsg {
+    BoxChunkMsg {
+        version: SCHEMA_VERSION,
+        number: chunk.number,
+        name: chunk.name.clone(),
+        size: chunk.size,
+        digest: chunk.digest,
+        offset: chunk.offset,
+        data,
+    }
 }
 
 /// One of the agent's own events.

@@ -25,6 +25,9 @@ pub struct ShelvedBox {
     pub name: String,
     /// Its size, bytes.
     pub size: u64,
+    /// The SHA-256 of its bytes: its identity at the store (a wiped shelf numbers from 1
+    /// again; its boxes are still new to the store).
+    pub digest: [u8; 32],
 }
 
 /// How the upload is paced.
@@ -51,6 +54,8 @@ pub struct ChunkToSend {
     pub name: String,
     /// Its size.
     pub size: u64,
+    /// The SHA-256 of the whole box.
+    pub digest: [u8; 32],
     /// Where the chunk starts.
     pub offset: u64,
     /// Its length (0: a probe, asking how much the store holds).
@@ -63,6 +68,9 @@ pub struct ChunkToSend {
 pub struct BoxAck {
     /// The box's number.
     pub number: u64,
+    /// The SHA-256 of the box (an acknowledgement of another box of that number, from before
+    /// the shelf was wiped, is refused).
+    pub digest: [u8; 32],
     /// Bytes the store holds, from the start.
     pub received: u64,
     /// Held whole, checked against its digest.
@@ -80,7 +88,7 @@ pub struct UploadCounters {
     pub bytes_sent: u64,
     /// Bytes sent again.
     pub bytes_resent: u64,
-    /// Acknowledgements of no box in flight, or beyond its size.
+    /// Acknowledgements of no box in flight, of another digest, or beyond its size.
     pub acks_refused: u64,
 }
 
@@ -93,8 +101,9 @@ struct InFlight {
     acked: u64,
     /// The next byte to send.
     next: u64,
-    /// Chunks sent and unacknowledged: their end, and when they went.
-    unacked: VecDeque<(u64, u64)>,
+    /// Chunks sent and unacknowledged: their end, when they went, and the bytes of them sent
+    /// the first time.
+    unacked: VecDeque<(u64, u64, u64)>,
     /// The furthest byte ever sent (bytes before it go out again as resent).
     furthest: u64,
 }
@@ -134,6 +143,7 @@ impl Upload {
         let on_shelf = |n: u64| boxes.iter().any(|b| b.number == n);
         let before = self.waiting.len();
         self.waiting.retain(|b| on_shelf(b.number));
+        self.stored.retain(|&n| on_shelf(n));
         let mut lost = (before - self.waiting.len()) as u64;
         if self
             .in_flight
@@ -181,7 +191,7 @@ impl Upload {
         let overdue = f
             .unacked
             .front()
-            .is_some_and(|&(_, at)| now_ns.saturating_sub(at) >= resend_after);
+            .is_some_and(|&(_, at, _)| now_ns.saturating_sub(at) >= resend_after);
         if overdue {
             f.unacked.clear();
             f.next = f.acked;
@@ -191,7 +201,7 @@ impl Upload {
             if !f.unacked.is_empty() {
                 return None;
             }
-            f.unacked.push_back((0, now_ns));
+            f.unacked.push_back((0, now_ns, 0));
             return Some(chunk(&f.shelved, 0, 0));
         }
         if f.unacked.len() >= self.config.window || f.next >= f.shelved.size {
@@ -208,7 +218,7 @@ impl Upload {
         self.counters.bytes_resent += len - fresh;
         f.next += len;
         f.furthest = f.furthest.max(f.next);
-        f.unacked.push_back((f.next, now_ns));
+        f.unacked.push_back((f.next, now_ns, fresh));
         Some(out)
     }
 
@@ -225,7 +235,7 @@ impl Upload {
         let Some(f) = self
             .in_flight
             .as_mut()
-            .filter(|f| f.shelved.number == ack.number)
+            .filter(|f| f.shelved.number == ack.number && f.shelved.digest == ack.digest)
         else {
             self.counters.acks_refused += 1;
             return false;
@@ -256,10 +266,25 @@ impl Upload {
             f.unacked.clear();
         } else {
             f.acked = ack.received;
-            f.unacked.retain(|&(end, _)| end > ack.received);
+            f.unacked.retain(|&(end, _, _)| end > ack.received);
         }
         self.resend_after_ns = self.config.resend_after_ns;
         true
+    }
+
+    /// `chunk`, the last one handed out, could not be read and did not go: it is not counted
+    /// as sent, and goes again after the wait, like a chunk lost on the way.
+    pub fn unsent(&mut self, chunk: &ChunkToSend) {
+        let Some(f) = self.in_flight.as_mut() else {
+            return;
+        };
+        let end = chunk.offset + chunk.len;
+        if let Some(last) = f.unacked.back_mut().filter(|l| l.0 == end) {
+            let fresh = std::mem::take(&mut last.2);
+            self.counters.bytes_sent -= fresh;
+            self.counters.bytes_resent -= chunk.len - fresh;
+            f.furthest -= fresh;
+        }
     }
 
     /// The link to the fleet has just come up: what is unacknowledged goes again at once.
@@ -287,6 +312,7 @@ fn chunk(b: &ShelvedBox, offset: u64, len: u64) -> ChunkToSend {
         number: b.number,
         name: b.name.clone(),
         size: b.size,
+        digest: b.digest,
         offset,
         len,
     }
@@ -314,6 +340,7 @@ mod tests {
             number,
             name: format!("{number:06}-box.mcap"),
             size,
+            digest: [number as u8; 32],
         }
     }
 
@@ -336,6 +363,7 @@ mod tests {
             }
             BoxAck {
                 number: c.number,
+                digest: c.digest,
                 received: *held,
                 complete,
             }
@@ -441,17 +469,26 @@ mod tests {
         u.next_chunk(10 * MS, true).unwrap();
         let beyond = BoxAck {
             number: 1,
+            digest: [1; 32],
             received: 101,
             complete: false,
         };
         let other = BoxAck {
             number: 9,
+            digest: [9; 32],
             received: 0,
             complete: true,
         };
+        // Box 1 of a shelf since wiped: its number, another digest.
+        let wiped = BoxAck {
+            digest: [7; 32],
+            ..other
+        };
+        let wiped = BoxAck { number: 1, ..wiped };
         assert!(!u.acknowledged(beyond));
         assert!(!u.acknowledged(other));
-        assert_eq!(u.counters().acks_refused, 2);
+        assert!(!u.acknowledged(wiped));
+        assert_eq!(u.counters().acks_refused, 3);
         assert_eq!(u.counters().boxes_stored, 0);
         assert_eq!(u.pending(), 1);
     }

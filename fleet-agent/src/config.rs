@@ -110,6 +110,23 @@ pub struct JournalConfig {
     pub window: usize,
 }
 
+/// The black box's frozen boxes to the fleet's store (`crate::box_upload`).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct BlackboxUploadConfig {
+    /// Bytes a second, on average.
+    pub bytes_per_second: u64,
+    /// Bytes a chunk carries at most (also the burst after a quiet while).
+    pub chunk_bytes: u64,
+    /// Chunks sent and not yet acknowledged, at most.
+    pub window: usize,
+    /// The first wait for the store's acknowledgement before chunks are sent again, ms.
+    pub resend_after_ms: u64,
+}
+
+/// The largest chunk of a box (the fleet's store refuses larger ones).
+pub const MAX_BOX_CHUNK_BYTES: u64 = 1 << 20;
+
 impl ZenohConfig {
     fn check(&self, origin: &str) -> Result<(), ConfigError> {
         if !matches!(self.mode.as_str(), "peer" | "client") {
@@ -250,6 +267,8 @@ pub struct AgentConfig {
     pub preview: PreviewConfig,
     /// The event journal.
     pub journal: JournalConfig,
+    /// The black box's boxes to the fleet.
+    pub blackbox: BlackboxUploadConfig,
 }
 
 impl ProcessConfig for AgentConfig {
@@ -274,6 +293,7 @@ impl AgentConfig {
         c.check_cameras(origin)?;
         c.preview.check(origin)?;
         c.check_journal(origin)?;
+        c.check_blackbox(origin)?;
         Ok(c)
     }
 
@@ -355,6 +375,44 @@ impl AgentConfig {
             " ms",
         )?;
         within(origin, "journal.window", j.window, 1..=65_536, "")
+    }
+
+    fn check_blackbox(&self, origin: &str) -> Result<(), ConfigError> {
+        let b = &self.blackbox;
+        within(
+            origin,
+            "blackbox.bytes-per-second",
+            b.bytes_per_second,
+            1024..=1 << 30,
+            " bytes/s",
+        )?;
+        within(
+            origin,
+            "blackbox.chunk-bytes",
+            b.chunk_bytes,
+            1024..=MAX_BOX_CHUNK_BYTES,
+            " bytes",
+        )?;
+        within(origin, "blackbox.window", b.window, 1..=64, "")?;
+        within(
+            origin,
+            "blackbox.resend-after-ms",
+            b.resend_after_ms,
+            100..=crate::box_upload::MAX_RESEND_AFTER_NS / 1_000_000,
+            " ms",
+        )
+    }
+
+    /// How the black box's boxes go to the fleet.
+    pub fn box_upload(&self) -> crate::box_upload::UploadConfig {
+        let b = &self.blackbox;
+        crate::box_upload::UploadConfig {
+            chunk_bytes: b.chunk_bytes,
+            bytes_per_second: b.bytes_per_second as f64,
+            burst_bytes: b.chunk_bytes as f64,
+            window: b.window,
+            resend_after_ns: b.resend_after_ms * 1_000_000,
+        }
     }
 
     /// How the journal's events are delivered.
@@ -461,6 +519,22 @@ mod tests {
             ),
             ("width = 160", "width = 4000", "preview.width"),
             ("quality = 70", "quality = 0", "preview.quality"),
+            (
+                "bytes-per-second = 65536",
+                "bytes-per-second = 10",
+                "blackbox.bytes-per-second",
+            ),
+            (
+                "chunk-bytes = 65536",
+                "chunk-bytes = 4194304",
+                "blackbox.chunk-bytes",
+            ),
+            ("window = 4\n", "window = 0\n", "blackbox.window"),
+            (
+                "resend-after-ms = 1000",
+                "resend-after-ms = 0",
+                "blackbox.resend-after-ms",
+            ),
         ] {
             let text = DEFAULT_CONFIG_TOML.replace(from, to);
             assert_ne!(text, DEFAULT_CONFIG_TOML);

@@ -550,8 +550,8 @@ mod tests {
         c.step_offsets_ns[2] = 5000 * MS;
         assert_eq!(refused(&c, now).reason(), "shape");
         let mut c = good.clone();
-        c.version = 9;
-        assert_eq!(refused(&c, now), Rejection::Version(9));
+        c.version = SCHEMA_VERSION + 1;
+        assert_eq!(refused(&c, now), Rejection::Version(SCHEMA_VERSION + 1));
         assert_eq!(refused(&good, 1201 * MS).reason(), "stale");
         assert_eq!(refused(&good, 999 * MS).reason(), "future");
         let mut g = gate();

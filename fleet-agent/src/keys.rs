@@ -8,6 +8,8 @@
 //! | `nori/<id>/acks` | fleet store → robot | [`crate::schema::AckMsg`]: the journal is stored through an event |
 //! | `nori/<id>/preview` | robot → fleet | [`crate::schema::PreviewMsg`], a camera thumbnail now and then |
 //! | `nori/<id>/scan` | robot → fleet | [`crate::schema::ScanMsg`], a lidar revolution now and then |
+//! | `nori/<id>/blackbox/chunk` | robot → fleet store | [`crate::schema::BoxChunkMsg`], a frozen box piece by piece, again until acknowledged |
+//! | `nori/<id>/blackbox/ack` | fleet store → robot | [`crate::schema::BoxAckMsg`]: how much of a box the store holds |
 //! | `nori/<id>/observation` | robot → inference | [`crate::schema::ObservationMsg`] |
 //! | `nori/<id>/actions` | inference → robot | [`crate::schema::ActionChunk`] |
 //! | `nori/<id>/alive` | liveliness token | present while the agent runs |

@@ -13,9 +13,11 @@
 //!   frames to fleet messages and the plan to goal frames; `preview`: camera thumbnails and
 //!   lidar scans for the dashboard; `installed`: the package version the robot runs;
 //!   `box_upload`: the black box's frozen boxes to the fleet, chunk by chunk, paced and never
-//!   ahead of telemetry (its pure core; not wired into the agent yet).
+//!   ahead of the events; `box_shelf`: the boxes on disk, listed and hashed by a thread of
+//!   their own.
 
 pub mod agent;
+pub mod box_shelf;
 pub mod box_upload;
 pub mod config;
 pub mod delivery;

@@ -5,6 +5,8 @@
 use anyhow::{Context, Result};
 use clap::Parser;
 use fleet_agent::agent::{Agent, AgentIo, JournalStart, Outbound};
+use fleet_agent::box_shelf::{ShelfError, ShelfWatch};
+use fleet_agent::box_upload::{ChunkToSend, ShelvedBox};
 use fleet_agent::journal::{Journal, JournalError};
 use fleet_agent::keys::robot_key;
 use fleet_agent::zenoh::handlers::FifoChannelHandler;
@@ -45,6 +47,10 @@ struct Args {
     /// unit passes /var/lib/nori/journal).
     #[arg(long)]
     journal_dir: Option<PathBuf>,
+    /// The black box's shelf (`nori-blackbox`'s `dir`, /var/lib/nori/blackbox on the robot):
+    /// its finished boxes go to the fleet's store. Absent: no box is sent.
+    #[arg(long)]
+    blackbox_dir: Option<PathBuf>,
     /// The file the `nori-robot` package writes its version to (absent: a build from source).
     #[arg(long, default_value = fleet_agent::installed::VERSION_FILE)]
     version_file: PathBuf,
@@ -85,6 +91,8 @@ struct Wired {
     base_states: Sub<BaseState>,
     lift_commands: Pub<LiftCommand>,
     base_commands: Pub<BaseCommand>,
+    /// The black box's shelf, when `--blackbox-dir` names one.
+    shelf: Option<ShelfWatch>,
 }
 
 /// The agent's declarations on the fleet's session.
@@ -95,7 +103,9 @@ struct FleetPorts {
     preview_pub: Publisher<'static>,
     scan_pub: Publisher<'static>,
     event_pub: Publisher<'static>,
+    box_pub: Publisher<'static>,
     acks: Subscriber<FifoChannelHandler<Sample>>,
+    box_acks: Subscriber<FifoChannelHandler<Sample>>,
     actions: Subscriber<FifoChannelHandler<Sample>>,
     status_key: String,
     status_queries: Queryable<FifoChannelHandler<Query>>,
@@ -125,6 +135,12 @@ impl FleetPorts {
             // fleet acknowledges it and sends it again, and blocking would stall this loop (the
             // one forwarding goals) for as long as a frozen router takes to be declared dead.
             event_pub: publisher("events", CongestionControl::Drop)?,
+            // Dropped on congestion too: a chunk goes again until the store acknowledges it.
+            box_pub: publisher("blackbox/chunk", CongestionControl::Drop)?,
+            box_acks: session
+                .declare_subscriber(robot_key(id, "blackbox/ack"))
+                .wait()
+                .map_err(z)?,
             acks: session
                 .declare_subscriber(robot_key(id, "acks"))
                 .wait()
@@ -265,6 +281,7 @@ impl AgentIo for Wired {
             Outbound::Preview => &f.preview_pub,
             Outbound::Scan => &f.scan_pub,
             Outbound::Event => &f.event_pub,
+            Outbound::BoxChunk => &f.box_pub,
         };
         publisher.put(payload).wait().is_ok()
     }
@@ -283,6 +300,22 @@ impl AgentIo for Wired {
                 tracing::debug!("status reply: {e}");
             }
         }
+    }
+    fn shelf(&mut self) -> Option<Vec<ShelvedBox>> {
+        self.shelf.as_ref()?.listing()
+    }
+    fn read_box(&mut self, chunk: &ChunkToSend) -> Result<Vec<u8>, ShelfError> {
+        match &self.shelf {
+            Some(s) => s.read(chunk),
+            None => Err(ShelfError::Io {
+                name: chunk.name.clone(),
+                source: std::io::Error::other("no shelf watched"),
+            }),
+        }
+    }
+    fn next_box_ack(&mut self) -> Option<Vec<u8>> {
+        let sample = self.fleet.as_ref()?.box_acks.try_recv().ok().flatten()?;
+        Some(sample.payload().to_bytes().into_owned())
     }
     fn fleet_joined(&mut self) -> bool {
         let Some(session) = self.connecting.as_ref().and_then(|rx| rx.try_recv().ok()) else {
@@ -349,6 +382,7 @@ fn run(args: Args) -> Result<()> {
     });
     let (journal, start) = open_journal(&journal_dir, config.journal.bound_bytes);
     let mut io = wire(&node, zenoh_config, &id, &config, journal, journal_dir)?;
+    io.shelf = watch_shelf(args.blackbox_dir.as_deref());
     tracing::info!(robot = %id, domain = %args.process.domain, connect = ?config.zenoh.connect,
         "joining the fleet: telemetry on {}, actions from {}", robot_key(&id, "state"), robot_key(&id, "actions"));
     let mut service = ServiceManager::from_env();
@@ -505,6 +539,28 @@ fn open_journal(dir: &std::path::Path, bound: u64) -> (Option<Journal>, JournalS
     }
 }
 
+/// Watches the black box's shelf in `dir`, if one is named: `None` (said once) otherwise, or
+/// when its thread cannot start (the agent runs on; its boxes stay on the robot).
+fn watch_shelf(dir: Option<&std::path::Path>) -> Option<ShelfWatch> {
+    let Some(dir) = dir else {
+        tracing::info!("no --blackbox-dir: the black box's boxes are not sent to the fleet");
+        return None;
+    };
+    match ShelfWatch::spawn(dir.to_path_buf(), std::time::Duration::from_secs(1)) {
+        Ok(w) => {
+            tracing::info!(dir = %dir.display(), "the black box's boxes go to the fleet's store");
+            Some(w)
+        }
+        Err(e) => {
+            tracing::error!(
+                "watching the black box's shelf {}: {e}; its boxes are not sent",
+                dir.display()
+            );
+            None
+        }
+    }
+}
+
 /// Opens the agent's ports on the state plane and starts joining the fleet.
 fn wire(
     node: &Plane,
@@ -557,5 +613,6 @@ fn wire(
         base_states: node.subscriber(&plane::BASE_STATE)?,
         lift_commands: node.publisher(&plane::LIFT_COMMAND)?,
         base_commands: node.publisher(&plane::BASE_COMMAND)?,
+        shelf: None,
     })
 }

@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 /// The schema version this build speaks.
-pub const SCHEMA_VERSION: u16 = 8;
+pub const SCHEMA_VERSION: u16 = 9;
 
 /// Joint telemetry for dashboards, rate-limited (`nori/<robot>/state`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -166,6 +166,43 @@ pub struct AckMsg {
     pub journal: u64,
     /// Its events are stored through this number.
     pub stored_through: u64,
+}
+
+/// A piece of a frozen black box (`nori/<robot>/blackbox/chunk`): `data` is the box's bytes
+/// from `offset`; no bytes is a probe, asking how much of the box the store holds. Sent until
+/// the store acknowledges it ([`BoxAckMsg`]); the store keeps a box by `digest`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BoxChunkMsg {
+    /// [`SCHEMA_VERSION`].
+    pub version: u16,
+    /// The box's number on the robot's shelf.
+    pub number: u64,
+    /// Its file name on the shelf (`NNNNNN-TIME-KIND.mcap`).
+    pub name: String,
+    /// Its size, bytes.
+    pub size: u64,
+    /// The SHA-256 of the whole box.
+    pub digest: [u8; 32],
+    /// Where `data` starts in the box.
+    pub offset: u64,
+    /// The bytes.
+    pub data: Vec<u8>,
+}
+
+/// The store's answer to a [`BoxChunkMsg`] (`nori/<robot>/blackbox/ack`): it holds the box's
+/// first `received` bytes, and the whole of it, checked against its digest, when `complete`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct BoxAckMsg {
+    /// [`SCHEMA_VERSION`].
+    pub version: u16,
+    /// The box's number on the robot's shelf.
+    pub number: u64,
+    /// The box's SHA-256.
+    pub digest: [u8; 32],
+    /// Bytes the store holds, from the start.
+    pub received: u64,
+    /// Stored whole and checked.
+    pub complete: bool,
 }
 
 /// What a policy sees (`nori/<robot>/observation`).
@@ -451,6 +488,28 @@ pub struct AgentCounters {
     pub previews_failed: u64,
     /// Lidar revolutions sent to the fleet (`nori/<robot>/scan`).
     pub scans_sent: u64,
+    /// The black box's upload to the fleet.
+    pub boxes: BoxCounters,
+}
+
+/// The black box's upload to the fleet, in [`AgentCounters`].
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct BoxCounters {
+    /// Boxes on the shelf not yet stored whole by the fleet.
+    pub pending: u64,
+    /// Boxes the fleet's store acknowledged whole.
+    pub stored: u64,
+    /// Boxes trimmed off the shelf (its cap) before the fleet had them.
+    pub lost: u64,
+    /// Bytes sent the first time.
+    pub bytes_sent: u64,
+    /// Bytes sent again (an outage, a store restarting).
+    pub bytes_resent: u64,
+    /// Acknowledgements that could not be used (malformed, of no box in flight, another
+    /// digest, beyond the box).
+    pub acks_refused: u64,
+    /// Chunks that could not be read from the shelf.
+    pub read_failures: u64,
 }
 
 /// One bus of the driver, in a [`StatusMsg`].

@@ -5,11 +5,13 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use fleet_agent::agent::{Agent, AgentIo, JournalStart, Outbound};
+use fleet_agent::box_shelf::ShelfError;
+use fleet_agent::box_upload::{ChunkToSend, ShelvedBox};
 use fleet_agent::delivery::Delivery;
 use fleet_agent::journal::{JournalError, Record, Recovery};
 use fleet_agent::schema::{
-    decode, encode, AckMsg, ActionChunk, EventMsg, EventRecord, ObservationMsg, PreviewMsg,
-    ScanMsg, StateMsg, StatusMsg, SCHEMA_VERSION,
+    decode, encode, AckMsg, ActionChunk, BoxAckMsg, BoxChunkMsg, EventMsg, EventRecord,
+    ObservationMsg, PreviewMsg, ScanMsg, StateMsg, StatusMsg, SCHEMA_VERSION,
 };
 use fleet_agent::AgentConfig;
 use std::collections::VecDeque;
@@ -54,6 +56,11 @@ struct Queues {
     supervisor_beat: Option<Heartbeat>,
     /// The link to the fleet comes up at the next turn.
     joining: bool,
+    /// The black box's shelf listing handed over at the next turn, the boxes' bytes by name,
+    /// and the store's acknowledgements of them.
+    shelf: Option<Vec<ShelvedBox>>,
+    box_files: std::collections::HashMap<String, Vec<u8>>,
+    box_acks: VecDeque<Vec<u8>>,
 }
 
 impl AgentIo for Queues {
@@ -140,6 +147,21 @@ impl AgentIo for Queues {
     }
     fn fleet_joined(&mut self) -> bool {
         std::mem::take(&mut self.joining)
+    }
+    fn shelf(&mut self) -> Option<Vec<ShelvedBox>> {
+        self.shelf.take()
+    }
+    fn read_box(&mut self, chunk: &ChunkToSend) -> Result<Vec<u8>, ShelfError> {
+        let gone = || ShelfError::Io {
+            name: chunk.name.clone(),
+            source: std::io::Error::from(std::io::ErrorKind::NotFound),
+        };
+        let bytes = self.box_files.get(&chunk.name).ok_or_else(gone)?;
+        let (from, len) = (chunk.offset as usize, chunk.len as usize);
+        Ok(bytes.get(from..from + len).ok_or_else(gone)?.to_vec())
+    }
+    fn next_box_ack(&mut self) -> Option<Vec<u8>> {
+        self.box_acks.pop_front()
     }
 }
 
@@ -1133,4 +1155,119 @@ fn the_calibration_the_robot_runs_is_in_its_status_and_journaled_at_its_start() 
     let mut agent = Agent::new(&config).calibrated(None);
     assert_eq!(status(&mut agent, &mut io, 1_000 * MS).calibration, None);
     assert_eq!(journaled(&io)[1].detail, "none");
+}
+
+/// A store that keeps a box's chunks arriving at the offset it holds, and answers each.
+fn store_takes(held: &mut Vec<u8>, c: &BoxChunkMsg) -> Vec<u8> {
+    if c.offset == held.len() as u64 {
+        held.extend_from_slice(&c.data);
+    }
+    encode(&BoxAckMsg {
+        version: SCHEMA_VERSION,
+        number: c.number,
+        digest: c.digest,
+        received: held.len() as u64,
+        complete: held.len() as u64 == c.size,
+    })
+}
+
+/// A frozen box reaches the store byte for byte, chunk by chunk at the configured pace, and
+/// only once the journal's events are acknowledged: a box never goes ahead of them.
+#[test]
+fn a_frozen_box_goes_to_the_store_after_the_events_at_its_pace() {
+    let (mut agent, mut io, mut now) = running();
+    let bytes: Vec<u8> = (0..200_000u32).map(|i| (i % 251) as u8).collect();
+    let name = "000004-20261130T020000Z-thermal_trip.mcap".to_string();
+    io.box_files.insert(name.clone(), bytes.clone());
+    io.shelf = Some(vec![ShelvedBox {
+        number: 4,
+        name: name.clone(),
+        size: bytes.len() as u64,
+        digest: [4; 32],
+    }]);
+    io.published.clear();
+    for _ in 0..10 {
+        now += 100 * MS;
+        agent.poll(&mut io, now, 0);
+    }
+    assert!(
+        sent::<BoxChunkMsg>(&mut io, Outbound::BoxChunk).is_empty(),
+        "nothing while the agent's start is not acknowledged"
+    );
+    io.acks.push_back(ack(0, 2));
+    // A malformed acknowledgement of a box is refused and counted, nothing else.
+    io.box_acks.push_back(b"garbage".to_vec());
+    let (mut held, mut chunks, started) = (Vec::new(), 0, now);
+    while now < started + 10_000 * MS && (held.len() < bytes.len() || chunks == 0) {
+        now += 10 * MS;
+        agent.poll(&mut io, now, 0);
+        for c in sent::<BoxChunkMsg>(&mut io, Outbound::BoxChunk) {
+            assert_eq!((c.number, &c.name, c.digest), (4, &name, [4; 32]));
+            chunks += 1;
+            io.box_acks.push_back(store_takes(&mut held, &c));
+        }
+    }
+    assert_eq!(held, bytes, "the box byte for byte");
+    let took = (now - started) as f64 / 1e9;
+    // 200 000 bytes at 65 536 B/s after a 64 KiB burst: about 2 s, never much faster.
+    assert!(took > 1.9, "faster than its pace: {took} s");
+    assert_eq!(chunks, 1 + 4, "a probe and four chunks of at most 64 KiB");
+    now += 10 * MS;
+    agent.poll(&mut io, now, 0);
+    let b = status(&mut agent, &mut io, now + MS).counters.boxes;
+    assert_eq!(
+        (
+            b.pending,
+            b.stored,
+            b.bytes_sent,
+            b.bytes_resent,
+            b.acks_refused
+        ),
+        (0, 1, 200_000, 0, 1)
+    );
+    // Stored: listed again, it is not sent again.
+    io.shelf = Some(vec![ShelvedBox {
+        number: 4,
+        name,
+        size: bytes.len() as u64,
+        digest: [4; 32],
+    }]);
+    for _ in 0..100 {
+        now += 100 * MS;
+        agent.poll(&mut io, now, 0);
+    }
+    assert!(sent::<BoxChunkMsg>(&mut io, Outbound::BoxChunk).is_empty());
+}
+
+/// A box whose file cannot be read is counted, not sent as something else, and tried again.
+#[test]
+fn a_box_that_cannot_be_read_is_counted_and_tried_again() {
+    let (mut agent, mut io, mut now) = running();
+    io.acks.push_back(ack(0, 2));
+    io.shelf = Some(vec![ShelvedBox {
+        number: 1,
+        name: "000001-T-saved.mcap".into(),
+        size: 1000,
+        digest: [1; 32],
+    }]);
+    let mut probes = 0;
+    for _ in 0..50 {
+        now += 100 * MS;
+        agent.poll(&mut io, now, 0);
+        for c in sent::<BoxChunkMsg>(&mut io, Outbound::BoxChunk) {
+            assert!(c.data.is_empty());
+            probes += 1;
+            io.box_acks.push_back(encode(&BoxAckMsg {
+                version: SCHEMA_VERSION,
+                number: 1,
+                digest: [1; 32],
+                received: 0,
+                complete: false,
+            }));
+        }
+    }
+    assert_eq!(probes, 1);
+    let b = status(&mut agent, &mut io, now + MS).counters.boxes;
+    assert!(b.read_failures >= 2, "tried again: {b:?}");
+    assert_eq!((b.pending, b.bytes_sent), (1, 0));
 }

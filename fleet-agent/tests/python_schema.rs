@@ -7,8 +7,8 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use fleet_agent::schema::{
-    decode, encode, AckMsg, ActionChunk, EventMsg, LayoutMsg, ObservationMsg, PreviewMsg, ScanMsg,
-    StateMsg, StatusMsg, SCHEMA_VERSION,
+    decode, encode, AckMsg, ActionChunk, BoxAckMsg, BoxChunkMsg, EventMsg, LayoutMsg,
+    ObservationMsg, PreviewMsg, ScanMsg, StateMsg, StatusMsg, SCHEMA_VERSION,
 };
 use serde::{de::DeserializeOwned, Serialize};
 use serde_json::{json, Value};
@@ -24,7 +24,7 @@ fn bless() -> bool {
 }
 
 /// Every message that crosses zenoh, by its Rust name.
-const MESSAGES: [&str; 9] = [
+const MESSAGES: [&str; 11] = [
     "StateMsg",
     "LayoutMsg",
     "EventMsg",
@@ -34,6 +34,8 @@ const MESSAGES: [&str; 9] = [
     "PreviewMsg",
     "ScanMsg",
     "AckMsg",
+    "BoxChunkMsg",
+    "BoxAckMsg",
 ];
 
 fn traced() -> Value {
@@ -47,6 +49,8 @@ fn traced() -> Value {
     tracer.trace_simple_type::<PreviewMsg>().unwrap();
     tracer.trace_simple_type::<ScanMsg>().unwrap();
     tracer.trace_simple_type::<AckMsg>().unwrap();
+    tracer.trace_simple_type::<BoxChunkMsg>().unwrap();
+    tracer.trace_simple_type::<BoxAckMsg>().unwrap();
     let registry = tracer.registry().unwrap();
     json!({
         "about": "The fleet messages' formats traced from fleet_agent::schema by serde-reflection (fleet-agent/tests/python_schema.rs); do not edit.",
@@ -109,6 +113,8 @@ fn golden_bytes_are_what_the_rust_side_writes_and_reads() {
             "PreviewMsg" => golden::<PreviewMsg>(&entry["value"]),
             "ScanMsg" => golden::<ScanMsg>(&entry["value"]),
             "AckMsg" => golden::<AckMsg>(&entry["value"]),
+            "BoxChunkMsg" => golden::<BoxChunkMsg>(&entry["value"]),
+            "BoxAckMsg" => golden::<BoxAckMsg>(&entry["value"]),
             other => panic!("golden.json names {other}, not a fleet message"),
         };
         // Values are chosen exact in f32, so reading back gives the very same JSON.

@@ -40,6 +40,41 @@ pub enum Refusal {
         /// Its message.
         message: String,
     },
+    /// A box's name is not one a shelf gives (`NNNNNN-…​.mcap`, its number first).
+    #[error("box name {name:?}: not NNNNNN-….mcap with the box's number")]
+    BoxName {
+        /// The name sent (NULs escaped, cut at the longest name taken).
+        name: String,
+    },
+    /// A box's size is 0 or beyond what the store takes.
+    #[error(
+        "a box of {size} bytes: the store takes 1 to {} bytes",
+        crate::boxes::MAX_BOX_BYTES
+    )]
+    BoxSize {
+        /// The size sent.
+        size: u64,
+    },
+    /// A chunk's bytes are not inside its box, or more than a chunk carries.
+    #[error("{len} bytes at {offset} of a box of {size} bytes")]
+    ChunkOutsideBox {
+        /// Where the chunk starts.
+        offset: u64,
+        /// Its bytes.
+        len: u64,
+        /// The box's size.
+        size: u64,
+    },
+    /// A chunk names a box the store holds (by digest) with another size or name.
+    #[error("the store holds this digest as {held}")]
+    BoxConflict {
+        /// What the store holds under it.
+        held: String,
+    },
+    /// A box held whole does not have the digest it was sent with: its bytes are dropped and
+    /// it is taken again from the start.
+    #[error("its bytes do not have the digest it was sent with")]
+    BoxDigest,
 }
 
 impl Refusal {
@@ -49,6 +84,11 @@ impl Refusal {
             Refusal::Nul { .. } => RefusalKind::Nul,
             Refusal::TimeOutOfRange { .. } => RefusalKind::TimeOutOfRange,
             Refusal::Database { .. } => RefusalKind::Database,
+            Refusal::BoxName { .. } => RefusalKind::BoxName,
+            Refusal::BoxSize { .. } => RefusalKind::BoxSize,
+            Refusal::ChunkOutsideBox { .. } => RefusalKind::ChunkOutsideBox,
+            Refusal::BoxConflict { .. } => RefusalKind::BoxConflict,
+            Refusal::BoxDigest => RefusalKind::BoxDigest,
         }
     }
 }
@@ -62,6 +102,16 @@ pub enum RefusalKind {
     TimeOutOfRange,
     /// [`Refusal::Database`].
     Database,
+    /// [`Refusal::BoxName`].
+    BoxName,
+    /// [`Refusal::BoxSize`].
+    BoxSize,
+    /// [`Refusal::ChunkOutsideBox`].
+    ChunkOutsideBox,
+    /// [`Refusal::BoxConflict`].
+    BoxConflict,
+    /// [`Refusal::BoxDigest`].
+    BoxDigest,
 }
 
 impl RefusalKind {
@@ -71,6 +121,11 @@ impl RefusalKind {
             RefusalKind::Nul => "nul",
             RefusalKind::TimeOutOfRange => "time_out_of_range",
             RefusalKind::Database => "database",
+            RefusalKind::BoxName => "box_name",
+            RefusalKind::BoxSize => "box_size",
+            RefusalKind::ChunkOutsideBox => "chunk_outside_box",
+            RefusalKind::BoxConflict => "box_conflict",
+            RefusalKind::BoxDigest => "box_digest",
         }
     }
 }
@@ -86,6 +141,8 @@ pub enum Message {
     Layout,
     /// A telemetry row the database refused.
     Telemetry,
+    /// A piece of a black box (dropped and counted; the robot keeps the box).
+    BoxChunk,
 }
 
 impl Message {
@@ -96,11 +153,12 @@ impl Message {
             Message::State => "state",
             Message::Layout => "layout",
             Message::Telemetry => "telemetry",
+            Message::BoxChunk => "box_chunk",
         }
     }
 }
 
-fn text(field: &'static str, value: &str) -> Result<(), Refusal> {
+pub(crate) fn text(field: &'static str, value: &str) -> Result<(), Refusal> {
     if value.contains('\0') {
         Err(Refusal::Nul { field })
     } else {

@@ -81,6 +81,35 @@ CREATE TABLE IF NOT EXISTS refusals (
     last_at     timestamptz NOT NULL DEFAULT now(),
     PRIMARY KEY (robot, what, kind)
 );
+-- The black boxes robots send (`fleet::boxes`): one row per box, kept by its robot and SHA-256,
+-- its bytes in `box_chunks` in the order they came (appended only at `received`). `complete`
+-- once held whole and checked against the digest; then what froze it and what led to it
+-- (`blackbox::lead_up`, JSON) are read from the box.
+CREATE TABLE IF NOT EXISTS boxes (
+    robot        text        NOT NULL,
+    digest       bytea       NOT NULL,
+    number       bigint      NOT NULL,
+    name         text        NOT NULL,
+    size         bigint      NOT NULL,
+    received     bigint      NOT NULL DEFAULT 0,
+    complete     boolean     NOT NULL DEFAULT false,
+    first_at     timestamptz NOT NULL DEFAULT now(),
+    completed_at timestamptz,
+    trigger      text,
+    joint        text,
+    event_ns     bigint,
+    lead_up      jsonb,
+    PRIMARY KEY (robot, digest)
+);
+CREATE INDEX IF NOT EXISTS boxes_first_at ON boxes (first_at);
+CREATE INDEX IF NOT EXISTS boxes_event ON boxes (robot, event_ns);
+CREATE TABLE IF NOT EXISTS box_chunks (
+    robot   text   NOT NULL,
+    digest  bytea  NOT NULL,
+    at_byte bigint NOT NULL,
+    data    bytea  NOT NULL,
+    PRIMARY KEY (robot, digest, at_byte)
+);
 -- What each robot runs: its agent's newest start (`AgentStarted`, whose detail is the
 -- nori-robot package version, empty for a build from source); its history is those events.
 -- Newest by arrival (a robot delivers its journal oldest first), not by the robot's wall clock,

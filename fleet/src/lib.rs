@@ -4,6 +4,7 @@
 //!
 //! * [`admission`]: what the store lets into its tables; one robot's garbage refused or
 //!   quarantined, counted, and holding up nobody else.
+//! * [`boxes`]: the black boxes robots send the store, chunk by chunk: what is kept, and how.
 //! * [`collector`]: what `nori fleet` knows about every robot, its dashboard JSON and `/metrics`.
 //! * [`history`]: the store's rows: every journaled event once, telemetry rolled up.
 //! * [`journal_seen`]: which events of each robot's journal the store has (each kept once).
@@ -17,6 +18,7 @@
 //! the dashboard, the store, the report, the policy server and the router.
 
 pub mod admission;
+pub mod boxes;
 pub mod collector;
 pub mod history;
 pub mod journal_seen;

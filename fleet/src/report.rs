@@ -38,7 +38,72 @@ pub struct Aggregates {
     pub stalls: BTreeMap<String, u64>,
     /// Per robot and joint.
     pub joints: Vec<JointFigures>,
+    /// The black boxes the store has from the period, each under its event, oldest first.
+    pub boxes: Vec<BoxLine>,
+    /// The trips of the period the store has no box of (the robot keeps it, or had none).
+    pub trips_without_box: Vec<TripLine>,
 }
+
+/// A black box the store has, under the event that froze it.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct BoxLine {
+    /// The robot.
+    pub robot: String,
+    /// When: its event's time (UTC), else when the store first heard of it.
+    pub at: String,
+    /// Its event: the journal's kind (`ThermalTrip`), else the box's own trigger
+    /// (`lift_obstruction`, `saved`), empty while it is not whole.
+    pub event: String,
+    /// The joint it is about (empty: none named).
+    pub joint: String,
+    /// Its file name on the robot's shelf.
+    pub name: String,
+    /// Its SHA-256, hex: its name at the dashboard (`/boxes/<robot>/<digest>`).
+    pub digest: String,
+    /// Its size and the bytes held, bytes.
+    pub size: u64,
+    /// See `size`.
+    pub received: u64,
+    /// Held whole and checked.
+    pub complete: bool,
+    /// What led to its event, read from it.
+    pub lead_up: Option<blackbox::lead_up::LeadUp>,
+}
+
+/// A trip of the period, from the journal.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct TripLine {
+    /// The robot.
+    pub robot: String,
+    /// When (UTC).
+    pub at: String,
+    /// The journal's kind.
+    pub kind: String,
+    /// The joint (empty: none).
+    pub joint: String,
+}
+
+/// What led to one robot's joint's trips, from their boxes.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct TripCauses {
+    /// The robot.
+    pub robot: String,
+    /// The joint.
+    pub joint: String,
+    /// Trips with a box.
+    pub trips: u64,
+    /// The mean rise of the joint's temperature over each box before its trip, °C.
+    pub mean_rise_c: f64,
+    /// The hottest reading before any of them, °C.
+    pub temp_max_c: f32,
+    /// The highest current before any of them, A.
+    pub current_peak_a: f32,
+    /// The protections that acted before them, by kind, summed.
+    pub events_before: BTreeMap<String, u64>,
+}
+
+/// The boxes' triggers that are trips (a bus latched off).
+pub const TRIP_TRIGGERS: [&str; 3] = ["thermal_trip", "firmware_protection", "driver_trip"];
 
 /// What the report is judged against.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -126,6 +191,12 @@ pub struct Report {
     pub stalls: Vec<(String, u64)>,
     /// Drifting figures.
     pub drifts: Vec<Drift>,
+    /// The black boxes, each under its event.
+    pub boxes: Vec<BoxLine>,
+    /// The trips without a box in the store.
+    pub trips_without_box: Vec<TripLine>,
+    /// What led to the trips, per robot and joint, from their boxes: the most trips first.
+    pub trip_causes: Vec<TripCauses>,
     /// The limits judged against.
     pub limits: Limits,
 }
@@ -208,6 +279,9 @@ impl Report {
             above_warn_s,
             stalls,
             drifts: drifts(a, &limits),
+            boxes: a.boxes.clone(),
+            trips_without_box: a.trips_without_box.clone(),
+            trip_causes: trip_causes(&a.boxes),
             limits,
         }
     }
@@ -290,7 +364,69 @@ impl Report {
         if self.drifts.is_empty() {
             let _ = writeln!(t, "  none");
         }
+        self.boxes_text(&mut t);
         t
+    }
+
+    /// The black boxes under their events, the trips without one, and what led to the trips.
+    fn boxes_text(&self, t: &mut String) {
+        let _ = writeln!(
+            t,
+            "
+black boxes, each under its event"
+        );
+        for b in &self.boxes {
+            let state = if b.complete {
+                format!("{} kB", b.size / 1000)
+            } else {
+                format!("{}% received", b.received * 100 / b.size.max(1))
+            };
+            let _ = writeln!(
+                t,
+                "  {}  {:<16} {:<20} {:<16}\n      {} ({state}, {})",
+                b.at,
+                b.robot,
+                b.event,
+                b.joint,
+                b.name,
+                &b.digest[..b.digest.len().min(12)]
+            );
+        }
+        if self.boxes.is_empty() {
+            let _ = writeln!(t, "  none");
+        }
+        for trip in &self.trips_without_box {
+            let _ = writeln!(
+                t,
+                "  {}  {:<16} {:<20} {:<16}\n      no box in the store",
+                trip.at, trip.robot, trip.kind, trip.joint
+            );
+        }
+        let _ = writeln!(
+            t,
+            "\nwhat led to the trips, from their boxes   trips  rise °C  max °C  peak A  before"
+        );
+        for c in &self.trip_causes {
+            let before: Vec<String> = c
+                .events_before
+                .iter()
+                .map(|(k, n)| format!("{k} {n}"))
+                .collect();
+            let _ = writeln!(
+                t,
+                "  {:<16} {:<22} {:>6} {:>8.1} {:>7.1} {:>7.2}  {}",
+                c.robot,
+                c.joint,
+                c.trips,
+                c.mean_rise_c,
+                c.temp_max_c,
+                c.current_peak_a,
+                before.join(", ")
+            );
+        }
+        if self.trip_causes.is_empty() {
+            let _ = writeln!(t, "  none");
+        }
     }
 
     /// The report as a self-contained HTML page with bar charts (SVG, no script).
@@ -330,10 +466,45 @@ impl Report {
             .collect();
         h += "<h2>Stalls per joint</h2>";
         h += &bars(&stalls, None, "");
+        h += &self.boxes_html();
         h += "<h2>The figures</h2><pre>";
         h += &escape(&self.text());
         h += "</pre>";
         h
+    }
+}
+
+impl Report {
+    /// The black boxes as a table, each a link to download it from the dashboard.
+    fn boxes_html(&self) -> String {
+        let mut h = String::from("<h2>Black boxes</h2>");
+        if self.boxes.is_empty() {
+            return h + "<p>none</p>";
+        }
+        h += "<table><tr><th>when (UTC)<th>robot<th>event<th>joint<th>box<th>held</tr>";
+        for b in &self.boxes {
+            let name = escape(&b.name);
+            let link = if b.complete {
+                format!(
+                    "<a href=\"/boxes/{}/{}.mcap\">{name}</a>",
+                    escape(&b.robot),
+                    b.digest
+                )
+            } else {
+                name
+            };
+            let _ = write!(
+                h,
+                "<tr><td>{}<td>{}<td>{}<td>{}<td>{link}<td>{}/{} kB</tr>",
+                escape(&b.at),
+                escape(&b.robot),
+                escape(&b.event),
+                escape(&b.joint),
+                b.received / 1000,
+                b.size / 1000
+            );
+        }
+        h + "</table>"
     }
 }
 
@@ -384,6 +555,64 @@ fn bars(rows: &[(String, f64)], mark: Option<f64>, unit: &str) -> String {
         );
     }
     s + "</svg>"
+}
+
+/// What led to the trips, per robot and joint, from the boxes whose trigger is a trip.
+fn trip_causes(boxes: &[BoxLine]) -> Vec<TripCauses> {
+    // Each robot's joint: its figures, and the sum and count of its rises.
+    let mut by: BTreeMap<(String, String), (TripCauses, (f64, u32))> = BTreeMap::new();
+    for b in boxes {
+        let Some(l) = &b.lead_up else {
+            continue;
+        };
+        let tripped =
+            (l.trigger.as_ref()).is_some_and(|t| TRIP_TRIGGERS.contains(&t.kind.as_str()));
+        if !tripped {
+            continue;
+        }
+        let joint = l.joint.clone().unwrap_or_default();
+        let (c, rises) = by
+            .entry((b.robot.clone(), joint.clone()))
+            .or_insert_with(|| {
+                (
+                    TripCauses {
+                        robot: b.robot.clone(),
+                        joint,
+                        trips: 0,
+                        mean_rise_c: 0.0,
+                        temp_max_c: f32::NAN,
+                        current_peak_a: 0.0,
+                        events_before: BTreeMap::new(),
+                    },
+                    (0.0, 0),
+                )
+            });
+        c.trips += 1;
+        if let Some([first, max, last]) = l.temperature_c {
+            rises.0 += f64::from(last - first);
+            rises.1 += 1;
+            c.temp_max_c = if c.temp_max_c.is_nan() {
+                max
+            } else {
+                c.temp_max_c.max(max)
+            };
+        }
+        if let Some([_, peak]) = l.current_a {
+            c.current_peak_a = c.current_peak_a.max(peak);
+        }
+        for (k, n) in &l.events_before {
+            *c.events_before.entry(k.clone()).or_insert(0) += n;
+        }
+    }
+    let mut out: Vec<TripCauses> = by
+        .into_values()
+        .map(|(mut c, (sum, n))| {
+            c.mean_rise_c = if n > 0 { sum / f64::from(n) } else { f64::NAN };
+            c
+        })
+        .collect();
+    out.sort_by(|x, y| y.trips.cmp(&x.trips).then(x.robot.cmp(&y.robot)));
+    out
 }
 
 /// Joints whose mean temperature rose by `drift_c` or more, and robots whose protection events
@@ -526,6 +755,82 @@ mod tests {
             "{text}"
         );
         let page = r.html("fleet <test>");
+        assert!(page.contains("<p>none</p>"), "no boxes");
         assert!(page.contains("<svg") && page.contains("fleet &lt;test&gt;"));
+    }
+
+    fn a_box(robot: &str, trigger: &str, joint: &str, temps: [f32; 3], peak: f32) -> BoxLine {
+        let lead_up = blackbox::lead_up::LeadUp {
+            trigger: Some(blackbox::channel::EventMessage {
+                timestamp_ns: 1,
+                kind: trigger.into(),
+                joint: Some(joint.into()),
+                bus: None,
+                level: 0,
+                value: 0.0,
+            }),
+            joint: Some(joint.into()),
+            seconds_before: 120.0,
+            temperature_c: Some(temps),
+            current_a: Some([0.8, peak]),
+            events_before: BTreeMap::from([("stall_retry".into(), 2)]),
+        };
+        BoxLine {
+            robot: robot.into(),
+            at: "2026-11-30 02:00:00".into(),
+            event: "ThermalTrip".into(),
+            joint: joint.into(),
+            name: "000001-T-thermal_trip.mcap".into(),
+            digest: "ab".repeat(32),
+            size: 2_000_000,
+            received: 2_000_000,
+            complete: true,
+            lead_up: Some(lead_up),
+        }
+    }
+
+    #[test]
+    fn boxes_are_listed_under_their_events_and_the_trips_told_by_what_led_to_them() {
+        let mut a = aggregates();
+        let mut uploading = a_box("b", "saved", "neck", [30.0; 3], 0.1);
+        (uploading.received, uploading.complete, uploading.lead_up) = (500_000, false, None);
+        a.boxes = vec![
+            a_box("a", "thermal_trip", "left_elbow", [50.0, 59.5, 59.0], 1.5),
+            a_box("a", "thermal_trip", "left_elbow", [54.0, 59.2, 59.0], 2.5),
+            a_box("a", "saved", "left_elbow", [40.0, 41.0, 41.0], 9.0),
+            uploading,
+        ];
+        a.trips_without_box = vec![TripLine {
+            robot: "b".into(),
+            at: "2026-11-30 03:00:00".into(),
+            kind: "DriverTrip".into(),
+            joint: String::new(),
+        }];
+        let r = Report::new(&a, limits(), 10);
+        assert_eq!(r.trip_causes.len(), 1, "a saved box is no trip");
+        let c = &r.trip_causes[0];
+        assert_eq!(
+            (c.robot.as_str(), c.joint.as_str(), c.trips),
+            ("a", "left_elbow", 2)
+        );
+        assert_eq!(c.mean_rise_c, 7.0, "9 and 5 °C");
+        assert_eq!((c.temp_max_c, c.current_peak_a), (59.5, 2.5));
+        assert_eq!(c.events_before["stall_retry"], 4);
+        let text = r.text();
+        for line in [
+            "25% received",
+            "2000 kB",
+            "no box in the store",
+            "stall_retry 4",
+        ] {
+            assert!(text.contains(line), "{line}: {text}");
+        }
+        let page = r.html("fleet");
+        let link = format!("<a href=\"/boxes/a/{}.mcap\">", "ab".repeat(32));
+        assert_eq!(
+            page.matches(&link).count(),
+            3,
+            "the whole boxes link to their download"
+        );
     }
 }

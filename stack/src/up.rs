@@ -140,6 +140,8 @@ pub fn run(args: &UpArgs) -> Result<()> {
     if let Some(c) = &args.agent_config {
         fleet_agent.add_args(&["--config".into(), c.display().to_string()]);
     }
+    // The agent sends the frozen boxes to the fleet's store, when one runs.
+    fleet_agent.add_args(&["--blackbox-dir".into(), boxes.display().to_string()]);
     // The sensors, each its own process as on the robot: nothing of the control loop waits on
     // them, and one that dies is restarted like the rest.
     let mut sensors = Vec::new();

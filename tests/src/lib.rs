@@ -507,6 +507,28 @@ impl ArmStack {
         )
     }
 
+    /// Starts the black box's recorder (`nori-blackbox record`, with `args` added) keeping its
+    /// boxes in `boxes`, its log `log`; returns once it records.
+    pub fn recorder(&self, boxes: &Path, args: &[&str], log: &str) -> Proc {
+        let mut all = vec![
+            "record".to_string(),
+            "--domain".into(),
+            self.domain.clone(),
+            "--dir".into(),
+            boxes.display().to_string(),
+        ];
+        all.extend(args.iter().map(|a| a.to_string()));
+        let log = self.dir.join(log);
+        let p = Proc::spawn_owned("blackbox", &binary("nori-blackbox"), &all, &log);
+        wait_for(Duration::from_secs(10), "the recorder to record", || {
+            std::fs::read_to_string(&log)
+                .unwrap_or_default()
+                .contains("recording the last minutes")
+                .then_some(())
+        });
+        p
+    }
+
     /// Stops agent, driver (torque off), supervisor and simulator in that order, with SIGTERM, checks
     /// that nothing of the domain is left in shared memory (the test's own ports must be
     /// dropped before), and returns the simulator's final report.
@@ -529,10 +551,51 @@ impl ArmStack {
     }
 }
 
+/// Holds `joint` horizontal (π/2) from the state plane of `domain`, as the overheat scenario
+/// does, until `stop`: the payload at the tool heats the shoulder toward the trip.
+pub fn hold_horizontal(
+    domain: &str,
+    joint: &'static str,
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+) -> std::thread::JoinHandle<()> {
+    use telemetry::plane::{self, newest, publish, Plane};
+    let domain = domain.to_string();
+    std::thread::spawn(move || {
+        let node = Plane::open(&domain, "hold-horizontal").unwrap();
+        let layouts = node.subscriber(&plane::LAYOUT).unwrap();
+        let goals = node.publisher(&plane::GOALS).unwrap();
+        let layout = wait_for(Duration::from_secs(20), "a layout on the plane", || {
+            newest(&layouts)
+        });
+        let target = layout
+            .joints()
+            .iter()
+            .position(|j| j.name() == joint)
+            .expect("the joint in the layout");
+        let mut frame = telemetry::GoalFrame {
+            joint_count: layout.joint_count,
+            mask: 1 << target,
+            ..telemetry::GoalFrame::default()
+        };
+        frame.position_rad[target] = std::f32::consts::FRAC_PI_2;
+        while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+            frame.seq += 1;
+            frame.timestamp_ns = telemetry::clock::monotonic_ns();
+            let _ = publish(&goals, &frame);
+            std::thread::sleep(Duration::from_millis(5));
+        }
+    })
+}
+
 /// A free TCP port on loopback for a zenoh endpoint (`tcp/127.0.0.1:<port>`).
 pub fn free_endpoint() -> String {
+    format!("tcp/{}", free_port_addr())
+}
+
+/// A free TCP address on loopback (`127.0.0.1:<port>`), for an HTTP server.
+pub fn free_port_addr() -> String {
     let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-    format!("tcp/127.0.0.1:{}", listener.local_addr().unwrap().port())
+    listener.local_addr().unwrap().to_string()
 }
 
 /// Checks a simulator report of the left arm against the embedded calibration: no goal outside

@@ -8,7 +8,7 @@
 
 use blackbox::channel::{wire_chunks, Channel};
 use blackbox::frozen::{self, ReadBox, PARTIAL_SUFFIX};
-use nori_tests::{binary, scratch, wait_for, ArmStack, Proc};
+use nori_tests::{binary, scratch, wait_for, ArmStack};
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -342,25 +342,6 @@ fn a_supply_sag_hidden_in_the_simulator_shows_in_the_replay_and_the_lab_names_it
 }
 
 /// The recorder's process on `stack`'s domain, its boxes in `boxes`.
-fn recorder(stack: &ArmStack, boxes: &Path, log: &str) -> Proc {
-    let args = [
-        "record".to_string(),
-        "--domain".into(),
-        stack.domain.clone(),
-        "--dir".into(),
-        boxes.display().to_string(),
-    ];
-    let log = stack.dir.join(log);
-    let p = Proc::spawn_owned("blackbox", &binary("nori-blackbox"), &args, &log);
-    wait_for(Duration::from_secs(10), "the recorder to record", || {
-        std::fs::read_to_string(&log)
-            .unwrap_or_default()
-            .contains("recording the last minutes")
-            .then_some(())
-    });
-    p
-}
-
 /// The driver's cycles over `d`, read from its joint-state frames.
 fn cycles_over(domain: &str, d: Duration) -> u64 {
     let node = telemetry::plane::Plane::open(domain, "bb-test-watch").unwrap();
@@ -390,7 +371,7 @@ fn a_recorder_killed_mid_box_leaves_it_readable_and_a_stopped_one_holds_nothing_
     let mut stack = ArmStack::start("blackbox-kill", &[]);
     let boxes = stack.dir.join("boxes");
     std::fs::create_dir_all(&boxes).unwrap();
-    let mut rec = recorder(&stack, &boxes, "blackbox-1.log");
+    let mut rec = stack.recorder(&boxes, &[], "blackbox-1.log");
     nori_tests::wait_for(Duration::from_secs(20), "the driver to drive", || {
         (cycles_over(&stack.domain, Duration::from_millis(200)) > 0).then_some(())
     });
@@ -448,7 +429,7 @@ fn a_recorder_killed_mid_box_leaves_it_readable_and_a_stopped_one_holds_nothing_
 
     // Stopped (SIGSTOP: a hung recorder), it holds the driver to nothing: the driver's cycles
     // over two seconds are those of the two seconds before.
-    let mut rec = recorder(&stack, &boxes, "blackbox-2.log");
+    let mut rec = stack.recorder(&boxes, &[], "blackbox-2.log");
     // Made whole beside the recording loop, the cut file kept beside it.
     let whole = wait_for(Duration::from_secs(20), "the cut box made whole", || {
         (!partial.exists()).then(|| files_ending(&boxes, ".mcap"))

@@ -20,14 +20,15 @@ const ALLOWED: &[(&str, &[&str])] = &[
     ("telemetry", &[]),
     ("bus-driver", &["feetech", "telemetry"]),
     ("supervisor", &["telemetry"]),
-    ("fleet-agent", &["telemetry"]),
+    // The black box's shelf, read to send its boxes to the fleet.
+    ("fleet-agent", &["telemetry", "blackbox"]),
     ("camera", &["telemetry"]),
     ("lidar", &["telemetry"]),
     ("sim", &["feetech", "body", "telemetry", "camera"]),
     ("recorder", &["telemetry"]),
     ("blackbox", &["telemetry", "feetech"]),
     ("model-lab", &["sim", "blackbox", "feetech"]),
-    ("fleet", &["fleet-agent", "telemetry"]),
+    ("fleet", &["fleet-agent", "telemetry", "blackbox"]),
     ("stack", &["telemetry", "sim", "bus-driver"]),
     // The automatic calibration plans from the description and finds stops by the
     // supervisor's stall rule (its pure `stall` module, not its process).

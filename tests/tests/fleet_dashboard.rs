@@ -27,10 +27,7 @@ fn get(addr: &str, path: &str) -> Option<String> {
 /// the process, its zenoh endpoint, its HTTP address.
 fn start_fleet(dir: &std::path::Path) -> (Proc, String, String) {
     let fleet_ep = free_endpoint();
-    let http = {
-        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-        l.local_addr().unwrap().to_string()
-    };
+    let http = nori_tests::free_port_addr();
     let fleet = Proc::spawn(
         "nori fleet",
         &binary("nori"),

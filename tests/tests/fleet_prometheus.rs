@@ -14,17 +14,14 @@
 use fleet_agent::keys::robot_key;
 use fleet_agent::schema::SCHEMA_VERSION;
 use fleet_agent::zenoh::Wait;
-use nori_tests::{binary, free_endpoint, http_get, scratch, ArmStack, Proc};
+use nori_tests::{binary, free_endpoint, free_port_addr, http_get, scratch, ArmStack, Proc};
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use supervisor::SupervisorConfig;
-use telemetry::clock::monotonic_ns;
 use telemetry::config::ProcessConfig;
-use telemetry::plane::{self, newest, publish, Plane};
-use telemetry::GoalFrame;
 
 const ROBOT: &str = "sim-prom";
 const SHOULDER: &str = "left_shoulder_pitch";
@@ -49,11 +46,6 @@ fn prometheus_binary() -> Option<PathBuf> {
         );
     }
     found
-}
-
-fn free_port_addr() -> String {
-    let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-    l.local_addr().unwrap().to_string()
 }
 
 /// `s` as a URL's query value.
@@ -269,41 +261,6 @@ fn simulated_temperature(stack: &ArmStack, joint: &str) -> Result<f64, String> {
         .ok_or_else(|| format!("no {joint} in the simulator's report"))
 }
 
-/// Holds `joint` horizontal (π/2) from the state plane, as the overheat scenario does, until
-/// `stop`: the payload at the tool heats the shoulder toward the trip.
-fn hold_horizontal(domain: String, stop: Arc<AtomicBool>) -> std::thread::JoinHandle<()> {
-    std::thread::spawn(move || {
-        let node = Plane::open(&domain, "prometheus-test").unwrap();
-        let layouts = node.subscriber(&plane::LAYOUT).unwrap();
-        let goals = node.publisher(&plane::GOALS).unwrap();
-        let until = Instant::now() + Duration::from_secs(20);
-        let layout = loop {
-            if let Some(l) = newest(&layouts) {
-                break l;
-            }
-            assert!(Instant::now() < until, "no layout on the plane");
-            std::thread::sleep(Duration::from_millis(20));
-        };
-        let target = layout
-            .joints()
-            .iter()
-            .position(|j| j.name() == SHOULDER)
-            .expect("the shoulder in the layout");
-        let mut frame = GoalFrame {
-            joint_count: layout.joint_count,
-            mask: 1 << target,
-            ..GoalFrame::default()
-        };
-        frame.position_rad[target] = std::f32::consts::FRAC_PI_2;
-        while !stop.load(Ordering::Relaxed) {
-            frame.seq += 1;
-            frame.timestamp_ns = monotonic_ns();
-            let _ = publish(&goals, &frame);
-            std::thread::sleep(Duration::from_millis(5));
-        }
-    })
-}
-
 #[test]
 #[allow(
     clippy::too_many_lines,
@@ -431,7 +388,7 @@ fn prometheus_scrapes_the_fleet_and_the_shipped_alerts_fire_on_the_simulated_rob
     // The shoulder held horizontal heats: within 3 °C of the trip the alert fires, with the
     // temperature it saw; then the trip, counted once.
     let stop = Arc::new(AtomicBool::new(false));
-    let holding = hold_horizontal(stack.domain.clone(), stop.clone());
+    let holding = nori_tests::hold_horizontal(&stack.domain, SHOULDER, stop.clone());
     let mut hottest = f64::MIN;
     let hot = prom.wait(Duration::from_secs(45), "NoriMotorNearThermalTrip", || {
         if let Ok(t) = prom.value(&shoulder) {

@@ -289,7 +289,7 @@ fn only_the_store_identity_acknowledges_the_robots_events() {
         (
             c("events_unacknowledged"),
             c("events_stored_through"),
-            c("acks_refused"),
+            c("acks_refused") + st["counters"]["boxes"]["acks_refused"].as_u64().unwrap(),
         )
     };
     // The store's acknowledgements come through the router.
@@ -326,7 +326,10 @@ fn only_the_store_identity_acknowledges_the_robots_events() {
     // Forged acknowledgements, one valid for what the robot holds and one beyond it: from
     // another robot, from the robot itself and from the dashboard. Had one arrived, the held
     // events would be let go, or the refusal counted.
+    // A box's acknowledgement forged the same way would be counted refused (no box is on
+    // its way): none may arrive either.
     let acks = robot_key(ROBOT, "acks");
+    let box_acks = robot_key(ROBOT, "blackbox/ack");
     for identity in ["robot-b", ROBOT, "dashboard"] {
         let forger = client(&certs, identity);
         for stored_through in [through + 3, through + 1000] {
@@ -336,6 +339,14 @@ fn only_the_store_identity_acknowledges_the_robots_events() {
                 stored_through,
             };
             forger.put(&acks, encode(&ack)).wait().unwrap();
+            let box_ack = fleet_agent::schema::BoxAckMsg {
+                version: SCHEMA_VERSION,
+                number: stored_through,
+                digest: [1; 32],
+                received: 0,
+                complete: true,
+            };
+            forger.put(&box_acks, encode(&box_ack)).wait().unwrap();
         }
         std::thread::sleep(Duration::from_millis(300));
         forger.close().wait().unwrap();

@@ -13,7 +13,10 @@ use fleet_agent::schema::{
 };
 use fleet_agent::zenoh::Wait;
 use nori_tests::{binary, free_endpoint, wait_for, ArmStack, Proc, ScratchPostgres};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use std::time::Duration;
+use telemetry::config::ProcessConfig;
 use telemetry::frames::{SupervisorCommand, COMMAND_REENABLE_BUS};
 use telemetry::plane::{self, Plane};
 
@@ -835,5 +838,349 @@ fn what_a_robot_runs_reaches_its_status_and_the_store_across_an_upgrade_and_a_ca
             calibrated("none"),
         ],
         "which version and calibration ran when"
+    );
+}
+
+/// The trip's box as the store holds it: how much of it, whether whole, and its bytes.
+fn stored_box(db: &ScratchPostgres, robot: &str) -> Option<(i64, bool, Vec<u8>)> {
+    let mut c = postgres::Client::connect(&db.url, postgres::NoTls).ok()?;
+    let row = c
+        .query_opt(
+            "SELECT received, complete, digest FROM boxes WHERE robot = $1 AND name LIKE '%thermal_trip%'",
+            &[&robot],
+        )
+        .ok()??;
+    Some((row.get(0), row.get(1), row.get(2)))
+}
+
+/// A trip's black box reaches the store on its own, whole and checked, through the store
+/// killed in the middle of its upload; the report lists it under the trip with what led to it
+/// (the shoulder's temperature and current before it), and the dashboard serves it byte for
+/// byte.
+#[test]
+#[allow(
+    clippy::too_many_lines,
+    reason = "one scenario read start to end, each phase a paragraph"
+)]
+fn a_trip_s_box_reaches_the_store_through_an_outage_and_the_report_tells_what_led_to_it() {
+    const ROBOT_B: &str = "box-r1";
+    const SHOULDER: &str = "left_shoulder_pitch";
+    let mut stack = ArmStack::start(
+        "box-store",
+        &["--scenario", "overheat", "--thermal-speedup", "60"],
+    );
+    let db = ScratchPostgres::start(&stack.dir.join("postgres"));
+    let (store_at, watch_at) = (free_endpoint(), free_endpoint());
+    let mut store = start_store(&stack.dir, &db.url, &store_at, 1);
+    let session = nori_tests::listening_session(&watch_at);
+    let boxes = stack.dir.join("boxes");
+    std::fs::create_dir_all(&boxes).unwrap();
+    let recorder_config = stack.dir.join("blackbox.toml");
+    let text = blackbox::config::BlackboxConfig::DEFAULT_TOML
+        .replace("after-seconds = 10", "after-seconds = 2");
+    std::fs::write(&recorder_config, text).unwrap();
+    let mut recorder = stack.recorder(
+        &boxes,
+        &["--config", &recorder_config.display().to_string()],
+        "blackbox.log",
+    );
+    // Paced so that the store can be killed in the middle of the box.
+    let agent_config = stack.dir.join("fleet-agent.toml");
+    let text = fleet_agent::config::DEFAULT_CONFIG_TOML
+        .replace("bytes-per-second = 65536", "bytes-per-second = 131072")
+        .replace("chunk-bytes = 65536", "chunk-bytes = 16384");
+    std::fs::write(&agent_config, text).unwrap();
+    let (journal, shelf) = (stack.dir.join("journal"), boxes.display().to_string());
+    stack.restart_agent_with(&[
+        "--config",
+        &agent_config.display().to_string(),
+        "--robot-id",
+        ROBOT_B,
+        "--connect",
+        &store_at,
+        "--connect",
+        &watch_at,
+        "--journal-dir",
+        &journal.display().to_string(),
+        "--blackbox-dir",
+        &shelf,
+    ]);
+
+    // The shoulder held horizontal heats to the trip; its box is frozen on the shelf.
+    let stop = Arc::new(AtomicBool::new(false));
+    let holding = nori_tests::hold_horizontal(&stack.domain, SHOULDER, stop.clone());
+    let (_, on_shelf, size) = wait_for(Duration::from_secs(90), "the trip's box", || {
+        blackbox::shelf::whole_boxes(&boxes)
+            .into_iter()
+            .find(|(_, p, _)| p.to_string_lossy().contains("thermal_trip"))
+    });
+    stop.store(true, Ordering::Relaxed);
+    holding.join().unwrap();
+    let bytes = std::fs::read(&on_shelf).unwrap();
+    assert_eq!(bytes.len() as u64, size);
+
+    // The store killed in the middle of it, down a while, then back: the box resumes.
+    let received = wait_for(Duration::from_secs(60), "the upload under way", || {
+        stored_box(&db, ROBOT_B).and_then(|(received, _, _)| (received > 0).then_some(received))
+    });
+    store.kill();
+    let (cut_at, whole, _) = stored_box(&db, ROBOT_B).unwrap();
+    assert!(
+        !whole && (cut_at as u64) < size && cut_at >= received,
+        "cut at {cut_at} of {size} bytes"
+    );
+    std::thread::sleep(Duration::from_secs(3));
+    let _store = start_store(&stack.dir, &db.url, &store_at, 2);
+    let digest = wait_for(
+        Duration::from_secs(120),
+        "the box whole in the store",
+        || stored_box(&db, ROBOT_B).and_then(|(_, whole, digest)| whole.then_some(digest)),
+    );
+    let mut c = db.client();
+    let held: Vec<u8> = c
+        .query(
+            "SELECT data FROM box_chunks WHERE robot = $1 AND digest = $2 ORDER BY at_byte",
+            &[&ROBOT_B, &digest],
+        )
+        .unwrap()
+        .iter()
+        .flat_map(|r| r.get::<_, Vec<u8>>(0))
+        .collect();
+    assert!(
+        held == bytes,
+        "the store's box is not the robot's, byte for byte"
+    );
+    let status = wait_for(
+        Duration::from_secs(20),
+        "the agent to count it stored",
+        || {
+            let b = nori_tests::agent_status(&session, ROBOT_B).counters.boxes;
+            (b.stored >= 1).then_some(b)
+        },
+    );
+    assert_eq!(
+        (status.pending, status.lost, status.read_failures),
+        (0, 0, 0),
+        "{status:?}"
+    );
+    assert!(status.bytes_sent >= size, "{status:?}");
+
+    // The report: the box under its trip, and what led to it.
+    let out = std::process::Command::new(binary("nori-fleet"))
+        .args([
+            "report",
+            "--database",
+            &db.url,
+            "--json",
+            "--robot",
+            ROBOT_B,
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let listed = &report["boxes"];
+    assert_eq!(listed.as_array().map(Vec::len), Some(1), "{listed}");
+    let b = &listed[0];
+    assert_eq!(b["event"], "ThermalTrip", "under the journal's trip: {b}");
+    assert_eq!(b["joint"], SHOULDER);
+    assert_eq!(b["complete"], true);
+    let before = &b["lead_up"]["temperature_c"];
+    let at_trip = before[2].as_f64().unwrap();
+    assert!((55.0..60.0).contains(&at_trip), "{before}");
+    assert!(
+        before[0].as_f64().unwrap() < at_trip - 2.0,
+        "it heated: {before}"
+    );
+    assert!(b["lead_up"]["current_a"][1].as_f64().unwrap() > 0.2, "{b}");
+    assert_eq!(report["trips_without_box"], serde_json::json!([]));
+    let causes = &report["trip_causes"][0];
+    assert_eq!(
+        (causes["joint"].as_str(), causes["trips"].as_u64()),
+        (Some(SHOULDER), Some(1))
+    );
+
+    // The dashboard serves it, byte for byte.
+    let http = nori_tests::free_port_addr();
+    let _dashboard = Proc::spawn(
+        "nori-fleet dashboard",
+        &binary("nori-fleet"),
+        &[
+            "dashboard",
+            "--listen",
+            &free_endpoint(),
+            "--http",
+            &http,
+            "--database",
+            &db.url,
+        ],
+        &stack.dir.join("dashboard.log"),
+    );
+    let hex: String = digest.iter().map(|b| format!("{b:02x}")).collect();
+    let (code, served) = wait_for(Duration::from_secs(20), "the dashboard", || {
+        nori_tests::http_get(&http, &format!("/boxes/{ROBOT_B}/{hex}.mcap"))
+    });
+    assert_eq!(code, 200);
+    assert!(served == bytes, "the dashboard's box is not the robot's");
+    let (code, _) =
+        nori_tests::http_get(&http, &format!("/boxes/{ROBOT_B}/{}.mcap", "0".repeat(64))).unwrap();
+    assert_eq!(code, 404);
+    drop(session);
+    recorder.terminate(Duration::from_secs(5));
+    stack.stop();
+}
+
+/// Sends `robot`'s box `bytes` (named `name`, numbered `number`, its digest `digest`) from
+/// `offset` in chunks of `chunk` bytes.
+fn send_box(
+    session: &fleet_agent::zenoh::Session,
+    robot: &str,
+    (number, name, digest): (u64, &str, [u8; 32]),
+    bytes: &[u8],
+    chunk: usize,
+) {
+    let mut offset = 0;
+    while offset < bytes.len() {
+        let end = (offset + chunk).min(bytes.len());
+        let msg = fleet_agent::schema::BoxChunkMsg {
+            version: SCHEMA_VERSION,
+            number,
+            name: name.into(),
+            size: bytes.len() as u64,
+            digest,
+            offset: offset as u64,
+            data: bytes[offset..end].to_vec(),
+        };
+        session
+            .put(robot_key(robot, "blackbox/chunk"), encode(&msg))
+            .wait()
+            .unwrap();
+        offset = end;
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// One robot's bad boxes (a name that is no box's, bytes outside the box, a digest its bytes
+/// do not have, a digest sent with two sizes) are refused and counted for it, the one whose
+/// bytes fail their digest dropped to be taken again from the start; another robot's box is
+/// stored whole meanwhile, and one that is no MCAP is kept whole, undescribed.
+#[test]
+fn one_robot_s_bad_boxes_are_refused_and_counted_and_another_s_is_stored() {
+    use sha2::Digest;
+    let dir = nori_tests::scratch("fleet-store-boxes");
+    let db = ScratchPostgres::start(&dir.join("postgres"));
+    let store_at = free_endpoint();
+    let _store = start_store(&dir, &db.url, &store_at, 1);
+    let session = nori_tests::connecting_session(&store_at, "peer").unwrap();
+    let acks = session
+        .declare_subscriber("nori/*/blackbox/ack")
+        .wait()
+        .unwrap();
+    std::thread::sleep(Duration::from_secs(1));
+    let good: Vec<u8> = (0..100_000u32).map(|i| (i * 31 % 253) as u8).collect();
+    let digest: [u8; 32] = sha2::Sha256::digest(&good).into();
+    let name = "000003-20261130T020000Z-saved.mcap";
+    send_box(&session, "good-box", (3, name, digest), &good, 30_000);
+    send_box(
+        &session,
+        "poison-box",
+        (1, "../../x.mcap", digest),
+        &good[..10],
+        10,
+    );
+    send_box(
+        &session,
+        "poison-box",
+        (2, "000002-T-x.mcap", [9; 32]),
+        &good[..5000],
+        2000,
+    );
+    let outside = fleet_agent::schema::BoxChunkMsg {
+        version: SCHEMA_VERSION,
+        number: 4,
+        name: "000004-T-x.mcap".into(),
+        size: 10,
+        digest: [4; 32],
+        offset: 5,
+        data: vec![0; 10],
+    };
+    let key = robot_key("poison-box", "blackbox/chunk");
+    session.put(&key, encode(&outside)).wait().unwrap();
+    send_box(
+        &session,
+        "poison-box",
+        (2, "000002-T-x.mcap", [9; 32]),
+        &good[..4000],
+        4000,
+    );
+    let mut last = std::collections::BTreeMap::new();
+    wait_for(Duration::from_secs(30), "the answers", || {
+        while let Ok(Some(s)) = acks.try_recv() {
+            let a: fleet_agent::schema::BoxAckMsg = decode(&s.payload().to_bytes()).unwrap();
+            let robot = robot_of(s.key_expr().as_str()).unwrap().to_string();
+            last.insert((robot, a.number), (a.received, a.complete));
+        }
+        (last.get(&("good-box".into(), 3)) == Some(&(100_000, true))).then_some(())
+    });
+    // The box whose bytes fail their digest: held whole, dropped, answered 0.
+    assert_eq!(
+        last.get(&("poison-box".into(), 2)),
+        Some(&(0, false)),
+        "{last:?}"
+    );
+    assert!(
+        !last.contains_key(&("poison-box".into(), 1)),
+        "a bad name is not answered"
+    );
+    let mut c = db.client();
+    let row = c
+        .query_one(
+            "SELECT complete, trigger, lead_up->>'trigger' FROM boxes WHERE robot = 'good-box'",
+            &[],
+        )
+        .unwrap();
+    let (whole, trigger, lead): (bool, Option<String>, Option<String>) =
+        (row.get(0), row.get(1), row.get(2));
+    assert!(
+        whole && trigger.is_none() && lead.is_none(),
+        "no MCAP: kept undescribed"
+    );
+    let held = count(
+        &mut c,
+        "SELECT count(*) FROM box_chunks WHERE robot = 'poison-box'",
+    );
+    assert_eq!(held, 0, "the bytes that failed their digest are dropped");
+    let kinds = wait_for(Duration::from_secs(10), "the refusals counted", || {
+        let mut c = postgres::Client::connect(&db.url, postgres::NoTls).ok()?;
+        let kinds: Vec<String> = c
+            .query(
+                "SELECT kind FROM refusals WHERE robot = 'poison-box' AND what = 'box_chunk' ORDER BY kind",
+                &[],
+            )
+            .ok()?
+            .iter()
+            .map(|r| r.get(0))
+            .collect();
+        (kinds.len() == 4).then_some(kinds)
+    });
+    assert_eq!(
+        kinds,
+        [
+            "box_conflict",
+            "box_digest",
+            "box_name",
+            "chunk_outside_box"
+        ]
+    );
+    assert_eq!(
+        count(
+            &mut c,
+            "SELECT count(*) FROM refusals WHERE robot = 'good-box'"
+        ),
+        0
     );
 }

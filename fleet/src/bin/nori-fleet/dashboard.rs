@@ -302,12 +302,24 @@ fn serve_http(
         };
         let (path, query) = request.url().split_once('?').unwrap_or((request.url(), ""));
         let (path, query) = (path.to_string(), query.to_string());
+        let mut attachment = None;
         let (body, kind, code) = if path == "/report" {
             report_page(database, &query)
+        } else if let Some(rest) = path.strip_prefix("/boxes/") {
+            let (answer, name) = box_download(database, rest);
+            attachment = name;
+            answer
         } else {
             page(&path, &lock(collector))
         };
         let mut response = tiny_http::Response::from_data(body).with_status_code(code);
+        if let Some(name) = attachment {
+            // The name is the store's, checked when the box came (`fleet::boxes`): no quotes.
+            let disposition = format!("Content-Disposition: attachment; filename=\"{name}\"");
+            if let Ok(h) = disposition.parse::<tiny_http::Header>() {
+                response = response.with_header(h);
+            }
+        }
         // Every answer is the present: a browser must ask again, not show a cached thumbnail.
         for header in [
             format!("Content-Type: {kind}"),
@@ -348,6 +360,34 @@ fn report_page(database: Option<&str>, query: &str) -> (Vec<u8>, &'static str, u
             ),
         },
         Err(e) => (format!("days: {e}\n").into_bytes(), TEXT, 400),
+    }
+}
+
+/// A black box from the store, `ROBOT/DIGEST.mcap` (its SHA-256 in hex), whole: the answer,
+/// and the box's file name.
+fn box_download(
+    database: Option<&str>,
+    rest: &str,
+) -> ((Vec<u8>, &'static str, u16), Option<String>) {
+    const TEXT: &str = "text/plain; charset=utf-8";
+    let fail = |code, why: String| ((format!("{why}\n").into_bytes(), TEXT, code), None);
+    let Some(database) = database else {
+        return fail(404, "no history: start nori fleet with --database".into());
+    };
+    let Some((robot, digest)) = rest
+        .strip_suffix(".mcap")
+        .and_then(|r| r.split_once('/'))
+        .filter(|(_, d)| d.len() == 64 && d.bytes().all(|b| b.is_ascii_hexdigit()))
+    else {
+        return fail(400, "a box is /boxes/ROBOT/SHA256.mcap".into());
+    };
+    match crate::report_command::box_bytes(database, robot, digest) {
+        Ok(Some((name, bytes))) => ((bytes, "application/octet-stream", 200), Some(name)),
+        Ok(None) => fail(
+            404,
+            format!("robot {robot} has no whole box {digest} in the store"),
+        ),
+        Err(e) => fail(503, format!("reading the box failed: {e:#}")),
     }
 }
 

@@ -4,7 +4,7 @@
 
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
-use fleet::report::{Aggregates, JointFigures, Limits, Report, PROTECTIONS};
+use fleet::report::{Aggregates, BoxLine, JointFigures, Limits, Report, TripLine, PROTECTIONS};
 use std::path::PathBuf;
 
 /// Options of `nori fleet report`.
@@ -78,6 +78,33 @@ pub fn html(database: &str, days: f64) -> Result<String> {
     args.days = days;
     let (report, title) = make(&args)?;
     Ok(report.html(&title))
+}
+
+/// Robot `robot`'s whole box of SHA-256 `digest_hex` from the store: its name and bytes
+/// (`None`: no such box, or not whole yet).
+pub fn box_bytes(
+    database: &str,
+    robot: &str,
+    digest_hex: &str,
+) -> Result<Option<(String, Vec<u8>)>> {
+    let mut db = postgres::Client::connect(database, postgres::NoTls)
+        .context("connecting to the fleet's database")?;
+    let mut tx = db.transaction()?;
+    let Some(row) = tx.query_opt(
+        "SELECT name FROM boxes WHERE robot = $1 AND digest = decode($2, 'hex') AND complete",
+        &[&robot, &digest_hex],
+    )?
+    else {
+        return Ok(None);
+    };
+    let mut bytes = Vec::new();
+    for r in tx.query(
+        "SELECT data FROM box_chunks WHERE robot = $1 AND digest = decode($2, 'hex') ORDER BY at_byte",
+        &[&robot, &digest_hex],
+    )? {
+        bytes.extend_from_slice(r.get::<_, &[u8]>(0));
+    }
+    Ok(Some((row.get(0), bytes)))
 }
 
 /// The report `args` ask for, and its title.
@@ -222,5 +249,67 @@ fn aggregates(
             mean_second_c: r.get::<_, Option<f64>>(4).unwrap_or(f64::NAN),
         });
     }
+    boxes(db, &p, &mut a)?;
     Ok(a)
+}
+
+/// A time as the report writes it.
+const UTC: &str = "'YYYY-MM-DD HH24:MI:SS'";
+
+/// The period's black boxes, each under its journaled event (the same supervisor event: the
+/// robot's clock and the supervisor's number), and its trips that have none in the store.
+fn boxes(
+    db: &mut postgres::Client,
+    p: &[&(dyn postgres::types::ToSql + Sync); 3],
+    a: &mut Aggregates,
+) -> Result<(), postgres::Error> {
+    for r in db.query(
+        &format!(
+            "SELECT b.robot, to_char(coalesce(e.at, b.first_at) AT TIME ZONE 'UTC', {UTC}), \
+                    coalesce(e.kind, b.trigger, ''), coalesce(nullif(e.joint, ''), b.joint, ''), \
+                    b.name, encode(b.digest, 'hex'), b.size, b.received, b.complete, b.lead_up::text \
+             FROM boxes b LEFT JOIN LATERAL (SELECT at, kind, joint FROM events e \
+                 WHERE e.robot = b.robot AND e.robot_ns = b.event_ns AND e.origin_seq > 0 \
+                 ORDER BY e.id LIMIT 1) e ON true \
+             WHERE coalesce(e.at, b.first_at) >= to_timestamp($1) \
+               AND coalesce(e.at, b.first_at) < to_timestamp($2) \
+               AND ($3::text IS NULL OR b.robot = $3) \
+             ORDER BY coalesce(e.at, b.first_at), b.robot"
+        ),
+        p,
+    )? {
+        let lead_up: Option<String> = r.get(9);
+        a.boxes.push(BoxLine {
+            robot: r.get(0),
+            at: r.get(1),
+            event: r.get(2),
+            joint: r.get(3),
+            name: r.get(4),
+            digest: r.get(5),
+            size: r.get::<_, i64>(6) as u64,
+            received: r.get::<_, i64>(7) as u64,
+            complete: r.get(8),
+            lead_up: lead_up.and_then(|j| serde_json::from_str(&j).ok()),
+        });
+    }
+    let trips: Vec<String> = ["ThermalTrip", "FirmwareProtection", "DriverTrip"]
+        .map(String::from)
+        .to_vec();
+    for r in db.query(
+        &format!(
+            "SELECT e.robot, to_char(e.at AT TIME ZONE 'UTC', {UTC}), e.kind, e.joint FROM events e \
+             WHERE {WITHIN} AND e.kind = ANY($4) AND NOT EXISTS \
+                 (SELECT 1 FROM boxes b WHERE b.robot = e.robot AND b.event_ns = e.robot_ns) \
+             ORDER BY e.at, e.robot"
+        ),
+        &[p[0], p[1], p[2], &trips],
+    )? {
+        a.trips_without_box.push(TripLine {
+            robot: r.get(0),
+            at: r.get(1),
+            kind: r.get(2),
+            joint: r.get(3),
+        });
+    }
+    Ok(())
 }

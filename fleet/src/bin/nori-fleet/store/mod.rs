@@ -14,7 +14,10 @@
 //! events, sent again by the robot); one thread decodes and writes:
 //!
 //! * [`writer`]: that thread's turn: decode, check, write, acknowledge.
+//! * [`boxes`]: the black boxes robots send, chunk by chunk (`fleet::boxes`), on a queue of
+//!   their own (a chunk is up to 1 MiB: 64 of them queued at most).
 
+mod boxes;
 mod writer;
 
 use crate::dashboard::FleetSideArgs;
@@ -95,13 +98,24 @@ struct Counts {
     database_failures: u64,
     /// Times the zenoh session was opened again, deaf.
     reopened: u64,
+    /// Black boxes held whole and checked.
+    boxes_stored: u64,
+    /// Bytes of black boxes appended.
+    box_bytes: u64,
 }
+
+/// Black-box chunks queued between zenoh and the writer, at most.
+const BOX_QUEUE: usize = 64;
 
 /// What zenoh's callbacks feed: the writer's queue, and counts.
 struct Taps {
     tx: SyncSender<Inbound>,
     /// Messages dropped, the queue full.
     queue_full: Arc<AtomicU64>,
+    /// Black-box chunks: robot, bytes.
+    boxes: SyncSender<(String, Vec<u8>)>,
+    /// Chunks dropped, their queue full (the robot sends them again).
+    box_queue_full: Arc<AtomicU64>,
     /// Messages heard, any robot's.
     heard: Arc<AtomicU64>,
 }
@@ -120,6 +134,10 @@ impl Link {
             .context("opening the fleet store's zenoh session")?;
         let mut subscribers = Vec::new();
         for (leaf, key) in keys {
+            if *leaf == "blackbox/chunk" {
+                subscribers.push(box_subscriber(&session, key, taps)?);
+                continue;
+            }
             let (tx, full, heard, leaf) = (
                 taps.tx.clone(),
                 taps.queue_full.clone(),
@@ -155,6 +173,33 @@ impl Link {
     }
 }
 
+/// The subscriber of the robots' black-box chunks, into their own queue.
+fn box_subscriber(
+    session: &fleet_agent::zenoh::Session,
+    key: &str,
+    taps: &Taps,
+) -> Result<fleet_agent::zenoh::pubsub::Subscriber<()>> {
+    let (tx, full, heard) = (
+        taps.boxes.clone(),
+        taps.box_queue_full.clone(),
+        taps.heard.clone(),
+    );
+    session
+        .declare_subscriber(key.to_string())
+        .callback(move |s: Sample| {
+            let Some(robot) = robot_of(s.key_expr().as_str()) else {
+                return;
+            };
+            heard.fetch_add(1, Ordering::Relaxed);
+            let item = (robot.to_string(), s.payload().to_bytes().into_owned());
+            if let Err(TrySendError::Full(_)) = tx.try_send(item) {
+                full.fetch_add(1, Ordering::Relaxed);
+            }
+        })
+        .wait()
+        .map_err(|e| anyhow!("{e}"))
+}
+
 /// Runs the store until Ctrl-C (or `--run-for`).
 pub fn run(args: &StoreArgs) -> Result<()> {
     telemetry::process::init_logging();
@@ -178,20 +223,29 @@ pub fn run(args: &StoreArgs) -> Result<()> {
     }
     // Made before anything is opened: a bad pattern is a configuration error.
     let mut keys = Vec::new();
-    for leaf in ["events", "state", "layout"] {
+    for leaf in ["events", "state", "layout", "blackbox/chunk"] {
         for key in robots_matching(&args.robots, leaf)? {
             keys.push((leaf, key));
         }
     }
     let stop = telemetry::process::stop_flag()?;
     let (tx, rx) = sync_channel::<Inbound>(args.queue.max(1));
+    let (boxes, box_rx) = sync_channel(BOX_QUEUE);
     let taps = Taps {
         tx,
         queue_full: Arc::new(AtomicU64::new(0)),
+        boxes,
+        box_queue_full: Arc::new(AtomicU64::new(0)),
         heard: Arc::new(AtomicU64::new(0)),
     };
     let mut link = Some(Link::open(args, &keys, &taps)?);
-    let queue_full = taps.queue_full.clone();
+    let (queue_full, box_queue_full) = (taps.queue_full.clone(), taps.box_queue_full.clone());
+    let full = || {
+        (
+            queue_full.load(Ordering::Relaxed),
+            box_queue_full.load(Ordering::Relaxed),
+        )
+    };
     let mut silence = Silence::new((args.deaf_after_s * 1000.0) as u64, wall_ms());
     let mut writer = Writer {
         rollups: Rollups::new(RollupConfig {
@@ -215,13 +269,12 @@ pub fn run(args: &StoreArgs) -> Result<()> {
             .is_none_or(|s| started.elapsed().as_secs_f64() < s)
     {
         let acks = writer.turn(&rx);
+        let box_acks = writer.store_boxes(&box_rx);
         if let Some(link) = &link {
-            for (robot, ack) in acks {
-                match link
-                    .session
-                    .put(robot_key(&robot, "acks"), encode(&ack))
-                    .wait()
-                {
+            let journals = acks.iter().map(|(r, a)| (r, "acks", encode(a)));
+            let boxes = box_acks.iter().map(|(r, a)| (r, "blackbox/ack", encode(a)));
+            for (robot, leaf, ack) in journals.chain(boxes) {
+                match link.session.put(robot_key(robot, leaf), ack).wait() {
                     Ok(()) => writer.counts.acks_sent += 1,
                     Err(e) => tracing::warn!("acknowledging {robot}: {e}"),
                 }
@@ -243,12 +296,14 @@ pub fn run(args: &StoreArgs) -> Result<()> {
         }
         if Instant::now() >= next_log {
             next_log += Duration::from_secs(10);
-            writer.log(queue_full.load(Ordering::Relaxed));
+            let (q, b) = full();
+            writer.log(q, b);
         }
     }
     writer.rows.extend(writer.rollups.close_all());
     writer.flush_rows();
     writer.flush_refusals();
-    writer.log(queue_full.load(Ordering::Relaxed));
+    let (q, b) = full();
+    writer.log(q, b);
     Ok(())
 }

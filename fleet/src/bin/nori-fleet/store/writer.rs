@@ -62,7 +62,7 @@ pub(super) struct Writer {
 
 /// The database refused a row for what it holds: the reason, else `None` (the connection or
 /// the server failed).
-fn row_refusal(e: &postgres::Error) -> Option<Refusal> {
+pub(super) fn row_refusal(e: &postgres::Error) -> Option<Refusal> {
     let db = e.as_db_error()?;
     let sqlstate = db.code().code();
     admission::is_row_fault(sqlstate).then(|| Refusal::Database {
@@ -108,7 +108,7 @@ fn all_or_each<T>(
 }
 
 impl Writer {
-    pub(super) fn log(&self, queue_full: u64) {
+    pub(super) fn log(&self, queue_full: u64, box_queue_full: u64) {
         let c = &self.counts;
         tracing::info!(
             events_stored = c.events_stored,
@@ -120,8 +120,11 @@ impl Writer {
             refused = c.refused,
             undecodable = c.undecodable,
             queue_full,
+            box_queue_full,
             database_failures = c.database_failures,
             reopened = c.reopened,
+            boxes_stored = c.boxes_stored,
+            box_bytes = c.box_bytes,
             connected = self.db.is_some(),
             "fleet store"
         );
@@ -218,18 +221,18 @@ impl Writer {
         events
     }
 
-    fn undecodable(&mut self, what: &str, robot: &str, e: &str) {
+    pub(super) fn undecodable(&mut self, what: &str, robot: &str, e: &str) {
         self.counts.undecodable += 1;
         tracing::debug!("{what} of {robot}: {e}");
     }
 
-    fn refused(&mut self, robot: &str, message: Message, why: &Refusal) {
+    pub(super) fn refused(&mut self, robot: &str, message: Message, why: &Refusal) {
         self.counts.refused += 1;
         self.refusals.count(robot, message, why);
         tracing::debug!("{} of {}: refused, {why}", message.as_str(), escaped(robot));
     }
 
-    fn failed(&mut self, e: &postgres::Error) {
+    pub(super) fn failed(&mut self, e: &postgres::Error) {
         self.counts.database_failures += 1;
         tracing::warn!("fleet store: database write failed ({e}); reconnecting");
         self.db = None;

@@ -1,0 +1,243 @@
+//! What led to the event that froze a box, read from the box itself: the figures of its joint
+//! before it (temperature, current) and the protections that acted on that joint before it
+//! (stall retries, torque reductions, warnings). The fleet's store reads it from every box it
+//! receives, for the protection statistics of `nori fleet report`. Pure: the box's bytes in.
+
+use crate::channel::{Channel, EventMessage};
+use crate::frozen::{visit, Item};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+/// What led to a box's event.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct LeadUp {
+    /// The event that froze the box, as its metadata says (`None`: a box that does not say).
+    pub trigger: Option<EventMessage>,
+    /// The joint the figures are of: the trigger's, else the hottest before it.
+    pub joint: Option<String>,
+    /// Seconds of joint states in the box before the event.
+    pub seconds_before: f64,
+    /// The joint's temperature at the box's start, its highest before the event, and its last
+    /// before it, °C.
+    pub temperature_c: Option<[f32; 3]>,
+    /// The joint's current before the event: its mean and its peak, A.
+    pub current_a: Option<[f32; 2]>,
+    /// The box's events before the event that are about the joint or about no joint, by kind.
+    pub events_before: BTreeMap<String, u64>,
+}
+
+/// One joint's readings before the event.
+#[derive(Debug, Clone, Copy)]
+struct Figures {
+    first_c: f32,
+    max_c: f32,
+    last_c: f32,
+    current_sum: f64,
+    current_peak: f32,
+    readings: u64,
+}
+
+impl Figures {
+    fn new(temperature_c: f32) -> Figures {
+        Figures {
+            first_c: temperature_c,
+            max_c: temperature_c,
+            last_c: temperature_c,
+            current_sum: 0.0,
+            current_peak: 0.0,
+            readings: 0,
+        }
+    }
+
+    fn add(&mut self, temperature_c: f32, current_a: f32) {
+        self.max_c = self.max_c.max(temperature_c);
+        self.last_c = temperature_c;
+        self.current_sum += f64::from(current_a.abs());
+        self.current_peak = self.current_peak.max(current_a.abs());
+        self.readings += 1;
+    }
+}
+
+/// What led to the event that froze the box in `bytes` (read as far as it is whole).
+pub fn lead_up(bytes: &[u8]) -> LeadUp {
+    let trigger: Option<EventMessage> = crate::frozen::metadata(bytes)
+        .get("event")
+        .and_then(|e| serde_json::from_str(e).ok());
+    let before = trigger.as_ref().map_or(u64::MAX, |t| t.timestamp_ns);
+    let mut joints: BTreeMap<String, Figures> = BTreeMap::new();
+    let mut events: Vec<EventMessage> = Vec::new();
+    let (mut first_ns, mut last_ns) = (None, 0);
+    visit(bytes, &mut |item| {
+        let Item::Message { topic, data, .. } = item else {
+            return;
+        };
+        match Channel::from_topic(topic) {
+            Some(Channel::JointStates) => {
+                let Ok(v) = serde_json::from_slice::<serde_json::Value>(data) else {
+                    return;
+                };
+                let Some(t) = v["timestamp_ns"].as_u64().filter(|&t| t < before) else {
+                    return;
+                };
+                first_ns.get_or_insert(t);
+                last_ns = last_ns.max(t);
+                readings(&v, &mut joints);
+            }
+            Some(Channel::Events) => {
+                if let Ok(e) = serde_json::from_slice::<EventMessage>(data) {
+                    if e.timestamp_ns < before {
+                        events.push(e);
+                    }
+                }
+            }
+            _ => {}
+        }
+    });
+    let joint = trigger.as_ref().and_then(|t| t.joint.clone()).or_else(|| {
+        joints
+            .iter()
+            .max_by(|a, b| a.1.max_c.total_cmp(&b.1.max_c))
+            .map(|(name, _)| name.clone())
+    });
+    let figures = joint.as_ref().and_then(|j| joints.get(j));
+    let mut events_before = BTreeMap::new();
+    for e in &events {
+        if e.joint.is_none() || e.joint == joint {
+            *events_before.entry(e.kind.clone()).or_insert(0) += 1;
+        }
+    }
+    LeadUp {
+        seconds_before: first_ns.map_or(0.0, |f| (last_ns - f) as f64 * 1e-9),
+        temperature_c: figures.map(|f| [f.first_c, f.max_c, f.last_c]),
+        current_a: figures
+            .filter(|f| f.readings > 0)
+            .map(|f| [(f.current_sum / f.readings as f64) as f32, f.current_peak]),
+        trigger,
+        joint,
+        events_before,
+    }
+}
+
+/// Folds one joint-state message's valid readings into each joint's figures.
+fn readings(v: &serde_json::Value, joints: &mut BTreeMap<String, Figures>) {
+    let Some(names) = v["name"].as_array() else {
+        return;
+    };
+    for (k, name) in names.iter().enumerate() {
+        let (Some(name), Some(true)) = (name.as_str(), v["valid"][k].as_bool()) else {
+            continue;
+        };
+        let (Some(t), Some(i)) = (v["temperature_c"][k].as_f64(), v["current_a"][k].as_f64())
+        else {
+            continue;
+        };
+        let (t, i) = (t as f32, i as f32);
+        joints
+            .entry(name.to_string())
+            .or_insert_with(|| Figures::new(t))
+            .add(t, i);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::expect_used)]
+    use super::*;
+    use crate::channel::{joint_states, to_json, Names};
+    use crate::frozen::BoxWriter;
+    use crate::ring::Record;
+    use std::io::Cursor;
+    use telemetry::JointState;
+
+    const S: u64 = 1_000_000_000;
+
+    fn event(t: u64, kind: &str, joint: Option<&str>, value: f32) -> EventMessage {
+        EventMessage {
+            timestamp_ns: t,
+            kind: kind.into(),
+            joint: joint.map(str::to_string),
+            bus: Some("left_arm".into()),
+            level: 0,
+            value,
+        }
+    }
+
+    /// A box frozen by `trigger` at 10 s: joint j1 heating from 40 °C by 1 °C/s drawing
+    /// 0.5 A then 1.5 A from 5 s, j0 steady at 30 °C; a stall of j1 at 6 s, one of j0 at
+    /// 7 s, a torque reduction of the bus at 8 s, and readings after the trigger that do not
+    /// count.
+    fn a_box(trigger: &EventMessage) -> Vec<u8> {
+        let mut w = BoxWriter::new(Cursor::new(Vec::new()), trigger, "r1", 0).unwrap();
+        let names = Names::from_layout(&{
+            let mut l = telemetry::frames::JointLayout {
+                joint_count: 2,
+                ..Default::default()
+            };
+            l.joints[0].set_name("j0");
+            l.joints[1].set_name("j1");
+            l
+        });
+        for k in 0..=12u64 {
+            let mut s = JointState {
+                joint_count: 2,
+                timestamp_ns: k * S,
+                ..Default::default()
+            };
+            s.joints[0].valid = 1;
+            s.joints[0].temperature_c = 30.0;
+            s.joints[1].valid = 1;
+            s.joints[1].temperature_c = 40.0 + k as f32;
+            s.joints[1].current_a = if k < 5 { 0.5 } else { 1.5 };
+            let (t_ns, data) = joint_states(&s, &names);
+            let channel = Channel::JointStates;
+            w.write(Record {
+                channel,
+                t_ns,
+                data: &data,
+            })
+            .unwrap();
+        }
+        for e in [
+            event(6 * S, "stall", Some("j1"), 1.2),
+            event(7 * S, "stall", Some("j0"), 1.2),
+            event(8 * S, "torque_reduced", None, 500.0),
+            event(11 * S, "stall", Some("j1"), 1.2),
+        ] {
+            let data = to_json(&e);
+            let (channel, t_ns) = (Channel::Events, e.timestamp_ns);
+            w.write(Record {
+                channel,
+                t_ns,
+                data: &data,
+            })
+            .unwrap();
+        }
+        w.finish().unwrap().into_inner()
+    }
+
+    #[test]
+    fn the_trip_s_joint_before_it_and_the_protections_that_acted_on_it() {
+        let trip = event(10 * S, "thermal_trip", Some("j1"), 59.0);
+        let l = lead_up(&a_box(&trip));
+        assert_eq!(l.trigger, Some(trip));
+        assert_eq!(l.joint.as_deref(), Some("j1"));
+        assert_eq!(l.seconds_before, 9.0, "0 to 9 s: the readings before 10 s");
+        assert_eq!(l.temperature_c, Some([40.0, 49.0, 49.0]));
+        // Five readings at 0.5 A, five at 1.5 A.
+        assert_eq!(l.current_a, Some([1.0, 1.5]));
+        let expected = BTreeMap::from([("stall".into(), 1), ("torque_reduced".into(), 1)]);
+        assert_eq!(
+            l.events_before, expected,
+            "j0's stall and the later one left out"
+        );
+    }
+
+    #[test]
+    fn an_event_of_no_joint_is_told_by_the_hottest_and_garbage_by_nothing() {
+        let saved = event(10 * S, "saved", None, 0.0);
+        let l = lead_up(&a_box(&saved));
+        assert_eq!(l.joint.as_deref(), Some("j1"), "the hottest");
+        assert_eq!(l.events_before["stall"], 1);
+        assert_eq!(lead_up(b"not a box"), LeadUp::default());
+    }
+}

@@ -1,0 +1,245 @@
+//! The store's black boxes (`fleet::boxes`): each chunk in a transaction of its own, its box's
+//! row locked, the bytes appended only at the offset held; a box held whole is checked against
+//! its digest and read for what froze it and what led to it. The acknowledgement goes after the
+//! commit: nothing acknowledged is lost.
+
+use super::writer::{row_refusal, Writer};
+use fleet::admission::{Message, Refusal};
+use fleet::boxes::{check_chunk, plan, Held, Plan};
+use fleet_agent::schema::{decode, BoxAckMsg, BoxChunkMsg, SCHEMA_VERSION};
+use sha2::{Digest, Sha256};
+use std::sync::mpsc::Receiver;
+
+/// Chunks taken in one turn, at most.
+const TURN: usize = 64;
+
+/// What became of a chunk.
+struct Taken {
+    /// What the store holds of the box now (`None`: refused before anything was read).
+    ack: Option<BoxAckMsg>,
+    /// Refused, or a refusal met on the way (a box whose bytes failed their digest).
+    refused: Option<Refusal>,
+    /// Bytes appended.
+    appended: u64,
+    /// The box became whole and checked.
+    completed: bool,
+}
+
+impl Writer {
+    /// Takes the chunks queued (robot, bytes); returns the acknowledgements to send.
+    pub(super) fn store_boxes(
+        &mut self,
+        rx: &Receiver<(String, Vec<u8>)>,
+    ) -> Vec<(String, BoxAckMsg)> {
+        let mut acks = Vec::new();
+        if self.db.is_none() {
+            // Left queued (bounded; what does not fit is dropped and sent again by the robot).
+            return acks;
+        }
+        for (robot, bytes) in rx.try_iter().take(TURN) {
+            let chunk = match decode::<BoxChunkMsg>(&bytes) {
+                Ok(c) => c,
+                Err(e) => {
+                    self.undecodable("blackbox/chunk", &robot, &e.to_string());
+                    continue;
+                }
+            };
+            if let Err(why) = check_chunk(&robot, &chunk) {
+                self.refused(&robot, Message::BoxChunk, &why);
+                continue;
+            }
+            let Some(db) = self.db.as_mut() else {
+                break;
+            };
+            match take_chunk(db, &robot, &chunk) {
+                Ok(t) => {
+                    if let Some(why) = &t.refused {
+                        self.refused(&robot, Message::BoxChunk, why);
+                    }
+                    self.counts.box_bytes += t.appended;
+                    self.counts.boxes_stored += u64::from(t.completed);
+                    if t.completed {
+                        tracing::info!(
+                            robot,
+                            name = chunk.name,
+                            size = chunk.size,
+                            "a black box stored"
+                        );
+                    }
+                    acks.extend(t.ack.map(|a| (robot, a)));
+                }
+                Err(e) => {
+                    // Not acknowledged: the robot sends it again.
+                    self.failed(&e);
+                    break;
+                }
+            }
+        }
+        acks
+    }
+}
+
+/// What the store holds of the box `c` names, its row locked for the transaction.
+fn held(
+    tx: &mut postgres::Transaction<'_>,
+    robot: &str,
+    c: &BoxChunkMsg,
+) -> Result<Option<Held>, postgres::Error> {
+    let row = tx.query_opt(
+        "SELECT number, name, size, received, complete FROM boxes WHERE robot = $1 AND digest = $2 FOR UPDATE",
+        &[&robot, &&c.digest[..]],
+    )?;
+    Ok(row.map(|r| Held {
+        number: r.get::<_, i64>(0) as u64,
+        name: r.get(1),
+        size: r.get::<_, i64>(2) as u64,
+        received: r.get::<_, i64>(3) as u64,
+        complete: r.get(4),
+    }))
+}
+
+/// Takes one checked chunk in a transaction of its own.
+fn take_chunk(
+    db: &mut postgres::Client,
+    robot: &str,
+    c: &BoxChunkMsg,
+) -> Result<Taken, postgres::Error> {
+    let mut tx = db.transaction()?;
+    let digest = &c.digest[..];
+    let mut taken = Taken {
+        ack: None,
+        refused: None,
+        appended: 0,
+        completed: false,
+    };
+    let Plan {
+        open,
+        append,
+        held: mut h,
+    } = match plan(held(&mut tx, robot, c)?, c) {
+        Ok(p) => p,
+        Err(why) => {
+            taken.refused = Some(why);
+            return Ok(taken);
+        }
+    };
+    if open {
+        tx.execute(
+            "INSERT INTO boxes (robot, digest, number, name, size) VALUES ($1, $2, $3, $4, $5)",
+            &[
+                &robot,
+                &digest,
+                &(c.number as i64),
+                &c.name,
+                &(c.size as i64),
+            ],
+        )?;
+    }
+    if append {
+        let len = c.data.len() as u64;
+        tx.execute(
+            "INSERT INTO box_chunks (robot, digest, at_byte, data) VALUES ($1, $2, $3, $4)",
+            &[&robot, &digest, &(c.offset as i64), &c.data],
+        )?;
+        tx.execute(
+            "UPDATE boxes SET received = received + $3 WHERE robot = $1 AND digest = $2",
+            &[&robot, &digest, &(len as i64)],
+        )?;
+        h.received += len;
+        taken.appended = len;
+        if h.received == h.size {
+            match complete(&mut tx, robot, c)? {
+                Whole::Described => h.complete = true,
+                Whole::Undescribed(why) => {
+                    h.complete = true;
+                    taken.refused = Some(why);
+                }
+                Whole::Damaged => {
+                    h.received = 0;
+                    taken.refused = Some(Refusal::BoxDigest);
+                }
+            }
+            taken.completed = h.complete;
+        }
+    }
+    tx.commit()?;
+    taken.ack = Some(BoxAckMsg {
+        version: SCHEMA_VERSION,
+        number: c.number,
+        digest: c.digest,
+        received: h.received,
+        complete: h.complete,
+    });
+    Ok(taken)
+}
+
+/// A box just held whole.
+enum Whole {
+    /// Checked, and what froze it and what led to it kept.
+    Described,
+    /// Checked, kept; what it says could not be (the refusal).
+    Undescribed(Refusal),
+    /// Its bytes fail its digest: dropped, to be taken again from the start.
+    Damaged,
+}
+
+/// The box held whole: checked against its digest and read for what froze it.
+fn complete(
+    tx: &mut postgres::Transaction<'_>,
+    robot: &str,
+    c: &BoxChunkMsg,
+) -> Result<Whole, postgres::Error> {
+    let digest = &c.digest[..];
+    let mut bytes = Vec::with_capacity(usize::try_from(c.size).unwrap_or(0));
+    for r in tx.query(
+        "SELECT data FROM box_chunks WHERE robot = $1 AND digest = $2 ORDER BY at_byte",
+        &[&robot, &digest],
+    )? {
+        bytes.extend_from_slice(r.get::<_, &[u8]>(0));
+    }
+    let sum: [u8; 32] = Sha256::digest(&bytes).into();
+    if sum != c.digest || bytes.len() as u64 != c.size {
+        tx.execute(
+            "DELETE FROM box_chunks WHERE robot = $1 AND digest = $2",
+            &[&robot, &digest],
+        )?;
+        tx.execute(
+            "UPDATE boxes SET received = 0 WHERE robot = $1 AND digest = $2",
+            &[&robot, &digest],
+        )?;
+        return Ok(Whole::Damaged);
+    }
+    // A box is the robot's bytes: a reader that panics on one must not take the store down.
+    let lead = std::panic::catch_unwind(|| blackbox::lead_up::lead_up(&bytes)).unwrap_or_default();
+    let trigger = lead.trigger.as_ref();
+    let mut sp = tx.savepoint("described")?;
+    let described = sp.execute(
+        "UPDATE boxes SET complete = true, completed_at = now(), trigger = $3, joint = $4, \
+         event_ns = $5, lead_up = $6::text::jsonb WHERE robot = $1 AND digest = $2",
+        &[
+            &robot,
+            &digest,
+            &trigger.map(|t| t.kind.clone()),
+            &lead.joint,
+            &trigger.map(|t| t.timestamp_ns as i64),
+            &serde_json::to_string(&lead).unwrap_or_default(),
+        ],
+    );
+    match described {
+        Ok(_) => {
+            sp.commit()?;
+            Ok(Whole::Described)
+        }
+        Err(e) => {
+            // What the box says cannot be kept (jsonb refuses a NUL, say): the box is kept
+            // whole all the same, undescribed, and the refusal counted.
+            let why = row_refusal(&e).ok_or(e)?;
+            sp.rollback()?;
+            tx.execute(
+                "UPDATE boxes SET complete = true, completed_at = now() WHERE robot = $1 AND digest = $2",
+                &[&robot, &digest],
+            )?;
+            Ok(Whole::Undescribed(why))
+        }
+    }
+}
