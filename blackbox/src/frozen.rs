@@ -191,6 +191,8 @@ pub struct Extent {
     /// Chunks that could not be read (damaged: a checksum, a decompression or a record that
     /// fails), their messages lost and counted here.
     pub bad_chunks: usize,
+    /// The reading stopped at its budget of bytes decompressed (`visit_within`).
+    pub cut_at_budget: bool,
 }
 
 /// The largest chunk a box is read with, uncompressed (ours are 256 kB; other tools' up to a
@@ -216,8 +218,15 @@ pub enum Item<'a> {
 /// Reads a box linearly, as far as it is whole, handing each item to `f` as it is decoded
 /// (one chunk in memory at a time).
 pub fn visit(bytes: &[u8], f: &mut dyn FnMut(Item)) -> Extent {
+    visit_within(bytes, u64::MAX, f)
+}
+
+/// [`visit`], stopping once `budget` bytes have been decompressed: a box from outside (the
+/// fleet's store reads every robot's) costs bounded time, however far it decompresses.
+pub fn visit_within(bytes: &[u8], budget: u64, f: &mut dyn FnMut(Item)) -> Extent {
     use mcap::records::Record as R;
     let mut extent = Extent::default();
+    let mut spent = 0u64;
     let mut topics: BTreeMap<u16, String> = BTreeMap::new();
     let options = mcap::read::Options::IgnoreEndMagic.into();
     let Ok(reader) = mcap::read::LinearReader::new_with_options(bytes, options) else {
@@ -248,6 +257,11 @@ pub fn visit(bytes: &[u8], f: &mut dyn FnMut(Item)) -> Extent {
                 message(f, &topics, header.channel_id, header.log_time, &data)
             }
             R::Chunk { header, data } => {
+                spent = spent.saturating_add(header.uncompressed_size);
+                if spent > budget {
+                    extent.cut_at_budget = true;
+                    break;
+                }
                 let Some(raw) = chunk_bytes(&header, &data) else {
                     extent.bad_chunks += 1;
                     continue;

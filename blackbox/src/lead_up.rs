@@ -4,7 +4,7 @@
 //! receives, for the protection statistics of `nori fleet report`. Pure: the box's bytes in.
 
 use crate::channel::{Channel, EventMessage};
-use crate::frozen::{visit, Item};
+use crate::frozen::{visit_within, Item};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
@@ -24,7 +24,18 @@ pub struct LeadUp {
     pub current_a: Option<[f32; 2]>,
     /// The box's events before the event that are about the joint or about no joint, by kind.
     pub events_before: BTreeMap<String, u64>,
+    /// The box was read only in part: beyond [`READ_BUDGET`] bytes, or its joints or kinds of
+    /// events beyond what is kept (a box from outside is read at a bounded cost).
+    pub cut_short: bool,
 }
+
+/// The bytes of a box decompressed at most (a box of five minutes of every channel is a few
+/// hundred MB of JSON).
+pub const READ_BUDGET: u64 = 2 << 30;
+
+/// Joints, and kinds of events per joint, told apart at most (the A3 has 19 joints).
+const MOST_JOINTS: usize = 64;
+const MOST_KINDS: usize = 64;
 
 /// One joint's readings before the event.
 #[derive(Debug, Clone, Copy)]
@@ -58,39 +69,44 @@ impl Figures {
     }
 }
 
-/// What led to the event that froze the box in `bytes` (read as far as it is whole).
+/// What led to the event that froze the box in `bytes` (read as far as it is whole, within
+/// [`READ_BUDGET`]).
 pub fn lead_up(bytes: &[u8]) -> LeadUp {
-    let trigger: Option<EventMessage> = crate::frozen::metadata(bytes)
-        .get("event")
-        .and_then(|e| serde_json::from_str(e).ok());
-    let before = trigger.as_ref().map_or(u64::MAX, |t| t.timestamp_ns);
+    let mut trigger: Option<EventMessage> = None;
     let mut joints: BTreeMap<String, Figures> = BTreeMap::new();
-    let mut events: Vec<EventMessage> = Vec::new();
-    let (mut first_ns, mut last_ns) = (None, 0);
-    visit(bytes, &mut |item| {
-        let Item::Message { topic, data, .. } = item else {
-            return;
-        };
-        match Channel::from_topic(topic) {
-            Some(Channel::JointStates) => {
-                let Ok(v) = serde_json::from_slice::<serde_json::Value>(data) else {
-                    return;
-                };
-                let Some(t) = v["timestamp_ns"].as_u64().filter(|&t| t < before) else {
-                    return;
-                };
-                first_ns.get_or_insert(t);
-                last_ns = last_ns.max(t);
-                readings(&v, &mut joints);
+    // Events before the trigger, counted by the joint they are about (`None`: no joint).
+    let mut events: BTreeMap<Option<String>, BTreeMap<String, u64>> = BTreeMap::new();
+    let (mut first_ns, mut last_ns, mut cut_short) = (None, 0, false);
+    let extent = visit_within(bytes, READ_BUDGET, &mut |item| {
+        // The metadata is the box's first record: what comes before it has no trigger to be
+        // before, and counts as before.
+        let before = trigger.as_ref().map_or(u64::MAX, |t| t.timestamp_ns);
+        match item {
+            Item::Metadata(m) => {
+                trigger = m.get("event").and_then(|e| serde_json::from_str(e).ok());
             }
-            Some(Channel::Events) => {
-                if let Ok(e) = serde_json::from_slice::<EventMessage>(data) {
+            Item::Message { topic, data, .. } => match Channel::from_topic(topic) {
+                Some(Channel::JointStates) => {
+                    let Ok(v) = serde_json::from_slice::<serde_json::Value>(data) else {
+                        return;
+                    };
+                    let Some(t) = v["timestamp_ns"].as_u64().filter(|&t| t < before) else {
+                        return;
+                    };
+                    first_ns.get_or_insert(t);
+                    last_ns = last_ns.max(t);
+                    cut_short |= !readings(&v, &mut joints);
+                }
+                Some(Channel::Events) => {
+                    let Ok(e) = serde_json::from_slice::<EventMessage>(data) else {
+                        return;
+                    };
                     if e.timestamp_ns < before {
-                        events.push(e);
+                        cut_short |= !count_event(&mut events, e);
                     }
                 }
-            }
-            _ => {}
+                _ => {}
+            },
         }
     });
     let joint = trigger.as_ref().and_then(|t| t.joint.clone()).or_else(|| {
@@ -100,11 +116,9 @@ pub fn lead_up(bytes: &[u8]) -> LeadUp {
             .map(|(name, _)| name.clone())
     });
     let figures = joint.as_ref().and_then(|j| joints.get(j));
-    let mut events_before = BTreeMap::new();
-    for e in &events {
-        if e.joint.is_none() || e.joint == joint {
-            *events_before.entry(e.kind.clone()).or_insert(0) += 1;
-        }
+    let mut events_before = events.remove(&None).unwrap_or_default();
+    for (kind, n) in events.remove(&joint).unwrap_or_default() {
+        *events_before.entry(kind).or_insert(0) += n;
     }
     LeadUp {
         seconds_before: first_ns.map_or(0.0, |f| (last_ns - f) as f64 * 1e-9),
@@ -115,14 +129,33 @@ pub fn lead_up(bytes: &[u8]) -> LeadUp {
         trigger,
         joint,
         events_before,
+        cut_short: cut_short || extent.cut_at_budget,
     }
 }
 
-/// Folds one joint-state message's valid readings into each joint's figures.
-fn readings(v: &serde_json::Value, joints: &mut BTreeMap<String, Figures>) {
+/// Counts event `e` under its joint; `false` when its joint or its kind is beyond what is kept.
+fn count_event(
+    events: &mut BTreeMap<Option<String>, BTreeMap<String, u64>>,
+    e: EventMessage,
+) -> bool {
+    if !events.contains_key(&e.joint) && events.len() >= MOST_JOINTS {
+        return false;
+    }
+    let kinds = events.entry(e.joint).or_default();
+    if !kinds.contains_key(&e.kind) && kinds.len() >= MOST_KINDS {
+        return false;
+    }
+    *kinds.entry(e.kind).or_insert(0) += 1;
+    true
+}
+
+/// Folds one joint-state message's valid readings into each joint's figures; `false` when a
+/// joint beyond what is kept was left out.
+fn readings(v: &serde_json::Value, joints: &mut BTreeMap<String, Figures>) -> bool {
     let Some(names) = v["name"].as_array() else {
-        return;
+        return true;
     };
+    let mut all = true;
     for (k, name) in names.iter().enumerate() {
         let (Some(name), Some(true)) = (name.as_str(), v["valid"][k].as_bool()) else {
             continue;
@@ -132,11 +165,16 @@ fn readings(v: &serde_json::Value, joints: &mut BTreeMap<String, Figures>) {
             continue;
         };
         let (t, i) = (t as f32, i as f32);
+        if !joints.contains_key(name) && joints.len() >= MOST_JOINTS {
+            all = false;
+            continue;
+        }
         joints
             .entry(name.to_string())
             .or_insert_with(|| Figures::new(t))
             .add(t, i);
     }
+    all
 }
 
 #[cfg(test)]
@@ -239,5 +277,29 @@ mod tests {
         assert_eq!(l.joint.as_deref(), Some("j1"), "the hottest");
         assert_eq!(l.events_before["stall"], 1);
         assert_eq!(lead_up(b"not a box"), LeadUp::default());
+    }
+
+    #[test]
+    fn a_box_from_outside_is_read_at_a_bounded_cost() {
+        let saved = event(10 * S, "saved", None, 0.0);
+        let mut w = BoxWriter::new(Cursor::new(Vec::new()), &saved, "r1", 0).unwrap();
+        for k in 0..200u64 {
+            let (joint, kind) = (format!("j{k}"), format!("k{k}"));
+            let data = to_json(&event(k, &kind, Some(&joint), 0.0));
+            let (channel, t_ns) = (Channel::Events, k);
+            w.write(Record {
+                channel,
+                t_ns,
+                data: &data,
+            })
+            .unwrap();
+        }
+        let bytes = w.finish().unwrap().into_inner();
+        let l = lead_up(&bytes);
+        assert!(l.cut_short, "200 joints: more than are kept");
+        assert!(!lead_up(&a_box(&saved)).cut_short);
+        let cut = crate::frozen::visit_within(&a_box(&saved), 1, &mut |_| {});
+        assert!(cut.cut_at_budget);
+        assert!(!crate::frozen::visit_within(&a_box(&saved), u64::MAX, &mut |_| {}).cut_at_budget);
     }
 }

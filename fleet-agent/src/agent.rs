@@ -397,6 +397,7 @@ impl Agent {
                         digest: a.digest,
                         received: a.received,
                         complete: a.complete,
+                        refused: a.refused,
                     });
                 }
                 Err(e) => {
@@ -421,7 +422,7 @@ impl Agent {
                 }
                 Err(e) => {
                     // Tried again after the wait, or counted lost once off the shelf.
-                    self.upload.unsent(&chunk);
+                    self.upload.unsent(&chunk, now);
                     self.counters.box_read_failures += 1;
                     if self.warn_every.due(now) {
                         tracing::warn!("{e}");
@@ -810,6 +811,7 @@ impl Agent {
             pending: self.upload.pending() as u64,
             stored: u.boxes_stored,
             lost: u.boxes_lost,
+            refused: u.boxes_refused,
             bytes_sent: u.bytes_sent,
             bytes_resent: u.bytes_resent,
             acks_refused: u.acks_refused + self.counters.box_acks_malformed,

@@ -80,10 +80,14 @@ impl ShelfWatch {
     }
 }
 
-/// The digest of each box already hashed, by number, name and size.
+/// A box file as listed: its number, name, size and modification time (a file rewritten
+/// under its name is hashed again).
+type Listed = (u64, String, u64, Option<std::time::SystemTime>);
+
+/// The digest of each box already hashed.
 #[derive(Debug, Default)]
 struct Digests {
-    known: HashMap<(u64, String, u64), [u8; 32]>,
+    known: HashMap<Listed, [u8; 32]>,
 }
 
 impl Digests {
@@ -96,7 +100,8 @@ impl Digests {
             let Some(name) = path.file_name().and_then(|n| n.to_str()) else {
                 continue;
             };
-            let key = (number, name.to_string(), size);
+            let modified = std::fs::metadata(&path).and_then(|m| m.modified()).ok();
+            let key = (number, name.to_string(), size, modified);
             let digest = match self.known.get(&key) {
                 Some(d) => *d,
                 None => match hash_file(&path, size) {
@@ -134,6 +139,13 @@ fn hash_file(path: &Path, size: u64) -> std::io::Result<[u8; 32]> {
         hasher.update(&buf[..n]);
         total += n as u64;
     }
+    // Read once: its pages need not stay in the agent's share of the memory.
+    let _ = nix::fcntl::posix_fadvise(
+        &file,
+        0,
+        0,
+        nix::fcntl::PosixFadviseAdvice::POSIX_FADV_DONTNEED,
+    );
     if total != size {
         return Err(std::io::Error::other(format!(
             "{total} bytes, listed with {size}"
@@ -182,7 +194,8 @@ mod tests {
         std::fs::write(dir.join("000002-T-thermal_trip.mcap"), &bytes).unwrap();
         std::fs::write(dir.join("000003-T-saved.mcap.partial"), b"being written").unwrap();
         std::fs::write(dir.join("export.csv"), b"an operator's").unwrap();
-        let listing = Digests::default().list(&dir);
+        let mut digests = Digests::default();
+        let listing = digests.list(&dir);
         assert_eq!(listing.len(), 1, "{listing:?}");
         let b = &listing[0];
         assert_eq!((b.number, b.size), (2, 1000));
@@ -197,6 +210,14 @@ mod tests {
             len: 100,
         };
         assert_eq!(read_chunk(&dir, &chunk).unwrap(), &bytes[900..]);
+        // Rewritten at the same size: hashed again, another box.
+        std::thread::sleep(Duration::from_millis(20));
+        let other: Vec<u8> = bytes.iter().map(|b| b ^ 1).collect();
+        std::fs::write(dir.join(&b.name), &other).unwrap();
+        let again = digests.list(&dir);
+        let expected: [u8; 32] = Sha256::digest(&other).into();
+        assert_eq!(again[0].digest, expected);
+        std::fs::write(dir.join(&b.name), &bytes).unwrap();
         // Rewritten under its name: refused, not sent as the box it was.
         std::fs::write(dir.join(&b.name), b"short").unwrap();
         assert!(matches!(

@@ -8,8 +8,8 @@
 //! down). Then chunks go in order, at most `window` unacknowledged; when the oldest has waited
 //! `resend-after` without an acknowledgement, everything unacknowledged goes again from the
 //! store's offset, and the wait doubles. Bytes are paced by a token bucket, and nothing is
-//! sent while the telemetry or the event journal has anything waiting: a box never goes
-//! ahead of them.
+//! sent while the event journal has anything unacknowledged: a box never goes ahead of the
+//! events.
 
 use std::collections::VecDeque;
 
@@ -63,7 +63,8 @@ pub struct ChunkToSend {
 }
 
 /// The store's acknowledgement of a box: it holds `received` bytes of it from the start, and
-/// `complete` when it has it whole and checked.
+/// `complete` when it has it whole and checked; `refused` when it will not take it (its
+/// reason counted at the store): the box is set aside.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct BoxAck {
     /// The box's number.
@@ -75,6 +76,8 @@ pub struct BoxAck {
     pub received: u64,
     /// Held whole, checked against its digest.
     pub complete: bool,
+    /// The store will not take it.
+    pub refused: bool,
 }
 
 /// What the upload did.
@@ -84,6 +87,8 @@ pub struct UploadCounters {
     pub boxes_stored: u64,
     /// Boxes gone from the shelf (its cap) before the store had them whole.
     pub boxes_lost: u64,
+    /// Boxes the store refused (set aside while this agent runs).
+    pub boxes_refused: u64,
     /// Bytes sent the first time.
     pub bytes_sent: u64,
     /// Bytes sent again.
@@ -106,6 +111,8 @@ struct InFlight {
     unacked: VecDeque<(u64, u64, u64)>,
     /// The furthest byte ever sent (bytes before it go out again as resent).
     furthest: u64,
+    /// Nothing more of it goes before this time (a chunk the shelf could not give).
+    held_until_ns: u64,
 }
 
 /// The upload's state.
@@ -114,8 +121,9 @@ pub struct Upload {
     config: UploadConfig,
     waiting: VecDeque<ShelvedBox>,
     in_flight: Option<InFlight>,
-    /// Boxes known whole at the store (never sent again while this agent runs).
-    stored: Vec<u64>,
+    /// Boxes known whole at the store, or refused by it, by number and digest (never sent
+    /// again while this agent runs).
+    done: Vec<(u64, [u8; 32])>,
     tokens: f64,
     tokens_at_ns: u64,
     resend_after_ns: u64,
@@ -129,7 +137,7 @@ impl Upload {
             config,
             waiting: VecDeque::new(),
             in_flight: None,
-            stored: Vec::new(),
+            done: Vec::new(),
             tokens: config.burst_bytes,
             tokens_at_ns: 0,
             resend_after_ns: config.resend_after_ns,
@@ -140,27 +148,25 @@ impl Upload {
     /// The shelf's finished boxes now: new ones wait their turn, oldest first; one gone before
     /// the store had it whole is counted lost.
     pub fn shelf(&mut self, boxes: &[ShelvedBox]) {
-        let on_shelf = |n: u64| boxes.iter().any(|b| b.number == n);
+        let on_shelf = |n: u64, d: &[u8; 32]| boxes.iter().any(|b| b.number == n && &b.digest == d);
         let before = self.waiting.len();
-        self.waiting.retain(|b| on_shelf(b.number));
-        self.stored.retain(|&n| on_shelf(n));
+        self.waiting.retain(|b| on_shelf(b.number, &b.digest));
+        self.done.retain(|(n, d)| on_shelf(*n, d));
         let mut lost = (before - self.waiting.len()) as u64;
         if self
             .in_flight
             .as_ref()
-            .is_some_and(|f| !on_shelf(f.shelved.number))
+            .is_some_and(|f| !on_shelf(f.shelved.number, &f.shelved.digest))
         {
             self.in_flight = None;
             lost += 1;
         }
         self.counters.boxes_lost += lost;
         for b in boxes {
-            let known = self.stored.contains(&b.number)
-                || self.waiting.iter().any(|w| w.number == b.number)
-                || self
-                    .in_flight
-                    .as_ref()
-                    .is_some_and(|f| f.shelved.number == b.number);
+            let same = |w: &ShelvedBox| w.number == b.number && w.digest == b.digest;
+            let known = self.done.contains(&(b.number, b.digest))
+                || self.waiting.iter().any(same)
+                || self.in_flight.as_ref().is_some_and(|f| same(&f.shelved));
             if !known {
                 self.waiting.push_back(b.clone());
             }
@@ -168,8 +174,8 @@ impl Upload {
         self.waiting.make_contiguous().sort_by_key(|b| b.number);
     }
 
-    /// The next chunk to send at `now_ns`, if one is due. `quiet`: the telemetry and the event
-    /// journal have nothing waiting.
+    /// The next chunk to send at `now_ns`, if one is due. `quiet`: the event journal has
+    /// nothing unacknowledged.
     pub fn next_chunk(&mut self, now_ns: u64, quiet: bool) -> Option<ChunkToSend> {
         self.refill(now_ns);
         if !quiet {
@@ -184,6 +190,7 @@ impl Upload {
                 next: 0,
                 unacked: VecDeque::new(),
                 furthest: 0,
+                held_until_ns: 0,
             });
         }
         let resend_after = self.resend_after_ns;
@@ -204,7 +211,8 @@ impl Upload {
             f.unacked.push_back((0, now_ns, 0));
             return Some(chunk(&f.shelved, 0, 0));
         }
-        if f.unacked.len() >= self.config.window || f.next >= f.shelved.size {
+        let held = now_ns < f.held_until_ns;
+        if held || f.unacked.len() >= self.config.window || f.next >= f.shelved.size {
             return None;
         }
         let len = self.config.chunk_bytes.min(f.shelved.size - f.next);
@@ -244,9 +252,13 @@ impl Upload {
             self.counters.acks_refused += 1;
             return false;
         }
-        if ack.complete {
-            self.stored.push(ack.number);
-            self.counters.boxes_stored += 1;
+        if ack.complete || ack.refused {
+            self.done.push((ack.number, ack.digest));
+            if ack.complete {
+                self.counters.boxes_stored += 1;
+            } else {
+                self.counters.boxes_refused += 1;
+            }
             self.in_flight = None;
             self.resend_after_ns = self.config.resend_after_ns;
             return true;
@@ -273,18 +285,24 @@ impl Upload {
     }
 
     /// `chunk`, the last one handed out, could not be read and did not go: it is not counted
-    /// as sent, and goes again after the wait, like a chunk lost on the way.
-    pub fn unsent(&mut self, chunk: &ChunkToSend) {
-        let Some(f) = self.in_flight.as_mut() else {
+    /// as sent, and nothing more of its box goes before the wait for an acknowledgement has
+    /// passed (then it is read again, or the box is counted lost once off the shelf).
+    pub fn unsent(&mut self, chunk: &ChunkToSend, now_ns: u64) {
+        let Some(f) = self
+            .in_flight
+            .as_mut()
+            .filter(|f| f.shelved.number == chunk.number && f.next == chunk.offset + chunk.len)
+        else {
             return;
         };
-        let end = chunk.offset + chunk.len;
-        if let Some(last) = f.unacked.back_mut().filter(|l| l.0 == end) {
-            let fresh = std::mem::take(&mut last.2);
+        if let Some((_, _, fresh)) = f.unacked.pop_back() {
             self.counters.bytes_sent -= fresh;
             self.counters.bytes_resent -= chunk.len - fresh;
             f.furthest -= fresh;
         }
+        f.next = chunk.offset;
+        f.held_until_ns = now_ns.saturating_add(self.resend_after_ns);
+        self.tokens = (self.tokens + chunk.len as f64).min(self.config.burst_bytes);
     }
 
     /// The link to the fleet has just come up: what is unacknowledged goes again at once.
@@ -366,6 +384,7 @@ mod tests {
                 digest: c.digest,
                 received: *held,
                 complete,
+                refused: false,
             }
         }
     }
@@ -412,7 +431,7 @@ mod tests {
     }
 
     #[test]
-    fn nothing_goes_while_telemetry_waits() {
+    fn nothing_goes_while_events_wait() {
         let mut u = Upload::new(config());
         u.shelf(&[shelved(1, 100)]);
         assert_eq!(u.next_chunk(10 * MS, false), None);
@@ -472,12 +491,14 @@ mod tests {
             digest: [1; 32],
             received: 101,
             complete: false,
+            refused: false,
         };
         let other = BoxAck {
             number: 9,
             digest: [9; 32],
             received: 0,
             complete: true,
+            refused: false,
         };
         // Box 1 of a shelf since wiped: its number, another digest.
         let wiped = BoxAck {
@@ -491,5 +512,63 @@ mod tests {
         assert_eq!(u.counters().acks_refused, 3);
         assert_eq!(u.counters().boxes_stored, 0);
         assert_eq!(u.pending(), 1);
+    }
+
+    #[test]
+    fn a_box_the_store_refuses_is_set_aside_and_the_next_goes() {
+        let mut u = Upload::new(config());
+        u.shelf(&[shelved(1, 100), shelved(2, 100)]);
+        let probe = u.next_chunk(10 * MS, true).unwrap();
+        assert_eq!(probe.number, 1);
+        assert!(u.acknowledged(BoxAck {
+            number: 1,
+            digest: probe.digest,
+            received: 0,
+            complete: false,
+            refused: true,
+        }));
+        assert_eq!(u.counters().boxes_refused, 1);
+        assert_eq!(u.next_chunk(20 * MS, true).map(|c| c.number), Some(2));
+        // Listed again, it is not sent again.
+        u.shelf(&[shelved(1, 100), shelved(2, 100)]);
+        assert_eq!(u.pending(), 1, "only box 2");
+    }
+
+    #[test]
+    fn a_chunk_that_could_not_be_read_is_not_counted_and_goes_again_after_the_wait() {
+        let mut u = Upload::new(config());
+        u.shelf(&[shelved(1, 300)]);
+        let mut store = Store::default();
+        let probe = u.next_chunk(10 * MS, true).unwrap();
+        u.acknowledged(store.take(&probe));
+        let first = u.next_chunk(20 * MS, true).unwrap();
+        assert_eq!((first.offset, first.len), (0, 100));
+        u.unsent(&first, 20 * MS);
+        assert_eq!(u.counters().bytes_sent, 0, "not sent");
+        assert_eq!(
+            u.next_chunk(30 * MS, true),
+            None,
+            "held until the wait has passed"
+        );
+        let again = u.next_chunk(20 * MS + 500 * MS, true).unwrap();
+        assert_eq!(
+            (again.offset, again.len),
+            (0, 100),
+            "the same bytes, no gap"
+        );
+        assert_eq!(u.counters().bytes_sent, 100);
+    }
+
+    #[test]
+    fn a_wiped_shelf_s_new_box_of_a_stored_number_is_sent() {
+        let mut u = Upload::new(config());
+        u.shelf(&[shelved(1, 100)]);
+        let mut store = Store::default();
+        run(&mut u, &mut store, 0, 50, |_| true);
+        assert_eq!(u.counters().boxes_stored, 1);
+        let mut renumbered = shelved(1, 100);
+        renumbered.digest = [42; 32];
+        u.shelf(&[renumbered]);
+        assert_eq!(u.pending(), 1, "box 1 of the new shelf is another box");
     }
 }

@@ -110,9 +110,11 @@ pub struct JournalConfig {
     pub window: usize,
 }
 
-/// The black box's frozen boxes to the fleet's store (`crate::box_upload`).
+/// The black box's frozen boxes to the fleet's store (`crate::box_upload`). A section added
+/// after robots shipped: a configuration from before it (an edited conffile kept across an
+/// upgrade) gets the shipped values rather than stopping the agent.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
-#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+#[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
 pub struct BlackboxUploadConfig {
     /// Bytes a second, on average.
     pub bytes_per_second: u64,
@@ -124,8 +126,25 @@ pub struct BlackboxUploadConfig {
     pub resend_after_ms: u64,
 }
 
+impl Default for BlackboxUploadConfig {
+    /// The shipped values (`deploy/config/fleet-agent.toml`).
+    fn default() -> Self {
+        BlackboxUploadConfig {
+            bytes_per_second: 65_536,
+            chunk_bytes: 65_536,
+            window: 4,
+            resend_after_ms: 1_000,
+        }
+    }
+}
+
 /// The largest chunk of a box (the fleet's store refuses larger ones).
 pub const MAX_BOX_CHUNK_BYTES: u64 = 1 << 20;
+
+/// The largest chunk the agent reads from the shelf in its loop, and the highest pace: a read
+/// of the SD card between two goals forwarded is kept short.
+const MOST_CHUNK_READ: u64 = 256 << 10;
+const MOST_BYTES_PER_SECOND: u64 = 8 << 20;
 
 impl ZenohConfig {
     fn check(&self, origin: &str) -> Result<(), ConfigError> {
@@ -268,6 +287,7 @@ pub struct AgentConfig {
     /// The event journal.
     pub journal: JournalConfig,
     /// The black box's boxes to the fleet.
+    #[serde(default)]
     pub blackbox: BlackboxUploadConfig,
 }
 
@@ -383,14 +403,14 @@ impl AgentConfig {
             origin,
             "blackbox.bytes-per-second",
             b.bytes_per_second,
-            1024..=1 << 30,
+            1024..=MOST_BYTES_PER_SECOND,
             " bytes/s",
         )?;
         within(
             origin,
             "blackbox.chunk-bytes",
             b.chunk_bytes,
-            1024..=MAX_BOX_CHUNK_BYTES,
+            1024..=MOST_CHUNK_READ,
             " bytes",
         )?;
         within(origin, "blackbox.window", b.window, 1..=64, "")?;
@@ -451,6 +471,24 @@ mod tests {
         let c = AgentConfig::embedded().unwrap();
         assert_eq!(c.zenoh.mode, "peer");
         assert_eq!(c.gate().max_age_ns, 250_000_000);
+    }
+
+    #[test]
+    fn a_configuration_from_before_the_black_box_s_upload_gets_the_shipped_values() {
+        let before = DEFAULT_CONFIG_TOML
+            .split("\n[blackbox]")
+            .next()
+            .unwrap()
+            .to_string();
+        assert!(!before.contains("bytes-per-second"));
+        let old = AgentConfig::parse(&before, "old.toml").unwrap();
+        let shipped = AgentConfig::embedded().unwrap();
+        assert_eq!(old.blackbox, shipped.blackbox);
+        assert_eq!(old.blackbox, BlackboxUploadConfig::default());
+        // One key of the section given, the rest shipped.
+        let one = format!("{before}\n[blackbox]\nwindow = 2\n");
+        let c = AgentConfig::parse(&one, "one.toml").unwrap();
+        assert_eq!((c.blackbox.window, c.blackbox.chunk_bytes), (2, 65_536));
     }
 
     #[test]

@@ -11,7 +11,7 @@ use fleet_agent::journal::{Journal, JournalError};
 use fleet_agent::keys::robot_key;
 use fleet_agent::zenoh::handlers::FifoChannelHandler;
 use fleet_agent::zenoh::pubsub::{Publisher, Subscriber};
-use fleet_agent::zenoh::qos::CongestionControl;
+use fleet_agent::zenoh::qos::{CongestionControl, Priority};
 use fleet_agent::zenoh::query::{Query, Queryable};
 use fleet_agent::zenoh::sample::Sample;
 use fleet_agent::zenoh::Wait;
@@ -135,8 +135,14 @@ impl FleetPorts {
             // fleet acknowledges it and sends it again, and blocking would stall this loop (the
             // one forwarding goals) for as long as a frozen router takes to be declared dead.
             event_pub: publisher("events", CongestionControl::Drop)?,
-            // Dropped on congestion too: a chunk goes again until the store acknowledges it.
-            box_pub: publisher("blackbox/chunk", CongestionControl::Drop)?,
+            // Dropped on congestion too (a chunk goes again until the store acknowledges it),
+            // and at zenoh's lowest priority: queued behind the telemetry and the events.
+            box_pub: session
+                .declare_publisher(robot_key(id, "blackbox/chunk"))
+                .congestion_control(CongestionControl::Drop)
+                .priority(Priority::Background)
+                .wait()
+                .map_err(z)?,
             box_acks: session
                 .declare_subscriber(robot_key(id, "blackbox/ack"))
                 .wait()

@@ -203,6 +203,9 @@ pub struct BoxAckMsg {
     pub received: u64,
     /// Stored whole and checked.
     pub complete: bool,
+    /// The store will not take this box (its reason counted there, in `refusals`): the robot
+    /// sets it aside.
+    pub refused: bool,
 }
 
 /// What a policy sees (`nori/<robot>/observation`).
@@ -501,6 +504,9 @@ pub struct BoxCounters {
     pub stored: u64,
     /// Boxes trimmed off the shelf (its cap) before the fleet had them.
     pub lost: u64,
+    /// Boxes the fleet's store refused (too large, a name that is no box's, bytes that fail
+    /// their digest): set aside while the agent runs.
+    pub refused: u64,
     /// Bytes sent the first time.
     pub bytes_sent: u64,
     /// Bytes sent again (an outage, a store restarting).

@@ -1168,6 +1168,7 @@ fn store_takes(held: &mut Vec<u8>, c: &BoxChunkMsg) -> Vec<u8> {
         digest: c.digest,
         received: held.len() as u64,
         complete: held.len() as u64 == c.size,
+        refused: false,
     })
 }
 
@@ -1263,6 +1264,7 @@ fn a_box_that_cannot_be_read_is_counted_and_tried_again() {
                 digest: [1; 32],
                 received: 0,
                 complete: false,
+                refused: false,
             }));
         }
     }

@@ -72,9 +72,18 @@ pub enum Refusal {
         held: String,
     },
     /// A box held whole does not have the digest it was sent with: its bytes are dropped and
-    /// it is taken again from the start.
+    /// the box refused.
     #[error("its bytes do not have the digest it was sent with")]
     BoxDigest,
+    /// The robot has boxes begun and not whole beyond what the store keeps open for it.
+    #[error(
+        "{open_bytes} bytes of this robot's boxes still to come: the store keeps {} open",
+        crate::boxes::MAX_OPEN_BYTES_PER_ROBOT
+    )]
+    BoxQuota {
+        /// The bytes still to come of its boxes begun.
+        open_bytes: u64,
+    },
 }
 
 impl Refusal {
@@ -89,6 +98,7 @@ impl Refusal {
             Refusal::ChunkOutsideBox { .. } => RefusalKind::ChunkOutsideBox,
             Refusal::BoxConflict { .. } => RefusalKind::BoxConflict,
             Refusal::BoxDigest => RefusalKind::BoxDigest,
+            Refusal::BoxQuota { .. } => RefusalKind::BoxQuota,
         }
     }
 }
@@ -112,6 +122,8 @@ pub enum RefusalKind {
     BoxConflict,
     /// [`Refusal::BoxDigest`].
     BoxDigest,
+    /// [`Refusal::BoxQuota`].
+    BoxQuota,
 }
 
 impl RefusalKind {
@@ -126,6 +138,7 @@ impl RefusalKind {
             RefusalKind::ChunkOutsideBox => "chunk_outside_box",
             RefusalKind::BoxConflict => "box_conflict",
             RefusalKind::BoxDigest => "box_digest",
+            RefusalKind::BoxQuota => "box_quota",
         }
     }
 }

@@ -15,6 +15,10 @@ use fleet_agent::schema::BoxChunkMsg;
 /// of every channel is tens of MB).
 pub const MAX_BOX_BYTES: u64 = 256 << 20;
 
+/// The bytes of boxes a robot may have open at the store (not yet whole) at once: a robot's
+/// certificate in the wrong hands cannot fill the store's disk with boxes begun.
+pub const MAX_OPEN_BYTES_PER_ROBOT: u64 = 1 << 30;
+
 /// The longest box name the store takes (`NNNNNN-YYYYMMDDTHHMMSSZ-kind.mcap`).
 pub const MAX_NAME_LEN: usize = 128;
 
@@ -75,6 +79,15 @@ pub fn check_chunk(robot: &str, c: &BoxChunkMsg) -> Result<(), Refusal> {
         });
     }
     Ok(())
+}
+
+/// Whether a robot with `open_bytes` still to come of its boxes begun may begin one of `size`.
+pub fn within_quota(open_bytes: u64, size: u64) -> Result<(), Refusal> {
+    if open_bytes.saturating_add(size) > MAX_OPEN_BYTES_PER_ROBOT {
+        Err(Refusal::BoxQuota { open_bytes })
+    } else {
+        Ok(())
+    }
 }
 
 /// What to do with a checked chunk, given what the store holds of its box (`None`: nothing).
@@ -173,6 +186,18 @@ mod tests {
     }
 
     #[test]
+    fn a_robot_s_boxes_begun_are_bounded() {
+        assert_eq!(within_quota(0, MAX_OPEN_BYTES_PER_ROBOT), Ok(()));
+        let most = MAX_OPEN_BYTES_PER_ROBOT - 1000;
+        assert_eq!(within_quota(most, 1000), Ok(()));
+        assert_eq!(
+            within_quota(most, 1001),
+            Err(Refusal::BoxQuota { open_bytes: most })
+        );
+        assert!(within_quota(u64::MAX, 1).is_err());
+    }
+
+    #[test]
     fn garbage_is_refused_by_what_is_wrong() {
         assert_eq!(check_chunk("r1", &chunk(900, 100)), Ok(()));
         let mut c = chunk(950, 100);
@@ -186,6 +211,18 @@ mod tests {
             check_chunk("r1", &c),
             Err(Refusal::ChunkOutsideBox { .. })
         ));
+        c = chunk(0, 0);
+        c.size = 0;
+        assert_eq!(check_chunk("r1", &c), Err(Refusal::BoxSize { size: 0 }));
+        c = chunk(0, 0);
+        c.size = MAX_BOX_BYTES;
+        c.data = vec![0; fleet_agent::config::MAX_BOX_CHUNK_BYTES as usize + 1];
+        assert!(matches!(
+            check_chunk("r1", &c),
+            Err(Refusal::ChunkOutsideBox { .. })
+        ));
+        c.data.pop();
+        assert_eq!(check_chunk("r1", &c), Ok(()), "the largest chunk");
         c = chunk(0, 0);
         c.size = MAX_BOX_BYTES + 1;
         assert_eq!(

@@ -193,7 +193,7 @@ pub struct Report {
     pub drifts: Vec<Drift>,
     /// The black boxes, each under its event.
     pub boxes: Vec<BoxLine>,
-    /// The trips without a box in the store.
+    /// The trips without a whole box in the store (none kept, or one still arriving).
     pub trips_without_box: Vec<TripLine>,
     /// What led to the trips, per robot and joint, from their boxes: the most trips first.
     pub trip_causes: Vec<TripCauses>,
@@ -398,7 +398,7 @@ black boxes, each under its event"
         for trip in &self.trips_without_box {
             let _ = writeln!(
                 t,
-                "  {}  {:<16} {:<20} {:<16}\n      no box in the store",
+                "  {}  {:<16} {:<20} {:<16}\n      no whole box in the store (yet)",
                 trip.at, trip.robot, trip.kind, trip.joint
             );
         }
@@ -774,6 +774,7 @@ mod tests {
             temperature_c: Some(temps),
             current_a: Some([0.8, peak]),
             events_before: BTreeMap::from([("stall_retry".into(), 2)]),
+            cut_short: false,
         };
         BoxLine {
             robot: robot.into(),
@@ -820,7 +821,7 @@ mod tests {
         for line in [
             "25% received",
             "2000 kB",
-            "no box in the store",
+            "no whole box in the store (yet)",
             "stall_retry 4",
         ] {
             assert!(text.contains(line), "{line}: {text}");

@@ -345,6 +345,7 @@ fn only_the_store_identity_acknowledges_the_robots_events() {
                 digest: [1; 32],
                 received: 0,
                 complete: true,
+                refused: false,
             };
             forger.put(&box_acks, encode(&box_ack)).wait().unwrap();
         }

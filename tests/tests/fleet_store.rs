@@ -1065,9 +1065,10 @@ fn send_box(
 }
 
 /// One robot's bad boxes (a name that is no box's, bytes outside the box, a digest its bytes
-/// do not have, a digest sent with two sizes) are refused and counted for it, the one whose
-/// bytes fail their digest dropped to be taken again from the start; another robot's box is
-/// stored whole meanwhile, and one that is no MCAP is kept whole, undescribed.
+/// do not have, a digest sent with two sizes, boxes begun beyond its bound) are refused,
+/// answered so, and counted for it, the bytes that failed their digest dropped; another
+/// robot's box is stored whole meanwhile, and one that is no MCAP is kept whole, with no
+/// trigger.
 #[test]
 fn one_robot_s_bad_boxes_are_refused_and_counted_and_another_s_is_stored() {
     use sha2::Digest;
@@ -1110,32 +1111,52 @@ fn one_robot_s_bad_boxes_are_refused_and_counted_and_another_s_is_stored() {
     };
     let key = robot_key("poison-box", "blackbox/chunk");
     session.put(&key, encode(&outside)).wait().unwrap();
+    // A digest begun with one size, then sent with another.
+    let mut begun = outside.clone();
+    (begun.number, begun.name, begun.size, begun.digest) =
+        (5, "000005-T-x.mcap".into(), 5000, [5; 32]);
+    (begun.offset, begun.data) = (0, Vec::new());
+    session.put(&key, encode(&begun)).wait().unwrap();
+    std::thread::sleep(Duration::from_millis(50));
     send_box(
         &session,
         "poison-box",
-        (2, "000002-T-x.mcap", [9; 32]),
+        (5, "000005-T-x.mcap", [5; 32]),
         &good[..4000],
         4000,
     );
+    // Boxes begun, never sent: beyond 1 GiB still to come, the next is refused.
+    for k in 0..5u8 {
+        let probe = fleet_agent::schema::BoxChunkMsg {
+            version: SCHEMA_VERSION,
+            number: 10 + u64::from(k),
+            name: format!("{:06}-T-x.mcap", 10 + k),
+            size: fleet::boxes::MAX_BOX_BYTES,
+            digest: [100 + k; 32],
+            offset: 0,
+            data: Vec::new(),
+        };
+        session.put(&key, encode(&probe)).wait().unwrap();
+        std::thread::sleep(Duration::from_millis(20));
+    }
     let mut last = std::collections::BTreeMap::new();
     wait_for(Duration::from_secs(30), "the answers", || {
         while let Ok(Some(s)) = acks.try_recv() {
             let a: fleet_agent::schema::BoxAckMsg = decode(&s.payload().to_bytes()).unwrap();
             let robot = robot_of(s.key_expr().as_str()).unwrap().to_string();
-            last.insert((robot, a.number), (a.received, a.complete));
+            last.insert((robot, a.number), (a.received, a.complete, a.refused));
         }
-        (last.get(&("good-box".into(), 3)) == Some(&(100_000, true))).then_some(())
+        let done = last.get(&("good-box".into(), 3)) == Some(&(100_000, true, false));
+        (done && last.contains_key(&("poison-box".into(), 14))).then_some(())
     });
-    // The box whose bytes fail their digest: held whole, dropped, answered 0.
-    assert_eq!(
-        last.get(&("poison-box".into(), 2)),
-        Some(&(0, false)),
-        "{last:?}"
-    );
-    assert!(
-        !last.contains_key(&("poison-box".into(), 1)),
-        "a bad name is not answered"
-    );
+    // Each bad box is answered refused, so that its robot sets it aside; the one whose bytes
+    // failed their digest was held whole, then dropped. The boxes begun within the bound are
+    // answered as held.
+    let answer = |n: u64| last.get(&("poison-box".to_string(), n)).copied();
+    for n in [1, 2, 4, 5, 13, 14] {
+        assert_eq!(answer(n), Some((0, false, true)), "box {n}: {last:?}");
+    }
+    assert_eq!(answer(12), Some((0, false, false)), "{last:?}");
     let mut c = db.client();
     let row = c
         .query_one(
@@ -1165,7 +1186,7 @@ fn one_robot_s_bad_boxes_are_refused_and_counted_and_another_s_is_stored() {
             .iter()
             .map(|r| r.get(0))
             .collect();
-        (kinds.len() == 4).then_some(kinds)
+        (kinds.len() == 5).then_some(kinds)
     });
     assert_eq!(
         kinds,
@@ -1173,6 +1194,7 @@ fn one_robot_s_bad_boxes_are_refused_and_counted_and_another_s_is_stored() {
             "box_conflict",
             "box_digest",
             "box_name",
+            "box_quota",
             "chunk_outside_box"
         ]
     );

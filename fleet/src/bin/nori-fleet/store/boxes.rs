@@ -5,7 +5,7 @@
 
 use super::writer::{row_refusal, Writer};
 use fleet::admission::{Message, Refusal};
-use fleet::boxes::{check_chunk, plan, Held, Plan};
+use fleet::boxes::{check_chunk, plan, within_quota, Held, Plan};
 use fleet_agent::schema::{decode, BoxAckMsg, BoxChunkMsg, SCHEMA_VERSION};
 use sha2::{Digest, Sha256};
 use std::sync::mpsc::Receiver;
@@ -15,9 +15,9 @@ const TURN: usize = 64;
 
 /// What became of a chunk.
 struct Taken {
-    /// What the store holds of the box now (`None`: refused before anything was read).
-    ack: Option<BoxAckMsg>,
-    /// Refused, or a refusal met on the way (a box whose bytes failed their digest).
+    /// The answer: what the store holds of the box now, or that it refuses it.
+    ack: BoxAckMsg,
+    /// Why it was refused, or a refusal met on the way (a box whose bytes failed their digest).
     refused: Option<Refusal>,
     /// Bytes appended.
     appended: u64,
@@ -25,8 +25,28 @@ struct Taken {
     completed: bool,
 }
 
+/// The answer to chunk `c`: the store holds `received` bytes of its box, whole or not.
+fn answer(c: &BoxChunkMsg, received: u64, complete: bool) -> BoxAckMsg {
+    BoxAckMsg {
+        version: SCHEMA_VERSION,
+        number: c.number,
+        digest: c.digest,
+        received,
+        complete,
+        refused: false,
+    }
+}
+
+/// The answer to chunk `c` the store refuses: the robot sets its box aside.
+fn refusal(c: &BoxChunkMsg) -> BoxAckMsg {
+    BoxAckMsg {
+        refused: true,
+        ..answer(c, 0, false)
+    }
+}
+
 impl Writer {
-    /// Takes the chunks queued (robot, bytes); returns the acknowledgements to send.
+    /// Takes the chunks queued (robot, bytes); returns the answers to send.
     pub(super) fn store_boxes(
         &mut self,
         rx: &Receiver<(String, Vec<u8>)>,
@@ -46,6 +66,7 @@ impl Writer {
             };
             if let Err(why) = check_chunk(&robot, &chunk) {
                 self.refused(&robot, Message::BoxChunk, &why);
+                acks.push((robot, refusal(&chunk)));
                 continue;
             }
             let Some(db) = self.db.as_mut() else {
@@ -66,7 +87,7 @@ impl Writer {
                             "a black box stored"
                         );
                     }
-                    acks.extend(t.ack.map(|a| (robot, a)));
+                    acks.push((robot, t.ack));
                 }
                 Err(e) => {
                     // Not acknowledged: the robot sends it again.
@@ -106,9 +127,9 @@ fn take_chunk(
 ) -> Result<Taken, postgres::Error> {
     let mut tx = db.transaction()?;
     let digest = &c.digest[..];
-    let mut taken = Taken {
-        ack: None,
-        refused: None,
+    let refused = |why| Taken {
+        ack: refusal(c),
+        refused: Some(why),
         appended: 0,
         completed: false,
     };
@@ -118,12 +139,19 @@ fn take_chunk(
         held: mut h,
     } = match plan(held(&mut tx, robot, c)?, c) {
         Ok(p) => p,
-        Err(why) => {
-            taken.refused = Some(why);
-            return Ok(taken);
-        }
+        Err(why) => return Ok(refused(why)),
     };
     if open {
+        let open_bytes: i64 = tx
+            .query_one(
+                "SELECT coalesce(sum(size - received), 0)::bigint FROM boxes \
+                 WHERE robot = $1 AND NOT complete",
+                &[&robot],
+            )?
+            .get(0);
+        if let Err(why) = within_quota(open_bytes as u64, c.size) {
+            return Ok(refused(why));
+        }
         tx.execute(
             "INSERT INTO boxes (robot, digest, number, name, size) VALUES ($1, $2, $3, $4, $5)",
             &[
@@ -135,6 +163,12 @@ fn take_chunk(
             ],
         )?;
     }
+    let mut taken = Taken {
+        ack: answer(c, 0, false),
+        refused: None,
+        appended: 0,
+        completed: false,
+    };
     if append {
         let len = c.data.len() as u64;
         tx.execute(
@@ -155,21 +189,15 @@ fn take_chunk(
                     taken.refused = Some(why);
                 }
                 Whole::Damaged => {
-                    h.received = 0;
-                    taken.refused = Some(Refusal::BoxDigest);
+                    tx.commit()?;
+                    return Ok(refused(Refusal::BoxDigest));
                 }
             }
             taken.completed = h.complete;
         }
     }
     tx.commit()?;
-    taken.ack = Some(BoxAckMsg {
-        version: SCHEMA_VERSION,
-        number: c.number,
-        digest: c.digest,
-        received: h.received,
-        complete: h.complete,
-    });
+    taken.ack = answer(c, h.received, h.complete);
     Ok(taken)
 }
 
@@ -179,7 +207,8 @@ enum Whole {
     Described,
     /// Checked, kept; what it says could not be (the refusal).
     Undescribed(Refusal),
-    /// Its bytes fail its digest: dropped, to be taken again from the start.
+    /// Its bytes fail its digest: dropped with its row (a robot that hashes it again and
+    /// sends it anew begins a new box).
     Damaged,
 }
 
@@ -204,7 +233,7 @@ fn complete(
             &[&robot, &digest],
         )?;
         tx.execute(
-            "UPDATE boxes SET received = 0 WHERE robot = $1 AND digest = $2",
+            "DELETE FROM boxes WHERE robot = $1 AND digest = $2",
             &[&robot, &digest],
         )?;
         return Ok(Whole::Damaged);

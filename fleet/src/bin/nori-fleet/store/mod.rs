@@ -107,6 +107,9 @@ struct Counts {
 /// Black-box chunks queued between zenoh and the writer, at most.
 const BOX_QUEUE: usize = 64;
 
+/// The largest chunk message taken: the largest chunk and room for its other fields.
+const MAX_CHUNK_MESSAGE: usize = fleet_agent::config::MAX_BOX_CHUNK_BYTES as usize + 4096;
+
 /// What zenoh's callbacks feed: the writer's queue, and counts.
 struct Taps {
     tx: SyncSender<Inbound>,
@@ -114,7 +117,7 @@ struct Taps {
     queue_full: Arc<AtomicU64>,
     /// Black-box chunks: robot, bytes.
     boxes: SyncSender<(String, Vec<u8>)>,
-    /// Chunks dropped, their queue full (the robot sends them again).
+    /// Chunks dropped, their queue full or too large to be one (the robot sends them again).
     box_queue_full: Arc<AtomicU64>,
     /// Messages heard, any robot's.
     heard: Arc<AtomicU64>,
@@ -191,6 +194,13 @@ fn box_subscriber(
                 return;
             };
             heard.fetch_add(1, Ordering::Relaxed);
+            // Larger than any chunk the store takes: dropped before it is copied, so the
+            // queue holds 64 chunks of 1 MiB at most (the robot is answered nothing and sends
+            // it again; counted with the queue's drops).
+            if s.payload().len() > MAX_CHUNK_MESSAGE {
+                full.fetch_add(1, Ordering::Relaxed);
+                return;
+            }
             let item = (robot.to_string(), s.payload().to_bytes().into_owned());
             if let Err(TrySendError::Full(_)) = tx.try_send(item) {
                 full.fetch_add(1, Ordering::Relaxed);
