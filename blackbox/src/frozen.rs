@@ -257,15 +257,17 @@ pub fn visit_within(bytes: &[u8], budget: u64, f: &mut dyn FnMut(Item)) -> Exten
                 message(f, &topics, header.channel_id, header.log_time, &data)
             }
             R::Chunk { header, data } => {
-                spent = spent.saturating_add(header.uncompressed_size);
-                if spent > budget {
-                    extent.cut_at_budget = true;
-                    break;
-                }
+                // A damaged chunk is skipped before it is counted (its header's size may be
+                // anything); a sound one is at most MAX_CHUNK_BYTES decompressed.
                 let Some(raw) = chunk_bytes(&header, &data) else {
                     extent.bad_chunks += 1;
                     continue;
                 };
+                spent = spent.saturating_add(raw.len() as u64);
+                if spent > budget {
+                    extent.cut_at_budget = true;
+                    break;
+                }
                 for r in mcap::read::LinearReader::sans_magic(&raw) {
                     match r {
                         Ok(R::Channel(c)) => {

@@ -1,7 +1,9 @@
 //! What led to the event that froze a box, read from the box itself: the figures of its joint
 //! before it (temperature, current) and the protections that acted on that joint before it
-//! (stall retries, torque reductions, warnings). The fleet's store reads it from every box it
-//! receives, for the protection statistics of `nori fleet report`. Pure: the box's bytes in.
+//! (stall retries, torque reductions, warnings). A box kept open by later events names every
+//! one of them; the one told about is the box's first trip (a bus latched off) if it holds
+//! one, else what froze it. The fleet's store reads it from every box it receives, for the
+//! protection statistics of `nori fleet report`. Pure: the box's bytes in.
 
 use crate::channel::{Channel, EventMessage};
 use crate::frozen::{visit_within, Item};
@@ -11,8 +13,11 @@ use std::collections::BTreeMap;
 /// What led to a box's event.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct LeadUp {
-    /// The event that froze the box, as its metadata says (`None`: a box that does not say).
+    /// The event told about: the box's first trip, else what froze it (`None`: a box that
+    /// says neither).
     pub trigger: Option<EventMessage>,
+    /// Every event that froze or kept open the box, in order (at most [`MOST_TRIGGERS`]).
+    pub triggers: Vec<EventMessage>,
     /// The joint the figures are of: the trigger's, else the hottest before it.
     pub joint: Option<String>,
     /// Seconds of joint states in the box before the event.
@@ -29,13 +34,21 @@ pub struct LeadUp {
     pub cut_short: bool,
 }
 
-/// The bytes of a box decompressed at most (a box of five minutes of every channel is a few
-/// hundred MB of JSON).
-pub const READ_BUDGET: u64 = 2 << 30;
+/// The bytes of a box decompressed at most, in each of its two readings (a box of five minutes
+/// of every channel is a few hundred MB of JSON).
+pub const READ_BUDGET: u64 = 1 << 30;
 
-/// Joints, and kinds of events per joint, told apart at most (the A3 has 19 joints).
+/// Triggers kept of one box.
+pub const MOST_TRIGGERS: usize = 64;
+
+/// The triggers that are trips (a bus latched off), as a box names them.
+pub const TRIPS: [&str; 3] = ["thermal_trip", "firmware_protection", "driver_trip"];
+
+/// Joints, and kinds of events per joint, told apart at most (the A3 has 19 joints), and the
+/// longest name of either kept (a longer one is not counted).
 const MOST_JOINTS: usize = 64;
 const MOST_KINDS: usize = 64;
+const LONGEST_NAME: usize = 64;
 
 /// One joint's readings before the event.
 #[derive(Debug, Clone, Copy)]
@@ -69,44 +82,46 @@ impl Figures {
     }
 }
 
-/// What led to the event that froze the box in `bytes` (read as far as it is whole, within
-/// [`READ_BUDGET`]).
+/// What led to the box's first trip, else to the event that froze it, from the box in `bytes`
+/// (read as far as it is whole, twice within [`READ_BUDGET`]: its triggers, then what came
+/// before the one told about).
 pub fn lead_up(bytes: &[u8]) -> LeadUp {
-    let mut trigger: Option<EventMessage> = None;
+    let (frozen_by, triggers, mut cut_short) = triggers(bytes);
+    let trigger = triggers
+        .iter()
+        .find(|t| TRIPS.contains(&t.kind.as_str()))
+        .or(frozen_by.as_ref())
+        .cloned();
+    let before = trigger.as_ref().map_or(u64::MAX, |t| t.timestamp_ns);
     let mut joints: BTreeMap<String, Figures> = BTreeMap::new();
     // Events before the trigger, counted by the joint they are about (`None`: no joint).
     let mut events: BTreeMap<Option<String>, BTreeMap<String, u64>> = BTreeMap::new();
-    let (mut first_ns, mut last_ns, mut cut_short) = (None, 0, false);
+    let (mut first_ns, mut last_ns) = (None, 0);
     let extent = visit_within(bytes, READ_BUDGET, &mut |item| {
-        // The metadata is the box's first record: what comes before it has no trigger to be
-        // before, and counts as before.
-        let before = trigger.as_ref().map_or(u64::MAX, |t| t.timestamp_ns);
-        match item {
-            Item::Metadata(m) => {
-                trigger = m.get("event").and_then(|e| serde_json::from_str(e).ok());
+        let Item::Message { topic, data, .. } = item else {
+            return;
+        };
+        match Channel::from_topic(topic) {
+            Some(Channel::JointStates) => {
+                let Ok(v) = serde_json::from_slice::<serde_json::Value>(data) else {
+                    return;
+                };
+                let Some(t) = v["timestamp_ns"].as_u64().filter(|&t| t < before) else {
+                    return;
+                };
+                first_ns.get_or_insert(t);
+                last_ns = last_ns.max(t);
+                cut_short |= !readings(&v, &mut joints);
             }
-            Item::Message { topic, data, .. } => match Channel::from_topic(topic) {
-                Some(Channel::JointStates) => {
-                    let Ok(v) = serde_json::from_slice::<serde_json::Value>(data) else {
-                        return;
-                    };
-                    let Some(t) = v["timestamp_ns"].as_u64().filter(|&t| t < before) else {
-                        return;
-                    };
-                    first_ns.get_or_insert(t);
-                    last_ns = last_ns.max(t);
-                    cut_short |= !readings(&v, &mut joints);
+            Some(Channel::Events) => {
+                let Ok(e) = serde_json::from_slice::<EventMessage>(data) else {
+                    return;
+                };
+                if e.timestamp_ns < before {
+                    cut_short |= !count_event(&mut events, e);
                 }
-                Some(Channel::Events) => {
-                    let Ok(e) = serde_json::from_slice::<EventMessage>(data) else {
-                        return;
-                    };
-                    if e.timestamp_ns < before {
-                        cut_short |= !count_event(&mut events, e);
-                    }
-                }
-                _ => {}
-            },
+            }
+            _ => {}
         }
     });
     let joint = trigger.as_ref().and_then(|t| t.joint.clone()).or_else(|| {
@@ -127,10 +142,39 @@ pub fn lead_up(bytes: &[u8]) -> LeadUp {
             .filter(|f| f.readings > 0)
             .map(|f| [(f.current_sum / f.readings as f64) as f32, f.current_peak]),
         trigger,
+        triggers,
         joint,
         events_before,
         cut_short: cut_short || extent.cut_at_budget,
     }
+}
+
+/// What froze the box (its metadata), every trigger it holds (names within bounds), and
+/// whether it was read only in part.
+fn triggers(bytes: &[u8]) -> (Option<EventMessage>, Vec<EventMessage>, bool) {
+    let (mut frozen_by, mut all, mut cut_short) = (None, Vec::new(), false);
+    let kept = |e: &EventMessage| {
+        e.kind.len() <= LONGEST_NAME && e.joint.as_ref().is_none_or(|j| j.len() <= LONGEST_NAME)
+    };
+    let extent = visit_within(bytes, READ_BUDGET, &mut |item| match item {
+        Item::Metadata(m) => {
+            frozen_by = m
+                .get("event")
+                .and_then(|e| serde_json::from_str::<EventMessage>(e).ok())
+                .filter(kept);
+        }
+        Item::Message { topic, data, .. } => {
+            if Channel::from_topic(topic) != Some(Channel::Triggers) {
+                return;
+            }
+            match serde_json::from_slice::<EventMessage>(data) {
+                Ok(e) if kept(&e) && all.len() < MOST_TRIGGERS => all.push(e),
+                Ok(_) => cut_short = true,
+                Err(_) => {}
+            }
+        }
+    });
+    (frozen_by, all, cut_short || extent.cut_at_budget)
 }
 
 /// Counts event `e` under its joint; `false` when its joint or its kind is beyond what is kept.
@@ -138,7 +182,9 @@ fn count_event(
     events: &mut BTreeMap<Option<String>, BTreeMap<String, u64>>,
     e: EventMessage,
 ) -> bool {
-    if !events.contains_key(&e.joint) && events.len() >= MOST_JOINTS {
+    let too_long =
+        e.kind.len() > LONGEST_NAME || e.joint.as_ref().is_some_and(|j| j.len() > LONGEST_NAME);
+    if too_long || (!events.contains_key(&e.joint) && events.len() >= MOST_JOINTS) {
         return false;
     }
     let kinds = events.entry(e.joint).or_default();
@@ -165,7 +211,8 @@ fn readings(v: &serde_json::Value, joints: &mut BTreeMap<String, Figures>) -> bo
             continue;
         };
         let (t, i) = (t as f32, i as f32);
-        if !joints.contains_key(name) && joints.len() >= MOST_JOINTS {
+        if name.len() > LONGEST_NAME || (!joints.contains_key(name) && joints.len() >= MOST_JOINTS)
+        {
             all = false;
             continue;
         }
@@ -301,5 +348,102 @@ mod tests {
         let cut = crate::frozen::visit_within(&a_box(&saved), 1, &mut |_| {});
         assert!(cut.cut_at_budget);
         assert!(!crate::frozen::visit_within(&a_box(&saved), u64::MAX, &mut |_| {}).cut_at_budget);
+    }
+
+    #[test]
+    fn a_box_kept_open_by_a_trip_tells_about_the_trip() {
+        let stall = event(6 * S, "stall_retry", Some("j1"), 1.0);
+        let trip = event(10 * S, "thermal_trip", Some("j1"), 59.0);
+        let l = lead_up(&a_box_with_triggers(&stall, &[&stall, &trip]));
+        assert_eq!(l.trigger, Some(trip.clone()));
+        assert_eq!(l.triggers, vec![stall.clone(), trip]);
+        assert_eq!(
+            l.temperature_c,
+            Some([40.0, 49.0, 49.0]),
+            "up to the trip at 10 s, not the stall at 6 s"
+        );
+        let alone = lead_up(&a_box_with_triggers(&stall, &[&stall]));
+        assert_eq!(alone.trigger, Some(stall));
+        assert_eq!(alone.temperature_c, Some([40.0, 45.0, 45.0]));
+    }
+
+    /// [`a_box`] frozen by `frozen_by`, with `triggers` on its channel.
+    fn a_box_with_triggers(frozen_by: &EventMessage, triggers: &[&EventMessage]) -> Vec<u8> {
+        let base = a_box(frozen_by);
+        let mut w = BoxWriter::new(Cursor::new(Vec::new()), frozen_by, "r1", 0).unwrap();
+        crate::frozen::visit(&base, &mut |item| {
+            if let Item::Message {
+                topic,
+                log_time,
+                data,
+            } = item
+            {
+                let channel = Channel::from_topic(topic).unwrap();
+                w.write(Record {
+                    channel,
+                    t_ns: log_time,
+                    data,
+                })
+                .unwrap();
+            }
+        });
+        for t in triggers {
+            let data = to_json(*t);
+            let (channel, t_ns) = (Channel::Triggers, t.timestamp_ns);
+            w.write(Record {
+                channel,
+                t_ns,
+                data: &data,
+            })
+            .unwrap();
+        }
+        w.finish().unwrap().into_inner()
+    }
+
+    #[test]
+    fn kinds_and_names_beyond_the_bounds_are_not_kept() {
+        let saved = event(10 * S, "saved", Some("j1"), 0.0);
+        let mut w = BoxWriter::new(Cursor::new(Vec::new()), &saved, "r1", 0).unwrap();
+        for k in 0..100u64 {
+            let data = to_json(&event(k, &format!("kind{k}"), Some("j1"), 0.0));
+            let (channel, t_ns) = (Channel::Events, k);
+            w.write(Record {
+                channel,
+                t_ns,
+                data: &data,
+            })
+            .unwrap();
+        }
+        let long = "x".repeat(LONGEST_NAME + 1);
+        let data = to_json(&event(200, &long, Some("j1"), 0.0));
+        w.write(Record {
+            channel: Channel::Events,
+            t_ns: 200,
+            data: &data,
+        })
+        .unwrap();
+        let names: Vec<String> = (0..100).map(|k| format!("n{k}")).collect();
+        let states = serde_json::json!({
+            "timestamp_ns": 300,
+            "name": names,
+            "valid": vec![true; 100],
+            "temperature_c": vec![30.0; 100],
+            "current_a": vec![0.1; 100],
+        });
+        let data = serde_json::to_vec(&states).unwrap();
+        w.write(Record {
+            channel: Channel::JointStates,
+            t_ns: 300,
+            data: &data,
+        })
+        .unwrap();
+        let l = lead_up(&w.finish().unwrap().into_inner());
+        assert!(l.cut_short);
+        assert_eq!(
+            l.events_before.len(),
+            MOST_KINDS,
+            "64 kinds of the 100, not the long one"
+        );
+        assert!(!l.events_before.contains_key(&long));
     }
 }

@@ -10,7 +10,7 @@
 //! [`AgentIo::journal`]) before they are sent, and a restarted agent sends again what the fleet
 //! has not acknowledged ([`crate::delivery`]).
 
-use crate::box_shelf::ShelfError;
+use crate::box_shelf::ChunkRead;
 use crate::box_upload::{BoxAck, ChunkToSend, ShelvedBox, Upload};
 use crate::delivery::{
     Delivery, ACTIONS_REFUSED, AGENT_STARTED, CALIBRATION_IN_FORCE, DRIVER_STARTED,
@@ -59,6 +59,9 @@ pub enum Outbound {
     /// `nori/<robot>/blackbox/chunk` (dropped on congestion: sent again until acknowledged).
     BoxChunk,
 }
+
+/// A chunk asked of the shelf's thread and not read within this is taken as a failed read, ns.
+const BOX_READ_TIMEOUT_NS: u64 = 10_000_000_000;
 
 /// Action refusals are journaled as one event per reason at most this often (a policy sending
 /// bad chunks at 30 Hz must not fill the journal), ns.
@@ -134,12 +137,14 @@ pub trait AgentIo {
     fn shelf(&mut self) -> Option<Vec<ShelvedBox>> {
         None
     }
-    /// The bytes of `chunk` of a box on the shelf.
-    fn read_box(&mut self, chunk: &ChunkToSend) -> Result<Vec<u8>, ShelfError> {
-        Err(ShelfError::Io {
-            name: chunk.name.clone(),
-            source: std::io::Error::other("no shelf watched"),
-        })
+    /// Asks for the bytes of `chunk` of a box on the shelf, read away from the loop; whether
+    /// the request was taken (one at a time).
+    fn ask_box(&mut self, _chunk: &ChunkToSend) -> bool {
+        false
+    }
+    /// A chunk asked for, once read: its bytes, or why they could not be.
+    fn box_bytes(&mut self) -> Option<ChunkRead> {
+        None
     }
     /// The next acknowledgement of a box by the fleet's store (its bytes, undecoded).
     fn next_box_ack(&mut self) -> Option<Vec<u8>> {
@@ -201,8 +206,9 @@ pub struct Agent {
     scan_pending: bool,
     /// The journal's events on their way to the fleet.
     delivery: Delivery,
-    /// The black box's boxes on their way to the fleet.
+    /// The black box's boxes on their way to the fleet, and the chunk being read for it.
     upload: Upload,
+    box_reading: Option<(ChunkToSend, u64)>,
     /// Bytes of a torn tail cut when the journal opened (journaled with the agent's start),
     /// `None` once the start is journaled.
     starting: Option<u64>,
@@ -252,6 +258,7 @@ impl Agent {
         Agent {
             delivery,
             upload: Upload::new(config.box_upload()),
+            box_reading: None,
             starting: Some(journal.recovery.cut_bytes),
             refusals: vec![0; REASONS.len()],
             refusals_every: Every::hz(1e9 / REFUSALS_EVERY_NS as f64),
@@ -408,28 +415,50 @@ impl Agent {
                 }
             }
         }
-        let quiet = self.delivery.held() == 0;
-        while let Some(chunk) = self.upload.next_chunk(now, quiet) {
-            // A probe carries no bytes: nothing to read.
-            let read = if chunk.len == 0 {
-                Ok(Vec::new())
-            } else {
-                io.read_box(&chunk)
+        if let Some((asked, at)) = &self.box_reading {
+            let Some((chunk, read)) = io.box_bytes() else {
+                if now.saturating_sub(*at) > BOX_READ_TIMEOUT_NS {
+                    // The shelf's thread is gone or stuck: taken as a failed read.
+                    let asked = asked.clone();
+                    self.box_reading = None;
+                    self.box_unread(&asked, now, "no answer from the shelf's thread");
+                }
+                return;
             };
+            self.box_reading = None;
             match read {
                 Ok(data) => {
                     io.publish(Outbound::BoxChunk, encode(&box_chunk_msg(&chunk, data)));
                 }
-                Err(e) => {
-                    // Tried again after the wait, or counted lost once off the shelf.
-                    self.upload.unsent(&chunk, now);
-                    self.counters.box_read_failures += 1;
-                    if self.warn_every.due(now) {
-                        tracing::warn!("{e}");
-                    }
-                    break;
-                }
+                Err(e) => self.box_unread(&chunk, now, &e.to_string()),
             }
+        }
+        let quiet = self.delivery.held() == 0;
+        while let Some(chunk) = self.upload.next_chunk(now, quiet) {
+            if chunk.len == 0 {
+                // A probe carries no bytes: nothing to read.
+                io.publish(
+                    Outbound::BoxChunk,
+                    encode(&box_chunk_msg(&chunk, Vec::new())),
+                );
+                continue;
+            }
+            if io.ask_box(&chunk) {
+                self.box_reading = Some((chunk, now));
+            } else {
+                self.box_unread(&chunk, now, "the shelf is not watched");
+            }
+            break;
+        }
+    }
+
+    /// `chunk` could not be read: tried again after the wait, the box set aside after a few
+    /// failures in a row, or counted lost once off the shelf.
+    fn box_unread(&mut self, chunk: &ChunkToSend, now: u64, why: &str) {
+        self.upload.unsent(chunk, now);
+        self.counters.box_read_failures += 1;
+        if self.warn_every.due(now) {
+            tracing::warn!("a chunk of box {} not read: {why}", chunk.name);
         }
     }
 
@@ -812,6 +841,7 @@ impl Agent {
             stored: u.boxes_stored,
             lost: u.boxes_lost,
             refused: u.boxes_refused,
+            unreadable: u.boxes_unreadable,
             bytes_sent: u.bytes_sent,
             bytes_resent: u.bytes_resent,
             acks_refused: u.acks_refused + self.counters.box_acks_malformed,

@@ -1,16 +1,16 @@
 //! The black box's shelf as the agent sees it: the I/O beside the pure [`crate::box_upload`].
-//! A thread of its own lists the finished boxes and hashes each new one (SHA-256, its identity
-//! at the store), so the agent's loop, which forwards goals, never waits on a file it reads
-//! whole; the loop reads one chunk when it is due (64 KiB, most often from the page cache of a
-//! box just written). The shelf is only read: the recorder alone removes boxes (its cap).
+//! A thread of its own lists the finished boxes, hashes each new one (SHA-256, its identity at
+//! the store) and reads the chunks the agent asks for, so the agent's loop, which forwards
+//! goals, never waits on the SD card. The shelf is only read: the recorder alone removes boxes
+//! (its cap).
 
 use crate::box_upload::{ChunkToSend, ShelvedBox};
 use sha2::{Digest, Sha256};
 use std::collections::HashMap;
 use std::io::{Read, Seek, SeekFrom};
 use std::path::{Path, PathBuf};
-use std::sync::mpsc::{sync_channel, Receiver, TrySendError};
-use std::time::Duration;
+use std::sync::mpsc::{sync_channel, Receiver, RecvTimeoutError, SyncSender, TrySendError};
+use std::time::{Duration, Instant};
 use thiserror::Error;
 
 /// A chunk that could not be read.
@@ -36,37 +36,60 @@ pub enum ShelfError {
     },
 }
 
+/// A chunk read, or why it could not be.
+pub type ChunkRead = (ChunkToSend, Result<Vec<u8>, ShelfError>);
+
 /// The shelf watched by its thread.
 #[derive(Debug)]
 pub struct ShelfWatch {
-    dir: PathBuf,
     listings: Receiver<Vec<ShelvedBox>>,
+    requests: SyncSender<ChunkToSend>,
+    reads: Receiver<ChunkRead>,
 }
 
 impl ShelfWatch {
-    /// Watches `dir`, listing it every `every` (the thread ends with the watch).
+    /// Watches `dir`, listing it every `every` and reading the chunks asked for meanwhile (the
+    /// thread ends with the watch).
     pub fn spawn(dir: PathBuf, every: Duration) -> std::io::Result<ShelfWatch> {
         // One listing in flight: a loop that has not taken the last gets the next one later.
-        let (tx, listings) = sync_channel(1);
-        let watched = dir.clone();
+        let (listing_tx, listings) = sync_channel(1);
+        let (requests, asked) = sync_channel::<ChunkToSend>(1);
+        let (read_tx, reads) = sync_channel(1);
         std::thread::Builder::new()
             .name("box-shelf".into())
             .spawn(move || {
                 let mut digests = Digests::default();
                 let mut sent: Option<Vec<ShelvedBox>> = None;
+                let mut next_listing = Instant::now();
                 loop {
-                    let listing = digests.list(&watched);
+                    let wait = next_listing.saturating_duration_since(Instant::now());
+                    match asked.recv_timeout(wait) {
+                        Ok(chunk) => {
+                            let read = read_chunk(&dir, &chunk);
+                            if read_tx.send((chunk, read)).is_err() {
+                                return;
+                            }
+                            continue;
+                        }
+                        Err(RecvTimeoutError::Timeout) => {}
+                        Err(RecvTimeoutError::Disconnected) => return,
+                    }
+                    next_listing = Instant::now() + every;
+                    let listing = digests.list(&dir);
                     if sent.as_ref() != Some(&listing) {
-                        match tx.try_send(listing.clone()) {
+                        match listing_tx.try_send(listing.clone()) {
                             Ok(()) => sent = Some(listing),
                             Err(TrySendError::Full(_)) => {}
                             Err(TrySendError::Disconnected(_)) => return,
                         }
                     }
-                    std::thread::sleep(every);
                 }
             })?;
-        Ok(ShelfWatch { dir, listings })
+        Ok(ShelfWatch {
+            listings,
+            requests,
+            reads,
+        })
     }
 
     /// The shelf's newest listing, if it changed since the last call.
@@ -74,9 +97,14 @@ impl ShelfWatch {
         self.listings.try_iter().last()
     }
 
-    /// The bytes of `chunk`.
-    pub fn read(&self, chunk: &ChunkToSend) -> Result<Vec<u8>, ShelfError> {
-        read_chunk(&self.dir, chunk)
+    /// Asks for the bytes of `chunk`; whether the thread took the request (one at a time).
+    pub fn ask(&self, chunk: &ChunkToSend) -> bool {
+        self.requests.try_send(chunk.clone()).is_ok()
+    }
+
+    /// A chunk asked for, once read.
+    pub fn read(&self) -> Option<ChunkRead> {
+        self.reads.try_recv().ok()
     }
 }
 
@@ -228,7 +256,7 @@ mod tests {
     }
 
     #[test]
-    fn the_thread_hands_over_each_new_listing() {
+    fn the_thread_hands_over_each_new_listing_and_the_chunks_asked_for() {
         let dir = scratch("thread");
         let watch = ShelfWatch::spawn(dir.clone(), Duration::from_millis(5)).unwrap();
         std::fs::write(dir.join("000001-T-saved.mcap"), b"box").unwrap();
@@ -240,7 +268,27 @@ mod tests {
             }
             std::thread::sleep(Duration::from_millis(1));
         }
-        assert_eq!(got.unwrap()[0].name, "000001-T-saved.mcap");
+        let b = got.unwrap().remove(0);
+        assert_eq!(b.name, "000001-T-saved.mcap");
+        let chunk = ChunkToSend {
+            number: 1,
+            name: b.name,
+            size: 3,
+            digest: b.digest,
+            offset: 1,
+            len: 2,
+        };
+        assert!(watch.ask(&chunk));
+        let mut read = None;
+        for _ in 0..2000 {
+            read = watch.read();
+            if read.is_some() {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        let (asked, bytes) = read.unwrap();
+        assert_eq!((asked, bytes.unwrap()), (chunk, b"ox".to_vec()));
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

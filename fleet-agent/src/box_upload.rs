@@ -2,7 +2,8 @@
 //! "To the fleet"). Pure: the shelf's listing, the fleet's acknowledgements and the time in,
 //! the chunks to read and send out.
 //!
-//! Boxes go oldest first, one at a time. Each starts with a probe (a chunk of no bytes at
+//! Boxes go newest first, one at a time (the recorder trims the oldest beyond its cap: after a
+//! long outage the newest are the ones that can still arrive, and the ones asked about). Each starts with a probe (a chunk of no bytes at
 //! offset 0), which the store answers with how much of it it holds: a box it has whole is
 //! never sent again, one it holds part of resumes there (an agent restarted, a store that was
 //! down). Then chunks go in order, at most `window` unacknowledged; when the oldest has waited
@@ -15,6 +16,10 @@ use std::collections::VecDeque;
 
 /// The longest wait before sending unacknowledged chunks again.
 pub const MAX_RESEND_AFTER_NS: u64 = 60_000_000_000;
+
+/// Reads of a box's chunk that fail in a row before the box is set aside (its file unreadable):
+/// one bad file never holds up the boxes after it.
+pub const MAX_READ_FAILURES: u32 = 3;
 
 /// A finished box on the robot's shelf.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -89,6 +94,8 @@ pub struct UploadCounters {
     pub boxes_lost: u64,
     /// Boxes the store refused (set aside while this agent runs).
     pub boxes_refused: u64,
+    /// Boxes whose file could not be read (set aside while this agent runs).
+    pub boxes_unreadable: u64,
     /// Bytes sent the first time.
     pub bytes_sent: u64,
     /// Bytes sent again.
@@ -113,6 +120,8 @@ struct InFlight {
     furthest: u64,
     /// Nothing more of it goes before this time (a chunk the shelf could not give).
     held_until_ns: u64,
+    /// Reads of its chunks that failed in a row.
+    read_failures: u32,
 }
 
 /// The upload's state.
@@ -145,8 +154,8 @@ impl Upload {
         }
     }
 
-    /// The shelf's finished boxes now: new ones wait their turn, oldest first; one gone before
-    /// the store had it whole is counted lost.
+    /// The shelf's finished boxes now: new ones wait their turn (the newest goes next); one
+    /// gone before the store had it whole is counted lost.
     pub fn shelf(&mut self, boxes: &[ShelvedBox]) {
         let on_shelf = |n: u64, d: &[u8; 32]| boxes.iter().any(|b| b.number == n && &b.digest == d);
         let before = self.waiting.len();
@@ -182,7 +191,7 @@ impl Upload {
             return None;
         }
         if self.in_flight.is_none() {
-            let shelved = self.waiting.pop_front()?;
+            let shelved = self.waiting.pop_back()?;
             self.in_flight = Some(InFlight {
                 shelved,
                 probed: false,
@@ -191,6 +200,7 @@ impl Upload {
                 unacked: VecDeque::new(),
                 furthest: 0,
                 held_until_ns: 0,
+                read_failures: 0,
             });
         }
         let resend_after = self.resend_after_ns;
@@ -252,7 +262,10 @@ impl Upload {
             self.counters.acks_refused += 1;
             return false;
         }
-        if ack.complete || ack.refused {
+        // Held to its end yet not whole: the store cannot take it (nothing would be sent
+        // again), so it is set aside like a refused one.
+        let stuck = ack.received == f.shelved.size && !ack.complete;
+        if ack.complete || ack.refused || stuck {
             self.done.push((ack.number, ack.digest));
             if ack.complete {
                 self.counters.boxes_stored += 1;
@@ -280,29 +293,38 @@ impl Upload {
             f.acked = ack.received;
             f.unacked.retain(|&(end, _, _)| end > ack.received);
         }
+        f.read_failures = 0;
         self.resend_after_ns = self.config.resend_after_ns;
         true
     }
 
     /// `chunk`, the last one handed out, could not be read and did not go: it is not counted
     /// as sent, and nothing more of its box goes before the wait for an acknowledgement has
-    /// passed (then it is read again, or the box is counted lost once off the shelf).
+    /// passed (then it is read again); after [`MAX_READ_FAILURES`] in a row the box is set
+    /// aside, counted unreadable.
     pub fn unsent(&mut self, chunk: &ChunkToSend, now_ns: u64) {
-        let Some(f) = self
-            .in_flight
-            .as_mut()
-            .filter(|f| f.shelved.number == chunk.number && f.next == chunk.offset + chunk.len)
-        else {
+        let Some(f) = self.in_flight.as_mut().filter(|f| {
+            f.shelved.number == chunk.number
+                && f.shelved.digest == chunk.digest
+                && f.next == chunk.offset + chunk.len
+        }) else {
             return;
         };
         if let Some((_, _, fresh)) = f.unacked.pop_back() {
-            self.counters.bytes_sent -= fresh;
-            self.counters.bytes_resent -= chunk.len - fresh;
-            f.furthest -= fresh;
+            let c = &mut self.counters;
+            c.bytes_sent = c.bytes_sent.saturating_sub(fresh);
+            c.bytes_resent = c.bytes_resent.saturating_sub(chunk.len - fresh);
+            f.furthest = f.furthest.saturating_sub(fresh);
         }
         f.next = chunk.offset;
         f.held_until_ns = now_ns.saturating_add(self.resend_after_ns);
+        f.read_failures += 1;
         self.tokens = (self.tokens + chunk.len as f64).min(self.config.burst_bytes);
+        if f.read_failures >= MAX_READ_FAILURES {
+            self.done.push((f.shelved.number, f.shelved.digest));
+            self.counters.boxes_unreadable += 1;
+            self.in_flight = None;
+        }
     }
 
     /// The link to the fleet has just come up: what is unacknowledged goes again at once.
@@ -411,12 +433,12 @@ mod tests {
     }
 
     #[test]
-    fn boxes_reach_the_store_whole_oldest_first_at_the_paced_rate() {
+    fn boxes_reach_the_store_whole_newest_first_at_the_paced_rate() {
         let mut u = Upload::new(config());
-        u.shelf(&[shelved(2, 1000), shelved(1, 250)]);
+        u.shelf(&[shelved(1, 250), shelved(2, 1000)]);
         let mut store = Store::default();
         run(&mut u, &mut store, 0, 100, |_| true);
-        assert_eq!(store.whole, vec![1, 2]);
+        assert_eq!(store.whole, vec![2, 1]);
         assert_eq!(u.pending(), 0);
         let c = u.counters();
         assert_eq!((c.boxes_stored, c.bytes_sent, c.bytes_resent), (2, 1250, 0));
@@ -473,12 +495,19 @@ mod tests {
     #[test]
     fn a_box_trimmed_off_the_shelf_before_it_was_stored_is_counted_lost() {
         let mut u = Upload::new(config());
-        u.shelf(&[shelved(1, 1000), shelved(2, 100)]);
+        u.shelf(&[shelved(1, 100), shelved(2, 1000)]);
         let first = u.next_chunk(10 * MS, true).unwrap();
-        assert_eq!(first.number, 1);
-        u.shelf(&[shelved(2, 100)]);
+        assert_eq!(first.number, 2, "the newest first");
+        u.shelf(&[shelved(1, 100)]);
         assert_eq!(u.counters().boxes_lost, 1);
-        assert_eq!(u.next_chunk(20 * MS, true).map(|c| c.number), Some(2));
+        assert_eq!(u.next_chunk(20 * MS, true).map(|c| c.number), Some(1));
+        // Box 1 rewritten under its number (another digest): the one in flight is lost, the
+        // new one waits its turn.
+        let mut rewritten = shelved(1, 100);
+        rewritten.digest = [8; 32];
+        u.shelf(&[rewritten]);
+        assert_eq!(u.counters().boxes_lost, 2);
+        assert_eq!(u.next_chunk(30 * MS, true).map(|c| c.digest), Some([8; 32]));
     }
 
     #[test]
@@ -519,19 +548,30 @@ mod tests {
         let mut u = Upload::new(config());
         u.shelf(&[shelved(1, 100), shelved(2, 100)]);
         let probe = u.next_chunk(10 * MS, true).unwrap();
-        assert_eq!(probe.number, 1);
+        assert_eq!(probe.number, 2);
         assert!(u.acknowledged(BoxAck {
-            number: 1,
+            number: 2,
             digest: probe.digest,
             received: 0,
             complete: false,
             refused: true,
         }));
         assert_eq!(u.counters().boxes_refused, 1);
-        assert_eq!(u.next_chunk(20 * MS, true).map(|c| c.number), Some(2));
-        // Listed again, it is not sent again.
+        let probe = u.next_chunk(20 * MS, true).unwrap();
+        assert_eq!(probe.number, 1);
+        // Held to its end and not whole: set aside too (nothing would ever go again).
+        assert!(u.acknowledged(BoxAck {
+            number: 1,
+            digest: probe.digest,
+            received: 100,
+            complete: false,
+            refused: false,
+        }));
+        assert_eq!(u.counters().boxes_refused, 2);
+        // Listed again, neither is sent again.
         u.shelf(&[shelved(1, 100), shelved(2, 100)]);
-        assert_eq!(u.pending(), 1, "only box 2");
+        assert_eq!(u.pending(), 0);
+        assert_eq!(u.next_chunk(30 * MS, true), None);
     }
 
     #[test]
@@ -570,5 +610,27 @@ mod tests {
         renumbered.digest = [42; 32];
         u.shelf(&[renumbered]);
         assert_eq!(u.pending(), 1, "box 1 of the new shelf is another box");
+    }
+
+    #[test]
+    fn a_box_whose_file_cannot_be_read_is_set_aside_and_the_next_goes() {
+        let mut u = Upload::new(config());
+        u.shelf(&[shelved(1, 300), shelved(2, 300)]);
+        let mut store = Store::default();
+        let probe = u.next_chunk(0, true).unwrap();
+        u.acknowledged(store.take(&probe));
+        let mut t = 10 * MS;
+        for failed in 1..=MAX_READ_FAILURES {
+            let c = u.next_chunk(t, true).unwrap();
+            assert_eq!((c.number, c.offset), (2, 0));
+            u.unsent(&c, t);
+            assert_eq!(
+                u.counters().boxes_unreadable,
+                u64::from(failed / MAX_READ_FAILURES)
+            );
+            t += 600 * MS;
+        }
+        assert_eq!(u.next_chunk(t, true).map(|c| c.number), Some(1));
+        assert_eq!(u.counters().bytes_sent, 0);
     }
 }

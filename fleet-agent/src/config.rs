@@ -568,6 +568,17 @@ mod tests {
                 "blackbox.chunk-bytes",
             ),
             ("window = 4\n", "window = 0\n", "blackbox.window"),
+            ("window = 4\n", "window = 65\n", "blackbox.window"),
+            (
+                "bytes-per-second = 65536",
+                "bytes-per-second = 16777216",
+                "blackbox.bytes-per-second",
+            ),
+            (
+                "chunk-bytes = 65536",
+                "chunk-bytes = 524288",
+                "blackbox.chunk-bytes",
+            ),
             (
                 "resend-after-ms = 1000",
                 "resend-after-ms = 0",

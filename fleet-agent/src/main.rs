@@ -5,7 +5,7 @@
 use anyhow::{Context, Result};
 use clap::Parser;
 use fleet_agent::agent::{Agent, AgentIo, JournalStart, Outbound};
-use fleet_agent::box_shelf::{ShelfError, ShelfWatch};
+use fleet_agent::box_shelf::{ChunkRead, ShelfWatch};
 use fleet_agent::box_upload::{ChunkToSend, ShelvedBox};
 use fleet_agent::journal::{Journal, JournalError};
 use fleet_agent::keys::robot_key;
@@ -310,14 +310,11 @@ impl AgentIo for Wired {
     fn shelf(&mut self) -> Option<Vec<ShelvedBox>> {
         self.shelf.as_ref()?.listing()
     }
-    fn read_box(&mut self, chunk: &ChunkToSend) -> Result<Vec<u8>, ShelfError> {
-        match &self.shelf {
-            Some(s) => s.read(chunk),
-            None => Err(ShelfError::Io {
-                name: chunk.name.clone(),
-                source: std::io::Error::other("no shelf watched"),
-            }),
-        }
+    fn ask_box(&mut self, chunk: &ChunkToSend) -> bool {
+        self.shelf.as_ref().is_some_and(|s| s.ask(chunk))
+    }
+    fn box_bytes(&mut self) -> Option<ChunkRead> {
+        self.shelf.as_ref()?.read()
     }
     fn next_box_ack(&mut self) -> Option<Vec<u8>> {
         let sample = self.fleet.as_ref()?.box_acks.try_recv().ok().flatten()?;

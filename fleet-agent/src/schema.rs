@@ -507,6 +507,8 @@ pub struct BoxCounters {
     /// Boxes the fleet's store refused (too large, a name that is no box's, bytes that fail
     /// their digest): set aside while the agent runs.
     pub refused: u64,
+    /// Boxes whose file could not be read: set aside while the agent runs.
+    pub unreadable: u64,
     /// Bytes sent the first time.
     pub bytes_sent: u64,
     /// Bytes sent again (an outage, a store restarting).

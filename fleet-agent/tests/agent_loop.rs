@@ -5,7 +5,7 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use fleet_agent::agent::{Agent, AgentIo, JournalStart, Outbound};
-use fleet_agent::box_shelf::ShelfError;
+use fleet_agent::box_shelf::{ChunkRead, ShelfError};
 use fleet_agent::box_upload::{ChunkToSend, ShelvedBox};
 use fleet_agent::delivery::Delivery;
 use fleet_agent::journal::{JournalError, Record, Recovery};
@@ -61,6 +61,9 @@ struct Queues {
     shelf: Option<Vec<ShelvedBox>>,
     box_files: std::collections::HashMap<String, Vec<u8>>,
     box_acks: VecDeque<Vec<u8>>,
+    /// Chunks asked for, read at the next turn (never, when the shelf's thread is stuck).
+    asked: VecDeque<ChunkToSend>,
+    shelf_stuck: bool,
 }
 
 impl AgentIo for Queues {
@@ -151,14 +154,25 @@ impl AgentIo for Queues {
     fn shelf(&mut self) -> Option<Vec<ShelvedBox>> {
         self.shelf.take()
     }
-    fn read_box(&mut self, chunk: &ChunkToSend) -> Result<Vec<u8>, ShelfError> {
+    fn ask_box(&mut self, chunk: &ChunkToSend) -> bool {
+        self.asked.push_back(chunk.clone());
+        true
+    }
+    fn box_bytes(&mut self) -> Option<ChunkRead> {
+        if self.shelf_stuck {
+            return None;
+        }
+        let chunk = self.asked.pop_front()?;
         let gone = || ShelfError::Io {
             name: chunk.name.clone(),
             source: std::io::Error::from(std::io::ErrorKind::NotFound),
         };
-        let bytes = self.box_files.get(&chunk.name).ok_or_else(gone)?;
         let (from, len) = (chunk.offset as usize, chunk.len as usize);
-        Ok(bytes.get(from..from + len).ok_or_else(gone)?.to_vec())
+        let read = (self.box_files.get(&chunk.name))
+            .and_then(|b| b.get(from..from + len))
+            .map(<[u8]>::to_vec)
+            .ok_or_else(gone);
+        Some((chunk, read))
     }
     fn next_box_ack(&mut self) -> Option<Vec<u8>> {
         self.box_acks.pop_front()
@@ -1240,9 +1254,10 @@ fn a_frozen_box_goes_to_the_store_after_the_events_at_its_pace() {
     assert!(sent::<BoxChunkMsg>(&mut io, Outbound::BoxChunk).is_empty());
 }
 
-/// A box whose file cannot be read is counted, not sent as something else, and tried again.
+/// A box whose file cannot be read is counted, not sent as something else, tried again after
+/// each wait, and set aside after three failures in a row.
 #[test]
-fn a_box_that_cannot_be_read_is_counted_and_tried_again() {
+fn a_box_that_cannot_be_read_is_counted_tried_again_then_set_aside() {
     let (mut agent, mut io, mut now) = running();
     io.acks.push_back(ack(0, 2));
     io.shelf = Some(vec![ShelvedBox {
@@ -1270,6 +1285,45 @@ fn a_box_that_cannot_be_read_is_counted_and_tried_again() {
     }
     assert_eq!(probes, 1);
     let b = status(&mut agent, &mut io, now + MS).counters.boxes;
-    assert!(b.read_failures >= 2, "tried again: {b:?}");
-    assert_eq!((b.pending, b.bytes_sent), (1, 0));
+    assert_eq!(
+        (b.read_failures, b.unreadable, b.pending, b.bytes_sent),
+        (3, 1, 0, 0),
+        "tried again after each wait, then set aside: {b:?}"
+    );
+}
+
+/// A shelf whose reading thread never answers holds the upload up for ten seconds a try, then
+/// the box is set aside: the loop never waits on it.
+#[test]
+fn a_shelf_that_never_answers_is_taken_as_failed_reads() {
+    let (mut agent, mut io, mut now) = running();
+    io.acks.push_back(ack(0, 2));
+    io.shelf_stuck = true;
+    io.shelf = Some(vec![ShelvedBox {
+        number: 1,
+        name: "000001-T-saved.mcap".into(),
+        size: 1000,
+        digest: [1; 32],
+    }]);
+    for _ in 0..600 {
+        now += 100 * MS;
+        agent.poll(&mut io, now, 0);
+        for c in sent::<BoxChunkMsg>(&mut io, Outbound::BoxChunk) {
+            assert!(c.data.is_empty(), "only the probe goes");
+            io.box_acks.push_back(encode(&BoxAckMsg {
+                version: SCHEMA_VERSION,
+                number: 1,
+                digest: [1; 32],
+                received: 0,
+                complete: false,
+                refused: false,
+            }));
+        }
+    }
+    let b = status(&mut agent, &mut io, now + MS).counters.boxes;
+    assert_eq!(
+        (b.read_failures, b.unreadable, b.pending),
+        (3, 1, 0),
+        "{b:?}"
+    );
 }

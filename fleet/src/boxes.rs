@@ -5,8 +5,7 @@
 //! A box is kept by its robot and its SHA-256. Its chunks are appended only at the offset the
 //! store holds: anything else is answered with that offset (a robot resending after an outage,
 //! an agent restarted with a store that kept more, or less). Once held whole, the bytes are
-//! checked against the digest; only then is the box acknowledged complete, and the robot may
-//! drop it first from its cap.
+//! checked against the digest; only then is the box acknowledged complete.
 
 use crate::admission::Refusal;
 use fleet_agent::schema::BoxChunkMsg;
@@ -18,6 +17,12 @@ pub const MAX_BOX_BYTES: u64 = 256 << 20;
 /// The bytes of boxes a robot may have open at the store (not yet whole) at once: a robot's
 /// certificate in the wrong hands cannot fill the store's disk with boxes begun.
 pub const MAX_OPEN_BYTES_PER_ROBOT: u64 = 1 << 30;
+
+/// A box not whole that no chunk has touched for this long is dropped from the store (its
+/// robot still has it, and begins it again when it sends it): an abandoned box (trimmed off
+/// the robot's shelf, refused, a robot gone) does not count against its robot's bound for
+/// ever. As a PostgreSQL interval.
+pub const ABANDONED_AFTER: &str = "1 hour";
 
 /// The longest box name the store takes (`NNNNNN-YYYYMMDDTHHMMSSZ-kind.mcap`).
 pub const MAX_NAME_LEN: usize = 128;

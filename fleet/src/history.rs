@@ -83,8 +83,10 @@ CREATE TABLE IF NOT EXISTS refusals (
 );
 -- The black boxes robots send (`fleet::boxes`): one row per box, kept by its robot and SHA-256,
 -- its bytes in `box_chunks` in the order they came (appended only at `received`). `complete`
--- once held whole and checked against the digest; then what froze it and what led to it
--- (`blackbox::lead_up`, JSON) are read from the box.
+-- once held whole and checked against the digest; then the event told about (its first trip,
+-- else what froze it: `trigger`, `joint`, `event_ns` on the robot's clock), every event that
+-- froze or kept it open (`trigger_ns`) and what led to it (`blackbox::lead_up`, JSON) are read
+-- from the box. One not whole and untouched for an hour is dropped (its robot still has it).
 CREATE TABLE IF NOT EXISTS boxes (
     robot        text        NOT NULL,
     digest       bytea       NOT NULL,
@@ -94,10 +96,12 @@ CREATE TABLE IF NOT EXISTS boxes (
     received     bigint      NOT NULL DEFAULT 0,
     complete     boolean     NOT NULL DEFAULT false,
     first_at     timestamptz NOT NULL DEFAULT now(),
+    touched_at   timestamptz NOT NULL DEFAULT now(),
     completed_at timestamptz,
     trigger      text,
     joint        text,
     event_ns     bigint,
+    trigger_ns   bigint[],
     lead_up      jsonb,
     PRIMARY KEY (robot, digest)
 );

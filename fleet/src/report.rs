@@ -102,9 +102,6 @@ pub struct TripCauses {
     pub events_before: BTreeMap<String, u64>,
 }
 
-/// The boxes' triggers that are trips (a bus latched off).
-pub const TRIP_TRIGGERS: [&str; 3] = ["thermal_trip", "firmware_protection", "driver_trip"];
-
 /// What the report is judged against.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Limits {
@@ -565,8 +562,8 @@ fn trip_causes(boxes: &[BoxLine]) -> Vec<TripCauses> {
         let Some(l) = &b.lead_up else {
             continue;
         };
-        let tripped =
-            (l.trigger.as_ref()).is_some_and(|t| TRIP_TRIGGERS.contains(&t.kind.as_str()));
+        let tripped = (l.trigger.as_ref())
+            .is_some_and(|t| blackbox::lead_up::TRIPS.contains(&t.kind.as_str()));
         if !tripped {
             continue;
         }
@@ -769,6 +766,7 @@ mod tests {
                 level: 0,
                 value: 0.0,
             }),
+            triggers: Vec::new(),
             joint: Some(joint.into()),
             seconds_before: 120.0,
             temperature_c: Some(temps),

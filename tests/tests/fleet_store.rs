@@ -959,8 +959,14 @@ fn a_trip_s_box_reaches_the_store_through_an_outage_and_the_report_tells_what_le
         },
     );
     assert_eq!(
-        (status.pending, status.lost, status.read_failures),
-        (0, 0, 0),
+        (
+            status.pending,
+            status.lost,
+            status.refused,
+            status.unreadable,
+            status.read_failures
+        ),
+        (0, 0, 0, 0, 0),
         "{status:?}"
     );
     assert!(status.bytes_sent >= size, "{status:?}");
@@ -1175,6 +1181,11 @@ fn one_robot_s_bad_boxes_are_refused_and_counted_and_another_s_is_stored() {
         "SELECT count(*) FROM box_chunks WHERE robot = 'poison-box'",
     );
     assert_eq!(held, 0, "the bytes that failed their digest are dropped");
+    let rows = count(
+        &mut c,
+        "SELECT count(*) FROM boxes WHERE robot = 'poison-box' AND number = 2",
+    );
+    assert_eq!(rows, 0, "and their box's row: a box sent again begins anew");
     let kinds = wait_for(Duration::from_secs(10), "the refusals counted", || {
         let mut c = postgres::Client::connect(&db.url, postgres::NoTls).ok()?;
         let kinds: Vec<String> = c

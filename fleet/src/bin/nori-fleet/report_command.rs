@@ -256,8 +256,9 @@ fn aggregates(
 /// A time as the report writes it.
 const UTC: &str = "'YYYY-MM-DD HH24:MI:SS'";
 
-/// The period's black boxes, each under its journaled event (the same supervisor event: the
-/// robot's clock and the supervisor's number), and its trips that have none in the store.
+/// The period's black boxes, each under its journaled event (the one the box tells about, by
+/// the robot's clock), and its trips that are in no whole box in the store (a box kept open by
+/// several events holds them all).
 fn boxes(
     db: &mut postgres::Client,
     p: &[&(dyn postgres::types::ToSql + Sync); 3],
@@ -299,7 +300,7 @@ fn boxes(
         &format!(
             "SELECT e.robot, to_char(e.at AT TIME ZONE 'UTC', {UTC}), e.kind, e.joint FROM events e \
              WHERE {WITHIN} AND e.kind = ANY($4) AND NOT EXISTS \
-                 (SELECT 1 FROM boxes b WHERE b.robot = e.robot AND b.event_ns = e.robot_ns) \
+                 (SELECT 1 FROM boxes b WHERE b.robot = e.robot AND e.robot_ns = ANY(b.trigger_ns)) \
              ORDER BY e.at, e.robot"
         ),
         &[p[0], p[1], p[2], &trips],

@@ -3,9 +3,9 @@
 //! its digest and read for what froze it and what led to it. The acknowledgement goes after the
 //! commit: nothing acknowledged is lost.
 
-use super::writer::{row_refusal, Writer};
+use super::writer::Writer;
 use fleet::admission::{Message, Refusal};
-use fleet::boxes::{check_chunk, plan, within_quota, Held, Plan};
+use fleet::boxes::{check_chunk, plan, within_quota, Held, Plan, ABANDONED_AFTER};
 use fleet_agent::schema::{decode, BoxAckMsg, BoxChunkMsg, SCHEMA_VERSION};
 use sha2::{Digest, Sha256};
 use std::sync::mpsc::Receiver;
@@ -142,6 +142,21 @@ fn take_chunk(
         Err(why) => return Ok(refused(why)),
     };
     if open {
+        // This robot's abandoned boxes first: they no longer count against its bound.
+        tx.execute(
+            &format!(
+                "DELETE FROM box_chunks c USING boxes b WHERE b.robot = $1 AND c.robot = b.robot \
+                 AND c.digest = b.digest AND NOT b.complete AND b.touched_at < now() - interval '{ABANDONED_AFTER}'"
+            ),
+            &[&robot],
+        )?;
+        tx.execute(
+            &format!(
+                "DELETE FROM boxes WHERE robot = $1 AND NOT complete \
+                 AND touched_at < now() - interval '{ABANDONED_AFTER}'"
+            ),
+            &[&robot],
+        )?;
         let open_bytes: i64 = tx
             .query_one(
                 "SELECT coalesce(sum(size - received), 0)::bigint FROM boxes \
@@ -176,7 +191,8 @@ fn take_chunk(
             &[&robot, &digest, &(c.offset as i64), &c.data],
         )?;
         tx.execute(
-            "UPDATE boxes SET received = received + $3 WHERE robot = $1 AND digest = $2",
+            "UPDATE boxes SET received = received + $3, touched_at = now() \
+             WHERE robot = $1 AND digest = $2",
             &[&robot, &digest, &(len as i64)],
         )?;
         h.received += len;
@@ -241,16 +257,22 @@ fn complete(
     // A box is the robot's bytes: a reader that panics on one must not take the store down.
     let lead = std::panic::catch_unwind(|| blackbox::lead_up::lead_up(&bytes)).unwrap_or_default();
     let trigger = lead.trigger.as_ref();
+    let trigger_ns: Vec<i64> = lead
+        .triggers
+        .iter()
+        .map(|t| t.timestamp_ns as i64)
+        .collect();
     let mut sp = tx.savepoint("described")?;
     let described = sp.execute(
         "UPDATE boxes SET complete = true, completed_at = now(), trigger = $3, joint = $4, \
-         event_ns = $5, lead_up = $6::text::jsonb WHERE robot = $1 AND digest = $2",
+         event_ns = $5, trigger_ns = $6, lead_up = $7::text::jsonb WHERE robot = $1 AND digest = $2",
         &[
             &robot,
             &digest,
             &trigger.map(|t| t.kind.clone()),
             &lead.joint,
             &trigger.map(|t| t.timestamp_ns as i64),
+            &trigger_ns,
             &serde_json::to_string(&lead).unwrap_or_default(),
         ],
     );
@@ -260,9 +282,10 @@ fn complete(
             Ok(Whole::Described)
         }
         Err(e) => {
-            // What the box says cannot be kept (jsonb refuses a NUL, say): the box is kept
-            // whole all the same, undescribed, and the refusal counted.
-            let why = row_refusal(&e).ok_or(e)?;
+            // What the box says cannot be kept (jsonb refuses a NUL, a value beyond its
+            // limits...): the box is kept whole all the same, undescribed, and the refusal
+            // counted. Only a lost connection fails the chunk (not answered, sent again).
+            let why = server_refusal(&e).ok_or(e)?;
             sp.rollback()?;
             tx.execute(
                 "UPDATE boxes SET complete = true, completed_at = now() WHERE robot = $1 AND digest = $2",
@@ -271,4 +294,14 @@ fn complete(
             Ok(Whole::Undescribed(why))
         }
     }
+}
+
+/// The server refused a statement, whatever its class: its refusal (`None`: not the server's
+/// answer, the connection failed).
+fn server_refusal(e: &postgres::Error) -> Option<Refusal> {
+    let db = e.as_db_error()?;
+    Some(Refusal::Database {
+        sqlstate: db.code().code().to_string(),
+        message: db.message().to_string(),
+    })
 }

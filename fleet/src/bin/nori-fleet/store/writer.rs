@@ -62,7 +62,7 @@ pub(super) struct Writer {
 
 /// The database refused a row for what it holds: the reason, else `None` (the connection or
 /// the server failed).
-pub(super) fn row_refusal(e: &postgres::Error) -> Option<Refusal> {
+fn row_refusal(e: &postgres::Error) -> Option<Refusal> {
     let db = e.as_db_error()?;
     let sqlstate = db.code().code();
     admission::is_row_fault(sqlstate).then(|| Refusal::Database {
