@@ -236,6 +236,16 @@ mod tests {
 
     const S: u64 = 1_000_000_000;
 
+    /// Writes one message of `channel` at `t_ns` into the box.
+    fn put(w: &mut BoxWriter<Cursor<Vec<u8>>>, channel: Channel, t_ns: u64, data: &[u8]) {
+        w.write(Record {
+            channel,
+            t_ns,
+            data,
+        })
+        .unwrap();
+    }
+
     fn event(t: u64, kind: &str, joint: Option<&str>, value: f32) -> EventMessage {
         EventMessage {
             timestamp_ns: t,
@@ -275,12 +285,7 @@ mod tests {
             s.joints[1].current_a = if k < 5 { 0.5 } else { 1.5 };
             let (t_ns, data) = joint_states(&s, &names);
             let channel = Channel::JointStates;
-            w.write(Record {
-                channel,
-                t_ns,
-                data: &data,
-            })
-            .unwrap();
+            put(&mut w, channel, t_ns, &data);
         }
         for e in [
             event(6 * S, "stall", Some("j1"), 1.2),
@@ -290,12 +295,7 @@ mod tests {
         ] {
             let data = to_json(&e);
             let (channel, t_ns) = (Channel::Events, e.timestamp_ns);
-            w.write(Record {
-                channel,
-                t_ns,
-                data: &data,
-            })
-            .unwrap();
+            put(&mut w, channel, t_ns, &data);
         }
         w.finish().unwrap().into_inner()
     }
@@ -334,12 +334,7 @@ mod tests {
             let (joint, kind) = (format!("j{k}"), format!("k{k}"));
             let data = to_json(&event(k, &kind, Some(&joint), 0.0));
             let (channel, t_ns) = (Channel::Events, k);
-            w.write(Record {
-                channel,
-                t_ns,
-                data: &data,
-            })
-            .unwrap();
+            put(&mut w, channel, t_ns, &data);
         }
         let bytes = w.finish().unwrap().into_inner();
         let l = lead_up(&bytes);
@@ -379,23 +374,13 @@ mod tests {
             } = item
             {
                 let channel = Channel::from_topic(topic).unwrap();
-                w.write(Record {
-                    channel,
-                    t_ns: log_time,
-                    data,
-                })
-                .unwrap();
+                put(&mut w, channel, log_time, data);
             }
         });
         for t in triggers {
             let data = to_json(*t);
             let (channel, t_ns) = (Channel::Triggers, t.timestamp_ns);
-            w.write(Record {
-                channel,
-                t_ns,
-                data: &data,
-            })
-            .unwrap();
+            put(&mut w, channel, t_ns, &data);
         }
         w.finish().unwrap().into_inner()
     }
@@ -407,21 +392,11 @@ mod tests {
         for k in 0..100u64 {
             let data = to_json(&event(k, &format!("kind{k}"), Some("j1"), 0.0));
             let (channel, t_ns) = (Channel::Events, k);
-            w.write(Record {
-                channel,
-                t_ns,
-                data: &data,
-            })
-            .unwrap();
+            put(&mut w, channel, t_ns, &data);
         }
         let long = "x".repeat(LONGEST_NAME + 1);
         let data = to_json(&event(200, &long, Some("j1"), 0.0));
-        w.write(Record {
-            channel: Channel::Events,
-            t_ns: 200,
-            data: &data,
-        })
-        .unwrap();
+        put(&mut w, Channel::Events, 200, &data);
         let names: Vec<String> = (0..100).map(|k| format!("n{k}")).collect();
         let states = serde_json::json!({
             "timestamp_ns": 300,
@@ -431,12 +406,7 @@ mod tests {
             "current_a": vec![0.1; 100],
         });
         let data = serde_json::to_vec(&states).unwrap();
-        w.write(Record {
-            channel: Channel::JointStates,
-            t_ns: 300,
-            data: &data,
-        })
-        .unwrap();
+        put(&mut w, Channel::JointStates, 300, &data);
         let l = lead_up(&w.finish().unwrap().into_inner());
         assert!(l.cut_short);
         assert_eq!(

@@ -384,6 +384,17 @@ mod tests {
         }
     }
 
+    /// The store's answer to `c`: it holds `received` bytes of its box, not whole; `refused`.
+    fn answer(c: &ChunkToSend, received: u64, refused: bool) -> BoxAck {
+        BoxAck {
+            number: c.number,
+            digest: c.digest,
+            received,
+            complete: false,
+            refused,
+        }
+    }
+
     /// A store that holds what arrives in order, and answers each chunk.
     #[derive(Default)]
     struct Store {
@@ -549,24 +560,12 @@ mod tests {
         u.shelf(&[shelved(1, 100), shelved(2, 100)]);
         let probe = u.next_chunk(10 * MS, true).unwrap();
         assert_eq!(probe.number, 2);
-        assert!(u.acknowledged(BoxAck {
-            number: 2,
-            digest: probe.digest,
-            received: 0,
-            complete: false,
-            refused: true,
-        }));
+        assert!(u.acknowledged(answer(&probe, 0, true)));
         assert_eq!(u.counters().boxes_refused, 1);
         let probe = u.next_chunk(20 * MS, true).unwrap();
         assert_eq!(probe.number, 1);
         // Held to its end and not whole: set aside too (nothing would ever go again).
-        assert!(u.acknowledged(BoxAck {
-            number: 1,
-            digest: probe.digest,
-            received: 100,
-            complete: false,
-            refused: false,
-        }));
+        assert!(u.acknowledged(answer(&probe, 100, false)));
         assert_eq!(u.counters().boxes_refused, 2);
         // Listed again, neither is sent again.
         u.shelf(&[shelved(1, 100), shelved(2, 100)]);

@@ -1254,6 +1254,18 @@ fn a_frozen_box_goes_to_the_store_after_the_events_at_its_pace() {
     assert!(sent::<BoxChunkMsg>(&mut io, Outbound::BoxChunk).is_empty());
 }
 
+/// The store's answer to box 1 (digest `[1; 32]`): it holds none of it.
+fn nothing_held_of_box_1() -> Vec<u8> {
+    encode(&BoxAckMsg {
+        version: SCHEMA_VERSION,
+        number: 1,
+        digest: [1; 32],
+        received: 0,
+        complete: false,
+        refused: false,
+    })
+}
+
 /// A box whose file cannot be read is counted, not sent as something else, tried again after
 /// each wait, and set aside after three failures in a row.
 #[test]
@@ -1273,14 +1285,7 @@ fn a_box_that_cannot_be_read_is_counted_tried_again_then_set_aside() {
         for c in sent::<BoxChunkMsg>(&mut io, Outbound::BoxChunk) {
             assert!(c.data.is_empty());
             probes += 1;
-            io.box_acks.push_back(encode(&BoxAckMsg {
-                version: SCHEMA_VERSION,
-                number: 1,
-                digest: [1; 32],
-                received: 0,
-                complete: false,
-                refused: false,
-            }));
+            io.box_acks.push_back(nothing_held_of_box_1());
         }
     }
     assert_eq!(probes, 1);
@@ -1310,14 +1315,7 @@ fn a_shelf_that_never_answers_is_taken_as_failed_reads() {
         agent.poll(&mut io, now, 0);
         for c in sent::<BoxChunkMsg>(&mut io, Outbound::BoxChunk) {
             assert!(c.data.is_empty(), "only the probe goes");
-            io.box_acks.push_back(encode(&BoxAckMsg {
-                version: SCHEMA_VERSION,
-                number: 1,
-                digest: [1; 32],
-                received: 0,
-                complete: false,
-                refused: false,
-            }));
+            io.box_acks.push_back(nothing_held_of_box_1());
         }
     }
     let b = status(&mut agent, &mut io, now + MS).counters.boxes;
