@@ -1217,3 +1217,57 @@ fn one_robot_s_bad_boxes_are_refused_and_counted_and_another_s_is_stored() {
         0
     );
 }
+
+/// A box sent while the database is down is answered nothing (the store claims nothing it has
+/// not committed); sent again, as a robot does, once the database is back, it is stored whole
+/// and answered so.
+#[test]
+fn a_box_sent_while_the_database_is_down_is_answered_only_once_stored() {
+    use sha2::Digest;
+    let dir = nori_tests::scratch("fleet-store-box-db");
+    let mut db = ScratchPostgres::start(&dir.join("postgres"));
+    let store_at = free_endpoint();
+    let _store = start_store(&dir, &db.url, &store_at, 1);
+    let session = nori_tests::connecting_session(&store_at, "peer").unwrap();
+    let acks = session
+        .declare_subscriber("nori/*/blackbox/ack")
+        .wait()
+        .unwrap();
+    std::thread::sleep(Duration::from_secs(1));
+    let bytes: Vec<u8> = (0..50_000u32).map(|i| (i % 241) as u8).collect();
+    let digest: [u8; 32] = sha2::Sha256::digest(&bytes).into();
+    let the_box = (7, "000007-20261130T040000Z-saved.mcap", digest);
+    let answers = || -> Vec<fleet_agent::schema::BoxAckMsg> {
+        std::iter::from_fn(|| acks.try_recv().ok().flatten())
+            .map(|s| decode(&s.payload().to_bytes()).unwrap())
+            .collect()
+    };
+    db.stop();
+    send_box(&session, "db-box", the_box, &bytes, 10_000);
+    std::thread::sleep(Duration::from_secs(3));
+    let while_down = answers();
+    assert!(
+        while_down.is_empty(),
+        "answered with the database down: {while_down:?}"
+    );
+    db.resume();
+    wait_for(
+        Duration::from_secs(30),
+        "the box whole once the database is back",
+        || {
+            send_box(&session, "db-box", the_box, &bytes, 10_000);
+            answers().iter().any(|a| a.complete).then_some(())
+        },
+    );
+    let held: Vec<u8> = db
+        .client()
+        .query(
+            "SELECT data FROM box_chunks WHERE robot = 'db-box' ORDER BY at_byte",
+            &[],
+        )
+        .unwrap()
+        .iter()
+        .flat_map(|r| r.get::<_, Vec<u8>>(0))
+        .collect();
+    assert!(held == bytes, "the store's box is not the one sent");
+}
