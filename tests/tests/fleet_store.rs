@@ -1040,6 +1040,44 @@ fn a_trip_s_box_reaches_the_store_through_an_outage_and_the_report_tells_what_le
     stack.stop();
 }
 
+/// A store on a scratch database, and a session that speaks to it as robots and hears its
+/// answers to boxes.
+struct BoxStore {
+    db: ScratchPostgres,
+    session: fleet_agent::zenoh::Session,
+    acks: fleet_agent::zenoh::pubsub::Subscriber<
+        fleet_agent::zenoh::handlers::FifoChannelHandler<fleet_agent::zenoh::sample::Sample>,
+    >,
+    _store: Proc,
+}
+
+impl BoxStore {
+    fn start(tag: &str) -> BoxStore {
+        let dir = nori_tests::scratch(tag);
+        let db = ScratchPostgres::start(&dir.join("postgres"));
+        let store_at = free_endpoint();
+        let store = start_store(&dir, &db.url, &store_at, 1);
+        let session = nori_tests::connecting_session(&store_at, "peer").unwrap();
+        let acks = session
+            .declare_subscriber("nori/*/blackbox/ack")
+            .wait()
+            .unwrap();
+        std::thread::sleep(Duration::from_secs(1));
+        BoxStore {
+            db,
+            session,
+            acks,
+            _store: store,
+        }
+    }
+}
+
+/// The SHA-256 of `bytes`, as a robot names its box.
+fn sha256(bytes: &[u8]) -> [u8; 32] {
+    use sha2::Digest;
+    sha2::Sha256::digest(bytes).into()
+}
+
 /// Sends `robot`'s box `bytes` (named `name`, numbered `number`, its digest `digest`) from
 /// `offset` in chunks of `chunk` bytes.
 fn send_box(
@@ -1070,40 +1108,23 @@ fn send_box(
     }
 }
 
-/// One robot's bad boxes (a name that is no box's, bytes outside the box, a digest its bytes
-/// do not have, a digest sent with two sizes, boxes begun beyond its bound) are refused,
-/// answered so, and counted for it, the bytes that failed their digest dropped; another
-/// robot's box is stored whole meanwhile, and one that is no MCAP is kept whole, with no
-/// trigger.
-#[test]
-fn one_robot_s_bad_boxes_are_refused_and_counted_and_another_s_is_stored() {
-    use sha2::Digest;
-    let dir = nori_tests::scratch("fleet-store-boxes");
-    let db = ScratchPostgres::start(&dir.join("postgres"));
-    let store_at = free_endpoint();
-    let _store = start_store(&dir, &db.url, &store_at, 1);
-    let session = nori_tests::connecting_session(&store_at, "peer").unwrap();
-    let acks = session
-        .declare_subscriber("nori/*/blackbox/ack")
-        .wait()
-        .unwrap();
-    std::thread::sleep(Duration::from_secs(1));
-    let good: Vec<u8> = (0..100_000u32).map(|i| (i * 31 % 253) as u8).collect();
-    let digest: [u8; 32] = sha2::Sha256::digest(&good).into();
-    let name = "000003-20261130T020000Z-saved.mcap";
-    send_box(&session, "good-box", (3, name, digest), &good, 30_000);
+/// Robot `poison-box`'s bad boxes, made of `bytes`: a name that is no box's (1), bytes that
+/// fail their digest (2), bytes outside their box (4), a digest begun with one size and sent
+/// with another (5), and five boxes of the largest size begun (10 to 14: the last two beyond
+/// the robot's bound).
+fn send_poison(session: &fleet_agent::zenoh::Session, bytes: &[u8]) {
     send_box(
-        &session,
+        session,
         "poison-box",
-        (1, "../../x.mcap", digest),
-        &good[..10],
+        (1, "../../x.mcap", [1; 32]),
+        &bytes[..10],
         10,
     );
     send_box(
-        &session,
+        session,
         "poison-box",
         (2, "000002-T-x.mcap", [9; 32]),
-        &good[..5000],
+        &bytes[..5000],
         2000,
     );
     let outside = fleet_agent::schema::BoxChunkMsg {
@@ -1125,10 +1146,10 @@ fn one_robot_s_bad_boxes_are_refused_and_counted_and_another_s_is_stored() {
     session.put(&key, encode(&begun)).wait().unwrap();
     std::thread::sleep(Duration::from_millis(50));
     send_box(
-        &session,
+        session,
         "poison-box",
         (5, "000005-T-x.mcap", [5; 32]),
-        &good[..4000],
+        &bytes[..4000],
         4000,
     );
     // Boxes begun, never sent: beyond 1 GiB still to come, the next is refused.
@@ -1145,6 +1166,22 @@ fn one_robot_s_bad_boxes_are_refused_and_counted_and_another_s_is_stored() {
         session.put(&key, encode(&probe)).wait().unwrap();
         std::thread::sleep(Duration::from_millis(20));
     }
+}
+
+/// One robot's bad boxes (a name that is no box's, bytes outside the box, a digest its bytes
+/// do not have, a digest sent with two sizes, boxes begun beyond its bound) are refused,
+/// answered so, and counted for it, the bytes that failed their digest dropped; another
+/// robot's box is stored whole meanwhile, and one that is no MCAP is kept whole, with no
+/// trigger.
+#[test]
+fn one_robot_s_bad_boxes_are_refused_and_counted_and_another_s_is_stored() {
+    let store = BoxStore::start("fleet-store-boxes");
+    let (db, session, acks) = (&store.db, &store.session, &store.acks);
+    let good: Vec<u8> = (0..100_000u32).map(|i| (i * 31 % 253) as u8).collect();
+    let digest = sha256(&good);
+    let name = "000003-20261130T020000Z-saved.mcap";
+    send_box(session, "good-box", (3, name, digest), &good, 30_000);
+    send_poison(session, &good);
     let mut last = std::collections::BTreeMap::new();
     wait_for(Duration::from_secs(30), "the answers", || {
         while let Ok(Some(s)) = acks.try_recv() {
@@ -1223,43 +1260,34 @@ fn one_robot_s_bad_boxes_are_refused_and_counted_and_another_s_is_stored() {
 /// and answered so.
 #[test]
 fn a_box_sent_while_the_database_is_down_is_answered_only_once_stored() {
-    use sha2::Digest;
-    let dir = nori_tests::scratch("fleet-store-box-db");
-    let mut db = ScratchPostgres::start(&dir.join("postgres"));
-    let store_at = free_endpoint();
-    let _store = start_store(&dir, &db.url, &store_at, 1);
-    let session = nori_tests::connecting_session(&store_at, "peer").unwrap();
-    let acks = session
-        .declare_subscriber("nori/*/blackbox/ack")
-        .wait()
-        .unwrap();
-    std::thread::sleep(Duration::from_secs(1));
+    let mut store = BoxStore::start("fleet-store-box-db");
     let bytes: Vec<u8> = (0..50_000u32).map(|i| (i % 241) as u8).collect();
-    let digest: [u8; 32] = sha2::Sha256::digest(&bytes).into();
+    let digest = sha256(&bytes);
     let the_box = (7, "000007-20261130T040000Z-saved.mcap", digest);
     let answers = || -> Vec<fleet_agent::schema::BoxAckMsg> {
-        std::iter::from_fn(|| acks.try_recv().ok().flatten())
+        std::iter::from_fn(|| store.acks.try_recv().ok().flatten())
             .map(|s| decode(&s.payload().to_bytes()).unwrap())
             .collect()
     };
-    db.stop();
-    send_box(&session, "db-box", the_box, &bytes, 10_000);
+    store.db.stop();
+    send_box(&store.session, "db-box", the_box, &bytes, 10_000);
     std::thread::sleep(Duration::from_secs(3));
     let while_down = answers();
     assert!(
         while_down.is_empty(),
         "answered with the database down: {while_down:?}"
     );
-    db.resume();
+    store.db.resume();
     wait_for(
         Duration::from_secs(30),
         "the box whole once the database is back",
         || {
-            send_box(&session, "db-box", the_box, &bytes, 10_000);
+            send_box(&store.session, "db-box", the_box, &bytes, 10_000);
             answers().iter().any(|a| a.complete).then_some(())
         },
     );
-    let held: Vec<u8> = db
+    let held: Vec<u8> = store
+        .db
         .client()
         .query(
             "SELECT data FROM box_chunks WHERE robot = 'db-box' ORDER BY at_byte",
