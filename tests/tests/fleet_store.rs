@@ -1108,6 +1108,22 @@ fn send_box(
     }
 }
 
+/// Robot `poison-box`'s probe of box `n`, of the largest size a box may have.
+fn send_probe(session: &fleet_agent::zenoh::Session, n: u8) {
+    let probe = fleet_agent::schema::BoxChunkMsg {
+        version: SCHEMA_VERSION,
+        number: u64::from(n),
+        name: format!("{n:06}-T-x.mcap"),
+        size: fleet::boxes::MAX_BOX_BYTES,
+        digest: [90 + n; 32],
+        offset: 0,
+        data: Vec::new(),
+    };
+    let key = robot_key("poison-box", "blackbox/chunk");
+    session.put(&key, encode(&probe)).wait().unwrap();
+    std::thread::sleep(Duration::from_millis(20));
+}
+
 /// Robot `poison-box`'s bad boxes, made of `bytes`: a name that is no box's (1), bytes that
 /// fail their digest (2), bytes outside their box (4), a digest begun with one size and sent
 /// with another (5), and five boxes of the largest size begun (10 to 14: the last two beyond
@@ -1153,18 +1169,8 @@ fn send_poison(session: &fleet_agent::zenoh::Session, bytes: &[u8]) {
         4000,
     );
     // Boxes begun, never sent: beyond 1 GiB still to come, the next is refused.
-    for k in 0..5u8 {
-        let probe = fleet_agent::schema::BoxChunkMsg {
-            version: SCHEMA_VERSION,
-            number: 10 + u64::from(k),
-            name: format!("{:06}-T-x.mcap", 10 + k),
-            size: fleet::boxes::MAX_BOX_BYTES,
-            digest: [100 + k; 32],
-            offset: 0,
-            data: Vec::new(),
-        };
-        session.put(&key, encode(&probe)).wait().unwrap();
-        std::thread::sleep(Duration::from_millis(20));
+    for n in 10..15 {
+        send_probe(session, n);
     }
 }
 
@@ -1253,6 +1259,24 @@ fn one_robot_s_bad_boxes_are_refused_and_counted_and_another_s_is_stored() {
         ),
         0
     );
+    // An hour untouched, its boxes begun are abandoned: dropped, they no longer bar a new one.
+    c.execute(
+        "UPDATE boxes SET touched_at = now() - interval '61 minutes' WHERE robot = 'poison-box'",
+        &[],
+    )
+    .unwrap();
+    send_probe(session, 15);
+    let answered = wait_for(Duration::from_secs(10), "box 15 answered", || {
+        std::iter::from_fn(|| acks.try_recv().ok().flatten())
+            .map(|s| decode::<fleet_agent::schema::BoxAckMsg>(&s.payload().to_bytes()).unwrap())
+            .find(|a| a.number == 15)
+    });
+    assert!(
+        !answered.refused,
+        "refused though its robot's boxes begun were abandoned"
+    );
+    let open = "SELECT count(*) FROM boxes WHERE robot = 'poison-box' AND NOT complete";
+    assert_eq!(count(&mut c, open), 1, "only box 15 begun");
 }
 
 /// A box sent while the database is down is answered nothing (the store claims nothing it has

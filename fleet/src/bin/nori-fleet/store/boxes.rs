@@ -165,6 +165,8 @@ fn take_chunk(
             )?
             .get(0);
         if let Err(why) = within_quota(open_bytes as u64, c.size) {
+            // The abandoned boxes stay dropped: a robot refused now is not refused for ever.
+            tx.commit()?;
             return Ok(refused(why));
         }
         tx.execute(
