@@ -67,14 +67,10 @@ impl Shelf {
 
     /// The boxes a crash cut short, oldest first.
     pub fn partials(&self) -> Vec<PathBuf> {
-        self.with_suffix(PARTIAL_SUFFIX)
-    }
-
-    fn with_suffix(&self, suffix: &str) -> Vec<PathBuf> {
         self.files()
             .into_iter()
             .map(|(_, p, _)| p)
-            .filter(|p| p.to_string_lossy().ends_with(suffix))
+            .filter(|p| p.to_string_lossy().ends_with(PARTIAL_SUFFIX))
             .collect()
     }
 

@@ -117,32 +117,29 @@ struct FleetPorts {
 impl FleetPorts {
     fn declare(session: fleet_agent::zenoh::Session, id: &str) -> Result<FleetPorts> {
         let z = |e: fleet_agent::zenoh::Error| anyhow::anyhow!("{e}");
-        let publisher = |key: &str, congestion| {
+        // Everything is dropped on congestion: blocking would stall this loop (the one
+        // forwarding goals), and what must arrive (events, boxes) is sent again until
+        // acknowledged.
+        let publisher = |key: &str, priority| {
             session
                 .declare_publisher(robot_key(id, key))
-                .congestion_control(congestion)
+                .congestion_control(CongestionControl::Drop)
+                .priority(priority)
                 .wait()
                 .map_err(z)
         };
         let status_key = robot_key(id, "status");
         Ok(FleetPorts {
-            state_pub: publisher("state", CongestionControl::Drop)?,
-            observation_pub: publisher("observation", CongestionControl::Drop)?,
-            layout_pub: publisher("layout", CongestionControl::Drop)?,
-            preview_pub: publisher("preview", CongestionControl::Drop)?,
-            scan_pub: publisher("scan", CongestionControl::Drop)?,
-            // Dropped on congestion like the rest: the journal holds every event until the
-            // fleet acknowledges it and sends it again, and blocking would stall this loop (the
-            // one forwarding goals) for as long as a frozen router takes to be declared dead.
-            event_pub: publisher("events", CongestionControl::Drop)?,
-            // Dropped on congestion too (a chunk goes again until the store acknowledges it),
-            // and at zenoh's lowest priority: queued behind the telemetry and the events.
-            box_pub: session
-                .declare_publisher(robot_key(id, "blackbox/chunk"))
-                .congestion_control(CongestionControl::Drop)
-                .priority(Priority::Background)
-                .wait()
-                .map_err(z)?,
+            state_pub: publisher("state", Priority::Data)?,
+            observation_pub: publisher("observation", Priority::Data)?,
+            layout_pub: publisher("layout", Priority::Data)?,
+            preview_pub: publisher("preview", Priority::Data)?,
+            scan_pub: publisher("scan", Priority::Data)?,
+            // Held in the journal until the fleet acknowledges them; blocking on a frozen
+            // router would stall the loop for as long as it takes to be declared dead.
+            event_pub: publisher("events", Priority::Data)?,
+            // At zenoh's lowest priority: queued behind the telemetry and the events.
+            box_pub: publisher("blackbox/chunk", Priority::Background)?,
             box_acks: session
                 .declare_subscriber(robot_key(id, "blackbox/ack"))
                 .wait()

@@ -588,11 +588,8 @@ fn trip_causes(boxes: &[BoxLine]) -> Vec<TripCauses> {
         if let Some([first, max, last]) = l.temperature_c {
             rises.0 += f64::from(last - first);
             rises.1 += 1;
-            c.temp_max_c = if c.temp_max_c.is_nan() {
-                max
-            } else {
-                c.temp_max_c.max(max)
-            };
+            // NaN until the first reading: `max` takes the other.
+            c.temp_max_c = c.temp_max_c.max(max);
         }
         if let Some([_, peak]) = l.current_a {
             c.current_peak_a = c.current_peak_a.max(peak);

@@ -65,6 +65,21 @@ fn wait_stored(db: &ScratchPostgres, kind: &str, n: i64, what: &str) {
     });
 }
 
+/// `nori fleet report ARGS --json`, which must succeed: the report.
+fn report_json(args: &[&str]) -> serde_json::Value {
+    let out = std::process::Command::new(binary("nori"))
+        .args(["fleet", "report", "--json"])
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
 fn start_store(dir: &std::path::Path, url: &str, endpoint: &str, n: u32) -> Proc {
     start_store_with(dir, url, endpoint, n, &[])
 }
@@ -344,28 +359,17 @@ fn the_report_gives_rates_per_robot_day_the_hottest_motors_stalls_and_drift() {
                 ('b', 2, 2, '2026-11-01 03:01Z', 2, 0, 'AgentStarted', '', '', 255, 0, 0);",
     )
     .unwrap();
-    let out = std::process::Command::new(binary("nori"))
-        .args([
-            "fleet",
-            "report",
-            "--database",
-            &db.url,
-            "--from",
-            "2026-11-01 00:00Z",
-            "--to",
-            "2026-11-03 00:00Z",
-            "--json",
-            "--html",
-        ])
-        .arg(dir.join("report.html"))
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let html = dir.join("report.html");
+    let r = report_json(&[
+        "--database",
+        &db.url,
+        "--from",
+        "2026-11-01 00:00Z",
+        "--to",
+        "2026-11-03 00:00Z",
+        "--html",
+        html.to_str().unwrap(),
+    ]);
     assert_eq!(r["robots"], 2);
     assert!((r["robot_days"].as_f64().unwrap() - 2.5).abs() < 1e-9);
     // a: events 1..19 and 37..60 = 43, of which 21 stalls and 22 warnings, in 2 days.
@@ -972,23 +976,7 @@ fn a_trip_s_box_reaches_the_store_through_an_outage_and_the_report_tells_what_le
     assert!(status.bytes_sent >= size, "{status:?}");
 
     // The report: the box under its trip, and what led to it.
-    let out = std::process::Command::new(binary("nori-fleet"))
-        .args([
-            "report",
-            "--database",
-            &db.url,
-            "--json",
-            "--robot",
-            ROBOT_B,
-        ])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let report = report_json(&["--database", &db.url, "--robot", ROBOT_B]);
     let listed = &report["boxes"];
     assert_eq!(listed.as_array().map(Vec::len), Some(1), "{listed}");
     let b = &listed[0];
