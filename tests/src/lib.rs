@@ -48,8 +48,10 @@ pub fn serial() -> std::sync::MutexGuard<'static, ()> {
 }
 
 /// Path of a workspace binary, built once per test run in the release profile: the processes
-/// run as deployed. (Unoptimised, the simulator falls behind real time in bursts on a two-core
-/// machine, so a moving joint looks static to the supervisor: a timing artefact no robot has.)
+/// run as deployed. Under the README's `cargo test --release` every library they link is already
+/// built, with the same features, so this links them and no more. (Unoptimised, the simulator
+/// falls behind real time in bursts on a two-core machine, so a moving joint looks static to the
+/// supervisor: a timing artefact no robot has.)
 pub fn binary(name: &str) -> PathBuf {
     static BUILT: OnceLock<()> = OnceLock::new();
     BUILT.get_or_init(|| {
