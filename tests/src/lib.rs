@@ -49,7 +49,7 @@ pub fn serial() -> std::sync::MutexGuard<'static, ()> {
 
 /// Path of a workspace binary, built once per test run in the release profile: the processes
 /// run as deployed. Under the README's `cargo test --release` every library they link is already
-/// built, with the same features, so this links them and no more. (Unoptimised, the simulator
+/// built, with the same features, so this compiles the binaries' own crates and no more. (Unoptimised, the simulator
 /// falls behind real time in bursts on a two-core machine, so a moving joint looks static to the
 /// supervisor: a timing artefact no robot has.)
 pub fn binary(name: &str) -> PathBuf {
@@ -79,9 +79,11 @@ pub fn binary(name: &str) -> PathBuf {
             }
         }
         let status = build
-            // The README's build command exactly: the same feature set, so the two never
-            // invalidate each other's artifacts.
-            .args(["build", "--release", "--quiet", "--workspace", "--bins"])
+            // With the test targets: the dev-dependencies' features (proptest's tempfile,
+            // prometheus-parse's regex) are then unified as in the README's test command, so
+            // the binaries link the very libraries the test build made. `--bins` alone
+            // resolves without them and rebuilt a third of the workspace.
+            .args(["build", "--release", "--quiet", "--workspace", "--bins", "--tests"])
             .status()
             .expect("running cargo build for the binaries");
         assert!(status.success(), "building the binaries failed");
