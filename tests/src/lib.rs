@@ -17,14 +17,21 @@ use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 use telemetry::config::ProcessConfig;
 
-/// The workspace's `target/release` (this test binary lives in `target/<profile>/deps`).
-fn release_dir() -> PathBuf {
+/// The profile the binaries a test starts are built in, and their directory: the test's own
+/// (`tested` under the README's command), or `tested` under an unoptimised test (unoptimised,
+/// the simulator falls behind real time in bursts on a two-core machine, so a moving joint looks
+/// static to the supervisor: a timing artefact no robot has).
+fn binaries_profile() -> (String, PathBuf) {
     let exe = std::env::current_exe().expect("test executable path");
-    let target = exe
+    let dir = exe
         .ancestors()
-        .nth(3)
-        .expect("target/<profile>/deps/<test>");
-    target.join("release")
+        .nth(2)
+        .expect("target/<profile>/deps/<test>")
+        .to_path_buf();
+    match dir.file_name().and_then(|n| n.to_str()) {
+        Some(name) if name != "debug" => (name.to_string(), dir),
+        _ => ("tested".into(), dir.with_file_name("tested")),
+    }
 }
 
 /// Runs the operator's `nori ARGS --domain DOMAIN`, which must succeed; returns what it said
@@ -47,11 +54,10 @@ pub fn serial() -> std::sync::MutexGuard<'static, ()> {
     TURN.lock().unwrap_or_else(|e| e.into_inner())
 }
 
-/// Path of a workspace binary, built once per test run in the release profile: the processes
-/// run as deployed. Under the README's `cargo test --release` every library they link is already
-/// built, with the same features, so this compiles the binaries' own crates and no more. (Unoptimised, the simulator
-/// falls behind real time in bursts on a two-core machine, so a moving joint looks static to the
-/// supervisor: a timing artefact no robot has.)
+/// Path of a workspace binary, built once per test run ([`binaries_profile`]: the release's
+/// optimisation, the workspace's code with overflow checks): the processes run as deployed.
+/// Under the README's `cargo test --profile tested` every library they link is already built,
+/// with the same features, so this compiles the binaries' own crates and no more.
 pub fn binary(name: &str) -> PathBuf {
     static BUILT: OnceLock<()> = OnceLock::new();
     BUILT.get_or_init(|| {
@@ -83,12 +89,19 @@ pub fn binary(name: &str) -> PathBuf {
             // prometheus-parse's regex) are then unified as in the README's test command, so
             // the binaries link the very libraries the test build made. `--bins` alone
             // resolves without them and rebuilt a third of the workspace.
-            .args(["build", "--release", "--quiet", "--workspace", "--bins", "--tests"])
+            .args([
+                "build",
+                "--profile",
+                &binaries_profile().0,
+                "--quiet",
+                "--workspace",
+            ])
+            .args(["--bins", "--tests"])
             .status()
             .expect("running cargo build for the binaries");
         assert!(status.success(), "building the binaries failed");
     });
-    let path = release_dir().join(name);
+    let path = binaries_profile().1.join(name);
     assert!(path.exists(), "{} was not built", path.display());
     path
 }
