@@ -304,7 +304,7 @@ fn thumbnail_cost(args: &CameraFrameArgs, image: &[u8]) -> Result<(f64, f64, usi
         ..Default::default()
     };
     header.set_camera("bench");
-    let mut thumbnailer = fleet_agent::preview::Thumbnailer::new(160, 70);
+    let mut thumbnailer = camera::thumbnail::Thumbnailer::new(160, 70);
     let mut copy = vec![0u8; image.len()];
     let (mut thumb, mut copied, mut bytes) = (Vec::new(), Vec::new(), 0);
     for _ in 0..41 {

@@ -17,37 +17,46 @@ use telemetry::wire::WireFrame;
 
 /// One channel of a box.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
-#[repr(u8)]
 pub enum Channel {
     /// Every bus's bytes on the wire, per bus and cycle.
-    Wire = 0,
+    Wire,
     /// The driver's joint-state frames, every cycle.
-    JointStates = 1,
+    JointStates,
     /// Goals for the arms and grippers, from every source.
-    Goals = 2,
+    Goals,
     /// The base controller's wheel goals.
-    WheelGoals = 3,
+    WheelGoals,
     /// The supervisor's directives.
-    Directives = 4,
+    Directives,
     /// The supervisor's and the driver's events.
-    Events = 5,
+    Events,
     /// Each bus's error counts.
-    BusHealth = 6,
+    BusHealth,
     /// The lift's state.
-    LiftState = 7,
+    LiftState,
     /// The base's state.
-    BaseState = 8,
+    BaseState,
     /// Why the box was frozen (one message per freezing event).
-    Triggers = 9,
+    Triggers,
     /// The driver's layout: each joint's name, bus, id, servo model and range (once a second).
-    Layout = 10,
+    Layout,
     /// A lidar revolution a second, in Foxglove's `LaserScan`.
-    LidarScan = 11,
+    LidarScan,
+    /// The body's frames (each arm's shoulder, joints and tool, the lift, the base), in
+    /// Foxglove's `FrameTransforms`, so a viewer draws the arms moving.
+    Transforms,
+    /// Camera `k`'s thumbnails, in Foxglove's `CompressedImage`: `k` is its place in the box's
+    /// cameras (its metadata `cameras`), its topic `/camera/<name>/thumbnail`.
+    Thumbnail(u8),
 }
 
+/// Cameras a box can hold thumbnails of.
+pub const MAX_CAMERAS: usize = 8;
+const THUMBNAIL_ID: u8 = 32;
+
 impl Channel {
-    /// Every channel, in id order.
-    pub const ALL: [Channel; 12] = [
+    /// Every channel but the thumbnails (one per camera), in id order.
+    pub const ALL: [Channel; 13] = [
         Channel::Wire,
         Channel::JointStates,
         Channel::Goals,
@@ -60,14 +69,57 @@ impl Channel {
         Channel::Triggers,
         Channel::Layout,
         Channel::LidarScan,
+        Channel::Transforms,
     ];
+
+    /// Its id in the ring.
+    pub fn id(self) -> u8 {
+        match self {
+            Channel::Thumbnail(k) => THUMBNAIL_ID + k,
+            c => Channel::ALL.iter().position(|&a| a == c).unwrap_or(0) as u8,
+        }
+    }
 
     /// The channel with id `id`.
     pub fn from_id(id: u8) -> Option<Channel> {
-        Channel::ALL.get(id as usize).copied()
+        match id.checked_sub(THUMBNAIL_ID) {
+            Some(k) if (k as usize) < MAX_CAMERAS => Some(Channel::Thumbnail(k)),
+            Some(_) => None,
+            None => Channel::ALL.get(id as usize).copied(),
+        }
     }
 
-    /// Its topic in the box.
+    /// Its topic in a box whose cameras are `cameras` (a thumbnail of a camera it does not
+    /// name is `/camera/<k>/thumbnail`).
+    pub fn topic_in(self, cameras: &[String]) -> std::borrow::Cow<'static, str> {
+        match self {
+            Channel::Thumbnail(k) => format!(
+                "/camera/{}/thumbnail",
+                cameras
+                    .get(k as usize)
+                    .map_or_else(|| k.to_string(), Clone::clone)
+            )
+            .into(),
+            c => c.topic().into(),
+        }
+    }
+
+    /// The channel whose topic is `topic` in a box whose cameras are `cameras`.
+    pub fn from_topic_in(topic: &str, cameras: &[String]) -> Option<Channel> {
+        let camera = topic
+            .strip_prefix("/camera/")
+            .and_then(|t| t.strip_suffix("/thumbnail"));
+        match camera {
+            Some(name) => cameras
+                .iter()
+                .take(MAX_CAMERAS)
+                .position(|c| c == name)
+                .map(|k| Channel::Thumbnail(k as u8)),
+            None => Channel::from_topic(topic),
+        }
+    }
+
+    /// Its topic in the box (a thumbnail's without its camera's name: see [`Channel::topic_in`]).
     pub fn topic(self) -> &'static str {
         match self {
             Channel::Wire => "/bus/wire",
@@ -82,10 +134,13 @@ impl Channel {
             Channel::Triggers => "/blackbox/triggers",
             Channel::Layout => "/layout",
             Channel::LidarScan => "/lidar/scan",
+            Channel::Transforms => "/tf",
+            Channel::Thumbnail(_) => "/camera/thumbnail",
         }
     }
 
-    /// The channel whose topic is `topic`.
+    /// The channel whose topic is `topic` (a thumbnail's: `None`, see
+    /// [`Channel::from_topic_in`]).
     pub fn from_topic(topic: &str) -> Option<Channel> {
         Channel::ALL.into_iter().find(|c| c.topic() == topic)
     }
@@ -104,6 +159,8 @@ impl Channel {
             Channel::Triggers => "nori.Trigger",
             Channel::Layout => "nori.Layout",
             Channel::LidarScan => "foxglove.LaserScan",
+            Channel::Transforms => "foxglove.FrameTransforms",
+            Channel::Thumbnail(_) => "foxglove.CompressedImage",
         }
     }
 
@@ -111,6 +168,8 @@ impl Channel {
     pub fn schema(self) -> String {
         let properties = match self {
             Channel::LidarScan => return LASER_SCAN_SCHEMA.to_string(),
+            Channel::Transforms => return FRAME_TRANSFORMS_SCHEMA.clone(),
+            Channel::Thumbnail(_) => return COMPRESSED_IMAGE_SCHEMA.clone(),
             Channel::Wire => WIRE_PROPERTIES,
             Channel::JointStates => JOINT_STATES_PROPERTIES,
             Channel::Goals | Channel::WheelGoals => GOALS_PROPERTIES,
@@ -142,6 +201,79 @@ const DIRECTIVES_PROPERTIES: &str = r#""seq": {"type": "integer"}, "stop": {"typ
 /// panel draws without a plugin): ranges evenly spaced from `start_angle` to `end_angle`.
 const LASER_SCAN_SCHEMA: &str = r#"{"$schema": "https://json-schema.org/draft/2020-12/schema", "title": "foxglove.LaserScan", "type": "object", "properties": {"timestamp": {"type": "object", "properties": {"sec": {"type": "integer", "minimum": 0}, "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999}}}, "frame_id": {"type": "string"}, "pose": {"type": "object", "properties": {"position": {"type": "object", "properties": {"x": {"type": "number"}, "y": {"type": "number"}, "z": {"type": "number"}}}, "orientation": {"type": "object", "properties": {"x": {"type": "number"}, "y": {"type": "number"}, "z": {"type": "number"}, "w": {"type": "number"}}}}}, "start_angle": {"type": "number"}, "end_angle": {"type": "number"}, "ranges": {"type": "array", "items": {"type": "number"}}, "intensities": {"type": "array", "items": {"type": "number"}}}, "required": ["timestamp", "frame_id", "start_angle", "end_angle", "ranges"]}"#;
 
+/// Foxglove's `Time` in a JSON schema.
+const TIME_SCHEMA: &str = r#"{"type": "object", "properties": {"sec": {"type": "integer", "minimum": 0}, "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999}}, "required": ["sec", "nsec"]}"#;
+
+/// Foxglove's `CompressedImage`, as its JSON schema has it (the Image panel draws it).
+static COMPRESSED_IMAGE_SCHEMA: std::sync::LazyLock<String> = std::sync::LazyLock::new(|| {
+    format!(
+        r#"{{"$schema": "https://json-schema.org/draft/2020-12/schema", "title": "foxglove.CompressedImage", "type": "object", "properties": {{"timestamp": {TIME_SCHEMA}, "timestamp_ns": {{"type": "integer", "description": "the frame's capture, CLOCK_MONOTONIC of the robot, ns"}}, "frame_id": {{"type": "string"}}, "data": {{"type": "string", "contentEncoding": "base64"}}, "format": {{"type": "string"}}}}, "required": ["timestamp", "frame_id", "data", "format"]}}"#
+    )
+});
+
+/// Foxglove's `FrameTransforms`, as its JSON schema has it (the 3D panel's transform tree).
+static FRAME_TRANSFORMS_SCHEMA: std::sync::LazyLock<String> = std::sync::LazyLock::new(|| {
+    let xyz = r#"{"type": "object", "properties": {"x": {"type": "number"}, "y": {"type": "number"}, "z": {"type": "number"}}, "required": ["x", "y", "z"]}"#;
+    let xyzw = r#"{"type": "object", "properties": {"x": {"type": "number"}, "y": {"type": "number"}, "z": {"type": "number"}, "w": {"type": "number"}}, "required": ["x", "y", "z", "w"]}"#;
+    format!(
+        r#"{{"$schema": "https://json-schema.org/draft/2020-12/schema", "title": "foxglove.FrameTransforms", "type": "object", "properties": {{"timestamp_ns": {{"type": "integer", "description": "the joint-state frame's, CLOCK_MONOTONIC of the robot, ns"}}, "transforms": {{"type": "array", "items": {{"title": "foxglove.FrameTransform", "type": "object", "properties": {{"timestamp": {TIME_SCHEMA}, "parent_frame_id": {{"type": "string"}}, "child_frame_id": {{"type": "string"}}, "translation": {xyz}, "rotation": {xyzw}}}, "required": ["timestamp", "parent_frame_id", "child_frame_id", "translation", "rotation"]}}}}}}, "required": ["transforms"]}}"#
+    )
+});
+
+/// A monotonic stamp as Foxglove's `Time` on the wall clock (`wall_offset_ns` from the robot's
+/// monotonic one).
+fn wall_time(t_ns: u64, wall_offset_ns: i128) -> serde_json::Value {
+    let wall = (t_ns as i128 + wall_offset_ns).max(0) as u128;
+    serde_json::json!({"sec": (wall / 1_000_000_000) as u64, "nsec": (wall % 1_000_000_000) as u64})
+}
+
+/// A camera's thumbnail (a JPEG) as Foxglove's `CompressedImage`, stamped at the frame's
+/// capture.
+pub fn thumbnail(
+    camera: &str,
+    capture_ns: u64,
+    jpeg: &[u8],
+    wall_offset_ns: i128,
+) -> (u64, Vec<u8>) {
+    let msg = serde_json::json!({
+        "timestamp": wall_time(capture_ns, wall_offset_ns),
+        "timestamp_ns": capture_ns,
+        "frame_id": camera,
+        "format": "jpeg",
+        "data": base64::engine::general_purpose::STANDARD.encode(jpeg),
+    });
+    (capture_ns, to_json(&msg))
+}
+
+/// One frame of the body in its parent's, for [`transforms`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct Transform {
+    /// The parent frame's name.
+    pub parent: String,
+    /// This frame's name.
+    pub child: String,
+    /// The body's link.
+    pub link: body::kinematics::Link,
+}
+
+/// The body's frames at `t_ns` as Foxglove's `FrameTransforms`.
+pub fn transforms(t_ns: u64, frames: &[Transform], wall_offset_ns: i128) -> (u64, Vec<u8>) {
+    let stamp = wall_time(t_ns, wall_offset_ns);
+    let transforms: Vec<serde_json::Value> = frames
+        .iter()
+        .map(|f| {
+            let ([x, y, z], [qw, qx, qy, qz]) = (f.link.translation, f.link.rotation);
+            serde_json::json!({
+                "timestamp": stamp, "parent_frame_id": f.parent, "child_frame_id": f.child,
+                "translation": {"x": x, "y": y, "z": z},
+                "rotation": {"x": qx, "y": qy, "z": qz, "w": qw},
+            })
+        })
+        .collect();
+    let msg = serde_json::json!({"timestamp_ns": t_ns, "transforms": transforms});
+    (t_ns, to_json(&msg))
+}
+
 /// Bins of a revolution in a `LaserScan` (0.5°: the C1's spacing at 10 Hz is about 0.72°).
 pub const SCAN_BINS: usize = 720;
 
@@ -159,9 +291,8 @@ pub fn laser_scan(scan: &telemetry::sensors::LidarScan, wall_offset_ns: i128) ->
             intensities[bin] = p.quality as f32;
         }
     }
-    let wall = (scan.start_ns as i128 + wall_offset_ns).max(0) as u128;
     let msg = serde_json::json!({
-        "timestamp": {"sec": (wall / 1_000_000_000) as u64, "nsec": (wall % 1_000_000_000) as u64},
+        "timestamp": wall_time(scan.start_ns, wall_offset_ns),
         "timestamp_ns": scan.start_ns,
         "frame_id": "lidar",
         "pose": {"position": {"x": 0.0, "y": 0.0, "z": 0.0},
@@ -538,12 +669,43 @@ mod tests {
 
     #[test]
     fn every_channel_has_a_topic_of_its_own_and_a_schema_that_parses() {
-        for c in Channel::ALL {
-            assert_eq!(Channel::from_id(c as u8), Some(c));
-            assert_eq!(Channel::from_topic(c.topic()), Some(c));
+        let cameras = ["head".to_string(), "left_wrist".to_string()];
+        let thumbnails = (0..MAX_CAMERAS as u8).map(Channel::Thumbnail);
+        for c in Channel::ALL.into_iter().chain(thumbnails) {
+            assert_eq!(Channel::from_id(c.id()), Some(c));
+            if !matches!(c, Channel::Thumbnail(k) if k >= 2) {
+                assert_eq!(
+                    Channel::from_topic_in(&c.topic_in(&cameras), &cameras),
+                    Some(c)
+                );
+            }
             let schema: serde_json::Value = serde_json::from_str(&c.schema()).unwrap();
             assert_eq!(schema["type"], "object", "{c:?}");
         }
+        let ids: std::collections::BTreeSet<u8> = Channel::ALL
+            .into_iter()
+            .chain((0..MAX_CAMERAS as u8).map(Channel::Thumbnail))
+            .map(Channel::id)
+            .collect();
+        assert_eq!(ids.len(), Channel::ALL.len() + MAX_CAMERAS, "ids collide");
+        assert_eq!(Channel::from_id(THUMBNAIL_ID + MAX_CAMERAS as u8), None);
+        assert_eq!(Channel::from_id(Channel::ALL.len() as u8), None);
+        assert_eq!(
+            Channel::Thumbnail(1).topic_in(&cameras),
+            "/camera/left_wrist/thumbnail"
+        );
+        assert_eq!(
+            Channel::from_topic_in("/camera/neck/thumbnail", &cameras),
+            None
+        );
+        assert_eq!(Channel::from_topic("/camera/head/thumbnail"), None);
+        // A box naming more cameras than a box can hold: those beyond are no channel.
+        let many: Vec<String> = (0..MAX_CAMERAS + 2).map(|k| format!("c{k}")).collect();
+        assert_eq!(
+            Channel::from_topic_in("/camera/c7/thumbnail", &many),
+            Some(Channel::Thumbnail(7))
+        );
+        assert_eq!(Channel::from_topic_in("/camera/c8/thumbnail", &many), None);
     }
 
     #[test]
@@ -595,6 +757,44 @@ mod tests {
         assert_eq!(ranges[719], 0.0, "no return: below any measured range");
         assert_eq!(v["intensities"][180], 40.0);
         assert_eq!(ranges.iter().filter(|r| r.as_f64() != Some(0.0)).count(), 2);
+    }
+
+    #[test]
+    fn a_thumbnail_and_a_tree_carry_their_bytes_and_wall_time() {
+        let (t, data) = thumbnail("head", 1_500_000_000, &[0xFF, 0xD8, 0x00], 1_000_000_000);
+        assert_eq!(t, 1_500_000_000);
+        let v: serde_json::Value = serde_json::from_slice(&data).unwrap();
+        assert_eq!(
+            (
+                v["timestamp"]["sec"].as_u64(),
+                v["timestamp"]["nsec"].as_u64()
+            ),
+            (Some(2), Some(500_000_000))
+        );
+        assert_eq!(v["frame_id"], "head");
+        assert_eq!(v["data"], "/9gA", "base64 of the bytes");
+        let link = body::kinematics::Link {
+            translation: [0.1, 0.2, 0.3],
+            rotation: [0.1, 0.2, 0.3, 0.4],
+        };
+        let frame = Transform {
+            parent: "lift".into(),
+            child: "left_arm".into(),
+            link,
+        };
+        let (_, data) = transforms(7, &[frame], 0);
+        let v: serde_json::Value = serde_json::from_slice(&data).unwrap();
+        let t = &v["transforms"][0];
+        assert_eq!(
+            (&t["parent_frame_id"], &t["child_frame_id"]),
+            (&"lift".into(), &"left_arm".into())
+        );
+        assert_eq!(t["translation"]["z"], 0.3);
+        // Foxglove's quaternion is x, y, z, w.
+        let r = &t["rotation"];
+        let xyzw = ["x", "y", "z", "w"].map(|k| r[k].as_f64().unwrap());
+        assert_eq!(xyzw, [0.2, 0.3, 0.4, 0.1]);
+        assert_eq!(t["timestamp"]["nsec"], 7);
     }
 
     #[test]

@@ -71,6 +71,8 @@ impl Seek for Durable {
 pub struct BoxWriter<W: Write + Seek> {
     mcap: mcap::Writer<W>,
     channels: BTreeMap<Channel, u16>,
+    /// The cameras its thumbnails are of (`Channel::Thumbnail(k)` is `cameras[k]`'s).
+    cameras: Vec<String>,
     /// The offset from the robot's monotonic clock to the wall clock, ns (MCAP times are wall
     /// times, so a viewer shows when it happened; the messages keep the monotonic stamps).
     wall_offset_ns: i128,
@@ -87,6 +89,18 @@ impl<W: Write + Seek> BoxWriter<W> {
         robot: &str,
         wall_offset_ns: i128,
     ) -> Result<Self, BoxError> {
+        BoxWriter::with_cameras(w, trigger, robot, wall_offset_ns, &[])
+    }
+
+    /// [`BoxWriter::new`], for a recorder whose thumbnails are of `cameras` (kept in the
+    /// metadata: a reader names each thumbnail topic's camera from it).
+    pub fn with_cameras(
+        w: W,
+        trigger: &EventMessage,
+        robot: &str,
+        wall_offset_ns: i128,
+        cameras: &[String],
+    ) -> Result<Self, BoxError> {
         let options = mcap::WriteOptions::new()
             .compression(Some(mcap::Compression::Zstd))
             .chunk_size(Some(256 * 1024))
@@ -101,12 +115,17 @@ impl<W: Write + Seek> BoxWriter<W> {
                 ("trigger".to_string(), trigger.kind.clone()),
                 ("event".to_string(), crate::channel::to_json_string(trigger)),
                 ("wall_offset_ns".to_string(), wall_offset_ns.to_string()),
+                (
+                    "cameras".to_string(),
+                    crate::channel::to_json_string(&cameras),
+                ),
             ]),
         };
         mcap.write_metadata(&metadata)?;
         Ok(BoxWriter {
             mcap,
             channels: BTreeMap::new(),
+            cameras: cameras.to_vec(),
             wall_offset_ns,
             sequence: 0,
             messages: 0,
@@ -120,9 +139,9 @@ impl<W: Write + Seek> BoxWriter<W> {
         let schema = self
             .mcap
             .add_schema(c.schema_name(), "jsonschema", c.schema().as_bytes())?;
-        let id = self
-            .mcap
-            .add_channel(schema, c.topic(), "json", &BTreeMap::new())?;
+        let id =
+            self.mcap
+                .add_channel(schema, &c.topic_in(&self.cameras), "json", &BTreeMap::new())?;
         self.channels.insert(c, id);
         Ok(id)
     }
@@ -161,7 +180,8 @@ impl<W: Write + Seek> BoxWriter<W> {
 /// One message read back from a box.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Message {
-    /// Its channel (`None`: a topic this version does not know).
+    /// Its channel (`None`: a topic this version does not know, or a thumbnail of a camera
+    /// the box's metadata does not name).
     pub channel: Option<Channel>,
     /// Its topic.
     pub topic: String,
@@ -308,17 +328,33 @@ fn chunk_bytes(header: &mcap::records::ChunkHeader, data: &[u8]) -> Option<Vec<u
     sound.then_some(raw)
 }
 
+/// The cameras a box's metadata says its thumbnails are of (none in a box from before them,
+/// or whose list does not parse: its thumbnails are then no channel of this version's). At most
+/// [`MAX_CAMERAS`](crate::channel::MAX_CAMERAS) are taken.
+pub fn cameras(metadata: &BTreeMap<String, String>) -> Vec<String> {
+    let mut names: Vec<String> = metadata
+        .get("cameras")
+        .and_then(|c| serde_json::from_str(c).ok())
+        .unwrap_or_default();
+    names.truncate(crate::channel::MAX_CAMERAS);
+    names
+}
+
 /// Reads a box whole into memory.
 pub fn read(bytes: &[u8]) -> ReadBox {
     let mut out = ReadBox::default();
+    let mut names = Vec::new();
     out.extent = visit(bytes, &mut |item| match item {
-        Item::Metadata(m) => out.metadata = m.clone(),
+        Item::Metadata(m) => {
+            out.metadata = m.clone();
+            names = cameras(m);
+        }
         Item::Message {
             topic,
             log_time,
             data,
         } => out.messages.push(Message {
-            channel: Channel::from_topic(topic),
+            channel: Channel::from_topic_in(topic, &names),
             topic: topic.into(),
             log_time,
             data: data.to_vec(),
@@ -381,7 +417,8 @@ pub fn recover(partial: &Path) -> Result<Recovered, BoxError> {
         .and_then(|o| o.parse().ok())
         .unwrap_or(0);
     let tmp = PathBuf::from(format!("{stem}.mcap.recovering"));
-    let mut w = BoxWriter::new(Durable::create(&tmp)?, &trigger, &robot, offset)?;
+    let names = cameras(&meta);
+    let mut w = BoxWriter::with_cameras(Durable::create(&tmp)?, &trigger, &robot, offset, &names)?;
     let (mut messages, mut failed) = (0, None);
     let extent = visit(&bytes, &mut |item| {
         let Item::Message {
@@ -392,7 +429,7 @@ pub fn recover(partial: &Path) -> Result<Recovered, BoxError> {
         else {
             return;
         };
-        let Some(channel) = Channel::from_topic(topic) else {
+        let Some(channel) = Channel::from_topic_in(topic, &names) else {
             return;
         };
         if failed.is_none() {
@@ -436,16 +473,23 @@ mod tests {
         }
     }
 
+    fn two_cameras() -> Vec<String> {
+        vec!["head".into(), "left_wrist".into()]
+    }
+
+    /// `n` messages, one in ten a thumbnail of the left wrist's.
     fn write_box(n: u64, flush_every: u64) -> (Vec<u8>, Vec<usize>) {
-        let mut w = BoxWriter::new(Cursor::new(Vec::new()), &trigger(), "r1", 1_000).unwrap();
+        let cursor = Cursor::new(Vec::new());
+        let mut w =
+            BoxWriter::with_cameras(cursor, &trigger(), "r1", 1_000, &two_cameras()).unwrap();
         let mut flushed_at = Vec::new();
         for t in 0..n {
             let data = format!("{{\"timestamp_ns\": {t}}}");
             w.write(Record {
-                channel: if t % 2 == 0 {
-                    Channel::Wire
-                } else {
-                    Channel::JointStates
+                channel: match t % 10 {
+                    9 => Channel::Thumbnail(1),
+                    t if t % 2 == 0 => Channel::Wire,
+                    _ => Channel::JointStates,
                 },
                 t_ns: t,
                 data: data.as_bytes(),
@@ -471,6 +515,9 @@ mod tests {
         assert_eq!(b.messages[3].channel, Some(Channel::JointStates));
         assert_eq!(b.messages[3].log_time, 1_003);
         assert_eq!(b.messages[3].data, b"{\"timestamp_ns\": 3}");
+        assert_eq!(cameras(&b.metadata), two_cameras());
+        assert_eq!(b.messages[9].channel, Some(Channel::Thumbnail(1)));
+        assert_eq!(b.messages[9].topic, "/camera/left_wrist/thumbnail");
     }
 
     #[test]
@@ -540,6 +587,16 @@ mod tests {
         assert_eq!(b.messages.len(), 60);
         assert_eq!(b.metadata["trigger"], "thermal_trip");
         assert_eq!(b.messages[59].log_time, 1_059);
+        // The thumbnails keep their camera's topic.
+        let cut_box = read(&bytes[..cut_len + 5]);
+        assert_eq!(b.messages, cut_box.messages);
+        assert_eq!(
+            b.messages
+                .iter()
+                .filter(|m| m.channel == Some(Channel::Thumbnail(1)))
+                .count(),
+            6
+        );
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

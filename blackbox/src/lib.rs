@@ -3,6 +3,8 @@
 //!
 //! * [`channel`]: the box's channels, their JSON schemas, and each state-plane frame as a JSON
 //!   message (the bus traffic byte for byte, base64).
+//! * [`frame_tree`]: the body's frames (arms, lift, base) from the joint states, for a viewer's
+//!   3D panel.
 //! * [`ring`]: the last minutes in memory, sealed in zstd segments, the oldest dropped beyond
 //!   the span or the byte cap; nothing reaches the SD card until a box is frozen.
 //! * [`frozen`]: a box as an MCAP file (zstd chunks, each flushed and synced as it finishes),
@@ -25,6 +27,7 @@
 pub mod channel;
 pub mod config;
 pub mod export;
+pub mod frame_tree;
 pub mod frozen;
 pub mod lead_up;
 pub mod recorder;

@@ -9,11 +9,13 @@
 use anyhow::{bail, Context, Result};
 use blackbox::channel::{self, Channel, EventMessage, Names};
 use blackbox::config::BlackboxConfig;
+use blackbox::frame_tree::FrameTree;
 use blackbox::frozen::{self, BoxWriter, Durable};
 use blackbox::recorder::{Recorder, Window, COPY_STEP};
 use blackbox::ring::{Record, Ring};
 use blackbox::shelf::{self, Shelf};
 use blackbox::trigger::{OwnTrigger, Watch};
+use camera::thumbnail::Thumbnailer;
 use clap::{Parser, Subcommand};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant, SystemTime};
@@ -44,6 +46,10 @@ enum Command {
         /// Keep boxes here instead of the configuration's `dir`.
         #[arg(long)]
         dir: Option<PathBuf>,
+        /// The robot description the body's frames (`/tf`) are drawn from (the embedded Nori
+        /// A3 when absent).
+        #[arg(long)]
+        robot: Option<PathBuf>,
     },
     /// The boxes kept, oldest first.
     List {
@@ -90,7 +96,11 @@ fn main() -> std::process::ExitCode {
 
 fn run(args: Args) -> Result<()> {
     match args.command {
-        Command::Record { process, dir } => record(&process, dir),
+        Command::Record {
+            process,
+            dir,
+            robot,
+        } => record(&process, dir, robot.as_deref()),
         Command::List { dir, json } => list(&box_dir(dir)?, json),
         Command::Show { r#box, dir } => show(&find_box(&r#box, dir)?),
         Command::Export {
@@ -137,10 +147,12 @@ struct Inputs {
     base: Sub<BaseState>,
     save: Sub<BlackboxSave>,
     lidar: Sub<telemetry::sensors::LidarScan>,
+    /// The thumbnails' cameras' RGB frames (`None`: a camera whose service cannot be opened).
+    cameras: Vec<Option<plane::FrameSub>>,
 }
 
 impl Inputs {
-    fn open(node: &Plane) -> Result<Inputs> {
+    fn open(node: &Plane, cameras: &[String]) -> Result<Inputs> {
         Ok(Inputs {
             wire: node.subscriber(&plane::BUS_WIRE)?,
             states: node.subscriber(&plane::JOINT_STATE)?,
@@ -154,6 +166,14 @@ impl Inputs {
             base: node.subscriber(&plane::BASE_STATE)?,
             save: node.subscriber(&plane::BLACKBOX_SAVE)?,
             lidar: node.subscriber(&plane::LIDAR_SCAN)?,
+            cameras: cameras
+                .iter()
+                .map(|name| {
+                    node.camera_subscriber(name, plane::CameraStream::Rgb)
+                        .inspect_err(|e| tracing::warn!("camera {name}: {e}; no thumbnails of it"))
+                        .ok()
+                })
+                .collect(),
         })
     }
 }
@@ -180,6 +200,22 @@ struct Recording {
     wire_cycles_missed: u64,
     /// When the last lidar revolution kept was measured (one a second is kept).
     last_scan_ns: u64,
+    thumbnails: Thumbnails,
+    /// The body's frames (`None`: `[transforms] hz = 0`), their period, the last one's time.
+    tree: Option<FrameTree>,
+    tree_every_ns: u64,
+    last_tree_ns: Option<u64>,
+}
+
+/// The cameras' thumbnails: what makes them, how often, each camera's last.
+struct Thumbnails {
+    cameras: Vec<String>,
+    every_ns: u64,
+    maker: Thumbnailer,
+    last_ns: Vec<Option<u64>>,
+    /// Frames that gave no thumbnail (not RGB, short of bytes): counted, logged when the count
+    /// reaches a power of two.
+    failed: u64,
 }
 
 impl Recording {
@@ -210,6 +246,9 @@ impl Recording {
         if let Some(l) = plane::newest(&i.layout) {
             self.names = Names::from_layout(&l);
             self.bus_count = l.bus_count as usize;
+            if let Some(tree) = &mut self.tree {
+                tree.layout(&l);
+            }
             // Once a second from the driver: every box's window holds one.
             self.record(Channel::Layout, channel::layout(&l, monotonic_ns()));
         }
@@ -230,6 +269,9 @@ impl Recording {
             self.last_state_seq = Some(s.seq);
             triggers.extend(self.watch.joint_state(&s));
             self.record(Channel::JointStates, channel::joint_states(&s, &self.names));
+            if let Some(m) = self.frames_due(&s) {
+                self.record(Channel::Transforms, m);
+            }
         }
         while let Some(g) = plane::next(&i.goals) {
             self.record(Channel::Goals, channel::goals(&g, &self.names));
@@ -251,10 +293,16 @@ impl Recording {
         }
         while let Some(s) = plane::next(&i.lift) {
             triggers.extend(self.watch.lift(&s));
+            if let Some(tree) = &mut self.tree {
+                tree.lift(&s);
+            }
             self.record(Channel::LiftState, channel::lift_state(&s));
         }
         while let Some(s) = plane::next(&i.base) {
             triggers.extend(self.watch.base(&s));
+            if let Some(tree) = &mut self.tree {
+                tree.base(&s);
+            }
             self.record(Channel::BaseState, channel::base_state(&s));
         }
         while let Some(scan) = plane::next(&i.lidar) {
@@ -267,7 +315,61 @@ impl Recording {
         while let Some(s) = plane::next(&i.save) {
             triggers.push(OwnTrigger::Saved.at(s.timestamp_ns, s.pid as f32));
         }
+        self.thumbnails(&i.cameras);
         triggers
+    }
+
+    /// The body's frames at `s`, if one is due (a stamp ahead of the clock counts as now: it
+    /// must not hold the next ones back).
+    fn frames_due(&mut self, s: &JointState) -> Option<(u64, Vec<u8>)> {
+        let tree = self.tree.as_ref()?;
+        let at = s.timestamp_ns.min(monotonic_ns());
+        if self
+            .last_tree_ns
+            .is_some_and(|last| at < last.saturating_add(self.tree_every_ns))
+        {
+            return None;
+        }
+        self.last_tree_ns = Some(at);
+        Some(channel::transforms(
+            s.timestamp_ns,
+            &tree.frames(s),
+            self.wall_offset_ns,
+        ))
+    }
+
+    /// A thumbnail of a camera's newest frame, where one is due: one a turn at most, so the
+    /// turn stays short whatever the cameras. The pixels are read in shared memory, never
+    /// copied; a capture stamp ahead of the clock counts as now.
+    fn thumbnails(&mut self, cameras: &[Option<plane::FrameSub>]) {
+        for (k, sub) in cameras.iter().enumerate() {
+            let Some(sub) = sub else { continue };
+            let mut newest = None;
+            while let Ok(Some(sample)) = sub.receive() {
+                newest = Some(sample);
+            }
+            let Some(sample) = newest else { continue };
+            let (h, t) = (sample.user_header(), &mut self.thumbnails);
+            let at = h.capture_ns.min(monotonic_ns());
+            if t.last_ns[k].is_some_and(|last| at < last.saturating_add(t.every_ns)) {
+                continue;
+            }
+            t.last_ns[k] = Some(at);
+            let message = match t.maker.make(h, sample.payload()) {
+                Ok((jpeg, _, _)) => {
+                    channel::thumbnail(&t.cameras[k], at, jpeg, self.wall_offset_ns)
+                }
+                Err(e) => {
+                    t.failed += 1;
+                    if t.failed.is_power_of_two() {
+                        tracing::warn!(failed = t.failed, "no thumbnail: {e}");
+                    }
+                    continue;
+                }
+            };
+            self.record(Channel::Thumbnail(k as u8), message);
+            return;
+        }
     }
 
     /// Freezes a box on `event` (or keeps the open one longer); a stamp ahead of the clock is
@@ -281,11 +383,11 @@ impl Recording {
             .to_string()
             .replace([':', '-', '.'], "");
         let (robot, offset) = (self.robot.clone(), self.wall_offset_ns);
-        let shelf = &mut self.shelf;
+        let (shelf, cameras) = (&mut self.shelf, &self.thumbnails.cameras);
         let mut opened = None;
         let result = self.recorder.trigger(event, |e| {
             let path = opened.insert(shelf.new_partial(&stamp, &e.kind));
-            BoxWriter::new(Durable::create(path)?, e, &robot, offset)
+            BoxWriter::with_cameras(Durable::create(path)?, e, &robot, offset, cameras)
         });
         match result {
             Ok(true) => self.partial = opened,
@@ -377,7 +479,7 @@ fn wall_offset_ns() -> i128 {
     wall - monotonic_ns() as i128
 }
 
-fn record(process: &ProcessArgs, dir: Option<PathBuf>) -> Result<()> {
+fn record(process: &ProcessArgs, dir: Option<PathBuf>, robot: Option<&Path>) -> Result<()> {
     let Some(Started { config, shutdown }) = process.start::<BlackboxConfig>()? else {
         return Ok(());
     };
@@ -395,10 +497,21 @@ fn record(process: &ProcessArgs, dir: Option<PathBuf>) -> Result<()> {
         after_ns: s(config.after_seconds),
         longest_ns: s(config.longest_box_seconds),
     };
+    let description = match robot {
+        Some(p) => body::RobotDescription::load(p)?,
+        None => body::RobotDescription::nori_a3(),
+    };
+    let body = body::kinematics::Body::from_description(&description)?;
+    let thumbs = &config.thumbnails;
+    let cameras = if thumbs.every_s > 0.0 {
+        thumbs.cameras.clone()
+    } else {
+        Vec::new()
+    };
     let node = Plane::open(&process.domain, "blackbox")?;
     // A recorder killed before left its ports: free them before taking new ones.
     node.cleanup_dead();
-    let inputs = Inputs::open(&node)?;
+    let inputs = Inputs::open(&node, &cameras)?;
     let mut rec = Recording {
         recorder: Recorder::new(ring, window),
         shelf,
@@ -417,6 +530,16 @@ fn record(process: &ProcessArgs, dir: Option<PathBuf>) -> Result<()> {
         last_wire_cycle: [None; telemetry::frames::MAX_BUSES],
         wire_cycles_missed: 0,
         last_scan_ns: 0,
+        thumbnails: Thumbnails {
+            every_ns: s(thumbs.every_s),
+            maker: Thumbnailer::new(thumbs.width, thumbs.quality),
+            last_ns: vec![None; cameras.len()],
+            cameras,
+            failed: 0,
+        },
+        tree: (config.transforms.hz > 0.0).then(|| FrameTree::new(body)),
+        tree_every_ns: s(1.0 / config.transforms.hz.max(1e-3)),
+        last_tree_ns: None,
     };
     let mut service = ServiceManager::from_env();
     service.ready(&format!(
@@ -467,6 +590,7 @@ fn record(process: &ProcessArgs, dir: Option<PathBuf>) -> Result<()> {
             "ring": rec.recorder.ring_stats(),
             "joint_states_missed": rec.states_missed,
             "wire_cycles_missed": rec.wire_cycles_missed,
+            "thumbnails_failed": rec.thumbnails.failed,
         })
     );
     Ok(())

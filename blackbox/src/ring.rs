@@ -32,7 +32,7 @@ pub struct Record<'a> {
 const HEADER: usize = 1 + 8 + 4;
 
 fn append(buf: &mut Vec<u8>, r: Record) {
-    buf.push(r.channel as u8);
+    buf.push(r.channel.id());
     buf.extend_from_slice(&r.t_ns.to_le_bytes());
     buf.extend_from_slice(&(r.data.len() as u32).to_le_bytes());
     buf.extend_from_slice(r.data);

@@ -87,6 +87,24 @@ impl ArmChain {
     }
 }
 
+/// One frame of the body in its parent's.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Link {
+    /// Where its origin is in the parent's frame, m.
+    pub translation: [f64; 3],
+    /// Its orientation in the parent's frame, a unit quaternion `[w, x, y, z]`.
+    pub rotation: [f64; 4],
+}
+
+impl Link {
+    fn translation(t: Vector3<f64>) -> Link {
+        Link {
+            translation: t.into(),
+            rotation: [1.0, 0.0, 0.0, 0.0],
+        }
+    }
+}
+
 /// The body's chains and the lift's reference height.
 #[derive(Debug, Clone)]
 pub struct Body {
@@ -175,6 +193,27 @@ impl Body {
         Some(points)
     }
 
+    /// Arm `arm`'s frame tree at joint angles `q` (as [`Body::arm_pose`]), base outward: the
+    /// shoulder in the lift's frame (the base's frame raised by the lift's travel from its start
+    /// height), each joint in its parent's (its origin, and its angle about its axis), and the
+    /// tool point in the last joint's. Composed, they give [`Body::arm_pose`]'s tool; a viewer
+    /// draws the arm from them (the black box's `/tf`).
+    pub fn arm_links(&self, arm: usize, q: &[f64]) -> Option<Vec<Link>> {
+        let chain = self.arms.get(arm)?;
+        let mut links = Vec::with_capacity(chain.joints.len() + 2);
+        links.push(Link::translation(chain.shoulder));
+        for (k, j) in chain.joints.iter().enumerate() {
+            let angle = q.get(k).copied().unwrap_or(0.0);
+            let r = UnitQuaternion::from_axis_angle(&j.axis, angle);
+            links.push(Link {
+                translation: j.origin.into(),
+                rotation: [r.w, r.i, r.j, r.k],
+            });
+        }
+        links.push(Link::translation(chain.tip));
+        Some(links)
+    }
+
     /// Arm `arm` at joint angles `q` (rad, base outward; missing angles count as 0), the lift at
     /// `lift_m` and the base at `base`; `None` for an arm the body does not have.
     pub fn arm_pose(&self, arm: usize, q: &[f64], lift_m: f64, base: Pose2) -> Option<ArmPose> {
@@ -223,6 +262,38 @@ mod tests {
         assert_eq!(body.arms()[0].joint_names.len(), 7);
         assert_eq!(body.arms()[0].joint_names[3], "left_elbow");
         assert_eq!(body.arms()[1].joint_names[0], "right_shoulder_pitch");
+    }
+
+    #[test]
+    fn an_arms_links_composed_put_its_tool_where_its_pose_does() {
+        let body = a3();
+        let q = [0.3, -0.2, 0.5, -1.1, 0.4, 0.2, -0.6];
+        let lift = 0.31;
+        for arm in 0..2 {
+            let links = body.arm_links(arm, &q).unwrap();
+            assert_eq!(links.len(), 9, "shoulder, 7 joints, tool");
+            // The lift's frame: the base's, raised by the lift's travel.
+            let mut p = Vector3::new(0.0, 0.0, lift - body.lift_start_m());
+            let mut r = UnitQuaternion::identity();
+            for l in &links {
+                p += r * Vector3::from(l.translation);
+                let [w, x, y, z] = l.rotation;
+                r *= UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(w, x, y, z));
+            }
+            let pose = body.arm_pose(arm, &q, lift, Pose2::default()).unwrap();
+            assert!(close([p.x, p.y, p.z], pose.tool, 1e-12), "{p:?} {pose:?}");
+            let q_ = r.quaternion();
+            let same = [q_.w, q_.i, q_.j, q_.k]
+                .iter()
+                .zip(&pose.tool_rotation)
+                .all(|(a, b)| (a - b).abs() < 1e-9)
+                || [q_.w, q_.i, q_.j, q_.k]
+                    .iter()
+                    .zip(&pose.tool_rotation)
+                    .all(|(a, b)| (a + b).abs() < 1e-9);
+            assert!(same, "{r:?} against {:?}", pose.tool_rotation);
+        }
+        assert!(body.arm_links(2, &q).is_none());
     }
 
     #[test]

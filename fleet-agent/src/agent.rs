@@ -20,7 +20,7 @@ use crate::gate::{within, ActionGate, Range, REASONS};
 use crate::installed::calibration_detail;
 use crate::journal::{JournalError, Record, Recovery};
 use crate::outbound::{self, Every};
-use crate::preview::{preview_msg, scan_msg, Thumbnailer};
+use crate::preview::{preview_msg, scan_msg};
 use crate::schedule::Scheduler;
 use crate::schema::{
     decode, encode, AckMsg, AgentCounters, BoxAckMsg, BoxChunkMsg, BoxCounters, BusStatus,
@@ -28,6 +28,7 @@ use crate::schema::{
     StatusMsg, SCHEMA_VERSION,
 };
 use crate::AgentConfig;
+use camera::thumbnail::Thumbnailer;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 use telemetry::frames::{

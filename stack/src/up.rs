@@ -100,6 +100,31 @@ fn simulator(args: &UpArgs, run: &Run, report: &std::path::Path) -> Result<Manag
     Ok(sim)
 }
 
+/// The sensors, each its own process as on the robot: nothing of the control loop waits on
+/// them, and one that dies is restarted like the rest.
+fn sensors(args: &UpArgs, run: &Run) -> Result<Vec<Managed>> {
+    let mut sensors = Vec::new();
+    if !args.no_lidar {
+        sensors.push(Managed::new(
+            "nori-lidar",
+            &sibling("nori-lidar")?,
+            &run.lidar(),
+        ));
+    }
+    for name in cameras(&args.cameras, args.robot.as_deref())? {
+        let mut camera = Managed::new(
+            &format!("nori-camera {name}"),
+            &sibling("nori-camera")?,
+            &run.camera(&name),
+        );
+        if let Some(config) = &args.camera_config {
+            camera.add_args(&["--config".into(), config.display().to_string()]);
+        }
+        sensors.push(camera);
+    }
+    Ok(sensors)
+}
+
 /// Runs the stack until Ctrl-C (or `--run-for`).
 pub fn run(args: &UpArgs) -> Result<()> {
     let shutdown = telemetry::process::stop_flag()?;
@@ -124,9 +149,6 @@ pub fn run(args: &UpArgs) -> Result<()> {
     // The base's controller: velocity commands to the wheels, odometry, the protective field,
     // and the body's frames from the same robot description as the simulator's.
     let mut base = Managed::new("nori-base", &sibling("nori-base")?, &run.base());
-    if let Some(robot) = &args.robot {
-        base.add_args(&["--robot".into(), robot.display().to_string()]);
-    }
     // The lift: homes at start, then takes heights (nori/lift/command).
     let mut lift = Managed::new("nori-lift", &sibling("nori-lift")?, &run.lift());
     // The black box: the last minutes in memory, a box frozen on each protection event (in
@@ -137,32 +159,18 @@ pub fn run(args: &UpArgs) -> Result<()> {
         &sibling("nori-blackbox")?,
         &run.blackbox(&boxes),
     );
+    // The base's frames and the boxes' (`/tf`) from the robot the simulator runs.
+    if let Some(robot) = &args.robot {
+        let robot = ["--robot".into(), robot.display().to_string()];
+        base.add_args(&robot);
+        blackbox.add_args(&robot);
+    }
     if let Some(c) = &args.agent_config {
         fleet_agent.add_args(&["--config".into(), c.display().to_string()]);
     }
     // The agent sends the frozen boxes to the fleet's store, when one runs.
     fleet_agent.add_args(&["--blackbox-dir".into(), boxes.display().to_string()]);
-    // The sensors, each its own process as on the robot: nothing of the control loop waits on
-    // them, and one that dies is restarted like the rest.
-    let mut sensors = Vec::new();
-    if !args.no_lidar {
-        sensors.push(Managed::new(
-            "nori-lidar",
-            &sibling("nori-lidar")?,
-            &run.lidar(),
-        ));
-    }
-    for name in cameras(&args.cameras, args.robot.as_deref())? {
-        let mut camera = Managed::new(
-            &format!("nori-camera {name}"),
-            &sibling("nori-camera")?,
-            &run.camera(&name),
-        );
-        if let Some(config) = &args.camera_config {
-            camera.add_args(&["--config".into(), config.display().to_string()]);
-        }
-        sensors.push(camera);
-    }
+    let mut sensors = sensors(args, &run)?;
     eprintln!("nori up: the Nori A3 stack on the simulated robot (no hardware)");
     sim.start()?;
     blackbox.start()?;

@@ -1,8 +1,9 @@
 //! The black box on the simulated robot: the overheat scenario's trip freezes a box holding the
 //! bus's bytes as the simulator's own record of its wire has them and the trip; a box read by
 //! the official `mcap` package with every message checked against its schema; the recorder
-//! killed in the middle of a box leaves it readable and made whole at its restart; and the
-//! recorder stopped leaves the driver's loop as it was.
+//! killed in the middle of a box leaves it readable and made whole at its restart; the
+//! recorder stopped leaves the driver's loop as it was; and a box shows a viewer the cameras'
+//! thumbnails and the arm's frames, opened by Rerun's loader too.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
@@ -461,4 +462,260 @@ fn a_recorder_killed_mid_box_leaves_it_readable_and_a_stopped_one_holds_nothing_
     );
     assert!(stack.driver.running() && stack.supervisor.running());
     rec.terminate(Duration::from_secs(5));
+}
+
+/// Rerun's own MCAP loader (`rerun mcap convert`, from the `rerun-sdk` package), its messages
+/// per topic as the recording it makes holds them; `None` (said) without Rerun, except in CI.
+fn rerun_counts(path: &Path, dir: &Path) -> Option<std::collections::BTreeMap<String, u64>> {
+    let rerun = |args: &[&str]| {
+        // Rerun sends usage data unless it sees CI (its own check): never from a test.
+        Command::new("python3")
+            .args(["-m", "rerun"])
+            .args(args)
+            .env("CI", "true")
+            .output()
+            .unwrap()
+    };
+    if !rerun(&["--version"]).status.success() {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "CI needs Rerun (the rerun-sdk Python package: .ci/run installs it)"
+        );
+        eprintln!("note: python3 has no rerun-sdk: the box is not opened by Rerun's loader");
+        return None;
+    }
+    let rrd = dir.join("box.rrd");
+    let out = rerun(&[
+        "mcap",
+        "convert",
+        &path.display().to_string(),
+        "-o",
+        &rrd.display().to_string(),
+    ]);
+    assert!(
+        out.status.success(),
+        "Rerun refused the box: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let printed = rerun(&["rrd", "print", &rrd.display().to_string()]);
+    assert!(printed.status.success());
+    // One line per chunk: `Chunk(…) with N rows (…) - /topic - data columns: [McapMessage:data]`.
+    let mut counts = std::collections::BTreeMap::new();
+    for line in String::from_utf8_lossy(&printed.stdout).lines() {
+        let Some(rest) = line.strip_prefix("Chunk(") else {
+            continue;
+        };
+        if !line.contains("McapMessage:data") {
+            continue;
+        }
+        let words: Vec<&str> = rest.split_whitespace().collect();
+        let rows: u64 = words[2].parse().unwrap();
+        let topic = words.iter().skip_while(|w| **w != "-").nth(1).unwrap();
+        *counts.entry(topic.to_string()).or_default() += rows;
+    }
+    Some(counts)
+}
+
+/// Composes the `/tf` tree of one message from `odom` down to `leaf`: its position in `odom`.
+fn tree_position(tf: &Value, leaf: &str) -> Option<[f64; 3]> {
+    use nalgebra::{Quaternion, UnitQuaternion, Vector3};
+    let all = tf["transforms"].as_array().unwrap();
+    let mut chain = Vec::new();
+    let mut at = leaf.to_string();
+    while let Some(t) = all.iter().find(|t| t["child_frame_id"] == at.as_str()) {
+        chain.push(t);
+        at = t["parent_frame_id"].as_str().unwrap().to_string();
+    }
+    if at != "odom" || chain.is_empty() {
+        return None;
+    }
+    let (mut p, mut r) = (Vector3::zeros(), UnitQuaternion::identity());
+    for t in chain.iter().rev() {
+        let v = |o: &Value, k: &str| o[k].as_f64().unwrap();
+        let (tr, q) = (&t["translation"], &t["rotation"]);
+        p += r * Vector3::new(v(tr, "x"), v(tr, "y"), v(tr, "z"));
+        r *= UnitQuaternion::from_quaternion(Quaternion::new(
+            v(q, "w"),
+            v(q, "x"),
+            v(q, "y"),
+            v(q, "z"),
+        ));
+    }
+    Some([p.x, p.y, p.z])
+}
+
+/// Seconds between the first and the last of `msgs` by their `timestamp_ns`.
+fn span_s(msgs: &[Value]) -> f64 {
+    let t = |v: &Value| v["timestamp_ns"].as_u64().unwrap() as f64 * 1e-9;
+    t(msgs.last().unwrap()) - t(&msgs[0])
+}
+
+/// The running camera's thumbnails (the second of the box's cameras): two a second, each a
+/// 160×120 JPEG; none of the camera that is not running.
+fn check_thumbnails(b: &ReadBox) {
+    let thumbs: Vec<Value> = b
+        .messages
+        .iter()
+        .filter(|m| m.channel == Some(Channel::Thumbnail(1)))
+        .map(|m| serde_json::from_slice(&m.data).unwrap())
+        .collect();
+    assert!(
+        thumbs.iter().all(|t| t["frame_id"] == "left_wrist"),
+        "{:?}",
+        thumbs.first()
+    );
+    assert!(!b.messages.iter().any(|m| m.topic.contains("/head/")));
+    assert!(thumbs.len() >= 8, "{} thumbnails", thumbs.len());
+    let rate = (thumbs.len() - 1) as f64 / span_s(&thumbs);
+    assert!((1.5..=2.2).contains(&rate), "{rate:.2} thumbnails a second");
+    for t in &thumbs {
+        use base64::Engine;
+        let jpeg = base64::engine::general_purpose::STANDARD
+            .decode(t["data"].as_str().unwrap())
+            .unwrap();
+        let mut d = zune_jpeg::JpegDecoder::new(zune_core::bytestream::ZCursor::new(&jpeg));
+        let pixels = d.decode().unwrap();
+        assert_eq!(d.dimensions(), Some((160, 120)));
+        assert_eq!(pixels.len(), 160 * 120 * 3);
+        assert_eq!(t["format"], "jpeg");
+    }
+}
+
+/// The arm's frames, twenty a second, each from the joint-state frame of its stamp: composed,
+/// they put the tool where the description (`robot`) puts it at those joint readings, and the
+/// tool moved.
+fn check_frames(b: &ReadBox, robot: &Path) {
+    let states: std::collections::BTreeMap<u64, Value> = b
+        .messages
+        .iter()
+        .filter(|m| m.channel == Some(Channel::JointStates))
+        .map(|m| serde_json::from_slice::<Value>(&m.data).unwrap())
+        .map(|v| (v["timestamp_ns"].as_u64().unwrap(), v))
+        .collect();
+    let trees: Vec<Value> = b
+        .messages
+        .iter()
+        .filter(|m| m.channel == Some(Channel::Transforms))
+        .map(|m| serde_json::from_slice(&m.data).unwrap())
+        .collect();
+    assert!(trees.len() > 40, "{} trees", trees.len());
+    let rate = (trees.len() - 1) as f64 / span_s(&trees);
+    assert!((15.0..=21.0).contains(&rate), "{rate:.1} trees a second");
+    let description = body::RobotDescription::load(robot).unwrap();
+    let kinematics = body::kinematics::Body::from_description(&description).unwrap();
+    let chain = &kinematics.arms()[0];
+    let mut tools = Vec::new();
+    for tree in &trees {
+        assert!(
+            tree_position(tree, "right_arm_tool").is_none(),
+            "the right arm is not driven here: not drawn"
+        );
+        let state = &states[&tree["timestamp_ns"].as_u64().unwrap()];
+        let q: Vec<f64> = chain
+            .joint_names
+            .iter()
+            .map(|n| {
+                let k = state["name"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .position(|x| x == n.as_str())
+                    .unwrap();
+                state["position"][k].as_f64().unwrap()
+            })
+            .collect();
+        let lift = kinematics.lift_start_m();
+        let want = kinematics
+            .arm_pose(0, &q, lift, Default::default())
+            .unwrap();
+        let got = tree_position(tree, "left_arm_tool").unwrap();
+        for (g, w) in got.iter().zip(want.tool) {
+            assert!((g - w).abs() < 1e-4, "{got:?} against {:?}", want.tool);
+        }
+        tools.push(got);
+    }
+    let travel = tools
+        .iter()
+        .map(|t| {
+            t.iter()
+                .zip(&tools[0])
+                .map(|(a, b)| (a - b).powi(2))
+                .sum::<f64>()
+                .sqrt()
+        })
+        .fold(0.0, f64::max);
+    assert!(travel > 0.02, "the tool moved {travel:.3} m in the box");
+}
+
+#[test]
+fn a_box_shows_a_viewer_the_cameras_and_the_arm_moving() {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let _one_at_a_time = nori_tests::serial();
+    let files = scratch("blackbox-view-files");
+    let (robot, camera_toml) = nori_tests::small_camera_files(&files);
+    let stack = ArmStack::start("blackbox-view", &["--description", &robot]);
+    let mut camera = stack.camera("left_wrist", &camera_toml, 1);
+    // Two cameras asked for, the second running: the first gives no thumbnails and holds
+    // nothing up, and the second's are its own (not numbered among the running ones).
+    let config = files.join("blackbox.toml");
+    std::fs::write(
+        &config,
+        <blackbox::config::BlackboxConfig as telemetry::config::ProcessConfig>::DEFAULT_TOML
+            .replace("after-seconds = 10", "after-seconds = 2")
+            .replace(
+                "cameras = [\"head\", \"neck\", \"left_wrist\", \"right_wrist\"]",
+                "cameras = [\"head\", \"left_wrist\"]",
+            )
+            .replace("every-s = 1.0", "every-s = 0.5")
+            .replace("hz = 10.0", "hz = 20.0"),
+    )
+    .unwrap();
+    let boxes = stack.dir.join("boxes");
+    std::fs::create_dir_all(&boxes).unwrap();
+    let config_arg = config.display().to_string();
+    let mut rec = stack.recorder(
+        &boxes,
+        &["--config", &config_arg, "--robot", &robot],
+        "blackbox.log",
+    );
+    // The shoulder raised while the ring records: the arm the box draws moves.
+    let stop = std::sync::Arc::new(AtomicBool::new(false));
+    let mover = nori_tests::hold_horizontal(&stack.domain, "left_shoulder_pitch", stop.clone());
+    std::thread::sleep(Duration::from_secs(5));
+    nori_tests::nori_ok(&["blackbox", "save"], &stack.domain);
+    let path = wait_for(Duration::from_secs(20), "the saved box whole", || {
+        files_ending(&boxes, ".mcap").pop()
+    });
+    stop.store(true, Ordering::Relaxed);
+    mover.join().unwrap();
+    let b = read_box(&path);
+    assert!(b.extent.complete);
+    assert_eq!(
+        frozen::cameras(&b.metadata),
+        ["head", "left_wrist"],
+        "{:?}",
+        b.metadata
+    );
+
+    check_thumbnails(&b);
+    check_frames(&b, Path::new(&robot));
+
+    // The official reader checks every message against its schema (Foxglove's among them), and
+    // Rerun's loader takes every message of every topic.
+    assert_python_agrees(&path, false);
+    if let Some(rerun) = rerun_counts(&path, &stack.dir) {
+        let ours = blackbox::export::summary(&std::fs::read(&path).unwrap()).per_topic;
+        for (topic, n) in &ours {
+            assert_eq!(rerun.get(topic), Some(&(*n as u64)), "{topic}: {rerun:?}");
+        }
+    }
+    let (_, said) = rec.terminate(Duration::from_secs(5));
+    let end: Value = serde_json::from_str(said.lines().last().unwrap_or("{}")).unwrap();
+    assert_eq!(end["thumbnails_failed"], 0, "{said}");
+    assert_eq!(
+        end["joint_states_missed"], 0,
+        "the recorder fell behind: {said}"
+    );
+    camera.terminate(Duration::from_secs(5));
+    stack.stop();
 }

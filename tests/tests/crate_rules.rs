@@ -20,13 +20,16 @@ const ALLOWED: &[(&str, &[&str])] = &[
     ("telemetry", &[]),
     ("bus-driver", &["feetech", "telemetry"]),
     ("supervisor", &["telemetry"]),
-    // The black box's shelf, read to send its boxes to the fleet.
-    ("fleet-agent", &["telemetry", "blackbox"]),
+    // The black box's shelf, read to send its boxes to the fleet; the camera's pure
+    // thumbnails for the dashboard's previews.
+    ("fleet-agent", &["telemetry", "blackbox", "camera"]),
     ("camera", &["telemetry"]),
     ("lidar", &["telemetry"]),
     ("sim", &["feetech", "body", "telemetry", "camera"]),
     ("recorder", &["telemetry"]),
-    ("blackbox", &["telemetry", "feetech"]),
+    // The body's frames for a viewer (the description's kinematics) and the cameras' pure
+    // thumbnails.
+    ("blackbox", &["telemetry", "feetech", "body", "camera"]),
     ("model-lab", &["sim", "blackbox", "feetech"]),
     ("fleet", &["fleet-agent", "telemetry", "blackbox"]),
     ("stack", &["telemetry", "sim", "bus-driver"]),
