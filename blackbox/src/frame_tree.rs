@@ -36,17 +36,7 @@ impl FrameTree {
 
     /// The driver's layout: which joint-state entry is which arm joint.
     pub fn layout(&mut self, layout: &JointLayout) {
-        self.arms = self
-            .body
-            .arms()
-            .iter()
-            .map(|a| {
-                a.joint_names
-                    .iter()
-                    .map(|n| layout.joint_index(n))
-                    .collect()
-            })
-            .collect();
+        self.arms = self.body.arm_indices(|n| layout.joint_index(n));
     }
 
     /// The lift's newest state (a height that is not finite is not taken).

@@ -213,8 +213,8 @@ struct Thumbnails {
     every_ns: u64,
     maker: Thumbnailer,
     last_ns: Vec<Option<u64>>,
-    /// Frames that gave no thumbnail (not RGB, short of bytes): counted, logged when the count
-    /// reaches a power of two.
+    /// Frames that gave no thumbnail (not RGB, short of bytes, no camera's shape): counted,
+    /// logged when the count reaches a power of two.
     failed: u64,
 }
 

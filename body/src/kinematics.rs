@@ -160,6 +160,15 @@ impl Body {
         &self.arms
     }
 
+    /// Per arm, where each of its joints is, base outward, in a list `index_of` finds names in
+    /// (the driver's layout): `None` for an arm one of whose joints the list does not have.
+    pub fn arm_indices(&self, index_of: impl Fn(&str) -> Option<usize>) -> Vec<Option<Vec<usize>>> {
+        self.arms
+            .iter()
+            .map(|a| a.joint_names.iter().map(|n| index_of(n)).collect())
+            .collect()
+    }
+
     /// `chain`'s shoulder in the base's frame with the lift at `lift_m`.
     pub(crate) fn shoulder_at(&self, chain: &ArmChain, lift_m: f64) -> Vector3<f64> {
         chain.shoulder + Vector3::new(0.0, 0.0, lift_m - self.lift_start_m)

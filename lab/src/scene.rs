@@ -31,16 +31,7 @@ fn role_name(r: JointRole) -> &'static str {
 impl Scene {
     /// The scene of `body` as the driver's `layout` names its joints.
     pub fn new(body: Body, layout: JointLayout) -> Scene {
-        let arms = body
-            .arms()
-            .iter()
-            .map(|a| {
-                a.joint_names
-                    .iter()
-                    .map(|n| layout.joint_index(n))
-                    .collect::<Option<Vec<_>>>()
-            })
-            .collect();
+        let arms = body.arm_indices(|n| layout.joint_index(n));
         Scene { body, layout, arms }
     }
 

@@ -503,6 +503,19 @@ impl ArmStack {
         );
     }
 
+    /// The simulator's device directory, once it serves `device` there: a sensor's process
+    /// exits when its device is missing (systemd restarts it on the robot; a test starts it
+    /// once), and the simulator makes its devices one after another as it starts.
+    pub fn device_dir_with(&self, device: &str) -> String {
+        let dev = self.dir.join("dev");
+        wait_for(
+            Duration::from_secs(20),
+            &format!("the simulator's {device}"),
+            || dev.join(device).exists().then_some(()),
+        );
+        dev.display().to_string()
+    }
+
     /// Starts `nori-camera` for camera `name` (configuration `camera_toml`) on the simulator's
     /// rendering of it; its log is `camera-<name>-<n>.log`.
     pub fn camera(&self, name: &str, camera_toml: &str, n: u32) -> Proc {

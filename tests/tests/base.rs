@@ -46,7 +46,7 @@ impl Base {
         let mut stack = ArmStack::simulator_only_on(tag, "base", sim_args);
         stack.restart_supervisor();
         stack.restart_driver();
-        let dev = stack.dir.join("dev").display().to_string();
+        let dev = stack.device_dir_with("lidar");
         let lidar = Proc::spawn(
             "nori-lidar",
             &binary("nori-lidar"),

@@ -76,7 +76,7 @@ fn the_lidar_scans_the_room_survives_a_damaged_line_and_dies_alone() {
             "lidar@12+1.5",
         ],
     );
-    let dev = stack.dir.join("dev").display().to_string();
+    let dev = stack.device_dir_with("lidar");
     let spawn = |n: u32| {
         Proc::spawn(
             "nori-lidar",

@@ -49,7 +49,7 @@ fn lift_on_sim(tag: &str, sim_args: &[&str]) -> (ArmStack, Proc) {
 /// `nori-lift` on the simulator's board, its hold record in the stack's directory, logging to
 /// `log` there.
 fn spawn_lift(stack: &ArmStack, log: &str) -> Proc {
-    let dev = stack.dir.join("dev").display().to_string();
+    let dev = stack.device_dir_with("lift");
     let hold = stack.dir.join("lift-hold").display().to_string();
     Proc::spawn(
         "nori-lift",
