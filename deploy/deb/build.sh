@@ -4,7 +4,8 @@
 #   deploy/deb/build.sh ARCH BIN_DIR OUT_DIR [VERSION]
 #
 #   ARCH     amd64 or arm64 (the binaries' architecture: it is checked)
-#   BIN_DIR  target/release, or target/aarch64-unknown-linux-gnu/release (deploy/arm64/cross.sh)
+#   BIN_DIR  target/release, target/tested (CI: the binaries its tests ran), or
+#            target/aarch64-unknown-linux-gnu/release (deploy/arm64/cross.sh)
 #   VERSION  the packages' version; by default 0.1.0+<commits on HEAD>, so a later commit's
 #            packages upgrade an earlier one's
 #   NORI_DEB_COMPRESSION  xz (the default) or gzip or none (quicker, for checks)
