@@ -679,7 +679,9 @@ fn a_store_that_hears_no_robot_opens_its_session_again_and_still_stores() {
     let dir = nori_tests::scratch("fleet-store-deaf");
     let db = ScratchPostgres::start(&dir.join("postgres"));
     let store_at = free_endpoint();
-    let _store = start_store_with(&dir, &db.url, &store_at, 1, &["--deaf-after-s", "1"]);
+    // Two seconds deaf: a robot connecting on a loaded machine lands inside one window (at one
+    // second it could reach each reopened session just as it closed, its retries backing off).
+    let _store = start_store_with(&dir, &db.url, &store_at, 1, &["--deaf-after-s", "2"]);
     let log = dir.join("store-1.log");
     let reopened = |n: usize| {
         let said = std::fs::read_to_string(&log).unwrap_or_default();
