@@ -9,7 +9,8 @@
 //!
 //! A reading whose temperature, supply voltage or position moved further from the joint's last
 //! accepted reading than the servo physically can in the time between them, or whose load,
-//! current or speed is beyond what any servo reports, is held back for one read: the next reading accepts it if it confirms it (a real change persists: a servo
+//! current or speed is beyond what any servo reports, or a first reading (nothing to judge it
+//! against), is held back for one read: the next reading accepts it if it confirms it (a real change persists: a servo
 //! whose sensor really reads 150 °C trips the bus one read later), and it is dropped as a glitch
 //! otherwise. A held reading is a missing sample, like a corrupted one. Small errors (a flip in
 //! the low bits) stay within the bounds and pass; what matters for safety (a false trip, a
@@ -77,15 +78,13 @@ impl FeedbackGate {
     /// Judges the reading `fb` taken at `now_s`: true to publish it, false to hold it back
     /// (a missing sample this read).
     pub fn admit(&mut self, fb: &FeedbackBlock, now_s: f64) -> bool {
-        let follows = |r: &Option<(FeedbackBlock, f64)>| match r {
-            Some((prev, t)) => plausible(prev, fb, now_s - t),
-            None => in_range(fb),
+        // With no history (a first reading, or after a reset) nothing follows: the reading is
+        // held until the next confirms it.
+        let follows = |r: &Option<(FeedbackBlock, f64)>| {
+            r.as_ref()
+                .is_some_and(|(prev, t)| plausible(prev, fb, now_s - t))
         };
-        let confirmed = self
-            .held
-            .as_ref()
-            .is_some_and(|(prev, t)| plausible(prev, fb, now_s - t));
-        if follows(&self.accepted) || confirmed {
+        if follows(&self.accepted) || follows(&self.held) {
             self.accepted = Some((*fb, now_s));
             self.held = None;
             true
@@ -116,10 +115,17 @@ mod tests {
 
     const DT: f64 = 0.005;
 
+    /// A gate that has accepted `b` at 0 (read twice: a first reading waits for the next).
+    fn primed(b: &FeedbackBlock) -> FeedbackGate {
+        let mut g = FeedbackGate::default();
+        assert!(!g.admit(b, -DT));
+        assert!(g.admit(b, 0.0));
+        g
+    }
+
     #[test]
     fn a_temperature_glitch_is_dropped_and_never_trips() {
-        let mut g = FeedbackGate::default();
-        assert!(g.admit(&block(2048, 45, 120), 0.0));
+        let mut g = primed(&block(2048, 45, 120));
         assert!(!g.admit(&block(2048, 150, 120), DT), "150 °C glitch held");
         assert!(
             g.admit(&block(2048, 45, 120), 2.0 * DT),
@@ -131,8 +137,7 @@ mod tests {
 
     #[test]
     fn a_change_that_persists_is_accepted_one_read_later() {
-        let mut g = FeedbackGate::default();
-        assert!(g.admit(&block(2048, 45, 120), 0.0));
+        let mut g = primed(&block(2048, 45, 120));
         assert!(!g.admit(&block(2048, 59, 120), DT));
         assert!(
             g.admit(&block(2048, 59, 120), 2.0 * DT),
@@ -143,8 +148,7 @@ mod tests {
 
     #[test]
     fn high_bit_position_flips_are_held_low_bit_ones_pass() {
-        let mut g = FeedbackGate::default();
-        assert!(g.admit(&block(2048, 40, 120), 0.0));
+        let mut g = primed(&block(2048, 40, 120));
         assert!(!g.admit(&block(2048 ^ (1 << 9), 40, 120), DT));
         assert!(g.admit(&block(2048 ^ 1, 40, 120), 2.0 * DT));
         // A supply jump of 3 V in one read is held; the same drift over a second is not.
@@ -154,9 +158,8 @@ mod tests {
 
     #[test]
     fn impossible_load_current_or_speed_is_never_accepted() {
-        let mut g = FeedbackGate::default();
         let mut b = block(2048, 40, 120);
-        assert!(g.admit(&b, 0.0));
+        let mut g = primed(&b);
         b.current = 1 << 14; // 106 A
         assert!(!g.admit(&b, DT));
         assert!(!g.admit(&b, 2.0 * DT), "not even when it repeats");
@@ -178,15 +181,15 @@ mod tests {
 
     #[test]
     fn bounds_widen_with_the_time_since_the_last_accepted_read() {
-        let mut g = FeedbackGate::default();
-        assert!(g.admit(&block(2048, 40, 120), 0.0));
+        let mut g = primed(&block(2048, 40, 120));
         // After 10 s without an accepted read, a 30 °C rise is possible.
         assert!(g.admit(&block(2048, 70, 120), 10.0));
         g.reset();
         assert!(
-            g.admit(&block(100, 20, 60), 10.1),
-            "no history: anything decodable"
+            !g.admit(&block(100, 20, 60), 10.1),
+            "no history: held until confirmed"
         );
+        assert!(g.admit(&block(100, 20, 60), 10.2));
     }
 
     /// A first reading has nothing to be judged against: a glitch there (a double flip the
@@ -196,17 +199,22 @@ mod tests {
     fn a_first_reading_is_published_only_once_the_next_confirms_it() {
         let mut g = FeedbackGate::default();
         assert!(!g.admit(&block(2048, 45, 248), 0.0), "24.8 V, first: held");
-        assert!(!g.admit(&block(2048, 45, 120), DT), "does not confirm it: held");
+        assert!(
+            !g.admit(&block(2048, 45, 120), DT),
+            "does not confirm it: held"
+        );
         assert!(g.admit(&block(2048, 45, 120), 2.0 * DT), "confirmed");
         g.reset();
-        assert!(!g.admit(&block(1000, 45, 120), 3.0 * DT), "after a reset, the same");
+        assert!(
+            !g.admit(&block(1000, 45, 120), 3.0 * DT),
+            "after a reset, the same"
+        );
         assert!(g.admit(&block(1001, 45, 120), 4.0 * DT));
     }
 
     #[test]
     fn two_different_glitches_in_a_row_confirm_nothing() {
-        let mut g = FeedbackGate::default();
-        assert!(g.admit(&block(2048, 45, 120), 0.0));
+        let mut g = primed(&block(2048, 45, 120));
         assert!(!g.admit(&block(2048, 150, 120), DT));
         assert!(!g.admit(&block(2048, 0, 120), 2.0 * DT));
         assert!(g.admit(&block(2048, 45, 120), 3.0 * DT));
