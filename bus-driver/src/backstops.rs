@@ -9,6 +9,17 @@ use feetech::AMPS_PER_CURRENT_UNIT;
 /// Protections the firmware must keep enabled: over-temperature, over-current and overload.
 pub const UNLOADING_CONDITION: i32 = 0x2C;
 
+/// The firmware's overload protection as the servo leaves the factory: more than
+/// `Overload_Torque` (80 % of full output) for `Protection_Time` (2 s), then at most
+/// `Protective_Torque` (20 %). A backstop behind the supervisor's stall rule. A calibration
+/// session narrows it in RAM while it sweeps (`commission::automatic`); a driver starting after
+/// a session that was killed puts it back.
+pub const OVERLOAD_PROTECTION: [(Register, i32); 3] = [
+    (reg::OVERLOAD_TORQUE, 80),
+    (reg::PROTECTION_TIME, 200),
+    (reg::PROTECTIVE_TORQUE, 20),
+];
+
 /// One EEPROM register and the value it must hold.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Setting {
@@ -40,6 +51,9 @@ pub fn desired(backstops: &Backstops, mode: Mode) -> Vec<Setting> {
         s(reg::MAX_TORQUE_LIMIT, max_torque_permille(backstops)),
         s(reg::UNLOADING_CONDITION, UNLOADING_CONDITION),
     ]
+    .into_iter()
+    .chain(OVERLOAD_PROTECTION.map(|(register, value)| s(register, value)))
+    .collect()
 }
 
 /// The EEPROM a calibrated servo holds for its joint: the homing offset and the firmware's own
@@ -97,6 +111,9 @@ mod tests {
         assert_eq!(get(reg::PROTECTION_CURRENT), 308); // 2.0 A / 6.5 mA
         assert_eq!(get(reg::OVER_CURRENT_PROTECTION_TIME), 100); // 10 ms units
         assert_eq!(get(reg::MAX_TORQUE_LIMIT), 800);
+        assert_eq!(get(reg::OVERLOAD_TORQUE), 80);
+        assert_eq!(get(reg::PROTECTION_TIME), 200); // 10 ms units
+        assert_eq!(get(reg::PROTECTIVE_TORQUE), 20);
     }
 
     #[test]

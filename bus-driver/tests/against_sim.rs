@@ -371,6 +371,43 @@ fn a_twin_at_the_shoulders_id_is_heard_and_neither_servo_is_driven() {
 /// sign-magnitude on the wire): the driver accepts the calibration that matches and reads the
 /// joint where the simulator has it; the same servo with the file's offset 37 steps off is
 /// refused.
+/// A calibration session killed halfway leaves its narrowed overload protection in the
+/// servos' RAM (a press ended after 1 s, no output after): the driver starting after it puts
+/// the factory's back before it drives, or a joint carrying its load would go limp.
+#[test]
+fn the_overload_protection_a_killed_calibration_left_is_put_back() {
+    use bus_driver::backstops::OVERLOAD_PROTECTION;
+    use feetech::registers as reg;
+    let mut rig = rig("overload-back");
+    let narrowed = [
+        (reg::OVERLOAD_TORQUE, 13),
+        (reg::PROTECTION_TIME, 100),
+        (reg::PROTECTIVE_TORQUE, 0),
+    ];
+    let read = |rig: &mut Rig| {
+        rig.served
+            .with_bus("left_arm", |b| {
+                let s = b.servo_mut(4).unwrap();
+                OVERLOAD_PROTECTION.map(|(r, _)| s.get(r))
+            })
+            .unwrap()
+    };
+    rig.served
+        .with_bus("left_arm", |b| {
+            let s = b.servo_mut(4).unwrap();
+            for (r, v) in narrowed {
+                assert!(s.write(r.addr, &[v as u8]));
+            }
+        })
+        .unwrap();
+    assert_eq!(read(&mut rig), [13, 100, 0]);
+    let mut d = driver(&rig.config);
+    assert!(d.setup().is_empty());
+    assert_eq!(read(&mut rig), OVERLOAD_PROTECTION.map(|(_, v)| v));
+    drop(d);
+    rig.served.stop();
+}
+
 #[test]
 fn a_negative_homing_offset_is_checked_as_the_servo_holds_it() {
     let mut rig = rig("negative-offset");

@@ -175,6 +175,23 @@ const WRONG_WAY_RAD: f64 = 0.2;
 const POSE_HELD_RAD: f64 = 0.15;
 /// Longest a move to a pose or to rest may take beyond its travel at the speed, s.
 const MOVE_SLACK_S: f64 = 5.0;
+/// The firmware's own bound on a press while a joint turns in speed mode (from its first drive
+/// toward a stop until it is calibrated and held by position): an output above this share of
+/// its torque limit (above the stall rule's [`PUSHING_SHARE`], so the rule fires first)...
+const OVERLOAD_SHARE: f64 = 0.9;
+/// ...for this long (10 ms units: 1 s, six times the stall rule's window)...
+const OVERLOAD_TIME: i32 = 100;
+/// ...and the firmware leaves the motor no output (whether it unloads or holds its protective
+/// torque, none is none). A session killed mid-sweep (SIGKILL, no Drop) leaves a servo in
+/// speed mode turning into its stop with nobody on the line: this ends that press.
+const PROTECTIVE_PERCENT: i32 = 0;
+/// The registers of that bound, and `Unloading_Condition` with its overload bit.
+const PRESS_BOUND: [reg::Register; 4] = [
+    reg::OVERLOAD_TORQUE,
+    reg::PROTECTION_TIME,
+    reg::PROTECTIVE_TORQUE,
+    reg::UNLOADING_CONDITION,
+];
 
 struct Joint {
     taken: Taken,
@@ -183,6 +200,9 @@ struct Joint {
     provisional: i32,
     /// The `Torque_Limit` it had when taken, given back at the end.
     torque_limit: i32,
+    /// What it held of [`PRESS_BOUND`] when taken, given back once it is calibrated (or at
+    /// the end).
+    overload: [i32; 4],
     sweep: Sweep,
     /// Where its sweep began, unwrapped, rad: where a refused sweep drives it back to.
     began_rad: f64,
@@ -291,6 +311,10 @@ impl<T: Transport> Automatic<T> {
         let torque_limit = bus
             .read(id, reg::TORQUE_LIMIT)
             .map_err(|e| taken.failed(e))?;
+        let mut overload = [0; 4];
+        for (held, r) in overload.iter_mut().zip(PRESS_BOUND) {
+            *held = bus.read(id, r).map_err(|e| taken.failed(e))?;
+        }
         let raw = (i64::from(present) + i64::from(taken.found[0])).rem_euclid(4096);
         // Reads 2048 where it is. −2048 and 2048 are one offset; the register holds neither
         // (a step off mid-turn).
@@ -301,6 +325,7 @@ impl<T: Transport> Automatic<T> {
             plan,
             provisional,
             torque_limit,
+            overload,
             sweep: Sweep::default(),
             began_rad: 0.0,
             turning: false,
@@ -538,10 +563,17 @@ impl<T: Transport> Automatic<T> {
             | ServoStatus::OVER_CURRENT
             | ServoStatus::OVERLOAD
             | ServoStatus::ANGLE_SENSOR;
-        Ok((status.0 & unloading != 0).then(|| Refusal::Unloaded {
-            joint: self.joints[k].taken.target.joint.clone(),
-            status: status.to_string(),
-        }))
+        let j = &self.joints[k];
+        let joint = j.taken.target.joint.clone();
+        Ok(match status.0 & unloading {
+            0 => None,
+            // The press bound, on while it turns: pushing for a second and never still.
+            ServoStatus::OVERLOAD if j.turning => Some(Refusal::Strained { joint }),
+            _ => Some(Refusal::Unloaded {
+                joint,
+                status: status.to_string(),
+            }),
+        })
     }
 
     /// What a swept joint does that the calibration does not expect: pressing harder than
@@ -592,11 +624,14 @@ impl<T: Transport> Automatic<T> {
     fn begin_seek(&mut self, k: usize, toward: Toward) -> Result<(), SessionError> {
         let down = (toward == Toward::Lower) != self.joints[k].plan.target.stops.inverted;
         let speed = self.speed_steps();
-        let taken = self.joints[k].taken.clone();
-        let values = [
-            (reg::GOAL_VELOCITY, if down { -speed } else { speed }),
-            (reg::OPERATING_MODE, 1),
-        ];
+        let j = &self.joints[k];
+        let taken = j.taken.clone();
+        let values: Vec<_> = (press_bound(j).into_iter())
+            .chain([
+                (reg::GOAL_VELOCITY, if down { -speed } else { speed }),
+                (reg::OPERATING_MODE, 1),
+            ])
+            .collect();
         write_checked(&mut self.bus, &taken, &values, false)?;
         self.joints[k].turning = true;
         Ok(())
@@ -686,12 +721,17 @@ impl<T: Transport> Automatic<T> {
         write_checked(&mut self.bus, &taken, &settings, false)?;
         self.joints[k].calibration = Some(calibration);
         let present = self.read(k, reg::PRESENT_POSITION)?;
-        // The profile's speed positive (it was the sweep's signed speed).
-        let values = [
+        // The profile's speed positive (it was the sweep's signed speed); held by position
+        // from here, with the overload protection it had (a pose's load may be near its
+        // limit for longer than the press bound allows).
+        let values: Vec<_> = [
             (reg::GOAL_VELOCITY, self.speed_steps()),
             (reg::GOAL_POSITION, present),
             (reg::OPERATING_MODE, 0),
-        ];
+        ]
+        .into_iter()
+        .chain(PRESS_BOUND.into_iter().zip(self.joints[k].overload))
+        .collect();
         write_checked(&mut self.bus, &taken, &values, false)?;
         self.joints[k].turning = false;
         self.drive_to(k, 0.0)?;
@@ -892,13 +932,17 @@ impl<T: Transport> Automatic<T> {
         }
         let mut first_error = None;
         for k in 0..self.joints.len() {
+            let j = &self.joints[k];
             let values = [
                 (reg::TORQUE_ENABLE, 0),
                 (reg::GOAL_VELOCITY, 0),
                 (reg::OPERATING_MODE, 0),
-                (reg::TORQUE_LIMIT, self.joints[k].torque_limit),
-            ];
-            let taken = self.joints[k].taken.clone();
+                (reg::TORQUE_LIMIT, j.torque_limit),
+            ]
+            .into_iter()
+            .chain(PRESS_BOUND.into_iter().zip(j.overload));
+            let values: Vec<_> = values.collect();
+            let taken = j.taken.clone();
             if let Err(e) = write_checked(&mut self.bus, &taken, &values, false) {
                 first_error.get_or_insert(e);
             }
@@ -931,6 +975,16 @@ impl<T: Transport> Drop for Automatic<T> {
     fn drop(&mut self) {
         let _ = self.release(false);
     }
+}
+
+/// The press bound of a joint about to turn in speed mode ([`PRESS_BOUND`]'s registers):
+/// `Overload_Torque` the [`OVERLOAD_SHARE`] of its torque limit (whole percent, at least 1).
+fn press_bound(j: &Joint) -> [(reg::Register, i32); 4] {
+    let limit_percent = f64::from(j.plan.torque_permille) / 10.0;
+    let overload = ((limit_percent * OVERLOAD_SHARE).floor() as i32).max(1);
+    let unloading = j.overload[3] | i32::from(ServoStatus::OVERLOAD);
+    let values = [overload, OVERLOAD_TIME, PROTECTIVE_PERCENT, unloading];
+    std::array::from_fn(|i| (PRESS_BOUND[i], values[i]))
 }
 
 /// The supervisor's stall rule over the calibration's window.

@@ -32,6 +32,9 @@ pub struct Settings {
     pub over_current_time: u8,
     /// `Unloading_Condition` bits.
     pub unloading_condition: u8,
+    /// `Overload_Torque`, `Protection_Time` (10 ms), `Protective_Torque`: the firmware's
+    /// overload protection.
+    pub overload: (u8, u8, u8),
     /// `Homing_Offset`, steps.
     pub homing_offset: i16,
     /// `Operating_Mode`.
@@ -71,6 +74,11 @@ impl Settings {
             protection_current: get(reg::PROTECTION_CURRENT) as u16,
             over_current_time: get(reg::OVER_CURRENT_PROTECTION_TIME) as u8,
             unloading_condition: get(reg::UNLOADING_CONDITION) as u8,
+            overload: (
+                get(reg::OVERLOAD_TORQUE) as u8,
+                get(reg::PROTECTION_TIME) as u8,
+                get(reg::PROTECTIVE_TORQUE) as u8,
+            ),
             homing_offset: get(reg::HOMING_OFFSET) as i16,
             operating_mode: get(reg::OPERATING_MODE) as u8,
             lock: get(reg::LOCK) as u8,
@@ -100,6 +108,9 @@ impl Settings {
             a if a == reg::OVER_CURRENT_PROTECTION_TIME.addr => i32::from(self.over_current_time),
             a if a == reg::MAX_TORQUE_LIMIT.addr => i32::from(self.max_torque_permille),
             a if a == reg::UNLOADING_CONDITION.addr => i32::from(self.unloading_condition),
+            a if a == reg::OVERLOAD_TORQUE.addr => i32::from(self.overload.0),
+            a if a == reg::PROTECTION_TIME.addr => i32::from(self.overload.1),
+            a if a == reg::PROTECTIVE_TORQUE.addr => i32::from(self.overload.2),
             a if a == reg::HOMING_OFFSET.addr => i32::from(self.homing_offset),
             a if a == reg::MIN_POSITION_LIMIT.addr => i32::from(self.position_limits.0),
             a if a == reg::MAX_POSITION_LIMIT.addr => i32::from(self.position_limits.1),
@@ -126,6 +137,7 @@ mod tests {
         assert_eq!(got.return_delay_us, 500);
         assert_eq!(got.position_limits, (0, 4095));
         assert_eq!(got.lock, 1);
+        assert_eq!(got.overload, (80, 200, 20));
         assert_eq!(got.present_position, 2048);
         assert_eq!(got.value_of(reg::RETURN_DELAY_TIME), Some(250));
         assert!(Settings::parse(&table[..70]).is_none());

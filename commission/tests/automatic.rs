@@ -50,6 +50,33 @@ thread_local! {
     static EXTREMES: RefCell<Vec<(f64, f64)>> = const { RefCell::new(Vec::new()) };
 }
 
+thread_local! {
+    /// The longest each servo's output stayed above its `Overload_Torque` in the last `run`,
+    /// s, and what the session was doing then: the margin to the press bound's 1 s.
+    static ABOVE_OVERLOAD: RefCell<Vec<(f64, f64, String)>> = const { RefCell::new(Vec::new()) };
+}
+
+/// Tracks, each tick, how long each servo's output has stayed above its `Overload_Torque`.
+fn track_overload(bus: &RefCell<SimBus>, p: &Progress) {
+    let mut b = bus.borrow_mut();
+    ABOVE_OVERLOAD.with(|a| {
+        let mut a = a.borrow_mut();
+        a.resize(8, (0.0, 0.0, String::new()));
+        for (id, x) in (1..=8).zip(a.iter_mut()) {
+            let s = b.servo_mut(id).unwrap();
+            let threshold = f64::from(s.get(reg::OVERLOAD_TORQUE)) / 100.0;
+            x.0 = if s.duty.abs() > threshold {
+                x.0 + 0.02
+            } else {
+                0.0
+            };
+            if x.0 > x.1 {
+                (x.1, x.2) = (x.0, format!("{p:?}"));
+            }
+        }
+    });
+}
+
 /// The lowest and highest angle servo `id` reached in the last `run`, rad.
 fn extremes(id: u8) -> (f64, f64) {
     EXTREMES.with(|e| e.borrow()[usize::from(id) - 1])
@@ -66,7 +93,9 @@ fn run(bus: &RefCell<SimBus>, plan: Plan) -> Result<Vec<Calibrated>, SessionErro
     };
     let hung = angles();
     EXTREMES.with(|e| *e.borrow_mut() = hung.iter().map(|&a| (a, a)).collect());
+    ABOVE_OVERLOAD.with(|a| a.borrow_mut().clear());
     let (end, _) = session_until_end(bus, plan, |p, _, _, _| {
+        track_overload(bus, p);
         let now = angles();
         EXTREMES.with(|e| {
             for (x, &a) in e.borrow_mut().iter_mut().zip(&now) {
@@ -148,11 +177,28 @@ fn each_zero_within_a_degree_and_no_stop_pressed_above_the_torque_limit_over_see
     let robot = RobotDescription::nori_a3();
     let plan = plan(&robot);
     let (mut worst_zero, mut least_inside, mut hardest): (f64, f64, u16) = (0.0, f64::MAX, 0);
+    let mut longest_above: f64 = 0.0;
     for seed in 1..=8 {
         let mut rng = Rng::new(seed);
         let bus = assembled(|_| rng.range(-400.0, 400.0));
         let t0 = bus.borrow().time();
         let chosen = run(&bus, plan.clone()).unwrap();
+        // The press bound (1 s) is never near: a sweep reverses at a stop within 0.16 s.
+        let (above, doing) = ABOVE_OVERLOAD.with(|a| {
+            let a = a.borrow();
+            let (_, s, d) = a.iter().max_by(|x, y| x.1.total_cmp(&y.1)).unwrap();
+            (*s, d.clone())
+        });
+        assert!(
+            above < 0.5,
+            "seed {seed}: above the overload threshold {above} s in {doing}"
+        );
+        longest_above = longest_above.max(above);
+        assert_eq!(
+            press_bounds(&bus),
+            vec![[80, 200, 20, 0x2C]; 8],
+            "seed {seed}: the overload protection not given back"
+        );
         let took = bus.borrow().time() - t0;
         assert_eq!(chosen.len(), 8);
         for id in 1..=8 {
@@ -206,7 +252,7 @@ fn each_zero_within_a_degree_and_no_stop_pressed_above_the_torque_limit_over_see
     }
     eprintln!(
         "automatic, 8 seeds: worst zero {worst_zero:.2}°, least inside a stop {least_inside:.2}°, \
-         hardest press {hardest} ‰"
+         hardest press {hardest} ‰, longest above the overload threshold {longest_above:.2} s"
     );
 }
 
@@ -227,6 +273,23 @@ fn held(bus: &RefCell<SimBus>) -> Vec<[i32; 3]> {
         .collect()
 }
 
+/// Each servo's overload protection and `Unloading_Condition`, as its RAM holds them.
+fn press_bounds(bus: &RefCell<SimBus>) -> Vec<[i32; 4]> {
+    let mut b = bus.borrow_mut();
+    (1..=8)
+        .map(|id| {
+            let s = b.servo_mut(id).unwrap();
+            [
+                reg::OVERLOAD_TORQUE,
+                reg::PROTECTION_TIME,
+                reg::PROTECTIVE_TORQUE,
+                reg::UNLOADING_CONDITION,
+            ]
+            .map(|r| s.get(r))
+        })
+        .collect()
+}
+
 /// Runs a calibration that must be refused: the refusals, after checking that every servo was
 /// given back what it held (in flash and in RAM) and left with its torque off.
 fn refused(bus: &RefCell<SimBus>, plan: Plan) -> Vec<Refusal> {
@@ -239,11 +302,17 @@ fn refused(bus: &RefCell<SimBus>, plan: Plan) -> Vec<Refusal> {
                 .get(reg::TORQUE_LIMIT)
         })
         .collect();
+    let bounds = press_bounds(bus);
     let e = run(bus, plan).unwrap_err();
     let SessionError::Refused(refusals) = e else {
         panic!("{e}")
     };
     assert_eq!(held(bus), before);
+    assert_eq!(
+        press_bounds(bus),
+        bounds,
+        "the overload protection not given back"
+    );
     let mut b = bus.borrow_mut();
     for id in 1..=8 {
         let s = b.servo_mut(id).unwrap();
@@ -324,8 +393,9 @@ fn a_joint_that_runs_past_its_travel_is_stopped_and_refused() {
     }
 }
 
-/// A torque limit too low to lift the arm sideways: the shoulder's roll stalls under gravity
-/// before its stop. Refused as a travel short of the description's, not taken for a stop.
+/// A torque limit too low to lift the arm sideways: the shoulder's roll strains under gravity
+/// short of its stop, pushing at its limit while it creeps. Its firmware ends the push after a
+/// second (the press bound) and the session says why; not taken for a stop.
 #[test]
 fn a_stall_under_gravity_is_not_taken_for_a_stop() {
     let robot = RobotDescription::nori_a3();
@@ -339,9 +409,10 @@ fn a_stall_under_gravity_is_not_taken_for_a_stop() {
     let bus = changed_arm(|_| {});
     let refusals = refused(&bus, plan);
     assert!(
-        matches!(&refusals[..], [Refusal::NotCovered { joint, .. }] if joint == "left_shoulder_roll"),
+        matches!(&refusals[..], [Refusal::Strained { joint }] if joint == "left_shoulder_roll"),
         "{refusals:?}"
     );
+    assert!(refusals[0].to_string().contains("too low for its load"));
 }
 
 /// A shoulder whose over-current protection is set at 1 A (not as the driver sets it up): it
@@ -433,6 +504,41 @@ fn a_session_stopped_mid_sweep_leaves_every_servo_as_found() {
     for id in 1..=8 {
         assert!(!b.servo_mut(id).unwrap().torque_enabled(), "servo {id}");
     }
+}
+
+/// Killed in the middle of a sweep (SIGKILL: no Drop, nothing more on the line) while the
+/// elbow turns toward its lower stop in speed mode: reaching it, the elbow's own firmware ends
+/// the press within the session's bound (1 s above 90 % of the sweep's torque limit), and its
+/// status says why. It used to press at the limit until its temperature cut it off or the
+/// power went.
+#[test]
+fn a_session_killed_mid_sweep_leaves_no_motor_pressing_its_stop() {
+    let robot = RobotDescription::nori_a3();
+    let bus = changed_arm(|_| {});
+    let mut t = bus.borrow().time();
+    let line = Bus::new(line(&bus), Duration::from_micros(600));
+    let mut session = Automatic::start(line, plan(&robot), t).unwrap();
+    loop {
+        t += 0.02;
+        bus.borrow_mut().advance_to(t, 0.001);
+        let p = session.tick(t).unwrap();
+        if matches!(p, Progress::Working(4, Activity::Seeking(Toward::Lower, moved)) if moved > 0.1)
+        {
+            break;
+        }
+        assert!(t < 600.0, "the elbow's sweep never began");
+    }
+    std::mem::forget(session);
+    bus.borrow_mut().advance_to(t + 60.0, 0.001);
+    let mut b = bus.borrow_mut();
+    let elbow = b.servo_mut(4).unwrap();
+    assert!(elbow.torque_enabled(), "nobody turned it off");
+    let pressed = elbow.log.stop_press_s;
+    assert!(
+        pressed > 0.5 && pressed < 1.5,
+        "pressed its stop {pressed} s of the minute after the kill"
+    );
+    assert!(elbow.protections.overload, "{:?}", elbow.protections);
 }
 
 /// Stopped after every joint was calibrated, as the last one goes back to rest (or a session
