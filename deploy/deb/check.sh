@@ -21,24 +21,47 @@
 #      it runs N+1.
 # Needs root (debootstrap, chroot, mounts). The pristine root is cached in
 # $NORI_DEB_CHECK_CACHE (/var/tmp/nori-deb-check); each run starts from a fresh copy.
+#
+#   deploy/deb/check.sh --prepare ARCH
+#
+# only fetches what the check needs (the host's debootstrap, lintian, nginx, reprepro and
+# gpg, and the pristine root), so CI can do it while it builds.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
-[ $# -eq 2 ] || { sed -n '2,23p' "$0" | sed 's/^# \{0,1\}//' >&2; exit 2; }
-arch=$1 bin_dir=$2
+usage() { sed -n '2,28p' "$0" | sed 's/^# \{0,1\}//' >&2; exit 2; }
+[ $# -eq 2 ] || usage
 cache=${NORI_DEB_CHECK_CACHE:-/var/tmp/nori-deb-check}
 mirror=${NORI_DEBIAN_MIRROR:-http://deb.debian.org/debian}
 say() { echo "deb-check: $*" >&2; }
 fail() { echo "deb-check: FAILED: $*" >&2; exit 1; }
 
-pristine=$cache/bookworm-$arch.tar
-if [ ! -s "$pristine" ]; then
-  command -v debootstrap >/dev/null || { apt-get update -qq && apt-get install -y -qq debootstrap; }
-  say "debootstrap bookworm $arch (once; cached in $pristine)"
+# The host's tools and the pristine root of `$1`.
+prepare() {
+  local tools=()
+  command -v debootstrap >/dev/null || tools+=(debootstrap)
+  command -v lintian >/dev/null || tools+=(lintian)
+  command -v nginx >/dev/null || tools+=(nginx-light)
+  # deploy/apt/repo.sh's (it installs them itself when run alone).
+  command -v reprepro >/dev/null || tools+=(reprepro)
+  command -v gpg >/dev/null || tools+=(gpg)
+  if ((${#tools[@]})); then
+    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${tools[@]}" >/dev/null
+  fi
+  pristine=$cache/bookworm-$1.tar
+  [ ! -s "$pristine" ] || return 0
+  say "debootstrap bookworm $1 (once; cached in $pristine)"
+  local tmp
   tmp=$(mktemp -d)
-  debootstrap --variant=minbase --arch="$arch" --include=systemd,udev bookworm "$tmp" "$mirror" >/dev/null
+  debootstrap --variant=minbase --arch="$1" --include=systemd,udev bookworm "$tmp" "$mirror" >/dev/null
   mkdir -p "$cache" && tar -C "$tmp" -cf "$pristine.part" . && mv "$pristine.part" "$pristine"
   rm -rf "$tmp"
+}
+if [ "$1" = --prepare ]; then
+  prepare "$2"
+  exit
 fi
+arch=$1 bin_dir=$2
+prepare "$arch"
 
 work=$(mktemp -d)
 root=$work/root
@@ -72,7 +95,6 @@ NORI_DEB_CONFIG="$work/config-next" deploy/deb/build.sh "$arch" "$bin_dir" "$wor
 mkdir "$root/debs" && cp "$work"/n/*.deb "$work"/next/*.deb "$root/debs/"
 
 say "0. lintian"
-command -v lintian >/dev/null || { apt-get update -qq && apt-get install -y -qq lintian >/dev/null; }
 # Every warning it would give is either fixed or overridden with its reason
 # (deploy/deb/*.lintian-overrides).
 said=$(lintian "$work"/n/*.deb 2>&1 | grep -v "running with root privileges" || true)
@@ -159,7 +181,6 @@ deploy/apt/repo.sh publish "$repo" "$work"/n/*.deb
 deploy/apt/repo.sh promote "$repo" "$n"
 deploy/apt/repo.sh publish "$repo" "$work"/next/*.deb
 port=$(python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
-command -v nginx >/dev/null || { apt-get update -qq && apt-get install -y -qq nginx-light >/dev/null; }
 deploy/apt/repo.sh serve "$repo" "127.0.0.1:$port" 2>"$work/nginx.log" &
 server=$!
 python3 - "$port" <<'PY' || { cat "$work/nginx.log" >&2; fail "the repository is not served"; }
