@@ -155,6 +155,117 @@ fn rig_with(faults: Option<LineFaults>, safe_state: SafeState, supervisor_timeou
     }
 }
 
+/// A link that flips bit 7 of two bytes of the replies to the next READs of Present_Position
+/// from one servo: two such flips of data bytes cancel in the 8-bit sum, and one of a data
+/// byte is matched by one of the checksum's, so each passes. The reply is
+/// `FF FF id length error low high checksum`.
+struct FlipsAPositionRead {
+    link: SimLink,
+    /// The servo whose position reads are corrupted.
+    id: u8,
+    /// The two bytes flipped in each of its next position reads, in turn.
+    flips: VecDeque<[usize; 2]>,
+    /// The flips of the reply being delivered, and its bytes delivered so far.
+    delivering: Option<([usize; 2], usize)>,
+    /// Set once every flip was delivered.
+    done: Arc<AtomicBool>,
+}
+
+impl Transport for FlipsAPositionRead {
+    fn baud(&self) -> u32 {
+        self.link.baud()
+    }
+    fn send(&mut self, bytes: &[u8]) -> Result<(), TransportError> {
+        let position_read = matches!(bytes, [0xFF, 0xFF, i, 4, 0x02, a, 2, _]
+            if *i == self.id && *a == reg::PRESENT_POSITION.addr);
+        if position_read {
+            self.delivering = self.flips.pop_front().map(|f| (f, 0));
+        }
+        self.link.send(bytes)
+    }
+    fn receive(&mut self, buf: &mut [u8], timeout: Duration) -> Result<usize, TransportError> {
+        let n = self.link.receive(buf, timeout)?;
+        if let Some((flips, at)) = self.delivering {
+            for (i, b) in buf[..n].iter_mut().enumerate() {
+                if flips.contains(&(at + i)) {
+                    *b ^= 0x80;
+                }
+            }
+            self.delivering = (at + n < 8).then_some((flips, at + n));
+            let all = self.delivering.is_none() && self.flips.is_empty();
+            self.done.store(all, Ordering::SeqCst);
+        }
+        Ok(n)
+    }
+    fn discard_input(&mut self) -> Result<(), TransportError> {
+        self.link.discard_input()
+    }
+    fn reopen(&mut self) -> Result<(), TransportError> {
+        self.link.reopen()
+    }
+}
+
+/// The first goal of a servo is where it is read at setup: a reply with two flipped bits the
+/// checksum let through, read once, made it the first goal (its sign bit flipped: the range's
+/// end), and the joint drove there at its torque. Read twice, two corrupted readings disagree
+/// with each other (the sign flipped and 128 steps off, then only 128 steps off): that setup is refused
+/// (`UnsteadyPosition`) and the next pass sets the servo up at its true position.
+#[test]
+fn a_corrupted_position_read_at_setup_is_never_the_first_goal() {
+    let robot = RobotDescription::nori_a3();
+    let config = LoadedConfig::embedded().unwrap();
+    let mut buses = Vec::new();
+    let corrupted = Arc::new(AtomicBool::new(false));
+    let links: Vec<_> = (config.config.bus.iter().enumerate())
+        .map(|(i, b)| {
+            let bus = Arc::new(Mutex::new(SimBus::new(&robot, robot.bus(&b.name).unwrap())));
+            buses.push(bus.clone());
+            FlipsAPositionRead {
+                link: SimLink {
+                    bus,
+                    inbox: VecDeque::new(),
+                    gone: Arc::new(AtomicBool::new(false)),
+                    baud: b.baud,
+                    index: i,
+                    sent: Sent::default(),
+                },
+                // The left arm's bicep, mid-range where it hangs.
+                id: 3,
+                flips: if b.name == "left_arm" {
+                    VecDeque::from([[5, 6], [5, 7]])
+                } else {
+                    VecDeque::new()
+                },
+                delivering: None,
+                done: corrupted.clone(),
+            }
+        })
+        .collect();
+    let mut driver = Driver::new(&config, links);
+    let failures = driver.setup();
+    assert!(failures.is_empty(), "{failures:?}");
+    let bicep = driver
+        .joint_names()
+        .position(|n| n == "left_bicep_rotation")
+        .unwrap();
+    let mut s = *driver.cycle(monotonic_ns);
+    if !s.joints[bicep].is_valid() {
+        s = *driver.cycle(monotonic_ns);
+    }
+    let truth = buses[0].lock().unwrap().servo_mut(3).unwrap().angle;
+    let j = &s.joints[bicep];
+    assert!(
+        (f64::from(j.goal_rad) - truth).abs() < 0.05,
+        "the bicep's first goal {} rad, it is at {truth} rad",
+        j.goal_rad
+    );
+    assert!(
+        corrupted.load(Ordering::SeqCst),
+        "both replies were corrupted"
+    );
+    assert!(corrupted.load(Ordering::SeqCst), "both replies were corrupted");
+}
+
 impl Rig {
     /// One cycle, then the mechanics advance 5 ms.
     fn cycle(&mut self) -> telemetry::JointState {
