@@ -112,6 +112,20 @@ pub enum SetupError {
         /// What the calibration says.
         expected: [i32; 3],
     },
+    /// Two readings of the position taken one after the other disagree: one of them is a
+    /// reply the checksum let through, and the first goal must not be it.
+    #[error(
+        "servo {id} read at {first} then at {second} steps: not one position to hold (a \
+         corrupted reply?); set up again shortly"
+    )]
+    UnsteadyPosition {
+        /// Servo id.
+        id: u8,
+        /// The first reading, steps.
+        first: i32,
+        /// The second, steps.
+        second: i32,
+    },
     /// The servo is not the configured model.
     #[error(
         "servo {id} reports model number {found}, configured {expected:?}: left off (`nori \
@@ -220,6 +234,8 @@ impl Joint {
     /// Not driven until the loop sets it up again (one servo per 1/50 s), with no back-off
     /// left from earlier failures.
     fn set_up_again(&mut self) {
+        // Whatever changed while it was off or silent is no glitch: its gate starts afresh.
+        self.gate.reset();
         self.ready = false;
         self.next_setup = 0;
         self.setup_fails = 0;
@@ -649,7 +665,18 @@ impl<T: Transport> Driver<T> {
         bus.write(id, reg::TORQUE_LIMIT, i32::from(torque))?;
         let goal = match (mode, calibration) {
             (Mode::Position, Some(cal)) => {
+                // The first goal is where it is: read twice, so that a reply with two flipped
+                // bits the checksum let through (a sign bit: clamped to the range's end) is
+                // never it.
+                let first = bus.read(id, reg::PRESENT_POSITION)?;
                 let present = bus.read(id, reg::PRESENT_POSITION)?;
+                if f64::from((present - first).abs()) > crate::plausibility::POSITION_STEP {
+                    return Err(SetupError::UnsteadyPosition {
+                        id,
+                        first,
+                        second: present,
+                    });
+                }
                 let goal = present.clamp(cal.range_min, cal.range_max);
                 bus.write(id, reg::GOAL_POSITION, goal)?;
                 goal
@@ -1031,8 +1058,6 @@ impl<T: Transport> Driver<T> {
         let range = b.first_joint..b.first_joint + b.ids.len();
         tracing::warn!(bus = %b.name, "bus device lost: its joints are missing; reopening every {} cycles", self.reopen_every);
         for joint in &mut self.joints[range] {
-            // Whatever changed while the bus was gone is no glitch: start the gate afresh.
-            joint.gate.reset();
             joint.set_up_again();
         }
     }

@@ -40,6 +40,10 @@ pub const MAX_LOAD: i32 = 1000;
 /// of the A3's largest servos, which a held payload approaches; the register's 15 bits reach
 /// 213 A).
 pub const MAX_CURRENT: i32 = 2000;
+/// A last accepted reading older than this, s, is no history: the next reading waits for
+/// confirmation like a first one (the driver takes a servo silent this long off; whatever it
+/// reads after a silence cannot be judged against what it read before).
+pub const SILENCE_S: f64 = 0.2;
 /// Steps per turn; positions of a speed-mode wheel wrap around.
 const STEPS_PER_TURN: i32 = 4096;
 
@@ -78,11 +82,11 @@ impl FeedbackGate {
     /// Judges the reading `fb` taken at `now_s`: true to publish it, false to hold it back
     /// (a missing sample this read).
     pub fn admit(&mut self, fb: &FeedbackBlock, now_s: f64) -> bool {
-        // With no history (a first reading, or after a reset) nothing follows: the reading is
-        // held until the next confirms it.
+        // With no history (a first reading, after a reset or a silence) nothing follows: the
+        // reading is held until the next confirms it.
         let follows = |r: &Option<(FeedbackBlock, f64)>| {
             r.as_ref()
-                .is_some_and(|(prev, t)| plausible(prev, fb, now_s - t))
+                .is_some_and(|(prev, t)| now_s - t <= SILENCE_S && plausible(prev, fb, now_s - t))
         };
         if follows(&self.accepted) || follows(&self.held) {
             self.accepted = Some((*fb, now_s));
@@ -151,9 +155,9 @@ mod tests {
         let mut g = primed(&block(2048, 40, 120));
         assert!(!g.admit(&block(2048 ^ (1 << 9), 40, 120), DT));
         assert!(g.admit(&block(2048 ^ 1, 40, 120), 2.0 * DT));
-        // A supply jump of 3 V in one read is held; the same drift over a second is not.
-        assert!(!g.admit(&block(2049, 40, 90), 3.0 * DT));
-        assert!(g.admit(&block(2049, 40, 90), 1.0));
+        // A supply jump of 2.5 V in one read is held; the same drift over 0.19 s is not.
+        assert!(!g.admit(&block(2049, 40, 95), 3.0 * DT));
+        assert!(g.admit(&block(2049, 40, 95), 2.0 * DT + 0.19));
     }
 
     #[test]
@@ -182,8 +186,14 @@ mod tests {
     #[test]
     fn bounds_widen_with_the_time_since_the_last_accepted_read() {
         let mut g = primed(&block(2048, 40, 120));
-        // After 10 s without an accepted read, a 30 °C rise is possible.
-        assert!(g.admit(&block(2048, 70, 120), 10.0));
+        // 0.2 s after the last accepted read, a 2.5 °C rise is possible (not at once).
+        assert!(!plausible(&block(2048, 40, 120), &block(2048, 43, 120), DT));
+        assert!(g.admit(&block(2048, 43, 120), SILENCE_S));
+        // After a silence, anything waits for the next reading to confirm it (the bounds
+        // would let a supply 12.8 V off through after 1.2 s).
+        assert!(!g.admit(&block(2048, 43, 248), 10.0));
+        assert!(!g.admit(&block(2048, 70, 120), 10.0 + DT));
+        assert!(g.admit(&block(2048, 70, 120), 10.0 + 2.0 * DT));
         g.reset();
         assert!(
             !g.admit(&block(100, 20, 60), 10.1),
