@@ -19,7 +19,7 @@ use crate::session::{
     Taken,
 };
 use body::description::BusDescription;
-use bus_driver::backstops::calibration_settings;
+use bus_driver::backstops::{calibration_settings, OVERLOAD_PROTECTION};
 use bus_driver::bus::Bus;
 use bus_driver::calibration::{JointCalibration, CENTER, STEPS_PER_RAD};
 use bus_driver::transport::Transport;
@@ -175,6 +175,11 @@ const WRONG_WAY_RAD: f64 = 0.2;
 const POSE_HELD_RAD: f64 = 0.15;
 /// Longest a move to a pose or to rest may take beyond its travel at the speed, s.
 const MOVE_SLACK_S: f64 = 5.0;
+/// Longest a swept joint may push above its press bound's threshold without standing still
+/// before the session refuses it and drives it back, s: it strains against a load its limit
+/// cannot move, or something gives way. Half the firmware's time below, which would leave it
+/// with no output where it strains (the roll under the arm's weight).
+const STRAIN_S: f64 = 0.5;
 /// The firmware's own bound on a press while a joint turns in speed mode (from its first drive
 /// toward a stop until it is calibrated and held by position): an output above this share of
 /// its torque limit (above the stall rule's [`PUSHING_SHARE`], so the rule fires first)...
@@ -183,7 +188,8 @@ const OVERLOAD_SHARE: f64 = 0.9;
 const OVERLOAD_TIME: i32 = 100;
 /// ...and the firmware leaves the motor no output (whether it unloads or holds its protective
 /// torque, none is none). A session killed mid-sweep (SIGKILL, no Drop) leaves a servo in
-/// speed mode turning into its stop with nobody on the line: this ends that press.
+/// speed mode turning into its stop with nobody on the line: this ends that press. While the
+/// session lives, its own rules (the stall, [`STRAIN_S`]) act first.
 const PROTECTIVE_PERCENT: i32 = 0;
 /// The registers of that bound, and `Unloading_Condition` with its overload bit.
 const PRESS_BOUND: [reg::Register; 4] = [
@@ -200,9 +206,9 @@ struct Joint {
     provisional: i32,
     /// The `Torque_Limit` it had when taken, given back at the end.
     torque_limit: i32,
-    /// What it held of [`PRESS_BOUND`] when taken, given back once it is calibrated (or at
-    /// the end).
-    overload: [i32; 4],
+    /// The `Unloading_Condition` it held when taken, given back with the driver's overload
+    /// protection once it is calibrated (or at the end).
+    unloading: i32,
     sweep: Sweep,
     /// Where its sweep began, unwrapped, rad: where a refused sweep drives it back to.
     began_rad: f64,
@@ -219,6 +225,8 @@ struct Seeking {
     /// Where it was when this drive began, unwrapped, rad.
     from_rad: f64,
     detector: StallDetector,
+    /// Since when it has pushed above its press bound's threshold, s.
+    pushing_since: Option<f64>,
 }
 
 /// A refused joint driven back to where its sweep began.
@@ -275,6 +283,12 @@ impl<T: Transport> Automatic<T> {
     /// range (RAM only), and holds it there at its torque limit. A joint that cannot be taken
     /// gives every one taken before it back what it held, its torque off.
     pub fn start(bus: Bus<T>, plan: Plan, now_s: f64) -> Result<Self, SessionError> {
+        // Before any servo is touched.
+        let unbounded =
+            (plan.sweeps.iter()).find(|p| overload_percent(p.torque_permille).is_none());
+        if let Some(p) = unbounded {
+            return Err(no_press_bound(p));
+        }
         let mut session = Automatic {
             bus,
             joints: Vec::with_capacity(plan.sweeps.len()),
@@ -311,10 +325,9 @@ impl<T: Transport> Automatic<T> {
         let torque_limit = bus
             .read(id, reg::TORQUE_LIMIT)
             .map_err(|e| taken.failed(e))?;
-        let mut overload = [0; 4];
-        for (held, r) in overload.iter_mut().zip(PRESS_BOUND) {
-            *held = bus.read(id, r).map_err(|e| taken.failed(e))?;
-        }
+        let unloading = bus
+            .read(id, reg::UNLOADING_CONDITION)
+            .map_err(|e| taken.failed(e))?;
         let raw = (i64::from(present) + i64::from(taken.found[0])).rem_euclid(4096);
         // Reads 2048 where it is. −2048 and 2048 are one offset; the register holds neither
         // (a step off mid-turn).
@@ -325,7 +338,7 @@ impl<T: Transport> Automatic<T> {
             plan,
             provisional,
             torque_limit,
-            overload,
+            unloading,
             sweep: Sweep::default(),
             began_rad: 0.0,
             turning: false,
@@ -546,6 +559,7 @@ impl<T: Transport> Automatic<T> {
             since,
             from_rad,
             detector: self.detector(k),
+            pushing_since: None,
         }))
     }
 
@@ -626,7 +640,8 @@ impl<T: Transport> Automatic<T> {
         let speed = self.speed_steps();
         let j = &self.joints[k];
         let taken = j.taken.clone();
-        let values: Vec<_> = (press_bound(j).into_iter())
+        let bound = press_bound(j).ok_or_else(|| no_press_bound(&j.plan))?;
+        let values: Vec<_> = (bound.into_iter())
             .chain([
                 (reg::GOAL_VELOCITY, if down { -speed } else { speed }),
                 (reg::OPERATING_MODE, 1),
@@ -686,6 +701,14 @@ impl<T: Transport> Automatic<T> {
         }
         let sample = (at as f32, load as f32 / 1000.0, (at + ahead) as f32);
         let stalled = seeking.detector.update(Some(sample), &stall_config()) != StallAction::None;
+        // Above the firmware's threshold (a light joint moves at its stall rule's effort).
+        let limit = self.joints[k].plan.torque_permille;
+        let threshold = overload_percent(limit).map_or(i32::from(limit), |p| 10 * p);
+        let straining = load.abs() > threshold;
+        seeking.pushing_since = straining.then(|| seeking.pushing_since.unwrap_or(now_s));
+        if !stalled && seeking.pushing_since.is_some_and(|t| now_s - t >= STRAIN_S) {
+            return Ok(self.return_refused(k, Refusal::Strained { joint }, now_s));
+        }
         let progress = Progress::Working(k, Activity::Seeking(toward, moved));
         match (stalled, toward) {
             (false, _) => Ok((Stage::Seek(seeking), progress)),
@@ -722,7 +745,7 @@ impl<T: Transport> Automatic<T> {
         self.joints[k].calibration = Some(calibration);
         let present = self.read(k, reg::PRESENT_POSITION)?;
         // The profile's speed positive (it was the sweep's signed speed); held by position
-        // from here, with the overload protection it had (a pose's load may be near its
+        // from here, with the driver's overload protection (a pose's load may be near its
         // limit for longer than the press bound allows).
         let values: Vec<_> = [
             (reg::GOAL_VELOCITY, self.speed_steps()),
@@ -730,7 +753,7 @@ impl<T: Transport> Automatic<T> {
             (reg::OPERATING_MODE, 0),
         ]
         .into_iter()
-        .chain(PRESS_BOUND.into_iter().zip(self.joints[k].overload))
+        .chain(press_unbound(&self.joints[k]))
         .collect();
         write_checked(&mut self.bus, &taken, &values, false)?;
         self.joints[k].turning = false;
@@ -940,7 +963,7 @@ impl<T: Transport> Automatic<T> {
                 (reg::TORQUE_LIMIT, j.torque_limit),
             ]
             .into_iter()
-            .chain(PRESS_BOUND.into_iter().zip(j.overload));
+            .chain(press_unbound(j));
             let values: Vec<_> = values.collect();
             let taken = j.taken.clone();
             if let Err(e) = write_checked(&mut self.bus, &taken, &values, false) {
@@ -977,14 +1000,39 @@ impl<T: Transport> Drop for Automatic<T> {
     }
 }
 
-/// The press bound of a joint about to turn in speed mode ([`PRESS_BOUND`]'s registers):
-/// `Overload_Torque` the [`OVERLOAD_SHARE`] of its torque limit (whole percent, at least 1).
-fn press_bound(j: &Joint) -> [(reg::Register, i32); 4] {
-    let limit_percent = f64::from(j.plan.torque_permille) / 10.0;
-    let overload = ((limit_percent * OVERLOAD_SHARE).floor() as i32).max(1);
-    let unloading = j.overload[3] | i32::from(ServoStatus::OVERLOAD);
+/// `Overload_Torque` for a torque limit of `permille`: the [`OVERLOAD_SHARE`] of it in whole
+/// percent, if that lies above the stall rule's [`PUSHING_SHARE`] of it and below the limit
+/// (a limit under 5 % leaves no such percent).
+fn overload_percent(permille: u16) -> Option<i32> {
+    let limit = f64::from(permille) / 10.0;
+    let percent = (limit * OVERLOAD_SHARE).floor();
+    let between = percent > limit * f64::from(PUSHING_SHARE) && percent < limit;
+    between.then_some(percent as i32)
+}
+
+/// The press bound of a joint about to turn in speed mode ([`PRESS_BOUND`]'s registers); none
+/// when its limit leaves no [`overload_percent`].
+fn press_bound(j: &Joint) -> Option<[(reg::Register, i32); 4]> {
+    let overload = overload_percent(j.plan.torque_permille)?;
+    let unloading = j.unloading | i32::from(ServoStatus::OVERLOAD);
     let values = [overload, OVERLOAD_TIME, PROTECTIVE_PERCENT, unloading];
-    std::array::from_fn(|i| (PRESS_BOUND[i], values[i]))
+    Some(std::array::from_fn(|i| (PRESS_BOUND[i], values[i])))
+}
+
+/// What a joint's servo gets back for the press bound: the driver's overload protection (not
+/// what it held: a session killed before left its own bound there) and the
+/// `Unloading_Condition` it held.
+fn press_unbound(j: &Joint) -> impl Iterator<Item = (reg::Register, i32)> {
+    OVERLOAD_PROTECTION
+        .into_iter()
+        .chain([(reg::UNLOADING_CONDITION, j.unloading)])
+}
+
+fn no_press_bound(p: &PlannedSweep) -> SessionError {
+    SessionError::NoPressBound {
+        joint: p.target.joint.clone(),
+        limit_percent: f64::from(p.torque_permille) / 10.0,
+    }
 }
 
 /// The supervisor's stall rule over the calibration's window.
@@ -999,5 +1047,24 @@ fn stall_config() -> supervisor::config::StallConfig {
         new_target_rad: 0.2,
         gripper_hold_percent: 0.0,
         reduced_percent: 0.0,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_press_bound_lies_between_the_stall_rule_and_the_limit() {
+        // The shipped plan's limits: 10, 15, 20, 30 and 35 %.
+        let shipped = [(100, 9), (150, 13), (200, 18), (300, 27), (350, 31)];
+        for (permille, percent) in shipped {
+            assert_eq!(overload_percent(permille), Some(percent), "{permille} ‰");
+        }
+        // No whole percent strictly between 80 % of the limit and the limit.
+        for permille in [0, 10, 40, 50, 55] {
+            assert_eq!(overload_percent(permille), None, "{permille} ‰");
+        }
+        assert_eq!(overload_percent(60), Some(5));
     }
 }

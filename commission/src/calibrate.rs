@@ -170,13 +170,12 @@ pub enum Refusal {
         /// The protections the servo reported.
         status: String,
     },
-    /// Driven toward a stop, the joint pushed above the press bound for its whole time without
-    /// standing still (its firmware then ended the push): it gives way slowly, or its load is
-    /// more than the plan's torque limit moves.
+    /// Driven toward a stop, the joint pushed at its torque limit without standing still (for
+    /// half a second, or until its firmware's press bound ended the push): something gives way
+    /// slowly, or its load is more than the plan's torque limit moves.
     #[error(
-        "{joint}: driven toward a stop, it pushed at its torque limit for a second without \
-         standing still, and its firmware ended the push: something gives way in its path, or \
-         the plan's torque limit is too low for its load"
+        "{joint}: driven toward a stop, it pushed at its torque limit without standing still: \
+         something gives way in its path, or the plan's torque limit is too low for its load"
     )]
     Strained {
         /// The joint.

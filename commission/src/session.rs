@@ -53,6 +53,18 @@ pub enum SessionError {
     /// Joints whose travel gives no calibration: every servo was given back what it held.
     #[error("not calibrated, every servo left as found: {}", list(.0))]
     Refused(Vec<Refusal>),
+    /// A joint's torque limit leaves the firmware no press bound: nothing was touched.
+    #[error(
+        "{joint}: a torque limit of {limit_percent} % leaves no whole percent between the stall \
+         rule's 80 % of it and itself for the firmware's press bound: raise it in the \
+         description's calibration plan"
+    )]
+    NoPressBound {
+        /// The joint.
+        joint: String,
+        /// Its plan's torque limit, %.
+        limit_percent: f64,
+    },
     /// The session has ended (released): nothing more is driven.
     #[error("the calibration session has ended")]
     Ended,

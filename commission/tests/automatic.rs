@@ -181,6 +181,19 @@ fn each_zero_within_a_degree_and_no_stop_pressed_above_the_torque_limit_over_see
     for seed in 1..=8 {
         let mut rng = Rng::new(seed);
         let bus = assembled(|_| rng.range(-400.0, 400.0));
+        if seed == 1 {
+            // The bicep as a session killed in its sweep left it: its own press bound in RAM.
+            // Given that back, it would trip holding its pose while the roll sweeps.
+            let mut b = bus.borrow_mut();
+            let s = b.servo_mut(3).unwrap();
+            for (r, v) in [
+                (reg::OVERLOAD_TORQUE, 18),
+                (reg::PROTECTION_TIME, 100),
+                (reg::PROTECTIVE_TORQUE, 0),
+            ] {
+                assert!(s.write(r.addr, &[v]));
+            }
+        }
         let t0 = bus.borrow().time();
         let chosen = run(&bus, plan.clone()).unwrap();
         // The press bound (1 s) is never near: a sweep reverses at a stop within 0.16 s.
@@ -394,8 +407,9 @@ fn a_joint_that_runs_past_its_travel_is_stopped_and_refused() {
 }
 
 /// A torque limit too low to lift the arm sideways: the shoulder's roll strains under gravity
-/// short of its stop, pushing at its limit while it creeps. Its firmware ends the push after a
-/// second (the press bound) and the session says why; not taken for a stop.
+/// short of its stop, pushing at its limit while it creeps. Refused after half a second as
+/// straining and driven back, before its firmware's press bound would end the push; not taken
+/// for a stop.
 #[test]
 fn a_stall_under_gravity_is_not_taken_for_a_stop() {
     let robot = RobotDescription::nori_a3();
@@ -406,6 +420,7 @@ fn a_stall_under_gravity_is_not_taken_for_a_stop() {
         .find(|s| s.target.joint == "left_shoulder_roll")
         .unwrap();
     roll.torque_permille = 100;
+    let id = roll.target.id;
     let bus = changed_arm(|_| {});
     let refusals = refused(&bus, plan);
     assert!(
@@ -413,6 +428,10 @@ fn a_stall_under_gravity_is_not_taken_for_a_stop() {
         "{refusals:?}"
     );
     assert!(refusals[0].to_string().contains("too low for its load"));
+    // Refused by the session and driven back before its firmware's bound left it with no
+    // output under the arm's weight.
+    let trips = bus.borrow_mut().servo_mut(id).unwrap().log.overload_trips;
+    assert_eq!(trips, 0, "the firmware ended the strain, not the session");
 }
 
 /// A shoulder whose over-current protection is set at 1 A (not as the driver sets it up): it
@@ -506,6 +525,31 @@ fn a_session_stopped_mid_sweep_leaves_every_servo_as_found() {
     }
 }
 
+/// A torque limit that leaves no whole percent between the stall rule's 80 % of it and itself
+/// leaves the firmware no press bound: refused before any servo is touched.
+#[test]
+fn a_plan_whose_limit_leaves_no_press_bound_is_refused_before_anything_moves() {
+    let robot = RobotDescription::nori_a3();
+    let mut plan = plan(&robot);
+    plan.sweeps[0].torque_permille = 40;
+    let bus = changed_arm(|_| {});
+    let before = bus.borrow().time();
+    let line = Bus::new(line(&bus), Duration::from_micros(600));
+    let Err(e) = Automatic::start(line, plan, before) else {
+        panic!("started")
+    };
+    assert!(matches!(e, SessionError::NoPressBound { .. }), "{e}");
+    assert!(e.to_string().contains("limit of 4 %"), "{e}");
+    let mut b = bus.borrow_mut();
+    for id in 1..=8 {
+        assert_eq!(
+            b.servo_mut(id).unwrap().log.last_torque_write,
+            None,
+            "servo {id}"
+        );
+    }
+}
+
 /// Killed in the middle of a sweep (SIGKILL: no Drop, nothing more on the line) while the
 /// elbow turns toward its lower stop in speed mode: reaching it, the elbow's own firmware ends
 /// the press within the session's bound (1 s above 90 % of the sweep's torque limit), and its
@@ -515,6 +559,12 @@ fn a_session_stopped_mid_sweep_leaves_every_servo_as_found() {
 fn a_session_killed_mid_sweep_leaves_no_motor_pressing_its_stop() {
     let robot = RobotDescription::nori_a3();
     let bus = changed_arm(|_| {});
+    // Its overload protection not enabled (the session enables it for the sweep).
+    assert!(bus
+        .borrow_mut()
+        .servo_mut(4)
+        .unwrap()
+        .write(reg::UNLOADING_CONDITION.addr, &[0x0C]));
     let mut t = bus.borrow().time();
     let line = Bus::new(line(&bus), Duration::from_micros(600));
     let mut session = Automatic::start(line, plan(&robot), t).unwrap();
