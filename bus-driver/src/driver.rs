@@ -112,18 +112,18 @@ pub enum SetupError {
         /// What the calibration says.
         expected: [i32; 3],
     },
-    /// Two readings of the position taken one after the other disagree: one of them is a
-    /// reply the checksum let through, and the first goal must not be it.
+    /// No two readings of the position in a row agreed: a reply the checksum let through, or
+    /// a joint moving, and the first goal must not be a wrong one.
     #[error(
         "servo {id} read at {first} then at {second} steps: not one position to hold (a \
-         corrupted reply?); set up again shortly"
+         corrupted reply, or the joint moving?); set up again shortly"
     )]
     UnsteadyPosition {
         /// Servo id.
         id: u8,
-        /// The first reading, steps.
+        /// The last reading but one, steps.
         first: i32,
-        /// The second, steps.
+        /// The last, steps.
         second: i32,
     },
     /// The servo is not the configured model.
@@ -139,6 +139,30 @@ pub enum SetupError {
         /// `Model_Number` read.
         found: i32,
     },
+}
+
+/// Position reads a setup makes at most to find two in a row that agree.
+const POSITION_READS: usize = 4;
+
+/// Where servo `id` is, for its first goal: the second of the first two readings in a row that
+/// agree within [`crate::plausibility::POSITION_STEP`], so that a reply with two flipped bits
+/// the checksum let through (a sign bit: clamped to the range's end) is never it. A joint read
+/// moving is read again (its torque is off meanwhile), at most [`POSITION_READS`] times.
+fn steady_position<T: Transport>(bus: &mut Bus<T>, id: u8) -> Result<i32, SetupError> {
+    let mut last = bus.read(id, reg::PRESENT_POSITION)?;
+    let mut before = last;
+    for _ in 1..POSITION_READS {
+        let next = bus.read(id, reg::PRESENT_POSITION)?;
+        if f64::from((next - last).abs()) <= crate::plausibility::POSITION_STEP {
+            return Ok(next);
+        }
+        (before, last) = (last, next);
+    }
+    Err(SetupError::UnsteadyPosition {
+        id,
+        first: before,
+        second: last,
+    })
 }
 
 /// Counters of the driver, for telemetry.
@@ -326,6 +350,9 @@ impl<T: Transport> Driver<T> {
     pub fn new(config: &LoadedConfig, transports: Vec<T>) -> Self {
         let c = &config.config;
         let margin = std::time::Duration::from_micros(c.reply_timeout_margin_us);
+        // A reading after more than two periods' silence (at least the gate's own 0.2 s) waits
+        // for confirmation: at a slow rate every reading would otherwise be one.
+        let silence_s = (2.5 / c.rate_hz.max(1.0)).max(crate::plausibility::SILENCE_S);
         let mut joints = Vec::new();
         let mut buses = Vec::new();
         for (bus_config, transport) in c.bus.iter().zip(transports) {
@@ -355,7 +382,7 @@ impl<T: Transport> Driver<T> {
                     torque_wanted: 0,
                     torque_written: 0,
                     cutoff: CutoffWatch::default(),
-                    gate: FeedbackGate::default(),
+                    gate: FeedbackGate::with_silence(silence_s),
                     misses: 0,
                     setup_fails: 0,
                     next_setup: 0,
@@ -665,18 +692,7 @@ impl<T: Transport> Driver<T> {
         bus.write(id, reg::TORQUE_LIMIT, i32::from(torque))?;
         let goal = match (mode, calibration) {
             (Mode::Position, Some(cal)) => {
-                // The first goal is where it is: read twice, so that a reply with two flipped
-                // bits the checksum let through (a sign bit: clamped to the range's end) is
-                // never it.
-                let first = bus.read(id, reg::PRESENT_POSITION)?;
-                let present = bus.read(id, reg::PRESENT_POSITION)?;
-                if f64::from((present - first).abs()) > crate::plausibility::POSITION_STEP {
-                    return Err(SetupError::UnsteadyPosition {
-                        id,
-                        first,
-                        second: present,
-                    });
-                }
+                let present = steady_position(bus, id)?;
                 let goal = present.clamp(cal.range_min, cal.range_max);
                 bus.write(id, reg::GOAL_POSITION, goal)?;
                 goal

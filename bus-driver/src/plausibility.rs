@@ -72,21 +72,40 @@ pub fn plausible(a: &FeedbackBlock, b: &FeedbackBlock, dt_s: f64) -> bool {
 }
 
 /// One joint's gate: the last accepted reading, and the one held back.
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone)]
 pub struct FeedbackGate {
     accepted: Option<(FeedbackBlock, f64)>,
     held: Option<(FeedbackBlock, f64)>,
+    /// A reading this long after the last one judged is no history, s.
+    silence_s: f64,
+}
+
+impl Default for FeedbackGate {
+    fn default() -> Self {
+        FeedbackGate::with_silence(SILENCE_S)
+    }
 }
 
 impl FeedbackGate {
+    /// A gate for which a reading `silence_s` or more after the last is no history (a loop
+    /// slower than 10 Hz needs more than [`SILENCE_S`]).
+    pub fn with_silence(silence_s: f64) -> Self {
+        FeedbackGate {
+            accepted: None,
+            held: None,
+            silence_s,
+        }
+    }
+
     /// Judges the reading `fb` taken at `now_s`: true to publish it, false to hold it back
     /// (a missing sample this read).
     pub fn admit(&mut self, fb: &FeedbackBlock, now_s: f64) -> bool {
         // With no history (a first reading, after a reset or a silence) nothing follows: the
         // reading is held until the next confirms it.
+        let silence_s = self.silence_s;
         let follows = |r: &Option<(FeedbackBlock, f64)>| {
             r.as_ref()
-                .is_some_and(|(prev, t)| now_s - t <= SILENCE_S && plausible(prev, fb, now_s - t))
+                .is_some_and(|(prev, t)| now_s - t <= silence_s && plausible(prev, fb, now_s - t))
         };
         if follows(&self.accepted) || follows(&self.held) {
             self.accepted = Some((*fb, now_s));
@@ -100,7 +119,7 @@ impl FeedbackGate {
 
     /// Forgets the history (the servo was set up again, or its bus reopened).
     pub fn reset(&mut self) {
-        *self = FeedbackGate::default();
+        *self = FeedbackGate::with_silence(self.silence_s);
     }
 }
 
@@ -155,9 +174,9 @@ mod tests {
         let mut g = primed(&block(2048, 40, 120));
         assert!(!g.admit(&block(2048 ^ (1 << 9), 40, 120), DT));
         assert!(g.admit(&block(2048 ^ 1, 40, 120), 2.0 * DT));
-        // A supply jump of 2.5 V in one read is held; the same drift over 0.19 s is not.
-        assert!(!g.admit(&block(2049, 40, 95), 3.0 * DT));
+        // A supply drift of 2.5 V over 0.19 s is accepted; the same jump in one read is held.
         assert!(g.admit(&block(2049, 40, 95), 2.0 * DT + 0.19));
+        assert!(!g.admit(&block(2049, 40, 120), 3.0 * DT + 0.19));
     }
 
     #[test]
@@ -220,6 +239,22 @@ mod tests {
             "after a reset, the same"
         );
         assert!(g.admit(&block(1001, 45, 120), 4.0 * DT));
+    }
+
+    /// A held reading confirms nothing after a silence either; a slow loop's gate waits longer.
+    #[test]
+    fn a_silence_makes_the_held_reading_no_history_too() {
+        let mut g = primed(&block(2048, 40, 120));
+        assert!(!g.admit(&block(2048, 40, 248), DT), "a glitch held");
+        assert!(g.admit(&block(2048, 40, 120), 2.0 * DT));
+        assert!(!g.admit(&block(2048, 40, 248), 3.0 * DT), "held again");
+        // The same glitch again after a silence: the held one is no history.
+        assert!(!g.admit(&block(2048, 40, 248), 3.0 * DT + SILENCE_S + DT));
+        // At 5 Hz, two periods and a half: each reading follows the last.
+        let mut slow = FeedbackGate::with_silence(0.5);
+        assert!(!slow.admit(&block(2048, 40, 120), 0.0));
+        assert!(slow.admit(&block(2048, 40, 120), 0.2));
+        assert!(slow.admit(&block(2050, 40, 120), 0.4));
     }
 
     #[test]

@@ -176,10 +176,13 @@ const POSE_HELD_RAD: f64 = 0.15;
 /// Longest a move to a pose or to rest may take beyond its travel at the speed, s.
 const MOVE_SLACK_S: f64 = 5.0;
 /// Longest a swept joint may push above its press bound's threshold without standing still
-/// before the session refuses it and drives it back, s: it strains against a load its limit
-/// cannot move, or something gives way. Half the firmware's time below, which would leave it
-/// with no output where it strains (the roll under the arm's weight).
+/// (that is a stop) before the session refuses it and drives it back, s: it strains against a
+/// load its limit cannot move, or something gives way. Half the firmware's time below, which
+/// would end the push wherever it is, moving or not, and leave it with no output there (the
+/// roll under the arm's weight).
 const STRAIN_S: f64 = 0.5;
+/// Readings in a row under the threshold that end a strain (one reading's noise does not).
+const STRAIN_LOW_READINGS: u8 = 5;
 /// The firmware's own bound on a press while a joint turns in speed mode (from its first drive
 /// toward a stop until it is calibrated and held by position): an output above this share of
 /// its torque limit (above the stall rule's [`PUSHING_SHARE`], so the rule fires first)...
@@ -227,6 +230,8 @@ struct Seeking {
     detector: StallDetector,
     /// Since when it has pushed above its press bound's threshold, s.
     pushing_since: Option<f64>,
+    /// Readings in a row below that threshold.
+    low_readings: u8,
 }
 
 /// A refused joint driven back to where its sweep began.
@@ -560,6 +565,7 @@ impl<T: Transport> Automatic<T> {
             from_rad,
             detector: self.detector(k),
             pushing_since: None,
+            low_readings: 0,
         }))
     }
 
@@ -704,8 +710,18 @@ impl<T: Transport> Automatic<T> {
         // Above the firmware's threshold (a light joint moves at its stall rule's effort).
         let limit = self.joints[k].plan.torque_permille;
         let threshold = overload_percent(limit).map_or(i32::from(limit), |p| 10 * p);
-        let straining = load.abs() > threshold;
-        seeking.pushing_since = straining.then(|| seeking.pushing_since.unwrap_or(now_s));
+        // Above the threshold without a break of a few readings (one reading's noise is
+        // none): the firmware's own clock restarts at any one reading under it, so this
+        // one runs ahead of it.
+        if load.abs() > threshold {
+            seeking.low_readings = 0;
+            seeking.pushing_since.get_or_insert(now_s);
+        } else {
+            seeking.low_readings = seeking.low_readings.saturating_add(1);
+            if seeking.low_readings >= STRAIN_LOW_READINGS {
+                seeking.pushing_since = None;
+            }
+        }
         if !stalled && seeking.pushing_since.is_some_and(|t| now_s - t >= STRAIN_S) {
             return Ok(self.return_refused(k, Refusal::Strained { joint }, now_s));
         }
@@ -956,18 +972,21 @@ impl<T: Transport> Automatic<T> {
         let mut first_error = None;
         for k in 0..self.joints.len() {
             let j = &self.joints[k];
-            let values = [
-                (reg::TORQUE_ENABLE, 0),
+            let taken = j.taken.clone();
+            let rest: Vec<_> = [
                 (reg::GOAL_VELOCITY, 0),
                 (reg::OPERATING_MODE, 0),
                 (reg::TORQUE_LIMIT, j.torque_limit),
             ]
             .into_iter()
-            .chain(press_unbound(j));
-            let values: Vec<_> = values.collect();
-            let taken = j.taken.clone();
-            if let Err(e) = write_checked(&mut self.bus, &taken, &values, false) {
-                first_error.get_or_insert(e);
+            .chain(press_unbound(j))
+            .collect();
+            // The torque off first and on its own: a failure there does not keep the rest
+            // (the driver's overload protection among it) from being written.
+            for values in [&[(reg::TORQUE_ENABLE, 0)][..], &rest] {
+                if let Err(e) = write_checked(&mut self.bus, &taken, values, false) {
+                    first_error.get_or_insert(e);
+                }
             }
         }
         if !done {

@@ -196,14 +196,15 @@ fn each_zero_within_a_degree_and_no_stop_pressed_above_the_torque_limit_over_see
         }
         let t0 = bus.borrow().time();
         let chosen = run(&bus, plan.clone()).unwrap();
-        // The press bound (1 s) is never near: a sweep reverses at a stop within 0.16 s.
+        // The press bound (1 s) and the strain rule (0.5 s) are never near: a sweep reverses
+        // at a stop within 0.16 s.
         let (above, doing) = ABOVE_OVERLOAD.with(|a| {
             let a = a.borrow();
             let (_, s, d) = a.iter().max_by(|x, y| x.1.total_cmp(&y.1)).unwrap();
             (*s, d.clone())
         });
         assert!(
-            above < 0.5,
+            above < 0.25,
             "seed {seed}: above the overload threshold {above} s in {doing}"
         );
         longest_above = longest_above.max(above);
