@@ -568,13 +568,17 @@ fn a_robot_off_the_line_calibrates_itself_with_every_zero_within_a_degree() {
     std::thread::sleep(Duration::from_millis(1200));
     assert_eq!(all_torque_off(&stack), 0, "a servo was touched");
 
-    // Twice the shipped speed, and the torque the description's rule asks for it (the light
-    // joints' 10–15 % to 20 %), to keep the test to two minutes; the shipped plan runs in
-    // memory (`commission/tests/automatic.rs`).
+    // Twice the shipped speed, and the torque it asks for (the light joints' 10–15 % to 25 %,
+    // the elbow's and the bicep's 20 % to 30 %: at the shipped ones the wrist roll and the
+    // elbow moving at 0.6 rad/s stayed above their press bound's 90 % and were refused as
+    // straining; the shoulders keep theirs, which a harder press would push past the travel's
+    // tolerance), to keep the test to two minutes; the shipped plan runs in memory
+    // (`commission/tests/automatic.rs`).
     let robot = body::description::NORI_A3_TOML
         .replace("speed-rad-s = 0.3", "speed-rad-s = 0.6")
-        .replace("torque-percent = 10 }", "torque-percent = 20 }")
-        .replace("torque-percent = 15 }", "torque-percent = 20 }");
+        .replace("torque-percent = 10 }", "torque-percent = 25 }")
+        .replace("torque-percent = 15 }", "torque-percent = 25 }")
+        .replace("torque-percent = 20 }", "torque-percent = 30 }");
     let described = stack.dir.join("robot.toml");
     std::fs::write(&described, robot).unwrap();
     let description = body::description::RobotDescription::load(&described).unwrap();
