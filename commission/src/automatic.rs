@@ -195,10 +195,11 @@ const OVERLOAD_TIME: i32 = 100;
 /// session lives, its own rules (the stall, [`STRAIN_S`]) act first.
 const PROTECTIVE_PERCENT: i32 = 0;
 /// The registers of that bound, and `Unloading_Condition` with its overload bit.
+/// The driver's own list, so the bound and what is given back name the same registers.
 const PRESS_BOUND: [reg::Register; 4] = [
-    reg::OVERLOAD_TORQUE,
-    reg::PROTECTION_TIME,
-    reg::PROTECTIVE_TORQUE,
+    OVERLOAD_PROTECTION[0].0,
+    OVERLOAD_PROTECTION[1].0,
+    OVERLOAD_PROTECTION[2].0,
     reg::UNLOADING_CONDITION,
 ];
 
