@@ -583,3 +583,72 @@ pub fn encode(register: Register, value: i32) -> Result<u16, BusError> {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A line that answers each request sent with the status packets scripted for it.
+    struct Scripted {
+        answers: std::collections::VecDeque<Vec<StatusPacket<'static>>>,
+        incoming: Vec<u8>,
+    }
+
+    impl Transport for Scripted {
+        fn baud(&self) -> u32 {
+            1_000_000
+        }
+        fn send(&mut self, _: &[u8]) -> Result<(), TransportError> {
+            for packet in self.answers.pop_front().unwrap_or_default() {
+                let mut out = [0u8; MAX_PACKET];
+                let n = packet.encode(&mut out).unwrap_or(0);
+                self.incoming.extend_from_slice(&out[..n]);
+            }
+            Ok(())
+        }
+        fn receive(&mut self, buf: &mut [u8], _: Duration) -> Result<usize, TransportError> {
+            let n = buf.len().min(self.incoming.len());
+            buf[..n].copy_from_slice(&self.incoming[..n]);
+            self.incoming.drain(..n);
+            Ok(n)
+        }
+        fn discard_input(&mut self) -> Result<(), TransportError> {
+            self.incoming.clear();
+            Ok(())
+        }
+    }
+
+    fn status(id: u8, params: &'static [u8]) -> StatusPacket<'static> {
+        StatusPacket {
+            id,
+            status: ServoStatus::default(),
+            params,
+        }
+    }
+
+    /// A servo at the factory's return delay answers a read-back after the host stopped
+    /// waiting; its late answer, parameters and all, arrives while the next setup pings it.
+    /// That is one servo, not two: only a parameterless answer answers a PING.
+    #[test]
+    fn a_late_answer_to_a_read_is_not_a_second_servo_at_the_id() {
+        let late = status(3, &[0; 10]);
+        let mut bus = Bus::new(
+            Scripted {
+                answers: [vec![late, status(3, &[])]].into(),
+                incoming: Vec::new(),
+            },
+            Duration::from_millis(2),
+        );
+        let heard = bus.alone_at(3);
+        assert!(heard.is_ok(), "{heard:?}");
+        let twin = Scripted {
+            answers: [vec![status(3, &[]), status(3, &[])]].into(),
+            incoming: Vec::new(),
+        };
+        let mut bus = Bus::new(twin, Duration::from_millis(2));
+        assert!(matches!(
+            bus.alone_at(3),
+            Err(BusError::NotAlone { answers: 2, .. })
+        ));
+    }
+}
