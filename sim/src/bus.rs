@@ -52,6 +52,8 @@ pub struct LineStats {
     pub late_bursts: u64,
     /// Worst lateness of a reply burst, µs.
     pub max_lateness_us: f64,
+    /// Answers cut because the host sent its next request before they were sent.
+    pub replies_talked_over: u64,
     /// Faults injected into status packets (see [`crate::faults`]).
     pub faults: crate::faults::FaultCounts,
 }
@@ -933,6 +935,45 @@ mod tests {
         assert!((due - (60e-6 + 500e-6 + 60e-6)).abs() < 1e-9, "{due}");
         assert!(bus.pop_due(due - 1e-6).is_none());
         assert_eq!(bus.pop_due(due).unwrap().bytes, [0xFF, 0xFF, 1, 2, 0, 0xFC]);
+    }
+
+    /// A host that sends before the servos have finished answering talks over them (a
+    /// half-duplex line): what they had not yet sent is lost, and the new request is answered
+    /// from its own arrival. Servos do not queue requests, so a host sending faster than the
+    /// answers fit (eight servos at the factory's 500 µs return delay read every 5 ms) never
+    /// sees answers later and later, seconds behind.
+    #[test]
+    fn a_request_sent_over_unfinished_answers_cuts_them_and_is_answered_at_once() {
+        let mut bus = left_arm();
+        let ids: Vec<u8> = bus.servos.iter().map(|s| s.id).collect();
+        let read = Instruction::SyncRead {
+            addr: 56,
+            len: 15,
+            ids: &ids,
+        };
+        let period = 5e-3;
+        let mut t = bus.time();
+        for _ in 0..200 {
+            let mut buf = [0u8; 300];
+            let n = read.encode(&mut buf).unwrap();
+            bus.receive(t, &buf[..n]);
+            t += period;
+            while bus.pop_due(t).is_some() {}
+        }
+        let mut buf = [0u8; 300];
+        let n = Instruction::Ping { id: 1 }.encode(&mut buf).unwrap();
+        bus.receive(t, &buf[..n]);
+        let due = bus.next_due().unwrap() - t;
+        assert!(
+            (due - (60e-6 + 500e-6 + 60e-6)).abs() < 1e-9,
+            "the ping answered {:.1} ms after it was sent",
+            due * 1e3
+        );
+        assert_eq!(
+            bus.pop_due(f64::MAX).unwrap().bytes,
+            [0xFF, 0xFF, 1, 2, 0, 0xFC]
+        );
+        assert!(bus.stats.replies_talked_over > 0);
     }
 
     #[test]
