@@ -447,16 +447,13 @@ impl<T: Transport> Bus<T> {
             let before = self.counters;
             self.send(Instruction::Ping { id })?;
             let mut heard = Heard::default();
-            self.collect_until(Instant::now() + budget, |_, status| {
-                heard.replies.push(Reply::of(status));
-                true
-            })?;
+            self.collect_until(Instant::now() + budget, |c, status| heard.take(c, status))?;
             if heard.replies.is_empty() && damage(&before, &self.counters) == 0 {
                 std::thread::sleep(self.margin);
                 continue;
             }
-            self.collect_until(Instant::now() + window, |_, status| {
-                heard.replies.push(Reply::of(status));
+            self.collect_until(Instant::now() + window, |c, status| {
+                heard.take(c, status);
                 false
             })?;
             heard.damaged = damage(&before, &self.counters);
@@ -535,6 +532,21 @@ pub struct Heard {
     /// Damaged packets (bad checksum or framing) and runs of bytes that were no packet: on a
     /// clean line, two servos that talked at once.
     pub damaged: u64,
+}
+
+impl Heard {
+    /// Keeps `status` if it answers a PING (no parameters: one with data is a late answer to
+    /// an earlier read, from a servo slower than the host waited for, and counted as
+    /// unexpected); returns whether it did.
+    fn take(&mut self, counters: &mut BusCounters, status: &StatusPacket) -> bool {
+        let answers = status.params.is_empty();
+        if answers {
+            self.replies.push(Reply::of(status));
+        } else {
+            counters.unexpected_replies += 1;
+        }
+        answers
+    }
 }
 
 /// Damaged packets and runs of bytes that were no packet between two counts: on a clean line,

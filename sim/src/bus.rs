@@ -157,6 +157,8 @@ pub struct SimBus {
     arrival: f64,
     decoder: Decoder,
     line_free_at: f64,
+    /// When the host's last request has been sent.
+    request_end: f64,
     pending: VecDeque<Reply>,
     registered: Vec<Option<(u8, Vec<u8>)>>,
     /// Protocol counters.
@@ -251,6 +253,7 @@ impl SimBus {
             arrival: 0.0,
             decoder: Decoder::new(),
             line_free_at: 0.0,
+            request_end: 0.0,
             pending: VecDeque::new(),
             stats: LineStats::default(),
             epoch_monotonic_ns: 0,
@@ -717,10 +720,14 @@ impl SimBus {
         };
         self.stats.instructions += 1;
         let instruction_number = self.stats.instructions;
-        // The request occupies the line first; replies follow it back to back.
+        // The request occupies the line first; replies follow it back to back. The host's
+        // own packets follow each other; one sent before the servos finished answering talks
+        // over them (a half-duplex line queues nothing): what they had yet to send is lost.
         let request_bytes = frame.params().len() + 6;
-        let start = self.line_free_at.max(self.arrival);
-        self.line_free_at = start + wire_time(request_bytes, self.host_baud).as_secs_f64();
+        let start = self.request_end.max(self.arrival);
+        self.talk_over(start);
+        self.request_end = start + wire_time(request_bytes, self.host_baud).as_secs_f64();
+        self.line_free_at = self.request_end;
         match instruction {
             Instruction::Ping { id: BROADCAST_ID } => {
                 self.answer_broadcast_ping(instruction_number)
@@ -834,6 +841,14 @@ impl SimBus {
             line.put(at, &out[..n], byte_s);
         }
         self.put_on_line(line, instruction);
+    }
+
+    /// The host starts sending at `at`: answers not wholly sent by then are cut.
+    fn talk_over(&mut self, at: f64) {
+        while self.pending.back().is_some_and(|r| r.due > at) {
+            self.pending.pop_back();
+            self.stats.replies_talked_over += 1;
+        }
     }
 
     /// Schedules what the servos put on the line, through the line faults.

@@ -29,13 +29,25 @@ fn nori(args: &[&str], domain: &str) -> Output {
 #[test]
 fn a_driver_on_a_subset_of_buses_is_reenabled_and_moved_by_name() {
     let mut stack = ArmStack::simulator_only_on("names", "right_arm", &[]);
-    std::fs::write(stack.trips(), "right_shoulder_pitch\n").unwrap();
     stack.restart_supervisor();
     stack.restart_driver();
     let node = Plane::open(&stack.domain, "test").unwrap();
     let states = node.subscriber(&plane::JOINT_STATE).unwrap();
     let all_valid =
         |s: &telemetry::JointState| s.joint_count == 8 && s.joints().iter().all(|j| j.is_valid());
+    let all_on = |s: &telemetry::JointState| {
+        all_valid(s)
+            && s.joints()
+                .iter()
+                .all(|j| j.torque_enabled == 1 && j.flags == 0)
+    };
+    // A robot that ran (its servos set up), then tripped: the record read at the restart.
+    wait_for(Duration::from_secs(20), "the right arm set up", || {
+        newest(&states).filter(|s| all_on(s))
+    });
+    std::fs::write(stack.trips(), "right_shoulder_pitch\n").unwrap();
+    stack.restart_supervisor();
+    stack.restart_driver();
     wait_for(
         Duration::from_secs(20),
         "the right arm latched off, directed",
@@ -69,14 +81,7 @@ fn a_driver_on_a_subset_of_buses_is_reenabled_and_moved_by_name() {
     wait_for(
         Duration::from_secs(20),
         "the right arm back, torque on",
-        || {
-            newest(&states).filter(|s| {
-                all_valid(s)
-                    && s.joints()
-                        .iter()
-                        .all(|j| j.torque_enabled == 1 && j.flags == 0)
-            })
-        },
+        || newest(&states).filter(|s| all_on(s)),
     );
 
     // Moved by name: the right elbow (the driver's joint 3) takes the goal and goes there.
