@@ -229,10 +229,36 @@ struct Seeking {
     /// Where it was when this drive began, unwrapped, rad.
     from_rad: f64,
     detector: StallDetector,
-    /// Since when it has pushed above its press bound's threshold, s.
-    pushing_since: Option<f64>,
-    /// Readings in a row below that threshold.
+    strain: StrainWatch,
+}
+
+/// How long a swept joint has pushed above its press bound's threshold, either way (the
+/// load's sign is the direction it pushes), without a break of [`STRAIN_LOW_READINGS`]
+/// readings under it: the firmware's own clock restarts at any one reading under it, so this
+/// one runs ahead of it.
+#[derive(Debug, Default)]
+struct StrainWatch {
+    /// Since when it has pushed above the threshold, s.
+    since: Option<f64>,
+    /// Readings in a row below it.
     low_readings: u8,
+}
+
+impl StrainWatch {
+    /// Takes one reading of `load` (0.1 %) at `now_s`; whether it has pushed above
+    /// `threshold` (0.1 %) for [`STRAIN_S`].
+    fn strained(&mut self, load: i32, threshold: i32, now_s: f64) -> bool {
+        if load.abs() > threshold {
+            self.low_readings = 0;
+            self.since.get_or_insert(now_s);
+        } else {
+            self.low_readings = self.low_readings.saturating_add(1);
+            if self.low_readings >= STRAIN_LOW_READINGS {
+                self.since = None;
+            }
+        }
+        self.since.is_some_and(|t| now_s - t >= STRAIN_S)
+    }
 }
 
 /// A refused joint driven back to where its sweep began.
@@ -565,8 +591,7 @@ impl<T: Transport> Automatic<T> {
             since,
             from_rad,
             detector: self.detector(k),
-            pushing_since: None,
-            low_readings: 0,
+            strain: StrainWatch::default(),
         }))
     }
 
@@ -711,19 +736,8 @@ impl<T: Transport> Automatic<T> {
         // Above the firmware's threshold (a light joint moves at its stall rule's effort).
         let limit = self.joints[k].plan.torque_permille;
         let threshold = overload_percent(limit).map_or(i32::from(limit), |p| 10 * p);
-        // Above the threshold without a break of a few readings (one reading's noise is
-        // none): the firmware's own clock restarts at any one reading under it, so this
-        // one runs ahead of it.
-        if load.abs() > threshold {
-            seeking.low_readings = 0;
-            seeking.pushing_since.get_or_insert(now_s);
-        } else {
-            seeking.low_readings = seeking.low_readings.saturating_add(1);
-            if seeking.low_readings >= STRAIN_LOW_READINGS {
-                seeking.pushing_since = None;
-            }
-        }
-        if !stalled && seeking.pushing_since.is_some_and(|t| now_s - t >= STRAIN_S) {
+        let strained = seeking.strain.strained(load, threshold, now_s);
+        if !stalled && strained {
             return Ok(self.return_refused(k, Refusal::Strained { joint }, now_s));
         }
         let progress = Progress::Working(k, Activity::Seeking(toward, moved));
@@ -1073,6 +1087,30 @@ fn stall_config() -> supervisor::config::StallConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A push above the threshold either way (the load's sign is its direction) for
+    /// [`STRAIN_S`] is a strain; four readings under it do not end the count, five do; at the
+    /// threshold is not above it.
+    #[test]
+    fn a_strain_is_a_push_above_the_threshold_either_way_for_half_a_second() {
+        // A reading every 1/64 s (exact in binary): STRAIN_S is 32 readings after the first.
+        let period = 1.0 / 64.0;
+        let after = (STRAIN_S / period) as usize;
+        let run = |loads: &dyn Fn(usize) -> i32| {
+            let mut watch = StrainWatch::default();
+            (0..200).find(|&i| watch.strained(loads(i), 270, i as f64 * period))
+        };
+        for sign in [1, -1] {
+            assert_eq!(run(&|_| sign * 271), Some(after), "sign {sign}");
+            assert_eq!(run(&|_| sign * 270), None, "at the threshold, sign {sign}");
+            // Four low readings in the middle: the count goes on from the first push.
+            let gap4 = |i: usize| if (10..14).contains(&i) { 0 } else { sign * 300 };
+            assert_eq!(run(&gap4), Some(after), "sign {sign}");
+            // Five: it starts again after them.
+            let gap5 = |i: usize| if (10..15).contains(&i) { 0 } else { sign * 300 };
+            assert_eq!(run(&gap5), Some(15 + after), "sign {sign}");
+        }
+    }
 
     #[test]
     fn the_press_bound_lies_between_the_stall_rule_and_the_limit() {

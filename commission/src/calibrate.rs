@@ -211,6 +211,12 @@ pub enum Refusal {
     },
 }
 
+/// How far inside each stop a joint's limits are put, rad: 5°, for both calibrations. Each
+/// joint of the simulated arm, driven at full speed to a range's end 1.5° from its stop,
+/// strikes the stop (0.8–4.2 rad/s, the simulator's witness): a servo runs on past its goal.
+/// The 2° of #40 waits for the driver to slow that approach (`docs/commissioning.md`).
+pub const LIMIT_MARGIN_RAD: f64 = 5.0 * std::f64::consts::PI / 180.0;
+
 /// The calibration of a joint from its sweep: `margin_rad` inside each stop, refused when the
 /// sweep differs from the description's travel by more than `tolerance_rad`.
 pub fn choose(

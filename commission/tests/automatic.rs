@@ -20,7 +20,7 @@ use sim::{RobotDescription, SimBus};
 use std::cell::RefCell;
 use std::time::Duration;
 
-const MARGIN_RAD: f64 = 5.0 * std::f64::consts::PI / 180.0;
+use commission::calibrate::LIMIT_MARGIN_RAD as MARGIN_RAD;
 const TOLERANCE_RAD: f64 = 0.05;
 
 fn plan(robot: &RobotDescription) -> Plan {
@@ -176,7 +176,8 @@ fn read_at(
 fn each_zero_within_a_degree_and_no_stop_pressed_above_the_torque_limit_over_seeds() {
     let robot = RobotDescription::nori_a3();
     let plan = plan(&robot);
-    let (mut worst_zero, mut least_inside, mut hardest): (f64, f64, u16) = (0.0, f64::MAX, 0);
+    let (mut worst_zero, mut hardest): (f64, u16) = (0.0, 0);
+    let (mut least_inside, mut most_inside) = (f64::MAX, 0f64);
     let mut longest_above: f64 = 0.0;
     for seed in 1..=8 {
         let mut rng = Rng::new(seed);
@@ -239,13 +240,13 @@ fn each_zero_within_a_degree_and_no_stop_pressed_above_the_torque_limit_over_see
             // Each limit, where the joint truly is when it reads there, inside its stop.
             let (lo, hi) = cal.range_rad();
             let inside = [lo - zero - stops.lower_rad, stops.upper_rad - (hi - zero)];
-            for d in inside {
-                least_inside = least_inside.min(d.to_degrees());
+            for d in inside.map(f64::to_degrees) {
+                least_inside = least_inside.min(d);
+                most_inside = most_inside.max(d);
                 assert!(
-                    d > MARGIN_RAD - 1f64.to_radians(),
-                    "seed {seed}: {} has a limit {:.2}° inside its stop",
+                    d > MARGIN_RAD.to_degrees() - 1.0,
+                    "seed {seed}: {} has a limit {d:.2}° inside its stop",
                     c.joint,
-                    d.to_degrees()
                 );
             }
             let pressed = bus
@@ -265,7 +266,7 @@ fn each_zero_within_a_degree_and_no_stop_pressed_above_the_torque_limit_over_see
         eprintln!("seed {seed}: calibrated in {took:.0} s of simulated time");
     }
     eprintln!(
-        "automatic, 8 seeds: worst zero {worst_zero:.2}°, least inside a stop {least_inside:.2}°, \
+        "automatic, 8 seeds: worst zero {worst_zero:.2}°, limits {least_inside:.2}–{most_inside:.2}° inside their stops, \
          hardest press {hardest} ‰, longest above the overload threshold {longest_above:.2} s"
     );
 }

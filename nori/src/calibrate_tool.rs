@@ -26,10 +26,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-/// How far inside each stop a joint's limits are put, rad: 5°. A joint driven at full speed
-/// to a limit runs up to 3.9° past it (the simulated arm), and the zero's error adds up to
-/// 0.7°: with 1.5° every joint reached its stop (docs/commissioning.md).
-const MARGIN_RAD: f64 = 5.0 * std::f64::consts::PI / 180.0;
+use commission::calibrate::LIMIT_MARGIN_RAD as MARGIN_RAD;
 /// How far the travel swept may differ from the description's before it is refused, rad
 /// (the stops' give under an operator's push is a few degrees).
 const TOLERANCE_RAD: f64 = 0.1;
