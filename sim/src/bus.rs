@@ -174,6 +174,8 @@ pub struct SimBus {
     truth: Vec<Option<[u8; FEEDBACK_LEN as usize]>>,
     /// An operator's hand sweeping the arm's joints (calibration by hand), when put on.
     hand: Option<crate::hand::Hand>,
+    /// Per servo: its joint was past a hard stop at the last step.
+    past_stop: Vec<bool>,
 }
 
 /// How far inside each stop the robot's calibration put a joint's limits (rad): the simulated
@@ -265,6 +267,7 @@ impl SimBus {
             faults: None,
             truth: vec![None; d.servo.len()],
             hand: None,
+            past_stop: vec![false; d.servo.len()],
         }
     }
 
@@ -558,7 +561,8 @@ impl SimBus {
     }
 
     /// Counts each arm joint or gripper its own motor pushes past a hard stop: the witness that
-    /// nothing the stack drives presses a stop (a calibration's limits inside them).
+    /// nothing the stack drives presses a stop (a calibration's limits inside them); and each
+    /// time one goes past a stop, with the speed it struck at.
     fn log_stop_presses(&mut self, dt: f64) {
         let Some(arm) = &self.arm else {
             return;
@@ -572,6 +576,13 @@ impl SimBus {
             let Some((lower, upper)) = stops else {
                 continue;
             };
+            let past = servo.angle > upper || servo.angle < lower;
+            if past && !self.past_stop[i] {
+                servo.log.stop_hits += 1;
+                let speed = servo.speed.abs().max(servo.log.stop_hit_max_speed_rad_s);
+                servo.log.stop_hit_max_speed_rad_s = speed;
+            }
+            self.past_stop[i] = past;
             // Its motor pushes it further in (a joint sagging past a stop under gravity while
             // its motor holds against it is not pressed by the motor).
             let into = (servo.angle > upper && servo.duty > 0.0)
@@ -1176,6 +1187,7 @@ mod tests {
             (0.0, 0),
             "at its limit"
         );
+        assert_eq!(log.stop_hits, 0, "at its limit, 0.15 rad inside its stop");
 
         bus.servos[elbow].clear_calibration();
         goal(&mut bus, 4095);
@@ -1183,6 +1195,9 @@ mod tests {
         let log = bus.servos[elbow].log;
         assert!(log.stop_press_s > 1.0, "{log:?}");
         assert!(log.stop_press_max_permille > 100, "{log:?}");
+        // Struck once at speed (it stays there, pressed).
+        assert_eq!(log.stop_hits, 1, "{log:?}");
+        assert!(log.stop_hit_max_speed_rad_s > 0.5, "{log:?}");
 
         let off = [0];
         send(

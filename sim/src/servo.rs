@@ -127,6 +127,10 @@ pub struct ServoLog {
     /// The most the motor pushed while pressing a stop, 0.1 % of full duty (comparable with
     /// Torque_Limit).
     pub stop_press_max_permille: u16,
+    /// Times its joint went past a hard stop (struck it, or sagged or was pushed onto it).
+    pub stop_hits: u64,
+    /// The fastest its joint went past a hard stop, rad/s: a strike's speed.
+    pub stop_hit_max_speed_rad_s: f64,
 }
 
 /// The registers the firmware consults every step, decoded once per write (not per step).
