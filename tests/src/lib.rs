@@ -268,6 +268,15 @@ pub fn agent_status(
     })
 }
 
+/// The emulator the process tests run under, if any: `deploy/arm64/cross.sh` runs them as arm64
+/// processes under qemu and says so in `NORI_EMULATED`. A timing there measures the emulator,
+/// so a test holds its safety invariants under it and only reports its timings.
+pub fn emulated() -> Option<String> {
+    std::env::var("NORI_EMULATED")
+        .ok()
+        .filter(|e| !e.is_empty())
+}
+
 /// A fresh scratch directory for one test.
 pub fn scratch(tag: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("nori-it-{tag}-{}", std::process::id()));

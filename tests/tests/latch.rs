@@ -1,7 +1,8 @@
 //! A bus a trip has latched off stays off from the moment the driver starts, whatever the start
 //! order of the processes, whether a supervisor is up at all, and in either safe state: the
 //! simulated servos (which log every write they receive) get no Torque_Enable = 1 and no goal
-//! until the operator's re-enable is granted. Then the bus comes back.
+//! until the operator's re-enable is granted. Then the bus comes back. The robot ran before
+//! its trip: a driver set its servos up and died with their torque on.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
@@ -22,6 +23,37 @@ enum Start {
 struct Run {
     report: Value,
     trips: String,
+    /// Each servo's torque-on and goal writes before the latched start.
+    before: Vec<(u64, u64)>,
+}
+
+/// Each servo's torque-on and goal writes in `report`.
+fn writes(report: &Value) -> Vec<(u64, u64)> {
+    (report["buses"][0]["servos"].as_array().unwrap().iter())
+        .map(|s| {
+            let n = |k: &str| s[k].as_u64().unwrap();
+            (n("torque_on_writes"), n("goal_writes"))
+        })
+        .collect()
+}
+
+/// A driver sets the arm's servos up (they hold their torque on, their replies prompt as a
+/// driver leaves them) and is killed; returns each servo's writes as the simulator then reports
+/// them.
+fn ran_before(stack: &mut ArmStack) -> Vec<(u64, u64)> {
+    stack.restart_driver();
+    let node = Plane::open(&stack.domain, "test-before").unwrap();
+    let states = node.subscriber(&plane::JOINT_STATE).unwrap();
+    wait_for(Duration::from_secs(20), "the arm set up", || {
+        newest(&states).filter(|s| {
+            s.joint_count == 8 && (s.joints().iter()).all(|j| j.is_valid() && j.torque_enabled == 1)
+        })
+    });
+    stack.driver.kill();
+    // The simulator's report, written every second, after the kill.
+    std::thread::sleep(Duration::from_millis(2200));
+    let report = std::fs::read_to_string(stack.dir.join("sim-report.json")).unwrap();
+    writes(&serde_json::from_str(&report).unwrap())
 }
 
 /// The left arm latched in the trip record before anything starts; the processes started in
@@ -29,6 +61,7 @@ struct Run {
 /// `reenable`, the operator's re-enable and the bus's return.
 fn run(tag: &str, order: Start, torque_off: bool, reenable: bool) -> Run {
     let mut stack = ArmStack::simulator_only(tag, &[]);
+    let before = ran_before(&mut stack);
     std::fs::write(stack.trips(), "left_shoulder_pitch\nleft_gripper\n").unwrap();
     if torque_off {
         let config = stack.dir.join("bus-driver.toml");
@@ -97,15 +130,17 @@ fn run(tag: &str, order: Start, torque_off: bool, reenable: bool) -> Run {
     Run {
         report: stack.stop(),
         trips,
+        before,
     }
 }
 
-/// Every servo of the left arm: no Torque_Enable = 1 and no goal ever received.
+/// Every servo of the left arm: no Torque_Enable = 1 and no goal received since the latched
+/// start, and its torque off.
 fn assert_never_energised(r: &Run, what: &str) {
-    for s in r.report["buses"][0]["servos"].as_array().unwrap() {
+    let servos = r.report["buses"][0]["servos"].as_array().unwrap();
+    for ((s, after), before) in servos.iter().zip(writes(&r.report)).zip(&r.before) {
         assert_eq!(
-            (s["torque_on_writes"].as_u64(), s["goal_writes"].as_u64()),
-            (Some(0), Some(0)),
+            after, *before,
             "{what}: {} received torque-on or goal writes while latched off: {s}",
             s["joint"]
         );
@@ -147,11 +182,8 @@ fn a_latched_bus_gets_no_torque_in_the_torque_off_safe_state() {
 fn the_operators_reenable_releases_the_latch_and_the_bus_comes_back() {
     let r = run("latch-release", Start::SupervisorFirst, false, true);
     assert_eq!(r.trips.trim(), "", "the record no longer latches the bus");
-    for s in r.report["buses"][0]["servos"].as_array().unwrap() {
-        assert!(
-            s["torque_on_writes"].as_u64().unwrap() >= 1,
-            "{} not set up again: {s}",
-            s["joint"]
-        );
+    let servos = r.report["buses"][0]["servos"].as_array().unwrap();
+    for ((s, after), before) in servos.iter().zip(writes(&r.report)).zip(&r.before) {
+        assert!(after.0 > before.0, "{} not set up again: {s}", s["joint"]);
     }
 }
