@@ -1088,7 +1088,7 @@ fn a_seeded_body_chaos_run_keeps_the_base_and_the_lift_safe() {
     // emulator every process is several times slower (0.28 m at most 0.141 m/s under qemu):
     // reported above, not held.
     if let Some(emulator) = nori_tests::emulated() {
-        eprintln!("under {emulator}: how far and how fast the base was driven, and how soon a new driver stopped the wheels, are not held to bounds");
+        eprintln!("under {emulator}: how far and how fast the base was driven are not held to bounds, and a new driver's stop of the wheels only to 10 s");
     } else {
         assert!(
             base["travelled_m"].as_f64().unwrap() > 0.5,
@@ -1151,13 +1151,16 @@ fn a_seeded_body_chaos_run_keeps_the_base_and_the_lift_safe() {
     // of all (about 0.65 s alone; 0.64–1.16 s with the lab and every process on two cores: more
     // than the 0.7 s the field counts, `driver-restart-ms`, an open item in docs/hazards.md).
     // Bounded by nothing but the restart: the servos have no watchdog. Under an emulator the
-    // new driver's start is the emulator's (1.2–5.6 s under qemu).
-    for t in after_driver
-        .iter()
-        .filter(|_| nori_tests::emulated().is_none())
-    {
+    // new driver's start is the emulator's (1.2–5.6 s under qemu): a loose bound there still
+    // catches a wheel that a new driver never stops.
+    let bound = if nori_tests::emulated().is_some() {
+        10_000.0
+    } else {
+        1500.0
+    };
+    for t in &after_driver {
         assert!(
-            *t <= 1500.0,
+            *t <= bound,
             "wheels stopped only {t} ms after the driver died: {after_driver:?}"
         );
     }

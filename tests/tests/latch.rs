@@ -25,6 +25,15 @@ struct Run {
     trips: String,
     /// Each servo's torque-on and goal writes before the latched start.
     before: Vec<(u64, u64)>,
+    /// The simulator's report while the bus was latched, before anything stopped (a driver
+    /// stopping turns every torque off).
+    latched: Value,
+}
+
+/// The simulator's newest report (written every second).
+fn sim_report(stack: &ArmStack) -> Value {
+    let report = std::fs::read_to_string(stack.dir.join("sim-report.json")).unwrap();
+    serde_json::from_str(&report).unwrap()
 }
 
 /// Each servo's torque-on and goal writes in `report`.
@@ -52,8 +61,7 @@ fn ran_before(stack: &mut ArmStack) -> Vec<(u64, u64)> {
     stack.driver.kill();
     // The simulator's report, written every second, after the kill.
     std::thread::sleep(Duration::from_millis(2200));
-    let report = std::fs::read_to_string(stack.dir.join("sim-report.json")).unwrap();
-    writes(&serde_json::from_str(&report).unwrap())
+    writes(&sim_report(stack))
 }
 
 /// The left arm latched in the trip record before anything starts; the processes started in
@@ -107,6 +115,7 @@ fn run(tag: &str, order: Start, torque_off: bool, reenable: bool) -> Run {
         });
     }
     std::thread::sleep(Duration::from_millis(1500));
+    let latched = sim_report(&stack);
     if reenable {
         let out = Command::new(binary("nori"))
             .args(["reenable", "left_arm", "--domain", &stack.domain])
@@ -131,20 +140,29 @@ fn run(tag: &str, order: Start, torque_off: bool, reenable: bool) -> Run {
         report: stack.stop(),
         trips,
         before,
+        latched,
     }
 }
 
 /// Every servo of the left arm: no Torque_Enable = 1 and no goal received since the latched
-/// start, and its torque off.
+/// start, and its torque off while latched (the dead driver before left it on).
 fn assert_never_energised(r: &Run, what: &str) {
     let servos = r.report["buses"][0]["servos"].as_array().unwrap();
-    for ((s, after), before) in servos.iter().zip(writes(&r.report)).zip(&r.before) {
+    let after = writes(&r.report);
+    assert_eq!((servos.len(), after.len(), r.before.len()), (8, 8, 8));
+    for ((s, after), before) in servos.iter().zip(after).zip(&r.before) {
         assert_eq!(
             after, *before,
             "{what}: {} received torque-on or goal writes while latched off: {s}",
             s["joint"]
         );
-        assert_eq!(s["torque_enabled"], false, "{what}: {}", s["joint"]);
+    }
+    for s in r.latched["buses"][0]["servos"].as_array().unwrap() {
+        assert_eq!(
+            s["torque_enabled"], false,
+            "{what}: {} while latched",
+            s["joint"]
+        );
     }
     assert!(
         r.trips.contains("left_shoulder_pitch"),
@@ -183,7 +201,9 @@ fn the_operators_reenable_releases_the_latch_and_the_bus_comes_back() {
     let r = run("latch-release", Start::SupervisorFirst, false, true);
     assert_eq!(r.trips.trim(), "", "the record no longer latches the bus");
     let servos = r.report["buses"][0]["servos"].as_array().unwrap();
-    for ((s, after), before) in servos.iter().zip(writes(&r.report)).zip(&r.before) {
+    let after = writes(&r.report);
+    assert_eq!((servos.len(), after.len(), r.before.len()), (8, 8, 8));
+    for ((s, after), before) in servos.iter().zip(after).zip(&r.before) {
         assert!(after.0 > before.0, "{} not set up again: {s}", s["joint"]);
     }
 }
