@@ -448,6 +448,12 @@ impl ArmStack {
         }
     }
 
+    /// The simulator's newest report (written every second).
+    pub fn sim_report(&self) -> serde_json::Value {
+        let report = std::fs::read_to_string(self.dir.join("sim-report.json")).expect("the report");
+        serde_json::from_str(&report).expect("a JSON report")
+    }
+
     /// The trip record both the supervisor and the driver are given.
     pub fn trips(&self) -> PathBuf {
         self.dir.join("trips")

@@ -124,10 +124,6 @@ fn driven_with_the_new_calibration(stack: &mut ArmStack) -> (Plane, plane::Sub<J
 }
 
 /// The simulator's newest report (written every second).
-fn sim_report(stack: &ArmStack) -> Value {
-    serde_json::from_str(&std::fs::read_to_string(stack.dir.join("sim-report.json")).unwrap())
-        .unwrap()
-}
 
 #[test]
 fn a_factory_fresh_servo_in_the_elbow_s_place_is_found_at_id_1_and_the_elbow_missing() {
@@ -342,7 +338,7 @@ fn a_replaced_elbow_set_up_and_calibrated_by_hand_is_driven_again() {
     // every second while it runs: at the stop the torque goes off and the elbow falls).
     std::thread::sleep(Duration::from_millis(2500));
     let read = f64::from(newest(&states).unwrap().joints[3].position_rad);
-    let truth = sim_report(&stack)["buses"][0]["servos"][3]["angle_rad"]
+    let truth = stack.sim_report()["buses"][0]["servos"][3]["angle_rad"]
         .as_f64()
         .unwrap();
     assert!(
@@ -368,7 +364,7 @@ fn check_off_the_line_calibration(stack: &ArmStack, written: &CalibrationFile) {
         .collect();
     let g = arm.gripper.as_ref().unwrap();
     stops.push((g.servo, g.lower_rad, g.upper_rad));
-    let report = sim_report(stack);
+    let report = stack.sim_report();
     let servos = report["buses"][0]["servos"].as_array().unwrap();
     let horns: Vec<f64> = (servos.iter())
         .map(|s| s["horn_steps"].as_f64().unwrap())
@@ -480,7 +476,7 @@ fn a_robot_off_the_line_calibrated_by_hand_has_every_zero_within_a_degree() {
     let (node, states) = driven_with_the_new_calibration(&mut stack);
     std::thread::sleep(Duration::from_millis(2500));
     let read = newest(&states).unwrap();
-    let report = sim_report(&stack);
+    let report = stack.sim_report();
     let servos = report["buses"][0]["servos"].as_array().unwrap();
     for (k, servo) in servos.iter().enumerate() {
         let truth = servo["angle_rad"].as_f64().unwrap();
@@ -530,7 +526,7 @@ fn calibrate_auto(stack: &ArmStack, extra: &[&str], file: &Path) -> Output {
 /// Every servo of the simulator's report with its torque off; how many torque-on writes they
 /// have taken in all.
 fn all_torque_off(stack: &ArmStack) -> u64 {
-    let report = sim_report(stack);
+    let report = stack.sim_report();
     let servos = report["buses"][0]["servos"].as_array().unwrap();
     for servo in servos {
         assert_eq!(servo["torque_enabled"], false, "{servo:#}");
@@ -623,7 +619,7 @@ fn a_robot_off_the_line_calibrates_itself_with_every_zero_within_a_degree() {
     check_off_the_line_calibration(&stack, &written);
     let plan = description.bus("left_arm").unwrap().arm.as_ref().unwrap();
     let plan = plan.calibration.as_ref().unwrap();
-    let report = sim_report(&stack);
+    let report = stack.sim_report();
     for servo in report["buses"][0]["servos"].as_array().unwrap() {
         let id = servo["id"].as_u64().unwrap() as u8;
         let sweep = plan.sweep.iter().find(|s| s.servo == id).unwrap();
@@ -642,7 +638,7 @@ fn a_robot_off_the_line_calibrates_itself_with_every_zero_within_a_degree() {
     for _ in 0..10 {
         std::thread::sleep(Duration::from_millis(1000));
         let read = newest(&states).unwrap();
-        let report = sim_report(&stack);
+        let report = stack.sim_report();
         let servos = report["buses"][0]["servos"].as_array().unwrap();
         off = (servos.iter().enumerate())
             .filter_map(|(k, servo)| {

@@ -30,12 +30,6 @@ struct Run {
     latched: Value,
 }
 
-/// The simulator's newest report (written every second).
-fn sim_report(stack: &ArmStack) -> Value {
-    let report = std::fs::read_to_string(stack.dir.join("sim-report.json")).unwrap();
-    serde_json::from_str(&report).unwrap()
-}
-
 /// Each servo's torque-on and goal writes in `report`.
 fn writes(report: &Value) -> Vec<(u64, u64)> {
     (report["buses"][0]["servos"].as_array().unwrap().iter())
@@ -61,7 +55,7 @@ fn ran_before(stack: &mut ArmStack) -> Vec<(u64, u64)> {
     stack.driver.kill();
     // The simulator's report, written every second, after the kill.
     std::thread::sleep(Duration::from_millis(2200));
-    writes(&sim_report(stack))
+    writes(&stack.sim_report())
 }
 
 /// The left arm latched in the trip record before anything starts; the processes started in
@@ -115,7 +109,7 @@ fn run(tag: &str, order: Start, torque_off: bool, reenable: bool) -> Run {
         });
     }
     std::thread::sleep(Duration::from_millis(1500));
-    let latched = sim_report(&stack);
+    let latched = stack.sim_report();
     if reenable {
         let out = Command::new(binary("nori"))
             .args(["reenable", "left_arm", "--domain", &stack.domain])
