@@ -579,8 +579,12 @@ impl SimBus {
             let past = servo.angle > upper || servo.angle < lower;
             if past && !self.past_stop[i] {
                 servo.log.stop_hits += 1;
-                let speed = servo.speed.abs().max(servo.log.stop_hit_max_speed_rad_s);
-                servo.log.stop_hit_max_speed_rad_s = speed;
+                // A strike's speed only with the torque on: an operator's hand sweeping a
+                // limp joint into its stops is not the motor's doing.
+                if servo.torque_enabled() {
+                    let speed = servo.speed.abs().max(servo.log.stop_hit_max_speed_rad_s);
+                    servo.log.stop_hit_max_speed_rad_s = speed;
+                }
             }
             self.past_stop[i] = past;
             // Its motor pushes it further in (a joint sagging past a stop under gravity while
@@ -1154,7 +1158,8 @@ mod tests {
 
     /// The witness of a pressed stop: the elbow driven at its calibrated limit stays clear of
     /// its stop; uncalibrated (limits 0..4095), the same goal far beyond drives it into the
-    /// stop, logged with the motor's push; pushed past by hand, torque off, nothing is logged.
+    /// stop, logged with the motor's push and the strike's speed; pushed past or swung into
+    /// it by hand, torque off, neither is logged (a hit is counted).
     #[test]
     fn a_joint_its_motor_holds_past_a_stop_is_logged_and_one_held_inside_is_not() {
         let mut bus = left_arm();
@@ -1215,6 +1220,26 @@ mod tests {
             bus.servos[elbow].log.stop_press_s, before,
             "torque off: not the motor's"
         );
+
+        // Swung limp into its stop again (an operator's hand): a hit, not a strike.
+        let Role::ArmJoint(k) = bus.roles[elbow] else {
+            panic!("the elbow is an arm joint")
+        };
+        let (lower, upper) = bus.arm.as_ref().unwrap().stops(k).unwrap();
+        let e = &mut bus.servos[elbow];
+        // Inside the stop it was pressed past, swinging toward it.
+        let (inside, toward) = if e.angle > upper {
+            (upper - 0.01, 3.0)
+        } else {
+            (lower + 0.01, -3.0)
+        };
+        let hits = e.log.stop_hits;
+        e.log.stop_hit_max_speed_rad_s = 0.0;
+        (e.angle, e.speed) = (inside, toward);
+        bus.advance_to(6.05, 0.001);
+        let log = bus.servos[elbow].log;
+        assert_eq!(log.stop_hits, hits + 1, "{log:?}");
+        assert_eq!(log.stop_hit_max_speed_rad_s, 0.0, "limp: not a strike");
     }
 
     /// Off the line: every arm servo's horn somewhere within the spread, no two joints alike,

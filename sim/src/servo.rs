@@ -129,7 +129,8 @@ pub struct ServoLog {
     pub stop_press_max_permille: u16,
     /// Times its joint went past a hard stop (struck it, or sagged or was pushed onto it).
     pub stop_hits: u64,
-    /// The fastest its joint went past a hard stop, rad/s: a strike's speed.
+    /// The fastest its joint went past a hard stop with its torque on, rad/s: a strike's speed
+    /// (a hand sweeping it limp is not counted).
     pub stop_hit_max_speed_rad_s: f64,
 }
 
