@@ -243,8 +243,9 @@ fn each_zero_within_a_degree_and_no_stop_pressed_above_the_torque_limit_over_see
             for d in inside.map(f64::to_degrees) {
                 least_inside = least_inside.min(d);
                 most_inside = most_inside.max(d);
+                // Inside the stop less the zero's own error, and within the 2° of #40.
                 assert!(
-                    d > MARGIN_RAD.to_degrees() - 1.0,
+                    d > MARGIN_RAD.to_degrees() - 1.0 && d <= 2.0,
                     "seed {seed}: {} has a limit {d:.2}° inside its stop",
                     c.joint,
                 );
