@@ -93,14 +93,15 @@ struct RateRun {
 }
 
 /// Serves the buses, sets the driver up and runs its loop for `seconds` at `rate_hz` (no
-/// supervisor), with or without the background read-back of safety settings; with `plane`, as
+/// supervisor), with or without the background read-back of safety settings and the slowed
+/// approach to the ranges' ends (`as_deployed`); with `plane`, as
 /// deployed on that domain (its wire tapped, its state and wire frames published), otherwise
 /// publishing nothing.
 fn rate_run(
     buses: &[String],
     rate_hz: f64,
     seconds: f64,
-    read_back: bool,
+    as_deployed: bool,
     plane: Option<&str>,
 ) -> Result<RateRun> {
     let robot = RobotDescription::nori_a3();
@@ -128,14 +129,14 @@ fn rate_run(
             Driver::new(&config, transports),
             &config,
             &mut Standalone,
-            read_back,
+            as_deployed,
             seconds,
         )?,
         Some(domain) => measure(
             Driver::new(&config, transports.into_iter().map(Tapped::new).collect()),
             &config,
             &mut PlaneIo::open(domain)?,
-            read_back,
+            as_deployed,
             seconds,
         )?,
     };
@@ -153,10 +154,13 @@ fn measure<T: Transport>(
     mut driver: Driver<T>,
     config: &LoadedConfig,
     io: &mut dyn LoopIo,
-    read_back: bool,
+    as_deployed: bool,
     seconds: f64,
 ) -> Result<RateRun> {
-    driver.set_background_read_back(read_back);
+    // The baseline: without the background read-back and the slowed approach to the ranges'
+    // ends, the two parts of the loop that exist for safety and have a per-cycle cost.
+    driver.set_background_read_back(as_deployed);
+    driver.set_slowed_approach(as_deployed);
     // A servo missed at setup (machine hiccup) is set up again before measuring.
     let mut failures = driver.setup();
     for _ in 0..5 {
@@ -207,7 +211,8 @@ pub fn driver_rate(args: &DriverRateArgs) -> Result<()> {
     let wire = WireLimit::of(&args.buses);
     // The baseline and the variant in the same run, in alternating halves so that a slow
     // stretch of this shared machine hits both alike. The variant is the background read-back
-    // (the stack as deployed), or with --cameras the cameras streaming (both halves as deployed).
+    // and the slowed approach (the stack as deployed), or with --cameras the cameras streaming
+    // (both halves as deployed).
     let domain = format!("nori_bench_sensors_{}", std::process::id());
     let sensors = args.cameras > 0 || args.lidar || args.base || args.blackbox;
     let mut loads = SensorLoads::start(args, &domain)?;
@@ -374,7 +379,7 @@ fn run_halves(
         streaming_s: 0.0,
     };
     for variant in [false, true, false, true] {
-        let read_back = variant || sensors;
+        let as_deployed = variant || sensors;
         loads.feed(variant)?;
         if sensors {
             // Let the sensors reach (or leave) their steady rate before timing.
@@ -387,7 +392,7 @@ fn run_halves(
         }
         let before = loads.cpu_seconds();
         let plane = args.blackbox.then_some(domain);
-        let run = rate_run(&args.buses, args.rate_hz, half, read_back, plane)?;
+        let run = rate_run(&args.buses, args.rate_hz, half, as_deployed, plane)?;
         if variant {
             let after = loads.cpu_seconds();
             halves.cpu.cameras += after.cameras - before.cameras;
@@ -490,7 +495,10 @@ fn labels(args: &DriverRateArgs, sensors: bool) -> (&'static str, &'static str) 
     } else if sensors {
         ("as deployed, loads idle", "as deployed, loads running")
     } else {
-        ("baseline, no background read-back", "as deployed")
+        (
+            "baseline, no background read-back or slowed approach",
+            "as deployed",
+        )
     }
 }
 

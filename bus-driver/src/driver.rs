@@ -7,6 +7,7 @@
 //! its own: time comes in with the goal frames and as the clock `cycle` is passed, so the
 //! logic is tested without sleeping.
 
+use crate::approach::{Approach, Reading};
 use crate::backstops;
 use crate::bus::{Bus, BusCounters, BusError};
 use crate::calibration::{wheel_speed_steps, GoalError, JointCalibration, STEPS_PER_RAD};
@@ -214,6 +215,12 @@ struct Joint {
     ready: bool,
     /// Goal in register units (steps, or steps/s in speed mode).
     goal: i32,
+    /// The goal last written to the servo, steps: an arm joint's `goal` on its slowed approach
+    /// to an end of the range ([`crate::approach`]); a gripper's or a wheel's `goal` itself.
+    written: f64,
+    /// Where it was read this cycle and how fast it moved (`None`: not read, or held back by
+    /// the gate).
+    present: Option<Reading>,
     /// The timestamp of the goal frame that set `goal` (a wheel's speed expires with it).
     goal_at_ns: u64,
     /// Torque limit the supervisor asks for, 0.1 % (0: the configured maximum).
@@ -255,6 +262,11 @@ enum Want {
 }
 
 impl Joint {
+    /// The goal last written, in whole steps.
+    fn written_steps(&self) -> i32 {
+        self.written.round() as i32
+    }
+
     /// Not driven until the loop sets it up again (one servo per 1/50 s), with no back-off
     /// left from earlier failures.
     fn set_up_again(&mut self) {
@@ -333,6 +345,10 @@ pub struct Driver<T: Transport> {
     reply_margin: std::time::Duration,
     /// The background read-back runs (off only to measure what it costs).
     background_read_back: bool,
+    /// A joint's approach to the ends of its range, slowed...
+    approach: Approach,
+    /// ...unless off (only to measure what it costs).
+    slowed_approach: bool,
     /// Per bus: the next joint (offset in the bus) a background read-back looks at, and the
     /// joint whose read-back was requested and not yet collected.
     read_back_cursor: Vec<usize>,
@@ -378,6 +394,8 @@ impl<T: Transport> Driver<T> {
                     calibration: config.calibration_for(bus_config, &s.joint),
                     ready: false,
                     goal: 0,
+                    written: 0.0,
+                    present: None,
                     goal_at_ns: 0,
                     torque_wanted: 0,
                     torque_written: 0,
@@ -432,6 +450,8 @@ impl<T: Transport> Driver<T> {
             read_back_every: (c.rate_hz / 50.0).round().max(1.0) as u64,
             reply_margin: margin,
             background_read_back: true,
+            approach: Approach::new(c.rate_hz, STEPS_PER_RAD),
+            slowed_approach: true,
             read_back_cursor: vec![0; c.bus.len()],
             read_back_now: vec![None; c.bus.len()],
             next_setup_any: 0,
@@ -705,6 +725,7 @@ impl<T: Transport> Driver<T> {
         bus.write(id, reg::TORQUE_ENABLE, 1)?;
         let joint = &mut self.joints[j];
         joint.goal = goal;
+        joint.written = f64::from(goal);
         joint.torque_written = torque;
         joint.cutoff.reset();
         joint.ready = true;
@@ -1003,6 +1024,10 @@ impl<T: Transport> Driver<T> {
                     fb = None;
                     b.bus.counters.implausible += 1;
                 }
+                joint.present = fb.map(|(block, _)| Reading {
+                    position: block.position,
+                    velocity: block.velocity,
+                });
                 let mut s = sample(joint, fb);
                 if fb.is_some() {
                     answered += 1;
@@ -1010,11 +1035,11 @@ impl<T: Transport> Driver<T> {
                 } else {
                     joint.misses = joint.misses.saturating_add(1);
                 }
-                if joint.ready && joint.calibration.is_some() && s.is_valid() {
-                    if joint
-                        .cutoff
-                        .update(s.goal_rad - s.position_rad, s.load, s.current_a)
-                    {
+                if let (true, Some(cal), true) = (joint.ready, joint.calibration, s.is_valid()) {
+                    // Against the goal the servo holds (on its slowed approach to a range's
+                    // end, behind the one asked for, which the state publishes).
+                    let error = cal.to_rad(joint.written_steps()) as f32 - s.position_rad;
+                    if joint.cutoff.update(error, s.load, s.current_a) {
                         self.counters.outputs_lost += 1;
                     }
                 } else {
@@ -1158,7 +1183,7 @@ impl<T: Transport> Driver<T> {
         let held = self.safe && self.safe_kind == SafeState::Hold;
         Want::On {
             limit: self.effective_torque(j),
-            hold_goal: held.then_some(joint.goal),
+            hold_goal: held.then_some(joint.written_steps()),
         }
     }
 
@@ -1241,6 +1266,12 @@ impl<T: Transport> Driver<T> {
         self.background_read_back = on;
     }
 
+    /// Turns the slowed approach to the ends of each range off or on (it is on; `nori bench
+    /// driver-rate` turns it off for the baseline it measures its cost against).
+    pub fn set_slowed_approach(&mut self, on: bool) {
+        self.slowed_approach = on;
+    }
+
     /// The longest one read-back pass can take: its wire time plus its reply margin.
     pub fn read_back_cost(&self) -> std::time::Duration {
         let slowest = self
@@ -1321,15 +1352,28 @@ impl<T: Transport> Driver<T> {
     }
 
     fn write_goals(&mut self, bi: usize) {
+        let approach = self.slowed_approach.then_some(self.approach);
         let b = &mut self.buses[bi];
         b.payload.clear();
         for (k, &id) in b.ids.iter().enumerate() {
-            let joint = &self.joints[b.first_joint + k];
+            let joint = &mut self.joints[b.first_joint + k];
             // Goal_Position and Goal_Velocity are both sign-magnitude at bit 15; a value the
             // register cannot carry goes out clamped, never skipped (a skipped wheel goal would
             // keep the previous speed).
             if joint.ready {
-                let raw = feetech::encoding::encode_sign_magnitude_saturating(joint.goal, 15);
+                joint.written = match (joint.role, joint.calibration, approach) {
+                    // Not a gripper: its grip is a goal past what it holds.
+                    (JointRole::Joint, Some(cal), Some(a)) => a.next(
+                        joint.goal,
+                        joint.written,
+                        joint.present,
+                        cal.range_min,
+                        cal.range_max,
+                    ),
+                    _ => f64::from(joint.goal),
+                };
+                let goal = joint.written_steps();
+                let raw = feetech::encoding::encode_sign_magnitude_saturating(goal, 15);
                 b.payload.push(id);
                 b.payload.extend_from_slice(&raw.to_le_bytes());
             }

@@ -6,6 +6,8 @@
 //!   unicast setup reads/writes), replies matched by id, error counts by kind.
 //! * [`calibration`]: per-joint ranges; the clamp that keeps every goal inside them and refuses
 //!   NaN/inf.
+//! * [`approach`]: a joint's approach to the ends of its range, slowed (the servo's own
+//!   overshoot stays clear of a stop 2° beyond).
 //! * [`backstops`]: the EEPROM settings (firmware over-current, torque and 60 °C temperature
 //!   limits) written once with read-compare-write.
 //! * [`config`]: the typed configuration, defaults embedded from `deploy/config/`.
@@ -25,6 +27,7 @@
 //!
 //! * `rt`: real-time preparation of the control thread (memory locked, priority, cores).
 
+pub mod approach;
 pub mod backstops;
 pub mod bus;
 pub mod calibration;
