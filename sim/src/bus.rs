@@ -579,12 +579,16 @@ impl SimBus {
             let past = servo.angle > upper || servo.angle < lower;
             if past && !self.past_stop[i] {
                 servo.log.stop_hits += 1;
-                // A strike's speed only with the torque on: an operator's hand sweeping a
-                // limp joint into its stops is not the motor's doing.
-                if servo.torque_enabled() {
-                    let speed = servo.speed.abs().max(servo.log.stop_hit_max_speed_rad_s);
-                    servo.log.stop_hit_max_speed_rad_s = speed;
-                }
+                // With the torque on, a strike the motor drove or failed to stop; limp, an
+                // operator's hand, or an arm dropped by a trip: kept apart.
+                let driven = servo.torque_enabled();
+                let log = &mut servo.log;
+                let fastest = if driven {
+                    &mut log.stop_hit_max_speed_rad_s
+                } else {
+                    &mut log.limp_hit_max_speed_rad_s
+                };
+                *fastest = fastest.max(servo.speed.abs());
             }
             self.past_stop[i] = past;
             // Its motor pushes it further in (a joint sagging past a stop under gravity while
@@ -1240,6 +1244,7 @@ mod tests {
         let log = bus.servos[elbow].log;
         assert_eq!(log.stop_hits, hits + 1, "{log:?}");
         assert_eq!(log.stop_hit_max_speed_rad_s, 0.0, "limp: not a strike");
+        assert!(log.limp_hit_max_speed_rad_s > 1.0, "{log:?}");
     }
 
     /// Off the line: every arm servo's horn somewhere within the spread, no two joints alike,

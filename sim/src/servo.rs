@@ -129,9 +129,10 @@ pub struct ServoLog {
     pub stop_press_max_permille: u16,
     /// Times its joint went past a hard stop (struck it, or sagged or was pushed onto it).
     pub stop_hits: u64,
-    /// The fastest its joint went past a hard stop with its torque on, rad/s: a strike's speed
-    /// (a hand sweeping it limp is not counted).
+    /// The fastest its joint went past a hard stop with its torque on, rad/s: a strike's speed.
     pub stop_hit_max_speed_rad_s: f64,
+    /// The same with its torque off (a hand sweeping it limp, an arm dropped by a trip), rad/s.
+    pub limp_hit_max_speed_rad_s: f64,
 }
 
 /// The registers the firmware consults every step, decoded once per write (not per step).
