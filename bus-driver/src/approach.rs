@@ -3,20 +3,20 @@
 //! A servo given a goal far away runs at full speed and stops past it: on the simulated A3,
 //! 1.7–3.9° past a limit it was driven to at full speed, and further when gravity helps it on.
 //! A calibration that puts the limits within 2° of the mechanical stops would then have every
-//! joint strike a stop whenever a goal reaches the end of its range. Two rules, while the goal
-//! asked for lies within [`ZONE_RAD`] of an end (`docs/hazards.md` A14, `docs/approach.md`):
+//! joint strike a stop whenever a goal reaches the end of its range. While the goal asked for
+//! lies within [`ZONE_RAD`] of an end (`docs/hazards.md` A14, `docs/approach.md`):
 //!
 //! * **The written goal is a braking profile.** It moves toward the end no faster than a joint
 //!   that can still stop at the end decelerating at [`DECEL_RAD_S2`], `v ≤ √(2·a·d)` with `d`
 //!   the written goal's distance to the end (Franka's bound; [`CRAWL_RAD_S`] at the least, so
-//!   it arrives). It advances whether or not the joint keeps up, so a loaded joint that trails
-//!   its goal is never frozen short of the end.
-//! * **A joint faster than that bound where it stands is braked.** Read moving toward the end
-//!   faster than `√(2·a·d)` for its own distance `d` (it was left behind and is catching up, or
-//!   the rest of the arm throws it), its goal is written where it stands, so its servo brakes.
+//!   it arrives), and within the zone never more than [`LEAD_RAD`] ahead of where the joint
+//!   stands: a loaded joint holding short of its goal still arrives, one held back (a hand)
+//!   is not pushed on from further away, nor met by a goal far ahead when it is let go.
+//! * **Not read**, the written goal goes no further toward the end, nor more than the lead past
+//!   where the joint was last read.
 //!
 //! The written goal is never further toward an end than the goal asked for, never outside the
-//! range, and without a reading it does not advance toward the end.
+//! range.
 
 /// Width of the zone inside each end of a range where a goal is approached, rad: wider than
 /// the worst overshoot past a goal sent at full speed (0.15 rad, the shoulder roll helped by
@@ -26,19 +26,44 @@ pub const ZONE_RAD: f64 = 0.3;
 /// than this at its torque limit, gravity helping or not (`docs/approach.md`).
 pub const DECEL_RAD_S2: f64 = 4.0;
 /// The least speed of the written goal toward an end, rad/s: slow enough that a joint arriving
-/// at it stops short of a stop 2° on.
+/// at it stops short of a stop 1° on.
 pub const CRAWL_RAD_S: f64 = 0.25;
+/// The most the written goal leads the joint toward an end, rad: ten times the error a loaded
+/// joint of the simulated arm holds at an end (under 0.01 rad).
+pub const LEAD_RAD: f64 = 0.1;
 
 /// A reading's jitter about where a servo holds, steps.
 const JITTER_STEPS: f64 = 2.0;
 
-/// Where a joint was read this cycle, in its servo's steps.
+/// What the driver knows of where a joint is, in its servo's steps (`Present_Position`).
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Reading {
-    /// `Present_Position`, steps.
-    pub position: i32,
-    /// `Present_Velocity`, steps/s.
-    pub velocity: i32,
+pub enum Sighting {
+    /// Read this cycle, there.
+    Now(i32),
+    /// Not read this cycle; last read (or set up) there.
+    Earlier(i32),
+    /// Never read.
+    Never,
+}
+
+impl Sighting {
+    /// After this cycle's reading, `None` if it was missed or held back.
+    pub fn after(self, read: Option<i32>) -> Sighting {
+        match (read, self) {
+            (Some(p), _) => Sighting::Now(p),
+            (None, Sighting::Now(p)) => Sighting::Earlier(p),
+            (None, earlier) => earlier,
+        }
+    }
+
+    /// The same, in the mirrored range (steps negated).
+    fn mirrored(self) -> Sighting {
+        match self {
+            Sighting::Now(p) => Sighting::Now(-p),
+            Sighting::Earlier(p) => Sighting::Earlier(-p),
+            Sighting::Never => Sighting::Never,
+        }
+    }
 }
 
 /// The approach in a servo's steps, for a loop at a given rate.
@@ -50,6 +75,8 @@ pub struct Approach {
     decel: f64,
     /// Steps/s.
     crawl: f64,
+    /// Steps.
+    lead: f64,
     /// The loop's period, s.
     period: f64,
 }
@@ -61,42 +88,49 @@ impl Approach {
             zone: ZONE_RAD * steps_per_rad,
             decel: DECEL_RAD_S2 * steps_per_rad,
             crawl: CRAWL_RAD_S * steps_per_rad,
+            lead: LEAD_RAD * steps_per_rad,
             period: 1.0 / rate_hz.max(1.0),
         }
     }
 
     /// The goal to write this cycle, steps: toward `goal` (inside `min..=max`) from `written`
-    /// (last cycle's), the joint read as `read` (`None`: not read this cycle).
-    pub fn next(&self, goal: i32, written: f64, read: Option<Reading>, min: i32, max: i32) -> f64 {
+    /// (last cycle's), the joint `seen` as it was.
+    pub fn next(&self, goal: i32, written: f64, seen: Sighting, min: i32, max: i32) -> f64 {
         let goal = f64::from(goal);
-        let read = read.map(|r| (f64::from(r.position), f64::from(r.velocity)));
-        let up = self.toward_end(goal, written, read, f64::from(max));
+        let up = self.toward_end(goal, written, seen, f64::from(max));
         // The lower end is the upper end of the mirrored range.
-        let mirrored = read.map(|(p, v)| (-p, -v));
-        let both = -self.toward_end(-up, -written, mirrored, -f64::from(min));
+        let both = -self.toward_end(-up, -written, seen.mirrored(), -f64::from(min));
         both.clamp(f64::from(min), f64::from(max))
     }
 
-    /// Toward the upper `end` only; `read` is where the joint stands and how fast it moves.
-    fn toward_end(&self, goal: f64, written: f64, read: Option<(f64, f64)>, end: f64) -> f64 {
+    /// Toward the upper `end` only.
+    fn toward_end(&self, goal: f64, written: f64, seen: Sighting, end: f64) -> f64 {
         if goal <= end - self.zone {
             return goal;
         }
-        let Some((stands, speed)) = read else {
-            // Not read: away from the end as asked, never further toward it.
-            return goal.min(written);
+        let stands = match seen {
+            Sighting::Now(p) => f64::from(p),
+            // Not read: away from the end as asked; never further toward it, nor more than the
+            // lead past where it was last seen.
+            Sighting::Earlier(p) => return goal.min(written).min(self.ahead_of(f64::from(p), end)),
+            Sighting::Never => return goal.min(written),
         };
-        if speed > self.allowed(end - stands) {
-            // Too fast to stop at the end from where it stands: held there, so it brakes.
-            return goal.min(stands);
-        }
+        let ahead = self.ahead_of(stands, end);
         if goal <= written {
-            return goal;
+            return goal.min(ahead);
         }
         // From what was written, or where the joint stands if it is further on (never pulled
         // back from there), less a reading's own jitter, which would hurry the approach.
         let from = written.max((stands - JITTER_STEPS).min(goal));
-        goal.min(from + self.allowed(end - from) * self.period)
+        let profiled = from + self.allowed(end - from) * self.period;
+        goal.min(profiled).min(ahead)
+    }
+
+    /// The furthest toward `end` the goal of a joint standing at `stands` may be: the lead
+    /// ahead of it within the zone (so a joint let go there is not met by a goal further on);
+    /// anywhere short of the zone (a joint let go there stops before its edge).
+    fn ahead_of(&self, stands: f64, end: f64) -> f64 {
+        (stands + self.lead).max(end - self.zone)
     }
 
     /// The fastest a joint `to_end` steps from the end may move toward it, steps/s.
@@ -118,17 +152,18 @@ mod tests {
         Approach::new(RATE, STEPS_PER_RAD)
     }
 
-    fn read(position: f64, velocity: f64) -> Option<Reading> {
-        Some(Reading {
-            position: position.round() as i32,
-            velocity: velocity.round() as i32,
-        })
+    fn read(position: f64) -> Sighting {
+        Sighting::Now(position.round() as i32)
     }
 
     /// The most the written goal may move in one cycle from `d` steps short of the end.
     fn allowed_step(d: f64) -> f64 {
         let v = (2.0 * DECEL_RAD_S2 * STEPS_PER_RAD * d.max(0.0)).sqrt();
         v.max(CRAWL_RAD_S * STEPS_PER_RAD) / RATE
+    }
+
+    fn lead() -> f64 {
+        LEAD_RAD * STEPS_PER_RAD
     }
 
     /// The written goals of `cycles` cycles toward `goal` from `start`, the joint read where
@@ -138,7 +173,7 @@ mod tests {
         let mut written = start;
         (0..cycles)
             .map(|_| {
-                written = a.next(goal, written, read(stands(written), 0.0), MIN, MAX);
+                written = a.next(goal, written, read(stands(written)), MIN, MAX);
                 written
             })
             .collect()
@@ -149,18 +184,25 @@ mod tests {
         let a = approach();
         let zone = ZONE_RAD * STEPS_PER_RAD;
         let inside = (f64::from(MAX) - zone - 1.0) as i32;
-        // Outside the zone, even with the joint racing toward the end.
+        // Outside the zone, read or not.
         assert_eq!(
-            a.next(inside, 1500.0, read(1500.0, 5000.0), MIN, MAX),
+            a.next(inside, 1500.0, read(1500.0), MIN, MAX),
+            f64::from(inside)
+        );
+        assert_eq!(
+            a.next(inside, 1500.0, Sighting::Never, MIN, MAX),
             f64::from(inside)
         );
         // Away from the upper end, from deep in its zone: at once.
-        assert_eq!(a.next(2000, 2990.0, read(2990.0, 0.0), MIN, MAX), 2000.0);
-        assert_eq!(a.next(2980, 2990.0, None, MIN, MAX), 2980.0);
-        assert_eq!(a.next(2000, 1010.0, read(1010.0, 0.0), MIN, MAX), 2000.0);
+        assert_eq!(a.next(2000, 2990.0, read(2990.0), MIN, MAX), 2000.0);
+        assert_eq!(
+            a.next(2980, 2990.0, Sighting::Earlier(2990), MIN, MAX),
+            2980.0
+        );
+        assert_eq!(a.next(2000, 1010.0, read(1010.0), MIN, MAX), 2000.0);
         // Holding where it was written: unchanged, read or not.
-        assert_eq!(a.next(2990, 2990.0, None, MIN, MAX), 2990.0);
-        assert_eq!(a.next(2990, 2990.0, read(2989.0, 0.0), MIN, MAX), 2990.0);
+        assert_eq!(a.next(2990, 2990.0, Sighting::Never, MIN, MAX), 2990.0);
+        assert_eq!(a.next(2990, 2990.0, read(2989.0), MIN, MAX), 2990.0);
     }
 
     /// Toward either end the written goal slows as a joint braking at the allowed deceleration
@@ -192,47 +234,55 @@ mod tests {
         }
     }
 
-    /// A joint that trails its goal (a load it holds against, a hand) is not waited for: the
-    /// written goal reaches the end all the same.
+    /// A joint that holds a little short of its goal (a load) still arrives at the end; one
+    /// held back (a hand) within the zone has its goal no more than the lead ahead of it,
+    /// toward either end, even once the goal had reached the end before it was pushed back;
+    /// held short of the zone, its goal waits at the zone's edge.
     #[test]
-    fn a_joint_that_trails_is_not_frozen_short_of_the_end() {
-        let w = run(MAX, 2800.0, 600, |_| 2700.0);
-        assert_eq!(*w.last().unwrap(), f64::from(MAX));
-        let w = run(MIN, 1200.0, 600, |_| 1300.0);
-        assert_eq!(*w.last().unwrap(), f64::from(MIN));
-    }
-
-    /// A joint read moving toward an end faster than it could stop there from where it stands
-    /// gets its goal written where it stands (or the goal asked for, if that is behind it);
-    /// just under the bound, the approach goes on.
-    #[test]
-    fn a_joint_too_fast_for_its_distance_to_the_end_is_held_where_it_stands() {
-        let a = approach();
-        for (goal, end, sign) in [(MAX, 3000.0, 1.0), (MIN, 1000.0, -1.0)] {
-            let stands = end - sign * 100.0;
-            let bound = allowed_step(100.0) * RATE;
-            let fast = read(stands, sign * (bound + 2.0));
-            assert_eq!(a.next(goal, end - sign * 120.0, fast, MIN, MAX), stands);
-            // With the goal asked for behind it: that goal.
-            let behind = (end - sign * 110.0) as i32;
-            assert_eq!(
-                a.next(behind, end - sign * 120.0, fast, MIN, MAX),
-                f64::from(behind)
+    fn a_joint_held_back_is_led_by_the_lead_at_most() {
+        let zone = ZONE_RAD * STEPS_PER_RAD;
+        for (goal, sign) in [(MAX, 1.0), (MIN, -1.0)] {
+            let end = f64::from(goal);
+            let loaded = run(goal, end - sign * 400.0, 600, |w| w - sign * 30.0);
+            assert_eq!(*loaded.last().unwrap(), end);
+            let far = run(goal, end - sign * 400.0, 600, |_| end - sign * 400.0);
+            assert_eq!(*far.last().unwrap(), end - sign * zone);
+            let held = end - sign * 150.0;
+            let w = run(goal, end - sign * 200.0, 600, |_| held);
+            assert!(
+                w.iter().all(|&v| sign * (v - held) <= lead() + 1e-9),
+                "{w:?}"
             );
-            // Even once the goal reached the end (the rest of the arm throwing it).
-            assert_eq!(a.next(goal, end, fast, MIN, MAX), stands);
-            let slow = read(stands, sign * (bound - 2.0));
-            let w = a.next(goal, end - sign * 120.0, slow, MIN, MAX);
-            assert!(sign * (w - (end - sign * 100.0)) > 0.0, "{w}");
+            assert_eq!(*w.last().unwrap(), held + sign * lead());
+            let a = approach();
+            let pushed_back = a.next(goal, end, read(held), MIN, MAX);
+            assert_eq!(pushed_back, held + sign * lead());
         }
     }
 
-    /// Without a reading, the written goal does not advance toward the end.
+    /// Not read, the written goal does not advance toward the end, and comes back to within
+    /// the lead of where the joint was last read.
     #[test]
     fn the_goal_waits_for_a_joint_that_is_not_read() {
         let a = approach();
-        assert_eq!(a.next(MAX, 2950.0, None, MIN, MAX), 2950.0);
-        assert_eq!(a.next(MIN, 1050.0, None, MIN, MAX), 1050.0);
+        assert_eq!(a.next(MAX, 2950.0, Sighting::Never, MIN, MAX), 2950.0);
+        assert_eq!(a.next(MIN, 1050.0, Sighting::Never, MIN, MAX), 1050.0);
+        assert_eq!(
+            a.next(MAX, 2950.0, Sighting::Earlier(2940), MIN, MAX),
+            2950.0
+        );
+        assert_eq!(
+            a.next(MAX, 2950.0, Sighting::Earlier(2800), MIN, MAX),
+            2800.0 + lead()
+        );
+        assert_eq!(
+            a.next(MIN, 1050.0, Sighting::Earlier(1200), MIN, MAX),
+            1200.0 - lead()
+        );
+        // What it knows goes on from the last reading.
+        assert_eq!(Sighting::Now(2800).after(None), Sighting::Earlier(2800));
+        assert_eq!(Sighting::Earlier(2800).after(None), Sighting::Earlier(2800));
+        assert_eq!(Sighting::Never.after(Some(2810)), Sighting::Now(2810));
     }
 
     /// A joint read further toward the end than the written goal (it overshot it, or was
@@ -242,25 +292,26 @@ mod tests {
     fn a_joint_past_the_written_goal_is_not_pulled_back() {
         let a = approach();
         let stands = 2980.0 - JITTER_STEPS;
-        let w = a.next(MAX, 2950.0, read(2980.0, 0.0), MIN, MAX);
+        let w = a.next(MAX, 2950.0, read(2980.0), MIN, MAX);
         assert_eq!(w, stands + allowed_step(3000.0 - stands));
-        assert_eq!(a.next(2970, 2950.0, read(2980.0, 0.0), MIN, MAX), 2970.0);
+        assert_eq!(a.next(2970, 2950.0, read(2980.0), MIN, MAX), 2970.0);
         let stands = 1020.0 + JITTER_STEPS;
-        let w = a.next(MIN, 1050.0, read(1020.0, 0.0), MIN, MAX);
+        let w = a.next(MIN, 1050.0, read(1020.0), MIN, MAX);
         assert_eq!(w, stands - allowed_step(stands - 1000.0));
         // Within a reading's jitter of the written goal: from the written goal.
-        let w = a.next(MAX, 2950.0, read(2952.0, 0.0), MIN, MAX);
+        let w = a.next(MAX, 2950.0, read(2952.0), MIN, MAX);
         assert_eq!(w, 2950.0 + allowed_step(50.0));
     }
 
-    /// Never beyond the goal asked for, nor the range, even one step short of it or braking a
+    /// Never beyond the goal asked for, nor the range, even one step short of it or with the
     /// joint read past the end.
     #[test]
     fn the_written_goal_never_passes_the_goal_asked_for_nor_the_range() {
         let a = approach();
-        assert_eq!(a.next(2999, 2998.9, read(2999.0, 0.0), MIN, MAX), 2999.0);
-        assert_eq!(a.next(1001, 1001.1, read(1001.0, 0.0), MIN, MAX), 1001.0);
-        assert_eq!(a.next(MAX, 2990.0, read(3010.0, 900.0), MIN, MAX), 3000.0);
-        assert_eq!(a.next(MIN, 1010.0, read(990.0, -900.0), MIN, MAX), 1000.0);
+        assert_eq!(a.next(2999, 2998.9, read(2999.0), MIN, MAX), 2999.0);
+        assert_eq!(a.next(1001, 1001.1, read(1001.0), MIN, MAX), 1001.0);
+        assert_eq!(a.next(MAX, 2990.0, read(3010.0), MIN, MAX), 3000.0);
+        assert_eq!(a.next(MIN, 1010.0, read(990.0), MIN, MAX), 1000.0);
+        assert_eq!(a.next(2995, 3000.0, read(3010.0), MIN, MAX), 2995.0);
     }
 }

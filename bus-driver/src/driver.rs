@@ -7,7 +7,7 @@
 //! its own: time comes in with the goal frames and as the clock `cycle` is passed, so the
 //! logic is tested without sleeping.
 
-use crate::approach::{Approach, Reading};
+use crate::approach::{Approach, Sighting};
 use crate::backstops;
 use crate::bus::{Bus, BusCounters, BusError};
 use crate::calibration::{wheel_speed_steps, GoalError, JointCalibration, STEPS_PER_RAD};
@@ -218,9 +218,8 @@ struct Joint {
     /// The goal last written to the servo, steps: an arm joint's `goal` on its slowed approach
     /// to an end of the range ([`crate::approach`]); a gripper's or a wheel's `goal` itself.
     written: f64,
-    /// Where it was read this cycle and how fast it moved (`None`: not read, or held back by
-    /// the gate).
-    present: Option<Reading>,
+    /// Where it was read this cycle, or last (a reading held back by the gate is none).
+    seen: Sighting,
     /// The timestamp of the goal frame that set `goal` (a wheel's speed expires with it).
     goal_at_ns: u64,
     /// Torque limit the supervisor asks for, 0.1 % (0: the configured maximum).
@@ -395,7 +394,7 @@ impl<T: Transport> Driver<T> {
                     ready: false,
                     goal: 0,
                     written: 0.0,
-                    present: None,
+                    seen: Sighting::Never,
                     goal_at_ns: 0,
                     torque_wanted: 0,
                     torque_written: 0,
@@ -726,6 +725,7 @@ impl<T: Transport> Driver<T> {
         let joint = &mut self.joints[j];
         joint.goal = goal;
         joint.written = f64::from(goal);
+        joint.seen = Sighting::Earlier(goal);
         joint.torque_written = torque;
         joint.cutoff.reset();
         joint.ready = true;
@@ -1024,10 +1024,7 @@ impl<T: Transport> Driver<T> {
                     fb = None;
                     b.bus.counters.implausible += 1;
                 }
-                joint.present = fb.map(|(block, _)| Reading {
-                    position: block.position,
-                    velocity: block.velocity,
-                });
+                joint.seen = joint.seen.after(fb.map(|(block, _)| block.position));
                 let mut s = sample(joint, fb);
                 if fb.is_some() {
                     answered += 1;
@@ -1366,7 +1363,7 @@ impl<T: Transport> Driver<T> {
                     (JointRole::Joint, Some(cal), Some(a)) => a.next(
                         joint.goal,
                         joint.written,
-                        joint.present,
+                        joint.seen,
                         cal.range_min,
                         cal.range_max,
                     ),

@@ -783,6 +783,9 @@ fn every_bad_goal_frame_is_refused_with_its_reason_and_nothing_reaches_the_wire(
     );
 
     // Out of range: applied, clamped into the calibrated range (the speed limit for wheels).
+    // The clamp alone: with the approach to the ends, the goal written reaches an end only as
+    // the joint follows (this rig's joints stand still; `approach` and `against_sim` test it).
+    rig.driver.set_slowed_approach(false);
     let cal = rig.config.calibration.joint["left_shoulder_pitch"];
     let cal5 = rig.config.calibration.joint["right_shoulder_pitch"];
     rig.driver
