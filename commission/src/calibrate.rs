@@ -220,12 +220,25 @@ pub const LIMIT_MARGIN_RAD: f64 = 1.0 * std::f64::consts::PI / 180.0;
 /// The most the limits move further in for the zero's uncertainty, rad (0.6°).
 pub const MAX_SHIFT_ALLOWANCE_RAD: f64 = 0.6 * std::f64::consts::PI / 180.0;
 
+/// How far the travel swept may differ from the description's before it is refused, rad
+/// (2.9°), by hand and automatic: a stop not reached, something in the way, a broken stop. At
+/// most half of it shifts the zero, and the margin with the whole allowance covers that, so no
+/// accepted sweep puts a limit past its stop (checked as the crate builds, below).
+pub const TRAVEL_TOLERANCE_RAD: f64 = 0.05;
+
+// A stop pressed harder than the other by all of the tolerance shifts the zero by half of it:
+// the margin and the whole allowance must still keep each limit inside its stop.
+const _: () = assert!(
+    LIMIT_MARGIN_RAD + MAX_SHIFT_ALLOWANCE_RAD > TRAVEL_TOLERANCE_RAD / 2.0 + 0.002,
+    "a one-sided difference of the whole tolerance could put a limit past its stop"
+);
+
 /// How much further in than the margin the limits go, rad: however a sweep's difference from
 /// the travel splits between the two stops (one pressed harder, or not reached), it shifts the
 /// zero by at most half of it; up to [`MAX_SHIFT_ALLOWANCE_RAD`]. Beyond that a limit may lie
-/// less than the margin inside its stop, by the excess (the automatic calibration presses both
-/// stops at one torque: its zeros were within 0.26° over eight seeds, where half the difference
-/// reached 1.35°; `docs/commissioning.md`).
+/// less than the margin inside its stop, by the excess, never past it (the automatic
+/// calibration presses both stops at one torque: its zeros were within 0.26° over eight seeds,
+/// where half the difference reached 1.35°; `docs/commissioning.md`).
 pub fn shift_allowance(swept_rad: f64, travel_rad: f64) -> f64 {
     ((swept_rad - travel_rad).abs() / 2.0).min(MAX_SHIFT_ALLOWANCE_RAD)
 }
@@ -377,12 +390,12 @@ mod tests {
 
     /// Pressed 0.01 rad into the lower stop and not into the upper: the zero shifts by half
     /// that, and the limits move in by as much, so each stays the margin inside its real stop.
-    /// Pressed further into one (0.09 rad, within the tolerance), the limits move in by
+    /// Pressed further into one (0.045 rad, within the tolerance), the limits move in by
     /// [`MAX_SHIFT_ALLOWANCE_RAD`] at most, and one lies less than the margin inside its stop
-    /// by the rest of the zero's shift. What the sweep cannot see: pressed into one stop and
-    /// short of the other by as much (the travel right), the zero shifts by that and a limit is
-    /// that much less inside (the residual documented in hazard C6; the automatic calibration's
-    /// remedy).
+    /// by the rest of the zero's shift, still inside it; pressed 0.09 rad, the sweep is refused.
+    /// What the sweep cannot see: pressed into one stop and short of the other by as much (the
+    /// travel right), the zero shifts by that and a limit is that much less inside (the
+    /// residual documented in hazard C6; the automatic calibration's remedy).
     #[test]
     fn a_stop_pressed_harder_than_the_other_moves_the_limits_in_up_to_the_allowance() {
         let mut rng = Rng::new(5);
@@ -390,10 +403,11 @@ mod tests {
         for (press_lower, press_upper, unseen) in [
             (0.01, 0.0, 0.0),
             (0.0, 0.02, 0.0),
+            (0.045, 0.0, 0.0),
+            (0.0, 0.045, 0.0),
+            (0.03, 0.01, 0.0),
             (0.09, 0.0, 0.0),
-            (0.0, 0.09, 0.0),
-            (0.05, 0.01, 0.0),
-            (0.06, -0.06, 0.06),
+            (0.012, -0.012, 0.012),
         ] {
             let mut s = servo(300.0);
             let waypoints = [
@@ -403,8 +417,16 @@ mod tests {
                 -0.5,
             ];
             let sweep = sweep_through(&mut s, &waypoints, &mut rng);
-            let cal = choose("left_elbow", &sweep, &ELBOW, margin, 0.1).unwrap();
+            let chosen = choose("left_elbow", &sweep, &ELBOW, margin, TRAVEL_TOLERANCE_RAD);
             let half = (sweep.swept_rad() - ELBOW.travel_rad()).abs() / 2.0;
+            if 2.0 * half > TRAVEL_TOLERANCE_RAD {
+                assert!(
+                    matches!(chosen, Err(Refusal::BeyondTravel { .. })),
+                    "{chosen:?}"
+                );
+                continue;
+            }
+            let cal = chosen.unwrap();
             let allowance = half.min(MAX_SHIFT_ALLOWANCE_RAD);
             // In the calibration's own frame: the margin and the allowance inside each stop.
             let (lo, hi) = cal.range_rad();
@@ -421,7 +443,7 @@ mod tests {
             let excess = half - allowance;
             for d in inside {
                 assert!(
-                    d >= margin - unseen - excess - 0.003,
+                    d >= margin - unseen - excess - 0.003 && d > 0.0,
                     "pressed {press_lower}/{press_upper}: a limit {:.2}° inside its stop",
                     d.to_degrees()
                 );

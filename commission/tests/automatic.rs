@@ -21,7 +21,7 @@ use std::cell::RefCell;
 use std::time::Duration;
 
 use commission::calibrate::LIMIT_MARGIN_RAD as MARGIN_RAD;
-const TOLERANCE_RAD: f64 = 0.05;
+use commission::calibrate::TRAVEL_TOLERANCE_RAD as TOLERANCE_RAD;
 
 fn plan(robot: &RobotDescription) -> Plan {
     Plan::of(

@@ -10,6 +10,7 @@ mod common;
 use bus_driver::bus::Bus;
 use commission::by_hand::ByHand;
 use commission::calibrate::Refusal;
+use commission::calibrate::{LIMIT_MARGIN_RAD, TRAVEL_TOLERANCE_RAD};
 use commission::session::SessionError;
 use common::{left_arm, line, targets};
 use feetech::registers as reg;
@@ -55,7 +56,9 @@ fn each_joint_reads_where_it_is_within_two_degrees_over_seeds() {
         assert_eq!(bus.borrow().hand_done(), Some(true));
         let progress = session.progress(0.02);
         assert!(progress.iter().all(|p| p.covered), "{progress:#?}");
-        let chosen = session.finish(0.15, 0.1).unwrap();
+        let chosen = session
+            .finish(LIMIT_MARGIN_RAD, TRAVEL_TOLERANCE_RAD)
+            .unwrap();
         assert_eq!(chosen.len(), 8);
         // Written to flash, not only to the registers: a power cycle keeps it.
         for id in 1..=8 {
@@ -120,7 +123,9 @@ fn a_joint_blocked_short_of_its_stop_is_refused_and_nothing_is_written() {
     let mut session =
         ByHand::start(Bus::new(line(&bus), Duration::from_micros(600)), expected).unwrap();
     sweep(&bus, &mut session, 200.0);
-    let e = session.finish(0.15, 0.1).unwrap_err();
+    let e = session
+        .finish(LIMIT_MARGIN_RAD, TRAVEL_TOLERANCE_RAD)
+        .unwrap_err();
     let SessionError::Refused(refusals) = &e else {
         panic!("{e}")
     };

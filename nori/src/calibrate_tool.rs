@@ -26,13 +26,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use commission::calibrate::LIMIT_MARGIN_RAD as MARGIN_RAD;
-/// How far the travel swept may differ from the description's before it is refused, rad
-/// (the stops' give under an operator's push is a few degrees).
-const TOLERANCE_RAD: f64 = 0.1;
-/// The same for the automatic calibration, rad (2.9°): its stops are pressed at a known low
-/// torque, so a stall further from the described travel is something in the way.
-const AUTO_TOLERANCE_RAD: f64 = 0.05;
+use commission::calibrate::{LIMIT_MARGIN_RAD as MARGIN_RAD, TRAVEL_TOLERANCE_RAD};
 /// A joint counts as covered within this of its travel, rad.
 const COVERED_RAD: f64 = 0.02;
 /// Readings a second.
@@ -194,7 +188,12 @@ fn auto(args: &AutoArgs) -> Result<()> {
     let prepared = Prepared::of(common, &[], args.within)?;
     let described = (prepared.robot.bus(&common.bus))
         .with_context(|| format!("the description has no bus {}", common.bus))?;
-    let plan = Plan::of(described, &prepared.targets, MARGIN_RAD, AUTO_TOLERANCE_RAD)?;
+    let plan = Plan::of(
+        described,
+        &prepared.targets,
+        MARGIN_RAD,
+        TRAVEL_TOLERANCE_RAD,
+    )?;
     let lift_m = described.arm.as_ref().and_then(|a| a.calibration.as_ref());
     lift_high_enough(args, lift_m.map_or(0.0, |c| c.lift_m))?;
     let names: Vec<String> = plan.sweeps.iter().map(|s| s.target.joint.clone()).collect();
@@ -344,7 +343,7 @@ fn by_hand(args: &ByHandArgs) -> Result<()> {
             }
         }
     }
-    let calibrated = session.finish(MARGIN_RAD, TOLERANCE_RAD)?;
+    let calibrated = session.finish(MARGIN_RAD, TRAVEL_TOLERANCE_RAD)?;
     prepared.write(common, CalibrationMethod::ByHand, &calibrated)
 }
 

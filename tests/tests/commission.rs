@@ -412,18 +412,20 @@ fn check_off_the_line_calibration(stack: &ArmStack, written: &CalibrationFile) {
 const STEP_RAD: f64 = sim::servo::RAD_PER_STEP;
 
 /// Streams goals far beyond both ends of every joint's range (clamped to its limits by the
-/// driver), all joints at once, 2.5 s each way; how far each joint ran past its limits, rad.
+/// driver), all joints at once, 3 s each way; how far each joint ran past its limits, and how
+/// near it came to each end (upper, lower), rad.
 fn drive_to_both_ends(
     node: &Plane,
     states: &plane::Sub<JointState>,
     written: &CalibrationFile,
     names: &[String],
-) -> [f64; 8] {
+) -> ([f64; 8], [[f64; 2]; 8]) {
     let goals = node.publisher(&plane::GOALS).unwrap();
     let mut past = [0f64; 8];
+    let mut nearest = [[f64::INFINITY; 2]; 8];
     let mut seq = 0;
-    for end in [1.0f32, -1.0] {
-        let until = std::time::Instant::now() + Duration::from_millis(2500);
+    for (e, end) in [1.0f32, -1.0].into_iter().enumerate() {
+        let until = std::time::Instant::now() + Duration::from_millis(3000);
         while std::time::Instant::now() < until {
             seq += 1;
             let mut g = GoalFrame {
@@ -443,11 +445,13 @@ fn drive_to_both_ends(
                     let (lo, hi) = cal.range_rad();
                     let beyond = (q - hi).max(lo - q);
                     past[k] = past[k].max(beyond);
+                    let short = if e == 0 { hi - q } else { q - lo };
+                    nearest[k][e] = nearest[k][e].min(short);
                 }
             }
         }
     }
-    past
+    (past, nearest)
 }
 
 /// A robot off the line: every horn where the assembler fitted it, nothing calibrated. The scan
@@ -491,11 +495,18 @@ fn a_robot_off_the_line_calibrated_by_hand_has_every_zero_within_a_degree() {
     let names: Vec<String> = (servos.iter())
         .map(|s| s["joint"].as_str().unwrap().to_string())
         .collect();
-    let past = drive_to_both_ends(&node, &states, &written, &names);
+    let (past, nearest) = drive_to_both_ends(&node, &states, &written, &names);
     eprintln!(
         "past each limit at most (°): {:?}",
         past.map(|p| (p.to_degrees() * 100.0).round() / 100.0)
     );
+    // Each reached both ends, slowed as it neared them (a loaded joint holds a little short).
+    for (name, near) in names.iter().zip(nearest) {
+        assert!(
+            near.iter().all(|&n| n < 0.03),
+            "{name} came no nearer its ends than {near:?} rad"
+        );
+    }
     drop((states, node));
     let report = stack.stop();
     for servo in report["buses"][0]["servos"].as_array().unwrap() {
