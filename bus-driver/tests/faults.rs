@@ -783,8 +783,8 @@ fn every_bad_goal_frame_is_refused_with_its_reason_and_nothing_reaches_the_wire(
     );
 
     // Out of range: applied, clamped into the calibrated range (the speed limit for wheels).
-    // The clamp alone: with the approach to the ends, the goal written reaches an end only as
-    // the joint follows (this rig's joints stand still; `approach` and `against_sim` test it).
+    // The clamp alone: with the approach to the ends, the goal written reaches an end over
+    // many cycles as the joint follows (`approach` and `against_sim` test that), not in one.
     rig.driver.set_slowed_approach(false);
     let cal = rig.config.calibration.joint["left_shoulder_pitch"];
     let cal5 = rig.config.calibration.joint["right_shoulder_pitch"];
@@ -1286,6 +1286,57 @@ fn leaving_the_hold_safe_state_re_holds_where_the_arm_is() {
         "held at {held}, the arm is at {present} (frozen at {frozen})"
     );
     assert!((frozen - present).abs() > 150, "the sag was real");
+}
+
+/// Held (the operator's stop, a lost supervisor) in a cycle its reading was missed, a joint on
+/// its approach to a range's end holds the goal its servo was last sent, not the far one it
+/// was asked for: once read again, nothing goes on toward the end at the hold's torque (found
+/// by the second outside review of the approach).
+#[test]
+fn a_joint_not_read_when_the_hold_begins_holds_the_goal_it_was_sent() {
+    let mut rig = rig(None, SafeState::Hold);
+    for _ in 0..10 {
+        rig.cycle();
+    }
+    let elbow = |rig: &Rig, f: &dyn Fn(&mut sim::servo::Servo)| {
+        f(rig.buses[0].lock().unwrap().servo_mut(4).unwrap());
+    };
+    let sent = |rig: &Rig| {
+        let mut b = rig.buses[0].lock().unwrap();
+        b.servo_mut(4).unwrap().get(reg::GOAL_POSITION)
+    };
+    // The elbow (joint 3) asked far past one end: its written goal sets off toward it.
+    let mut f = GoalFrame {
+        joint_count: 18,
+        timestamp_ns: monotonic_ns(),
+        mask: 1 << 3,
+        ..GoalFrame::default()
+    };
+    f.position_rad[3] = -10.0;
+    rig.driver
+        .apply_goals(&f, monotonic_ns(), GoalPath::Joints)
+        .unwrap();
+    let start = sent(&rig);
+    for _ in 0..20 {
+        rig.cycle();
+    }
+    let on_its_way = sent(&rig);
+    assert_ne!(on_its_way, start, "the approach set off");
+    elbow(&rig, &|s| s.answering = false);
+    rig.cycle();
+    rig.driver.enter_safe_state();
+    rig.cycle();
+    elbow(&rig, &|s| s.answering = true);
+    let held = sent(&rig);
+    for _ in 0..40 {
+        rig.cycle();
+    }
+    let after = sent(&rig);
+    let toward_the_end = (on_its_way - start).signum();
+    assert!(
+        toward_the_end * (after - held) <= 2,
+        "held at {held}, then sent {after} (set off from {start}, {on_its_way} when held)"
+    );
 }
 
 /// The background pass finds what changed behind the driver's back on a servo whose settings
