@@ -12,11 +12,13 @@
 //!   it arrives), and within the zone never more than [`LEAD_RAD`] ahead of where the joint
 //!   stands: a loaded joint holding short of its goal still arrives, one held back (a hand)
 //!   is not pushed on from further away, nor met by a goal far ahead when it is let go.
+//!   A joint that runs past its written goal (thrown by the rest of the arm, or overshooting)
+//!   is not followed: its servo holds it back to the profile.
 //! * **Not read**, the written goal goes no further toward the end, nor more than the lead past
 //!   where the joint was last read.
 //!
-//! The written goal is never further toward an end than the goal asked for, never outside the
-//! range.
+//! The written goal always lies inside the range, between the one last written and the goal
+//! asked for, or pulled back toward where the joint stands: never a goal further on than both.
 
 /// Width of the zone inside each end of a range where a goal is approached, rad: wider than
 /// the worst overshoot past a goal sent at full speed (0.15 rad, the shoulder roll helped by
@@ -31,9 +33,6 @@ pub const CRAWL_RAD_S: f64 = 0.25;
 /// The most the written goal leads the joint toward an end, rad: ten times the error a loaded
 /// joint of the simulated arm holds at an end (under 0.01 rad).
 pub const LEAD_RAD: f64 = 0.1;
-
-/// A reading's jitter about where a servo holds, steps.
-const JITTER_STEPS: f64 = 2.0;
 
 /// What the driver knows of where a joint is, in its servo's steps (`Present_Position`).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -119,10 +118,9 @@ impl Approach {
         if goal <= written {
             return goal.min(ahead);
         }
-        // From what was written, or where the joint stands if it is further on (never pulled
-        // back from there), less a reading's own jitter, which would hurry the approach.
-        let from = written.max((stands - JITTER_STEPS).min(goal));
-        let profiled = from + self.allowed(end - from) * self.period;
+        // On from what was written, even with the joint further on: a joint that ran past its
+        // goal (thrown, or overshooting) is held back by its servo, not followed to the stop.
+        let profiled = written + self.allowed(end - written) * self.period;
         goal.min(profiled).min(ahead)
     }
 
@@ -285,22 +283,20 @@ mod tests {
         assert_eq!(Sighting::Never.after(Some(2810)), Sighting::Now(2810));
     }
 
-    /// A joint read further toward the end than the written goal (it overshot it, or was
-    /// pushed there) is not pulled back: the goal starts from where it stands, less a reading's
-    /// jitter, never past the goal asked for.
+    /// A joint read further toward the end than the written goal (thrown, or overshooting) is
+    /// not followed: the written goal goes on from where it was, at the profile's pace, and its
+    /// servo holds the joint back.
     #[test]
-    fn a_joint_past_the_written_goal_is_not_pulled_back() {
+    fn a_joint_past_the_written_goal_is_held_back_to_the_profile() {
         let a = approach();
-        let stands = 2980.0 - JITTER_STEPS;
-        let w = a.next(MAX, 2950.0, read(2980.0), MIN, MAX);
-        assert_eq!(w, stands + allowed_step(3000.0 - stands));
-        assert_eq!(a.next(2970, 2950.0, read(2980.0), MIN, MAX), 2970.0);
-        let stands = 1020.0 + JITTER_STEPS;
-        let w = a.next(MIN, 1050.0, read(1020.0), MIN, MAX);
-        assert_eq!(w, stands - allowed_step(stands - 1000.0));
-        // Within a reading's jitter of the written goal: from the written goal.
-        let w = a.next(MAX, 2950.0, read(2952.0), MIN, MAX);
-        assert_eq!(w, 2950.0 + allowed_step(50.0));
+        let w = a.next(MAX, 2800.0, read(2900.0), MIN, MAX);
+        assert_eq!(w, 2800.0 + allowed_step(200.0));
+        assert_eq!(
+            a.next(2970, 2950.0, read(2980.0), MIN, MAX),
+            2950.0 + allowed_step(50.0)
+        );
+        let w = a.next(MIN, 1200.0, read(1100.0), MIN, MAX);
+        assert_eq!(w, 1200.0 - allowed_step(200.0));
     }
 
     /// Never beyond the goal asked for, nor the range, even one step short of it or with the
@@ -310,8 +306,15 @@ mod tests {
         let a = approach();
         assert_eq!(a.next(2999, 2998.9, read(2999.0), MIN, MAX), 2999.0);
         assert_eq!(a.next(1001, 1001.1, read(1001.0), MIN, MAX), 1001.0);
-        assert_eq!(a.next(MAX, 2990.0, read(3010.0), MIN, MAX), 3000.0);
-        assert_eq!(a.next(MIN, 1010.0, read(990.0), MIN, MAX), 1000.0);
+        assert_eq!(
+            a.next(MAX, 2990.0, read(3010.0), MIN, MAX),
+            2990.0 + allowed_step(10.0)
+        );
+        assert_eq!(
+            a.next(MIN, 1010.0, read(990.0), MIN, MAX),
+            1010.0 - allowed_step(10.0)
+        );
+        assert_eq!(a.next(MAX, 2999.5, read(3010.0), MIN, MAX), 3000.0);
         assert_eq!(a.next(2995, 3000.0, read(3010.0), MIN, MAX), 2995.0);
     }
 }

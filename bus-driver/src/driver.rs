@@ -977,17 +977,20 @@ impl<T: Transport> Driver<T> {
         }
     }
 
-    /// Every position joint's goal becomes its last valid reading (clamped into range); a
-    /// wheel's becomes 0.
+    /// Every position joint's goal becomes its last valid reading (clamped into range), or,
+    /// not read this cycle, the goal its servo was last sent (not one still on its way toward
+    /// an end); a wheel's becomes 0.
     fn hold_where_they_are(&mut self) {
         for (j, joint) in self.joints.iter_mut().enumerate() {
             let s = &self.state.joints[j];
-            if let (Some(cal), true) = (joint.calibration, s.is_valid()) {
-                if let Ok(steps) = cal.goal_steps(j, s.position_rad) {
-                    joint.goal = steps;
+            match (joint.calibration, s.is_valid()) {
+                (Some(cal), true) => {
+                    if let Ok(steps) = cal.goal_steps(j, s.position_rad) {
+                        joint.goal = steps;
+                    }
                 }
-            } else if joint.calibration.is_none() {
-                joint.goal = 0;
+                (Some(_), false) => joint.goal = joint.written_steps(),
+                (None, _) => joint.goal = 0,
             }
         }
     }
@@ -1349,7 +1352,8 @@ impl<T: Transport> Driver<T> {
     }
 
     fn write_goals(&mut self, bi: usize) {
-        let approach = self.slowed_approach.then_some(self.approach);
+        // Held (the safe state), each goal is where its joint was read: written as it is.
+        let approach = (self.slowed_approach && !self.safe).then_some(self.approach);
         let b = &mut self.buses[bi];
         b.payload.clear();
         for (k, &id) in b.ids.iter().enumerate() {

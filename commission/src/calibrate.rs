@@ -223,20 +223,26 @@ pub const MAX_SHIFT_ALLOWANCE_RAD: f64 = 0.6 * std::f64::consts::PI / 180.0;
 /// How far the travel swept may differ from the description's before it is refused, rad
 /// (2.9°), by hand and automatic: a stop not reached, something in the way, a broken stop. At
 /// most half of it shifts the zero, and the margin with the whole allowance covers that, so no
-/// accepted sweep puts a limit past its stop (checked as the crate builds, below).
+/// stop pressed harder than the other puts a limit past its stop, but for the rounding
+/// (checked as the crate builds, below). What no sweep shows, one stop pressed and the other not reached by as much, is
+/// hazard C6's open residual.
 pub const TRAVEL_TOLERANCE_RAD: f64 = 0.05;
 
 // A stop pressed harder than the other by all of the tolerance shifts the zero by half of it:
-// the margin and the whole allowance must still keep each limit inside its stop.
+// the margin and the whole allowance must still keep each limit inside its stop. They leave
+// 1.9 steps; the rounding of the zero, the limits and the offset can take up to 2.5, so at
+// the whole tolerance a limit ends within a step (0.09°) of its stop, either side (the second
+// outside review). More margin would put the automatic calibration's limits past 2°.
 const _: () = assert!(
-    LIMIT_MARGIN_RAD + MAX_SHIFT_ALLOWANCE_RAD > TRAVEL_TOLERANCE_RAD / 2.0 + 0.002,
+    LIMIT_MARGIN_RAD + MAX_SHIFT_ALLOWANCE_RAD
+        > TRAVEL_TOLERANCE_RAD / 2.0 + std::f64::consts::TAU / 4096.0,
     "a one-sided difference of the whole tolerance could put a limit past its stop"
 );
 
 /// How much further in than the margin the limits go, rad: however a sweep's difference from
 /// the travel splits between the two stops (one pressed harder, or not reached), it shifts the
 /// zero by at most half of it; up to [`MAX_SHIFT_ALLOWANCE_RAD`]. Beyond that a limit may lie
-/// less than the margin inside its stop, by the excess, never past it (the automatic
+/// less than the margin inside its stop, by the excess, not past it (the automatic
 /// calibration presses both stops at one torque: its zeros were within 0.26° over eight seeds,
 /// where half the difference reached 1.35°; `docs/commissioning.md`).
 pub fn shift_allowance(swept_rad: f64, travel_rad: f64) -> f64 {
