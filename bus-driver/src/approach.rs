@@ -68,13 +68,13 @@ impl Sighting {
 /// The approach in a servo's steps, for a loop at a given rate.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Approach {
-    /// Steps.
+    /// The zone's width, steps.
     zone: f64,
-    /// Steps/s².
+    /// The deceleration allowed for, steps/s².
     decel: f64,
-    /// Steps/s.
+    /// The least speed of the written goal toward an end, steps/s.
     crawl: f64,
-    /// Steps.
+    /// The most the written goal leads the joint within the zone, steps.
     lead: f64,
     /// The loop's period, s.
     period: f64,
