@@ -1267,7 +1267,8 @@ impl<T: Transport> Driver<T> {
     }
 
     /// Turns the slowed approach to the ends of each range off or on (it is on; `nori bench
-    /// driver-rate` turns it off for the baseline it measures its cost against).
+    /// driver-rate` turns it off for the baseline it measures its cost against, and the tests
+    /// for the unslowed drive they compare with and for the range clamp alone).
     pub fn set_slowed_approach(&mut self, on: bool) {
         self.slowed_approach = on;
     }
