@@ -498,30 +498,31 @@ const HELD_S: f64 = 0.5;
 /// rig's driver configuration to match.
 fn calibrate_left_arm(rig: &mut Rig, margin_rad: f64) {
     use feetech::registers as reg;
+    let limits = rig
+        .served
+        .with_bus("left_arm", |b| {
+            b.calibrate_arm(margin_rad);
+            (b.servos.iter())
+                .map(|s| {
+                    (
+                        s.id,
+                        s.get(reg::MIN_POSITION_LIMIT),
+                        s.get(reg::MAX_POSITION_LIMIT),
+                    )
+                })
+                .collect::<Vec<_>>()
+        })
+        .unwrap();
     let robot = RobotDescription::nori_a3();
     let bus = robot.bus("left_arm").unwrap();
     let arm = bus.arm.as_ref().unwrap();
-    let gripper = arm.gripper.as_ref().unwrap();
-    let ends = (arm
-        .joint
-        .iter()
-        .map(|j| (j.servo, j.lower_rad, j.upper_rad)))
-    .chain([(gripper.servo, gripper.lower_rad, gripper.upper_rad)]);
-    for (id, lower, upper) in ends {
-        let limits = rig
-            .served
-            .with_bus("left_arm", |b| {
-                let servo = b.servo_mut(id).unwrap();
-                servo.calibrate(lower, upper, margin_rad);
-                (
-                    servo.get(reg::MIN_POSITION_LIMIT),
-                    servo.get(reg::MAX_POSITION_LIMIT),
-                )
-            })
-            .unwrap();
+    let gripper = arm.gripper.as_ref().map(|g| g.servo);
+    let ids = arm.joint.iter().map(|j| j.servo).chain(gripper);
+    for id in ids {
         let name = &bus.servo.iter().find(|s| s.id == id).unwrap().joint;
+        let &(_, min, max) = limits.iter().find(|l| l.0 == id).unwrap();
         let cal = rig.config.calibration.joint.get_mut(name).unwrap();
-        (cal.range_min, cal.range_max) = limits;
+        (cal.range_min, cal.range_max) = (min, max);
     }
 }
 

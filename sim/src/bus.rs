@@ -12,6 +12,15 @@ use feetech::{Decoder, StatusPacket, BROADCAST_ID, MAX_PACKET};
 use serde::Serialize;
 use std::collections::VecDeque;
 
+/// The hard stops of a servo's joint or gripper, rad (lower, upper); `None` for the others.
+fn stops(arm: &Arm, role: Role) -> Option<(f64, f64)> {
+    match role {
+        Role::ArmJoint(k) => arm.stops(k),
+        Role::Gripper => arm.gripper.as_ref().map(|g| (g.lower_rad, g.upper_rad)),
+        Role::Wheel | Role::Free => None,
+    }
+}
+
 /// What a servo does in the mechanics.
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Role {
@@ -211,11 +220,9 @@ impl SimBus {
             for (k, j) in a.joint.iter().enumerate() {
                 roles[pos(j.servo)] = Role::ArmJoint(k);
                 arm_servos.push(pos(j.servo));
-                servos[pos(j.servo)].calibrate(j.lower_rad, j.upper_rad, CALIBRATION_MARGIN_RAD);
             }
             if let Some(g) = &a.gripper {
                 roles[pos(g.servo)] = Role::Gripper;
-                servos[pos(g.servo)].calibrate(g.lower_rad, g.upper_rad, CALIBRATION_MARGIN_RAD);
             }
         }
         let mut wheel_load = (0.0, 0.0);
@@ -233,7 +240,7 @@ impl SimBus {
             }
         }
         let n_arm = arm_servos.len();
-        SimBus {
+        let mut bus = SimBus {
             name: d.name.clone(),
             baud: d.baud,
             host_baud: d.baud,
@@ -268,6 +275,22 @@ impl SimBus {
             truth: vec![None; d.servo.len()],
             hand: None,
             past_stop: vec![false; d.servo.len()],
+        };
+        bus.calibrate_arm(CALIBRATION_MARGIN_RAD);
+        bus
+    }
+
+    /// Calibrates every arm joint's and the gripper's servo `margin_rad` inside its stops, as
+    /// a calibration procedure would leave them (the delivered robot's margin is
+    /// [`CALIBRATION_MARGIN_RAD`]).
+    pub fn calibrate_arm(&mut self, margin_rad: f64) {
+        let Some(arm) = &self.arm else {
+            return;
+        };
+        for (servo, &role) in self.servos.iter_mut().zip(&self.roles) {
+            if let Some((lower, upper)) = stops(arm, role) {
+                servo.calibrate(lower, upper, margin_rad);
+            }
         }
     }
 
@@ -568,12 +591,7 @@ impl SimBus {
             return;
         };
         for (i, servo) in self.servos.iter_mut().enumerate() {
-            let stops = match self.roles[i] {
-                Role::ArmJoint(k) => arm.stops(k),
-                Role::Gripper => arm.gripper.as_ref().map(|g| (g.lower_rad, g.upper_rad)),
-                Role::Wheel | Role::Free => None,
-            };
-            let Some((lower, upper)) = stops else {
+            let Some((lower, upper)) = stops(arm, self.roles[i]) else {
                 continue;
             };
             let past = servo.angle > upper || servo.angle < lower;
