@@ -873,6 +873,8 @@ struct BodySeen {
     lift_states: std::collections::BTreeMap<&'static str, u64>,
     /// Largest |goal − reading| of an arm joint outside the safe state, rad.
     most_lead: f32,
+    /// Where it was seen: the joint, its goal and reading (rad), the frame's number.
+    most_lead_at: Option<(String, f32, f32, u64)>,
     driver_seq: u64,
     lift_state: u8,
 }
@@ -911,8 +913,14 @@ impl BodySeen {
             return;
         }
         for (j, info) in s.joints().iter().zip(layout.joints()) {
-            if j.is_valid() && info.role == telemetry::frames::JointRole::Joint as u8 {
-                self.most_lead = self.most_lead.max((j.goal_rad - j.position_rad).abs());
+            let lead = (j.goal_rad - j.position_rad).abs();
+            if j.is_valid()
+                && info.role == telemetry::frames::JointRole::Joint as u8
+                && lead > self.most_lead
+            {
+                self.most_lead = lead;
+                let name = info.name().to_string();
+                self.most_lead_at = Some((name, j.goal_rad, j.position_rad, s.seq));
             }
         }
     }
@@ -1109,8 +1117,9 @@ fn a_seeded_body_chaos_run_keeps_the_base_and_the_lift_safe() {
     );
     assert!(
         seen.most_lead < 0.5,
-        "an arm's goal {} rad from its reading",
-        seen.most_lead
+        "an arm's goal {} rad from its reading (joint, goal, reading, frame: {:?})",
+        seen.most_lead,
+        seen.most_lead_at
     );
     // The hand: met, and pressed at most one stall stop (150 ms, a period, the board's 10 ms
     // report) at a time, by the simulator's count.
