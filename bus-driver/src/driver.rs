@@ -1499,11 +1499,15 @@ fn sample(joint: &Joint, fb: Option<&(FeedbackBlock, ServoStatus)>) -> JointSamp
     let (position, velocity, goal) = match joint.calibration {
         Some(cal) => {
             let sign = if cal.inverted { -1.0 } else { 1.0 };
-            (
-                cal.to_rad(f.position),
-                sign * f64::from(f.velocity) / STEPS_PER_RAD,
-                cal.to_rad(joint.goal),
-            )
+            let position = cal.to_rad(f.position);
+            // Not set up (torque off), it has no goal in force: none is published but where
+            // it is read (a goal asked before its set-up is replaced by its reading then).
+            let goal = if joint.ready {
+                cal.to_rad(joint.goal)
+            } else {
+                position
+            };
+            (position, sign * f64::from(f.velocity) / STEPS_PER_RAD, goal)
         }
         None => (
             f64::from(f.position) / STEPS_PER_RAD,
