@@ -32,12 +32,12 @@ target=aarch64-unknown-linux-gnu
 oldest_glibc=2.36
 oldest_os="Raspberry Pi OS bookworm"
 
-# What goes on the robot (the nori-robot package) and what runs the simulator (nori-sim).
-robot_bins=(bus-driver supervisor fleet-agent nori-camera nori-lidar nori-base nori-lift nori-record nori)
-sim_bins=(nori-sim nori-stack)
+# shellcheck source=deploy/binaries.sh
+. deploy/binaries.sh
+# The crates whose binaries those are.
 packages=(-p bus-driver -p supervisor -p fleet-agent -p camera -p lidar -p base -p lift
-  -p recorder -p nori -p sim -p stack)
-unit_tested=(feetech telemetry bus-driver supervisor fleet-agent base lift camera lidar recorder body)
+  -p recorder -p blackbox -p nori -p sim -p stack)
+unit_tested=(feetech telemetry bus-driver supervisor fleet-agent base lift camera lidar recorder blackbox body)
 process_tests=(stack_on_sim latch crash_isolation heartbeats thermal_ordering)
 
 say() { echo "cross: $*" >&2; }

@@ -30,8 +30,8 @@ case $arch in
 esac
 command -v $strip >/dev/null || { echo "deb: $strip missing (apt install binutils-aarch64-linux-gnu)" >&2; exit 1; }
 
-robot_bins=(bus-driver supervisor fleet-agent nori-camera nori-lidar nori-base nori-lift nori-record nori-blackbox nori)
-sim_bins=(nori-sim nori-stack)
+# shellcheck source=deploy/binaries.sh
+. deploy/binaries.sh
 mkdir -p "$out"
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT

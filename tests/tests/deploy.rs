@@ -233,3 +233,41 @@ impl Drop for KillOnDrop {
         }
     }
 }
+
+/// The list deploy/binaries.sh gives the packages and the arm64 build (`robot_bins=(...)`).
+fn robot_binaries() -> Vec<String> {
+    let text = std::fs::read_to_string(deploy().join("binaries.sh")).unwrap();
+    let list = text
+        .lines()
+        .find_map(|l| l.strip_prefix("robot_bins=("))
+        .and_then(|l| l.strip_suffix(')'))
+        .expect("deploy/binaries.sh sets robot_bins=(...)");
+    list.split_whitespace().map(str::to_string).collect()
+}
+
+#[test]
+fn every_unit_runs_a_binary_the_robot_package_ships() {
+    let shipped = robot_binaries();
+    for name in &shipped {
+        binary(name); // a name the workspace builds
+    }
+    let mut programs = 0;
+    for entry in std::fs::read_dir(deploy().join("systemd"))
+        .unwrap()
+        .flatten()
+    {
+        let text = std::fs::read_to_string(entry.path()).unwrap();
+        for exec in text.lines().filter_map(|l| l.strip_prefix("ExecStart=")) {
+            let program = exec.split_whitespace().next().unwrap();
+            let name = program.strip_prefix("/usr/bin/").unwrap_or(program);
+            assert!(
+                shipped.iter().any(|b| b == name),
+                "{}: {program} is not in deploy/binaries.sh's robot_bins (the packages and the \
+                 arm64 build would leave it out)",
+                entry.file_name().to_string_lossy()
+            );
+            programs += 1;
+        }
+    }
+    assert!(programs >= 8, "{programs} units with an ExecStart found");
+}
