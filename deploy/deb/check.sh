@@ -83,15 +83,9 @@ for m in proc dev dev/pts; do
 done
 in_root() { chroot "$root" env -i PATH=/usr/sbin:/usr/bin:/sbin:/bin HOME=/root LANG=C.UTF-8 "$@"; }
 
-n=0.1.0+$(git rev-list --count HEAD)
-next=$n.1
-export NORI_DEB_COMPRESSION=${NORI_DEB_COMPRESSION:-gzip}
-deploy/deb/build.sh "$arch" "$bin_dir" "$work/n" "$n"
-# N+1 changes the default of the file the robot edits (step 3), so dpkg has a conffile to decide
-# on; its binaries are N's (what is checked is the packaging, not a change of code).
-cp -r deploy/config "$work/config-next"
-printf '\n# a default changed in %s\n' "$next" >>"$work/config-next/supervisor.toml"
-NORI_DEB_CONFIG="$work/config-next" deploy/deb/build.sh "$arch" "$bin_dir" "$work/next" "$next"
+# shellcheck source=deploy/deb/two-versions.sh
+. deploy/deb/two-versions.sh
+build_two_versions "$arch" "$bin_dir" "$work"
 mkdir "$root/debs" && cp "$work"/n/*.deb "$work"/next/*.deb "$root/debs/"
 
 say "0. lintian"
