@@ -131,8 +131,9 @@ robot_package() {
     " (nori.target), udev rules and default configuration."
   (cd "$root" && find etc -type f | sed 's|^|/|' | sort) >"$root/DEBIAN/conffiles"
   for s in preinst postinst prerm postrm; do
-    # One rule for stopping the stack, in each script that needs it (as debhelper's #DEBHELPER#).
-    sed -e '/^#NORI_STOP_STACK#$/{r deploy/deb/stop-stack.sh' -e 'd}' "deploy/deb/nori-robot.$s" >"$root/DEBIAN/$s"
+    # One rule for stopping the stack and recording what ran, in every script.
+    grep -qx '#NORI_COMMON#' "deploy/deb/nori-robot.$s" || { echo "deb: nori-robot.$s lacks #NORI_COMMON#" >&2; exit 1; }
+    sed -e '/^#NORI_COMMON#$/{r deploy/deb/maintainer-common.sh' -e 'd}' "deploy/deb/nori-robot.$s" >"$root/DEBIAN/$s"
     chmod 755 "$root/DEBIAN/$s"
   done
   dpkg-deb --root-owner-group "-Z${NORI_DEB_COMPRESSION:-xz}" --build "$root" "$out/nori-robot_${version}_$arch.deb" >/dev/null
