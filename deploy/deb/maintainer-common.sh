@@ -1,5 +1,5 @@
 # (Inlined by deploy/deb/build.sh where a maintainer script of nori-robot says #NORI_COMMON#:
-# one rule for every script, as debhelper's #DEBHELPER#.)
+# one rule for every script, as debhelper's own token is.)
 
 # Every unit the package ships, as enabled, in an order their After= lines allow to start in:
 # the postinst starts units again one by one in it (units started together, each in its own
