@@ -9,10 +9,11 @@
 #   deploy/arm64/cross.sh build   the robot's and the simulator's binaries for aarch64; prints
 #                                 each one's size and the glibc it needs, and fails if one needs
 #                                 more than the oldest supported Raspberry Pi OS has
-#   deploy/arm64/cross.sh test [unit|process]
+#   deploy/arm64/cross.sh test [unit|process|both [FILTER]]
 #                                 the robot crates' unit tests and the process tests that matter
 #                                 most on the Pi, as arm64 processes (timings are not taken);
-#                                 both unless one is named
+#                                 both unless one is named; FILTER: only the tests whose names
+#                                 contain it (as cargo test's)
 #   deploy/arm64/cross.sh all     the three in turn
 #
 # The root lives in $NORI_CROSS_ROOT (/var/tmp/nori-cross/root); the sources are the working
@@ -159,7 +160,7 @@ build() {
 }
 
 run_tests() {
-  local which=${1:-both}
+  local which=${1:-both} filter=${2:-}
   case $which in both | unit | process) ;; *) say "test: unit, process or neither (both)"; exit 2 ;; esac
   register_qemu
   copy_sources
@@ -167,14 +168,14 @@ run_tests() {
     local args=()
     for c in "${unit_tested[@]}"; do args+=(-p "$c"); done
     say "unit tests of ${unit_tested[*]} as arm64 processes"
-    in_root sh -c "cd /build/src && cargo test --locked --release ${args[*]} --lib --bins"
+    in_root sh -c "cd /build/src && cargo test --locked --release ${args[*]} --lib --bins -- $filter"
   fi
   if [ "$which" != unit ]; then
     local tests=()
     for t in "${process_tests[@]}"; do tests+=(--test "$t"); done
     say "process tests ${process_tests[*]} as arm64 processes"
     # NORI_EMULATED: the tests hold their invariants and report, not bound, their timings.
-    in_root sh -c "cd /build/src && NORI_EMULATED=qemu-aarch64 cargo test --locked --release --no-fail-fast -p nori-tests ${tests[*]}"
+    in_root sh -c "cd /build/src && NORI_EMULATED=qemu-aarch64 cargo test --locked --release --no-fail-fast -p nori-tests ${tests[*]} -- $filter"
   fi
   say "every test above ran as an arm64 process under qemu-aarch64"
 }
@@ -182,7 +183,7 @@ run_tests() {
 case "${1:-}" in
   root) make_root ;;
   build) build ;;
-  test) run_tests "${2:-both}" ;;
+  test) run_tests "${2:-both}" "${3:-}" ;;
   all) make_root && build && run_tests ;;
-  *) sed -n '2,20p' "$0" | sed 's/^# \{0,1\}//' >&2; exit 2 ;;
+  *) sed -n '2,17p' "$0" | sed 's/^# \{0,1\}//' >&2; exit 2 ;;
 esac

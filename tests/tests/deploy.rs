@@ -271,3 +271,56 @@ fn every_unit_runs_a_binary_the_robot_package_ships() {
     }
     assert!(programs >= 8, "{programs} units with an ExecStart found");
 }
+
+/// The units as the maintainer scripts list them (`nori_units="..."` in
+/// deploy/deb/maintainer-common.sh), in the order the postinst starts them again.
+fn maintainer_units() -> Vec<String> {
+    let text = std::fs::read_to_string(deploy().join("deb/maintainer-common.sh")).unwrap();
+    let start = text.find("nori_units=\"").expect("nori_units=\"...\"") + "nori_units=\"".len();
+    let end = start + text[start..].find('"').unwrap();
+    text[start..end]
+        .split_whitespace()
+        .map(str::to_string)
+        .collect()
+}
+
+#[test]
+fn the_maintainer_scripts_start_the_units_in_an_order_their_after_lines_allow() {
+    let order = maintainer_units();
+    let mut files = 0;
+    for entry in std::fs::read_dir(deploy().join("systemd"))
+        .unwrap()
+        .flatten()
+    {
+        let file = entry.file_name().to_string_lossy().into_owned();
+        if !(file.ends_with(".service") || file.ends_with(".target")) {
+            continue;
+        }
+        files += 1;
+        // A template stands for each of its instances the scripts name.
+        let names: Vec<&String> = order
+            .iter()
+            .filter(|u| {
+                **u == file || file.ends_with("@.service") && u.starts_with(&file[..file.len() - 8])
+            })
+            .collect();
+        assert!(!names.is_empty(), "{file} is not in nori_units");
+        let text = std::fs::read_to_string(entry.path()).unwrap();
+        let after = text
+            .lines()
+            .filter_map(|l| l.strip_prefix("After="))
+            .flat_map(str::split_whitespace);
+        for partner in after.filter(|p| p.starts_with("nori")) {
+            let at = |u: &str| order.iter().position(|o| o == u);
+            let partner_at =
+                at(partner).unwrap_or_else(|| panic!("{file}: After={partner}, not in nori_units"));
+            for name in &names {
+                assert!(
+                    partner_at < at(name).unwrap(),
+                    "{name} comes before {partner} in nori_units, but starts after it"
+                );
+            }
+        }
+    }
+    assert!(files >= 9, "{files} unit files");
+}
