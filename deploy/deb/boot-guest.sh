@@ -113,12 +113,12 @@ change_to() {
   else
     [ $rc = 0 ] || { cat "/tmp/$2.log"; fail "$2: dpkg -i $1"; }
     [ "$(installed)" = "$1" ] || fail "$2: $1 not installed"
-    replaced_while_down "$ran"
   fi
-  stopped_since "$ran" "$t0"
   sleep 3 # a new process that dies at once shows by now
   systemctl -q is-active boot-check-sim || fail "the simulator stopped during $2"
   [ "$(running)" = "$ran" ] || fail "ran: $ran; runs after $2: $(running)"
+  stopped_since "$ran" "$t0"
+  [ "${3:-}" = fails ] || replaced_while_down "$ran"
   [ ! -e "$record" ] || fail "the restart record outlived $2"
   [ "$(sums)" = "$kept" ] || fail "$2 changed the edited configuration or the trip record"
   nothing_old_runs
