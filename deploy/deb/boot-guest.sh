@@ -39,8 +39,8 @@ trap 'fail "line $LINENO: $BASH_COMMAND"' ERR
 dpkg_i() { dpkg -i --force-confold "/debs/nori-robot_$1_amd64.deb" "/debs/nori-sim_$1_amd64.deb" >"/tmp/$2.log" 2>&1; }
 said() { grep -qF -- "$2" "/tmp/$1.log" || { cat "/tmp/$1.log"; fail "$1 did not say: $2"; }; }
 installed() { dpkg-query -W -f '${Version}' nori-robot; }
-# The nori units that run or are about to (the maintainer scripts' own rule,
-# deploy/deb/maintainer-common.sh).
+# The nori units that run or are about to: the rule of deploy/deb/maintainer-common.sh, written
+# again here on purpose (a check that sourced the scripts' rule could not catch it wrong).
 running() { systemctl list-units --state=active,activating,deactivating,reloading --plain --no-legend 'nori-*.service' | awk '{print $1}' | sort | tr '\n' ' '; }
 record=/run/nori/restart-after-upgrade
 sums() { sha256sum /etc/nori/supervisor.toml /var/lib/nori/trips; }

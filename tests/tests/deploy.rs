@@ -234,15 +234,24 @@ impl Drop for KillOnDrop {
     }
 }
 
+/// The words a shell file under deploy/ assigns between `open` and `close` (`name=(` … `)`, or
+/// `name="` … `"`, over lines).
+fn shell_words(file: &str, open: &str, close: char) -> Vec<String> {
+    let text = std::fs::read_to_string(deploy().join(file)).unwrap();
+    let start = text
+        .find(open)
+        .unwrap_or_else(|| panic!("{file} sets {open}..."))
+        + open.len();
+    let end = start + text[start..].find(close).unwrap();
+    text[start..end]
+        .split_whitespace()
+        .map(str::to_string)
+        .collect()
+}
+
 /// The list deploy/binaries.sh gives the packages and the arm64 build (`robot_bins=(...)`).
 fn robot_binaries() -> Vec<String> {
-    let text = std::fs::read_to_string(deploy().join("binaries.sh")).unwrap();
-    let list = text
-        .lines()
-        .find_map(|l| l.strip_prefix("robot_bins=("))
-        .and_then(|l| l.strip_suffix(')'))
-        .expect("deploy/binaries.sh sets robot_bins=(...)");
-    list.split_whitespace().map(str::to_string).collect()
+    shell_words("binaries.sh", "robot_bins=(", ')')
 }
 
 #[test]
@@ -275,13 +284,7 @@ fn every_unit_runs_a_binary_the_robot_package_ships() {
 /// The units as the maintainer scripts list them (`nori_units="..."` in
 /// deploy/deb/maintainer-common.sh), in the order the postinst starts them again.
 fn maintainer_units() -> Vec<String> {
-    let text = std::fs::read_to_string(deploy().join("deb/maintainer-common.sh")).unwrap();
-    let start = text.find("nori_units=\"").expect("nori_units=\"...\"") + "nori_units=\"".len();
-    let end = start + text[start..].find('"').unwrap();
-    text[start..end]
-        .split_whitespace()
-        .map(str::to_string)
-        .collect()
+    shell_words("deb/maintainer-common.sh", "nori_units=\"", '"')
 }
 
 #[test]
